@@ -1,0 +1,33 @@
+"""Exception types of mi-lidar.
+
+Every error names the offending value and says what to do about it. All derive from
+:class:`MiLidarError` so callers can catch the family at once.
+"""
+
+
+class MiLidarError(Exception):
+    """Base class of every error raised by mi-lidar."""
+
+
+class SetupError(MiLidarError):
+    """The environment cannot run mi-lidar (missing LLVM, scalar variant, ...)."""
+
+
+class ParameterError(MiLidarError, ValueError):
+    """A plugin, pattern or effect parameter is out of range or unknown."""
+
+
+class PatternError(ParameterError):
+    """A firing pattern name or table is invalid."""
+
+
+class PoseError(ParameterError):
+    """A sensor pose is not finite or not a rigid transform."""
+
+
+class SceneError(MiLidarError):
+    """A scene file cannot be loaded or holds invalid elements."""
+
+
+class LogFormatError(MiLidarError):
+    """A log or scan file is unreadable, truncated, empty or of an unknown version."""
