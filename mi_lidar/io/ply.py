@@ -1,0 +1,117 @@
+"""PLY point clouds (binary little-endian or ASCII) via ``plyfile``.
+
+One ``vertex`` element holds float32 ``x y z`` plus one property per attribute. PLY knows the
+types int8/16/32, uint8/16/32, float32 and float64, so those attribute dtypes round-trip exactly;
+bool attributes are stored as uint8 and int64/uint64 ones as int32/uint32 when every value fits
+(they read back with the narrower dtype); anything else is rejected with a clear message.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import plyfile
+
+from ..errors import LogFormatError
+from ._atomic import atomic_path
+
+_PLY_KINDS = {np.dtype(t) for t in ("i1", "u1", "i2", "u2", "i4", "u4", "f4", "f8")}
+_COORDS = ("x", "y", "z")
+
+
+def _ply_dtype(name: str, values: np.ndarray) -> np.dtype:
+    """The PLY-storable dtype for attribute ``name`` (see the module docstring)."""
+    dtype = values.dtype
+    if dtype.newbyteorder("=") in _PLY_KINDS:
+        return dtype.newbyteorder("=")
+    if dtype == bool:
+        return np.dtype("u1")
+    for wide, narrow in (("i8", "i4"), ("u8", "u4")):
+        if dtype == np.dtype(wide):
+            info = np.iinfo(narrow)
+            if values.size == 0 or (values.min() >= info.min and values.max() <= info.max):
+                return np.dtype(narrow)
+            raise ValueError(f"PLY attribute {name!r}: {dtype} values exceed the {narrow} range PLY supports")
+    raise ValueError(f"PLY attribute {name!r} has dtype {dtype}; PLY stores only int/uint 8-32 bit and float32/64")
+
+
+def write_ply(
+    path: str | os.PathLike,
+    points: np.ndarray,
+    attributes: dict[str, np.ndarray] | None = None,
+    binary: bool = True,
+) -> Path:
+    """Write points and per-point attributes as a PLY ``vertex`` element, atomically.
+
+    Args:
+        path: Destination ``.ply`` file.
+        points: (N, 3) coordinates (m), stored as float32 ``x y z``.
+        attributes: Name -> (N,) array per point (e.g. ``intensity``, ``ring``); dtypes kept.
+        binary: Binary little-endian when True, ASCII otherwise.
+
+    Returns:
+        The destination path.
+
+    Raises:
+        ValueError: Wrong shapes, a name clash with ``x y z``, or a dtype PLY cannot store.
+    """
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"write_ply: points have shape {points.shape}; expected (N, 3)")
+    attributes = dict(attributes or {})
+    fields = [(c, "f4") for c in _COORDS]
+    for name, values in attributes.items():
+        values = np.asarray(values)
+        if name in _COORDS:
+            raise ValueError(f"write_ply: attribute name {name!r} clashes with a coordinate")
+        if values.shape != (len(points),):
+            raise ValueError(f"write_ply: attribute {name!r} has shape {values.shape}; expected ({len(points)},)")
+        fields.append((name, _ply_dtype(name, values).str))
+    vertex = np.empty(len(points), dtype=fields)
+    for i, c in enumerate(_COORDS):
+        vertex[c] = points[:, i]
+    for name, values in attributes.items():
+        vertex[name] = values
+    element = plyfile.PlyElement.describe(vertex, "vertex")
+    with atomic_path(path) as tmp:
+        plyfile.PlyData([element], text=not binary, byte_order="<").write(str(tmp))
+    return Path(path)
+
+
+def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Read the ``vertex`` element of a PLY file.
+
+    Args:
+        path: A ``.ply`` file (ASCII or binary).
+
+    Returns:
+        ``(points, attributes)``: (N, 3) float32 coordinates and name -> (N,) arrays with the
+        stored dtypes (native byte order).
+
+    Raises:
+        LogFormatError: Missing, truncated or malformed file, or no ``vertex`` element with
+            ``x y z`` properties.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise LogFormatError(f"{path}: no such PLY file")
+    try:
+        data = plyfile.PlyData.read(str(path))
+        vertex = data["vertex"].data
+    except KeyError as exc:
+        raise LogFormatError(f"{path}: no 'vertex' element; expected a point cloud") from exc
+    except Exception as exc:  # plyfile raises PlyParseError, ValueError, struct errors, ...
+        raise LogFormatError(f"{path}: not a readable PLY file ({type(exc).__name__}: {exc})") from exc
+    names = vertex.dtype.names or ()
+    missing = [c for c in _COORDS if c not in names]
+    if missing:
+        raise LogFormatError(f"{path}: vertex element lacks properties {missing}; expected x y z")
+    points = np.stack([vertex[c] for c in _COORDS], axis=1).astype(np.float32)
+    attributes = {
+        n: np.ascontiguousarray(vertex[n]).astype(vertex.dtype[n].newbyteorder("="))
+        for n in names
+        if n not in _COORDS
+    }
+    return points, attributes

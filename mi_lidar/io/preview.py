@@ -1,0 +1,117 @@
+"""Quick-look PNG images of scans: range images and bird's-eye views.
+
+Figures are drawn with matplotlib's object API on an Agg canvas, so no global backend is
+changed and no display is needed.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib import colormaps
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch
+from matplotlib.ticker import MaxNLocator
+
+from ._atomic import atomic_path
+
+MISS_COLOUR = "#ff00ff"
+FIGURE_WIDTH_IN = 12.0
+DPI = 110
+ROW_HEIGHT_IN = 0.1
+
+
+def _save(figure: Figure, path: str | os.PathLike) -> Path:
+    """Render ``figure`` to PNG at ``path`` atomically."""
+    FigureCanvasAgg(figure)
+    with atomic_path(path) as tmp:
+        figure.savefig(tmp, format="png", dpi=DPI)
+    return Path(path)
+
+
+def range_image_png(
+    path: str | os.PathLike,
+    ranges: np.ndarray,
+    title: str = "range image",
+    hit: np.ndarray | None = None,
+) -> Path:
+    """Draw an (H, W) range image with a colour bar in metres and misses in magenta.
+
+    Rows are beams (top row = first beam), columns are firings. Rows are stretched so that thin
+    images stay readable: a 16 x 1800 or 32 x 1024 image is drawn 12 inches wide, and each
+    beam is about 11 pixels tall (0.1 inch per row, image height clipped to 1.5..8 inches).
+
+    Args:
+        path: Destination ``.png``.
+        ranges: (H, W) ranges (m); NaN marks a miss.
+        title: Figure title.
+        hit: Optional (H, W) bool; False marks a miss as well.
+
+    Returns:
+        The destination path.
+    """
+    ranges = np.asarray(ranges, dtype=np.float64)
+    if ranges.ndim != 2:
+        raise ValueError(f"range_image_png: ranges have shape {ranges.shape}; expected (H, W)")
+    miss = ~np.isfinite(ranges)
+    if hit is not None:
+        miss |= ~np.asarray(hit, dtype=bool)
+    rows, cols = ranges.shape
+    image_height_in = float(np.clip(rows * ROW_HEIGHT_IN, 1.5, 8.0))
+    figure = Figure(figsize=(FIGURE_WIDTH_IN, image_height_in + 1.4))
+    axes = figure.add_subplot()
+    cmap = colormaps["viridis"].with_extremes(bad=MISS_COLOUR)
+    shown = np.ma.masked_array(ranges, mask=miss)
+    image = axes.imshow(shown, cmap=cmap, aspect="auto", interpolation="nearest")
+    colour_bar = figure.colorbar(image, ax=axes, pad=0.01, fraction=0.04)
+    colour_bar.set_label("range (m)")
+    axes.set_xlabel("firing (column)")
+    axes.set_ylabel("beam (row)")
+    axes.yaxis.set_major_locator(MaxNLocator(integer=True))
+    axes.set_title(f"{title}  ({rows} x {cols}, {miss.mean():.1%} misses)" if miss.size else title)
+    axes.legend(handles=[Patch(color=MISS_COLOUR, label="miss (no return)")], loc="upper right", fontsize=8)
+    figure.tight_layout()
+    return _save(figure, path)
+
+
+def birds_eye_png(
+    path: str | os.PathLike,
+    points: np.ndarray,
+    values: np.ndarray | None = None,
+    title: str = "bird's-eye view",
+    value_label: str = "value",
+) -> Path:
+    """Draw points from above (x right, y up) with equal axes in metres.
+
+    Args:
+        path: Destination ``.png``.
+        points: (N, 3) points (m); rows with a non-finite coordinate (misses) are skipped.
+        values: Optional (N,) colour values; the height ``z`` is used when None.
+        title: Figure title.
+        value_label: Colour bar label when ``values`` is given.
+
+    Returns:
+        The destination path.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"birds_eye_png: points have shape {points.shape}; expected (N, 3)")
+    colour = points[:, 2] if values is None else np.asarray(values, dtype=np.float64)
+    if colour.shape != (len(points),):
+        raise ValueError(f"birds_eye_png: values have shape {colour.shape}; expected ({len(points)},)")
+    keep = np.isfinite(points).all(axis=1) & np.isfinite(colour)
+    figure = Figure(figsize=(8.0, 7.0))
+    axes = figure.add_subplot()
+    scatter = axes.scatter(points[keep, 0], points[keep, 1], c=colour[keep], s=1.0, cmap="viridis", linewidths=0)
+    colour_bar = figure.colorbar(scatter, ax=axes)
+    colour_bar.set_label("height z (m)" if values is None else value_label)
+    axes.set_aspect("equal", adjustable="datalim")
+    axes.set_xlabel("x (m)")
+    axes.set_ylabel("y (m)")
+    axes.set_title(f"{title}  ({int(keep.sum())} points)")
+    axes.grid(True, linewidth=0.3)
+    figure.tight_layout()
+    return _save(figure, path)

@@ -1,0 +1,61 @@
+import numpy as np
+import pytest
+
+from mi_lidar.errors import LogFormatError, PoseError
+from mi_lidar.io import read_kitti_poses, read_pose_matrices, write_kitti_poses
+
+
+def _poses(n=5):
+    angles = np.linspace(0, 2, n)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, 0, 0] = poses[:, 1, 1] = np.cos(angles)
+    poses[:, 0, 1], poses[:, 1, 0] = -np.sin(angles), np.sin(angles)
+    poses[:, :3, 3] = np.arange(3 * n).reshape(n, 3)
+    return poses
+
+
+def test_kitti_round_trip(tmp_path):
+    poses = _poses()
+    path = write_kitti_poses(tmp_path / "00.txt", poses)
+    assert len(path.read_text().splitlines()) == 5
+    assert all(len(line.split()) == 12 for line in path.read_text().splitlines())
+    np.testing.assert_allclose(read_kitti_poses(path), poses, atol=1e-12)
+
+
+def test_matrices_npy_and_text(tmp_path):
+    poses = _poses(3)
+    np.save(tmp_path / "p.npy", poses)
+    np.testing.assert_array_equal(read_pose_matrices(tmp_path / "p.npy"), poses)
+    np.savetxt(tmp_path / "p.txt", poses.reshape(3, 16))
+    np.testing.assert_allclose(read_pose_matrices(tmp_path / "p.txt"), poses)
+
+
+@pytest.mark.parametrize(
+    "corrupt, message",
+    [
+        (lambda p: p.__setitem__((2, 0, 3), np.nan), "pose 2 .*non-finite"),
+        (lambda p: p.__setitem__((1, 0, 0), 1.1), "pose 1 .*orthonormal"),
+        (lambda p: p.__setitem__((3, slice(0, 3), 0), -p[3, :3, 0]), "pose 3 .*determinant"),
+        (lambda p: p.__setitem__((4, 3, 0), 0.5), r"pose 4 .*last row"),
+    ],
+)
+def test_invalid_pose_named(tmp_path, corrupt, message):
+    poses = _poses()
+    corrupt(poses)
+    path = tmp_path / "bad.npy"
+    np.save(path, poses)
+    with pytest.raises(PoseError, match=f"bad.npy: {message}"):
+        read_pose_matrices(path)
+
+
+def test_malformed_text(tmp_path):
+    path = tmp_path / "p.txt"
+    path.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0\n")
+    with pytest.raises(LogFormatError, match="line 2 has 3 numbers; expected 12"):
+        read_kitti_poses(path)
+    path.write_text("")
+    with pytest.raises(LogFormatError, match="no poses"):
+        read_kitti_poses(path)
+    with pytest.raises(PoseError, match="pose 0"):
+        write_kitti_poses(tmp_path / "o.txt", np.zeros((1, 4, 4)))
+    assert not (tmp_path / "o.txt").exists()

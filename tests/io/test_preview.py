@@ -1,0 +1,46 @@
+import numpy as np
+import pytest
+from matplotlib.image import imread
+
+from mi_lidar.io import birds_eye_png, range_image_png
+
+
+@pytest.mark.parametrize("shape", [(16, 1800), (32, 1024), (1, 180)])
+def test_range_image_png(tmp_path, shape):
+    rng = np.random.default_rng(3)
+    ranges = rng.uniform(1, 50, shape).astype(np.float32)
+    ranges[rng.random(shape) < 0.2] = np.nan
+    path = range_image_png(tmp_path / "r.png", ranges, title="test")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    image = imread(path)
+    height, width = image.shape[:2]
+    assert 1000 <= width <= 1600
+    assert 250 <= height <= 1200
+    assert height / width < 0.6
+    magenta = (image[..., 0] > 0.95) & (image[..., 1] < 0.05) & (image[..., 2] > 0.95)
+    assert magenta.sum() > 100
+    assert [p.name for p in tmp_path.iterdir()] == ["r.png"]
+
+
+def test_range_image_uses_hit_mask(tmp_path):
+    ranges = np.full((16, 200), 10.0)
+    hit = np.ones_like(ranges, bool)
+    path_all = range_image_png(tmp_path / "a.png", ranges)
+    hit[:, :100] = False
+    path_half = range_image_png(tmp_path / "b.png", ranges, hit=hit)
+    magenta = lambda im: ((im[..., 0] > 0.95) & (im[..., 1] < 0.05) & (im[..., 2] > 0.95)).sum()
+    assert magenta(imread(path_half)) > magenta(imread(path_all)) + 10000
+
+
+def test_birds_eye_png(tmp_path):
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-20, 20, (5000, 3))
+    points[:10] = np.nan
+    path = birds_eye_png(tmp_path / "b.png", points, title="bev")
+    image = imread(path)
+    assert image.shape[0] >= 500 and image.shape[1] >= 500
+    assert image[..., :3].std() > 0.05
+    path2 = birds_eye_png(tmp_path / "c.png", points, values=np.arange(5000.0), value_label="index")
+    assert path2.stat().st_size > 10000
+    with pytest.raises(ValueError, match="values"):
+        birds_eye_png(tmp_path / "d.png", points, values=np.arange(3.0))
