@@ -1,7 +1,8 @@
 """mi-lidar: Lidar simulation for robot application development on Mitsuba 3 / Dr.Jit.
 
 Importing the package finds a suitable LLVM, activates the ``llvm_ad_rgb`` variant (or
-``$MI_LIDAR_VARIANT``) unless a JIT variant is already active, and registers the plugins.
+``$MI_LIDAR_VARIANT``) unless a JIT variant is already active, and registers the plugins
+(``lidar`` sensor, ``lidar_integrator``, ``lidar_material``).
 """
 
 from ._variant import configure_llvm
@@ -15,6 +16,10 @@ from ._variant import select_variant  # noqa: E402
 __version__ = "0.1.0"
 VARIANT = select_variant(mi)
 
+from . import plugins  # noqa: E402,F401  (registers the plugins)
 from .log import Log  # noqa: E402
+from .scene import load_scene  # noqa: E402
+from .sensor_model import CHANNELS, SensorModel  # noqa: E402
+from .simulate import simulate  # noqa: E402
 
-__all__ = ["Log", "VARIANT", "__version__"]
+__all__ = ["CHANNELS", "Log", "SensorModel", "VARIANT", "__version__", "load_scene", "simulate"]

@@ -17,8 +17,6 @@ Per-shape values (used where a per-element value is absent) go in a nested
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
@@ -26,24 +24,10 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 from plyfile import PlyData, PlyElement
 
+from .atomic import atomic_write
 from .errors import ParameterError
 
 ELEMENT_ATTRIBUTES = ("p_hit", "range_sigma", "label")
-
-
-def atomic_write_bytes(path: str | os.PathLike, write) -> Path:
-    """Call ``write(stream)`` on a temporary file next to ``path``, then rename it to ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as stream:
-            write(stream)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def _element_columns(n: int, p_hit, range_sigma, label) -> list[tuple[str, np.ndarray]]:
@@ -86,7 +70,7 @@ def write_mesh_ply(path, vertices, faces, p_hit=None, range_sigma=None, label=No
     for name, values in columns:
         face[name] = values
     ply = PlyData([PlyElement.describe(vert, "vertex"), PlyElement.describe(face, "face")], text=False)
-    return atomic_write_bytes(path, ply.write)
+    return atomic_write(path, ply.write)
 
 
 def write_ellipsoids_ply(path, centers, scales, quaternions, p_hit=None, range_sigma=None, label=None) -> Path:
@@ -120,7 +104,7 @@ def write_ellipsoids_ply(path, centers, scales, quaternions, p_hit=None, range_s
     norm = np.linalg.norm(quaternions, axis=1, keepdims=True)
     q = quaternions / np.where(norm > 0, norm, 1)
     rows["rot_0"], rows["rot_1"], rows["rot_2"], rows["rot_3"] = q[:, 3], q[:, 0], q[:, 1], q[:, 2]
-    return atomic_write_bytes(path, PlyData([PlyElement.describe(rows, "vertex")], text=False).write)
+    return atomic_write(path, PlyData([PlyElement.describe(rows, "vertex")], text=False).write)
 
 
 @dataclass
@@ -184,4 +168,4 @@ def write_scene_xml(path, shapes: list[ShapeEntry], header_comment: str = "", ex
         body.append(extra_xml)
     body.append("</scene>\n")
     text = "\n".join(body).encode()
-    return atomic_write_bytes(path, lambda stream: stream.write(text))
+    return atomic_write(path, lambda stream: stream.write(text))

@@ -1,0 +1,106 @@
+"""``lidar_material``: per-shape Lidar properties, nested in a shape as its BSDF."""
+
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+
+from mi_lidar.errors import ParameterError
+
+
+class LidarMaterial(mi.BSDF):
+    r"""
+    Lidar material (:monosp:`lidar_material`)
+    -----------------------------------------
+
+    .. pluginparameters::
+
+     * - p_hit
+       - |float|
+       - Probability (0 to 1) that the element returns a beam that meets it; otherwise the beam
+         passes through (permeable vegetation, glass, dust). Default: 1 (opaque). Differentiable
+         through :class:`mi_lidar.elements.ElementTable`.
+     * - range_sigma
+       - |float|
+       - Standard deviation (m) of the range returned by this shape's triangles. Default: the
+         sensor's ``range_sigma``. Ellipsoids return their own Gaussian restricted to the ray.
+     * - label
+       - |int|
+       - Class label reported for returns from this shape (>= 0). Default: 0.
+     * - reflectance
+       - |float|
+       - Diffuse albedo (0 to 1) seen by cameras, so one scene serves camera and Lidar. Default: 0.5.
+
+    Per-element values stored in the shape's PLY (``p_hit_0``, ``range_sigma_0``, ``label_0``)
+    take precedence over these per-shape values.
+
+    .. tabs::
+
+        .. code-tab:: xml
+
+            <shape type="ply" id="hedge">
+                <string name="filename" value="hedge.ply"/>
+                <bsdf type="lidar_material">
+                    <float name="p_hit" value="0.3"/>
+                    <integer name="label" value="4"/>
+                </bsdf>
+            </shape>
+
+        .. code-tab:: python
+
+            {'type': 'lidar_material', 'p_hit': 0.3, 'label': 4}
+    """
+
+    def __init__(self, props: mi.Properties):
+        super().__init__(props)
+        self.p_hit = float(props.get("p_hit", 1.0))
+        self.range_sigma = float(props.get("range_sigma", math.nan))
+        self.label = int(props.get("label", 0))
+        self.reflectance = float(props.get("reflectance", 0.5))
+        checks = [
+            ("p_hit", self.p_hit, 0.0 <= self.p_hit <= 1.0, "[0, 1]"),
+            ("range_sigma", self.range_sigma, math.isnan(self.range_sigma) or self.range_sigma >= 0, ">= 0 m"),
+            ("label", self.label, self.label >= 0, ">= 0"),
+            ("reflectance", self.reflectance, 0.0 <= self.reflectance <= 1.0, "[0, 1]"),
+        ]
+        for name, value, ok, allowed in checks:
+            if not ok:
+                raise ParameterError(f"lidar_material: {name}={value} is outside {allowed}; fix the value in the scene")
+        self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
+        self.m_components = [self.m_flags]
+
+    def sample(self, ctx, si, sample1, sample2, active=True):
+        cos_i = mi.Frame3f.cos_theta(si.wi)
+        bs = mi.BSDFSample3f()
+        bs.wo = mi.warp.square_to_cosine_hemisphere(sample2)
+        bs.pdf = mi.warp.square_to_cosine_hemisphere_pdf(bs.wo)
+        bs.eta = 1.0
+        bs.sampled_type = mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
+        bs.sampled_component = mi.UInt32(0)
+        ok = active & (cos_i > 0) & (bs.pdf > 0)
+        return bs, dr.select(ok, mi.Spectrum(self.reflectance), 0.0)
+
+    def eval(self, ctx, si, wo, active=True):
+        ok = active & (mi.Frame3f.cos_theta(si.wi) > 0) & (mi.Frame3f.cos_theta(wo) > 0)
+        return dr.select(ok, mi.Spectrum(self.reflectance * dr.inv_pi) * mi.Frame3f.cos_theta(wo), 0.0)
+
+    def pdf(self, ctx, si, wo, active=True):
+        ok = active & (mi.Frame3f.cos_theta(si.wi) > 0) & (mi.Frame3f.cos_theta(wo) > 0)
+        return dr.select(ok, mi.warp.square_to_cosine_hemisphere_pdf(wo), 0.0)
+
+    def eval_pdf(self, ctx, si, wo, active=True):
+        return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
+
+    def eval_attribute_1(self, name, si, active=True):
+        values = {"p_hit": self.p_hit, "range_sigma": self.range_sigma, "label": float(self.label)}
+        if name not in values:
+            raise ParameterError(f"lidar_material has no attribute {name!r}; use one of {sorted(values)}")
+        return mi.Float(values[name])
+
+    def to_string(self):
+        return f"LidarMaterial[p_hit={self.p_hit}, range_sigma={self.range_sigma}, label={self.label}]"
+
+
+mi.register_bsdf("lidar_material", lambda props: LidarMaterial(props))
