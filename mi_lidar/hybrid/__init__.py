@@ -1,0 +1,14 @@
+"""Hybrid geometric off-road scenes (thesis ch. 4.3): synthetic worlds, fitting, primitives.
+
+Pipeline, as a list of verbs::
+
+    log = world.render_log(world.make_world(seed), path_poses(...))   # a labeled "real" log
+    ground_mask = ground.segment_ground(points, params)               # eqs. 4.1-4.2
+    model = fit.fit_model(log, params)                                # triangles + ellipsoids in blocks
+    library = primitives.extract_primitives(model, log)               # objects at identity pose
+    scene = compose.compose_scene(annotation, library, ground)        # a new scene
+    sim = raycast.simulate_model(scene, rays, seed)                   # hybrid ray caster
+    table = evaluate.observation_metrics(log, sim)                    # thesis table 4.3
+
+Scenes are written as Mitsuba XML + PLY with :mod:`mi_lidar.scene_files`.
+"""
