@@ -103,7 +103,7 @@ class SensorModel:
             ``cos_incidence``, ``nominal_range`` (m, NaN for a miss) and ``segments`` (elements
             traversed, including the one that returned).
         """
-        n = dr.width(rays.ray_id)
+        n = rays.width
         out = {
             "range": dr.full(mi.Float, dr.nan, n), "hit": dr.full(mi.Bool, False, n),
             "element_id": dr.full(mi.UInt32, NO_ELEMENT, n), "shape_id": dr.full(mi.UInt32, NO_ELEMENT, n),

@@ -77,6 +77,20 @@ class RayBatch:
     time: mi.Float
     ray_id: mi.UInt32
 
+    def __post_init__(self):
+        """Broadcast fields given with one lane (a shared origin, say) to the batch width."""
+        fields = ("origin", "direction", "beam", "time", "ray_id")
+        n = max(dr.width(getattr(self, f)) for f in fields)
+        for f in fields:
+            value = getattr(self, f)
+            if dr.width(value) == 1 and n > 1:
+                setattr(self, f, dr.gather(type(value), value, dr.zeros(mi.UInt32, n)))
+
+    @property
+    def width(self) -> int:
+        """Number of rays."""
+        return dr.width(self.ray_id)
+
     def take(self, index: mi.UInt32) -> "RayBatch":
         """The sub-batch of lanes ``index``."""
         return RayBatch(

@@ -1,0 +1,112 @@
+"""Bad input gets a clear error that names the value and the fix."""
+
+import numpy as np
+import pytest
+
+import mi_lidar
+from mi_lidar.effects import parse_effects
+from mi_lidar.errors import ParameterError, PatternError, PoseError, SceneError
+from mi_lidar.poses import validate_poses
+
+from .conftest import SCENES
+
+SENSOR = '<sensor type="lidar"><string name="pattern" value="planar-180"/></sensor>'
+
+
+def scene_xml(body: str) -> str:
+    return f'<scene version="3.0.0">{SENSOR}{body}</scene>'
+
+
+def write(tmp_path, text: str):
+    path = tmp_path / "scene.xml"
+    path.write_text(text)
+    return path
+
+
+def test_unknown_pattern_names_the_pattern_and_choices():
+    with pytest.raises(PatternError, match=r"velodyne-99.*vlp16"):
+        mi_lidar.simulate(mi_lidar.load_scene(SCENES / "indoor_planar.xml"), "velodyne-99")
+
+
+def test_unknown_pattern_in_xml(tmp_path):
+    text = scene_xml("").replace("planar-180", "no-such-lidar")
+    with pytest.raises(SceneError, match="no-such-lidar"):
+        mi_lidar.load_scene(write(tmp_path, text))
+
+
+@pytest.mark.parametrize("value", ["1.5", "-0.1"])
+def test_hit_probability_outside_unit_interval(tmp_path, value):
+    body = f'<shape type="sphere" id="ball"><bsdf type="lidar_material"><float name="p_hit" value="{value}"/></bsdf></shape>'
+    with pytest.raises(SceneError, match=rf"p_hit={float(value)}.*\[0, 1\]"):
+        mi_lidar.load_scene(write(tmp_path, scene_xml(body)))
+
+
+def test_negative_sigma(tmp_path):
+    body = '<shape type="sphere" id="ball"><bsdf type="lidar_material"><float name="range_sigma" value="-0.01"/></bsdf></shape>'
+    with pytest.raises(SceneError, match=r"range_sigma=-0.01"):
+        mi_lidar.load_scene(write(tmp_path, scene_xml(body)))
+
+
+def test_negative_sensor_sigma_and_bad_ranges(tmp_path):
+    text = scene_xml("").replace("</sensor>", '<float name="min_range" value="5"/><float name="max_range" value="2"/></sensor>')
+    with pytest.raises(SceneError, match=r"min_range=5.0, max_range=2.0"):
+        mi_lidar.load_scene(write(tmp_path, text))
+
+
+def test_malformed_xml(tmp_path):
+    with pytest.raises(SceneError, match="scene.xml"):
+        mi_lidar.load_scene(write(tmp_path, '<scene version="3.0.0"><shape type="sphere"></scene>'))
+
+
+def test_unknown_property_is_named(tmp_path):
+    body = '<shape type="sphere" id="ball"><bsdf type="lidar_material"><float name="p_hitt" value="0.5"/></bsdf></shape>'
+    with pytest.raises(SceneError, match="p_hitt"):
+        mi_lidar.load_scene(write(tmp_path, scene_xml(body)))
+
+
+def test_integrator_named_like_the_sensor_gets_a_hint(tmp_path):
+    text = scene_xml('<integrator type="lidar"/>')
+    with pytest.raises(SceneError, match="lidar_integrator"):
+        mi_lidar.load_scene(write(tmp_path, text))
+
+
+def test_missing_scene_file(tmp_path):
+    with pytest.raises(SceneError, match="no such scene file"):
+        mi_lidar.load_scene(tmp_path / "absent.xml")
+
+
+def test_nan_pose():
+    pose = np.eye(4)
+    pose[0, 3] = np.nan
+    with pytest.raises(PoseError, match="pose 0 has non-finite"):
+        validate_poses(pose)
+
+
+def test_non_rigid_pose():
+    pose = np.diag([2.0, 1.0, 1.0, 1.0])
+    with pytest.raises(PoseError, match="pose 1 is not rigid"):
+        validate_poses(np.stack([np.eye(4), pose]))
+
+
+def test_simulate_rejects_bad_pose_before_tracing():
+    scene = mi_lidar.load_scene(SCENES / "indoor_planar.xml")
+    with pytest.raises(PoseError):
+        mi_lidar.simulate(scene, "planar-180", poses=np.full((4, 4), np.nan))
+
+
+@pytest.mark.parametrize("spec,match", [
+    ("no_such_effect()", "unknown effect 'no_such_effect'"),
+    ("range_noise(law=cubic)", "law='cubic'"),
+    ("range_noise(sigma0=-1)", "sigma0=-1"),
+    ("range_noise(sigmaa=1)", r"unknown parameter\(s\) \['sigmaa'\]"),
+    ("range_noise(sigma0=1", "missing '\\)'"),
+])
+def test_bad_effect_specs(spec, match):
+    with pytest.raises(ParameterError, match=match):
+        parse_effects(spec)
+
+
+def test_max_segments_out_of_range(tmp_path):
+    text = scene_xml('<integrator type="lidar_integrator"><integer name="max_segments" value="0"/></integrator>')
+    with pytest.raises(SceneError, match="max_segments=0"):
+        mi_lidar.load_scene(write(tmp_path, text))

@@ -1,0 +1,118 @@
+"""Every bundled XML scene loads, renders, and obeys the physics it was built to show."""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+from scipy import stats
+
+import mi_lidar
+from mi_lidar.channels import tensor_to_numpy
+
+from .conftest import SCENES
+
+SCENE_FILES = sorted(SCENES.glob("*.xml"))
+
+
+@pytest.mark.parametrize("path", SCENE_FILES, ids=[p.stem for p in SCENE_FILES])
+def test_scene_loads_and_renders(path):
+    scene = mi_lidar.load_scene(path)
+    channels = tensor_to_numpy(mi.render(scene, seed=0))
+    height, width = channels["range"].shape
+    sensor = scene.sensors()[0]
+    assert (height, width) == sensor.pattern.shape
+    hit = channels["hit"]
+    assert hit.any()
+    assert np.all(np.isfinite(channels["range"][hit])) and np.all(np.isnan(channels["range"][~hit]))
+    assert np.all(channels["shape_id"][~hit] == -1) and np.all(channels["shape_id"][hit] >= 0)
+    assert np.all((channels["cos_incidence"][hit] >= 0) & (channels["cos_incidence"][hit] <= 1.0001))
+
+
+def test_indoor_wall_range_within_noise():
+    # The sensor is at the origin; the east wall's inner face is at x = 5 m; sigma = 0.01 m.
+    scene = mi_lidar.load_scene(SCENES / "indoor_planar.xml")
+    pattern = scene.sensors()[0].pattern
+    forward = int(np.argmax(pattern.directions()[0, :, 0]))
+    ranges = np.array([mi_lidar.simulate(scene, pattern, seed=s).ranges[0, 0, forward] for s in range(40)])
+    # Mean of 40 draws: standard error 0.0016 m; allow 4 standard errors plus float32 rounding.
+    assert abs(ranges.mean() - 5.0) < 0.007
+    assert 0.006 < ranges.std() < 0.014
+
+
+def test_layer_pass_fraction_is_binomial():
+    scene = mi_lidar.load_scene(SCENES / "permeable_layers.xml")
+    channels = tensor_to_numpy(mi.render(scene, seed=3))
+    n = channels["hit"].size
+    passed = np.mean(channels["label"] != 1)
+    # Binomial(n, 0.7): 4 standard deviations.
+    assert abs(passed - 0.7) < 4 * np.sqrt(0.21 / n)
+
+
+@pytest.mark.parametrize("probabilities", [(0.3, 0.5, 0.2), (0.6, 0.1, 0.9)])
+def test_first_return_frequencies_match_pass_through_law(probabilities):
+    scene = mi_lidar.load_scene(SCENES / "permeable_layers.xml", p1=probabilities[0], p2=probabilities[1],
+                                p3=probabilities[2])
+    counts = np.zeros(4)
+    for seed in range(4):
+        labels = tensor_to_numpy(mi.render(scene, seed=seed))["label"].ravel()
+        counts += np.bincount(labels, minlength=5)[1:5]
+    p = np.array(probabilities)
+    expected = np.array([p[0], (1 - p[0]) * p[1], (1 - p[0]) * (1 - p[1]) * p[2], np.prod(1 - p)])
+    chi2 = stats.chisquare(counts, expected * counts.sum())
+    assert chi2.pvalue > 1e-3, (counts / counts.sum(), expected)
+
+
+def test_offroad_beams_pass_through_vegetation():
+    scene = mi_lidar.load_scene(SCENES / "offroad.xml")
+    log = mi_lidar.simulate(scene, seed=0)
+    labels, segments, hit = log.attributes["label"], log.attributes["segments"], log.hit
+    assert np.any(hit & (labels == 5)) and np.any(hit & (labels == 6))  # shrubs and trees return
+    assert np.any(hit & (labels == 1) & (segments > 1))  # ground seen through vegetation
+
+
+def test_urban_street_labels():
+    scene = mi_lidar.load_scene(SCENES / "urban_street.xml")
+    labels = tensor_to_numpy(mi.render(scene, seed=0))
+    seen = set(np.unique(labels["label"][labels["hit"]]))
+    assert {1, 2, 3, 4, 6} <= seen
+
+
+def test_render_and_simulate_agree_ray_for_ray():
+    scene = mi_lidar.load_scene(SCENES / "offroad.xml")
+    rendered = tensor_to_numpy(mi.render(scene, seed=11))
+    log = mi_lidar.simulate(scene, seed=11)
+    np.testing.assert_array_equal(rendered["hit"], log.hit[0])
+    np.testing.assert_allclose(rendered["range"], log.ranges[0], rtol=1e-6, equal_nan=True)
+    np.testing.assert_array_equal(rendered["element_id"], log.attributes["element_id"][0])
+
+
+def test_same_seed_identical_different_seeds_independent():
+    scene = mi_lidar.load_scene(SCENES / "permeable_layers.xml")
+    a, b, c = (tensor_to_numpy(mi.render(scene, seed=s)) for s in (5, 5, 6))
+    np.testing.assert_array_equal(a["range"], b["range"])
+    same_layer = a["label"] == c["label"]
+    # Independent draws agree on the layer with probability sum_k P_k^2 = 0.3^2+0.35^2+0.07^2+0.28^2 = 0.3074.
+    assert abs(same_layer.mean() - 0.3074) < 0.02
+    noise_a = (a["range"] - a["nominal_range"])[same_layer & (a["label"] == 4)]
+    noise_c = (c["range"] - c["nominal_range"])[same_layer & (a["label"] == 4)]
+    assert abs(np.corrcoef(noise_a, noise_c)[0, 1]) < 0.05
+
+
+def test_ellipsoid_returns_match_element_statistics():
+    # Rays along +x through the centre of one ellipsoid (sigma_x = 0.5 m at x = 10 m, extent 3):
+    # returns follow N(10, 0.5^2) truncated to [8.5, 11.5] (std 0.5 * 0.9866).
+    scene = mi.load_dict({"type": "scene", "veg": {
+        "type": "ellipsoids", "centers": mi.TensorXf(np.array([[10.0, 0, 0]], np.float32)),
+        "scales": mi.TensorXf(np.array([[0.5, 0.3, 0.3]], np.float32)),
+        "quaternions": mi.TensorXf(np.array([[0, 0, 0, 1.0]], np.float32))}})
+    from mi_lidar.effects import RayBatch
+    from mi_lidar.elements import ElementTable
+
+    n = 100_000
+    rays = RayBatch(origin=mi.Point3f(0, 0, 0), direction=mi.Vector3f(1, 0, 0), beam=dr.zeros(mi.UInt32, n),
+                    time=dr.zeros(mi.Float, n), ray_id=dr.arange(mi.UInt32, n))
+    out = mi_lidar.SensorModel().simulate_rays(scene, ElementTable.from_scene(scene), rays, seed=2)
+    z = np.asarray(out["range"])
+    ref = stats.truncnorm(-3, 3, loc=10.0, scale=0.5)
+    assert stats.kstest(z, ref.cdf).statistic < 0.007  # 0.1% KS critical value at n = 1e5 is 0.0062
+    assert np.all(np.asarray(out["nominal_range"]) < 8.51)
