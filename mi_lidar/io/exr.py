@@ -9,6 +9,7 @@ value exactly, and rejected otherwise.
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -16,6 +17,7 @@ import numpy as np
 import OpenEXR
 
 from ..errors import LogFormatError
+from ..log import Log
 from ._atomic import atomic_path
 
 _UINT_MAX = np.iinfo(np.uint32).max
@@ -43,13 +45,14 @@ def _storage_array(name: str, array: np.ndarray) -> np.ndarray:
     raise ValueError(f"EXR channel {name!r} has dtype {array.dtype}; expected a float, integer or bool array")
 
 
-def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray]) -> Path:
+def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], metadata: dict[str, str] | None = None) -> Path:
     """Write named (H, W) channels to a ZIP-compressed scanline EXR, atomically.
 
     Args:
         path: Destination ``.exr`` file (written to a temporary file, then renamed).
         channels: Channel name -> (H, W) array; every channel must have the same shape.
             Floats become ``FLOAT`` (float32), non-negative integers and bools ``UINT``.
+        metadata: Optional extra string attributes stored in the EXR header.
 
     Returns:
         The destination path.
@@ -64,20 +67,23 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray]) -> Path:
     if len(shapes) != 1:
         raise ValueError(f"EXR channels have different shapes {sorted(shapes)}; all must be (H, W)")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header.update({key: str(value) for key, value in (metadata or {}).items()})
     with atomic_path(path) as tmp:
         with OpenEXR.File(header, {k: np.ascontiguousarray(v) for k, v in stored.items()}) as exr:
             exr.write(str(tmp))
     return Path(path)
 
 
-def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
+def read_exr(path: str | os.PathLike, with_metadata: bool = False):
     """Read every channel of an EXR file.
 
     Args:
         path: An ``.exr`` file.
+        with_metadata: Also return the header's string attributes.
 
     Returns:
-        Channel name -> (H, W) array (float32 for FLOAT, uint32 for UINT, float16 for HALF).
+        Channel name -> (H, W) array (float32 for FLOAT, uint32 for UINT, float16 for HALF); with
+        ``with_metadata``, the pair ``(channels, metadata)``.
 
     Raises:
         LogFormatError: The file is missing, truncated or not an EXR image.
@@ -87,6 +93,68 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
         raise LogFormatError(f"{path}: no such EXR file")
     try:
         with OpenEXR.File(str(path), separate_channels=True) as exr:
-            return {name: np.array(channel.pixels) for name, channel in exr.channels().items()}
+            channels = {name: np.array(channel.pixels) for name, channel in exr.channels().items()}
+            metadata = {k: v for k, v in exr.header().items() if isinstance(v, str)}
     except Exception as exc:  # OpenEXR raises plain RuntimeError/Exception subclasses.
         raise LogFormatError(f"{path}: not a readable EXR image ({exc})") from exc
+    return (channels, metadata) if with_metadata else channels
+
+
+def write_exr_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
+    """Write one scan as a float32 EXR range image.
+
+    Channels: ``range`` (m, NaN = miss), ``hit`` (UINT), ``elevation`` and ``azimuth`` (rad, from
+    the ray directions), ``time`` (s since the scan's first ray), ``origin.x/y/z`` (m) when any
+    origin is non-zero, and every numeric attribute as ``attr.<name>``. The header holds the
+    scan's start time, pose and sensor metadata as JSON strings.
+    """
+    one = log.scan(scan)
+    direction = one.directions[0].astype(np.float64)
+    times = one.times[0]
+    channels = {
+        "range": np.where(one.hit[0], one.ranges[0], np.nan).astype(np.float32), "hit": one.hit[0],
+        "elevation": np.arcsin(np.clip(direction[..., 2], -1, 1)), "azimuth": np.arctan2(direction[..., 1], direction[..., 0]),
+        "time": times - times.min(),
+    }
+    if np.any(one.origins != 0):
+        channels.update({f"origin.{a}": one.origins[0, ..., i] for i, a in enumerate("xyz")})
+    channels.update({f"attr.{k}": v[0] for k, v in one.attributes.items() if np.asarray(v).dtype.kind in "biuf"})
+    metadata = {
+        "mi_lidar_start_time": repr(float(times.min())), "mi_lidar_pose": json.dumps(one.poses[0].tolist()),
+        "mi_lidar_sensor": json.dumps(one.sensor, default=str),
+    }
+    return write_exr(path, channels, metadata)
+
+
+def read_exr_log(path: str | os.PathLike) -> Log:
+    """Read an EXR range image written by :func:`write_exr_log` as a one-scan log.
+
+    Raises:
+        LogFormatError: Unreadable file or missing ``range``/``elevation``/``azimuth`` channels.
+    """
+    channels, metadata = read_exr(path, with_metadata=True)
+    missing = [c for c in ("range", "elevation", "azimuth") if c not in channels]
+    if missing:
+        raise LogFormatError(f"{path}: EXR lacks channels {missing}; expected an mi-lidar range image")
+    try:
+        start = float(metadata.get("mi_lidar_start_time", "0"))
+        pose = np.array(json.loads(metadata.get("mi_lidar_pose", "null")) or np.eye(4).tolist(), dtype=np.float64)
+        sensor = json.loads(metadata.get("mi_lidar_sensor", "{}"))
+    except (ValueError, TypeError) as exc:
+        raise LogFormatError(f"{path}: malformed mi_lidar header attribute ({exc})") from exc
+    if pose.shape != (4, 4) or not isinstance(sensor, dict):
+        raise LogFormatError(f"{path}: mi_lidar_pose must be a 4x4 matrix and mi_lidar_sensor an object")
+    ranges = channels["range"].astype(np.float32)
+    hit = channels["hit"].astype(bool) & np.isfinite(ranges) if "hit" in channels else np.isfinite(ranges)
+    elevation, azimuth = channels["elevation"].astype(np.float64), channels["azimuth"].astype(np.float64)
+    directions = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], -1)
+    origins = None
+    if all(f"origin.{a}" in channels for a in "xyz"):
+        origins = np.stack([channels[f"origin.{a}"] for a in "xyz"], axis=-1)[None]
+    times = start + channels.get("time", np.zeros_like(ranges)).astype(np.float64)
+    return Log(
+        poses=pose[None], directions=directions[None], origins=origins,
+        ranges=np.where(hit, ranges, np.nan)[None], hit=hit[None], times=times[None],
+        attributes={k[len("attr."):]: v[None] for k, v in channels.items() if k.startswith("attr.")},
+        sensor={**sensor, "source": str(path)},
+    )

@@ -12,7 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import LogFormatError
+from ..log import Log
 from ._atomic import atomic_path
+from .cloud import cloud_from_log, log_from_points
 
 
 def write_kitti_bin(path: str | os.PathLike, points: np.ndarray, intensity: np.ndarray | None = None) -> Path:
@@ -67,3 +69,48 @@ def read_kitti_bin(path: str | os.PathLike, columns: int = 4) -> np.ndarray:
             f"the file is truncated at byte {size - size % record} or has a different column count"
         )
     return np.fromfile(path, dtype="<f4").reshape(-1, columns).astype(np.float32)
+
+
+NUSCENES_MIN_RANGE = 1.0
+
+
+def read_bin_log(path: str | os.PathLike, columns: int | None = None, min_range: float | None = None) -> Log:
+    """Read a KITTI or nuScenes ``.bin`` scan as a one-scan log.
+
+    Args:
+        path: The ``.bin`` file.
+        columns: 4 (KITTI) or 5 (nuScenes, with ring ids); guessed when None: 5 for names ending
+            in ``.pcd.bin`` or sizes that only divide into 20-byte records, else 4.
+        min_range: Points closer than this are misses (m); default 1.0 for nuScenes (its near-origin
+            points are ego-vehicle hits and no-return placeholders), 0 for KITTI.
+
+    Returns:
+        KITTI: ``H = 1``, ``W = N`` in file order. nuScenes: one row per ring (highest on top),
+        columns in firing order. ``attributes['intensity']`` holds the intensity column.
+
+    Raises:
+        LogFormatError: As :func:`read_kitti_bin`, or ring ids that are not small integers.
+    """
+    path = Path(path)
+    if columns is None:
+        size = path.stat().st_size if path.is_file() else 0
+        nuscenes = path.name.endswith(".pcd.bin") or (size % 20 == 0 and size % 16 != 0)
+        columns = 5 if nuscenes else 4
+    records = read_kitti_bin(path, columns)
+    if min_range is None:
+        min_range = NUSCENES_MIN_RANGE if columns == 5 else 0.0
+    ring = None
+    if columns == 5:
+        ring = records[:, 4]
+        if len(ring) and not (np.all(ring == np.round(ring)) and ring.min() >= 0 and ring.max() < 1024):
+            raise LogFormatError(f"{path}: column 5 (ring) holds non-integer or out-of-range values; not a nuScenes scan?")
+    return log_from_points(
+        records[:, :3], {"intensity": records[:, 3]}, ring=ring, min_range=min_range,
+        sensor={"name": "nuscenes" if columns == 5 else "kitti", "source": str(path), "min_range_m": min_range},
+    )
+
+
+def write_bin_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
+    """Write the hits of one scan as a KITTI ``.bin`` (x y z intensity; misses cannot be stored)."""
+    cloud = cloud_from_log(log, scan)
+    return write_kitti_bin(path, np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1), cloud["intensity"])

@@ -15,7 +15,9 @@ import numpy as np
 import plyfile
 
 from ..errors import LogFormatError
+from ..log import Log
 from ._atomic import atomic_path
+from .cloud import cloud_from_log, log_from_fields
 
 _PLY_KINDS = {np.dtype(t) for t in ("i1", "u1", "i2", "u2", "i4", "u4", "f4", "f8")}
 _COORDS = ("x", "y", "z")
@@ -115,3 +117,17 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, np.ndarray]
         if n not in _COORDS
     }
     return points, attributes
+
+
+def write_ply_log(log: Log, path: str | os.PathLike, scan: int = 0, binary: bool = True) -> Path:
+    """Write the hits of one scan with the standard fields ``x y z intensity ring column time``."""
+    cloud = cloud_from_log(log, scan)
+    points = np.stack([cloud.pop(c) for c in _COORDS], axis=1)
+    return write_ply(path, points, cloud, binary=binary)
+
+
+def read_ply_log(path: str | os.PathLike, min_range: float = 0.0) -> Log:
+    """Read a PLY point cloud as a one-scan log (ring grid when ``ring`` is a property, else H = 1)."""
+    points, attributes = read_ply(path)
+    fields = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2], **attributes}
+    return log_from_fields(fields, min_range=min_range, sensor={"name": "ply", "source": str(path)})

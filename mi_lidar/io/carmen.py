@@ -1,0 +1,119 @@
+"""CARMEN planar laser logs (``FLASER`` / ``RLASER`` messages, plain or gzip) -> :class:`~mi_lidar.log.Log`.
+
+A message line is ``FLASER n r_0 .. r_{n-1} x y theta odom_x odom_y odom_theta ipc_timestamp host
+logger_timestamp``; ``x y theta`` is the (in corrected logs, SLAM-corrected) laser pose in the
+map frame (m, rad). Each message becomes one scan with ``H = 1`` and ``W = n``:
+
+- beam ``i`` points at ``-pi/2 + i * pi / n`` in the laser frame (``pi / (n - 1)`` when ``n`` is
+  odd, e.g. 181 or 361 beams covering 180 deg inclusive), in the horizontal plane;
+- the pose is the planar transform (rotation ``theta`` about z, translation ``(x, y, 0)``);
+- a reading at or above ``max_range`` (the SICK maximum, 81.83 m in the Intel log) is a miss;
+- beam ``i`` is timed ``ipc_timestamp + i * sweep_s / n`` (SICK LMS 2xx: 180 deg of a 75 Hz
+  mirror revolution, ``sweep_s = 1 / 150`` s).
+
+Attributes: ``odometry`` is not per-ray, so the raw odometry poses go to
+``sensor['odometry']`` ((S, 3) list of x, y, theta).
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import LogFormatError
+from ..log import Log
+
+SICK_MAX_RANGE = 81.83
+SICK_SWEEP_S = 1.0 / 150.0
+
+
+def _lines(path: Path) -> list[str]:
+    """Decoded text lines of a plain or gzip-compressed file."""
+    raw = path.read_bytes()
+    if raw[:2] == b"\x1f\x8b":
+        try:
+            raw = gzip.decompress(raw)
+        except (OSError, EOFError, zlib.error) as exc:
+            raise LogFormatError(f"{path}: corrupt or truncated gzip stream ({exc})") from exc
+    return raw.decode("utf-8", errors="replace").splitlines()
+
+
+def beam_angles(n: int) -> np.ndarray:
+    """(n,) beam angles (rad) in the laser frame for an ``n``-beam 180-degree CARMEN scan."""
+    step = np.pi / (n - 1) if n % 2 else np.pi / n
+    return -np.pi / 2 + np.arange(n) * step
+
+
+def read_carmen(
+    path: str | os.PathLike,
+    message: str = "FLASER",
+    max_range: float = SICK_MAX_RANGE,
+    sweep_s: float = SICK_SWEEP_S,
+) -> Log:
+    """Read every ``message`` line of a CARMEN log.
+
+    Args:
+        path: ``.log`` or ``.log.gz`` file.
+        message: ``"FLASER"`` (front laser) or ``"RLASER"`` (rear laser).
+        max_range: Readings ``>= max_range - 5 mm`` are misses (m).
+        sweep_s: Time for the mirror to sweep the 180-degree field (s).
+
+    Returns:
+        A log of S scans, ``H = 1``, ``W = n`` beams, world poses from the corrected pose fields.
+
+    Raises:
+        LogFormatError: Missing/corrupt file, no ``message`` lines, a line with the wrong number
+            of fields or a non-numeric value (line number named), or scans of different ``n``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise LogFormatError(f"{path}: no such CARMEN log")
+    rows, widths, numbers = [], set(), []
+    for number, line in enumerate(_lines(path), start=1):
+        tokens = line.split()
+        if not tokens or tokens[0] != message:
+            continue
+        try:
+            n = int(tokens[1])
+            if n <= 1:
+                raise ValueError(f"beam count {n} must be > 1")
+            values = np.array(tokens[2:2 + n + 7], dtype=np.float64)
+        except (IndexError, ValueError) as exc:
+            raise LogFormatError(f"{path}: line {number}: malformed {message} message ({exc})") from exc
+        if len(values) != n + 7 or len(tokens) < n + 10:
+            raise LogFormatError(
+                f"{path}: line {number}: {message} with n={n} needs {n + 10} fields; found {len(tokens)} (truncated?)"
+            )
+        rows.append(values)
+        widths.add(n)
+        numbers.append(number)
+    if not rows:
+        raise LogFormatError(f"{path}: no {message} messages; is this a CARMEN log?")
+    if len(widths) != 1:
+        raise LogFormatError(f"{path}: {message} scans have different beam counts {sorted(widths)}")
+    n = widths.pop()
+    table = np.stack(rows)
+    if not np.isfinite(table).all():
+        bad = int(np.argmax(~np.isfinite(table).all(axis=1)))
+        raise LogFormatError(f"{path}: line {numbers[bad]}: non-finite value in a {message} message")
+    readings, pose, odometry, stamp = table[:, :n], table[:, n:n + 3], table[:, n + 3:n + 6], table[:, n + 6]
+    hit = (readings < max_range - 0.005) & (readings > 0)
+    angles = beam_angles(n)
+    directions = np.stack([np.cos(angles), np.sin(angles), np.zeros(n)], axis=-1)[None, None]
+    poses = np.tile(np.eye(4), (len(table), 1, 1))
+    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+    poses[:, 0, 0], poses[:, 0, 1], poses[:, 1, 0], poses[:, 1, 1] = c, -s, s, c
+    poses[:, :2, 3] = pose[:, :2]
+    times = stamp[:, None, None] + (np.arange(n) * sweep_s / n)[None, None, :]
+    return Log(
+        poses=poses, directions=directions, ranges=np.where(hit, readings, np.nan)[:, None, :],
+        hit=hit[:, None, :], times=times,
+        sensor={
+            "name": f"carmen:{message}", "source": str(path), "max_range_m": max_range,
+            "beam_angles_rad": angles.tolist(), "odometry": odometry.tolist(), "range_unit": "m",
+        },
+    )

@@ -1,0 +1,263 @@
+"""Conversions between point clouds and :class:`~mi_lidar.log.Log` range images.
+
+Point-cloud formats (KITTI/nuScenes ``.bin``, PLY, PCD, LAS, ROS ``PointCloud2``) carry points,
+not rays. :func:`log_from_points` rebuilds the ray grid:
+
+- with a ``ring`` field: one row per ring id, highest-elevation ring on top (rows are flipped when
+  the median elevation grows with the ring id, the Velodyne/ROS convention); within a ring the
+  column is the ``column`` field when present, otherwise the point's order of appearance (the
+  firing order for nuScenes and Velodyne drivers). Grid cells no point fills have
+  ``attributes['valid']`` False;
+- without a ring field: one row, ``H = 1`` and ``W = N``, in file order.
+
+The sensor sits at the origin; the range is the point's distance and its direction the unit
+vector to it. Points that are not finite or closer than ``min_range`` are misses (``hit`` False,
+range NaN) kept in the grid, never dropped. A miss has no trustworthy direction, so it gets the
+estimated pattern direction: its row's median elevation and its column's mean azimuth (columns
+without any return are interpolated from their neighbours).
+
+:func:`cloud_from_log` goes the other way and defines the standard fields every writer uses:
+``x y z`` (float32, m, sensor frame), ``intensity`` (float32, from the ``intensity``,
+``reflectivity`` or ``signal`` attribute, else 0), ``ring`` (uint16, ``H - 1 - row``: ring 0 is
+the lowest beam), ``column`` (uint32) and ``time`` (float32, s since the scan's first ray).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import LogFormatError
+from ..log import Log
+
+MAX_EMPTY_CELLS = 1 << 22
+INTENSITY_SOURCES = ("intensity", "reflectivity", "signal")
+STANDARD_FIELDS = ("x", "y", "z", "intensity", "ring", "column", "time")
+
+
+def _grid_indices(count: int, ring: np.ndarray | None, column: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Row and column of each point, and the grid size ``(H, W)``."""
+    if ring is None:
+        return np.zeros(count, dtype=np.int64), np.arange(count), 1, max(count, 1)
+    ring = np.asarray(ring).astype(np.int64)
+    if column is None:
+        order = np.argsort(ring, kind="stable")
+        sorted_ring = ring[order]
+        starts = np.searchsorted(sorted_ring, sorted_ring, side="left")
+        column = np.empty(count, dtype=np.int64)
+        column[order] = np.arange(count) - starts
+    column = np.asarray(column).astype(np.int64)
+    height = int(ring.max()) + 1 if count else 1
+    width = int(column.max()) + 1 if count else 1
+    return ring, column, height, width
+
+
+def _fill_gaps(values: np.ndarray, known: np.ndarray, default: float) -> np.ndarray:
+    """Linearly interpolate ``values`` where ``known`` is False (1-D)."""
+    if not known.any():
+        return np.full(values.shape, default)
+    index = np.arange(len(values))
+    return np.interp(index, index[known], values[known])
+
+
+def estimated_directions(directions: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """(H, W, 3) pattern directions estimated from the hit rays of one scan.
+
+    Row elevation = median elevation of the row's hits; column azimuth = circular mean of the
+    column's hit azimuths after removing each row's median azimuth offset; rows and columns
+    without hits are interpolated from their neighbours.
+    """
+    elevation = np.arcsin(np.clip(directions[..., 2], -1, 1))
+    azimuth = np.arctan2(directions[..., 1], directions[..., 0])
+    masked = np.where(hit, elevation, np.nan)
+    row_known = hit.any(axis=1)
+    row_elevation = _fill_gaps(np.nanmedian(np.where(row_known[:, None], masked, 0.0), axis=1), row_known, 0.0)
+    unit = np.where(hit, np.exp(1j * azimuth), 0)
+    column_known = hit.any(axis=0)
+    column_mean = np.angle(unit.sum(axis=0))
+    unwrapped = np.unwrap(np.where(column_known, column_mean, 0.0)[column_known]) if column_known.any() else np.zeros(0)
+    filled = np.zeros(hit.shape[1])
+    if column_known.any():
+        filled[column_known] = unwrapped
+        filled = _fill_gaps(filled, column_known, 0.0)
+    row_offset = np.angle(np.where(hit, np.exp(1j * (azimuth - filled[None, :])), 0).sum(axis=1))
+    alpha = filled[None, :] + row_offset[:, None]
+    omega = np.broadcast_to(row_elevation[:, None], alpha.shape)
+    return np.stack([np.cos(omega) * np.cos(alpha), np.cos(omega) * np.sin(alpha), np.sin(omega)], axis=-1)
+
+
+def log_from_points(
+    points: np.ndarray,
+    attributes: dict[str, np.ndarray] | None = None,
+    ring: np.ndarray | None = None,
+    column: np.ndarray | None = None,
+    times: np.ndarray | None = None,
+    min_range: float = 0.0,
+    sensor: dict | None = None,
+    pose: np.ndarray | None = None,
+) -> Log:
+    """Build a one-scan log from a point cloud (see the module docstring for the layout).
+
+    Args:
+        points: (N, 3) points (m) in the sensor frame.
+        attributes: Name -> (N,) per-point values, copied into the grid (0 where no point).
+        ring: Optional (N,) ring ids (non-negative integers).
+        column: Optional (N,) column indices within each ring (needs ``ring``).
+        times: Optional (N,) absolute point times (s); grid cells without a point get the
+            earliest time.
+        min_range: Points closer than this (m) are misses (e.g. 1.0 for nuScenes).
+        sensor: Metadata stored in ``Log.sensor``.
+        pose: (4, 4) sensor-to-world pose; identity when None.
+
+    Returns:
+        A log with ``S = 1``.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    count = len(points)
+    source = (sensor or {}).get("source", "point cloud")
+    for name, values in (("ring", ring), ("column", column)):
+        if values is not None and count:
+            values = np.asarray(values)
+            if not (np.isfinite(values).all() and values.min() >= 0 and np.all(values == np.round(values))):
+                raise LogFormatError(f"{source}: field {name!r} must hold non-negative integers")
+    row, col, height, width = _grid_indices(count, ring, column if ring is not None else None)
+    if height * width > count + MAX_EMPTY_CELLS:
+        raise LogFormatError(
+            f"{source}: ring/column fields describe a {height} x {width} grid for only {count} points; corrupt fields?"
+        )
+    if ring is not None and len(np.unique(row * width + col)) != count:
+        raise LogFormatError(f"{source}: two points share a (ring, column) cell; ring/column fields are inconsistent")
+    distance = np.linalg.norm(points, axis=1)
+    finite = np.isfinite(distance)
+    point_hit = finite & (distance >= min_range) & (distance > 0)
+    point_dir = np.where(point_hit[:, None], points / np.where(point_hit, distance, 1.0)[:, None], 0.0)
+
+    valid = np.zeros((height, width), dtype=bool)
+    hit = np.zeros((height, width), dtype=bool)
+    ranges = np.full((height, width), np.nan)
+    directions = np.zeros((height, width, 3))
+    valid[row, col] = True
+    hit[row, col] = point_hit
+    ranges[row, col] = np.where(point_hit, distance, np.nan)
+    directions[row, col] = point_dir
+    if ring is not None and height > 1:
+        elevation = np.where(hit, np.arcsin(np.clip(directions[..., 2], -1, 1)), np.nan)
+        known = hit.any(axis=1)
+        medians = np.nanmedian(np.where(known[:, None], elevation, 0.0), axis=1)[known]
+        flip = len(medians) > 1 and np.corrcoef(np.flatnonzero(known), medians)[0, 1] > 0
+    else:
+        flip = False
+    estimate = estimated_directions(directions, hit)
+    directions = np.where(hit[..., None], directions, estimate)
+    cell_times = np.zeros((height, width))
+    if times is not None and count:
+        times = np.asarray(times, dtype=np.float64)
+        cell_times[:] = np.nanmin(times)
+        cell_times[row, col] = times
+    grid_attributes = {}
+    for name, values in (attributes or {}).items():
+        values = np.asarray(values)
+        grid = np.zeros((height, width), dtype=values.dtype)
+        grid[row, col] = values
+        grid_attributes[name] = grid
+    if ring is not None:
+        ring_grid = np.broadcast_to(np.arange(height, dtype=np.uint16)[:, None], (height, width))
+        grid_attributes["ring"] = ring_grid.copy()
+    grid_attributes["valid"] = valid
+    if flip:
+        ranges, hit, directions, cell_times = ranges[::-1], hit[::-1], directions[::-1], cell_times[::-1]
+        grid_attributes = {k: v[::-1] for k, v in grid_attributes.items()}
+    return Log(
+        poses=(np.eye(4) if pose is None else np.asarray(pose))[None], directions=directions[None],
+        ranges=ranges[None], hit=hit[None], times=cell_times[None],
+        attributes={k: np.ascontiguousarray(v)[None] for k, v in grid_attributes.items()},
+        sensor={"layout": "ring grid" if ring is not None else "points (H=1, W=N)", **(sensor or {})},
+    )
+
+
+def cloud_from_log(log: Log, scan: int = 0, organized: bool = False) -> dict[str, np.ndarray]:
+    """The standard point fields of one scan (see the module docstring).
+
+    Args:
+        log: Any log.
+        scan: Scan index.
+        organized: When True return all ``H * W`` rays row-major, misses as NaN ``x y z``;
+            otherwise only the hits.
+
+    Returns:
+        Field name -> (N,) array, in :data:`STANDARD_FIELDS` order.
+    """
+    one = log.scan(scan)
+    _, height, width = one.shape
+    points = one.points_sensor()[0]
+    keep = np.ones((height, width), dtype=bool) if organized else one.hit[0]
+    intensity = next((one.attributes[n][0] for n in INTENSITY_SOURCES if n in one.attributes), np.zeros((height, width)))
+    rows, cols = np.indices((height, width))
+    times = one.times[0]
+    return {
+        "x": points[..., 0][keep].astype(np.float32),
+        "y": points[..., 1][keep].astype(np.float32),
+        "z": points[..., 2][keep].astype(np.float32),
+        "intensity": np.asarray(intensity, dtype=np.float32)[keep],
+        "ring": (height - 1 - rows)[keep].astype(np.uint16),
+        "column": cols[keep].astype(np.uint32),
+        "time": (times - times.min())[keep].astype(np.float32),
+    }
+
+
+def log_from_fields(fields: dict[str, np.ndarray], min_range: float = 0.0, sensor: dict | None = None,
+                    start_time: float = 0.0) -> Log:
+    """A one-scan log from named point fields (``x y z`` plus optional standard fields).
+
+    ``ring`` and ``column`` fields select the grid layout; a ``time``/``t``/``timestamp`` field
+    (s, relative to ``start_time``) becomes the ray times; ``intensity`` and any other numeric
+    field become attributes.
+    """
+    points = np.stack([np.asarray(fields[c], dtype=np.float64) for c in ("x", "y", "z")], axis=1)
+    ring = fields.get("ring")
+    column = fields.get("column") if ring is not None else None
+    time_name = next((n for n in ("time", "t", "timestamp") if n in fields), None)
+    if time_name is None:
+        times = np.full(len(points), start_time)
+    else:
+        times = start_time + np.asarray(fields[time_name], dtype=np.float64)
+    skip = {"x", "y", "z", "ring", "column", time_name}
+    attributes = {k: np.asarray(v) for k, v in fields.items() if k not in skip and np.asarray(v).dtype.kind in "biuf"}
+    return log_from_points(points, attributes, ring=ring, column=column, times=times, min_range=min_range,
+                           sensor=sensor)
+
+
+def stack_scans(logs: list[Log]) -> Log:
+    """Stack one-scan logs into one log, padding smaller grids with invalid miss cells.
+
+    Padded cells have ``hit`` False, ``valid`` False and direction (1, 0, 0); attributes missing
+    from some scans are dropped, except ``valid``.
+    """
+    height = max(log.shape[1] for log in logs)
+    width = max(log.shape[2] for log in logs)
+    names = set.intersection(*(set(log.attributes) for log in logs)) | {"valid"}
+
+    def pad(array: np.ndarray, fill) -> np.ndarray:
+        out = np.full((1, height, width) + array.shape[3:], fill, dtype=array.dtype)
+        out[:, :array.shape[1], :array.shape[2]] = array
+        return out
+
+    pieces = {k: [] for k in ("directions", "origins", "ranges", "hit", "times")}
+    attributes = {n: [] for n in names}
+    for log in logs:
+        pieces["directions"].append(pad(log.directions, 0.0))
+        pieces["origins"].append(pad(log.origins, 0.0))
+        pieces["ranges"].append(pad(log.ranges, np.nan))
+        pieces["hit"].append(pad(log.hit, False))
+        pieces["times"].append(pad(log.times, log.times.min()))
+        for n in names:
+            attributes[n].append(pad(log.attributes.get(n, np.ones(log.shape, bool)), 0))
+    directions = np.concatenate(pieces["directions"])
+    empty = np.linalg.norm(directions, axis=-1) == 0
+    directions[empty] = (1.0, 0.0, 0.0)
+    return Log(
+        poses=np.concatenate([log.poses for log in logs]), directions=directions,
+        origins=np.concatenate(pieces["origins"]), ranges=np.concatenate(pieces["ranges"]),
+        hit=np.concatenate(pieces["hit"]), times=np.concatenate(pieces["times"]),
+        attributes={n: np.concatenate(v) for n, v in attributes.items()},
+        sensor={**logs[0].sensor, "scans": len(logs)},
+    )

@@ -1,0 +1,143 @@
+"""Read and write any supported scan format, chosen by file extension.
+
+=====================================  ===================  =========================================
+extension                              read                 write
+=====================================  ===================  =========================================
+``.npz``                               mi-lidar log         mi-lidar log (all scans)
+``.log``, ``.log.gz``, ``.clf``        CARMEN ``FLASER``    -
+``.pcap``                              Ouster (when a       -
+                                       metadata ``.json``
+                                       sits next to it or
+                                       ``metadata=`` is
+                                       given) or Velodyne
+``.bin``, ``.pcd.bin``                 KITTI / nuScenes     KITTI (hits, x y z intensity)
+``.ply``                               PLY                  PLY (hits, standard fields)
+``.pcd``                               PCD                  PCD (organized H x W, NaN misses)
+``.las``, ``.laz``                     LAS                  LAS 1.4 (hits, extra dims)
+``.bag``; ROS 2 bag folder             ROS 1/2 bag          ROS 2 bag folder (``fmt="rosbag2"``, all
+(``metadata.yaml``), ``.db3``,                              scans, organized PointCloud2)
+``.mcap``
+``.exr``                               EXR range image      EXR range image (float32 channels)
+``.png``                               -                    range-image preview
+=====================================  ===================  =========================================
+
+Single-scan formats write scan ``scan`` (default 0); a log of several scans must name the scan.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from ..errors import LogFormatError
+from ..log import Log
+from . import carmen, exr, kitti, las, ouster, pcd, ply, rosbag, velodyne
+from ._pcap import read_udp
+from .preview import range_image_png
+
+READ_FORMATS = ("npz", "carmen", "ouster", "velodyne", "bin", "ply", "pcd", "las", "rosbag", "exr")
+WRITE_FORMATS = ("npz", "bin", "ply", "pcd", "las", "rosbag2", "exr", "png")
+_SUFFIX_FORMATS = {
+    ".npz": "npz", ".log": "carmen", ".clf": "carmen", ".gz": "carmen", ".bin": "bin", ".ply": "ply",
+    ".pcd": "pcd", ".las": "las", ".laz": "las", ".bag": "rosbag", ".db3": "rosbag", ".mcap": "rosbag",
+    ".exr": "exr", ".png": "png",
+}
+
+
+def detect_format(path: str | os.PathLike, for_writing: bool = False) -> str:
+    """The format name of ``path`` from its extension (and, for ``.pcap``, its packets).
+
+    Raises:
+        LogFormatError: Unknown extension, or a ``.gz`` that is not a CARMEN ``.log.gz``.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".gz" and not path.name.lower().endswith((".log.gz", ".clf.gz")):
+        raise LogFormatError(f"{path}: unknown compressed format; expected a CARMEN .log.gz")
+    if for_writing and suffix in ("", ".bag"):
+        return "rosbag2"
+    if not for_writing and path.is_dir():
+        return "rosbag"
+    if suffix == ".pcap" and not for_writing:
+        return "pcap"
+    if suffix not in _SUFFIX_FORMATS:
+        known = ", ".join(sorted(set(_SUFFIX_FORMATS) | {".pcap"}))
+        raise LogFormatError(f"{path}: unknown extension {suffix!r}; supported: {known} or a ROS 2 bag folder")
+    return _SUFFIX_FORMATS[suffix]
+
+
+def _read_pcap(path: Path, metadata=None, calibration=None, **options) -> Log:
+    """Ouster when metadata is given or sits next to the capture, else Velodyne."""
+    sidecar = path.with_suffix(".json")
+    if metadata is not None or (sidecar.is_file() and calibration is None):
+        return ouster.read_ouster(path, metadata=metadata or sidecar)
+    sizes = {len(p) for p in read_udp(path).payloads}
+    if velodyne.PACKET_SIZE in sizes:
+        return velodyne.read_velodyne(path, calibration=calibration, **options)
+    raise LogFormatError(
+        f"{path}: no Velodyne data packets and no Ouster metadata JSON next to it; pass metadata= "
+        "(Ouster) or calibration= (Velodyne)"
+    )
+
+
+def read_any(path: str | os.PathLike, **options) -> Log:
+    """Read any supported file into a :class:`Log` (see the module table).
+
+    Args:
+        path: The file (or ROS 2 bag folder).
+        **options: Passed to the format's reader, e.g. ``metadata=`` (Ouster), ``calibration=``,
+            ``model=``, ``return_mode=`` (Velodyne), ``min_range=`` (point clouds), ``topic=``
+            (bags), ``columns=`` (``.bin``), ``message=`` (CARMEN).
+
+    Raises:
+        LogFormatError: Unknown format, or any defect the format's reader reports.
+    """
+    path = Path(path)
+    fmt = detect_format(path)
+    if fmt == "png":
+        raise LogFormatError(f"{path}: PNG previews cannot be read back; read the scan's source file")
+    readers = {
+        "npz": Log.load, "carmen": carmen.read_carmen, "bin": kitti.read_bin_log, "ply": ply.read_ply_log,
+        "pcd": pcd.read_pcd_log, "las": las.read_las_log, "rosbag": rosbag.read_rosbag_log,
+        "exr": exr.read_exr_log,
+    }
+    if fmt == "pcap":
+        return _read_pcap(path, **options)
+    return readers[fmt](path, **options)
+
+
+def write_any(log: Log, path: str | os.PathLike, fmt: str | None = None, scan: int | None = None) -> Path:
+    """Write ``log`` in the format ``fmt`` (or the one ``path``'s extension names).
+
+    Args:
+        log: The log.
+        path: Destination file (a folder for ``rosbag2``).
+        fmt: One of :data:`WRITE_FORMATS`; from the extension when None.
+        scan: Scan to write for single-scan formats; required when the log holds several scans.
+
+    Raises:
+        LogFormatError: Unknown or read-only format, or a multi-scan log without ``scan``.
+    """
+    path = Path(path)
+    fmt = fmt or detect_format(path, for_writing=True)
+    if fmt not in WRITE_FORMATS:
+        raise LogFormatError(f"{path}: cannot write format {fmt!r}; writable formats: {', '.join(WRITE_FORMATS)}")
+    if fmt == "npz":
+        return log.save(path)
+    if fmt == "rosbag2":
+        return rosbag.write_rosbag_log(log, path)
+    if scan is None:
+        if log.n_scans != 1:
+            raise LogFormatError(
+                f"{path}: the log holds {log.n_scans} scans and {fmt} holds one; pass scan=<index> "
+                "(--scan) or write a .npz log or a ROS 2 bag"
+            )
+        scan = 0
+    if not -log.n_scans <= scan < log.n_scans:
+        raise LogFormatError(f"{path}: scan {scan} out of range; the log holds {log.n_scans} scans")
+    if fmt == "png":
+        one = log.scan(scan)
+        return range_image_png(path, one.ranges[0], title=f"{one.sensor.get('name', 'scan')} scan {scan}", hit=one.hit[0])
+    writers = {"bin": kitti.write_bin_log, "ply": ply.write_ply_log, "pcd": pcd.write_pcd_log,
+               "las": las.write_las_log, "exr": exr.write_exr_log}
+    return writers[fmt](log, path, scan=scan)

@@ -1,0 +1,79 @@
+"""ASPRS LAS point clouds via ``laspy`` (LAS 1.4, point format 6).
+
+Writing stores the hits of one scan: coordinates at 0.1 mm resolution, ``gps_time`` = the ray's
+absolute time (s), the standard ``intensity`` = intensity rounded and clipped to 0..65535 (for
+viewers), and extra-byte dimensions ``lidar_intensity`` (float32, exact), ``ring`` (uint16) and
+``column`` (uint32) so the ray grid can be rebuilt. Reading uses those extra dimensions when
+present (``H = 1, W = N`` otherwise). Compressed ``.laz`` needs a laspy LAZ backend
+(``pip install 'laspy[lazrs]'``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import laspy
+import numpy as np
+
+from ..errors import LogFormatError
+from ..log import Log
+from ._atomic import atomic_path
+from .cloud import cloud_from_log, log_from_fields
+
+COORDINATE_SCALE = 1e-4
+
+
+def write_las_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
+    """Write the hits of one scan as a LAS 1.4 file, atomically (see the module docstring)."""
+    cloud = cloud_from_log(log, scan)
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.add_extra_dims([
+        laspy.ExtraBytesParams(name="lidar_intensity", type=np.float32),
+        laspy.ExtraBytesParams(name="ring", type=np.uint16),
+        laspy.ExtraBytesParams(name="column", type=np.uint32),
+    ])
+    xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float64)
+    header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
+    header.scales = np.full(3, COORDINATE_SCALE)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.intensity = np.clip(np.round(cloud["intensity"]), 0, 65535).astype(np.uint16)
+    one = log.scan(scan)
+    las.gps_time = one.times[0].min() + cloud["time"].astype(np.float64)
+    las.lidar_intensity = cloud["intensity"]
+    las.ring = cloud["ring"]
+    las.column = cloud["column"]
+    with atomic_path(path) as tmp:
+        las.write(str(tmp))
+    return Path(path)
+
+
+def read_las_log(path: str | os.PathLike, min_range: float = 0.0) -> Log:
+    """Read a LAS/LAZ file as a one-scan log.
+
+    Raises:
+        LogFormatError: Missing, truncated or malformed file, or LAZ without a backend.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise LogFormatError(f"{path}: no such LAS file")
+    try:
+        las = laspy.read(str(path))
+        names = set(las.point_format.dimension_names)
+        fields = {"x": np.asarray(las.x), "y": np.asarray(las.y), "z": np.asarray(las.z)}
+        fields["intensity"] = np.asarray(las["lidar_intensity"] if "lidar_intensity" in names else las.intensity,
+                                         dtype=np.float32)
+        for name in ("ring", "column"):
+            if name in names:
+                fields[name] = np.asarray(las[name])
+        start = 0.0
+        if "gps_time" in names and len(las.gps_time):
+            start = float(np.min(las.gps_time))
+            fields["time"] = np.asarray(las.gps_time) - start
+    except LogFormatError:
+        raise
+    except Exception as exc:  # laspy raises LaspyException, ValueError, struct and IO errors.
+        hint = " (.laz needs `pip install 'laspy[lazrs]'`)" if path.suffix.lower() == ".laz" else ""
+        raise LogFormatError(f"{path}: not a readable LAS file ({type(exc).__name__}: {exc}){hint}") from exc
+    return log_from_fields(fields, min_range=min_range, sensor={"name": "las", "source": str(path)}, start_time=start)

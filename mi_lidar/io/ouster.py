@@ -1,0 +1,329 @@
+"""Ouster lidar pcap captures + sensor metadata JSON -> :class:`~mi_lidar.log.Log`.
+
+Supported UDP lidar profiles: ``LEGACY`` (firmware <= 2.1), ``RNG19_RFL8_SIG16_NIR16``,
+``RNG19_RFL8_SIG16_NIR16_DUAL`` and ``RNG15_RFL8_NIR8``. Metadata may be the legacy flat JSON
+(``beam_altitude_angles`` at top level, ``data_format``) or the newer nested one
+(``beam_intrinsics``, ``lidar_intrinsics``, ``lidar_data_format``, ``config_params``).
+
+The log is **destaggered**: row ``u`` is beam ``u`` (top row = highest beam), column ``v`` is an
+azimuth bin, and pixel ``(u, v)`` holds the measurement of column
+``(v - pixel_shift_by_row[u]) mod W`` of the packet stream (the measurement id). Every pixel's
+direction, origin and time follow the vendor's geometry exactly: with encoder angle
+``enc = 2 pi (1 - m / W)`` for measurement id ``m``, beam azimuth ``az`` and altitude ``alt``,
+
+    direction = (cos(enc - az) cos(alt), sin(enc - az) cos(alt), sin(alt))
+    origin    = n (cos enc, sin enc, 0) - n direction          (n = lidar_origin_to_beam_origin)
+
+both mapped through ``lidar_to_sensor_transform``, so ``origin + range * direction`` is the
+SDK's Cartesian point and ``ranges`` are the sensor's reported ranges (m), not shortened by
+``n``. Range 0 (no return), columns missing from the capture and columns whose status flags them
+invalid are misses (``hit`` False, range NaN); ``attributes['valid']`` is False for the last two.
+
+Attributes (S, H, W): ``range_mm`` (uint32, the raw masked range in mm), ``reflectivity``,
+``signal``, ``near_ir`` (and ``range2_mm``, ``reflectivity2``, ``signal2`` for the dual profile),
+``valid``. Use :func:`restagger` on ``range_mm`` to get the SDK's ``LidarScan.field(RANGE)``
+array, whose MD5 is the vendor digest.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import LogFormatError
+from ..log import Log
+from ._pcap import read_udp
+
+
+@dataclass(frozen=True)
+class _Field:
+    """One per-pixel field: byte offset in the pixel block, dtype, bit mask, left shift."""
+
+    offset: int
+    dtype: str
+    mask: int = 0
+    shift: int = 0
+
+
+@dataclass(frozen=True)
+class _Profile:
+    """Byte layout of one UDP lidar profile (sizes in bytes)."""
+
+    packet_header: int
+    column_header: int
+    pixel: int
+    column_footer: int
+    packet_footer: int
+    fields: dict
+
+
+PROFILES = {
+    "LEGACY": _Profile(0, 16, 12, 4, 0, {
+        "range_mm": _Field(0, "<u4", 0x000FFFFF), "reflectivity": _Field(4, "<u2"),
+        "signal": _Field(6, "<u2"), "near_ir": _Field(8, "<u2"),
+    }),
+    "RNG19_RFL8_SIG16_NIR16": _Profile(32, 12, 12, 0, 32, {
+        "range_mm": _Field(0, "<u4", 0x0007FFFF), "reflectivity": _Field(4, "u1"),
+        "signal": _Field(6, "<u2"), "near_ir": _Field(8, "<u2"),
+    }),
+    "RNG19_RFL8_SIG16_NIR16_DUAL": _Profile(32, 12, 16, 0, 32, {
+        "range_mm": _Field(0, "<u4", 0x0007FFFF), "reflectivity": _Field(3, "u1"),
+        "range2_mm": _Field(4, "<u4", 0x0007FFFF), "reflectivity2": _Field(7, "u1"),
+        "signal": _Field(8, "<u2"), "signal2": _Field(10, "<u2"), "near_ir": _Field(12, "<u2"),
+    }),
+    "RNG15_RFL8_NIR8": _Profile(32, 12, 4, 0, 32, {
+        "range_mm": _Field(0, "<u2", 0x7FFF, 3), "reflectivity": _Field(2, "u1"),
+        "near_ir": _Field(3, "u1", 0, 4),
+    }),
+}
+_WIDE = {"u1": "<u2", "<u2": "<u2", "<u4": "<u4"}
+
+
+@dataclass
+class OusterMetadata:
+    """The parts of an Ouster metadata JSON the decoder needs.
+
+    Attributes:
+        altitude_deg: (H,) beam altitude angles (deg).
+        azimuth_deg: (H,) beam azimuth offsets (deg).
+        beam_origin_mm: Lidar origin to beam origin distance ``n`` (mm).
+        lidar_to_sensor: (4, 4) transform, translation in mm.
+        pixel_shift_by_row: (H,) destaggering shifts (columns).
+        columns_per_frame: ``W``.
+        columns_per_packet: Columns per UDP packet.
+        profile: UDP lidar profile name.
+        frequency_hz: Rotation rate (from ``lidar_mode``, e.g. ``1024x10``).
+        product: Product line, e.g. ``OS-1-32-G``.
+    """
+
+    altitude_deg: np.ndarray
+    azimuth_deg: np.ndarray
+    beam_origin_mm: float
+    lidar_to_sensor: np.ndarray
+    pixel_shift_by_row: np.ndarray
+    columns_per_frame: int
+    columns_per_packet: int
+    profile: str
+    frequency_hz: float
+    product: str
+
+    @property
+    def pixels_per_column(self) -> int:
+        return len(self.altitude_deg)
+
+
+def read_ouster_metadata(path: str | os.PathLike) -> OusterMetadata:
+    """Parse an Ouster sensor metadata JSON (legacy flat or nested format).
+
+    Raises:
+        LogFormatError: Unreadable JSON, a missing field (named), inconsistent beam counts, or
+            an unsupported profile.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise LogFormatError(f"{path}: no such Ouster metadata file")
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise LogFormatError(f"{path}: not valid JSON ({exc}); expected Ouster sensor metadata") from exc
+    if not isinstance(meta, dict):
+        raise LogFormatError(f"{path}: top level is {type(meta).__name__}; expected an Ouster metadata object")
+
+    def find(*keys, default=None):
+        for section in (meta, meta.get("beam_intrinsics"), meta.get("lidar_intrinsics"),
+                        meta.get("lidar_data_format"), meta.get("data_format"), meta.get("config_params"),
+                        meta.get("sensor_info")):
+            if isinstance(section, dict):
+                for key in keys:
+                    if key in section:
+                        return section[key]
+        if default is None:
+            raise LogFormatError(f"{path}: missing field {keys[0]!r}; is this an Ouster metadata JSON?")
+        return default
+
+    try:
+        altitude = np.asarray(find("beam_altitude_angles"), dtype=np.float64)
+        azimuth = np.asarray(find("beam_azimuth_angles"), dtype=np.float64)
+        shift = np.asarray(find("pixel_shift_by_row"), dtype=np.int64)
+        transform = np.asarray(find("lidar_to_sensor_transform", default=list(np.eye(4).ravel())), dtype=np.float64)
+        mode = str(find("lidar_mode", default="1024x10"))
+        width = int(find("columns_per_frame", default=int(mode.split("x")[0])))
+        per_packet = int(find("columns_per_packet", default=16))
+        origin = float(find("lidar_origin_to_beam_origin_mm", default=0.0))
+        frequency = float(mode.split("x")[1])
+        profile = str(find("udp_profile_lidar", default="LEGACY"))
+    except (TypeError, ValueError, IndexError) as exc:
+        raise LogFormatError(f"{path}: malformed metadata value ({exc})") from exc
+    height = len(altitude)
+    if height == 0 or azimuth.shape != (height,) or shift.shape != (height,):
+        raise LogFormatError(
+            f"{path}: beam_altitude_angles ({altitude.shape}), beam_azimuth_angles ({azimuth.shape}) and "
+            f"pixel_shift_by_row ({shift.shape}) must all have one entry per beam"
+        )
+    if transform.size != 16 or width <= 0 or per_packet <= 0 or frequency <= 0:
+        raise LogFormatError(f"{path}: invalid lidar_to_sensor_transform, lidar_mode or columns_per_packet")
+    if profile not in PROFILES:
+        raise LogFormatError(f"{path}: udp_profile_lidar {profile!r}; supported: {', '.join(PROFILES)}")
+    return OusterMetadata(
+        altitude_deg=altitude, azimuth_deg=azimuth, beam_origin_mm=origin,
+        lidar_to_sensor=transform.reshape(4, 4), pixel_shift_by_row=shift, columns_per_frame=width,
+        columns_per_packet=per_packet, profile=profile, frequency_hz=frequency,
+        product=str(meta.get("prod_line", find("prod_line", default="ouster"))),
+    )
+
+
+def destagger(image: np.ndarray, pixel_shift_by_row) -> np.ndarray:
+    """Staggered (..., H, W) image (columns = measurement ids) -> destaggered (azimuth-aligned)."""
+    shift = np.asarray(pixel_shift_by_row)
+    width = image.shape[-1]
+    columns = (np.arange(width)[None, :] - shift[:, None]) % width
+    return np.take_along_axis(image, np.broadcast_to(columns, image.shape), axis=-1)
+
+
+def restagger(image: np.ndarray, pixel_shift_by_row) -> np.ndarray:
+    """Inverse of :func:`destagger`: back to the packet (measurement id) column order."""
+    return destagger(image, -np.asarray(pixel_shift_by_row))
+
+
+def range_digest(log: Log, scan: int = 0) -> str:
+    """MD5 hex digest of the SDK's RANGE field of one scan of an Ouster log.
+
+    The vendor digest (``scans[i].RANGE`` in ``*_digest.json``) is over the **staggered**
+    (H, W) C-order uint32 array of masked ranges in mm, columns indexed by measurement id.
+    """
+    staggered = restagger(log.attributes["range_mm"][scan], log.sensor["pixel_shift_by_row"])
+    return hashlib.md5(np.ascontiguousarray(staggered, dtype=np.uint32).tobytes()).hexdigest()
+
+
+def _take(block: np.ndarray, spec: _Field) -> np.ndarray:
+    """Decode field ``spec`` from the last axis (bytes) of ``block``."""
+    size = np.dtype(spec.dtype).itemsize
+    raw = np.ascontiguousarray(block[..., spec.offset:spec.offset + size]).view(spec.dtype)[..., 0]
+    values = raw.astype(_WIDE[spec.dtype])
+    if spec.mask:
+        values &= spec.mask
+    if spec.shift:
+        values <<= spec.shift
+    return values
+
+
+def _geometry(meta: OusterMetadata) -> tuple[np.ndarray, np.ndarray]:
+    """Staggered (H, W, 3) unit directions and origins (m) in the sensor frame."""
+    width = meta.columns_per_frame
+    encoder = 2 * np.pi * (1 - np.arange(width) / width)[None, :]
+    azimuth = -np.radians(meta.azimuth_deg)[:, None]
+    altitude = np.radians(meta.altitude_deg)[:, None]
+    direction = np.stack(np.broadcast_arrays(
+        np.cos(encoder + azimuth) * np.cos(altitude), np.sin(encoder + azimuth) * np.cos(altitude), np.sin(altitude),
+    ), axis=-1)
+    n = meta.beam_origin_mm
+    beam_origin = np.stack(np.broadcast_arrays(n * np.cos(encoder), n * np.sin(encoder), 0 * encoder), axis=-1)
+    offset = beam_origin - n * direction
+    rotation, translation = meta.lidar_to_sensor[:3, :3], meta.lidar_to_sensor[:3, 3]
+    return direction @ rotation.T, (offset @ rotation.T + translation) / 1000.0
+
+
+def read_ouster(
+    path: str | os.PathLike,
+    metadata: str | os.PathLike | None = None,
+) -> Log:
+    """Decode every frame of an Ouster lidar pcap into a destaggered log.
+
+    Args:
+        path: The ``.pcap`` capture (UDP lidar packets; IMU packets are skipped).
+        metadata: The sensor metadata ``.json``; defaults to ``path`` with suffix ``.json``.
+
+    Returns:
+        A log with one scan per frame id in capture order (``H`` = pixels per column, ``W`` =
+        columns per frame); see the module docstring for the layout and attributes. Partial
+        frames (capture started or ended mid-rotation) are kept: their absent columns have
+        ``valid`` False and ``hit`` False. Poses are identity (the capture holds none).
+
+    Raises:
+        LogFormatError: Unreadable pcap or metadata, no packet of the size the profile implies
+            (wrong profile or metadata), or a measurement id outside the frame.
+    """
+    path = Path(path)
+    metadata = Path(metadata) if metadata is not None else path.with_suffix(".json")
+    meta = read_ouster_metadata(metadata)
+    profile = PROFILES[meta.profile]
+    height, width, per_packet = meta.pixels_per_column, meta.columns_per_frame, meta.columns_per_packet
+    column_size = profile.column_header + height * profile.pixel + profile.column_footer
+    packet_size = profile.packet_header + per_packet * column_size + profile.packet_footer
+    udp = read_udp(path)
+    data, _, offsets = udp.select(None, packet_size)
+    if len(data) == 0:
+        sizes = sorted({len(p) for p in udp.payloads})
+        raise LogFormatError(
+            f"{path}: no {packet_size}-byte lidar packets (profile {meta.profile}, {height} beams, "
+            f"{per_packet} columns per packet per {metadata.name}); UDP payload sizes found: {sizes[:8]}. "
+            "Check that the metadata JSON belongs to this capture."
+        )
+    columns = data[:, profile.packet_header:profile.packet_header + per_packet * column_size]
+    columns = columns.reshape(len(data), per_packet, column_size)
+    stamp = np.ascontiguousarray(columns[..., 0:8]).view("<u8")[..., 0]
+    measurement = _take(columns, _Field(8, "<u2"))
+    if meta.profile == "LEGACY":
+        frame = _take(columns, _Field(10, "<u2"))
+        status = np.ascontiguousarray(columns[..., -4:]).view("<u4")[..., 0]
+    else:
+        frame = np.broadcast_to(_take(data, _Field(2, "<u2"))[:, None], measurement.shape)
+        status = _take(columns, _Field(10, "<u2"))
+    bad = measurement >= width
+    if bad.any():
+        packet = int(np.argmax(bad.any(axis=1)))
+        raise LogFormatError(
+            f"{path}: packet at byte {offsets[packet]}: measurement id {int(measurement[bad][0])} >= "
+            f"{width} columns per frame ({metadata.name}); wrong metadata or corrupt packet"
+        )
+    pixels = columns[..., profile.column_header:profile.column_header + height * profile.pixel]
+    pixels = pixels.reshape(len(data), per_packet, height, profile.pixel)
+
+    frame, measurement, stamp = frame.ravel(), measurement.ravel().astype(np.int64), stamp.ravel()
+    valid_column = (status.ravel() & 1).astype(bool)
+    scan = np.concatenate([[0], np.cumsum(frame[1:] != frame[:-1])])
+    n_scans = int(scan[-1]) + 1
+
+    fields = {}
+    for name, spec in profile.fields.items():
+        values = _take(pixels, spec).reshape(-1, height)
+        image = np.zeros((n_scans, height, width), dtype=values.dtype)
+        image[scan, :, measurement] = values
+        fields[name] = image
+    valid = np.zeros((n_scans, height, width), dtype=bool)
+    valid[scan, :, measurement] = valid_column[:, None]
+    fields["range_mm"] = np.where(valid, fields["range_mm"], 0).astype(fields["range_mm"].dtype)
+
+    period = 1.0 / meta.frequency_hz
+    seconds = stamp.astype(np.float64) * 1e-9
+    start = np.full(n_scans, np.nan)
+    np.fmin.at(start, scan, seconds - measurement * period / width)
+    times = start[:, None, None] + (np.arange(width) * period / width)[None, None, :]
+    times = np.broadcast_to(times, (n_scans, height, width)).copy()
+    times[scan, :, measurement] = seconds[:, None]
+
+    direction, origin = _geometry(meta)
+    shift = meta.pixel_shift_by_row
+    destaggered = {name: destagger(image, shift) for name, image in fields.items()}
+    valid = destagger(valid, shift)
+    hit = valid & (destaggered["range_mm"] > 0)
+    ranges = np.where(hit, destaggered["range_mm"] / 1000.0, np.nan)
+    geometry = [destagger(np.moveaxis(a, -1, 0), shift) for a in (direction, origin)]
+    sensor = {
+        "name": f"ouster:{meta.product}", "source": str(path), "metadata": str(metadata),
+        "profile": meta.profile, "pixel_shift_by_row": shift.tolist(), "columns_per_frame": width,
+        "frequency_hz": meta.frequency_hz, "frame_ids": [int(f) for f in frame[np.r_[0, np.flatnonzero(np.diff(scan)) + 1]]],
+        "beam_altitude_deg": meta.altitude_deg.tolist(), "beam_azimuth_deg": meta.azimuth_deg.tolist(),
+        "layout": "destaggered", "range_unit": "m",
+    }
+    return Log(
+        poses=np.tile(np.eye(4), (n_scans, 1, 1)),
+        directions=np.moveaxis(geometry[0], 0, -1)[None], origins=np.moveaxis(geometry[1], 0, -1)[None],
+        ranges=ranges, hit=hit, times=destagger(times, shift),
+        attributes={**destaggered, "valid": valid}, sensor=sensor,
+    )

@@ -1,0 +1,168 @@
+"""ROS bags with ``sensor_msgs/PointCloud2`` messages (ROS 2 directories, ROS 1 ``.bag`` files)
+via the ``rosbags`` package.
+
+Reading: every message of one PointCloud2 topic becomes a scan (``times`` = header stamp + the
+``time``/``t`` field when present). Organized clouds (``height > 1``) keep their grid; otherwise a
+``ring`` field builds one (see :mod:`mi_lidar.io.cloud`). Scans of different sizes are padded with
+invalid cells (``attributes['valid']`` False).
+
+Writing: a ROS 2 bag (sqlite3 storage, Humble message definitions) with one organized ``H x W``
+PointCloud2 per scan on ``topic``: fields ``x y z intensity`` (FLOAT32), ``ring`` (UINT16, 0 =
+lowest beam), ``column`` (UINT32) and ``time`` (FLOAT32, s since the scan's first ray), misses
+as NaN points with ``is_dense`` False, which RViz and Open3D accept. Poses are not written (use
+a TF topic in the bag for that).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import LogFormatError
+from ..log import Log
+from .cloud import cloud_from_log, log_from_fields, stack_scans
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+_DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+_WRITE_FIELDS = (("x", 7), ("y", 7), ("z", 7), ("intensity", 7), ("ring", 4), ("column", 6), ("time", 7))
+
+
+def _typestore():
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
+def decode_pointcloud2(msg, where: str) -> tuple[dict[str, np.ndarray], int, int]:
+    """Decode a deserialized PointCloud2 into ``(fields, width, height)`` (fields row-major (N,))."""
+    height, width, step, row_step = int(msg.height), int(msg.width), int(msg.point_step), int(msg.row_step)
+    order = ">" if msg.is_bigendian else "<"
+    names, formats, offsets = [], [], []
+    for field in msg.fields:
+        if field.datatype not in _DATATYPES:
+            raise LogFormatError(f"{where}: field {field.name!r} has unknown datatype {field.datatype}")
+        for k in range(max(int(field.count), 1)):
+            names.append(field.name if field.count <= 1 else f"{field.name}_{k}")
+            formats.append(order + _DATATYPES[field.datatype])
+            offsets.append(int(field.offset) + k * np.dtype(_DATATYPES[field.datatype]).itemsize)
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if row_step < width * step or len(data) < height * row_step or (
+        offsets and max(o + np.dtype(f).itemsize for o, f in zip(offsets, formats)) > step
+    ):
+        raise LogFormatError(
+            f"{where}: PointCloud2 layout inconsistent (height {height}, width {width}, point_step {step}, "
+            f"row_step {row_step}, {len(data)} data bytes)"
+        )
+    try:
+        record = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
+    except ValueError as exc:
+        raise LogFormatError(f"{where}: invalid PointCloud2 fields ({exc})") from exc
+    rows = data[:height * row_step].reshape(height, row_step)[:, :width * step]
+    table = np.ascontiguousarray(rows).view(record).reshape(-1)
+    return {n: table[n].astype(record[n].newbyteorder("=")) for n in names}, width, height
+
+
+def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range: float = 0.0) -> Log:
+    """Read the PointCloud2 messages of one topic as a multi-scan log.
+
+    Args:
+        path: A ROS 2 bag directory (or its ``.db3``/``.mcap`` file) or a ROS 1 ``.bag``.
+        topic: The PointCloud2 topic; may be omitted when the bag has exactly one.
+        min_range: Points closer than this are misses (m).
+
+    Raises:
+        LogFormatError: Unreadable bag, no (or several, without ``topic``) PointCloud2 topics,
+            or a message whose layout is inconsistent.
+    """
+    from rosbags.highlevel import AnyReader
+
+    path = Path(path)
+    if path.is_file() and path.suffix in (".db3", ".mcap"):
+        path = path.parent
+    if not path.exists():
+        raise LogFormatError(f"{path}: no such ROS bag")
+    logs = []
+    try:
+        with AnyReader([path], default_typestore=_typestore()) as reader:
+            clouds = sorted({c.topic for c in reader.connections if c.msgtype == POINTCLOUD2})
+            if topic is None and len(clouds) != 1:
+                raise LogFormatError(f"{path}: PointCloud2 topics {clouds}; pass topic= to choose exactly one")
+            chosen = topic or clouds[0]
+            if chosen not in clouds:
+                raise LogFormatError(f"{path}: no PointCloud2 topic {chosen!r}; found {clouds}")
+            connections = [c for c in reader.connections if c.topic == chosen]
+            for index, (connection, _, raw) in enumerate(reader.messages(connections=connections)):
+                msg = reader.deserialize(raw, connection.msgtype)
+                where = f"{path}: {chosen} message {index}"
+                fields, width, height = decode_pointcloud2(msg, where)
+                if any(c not in fields for c in "xyz"):
+                    raise LogFormatError(f"{where}: PointCloud2 lacks x y z fields")
+                if "ring" not in fields and height > 1:
+                    rows, cols = np.indices((height, width))
+                    fields.update(ring=(height - 1 - rows).ravel(), column=cols.ravel())
+                stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+                logs.append(log_from_fields(fields, min_range=min_range, start_time=stamp,
+                                            sensor={"name": f"rosbag:{chosen}", "source": str(path),
+                                                    "frame_id": msg.header.frame_id}))
+    except LogFormatError:
+        raise
+    except Exception as exc:  # rosbags raises many reader/deserializer error types.
+        raise LogFormatError(f"{path}: not a readable ROS bag ({type(exc).__name__}: {exc})") from exc
+    if not logs:
+        raise LogFormatError(f"{path}: topic {chosen!r} has no messages")
+    return stack_scans(logs)
+
+
+def write_rosbag_log(log: Log, path: str | os.PathLike, topic: str = "/points", frame_id: str = "lidar") -> Path:
+    """Write every scan of ``log`` as a PointCloud2 message into a new ROS 2 bag directory.
+
+    The bag is written to a temporary directory next to ``path`` and renamed when complete.
+
+    Raises:
+        FileExistsError: ``path`` already exists (bags are never overwritten).
+    """
+    from rosbags.rosbag2 import Writer
+
+    path = Path(path)
+    if path.exists():
+        raise FileExistsError(f"{path} exists; remove it or choose another bag name")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    store = _typestore()
+    types = store.types
+    point_field = types["sensor_msgs/msg/PointField"]
+    layout, offset = [], 0
+    for name, datatype in _WRITE_FIELDS:
+        layout.append(point_field(name=name, offset=offset, datatype=datatype, count=1))
+        offset += np.dtype(_DATATYPES[datatype]).itemsize
+    record = np.dtype({"names": [n for n, _ in _WRITE_FIELDS],
+                       "formats": ["<" + _DATATYPES[d] for _, d in _WRITE_FIELDS],
+                       "offsets": [f.offset for f in layout], "itemsize": offset})
+    _, height, width = log.shape
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+    try:
+        bag = staging / "bag"
+        with Writer(bag, version=8) as writer:
+            connection = writer.add_connection(topic, POINTCLOUD2, typestore=store)
+            for index in range(log.n_scans):
+                cloud = cloud_from_log(log, index, organized=True)
+                table = np.empty(height * width, dtype=record)
+                for name in record.names:
+                    table[name] = cloud[name]
+                start = float(log.times[index].min())
+                sec = int(np.floor(start))
+                stamp = types["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((start - sec) * 1e9)) % 1_000_000_000)
+                msg = types[POINTCLOUD2](
+                    header=types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id),
+                    height=height, width=width, fields=layout, is_bigendian=False, point_step=offset,
+                    row_step=offset * width, data=np.frombuffer(table.tobytes(), dtype=np.uint8),
+                    is_dense=bool(log.hit[index].all()),
+                )
+                writer.write(connection, int(round(start * 1e9)), store.serialize_cdr(msg, POINTCLOUD2))
+        os.replace(bag, path)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return path

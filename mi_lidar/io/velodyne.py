@@ -1,0 +1,343 @@
+"""Velodyne VLP-16, VLP-32C and HDL-32E pcap captures (+ calibration) -> :class:`~mi_lidar.log.Log`.
+
+Each 1206-byte data packet holds 12 blocks ``[0xFFEE, azimuth * 100 (u16), 32 x (distance u16 in
+resolution units, reflectivity u8)]``, a u32 timestamp (us past the hour), a return-mode byte
+(0x37 strongest, 0x38 last, 0x39 dual) and a product byte. The VLP-16 fires two 16-laser
+sequences per block; the 32-laser sensors one sequence per block. In dual-return mode blocks come
+in pairs with the same azimuth: even blocks hold the last return, odd blocks the strongest.
+
+Geometry follows the ROS ``velodyne_pointcloud`` driver (ROS frame: x forward, y left, z up):
+every firing's azimuth is interpolated in time between block azimuths at the laser's own firing
+time (vendor timing tables), ``alpha = azimuth - rot_correction``, ``omega = vert_correction``,
+
+    direction = (cos(omega) cos(alpha), -cos(omega) sin(alpha), sin(omega))
+
+the range is ``distance * resolution + dist_correction`` (m), and the (usually zero) vertical and
+horizontal beam offsets become per-ray origins. Distance 0 is a miss.
+
+Layout: rows are lasers sorted by elevation, highest first (``attributes['laser_id']`` keeps the
+ids); columns are firing sequences in time order. Frames are split where the azimuth crosses
+``cut_azimuth_deg``; frames of different length are padded at the end with cells whose
+``attributes['valid']`` is False (their direction and time are extrapolated from the rotation).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import LogFormatError
+from ..log import Log
+from ._pcap import read_udp
+
+PACKET_SIZE = 1206
+DATA_PORT = 2368
+BLOCKS = 12
+BLOCK_FLAG = 0xEEFF  # bytes FF EE read as little-endian u16
+RETURN_MODES = {0x37: "strongest", 0x38: "last", 0x39: "dual"}
+PRODUCT_IDS = {0x21: "HDL-32E", 0x22: "VLP-16", 0x24: "VLP-16", 0x28: "VLP-32C"}
+TIMING_TOLERANCE = 0.15
+
+
+@dataclass(frozen=True)
+class Model:
+    """Firing geometry and timing of one Velodyne model (times in microseconds)."""
+
+    name: str
+    lasers: int
+    sequences_per_block: int
+    sequence_us: float
+    laser_us: np.ndarray
+    resolution_m: float
+    elevation_deg: np.ndarray
+    azimuth_offset_deg: np.ndarray
+
+
+MODELS = {
+    "VLP-16": Model(
+        "VLP-16", 16, 2, 55.296, np.arange(16) * 2.304, 0.002,
+        np.array([-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13, -1, 15], float), np.zeros(16),
+    ),
+    "HDL-32E": Model(
+        "HDL-32E", 32, 1, 46.08, np.arange(32) * 1.152, 0.002,
+        np.array([-30.67, -9.33, -29.33, -8.00, -28.00, -6.66, -26.66, -5.33, -25.33, -4.00, -24.00, -2.67,
+                  -22.67, -1.33, -21.33, 0.00, -20.00, 1.33, -18.67, 2.67, -17.33, 4.00, -16.00, 5.33,
+                  -14.67, 6.67, -13.33, 8.00, -12.00, 9.33, -10.67, 10.67]), np.zeros(32),
+    ),
+    "VLP-32C": Model(
+        "VLP-32C", 32, 1, 55.296, (np.arange(32) // 2) * 2.304, 0.004,
+        np.array([-25, -1, -1.667, -15.639, -11.31, 0, -0.667, -8.843, -7.254, 0.333, -0.333, -6.148,
+                  -5.333, 1.333, 0.667, -4, -4.667, 1.667, 1, -3.667, -3.333, 3.333, 2.333, -2.667,
+                  -3, 7, 4.667, -2.333, -2, 15, 10.333, -1.333]),
+        np.array([1.4, -4.2, 1.4, -1.4, 1.4, -1.4, 4.2, -1.4, 1.4, -4.2, 1.4, -1.4, 4.2, -1.4, 4.2, -1.4,
+                  1.4, -4.2, 1.4, -4.2, 4.2, -1.4, 1.4, -1.4, 1.4, -1.4, 1.4, -4.2, 4.2, -1.4, 1.4, -1.4]),
+    ),
+}
+
+
+@dataclass
+class Calibration:
+    """Per-laser corrections (ROS ``velodyne_pointcloud`` YAML conventions).
+
+    Attributes:
+        vert: (L,) elevation angles (rad).
+        rot: (L,) azimuth corrections (rad), subtracted from the firing azimuth.
+        dist: (L,) range offsets (m).
+        vert_offset: (L,) vertical beam-origin offsets (m).
+        horiz_offset: (L,) horizontal beam-origin offsets (m).
+        resolution_m: Distance unit (m).
+    """
+
+    vert: np.ndarray
+    rot: np.ndarray
+    dist: np.ndarray
+    vert_offset: np.ndarray
+    horiz_offset: np.ndarray
+    resolution_m: float
+
+    @classmethod
+    def of_model(cls, model: Model) -> "Calibration":
+        """The nominal table from the model's manual (no per-unit corrections)."""
+        zeros = np.zeros(model.lasers)
+        return cls(np.radians(model.elevation_deg), np.radians(model.azimuth_offset_deg), zeros, zeros, zeros,
+                   model.resolution_m)
+
+
+def read_calibration(path: str | os.PathLike) -> Calibration:
+    """Read a ``velodyne_pointcloud`` calibration YAML (``lasers:`` list with ``laser_id``,
+    ``vert_correction``, ``rot_correction`` in rad, optional offsets in m, optional
+    ``distance_resolution``).
+
+    Raises:
+        LogFormatError: Unreadable YAML, a missing or non-numeric field (named with the laser),
+            or laser ids that are not ``0 .. L-1``.
+    """
+    from ruamel.yaml import YAML, YAMLError
+
+    path = Path(path)
+    if not path.is_file():
+        raise LogFormatError(f"{path}: no such Velodyne calibration file")
+    try:
+        table = YAML(typ="safe", pure=True).load(path.read_text(encoding="utf-8"))
+    except (YAMLError, UnicodeDecodeError, ValueError) as exc:
+        raise LogFormatError(f"{path}: not readable YAML ({exc})") from exc
+    lasers = table.get("lasers") if isinstance(table, dict) else None
+    if not isinstance(lasers, list) or not lasers:
+        raise LogFormatError(f"{path}: no 'lasers' list; expected a velodyne_pointcloud calibration")
+    count = len(lasers)
+    columns = {k: np.zeros(count) for k in ("vert_correction", "rot_correction", "dist_correction",
+                                             "vert_offset_correction", "horiz_offset_correction")}
+    seen = set()
+    for index, laser in enumerate(lasers):
+        try:
+            laser_id = int(laser["laser_id"])
+            if not 0 <= laser_id < count or laser_id in seen:
+                raise ValueError(f"laser_id {laser_id} is duplicated or outside 0..{count - 1}")
+            seen.add(laser_id)
+            for key in columns:
+                if key in ("vert_correction", "rot_correction") or key in laser:
+                    columns[key][laser_id] = float(laser[key])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise LogFormatError(f"{path}: lasers[{index}]: bad or missing field ({exc})") from exc
+    if not (np.isfinite(columns["vert_correction"]).all() and np.abs(columns["vert_correction"]).max() < np.pi / 2):
+        raise LogFormatError(f"{path}: vert_correction must be finite angles in radians within +-pi/2")
+    try:
+        resolution = float(table.get("distance_resolution", 0.0))
+    except (TypeError, ValueError) as exc:
+        raise LogFormatError(f"{path}: distance_resolution is not a number ({exc})") from exc
+    return Calibration(
+        columns["vert_correction"], columns["rot_correction"], columns["dist_correction"],
+        columns["vert_offset_correction"], columns["horiz_offset_correction"], resolution,
+    )
+
+
+def _choose_model(path: Path, model: str | None, calibration: Calibration | None, product: int) -> Model:
+    """Resolve the sensor model from the argument, the calibration size or the product byte."""
+    if model is not None:
+        if model not in MODELS:
+            raise LogFormatError(f"{path}: unknown Velodyne model {model!r}; supported: {', '.join(MODELS)}")
+        chosen = MODELS[model]
+    elif calibration is not None and len(calibration.vert) == 16:
+        chosen = MODELS["VLP-16"]
+    elif product in PRODUCT_IDS and (calibration is None or MODELS[PRODUCT_IDS[product]].lasers == len(calibration.vert)):
+        chosen = MODELS[PRODUCT_IDS[product]]
+    else:
+        raise LogFormatError(
+            f"{path}: cannot tell the Velodyne model (product byte 0x{product:02x}); pass model= one of {', '.join(MODELS)}"
+        )
+    if calibration is not None and len(calibration.vert) != chosen.lasers:
+        raise LogFormatError(
+            f"{path}: calibration has {len(calibration.vert)} lasers but a {chosen.name} has {chosen.lasers}; "
+            "wrong calibration file for this capture?"
+        )
+    return chosen
+
+
+def _u16(block: np.ndarray, offset: int) -> np.ndarray:
+    return np.ascontiguousarray(block[..., offset:offset + 2]).view("<u2")[..., 0]
+
+
+def read_velodyne(
+    path: str | os.PathLike,
+    calibration: str | os.PathLike | None = None,
+    model: str | None = None,
+    return_mode: str = "strongest",
+    cut_azimuth_deg: float | None = 0.0,
+) -> Log:
+    """Decode a Velodyne pcap into one scan per revolution.
+
+    Args:
+        path: The ``.pcap`` capture (data port 2368; GPS packets on 8308 are skipped).
+        calibration: A ``velodyne_pointcloud`` YAML; the model's nominal table when None.
+        model: ``"VLP-16"``, ``"VLP-32C"`` or ``"HDL-32E"``; inferred from the calibration size or
+            the packet's product byte when None.
+        return_mode: For dual-return captures, which return fills ``ranges``: ``"strongest"`` or
+            ``"last"``; the other is kept in ``attributes['range_last' | 'range_strongest']`` (m,
+            NaN for none).
+        cut_azimuth_deg: Azimuth (deg) at which a new frame starts; None cuts at the capture's
+            first azimuth, so the first frame is a complete revolution when the capture has one.
+
+    Returns:
+        A log with ``H`` = lasers, ``W`` = the longest frame's firing count, per-scan directions
+        and origins, absolute times (s) and attributes ``laser_id``, ``intensity``, ``valid``.
+
+    Raises:
+        LogFormatError: Unreadable pcap or calibration, no data packets, a bad block flag (named
+            with its packet offset), or packet timing inconsistent with the model (wrong model or
+            calibration for this capture).
+    """
+    if return_mode not in ("strongest", "last"):
+        raise ValueError(f"read_velodyne: return_mode={return_mode!r}; expected 'strongest' or 'last'")
+    path = Path(path)
+    calib = read_calibration(calibration) if calibration is not None else None
+    udp = read_udp(path)
+    data, capture_times, offsets = udp.select(DATA_PORT, PACKET_SIZE)
+    if len(data) == 0:
+        raise LogFormatError(f"{path}: no {PACKET_SIZE}-byte Velodyne data packets on UDP port {DATA_PORT}")
+    mode_byte, product = int(data[0, 1204]), int(data[0, 1205])
+    if mode_byte not in RETURN_MODES or np.any(data[:, 1204] != mode_byte):
+        bad = int(np.argmax(data[:, 1204] != mode_byte)) if mode_byte in RETURN_MODES else 0
+        raise LogFormatError(
+            f"{path}: packet at byte {offsets[bad]}: return-mode byte 0x{int(data[bad, 1204]):02x}; expected 0x37, "
+            "0x38 or 0x39, the same in every packet"
+        )
+    sensor_model = _choose_model(path, model, calib, product)
+    calib = calib or Calibration.of_model(sensor_model)
+    resolution = calib.resolution_m or sensor_model.resolution_m
+    dual = RETURN_MODES[mode_byte] == "dual"
+
+    blocks = data[:, :1200].reshape(len(data), BLOCKS, 100)
+    flags = _u16(blocks, 0)
+    if np.any(flags != BLOCK_FLAG):
+        packet, block = np.argwhere(flags != BLOCK_FLAG)[0]
+        raise LogFormatError(
+            f"{path}: packet at byte {offsets[packet]}, block {block}: flag 0x{int(flags[packet, block]):04x}; "
+            "expected 0xFFEE (corrupt packet or not Velodyne data)"
+        )
+    azimuth = _u16(blocks, 2).astype(np.float64)
+    if np.any(azimuth >= 36000):
+        packet = int(np.argmax((azimuth >= 36000).any(axis=1)))
+        raise LogFormatError(f"{path}: packet at byte {offsets[packet]}: block azimuth >= 36000 (0.01 deg units)")
+    channels = blocks[:, :, 4:].reshape(len(data), BLOCKS, 32, 3)
+    distance = _u16(channels, 0)
+    reflectivity = channels[..., 2]
+
+    stamp_us = np.ascontiguousarray(data[:, 1200:1204]).view("<u4")[:, 0].astype(np.float64)
+    hour = np.round((capture_times - stamp_us * 1e-6) / 3600.0) * 3600.0
+    packet_time = hour + stamp_us * 1e-6
+    firings_per_packet = BLOCKS // 2 if dual else BLOCKS
+    block_us = sensor_model.sequence_us * sensor_model.sequences_per_block
+    if len(data) > 1:
+        measured = np.median(np.diff(stamp_us) % 3.6e9)
+        expected = firings_per_packet * block_us
+        if abs(measured / expected - 1) > TIMING_TOLERANCE:
+            raise LogFormatError(
+                f"{path}: packets are {measured:.1f} us apart but a {sensor_model.name} in "
+                f"{RETURN_MODES[mode_byte]} mode sends one every {expected:.1f} us; wrong model or calibration?"
+            )
+
+    # Firings in time order: (P, F, sequences, lasers) with F = blocks (single) or block pairs (dual).
+    lasers, per_block = sensor_model.lasers, sensor_model.sequences_per_block
+    if dual:
+        pick = 1 if return_mode == "strongest" else 0
+        other_distance = distance[:, 1 - pick::2]
+        distance, reflectivity, azimuth = distance[:, pick::2], reflectivity[:, pick::2], azimuth[:, pick::2]
+    shape = (len(data), firings_per_packet * per_block, lasers)
+    distance, reflectivity = distance.reshape(shape), reflectivity.reshape(shape)
+    firing = np.arange(firings_per_packet)
+    block_time = packet_time[:, None] + firing[None, :] * block_us * 1e-6
+    column_time = (block_time[:, :, None] + np.arange(per_block) * sensor_model.sequence_us * 1e-6).reshape(-1)
+
+    # Unwrapped block azimuth (deg) as a function of time, extrapolated linearly at the ends.
+    knots_t, knots_a = block_time.reshape(-1), np.unwrap(azimuth.reshape(-1) / 100.0, period=360.0)
+    span = knots_t[-1] - knots_t[0]
+    rate = (knots_a[-1] - knots_a[0]) / span if span > 0 else 360.0 * 10
+
+    def azimuth_at(t: np.ndarray) -> np.ndarray:
+        inside = np.interp(t, knots_t, knots_a)
+        return np.where(t < knots_t[0], knots_a[0] + (t - knots_t[0]) * rate,
+                        np.where(t > knots_t[-1], knots_a[-1] + (t - knots_t[-1]) * rate, inside))
+
+    column_azimuth = azimuth_at(column_time)
+    cut = column_azimuth[0] if cut_azimuth_deg is None else cut_azimuth_deg
+    scan = np.floor((column_azimuth - cut) / 360.0).astype(np.int64)
+    scan -= scan[0]
+    scan = np.maximum.accumulate(scan)
+    n_scans = int(scan[-1]) + 1
+    first = np.searchsorted(scan, np.arange(n_scans))
+    column = np.arange(len(scan)) - first[scan]
+    width = int(column.max()) + 1
+
+    # Per-cell firing-sequence start times; padded cells continue the sequence clock.
+    sequence_s = sensor_model.sequence_us * 1e-6
+    start = column_time[first]
+    cell_time = start[:, None] + np.arange(width)[None, :] * sequence_s
+    cell_time[scan, column] = column_time
+    valid_cells = np.zeros((n_scans, width), dtype=bool)
+    valid_cells[scan, column] = True
+
+    order = np.argsort(-calib.vert, kind="stable")
+    laser_time = cell_time[:, None, :] + sensor_model.laser_us[order][None, :, None] * 1e-6
+    alpha = np.radians(azimuth_at(laser_time)) - calib.rot[order][None, :, None]
+    omega = np.broadcast_to(calib.vert[order][None, :, None], alpha.shape)
+    direction = np.stack([np.cos(omega) * np.cos(alpha), -np.cos(omega) * np.sin(alpha), np.sin(omega)], axis=-1)
+    vo, ho = calib.vert_offset[order][None, :, None], calib.horiz_offset[order][None, :, None]
+    origin = np.stack([
+        -vo * np.sin(omega) * np.cos(alpha) + ho * np.sin(alpha),
+        vo * np.sin(omega) * np.sin(alpha) + ho * np.cos(alpha),
+        np.broadcast_to(vo * np.cos(omega), alpha.shape),
+    ], axis=-1)
+
+    def grid(values: np.ndarray, fill) -> np.ndarray:
+        """(P * columns, lasers) per-firing values -> (S, H, W) in elevation order."""
+        out = np.full((n_scans, width, lasers), fill, dtype=values.dtype)
+        out[scan, column] = values.reshape(-1, lasers)
+        return np.moveaxis(out, 2, 1)[:, order]
+
+    raw = grid(distance, 0)
+    valid = np.broadcast_to(valid_cells[:, None, :], raw.shape)
+    hit = valid & (raw > 0)
+    dist_correction = calib.dist[order][None, :, None]
+    ranges = np.where(hit, raw * resolution + dist_correction, np.nan)
+    attributes = {
+        "laser_id": np.broadcast_to(order.astype(np.uint8)[None, :, None], raw.shape).copy(),
+        "intensity": grid(reflectivity, 0), "valid": valid.copy(),
+    }
+    if dual:
+        second = grid(other_distance.reshape(shape), 0)
+        name = "range_last" if return_mode == "strongest" else "range_strongest"
+        attributes[name] = np.where(valid & (second > 0), second * resolution + dist_correction, np.nan).astype(np.float32)
+    sensor = {
+        "name": f"velodyne:{sensor_model.name}", "source": str(path),
+        "calibration": None if calibration is None else str(calibration),
+        "return_mode": RETURN_MODES[mode_byte] if not dual else f"dual ({return_mode} in ranges)",
+        "product_byte": product, "distance_resolution_m": resolution, "layout": "firing order, rows by elevation",
+        "columns_per_scan": np.bincount(scan).tolist(), "range_unit": "m",
+    }
+    return Log(
+        poses=np.tile(np.eye(4), (n_scans, 1, 1)), directions=direction, origins=origin,
+        ranges=ranges, hit=hit, times=laser_time, attributes=attributes, sensor=sensor,
+    )
