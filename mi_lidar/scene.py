@@ -40,21 +40,26 @@ def load_scene(source, **parameters):
         raise SceneError(f"{where}: could not load the scene:\n{exc}{hint}") from exc
 
 
+def scene_lidar_sensor(scene):
+    """The scene's first ``lidar`` sensor, or None."""
+    from .plugins.lidar_sensor import LidarSensor
+
+    return next((s for s in scene.sensors() if isinstance(s, LidarSensor)), None)
+
+
 def scene_sensor_model(scene) -> tuple[SensorModel, np.ndarray]:
     """The sensor model and (4, 4) pose given by the scene's ``lidar`` sensor and integrator.
 
     Scenes without a ``lidar`` sensor give the default model and the identity pose.
     """
     from .plugins.lidar_integrator import LidarIntegrator
-    from .plugins.lidar_sensor import LidarSensor
 
-    sensors = [s for s in scene.sensors() if isinstance(s, LidarSensor)]
+    sensor = scene_lidar_sensor(scene)
     integrator = scene.integrator()
-    if sensors and isinstance(integrator, LidarIntegrator):
-        return integrator.sensor_model(sensors[0]), sensors[0].to_world_matrix
+    if sensor is not None and isinstance(integrator, LidarIntegrator):
+        return integrator.sensor_model(sensor), sensor.to_world_matrix
     model = SensorModel()
-    if sensors:
-        sensor = sensors[0]
+    if sensor is not None:
         model = SensorModel(range_sigma=sensor.range_sigma, min_range=sensor.min_range, max_range=sensor.max_range)
         return model, sensor.to_world_matrix
     if isinstance(integrator, LidarIntegrator):

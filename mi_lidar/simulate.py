@@ -11,21 +11,23 @@ import numpy as np
 from .channels import channels_to_numpy
 from .effects.base import RayBatch
 from .elements import ElementTable
+from .errors import PatternError
 from .log import Log
 from .poses import validate_poses
-from .scene import load_scene, scene_sensor_model
+from .scene import load_scene, scene_lidar_sensor, scene_sensor_model
 from .sensor_model import SensorModel
 
 MAX_RAYS_PER_BATCH = 1 << 22  # rays traced at once (bounds peak memory)
 
 
-def simulate(scene, pattern="vlp16", poses=None, seed: int = 0, model: SensorModel | None = None,
+def simulate(scene, pattern=None, poses=None, seed: int = 0, model: SensorModel | None = None,
              scan_times=None, progress=None) -> Log:
     """Simulate one scan per pose and return them as a :class:`~mi_lidar.log.Log`.
 
     Args:
         scene: a loaded Mitsuba scene, or the path of a scene XML.
-        pattern: a :class:`~mi_lidar.patterns.FiringPattern` or a pattern name/path.
+        pattern: a :class:`~mi_lidar.patterns.FiringPattern` or a pattern name/path; default:
+            the pattern of the scene's ``lidar`` sensor.
         poses: (4, 4) or (S, 4, 4) sensor-to-world transforms; default: the scene's ``lidar``
             sensor pose, or the identity.
         seed: random seed; scan ``s`` uses rays ``s * H * W ...``, so scans are independent.
@@ -41,6 +43,11 @@ def simulate(scene, pattern="vlp16", poses=None, seed: int = 0, model: SensorMod
 
     if isinstance(scene, (str, os.PathLike)):
         scene = load_scene(scene)
+    if pattern is None:
+        sensor = scene_lidar_sensor(scene)
+        if sensor is None:
+            raise PatternError("the scene has no `lidar` sensor to take a firing pattern from; pass pattern='vlp16' (or another name)")
+        pattern = sensor.pattern
     if not isinstance(pattern, FiringPattern):
         pattern = get_pattern(str(pattern))
     default_model, default_pose = scene_sensor_model(scene)

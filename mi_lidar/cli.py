@@ -1,0 +1,218 @@
+"""The ``mi-lidar`` command line (Typer): render, simulate, convert, inspect, demo."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from .errors import MiLidarError
+
+app = typer.Typer(
+    name="mi-lidar",
+    help="Lidar simulation on Mitsuba 3: render scans from XML scenes, simulate logs, convert real sensor data.",
+    no_args_is_help=True,
+    add_completion=False,
+    rich_markup_mode="markdown",
+)
+console = Console()
+
+DEFAULT_SCENE = Path(__file__).resolve().parents[1] / "scenes_xml" / "offroad.xml"
+
+
+def _versions() -> dict[str, str]:
+    import drjit as dr
+    import mitsuba as mi
+
+    from . import __version__
+
+    llvm = os.environ.get("DRJIT_LIBLLVM_PATH", "system default")
+    try:
+        major, minor, patch = dr.detail.llvm_version()
+        llvm = f"{major}.{minor}.{patch} ({llvm})"
+    except Exception:  # the backend reports no version before it is initialised
+        pass
+    return {"mi-lidar": __version__, "Mitsuba": mi.__version__, "Dr.Jit": dr.__version__,
+            "variant": str(mi.variant()), "LLVM": llvm}
+
+
+def _version_callback(value: bool):
+    if value:
+        for name, version in _versions().items():
+            console.print(f"{name:9s} {version}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: bool = typer.Option(False, "--version", callback=_version_callback, is_eager=True,
+                                 help="Print the versions of mi-lidar, Mitsuba, Dr.Jit, the variant and LLVM."),
+):
+    """Lidar simulation for robot application development."""
+
+
+def _fail(exc: Exception):
+    console.print(f"[bold red]error:[/] {exc}")
+    raise typer.Exit(code=2)
+
+
+def scan_summary(log, title: str, elapsed: float | None = None) -> Table:
+    """A rich table summarising a log: rays, hit fraction, range quantiles, returns per label."""
+    table = Table(title=title, show_header=True, header_style="bold")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    s, h, w = log.shape
+    hits = log.hit
+    ranges = log.ranges[hits]
+    table.add_row("scans x beams x firings", f"{s} x {h} x {w}")
+    table.add_row("rays", f"{log.n_rays:,}")
+    table.add_row("returns", f"{hits.sum():,} ({hits.mean():.1%})")
+    if ranges.size:
+        q = np.quantile(ranges, [0.0, 0.5, 1.0])
+        table.add_row("range min / median / max (m)", f"{q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f}")
+    if "segments" in log.attributes:
+        table.add_row("rays passing >= 1 element", f"{np.mean(log.attributes['segments'] > 1):.1%}")
+    if "label" in log.attributes and ranges.size:
+        labels, counts = np.unique(log.attributes["label"][hits], return_counts=True)
+        table.add_row("returns per label", ", ".join(f"{lab}: {c:,}" for lab, c in zip(labels, counts)))
+    if elapsed is not None:
+        table.add_row("time (s)", f"{elapsed:.2f} ({log.n_rays / max(elapsed, 1e-9) / 1e6:.1f} M rays/s)")
+    return table
+
+
+def write_scan_outputs(log, out: Path, scene_name: str) -> list[Path]:
+    """Write ``scan.exr``, ``points.ply``, ``scan.bin`` (KITTI), ``scan.npz`` and PNG previews of scan 0."""
+    from .channels import INTEGER_CHANNELS
+    from .io import birds_eye_png, range_image_png, write_exr, write_kitti_bin, write_ply
+
+    out.mkdir(parents=True, exist_ok=True)
+    scan = log.scan(0)
+    channels = {"range": scan.ranges[0], "hit": scan.hit[0].astype(np.float32)}
+    channels.update({k: v[0] for k, v in scan.attributes.items()})
+    exr = write_exr(out / "scan.exr", {k: np.asarray(v, np.float32) if k not in INTEGER_CHANNELS else v
+                                       for k, v in channels.items()})
+    hit = scan.hit[0]
+    points = scan.points_world()[0][hit].astype(np.float32)
+    beam = np.broadcast_to(np.arange(hit.shape[0])[:, None], hit.shape)[hit].astype(np.uint16)
+    attributes = {"range": scan.ranges[0][hit], "ring": beam}
+    attributes.update({k: v[0][hit] for k, v in scan.attributes.items()})
+    ply = write_ply(out / "points.ply", points, attributes)
+    kitti = write_kitti_bin(out / "scan.bin", scan.points_sensor()[0][hit], None)
+    npz = scan.save(out / "scan.npz")
+    png_range = range_image_png(out / "range.png", scan.ranges[0], title=f"{scene_name}: range (m)")
+    values = scan.attributes["label"][0][hit] if "label" in scan.attributes else None
+    png_bev = birds_eye_png(out / "birds_eye.png", points, values=values, title=f"{scene_name}: returns by label")
+    return [exr, ply, kitti, npz, png_range, png_bev]
+
+
+@app.command()
+def render(
+    scene: Path = typer.Argument(..., help="Scene XML with a `lidar` sensor.", exists=True, dir_okay=False),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
+    seed: int = typer.Option(0, help="Random seed (same seed, same scan)."),
+    pattern: Optional[str] = typer.Option(None, help="Override the firing pattern, e.g. `hdl32e`, `os1-32`, `planar-360`."),
+):
+    """Render one scan of SCENE and write `scan.exr`, `points.ply`, `scan.bin`, `scan.npz` and PNG previews.
+
+    Examples:
+
+        mi-lidar render scenes_xml/offroad.xml --out out/offroad
+
+        mi-lidar render scenes_xml/urban_street.xml --out out/street --pattern hdl64e --seed 3
+    """
+    import mitsuba as mi
+
+    from .channels import tensor_to_numpy
+    from .log import Log
+    from .scene import load_scene, scene_lidar_sensor
+    from .simulate import simulate
+
+    try:
+        loaded = load_scene(scene)
+        start = time.perf_counter()
+        sensor = scene_lidar_sensor(loaded)
+        if pattern is None:
+            if sensor is None:
+                raise MiLidarError(f"{scene}: the scene has no `lidar` sensor; add <sensor type=\"lidar\"> or pass --pattern")
+            channels = tensor_to_numpy(mi.render(loaded, seed=seed))
+            pat = sensor.pattern
+            log = Log(
+                poses=sensor.to_world_matrix[None], directions=pat.directions()[None], origins=pat.origins()[None],
+                ranges=channels.pop("range")[None], hit=channels.pop("hit")[None], times=pat.time[None],
+                attributes={k: v[None] for k, v in channels.items()}, sensor={"pattern": pat.name, "seed": seed},
+            )
+        else:
+            log = simulate(loaded, pattern, seed=seed)
+        elapsed = time.perf_counter() - start
+        files = write_scan_outputs(log, out, scene.stem)
+    except (MiLidarError, ValueError) as exc:
+        _fail(exc)
+    console.print(scan_summary(log, f"{scene.name} (seed {seed})", elapsed))
+    for path in files:
+        console.print(f"wrote {path}")
+
+
+def _read_poses(path: Path) -> np.ndarray:
+    from .io import read_kitti_poses, read_pose_matrices
+
+    if path.suffix == ".npy":
+        return read_pose_matrices(path)
+    first = next((line.split() for line in path.read_text().splitlines() if line.strip()), [])
+    return read_kitti_poses(path) if len(first) == 12 else read_pose_matrices(path)
+
+
+@app.command()
+def simulate(
+    scene: Path = typer.Argument(..., help="Scene XML.", exists=True, dir_okay=False),
+    poses: Path = typer.Option(..., help="Sensor poses: `.npy` (S, 4, 4), text with 16 numbers per line, or a KITTI poses file (12 per line).", exists=True, dir_okay=False),
+    out: Path = typer.Option(..., "--out", "-o", help="Output log (`.npz`)."),
+    seed: int = typer.Option(0, help="Random seed."),
+    pattern: Optional[str] = typer.Option(None, help="Firing pattern (default: the scene sensor's)."),
+):
+    """Simulate one scan per pose and write a log (`.npz`, see `mi_lidar.log`).
+
+    Examples:
+
+        mi-lidar simulate scenes_xml/offroad.xml --poses poses.txt --out drive.npz
+
+        mi-lidar simulate scenes_xml/indoor_planar.xml --poses kitti_poses.txt --out room.npz --pattern planar-180
+    """
+    from rich.progress import Progress
+
+    from .scene import load_scene
+    from .simulate import simulate as run
+
+    try:
+        loaded = load_scene(scene)
+        pose_array = _read_poses(poses)
+        start = time.perf_counter()
+        with Progress(console=console, transient=True) as progress:
+            task = progress.add_task("simulating scans", total=len(pose_array))
+            log = run(loaded, pattern, poses=pose_array, seed=seed,
+                      progress=lambda done, total: progress.update(task, completed=done))
+        elapsed = time.perf_counter() - start
+        path = log.save(out)
+    except (MiLidarError, ValueError, OSError) as exc:
+        _fail(exc)
+    console.print(scan_summary(log, f"{scene.name}: {len(pose_array)} scans (seed {seed})", elapsed))
+    console.print(f"wrote {path}")
+
+
+@app.command()
+def demo(
+    out: Path = typer.Option(Path("demo_out"), "--out", "-o", help="Output folder."),
+    seed: int = typer.Option(0, help="Random seed."),
+):
+    """The main job of `make demo`: render the bundled off-road scene and write every output.
+
+    Example:
+
+        mi-lidar demo --out demo_out
+    """
+    render(DEFAULT_SCENE, out, seed=seed, pattern=None)

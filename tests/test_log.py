@@ -1,0 +1,70 @@
+"""The log data model and its on-disk format."""
+
+import numpy as np
+import pytest
+
+from mi_lidar.errors import LogFormatError
+from mi_lidar.log import Log
+
+
+def small_log(scans=2):
+    rng = np.random.default_rng(0)
+    h, w = 3, 5
+    d = rng.normal(size=(1, h, w, 3))
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    ranges = rng.uniform(1, 10, (scans, h, w)).astype(np.float32)
+    hit = rng.random((scans, h, w)) > 0.3
+    ranges[~hit] = np.nan
+    return Log(poses=np.stack([np.eye(4)] * scans), directions=d, ranges=ranges, hit=hit,
+               times=np.zeros((scans, h, w)), attributes={"label": rng.integers(0, 4, (scans, h, w)).astype(np.int32)},
+               sensor={"pattern": "test"})
+
+
+def test_round_trip_is_exact(tmp_path):
+    log = small_log()
+    back = Log.load(log.save(tmp_path / "a.npz"))
+    np.testing.assert_array_equal(back.ranges, log.ranges)
+    np.testing.assert_array_equal(back.hit, log.hit)
+    np.testing.assert_array_equal(back.attributes["label"], log.attributes["label"])
+    assert back.sensor == {"pattern": "test"}
+    assert [p.name for p in tmp_path.iterdir()] == ["a.npz"]  # no temporary file left
+
+
+def test_points_put_misses_at_nan_and_hits_on_the_ray():
+    log = small_log(1)
+    points = log.points_sensor()
+    assert np.isnan(points[~log.hit]).all()
+    np.testing.assert_allclose(np.linalg.norm(points[log.hit], axis=-1), log.ranges[log.hit], rtol=1e-5)
+
+
+def test_truncated_file_is_a_clean_error(tmp_path):
+    path = small_log().save(tmp_path / "a.npz")
+    path.write_bytes(path.read_bytes()[:200])
+    with pytest.raises(LogFormatError, match="truncated"):
+        Log.load(path)
+
+
+def test_mismatched_shapes_are_named():
+    log = small_log()
+    with pytest.raises(LogFormatError, match="hit has shape"):
+        Log(poses=log.poses, directions=log.directions, ranges=log.ranges, hit=log.hit[:1], times=log.times)
+
+
+def test_hit_with_nan_range_is_rejected():
+    log = small_log(1)
+    hit = np.ones_like(log.hit)
+    with pytest.raises(LogFormatError, match="non-finite range"):
+        Log(poses=log.poses, directions=log.directions, ranges=log.ranges, hit=hit, times=log.times)
+
+
+def test_wrong_version(tmp_path):
+    import json
+
+    log = small_log()
+    path = log.save(tmp_path / "a.npz")
+    with np.load(path) as data:
+        arrays = dict(data)
+    arrays["meta"] = np.frombuffer(json.dumps({"format": "mi-lidar-log", "version": 99}).encode(), np.uint8)
+    np.savez(path, **arrays)
+    with pytest.raises(LogFormatError, match="version 99"):
+        Log.load(path)
