@@ -21,6 +21,7 @@ from .cloud import cloud_from_log, log_from_fields
 _TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8",
           ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
 _MAX_HEADER_LINES = 64
+START_TIME_COMMENT = "mi_lidar_start_time"
 
 
 def _lzf_decompress(data: bytes, size: int, path: Path) -> bytes:
@@ -67,6 +68,8 @@ def _parse_header(raw: bytes, path: Path) -> tuple[dict, int]:
             raise LogFormatError(f"{path}: header ends at byte {len(raw)} without a DATA line (truncated?)")
         line = raw[offset:end].decode("ascii", errors="replace").strip()
         offset = end + 1
+        if line.startswith(f"# {START_TIME_COMMENT} "):
+            header[START_TIME_COMMENT] = line.split()[2:3]
         if not line or line.startswith("#"):
             continue
         key, *values = line.split()
@@ -83,7 +86,8 @@ def read_pcd(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], int, int]:
         path: A ``.pcd`` file (ascii, binary or binary_compressed).
 
     Returns:
-        ``(fields, width, height)``: name -> (N,) arrays with ``N = width * height`` (row-major).
+        ``(fields, width, height)``: name -> (N,) arrays with ``N = width * height`` (row-major),
+        plus the scalar ``mi_lidar_start_time`` when the header carries that comment.
 
     Raises:
         LogFormatError: Missing/truncated file, inconsistent header (named keyword), unknown
@@ -150,11 +154,17 @@ def read_pcd(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], int, int]:
             start += dtype.itemsize * points
     else:
         raise LogFormatError(f"{path}: DATA {mode!r}; expected ascii, binary or binary_compressed")
-    return {n: v for n, v in fields.items() if not n.startswith("__") and not n.startswith("_")}, width, height
+    fields = {n: v for n, v in fields.items() if not n.startswith("_")}
+    if header.get(START_TIME_COMMENT):
+        try:
+            fields[START_TIME_COMMENT] = np.float64(header[START_TIME_COMMENT][0])
+        except ValueError as exc:
+            raise LogFormatError(f"{path}: malformed {START_TIME_COMMENT} comment ({exc})") from exc
+    return fields, width, height
 
 
 def write_pcd(path: str | os.PathLike, fields: dict[str, np.ndarray], width: int | None = None,
-              height: int = 1, binary: bool = True) -> Path:
+              height: int = 1, binary: bool = True, start_time: float | None = None) -> Path:
     """Write named (N,) fields as a PCD v0.7 file, atomically.
 
     Args:
@@ -162,6 +172,8 @@ def write_pcd(path: str | os.PathLike, fields: dict[str, np.ndarray], width: int
         fields: Name -> (N,) numeric array (dtype kept: int/uint 8-64 bit, float32/64).
         width, height: Organized size (``width * height == N``); unorganized ``N x 1`` by default.
         binary: ``DATA binary`` when True, ``DATA ascii`` otherwise.
+        start_time: Optional absolute time (s) of the cloud's ``time`` field origin, stored as the
+            header comment ``# mi_lidar_start_time <t>``.
     """
     arrays = {n: np.asarray(v) for n, v in fields.items()}
     count = len(next(iter(arrays.values())))
@@ -172,7 +184,8 @@ def write_pcd(path: str | os.PathLike, fields: dict[str, np.ndarray], width: int
     types = [kinds[a.dtype.kind] for a in arrays.values()]
     sizes = [a.dtype.itemsize for a in arrays.values()]
     header = "\n".join([
-        "# .PCD v0.7 - Point Cloud Data file format (written by mi-lidar)", "VERSION 0.7",
+        "# .PCD v0.7 - Point Cloud Data file format (written by mi-lidar)",
+        *([] if start_time is None else [f"# {START_TIME_COMMENT} {start_time!r}"]), "VERSION 0.7",
         "FIELDS " + " ".join(arrays), "SIZE " + " ".join(map(str, sizes)), "TYPE " + " ".join(types),
         "COUNT " + " ".join("1" for _ in arrays), f"WIDTH {width}", f"HEIGHT {height}",
         "VIEWPOINT 0 0 0 1 0 0 0", f"POINTS {count}", f"DATA {'binary' if binary else 'ascii'}",
@@ -187,7 +200,9 @@ def write_pcd(path: str | os.PathLike, fields: dict[str, np.ndarray], width: int
             if binary:
                 stream.write(table.tobytes())
             else:
-                columns = [np.char.mod("%.9g" if a.dtype.kind == "f" else "%d", a) for a in arrays.values()]
+                formats = {4: "%.9g", 8: "%.17g"}
+                columns = [np.char.mod(formats[a.dtype.itemsize] if a.dtype.kind == "f" else "%d", a)
+                           for a in arrays.values()]
                 stream.write("\n".join(" ".join(row) for row in zip(*columns)).encode("ascii") + b"\n")
     return Path(path)
 
@@ -195,17 +210,19 @@ def write_pcd(path: str | os.PathLike, fields: dict[str, np.ndarray], width: int
 def write_pcd_log(log: Log, path: str | os.PathLike, scan: int = 0, binary: bool = True) -> Path:
     """Write one scan as an organized ``H x W`` PCD (misses are NaN points)."""
     _, height, width = log.shape
-    return write_pcd(path, cloud_from_log(log, scan, organized=True), width=width, height=height, binary=binary)
+    return write_pcd(path, cloud_from_log(log, scan, organized=True), width=width, height=height, binary=binary,
+                     start_time=float(log.times[scan].min()))
 
 
 def read_pcd_log(path: str | os.PathLike, min_range: float = 0.0) -> Log:
     """Read a PCD as a one-scan log (ring grid from a ``ring`` field, else from an organized
     ``HEIGHT > 1`` layout, else ``H = 1``)."""
     fields, width, height = read_pcd(path)
+    start = float(fields.pop(START_TIME_COMMENT, 0.0))
     missing = [c for c in ("x", "y", "z") if c not in fields]
     if missing:
         raise LogFormatError(f"{path}: PCD lacks fields {missing}; expected x y z")
     if "ring" not in fields and height > 1:
         rows, cols = np.indices((height, width))
         fields = {**fields, "ring": (height - 1 - rows).ravel(), "column": cols.ravel()}
-    return log_from_fields(fields, min_range=min_range, sensor={"name": "pcd", "source": str(path)})
+    return log_from_fields(fields, min_range=min_range, sensor={"name": "pcd", "source": str(path)}, start_time=start)

@@ -21,6 +21,7 @@ from .cloud import cloud_from_log, log_from_fields
 
 _PLY_KINDS = {np.dtype(t) for t in ("i1", "u1", "i2", "u2", "i4", "u4", "f4", "f8")}
 _COORDS = ("x", "y", "z")
+START_TIME_COMMENT = "mi_lidar_start_time"
 
 
 def _ply_dtype(name: str, values: np.ndarray) -> np.dtype:
@@ -44,6 +45,7 @@ def write_ply(
     points: np.ndarray,
     attributes: dict[str, np.ndarray] | None = None,
     binary: bool = True,
+    comments: list[str] | None = None,
 ) -> Path:
     """Write points and per-point attributes as a PLY ``vertex`` element, atomically.
 
@@ -52,6 +54,7 @@ def write_ply(
         points: (N, 3) coordinates (m), stored as float32 ``x y z``.
         attributes: Name -> (N,) array per point (e.g. ``intensity``, ``ring``); dtypes kept.
         binary: Binary little-endian when True, ASCII otherwise.
+        comments: Optional header comment lines.
 
     Returns:
         The destination path.
@@ -78,25 +81,12 @@ def write_ply(
         vertex[name] = values
     element = plyfile.PlyElement.describe(vertex, "vertex")
     with atomic_path(path) as tmp:
-        plyfile.PlyData([element], text=not binary, byte_order="<").write(str(tmp))
+        plyfile.PlyData([element], text=not binary, byte_order="<", comments=comments or []).write(str(tmp))
     return Path(path)
 
 
-def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Read the ``vertex`` element of a PLY file.
-
-    Args:
-        path: A ``.ply`` file (ASCII or binary).
-
-    Returns:
-        ``(points, attributes)``: (N, 3) float32 coordinates and name -> (N,) arrays with the
-        stored dtypes (native byte order).
-
-    Raises:
-        LogFormatError: Missing, truncated or malformed file, or no ``vertex`` element with
-            ``x y z`` properties.
-    """
-    path = Path(path)
+def _load(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
+    """Points, attributes and header comments of a PLY file (see :func:`read_ply`)."""
     if not path.is_file():
         raise LogFormatError(f"{path}: no such PLY file")
     try:
@@ -116,18 +106,45 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, np.ndarray]
         for n in names
         if n not in _COORDS
     }
+    return points, attributes, list(data.comments)
+
+
+def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Read the ``vertex`` element of a PLY file.
+
+    Args:
+        path: A ``.ply`` file (ASCII or binary).
+
+    Returns:
+        ``(points, attributes)``: (N, 3) float32 coordinates and name -> (N,) arrays with the
+        stored dtypes (native byte order).
+
+    Raises:
+        LogFormatError: Missing, truncated or malformed file, or no ``vertex`` element with
+            ``x y z`` properties.
+    """
+    points, attributes, _ = _load(Path(path))
     return points, attributes
 
 
 def write_ply_log(log: Log, path: str | os.PathLike, scan: int = 0, binary: bool = True) -> Path:
-    """Write the hits of one scan with the standard fields ``x y z intensity ring column time``."""
+    """Write the hits of one scan with the standard fields ``x y z intensity ring column time``;
+    the header comment ``mi_lidar_start_time <t>`` holds the absolute time (s) of ``time = 0``."""
     cloud = cloud_from_log(log, scan)
     points = np.stack([cloud.pop(c) for c in _COORDS], axis=1)
-    return write_ply(path, points, cloud, binary=binary)
+    start = float(log.times[scan].min())
+    return write_ply(path, points, cloud, binary=binary, comments=[f"{START_TIME_COMMENT} {start!r}"])
 
 
 def read_ply_log(path: str | os.PathLike, min_range: float = 0.0) -> Log:
     """Read a PLY point cloud as a one-scan log (ring grid when ``ring`` is a property, else H = 1)."""
-    points, attributes = read_ply(path)
+    points, attributes, comments = _load(Path(path))
     fields = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2], **attributes}
-    return log_from_fields(fields, min_range=min_range, sensor={"name": "ply", "source": str(path)})
+    start = 0.0
+    for comment in comments:
+        if comment.startswith(START_TIME_COMMENT + " "):
+            try:
+                start = float(comment.split()[1])
+            except (IndexError, ValueError) as exc:
+                raise LogFormatError(f"{path}: malformed {START_TIME_COMMENT} comment {comment!r}") from exc
+    return log_from_fields(fields, min_range=min_range, sensor={"name": "ply", "source": str(path)}, start_time=start)

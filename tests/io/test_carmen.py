@@ -1,0 +1,72 @@
+import gzip
+
+import numpy as np
+import pytest
+
+from mi_lidar.errors import LogFormatError
+from mi_lidar.io import read_any, read_carmen
+from mi_lidar.io.carmen import beam_angles
+
+from .conftest import data_file
+from .synth import carmen_text
+
+
+def test_real_intel_log():
+    log = read_carmen(data_file("carmen/intel-corrected.log.gz"))
+    assert log.shape == (910, 1, 180)
+    assert (~log.hit).sum() == 4172
+    assert np.all(np.isnan(log.ranges[~log.hit]))
+    assert 0.2 < np.nanmin(log.ranges) and np.nanmax(log.ranges) < 26.0
+    np.testing.assert_allclose(log.poses[0, :2, 3], [0.600266, -0.0320327])
+    np.testing.assert_allclose(np.arctan2(log.poses[0, 1, 0], log.poses[0, 0, 0]), -0.354665)
+    world = log.poses[0, :3, :3] @ log.directions[0, 0, 0]
+    np.testing.assert_allclose(np.arctan2(world[1], world[0]), -0.354665 - np.pi / 2)
+    assert np.sum(np.diff(log.times[:, 0, 0]) < 0) == 4  # the log itself has 4 small timestamp reversals
+    # Indoor lab: every world point stays inside the ~40 m building.
+    points = log.points_world()[log.hit]
+    assert np.ptp(points[:, 0]) < 45 and np.ptp(points[:, 1]) < 45
+
+
+def test_synthetic_plain_and_gzip(tmp_path):
+    text = carmen_text(scans=3)
+    (tmp_path / "a.log").write_text(text)
+    (tmp_path / "a.log.gz").write_bytes(gzip.compress(text.encode()))
+    plain, packed = read_carmen(tmp_path / "a.log"), read_any(tmp_path / "a.log.gz")
+    np.testing.assert_array_equal(plain.ranges, packed.ranges)
+    assert plain.shape == (3, 1, 180)
+    assert not plain.hit[:, 0, 5].any() and plain.hit.sum() == 3 * 179
+    np.testing.assert_allclose(plain.ranges[0, 0, 10], 1.10)
+    np.testing.assert_allclose(plain.poses[2, :2, 3], [2.0, 2.0])
+    np.testing.assert_allclose(plain.times[1, 0, 0], 11.0)
+    np.testing.assert_allclose(plain.times[1, 0, 179] - plain.times[1, 0, 0], 179 / 180 / 150)
+
+
+def test_beam_layout():
+    np.testing.assert_allclose(np.degrees(beam_angles(180))[[0, 1, -1]], [-90, -89, 89])
+    np.testing.assert_allclose(np.degrees(beam_angles(361))[[0, 1, -1]], [-90, -89.5, 90])
+
+
+@pytest.mark.parametrize(
+    "line, message",
+    [
+        ("FLASER 3 1 2", "line 2: FLASER with n=3 needs 13 fields"),
+        ("FLASER 3 1 2 x 0 0 0 0 0 0 5 host 5", "line 2: malformed FLASER"),
+        ("FLASER 3 1 2 nan 0 0 0 0 0 0 5 host 5", "line 2: non-finite"),
+    ],
+)
+def test_malformed_lines(tmp_path, line, message):
+    (tmp_path / "bad.log").write_text("# header\n" + line + "\n")
+    with pytest.raises(LogFormatError, match=message):
+        read_carmen(tmp_path / "bad.log")
+
+
+def test_empty_and_mixed_logs(tmp_path):
+    (tmp_path / "empty.log").write_text("ODOM 0 0 0 0 0 0 1 host 1\n")
+    with pytest.raises(LogFormatError, match="no FLASER messages"):
+        read_carmen(tmp_path / "empty.log")
+    (tmp_path / "mixed.log").write_text(carmen_text(1, 180) + carmen_text(1, 181))
+    with pytest.raises(LogFormatError, match=r"different beam counts \[180, 181\]"):
+        read_carmen(tmp_path / "mixed.log")
+    (tmp_path / "t.log.gz").write_bytes(gzip.compress(carmen_text().encode())[:-20])
+    with pytest.raises(LogFormatError, match="corrupt or truncated gzip"):
+        read_carmen(tmp_path / "t.log.gz")

@@ -1,0 +1,139 @@
+import numpy as np
+import pytest
+
+from mi_lidar.errors import LogFormatError
+from mi_lidar.io import (
+    cloud_from_log, log_from_points, read_any, read_bin_log, read_pcd, read_pcd_log, read_rosbag_log, write_any,
+    write_pcd,
+)
+from mi_lidar.log import Log
+
+from .conftest import data_file
+
+NUSCENES = "nuscenes/n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
+
+
+def synthetic_log(height=8, width=64, scans=1, seed=0) -> Log:
+    """A spinning-sensor log: rows top to bottom, 20 % misses, intensity attribute."""
+    rng = np.random.default_rng(seed)
+    elevation = np.radians(np.linspace(10, -20, height))[:, None]
+    azimuth = np.linspace(np.pi, -np.pi, width, endpoint=False)[None, :]
+    directions = np.stack(np.broadcast_arrays(
+        np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)), axis=-1)
+    ranges = rng.uniform(2, 40, (scans, height, width))
+    hit = rng.random(ranges.shape) > 0.2
+    times = 100.0 + np.arange(scans)[:, None, None] * 0.1 + np.broadcast_to(np.arange(width) * 0.1 / width, ranges.shape)
+    return Log(
+        poses=np.tile(np.eye(4), (scans, 1, 1)), directions=directions[None], ranges=np.where(hit, ranges, np.nan),
+        hit=hit, times=times, attributes={"intensity": rng.uniform(0, 255, ranges.shape).astype(np.float32)},
+        sensor={"name": "synthetic"},
+    )
+
+
+def test_nuscenes_bin_builds_ring_grid():
+    log = read_bin_log(data_file(NUSCENES))
+    assert log.shape == (1, 32, 1084)
+    assert log.attributes["valid"].all()
+    assert abs((1 - log.hit.mean()) - 0.2315) < 1e-3
+    assert np.nanmin(log.ranges) >= 1.0
+    elevation = np.degrees(np.arcsin(log.directions[0, :, 500, 2]))
+    assert np.all(np.diff(elevation) < 0)
+    assert 10.0 < elevation[0] < 11.0 and -31.0 < elevation[-1] < -30.0
+    np.testing.assert_array_equal(log.attributes["ring"][0, :, 0], np.arange(31, -1, -1))
+    records = np.fromfile(data_file(NUSCENES), "<f4").reshape(-1, 5)
+    raw = np.linalg.norm(records[:, :3], axis=1).reshape(-1, 32).T[::-1]
+    np.testing.assert_allclose(log.ranges[0][log.hit[0]], raw[log.hit[0]], rtol=1e-6)
+
+
+def test_kitti_bin_is_one_row(tmp_path):
+    points = np.random.default_rng(1).normal(size=(50, 3)) * 10
+    points[3] = 0.0
+    records = np.concatenate([points, np.ones((50, 1))], axis=1).astype("<f4")
+    records.tofile(tmp_path / "000000.bin")
+    log = read_any(tmp_path / "000000.bin")
+    assert log.shape == (1, 1, 50)
+    assert log.hit.sum() == 49 and not log.hit[0, 0, 3]
+    np.testing.assert_allclose(log.points_sensor()[0, 0][log.hit[0, 0]], points[np.arange(50) != 3], atol=1e-5)
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".pcd", ".las", ".exr", ".npz"])
+def test_round_trip_keeps_grid_and_ranges(tmp_path, suffix):
+    log = synthetic_log()
+    back = read_any(write_any(log, tmp_path / f"scan{suffix}"))
+    assert back.shape == log.shape
+    np.testing.assert_array_equal(back.hit, log.hit)
+    tolerance = 2e-4 if suffix == ".las" else 1e-5
+    np.testing.assert_allclose(back.ranges[back.hit], log.ranges[log.hit], atol=tolerance)
+    np.testing.assert_allclose(back.points_sensor()[back.hit], log.points_sensor()[log.hit], atol=tolerance)
+    np.testing.assert_allclose(back.attributes["intensity"][back.hit], log.attributes["intensity"][log.hit], atol=1e-3)
+    if suffix in (".exr", ".pcd", ".npz"):  # organized formats keep the miss directions too
+        np.testing.assert_allclose(back.directions, log.directions, atol=1e-5)
+    np.testing.assert_allclose(back.times[back.hit], log.times[log.hit], atol=1e-5)
+    assert [p.name for p in tmp_path.iterdir()] == [f"scan{suffix}"]
+
+
+def test_kitti_bin_round_trip_writes_hits_only(tmp_path):
+    log = synthetic_log()
+    back = read_any(write_any(log, tmp_path / "s.bin"))
+    assert back.shape == (1, 1, int(log.hit.sum()))
+    np.testing.assert_allclose(back.points_sensor()[0, 0], log.points_sensor()[log.hit], atol=1e-5)
+
+
+def test_miss_directions_are_estimated_from_the_pattern():
+    log = synthetic_log(height=4, width=32)
+    cloud = cloud_from_log(log, organized=True)
+    points = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1)
+    back = log_from_points(points, ring=cloud["ring"], column=cloud["column"])
+    np.testing.assert_array_equal(back.hit, log.hit)
+    np.testing.assert_allclose(back.directions[~back.hit], log.directions[0][~log.hit[0]], atol=1e-6)
+
+
+def test_rosbag_round_trip_and_fields(tmp_path):
+    from rosbags.highlevel import AnyReader
+
+    log = synthetic_log(scans=3)
+    path = write_any(log, tmp_path / "bag")
+    back = read_rosbag_log(path)
+    assert back.shape == log.shape
+    np.testing.assert_array_equal(back.hit, log.hit)
+    np.testing.assert_allclose(back.ranges[back.hit], log.ranges[log.hit], atol=1e-5)
+    np.testing.assert_allclose(back.times, log.times, atol=1e-5)
+    with AnyReader([path]) as reader:
+        (connection,) = reader.connections
+        msg = reader.deserialize(next(reader.messages())[2], connection.msgtype)
+    assert [f.name for f in msg.fields][:5] == ["x", "y", "z", "intensity", "ring"]
+    assert (msg.height, msg.width, msg.is_dense) == (8, 64, False)
+    with pytest.raises(FileExistsError):
+        write_any(log, path)
+
+
+def test_open3d_reads_our_point_clouds(tmp_path):
+    o3d = pytest.importorskip("open3d")
+    log = synthetic_log()
+    for suffix in (".pcd", ".ply"):
+        cloud = o3d.io.read_point_cloud(str(write_any(log, tmp_path / f"s{suffix}")), remove_nan_points=True)
+        np.testing.assert_allclose(np.asarray(cloud.points), log.points_sensor()[log.hit], atol=1e-5)
+
+
+def test_pcd_ascii_and_binary_compressed(tmp_path):
+    o3d = pytest.importorskip("open3d")
+    points = np.random.default_rng(2).normal(size=(300, 3)) * 5
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    o3d.io.write_point_cloud(str(tmp_path / "c.pcd"), cloud, write_ascii=False, compressed=True)
+    assert b"DATA binary_compressed" in (tmp_path / "c.pcd").read_bytes()[:400]
+    fields, width, height = read_pcd(tmp_path / "c.pcd")
+    np.testing.assert_allclose(np.stack([fields[c] for c in "xyz"], 1), points, atol=1e-12)
+    write_pcd(tmp_path / "a.pcd", {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2]}, binary=False)
+    log = read_pcd_log(tmp_path / "a.pcd")
+    assert log.shape == (1, 1, 300)
+    np.testing.assert_allclose(log.points_sensor()[0, 0], points, rtol=1e-6, atol=1e-6)  # Log stores float32
+
+
+def test_inconsistent_ring_fields_are_rejected(tmp_path):
+    points = np.ones((3, 3))
+    with pytest.raises(LogFormatError, match="share a"):
+        log_from_points(points, ring=np.array([0, 0, 1]), column=np.array([0, 0, 0]))
+    with pytest.raises(LogFormatError, match="non-negative integers"):
+        log_from_points(points, ring=np.array([0, -1, 1]))
+    with pytest.raises(LogFormatError, match="grid for only 3 points"):
+        log_from_points(points, ring=np.array([0, 1, 2]), column=np.array([0, 1, 2**40]))

@@ -1,0 +1,110 @@
+import numpy as np
+import pytest
+
+from mi_lidar.errors import LogFormatError
+from mi_lidar.io import read_any, read_velodyne
+from mi_lidar.io.velodyne import MODELS
+
+from .conftest import data_file
+from .synth import pcap_bytes, velodyne_payloads
+
+PACKET_US = {"VLP-16": 12 * 110.592, "HDL-32E": 12 * 46.08, "VLP-32C": 12 * 55.296}
+STEP_CDEG = {"VLP-16": 39.81, "HDL-32E": 16.59, "VLP-32C": 19.91}
+
+
+def _capture(tmp_path, model="VLP-16", packets=10, start_cdeg=0.0, distance=2500, mode=0x37, product=0x22):
+    blocks = 6 if mode == 0x39 else 12
+    step = STEP_CDEG[model] * (2 if mode == 0x39 else 1)
+    azimuth = start_cdeg + step * np.arange(packets * blocks).reshape(packets, blocks)
+    if mode == 0x39:
+        azimuth = np.repeat(azimuth, 2, axis=1)
+    distances = np.broadcast_to(np.asarray(distance), (packets, 12, 32))
+    packet_us = PACKET_US[model] / (2 if mode == 0x39 else 1)
+    payloads = velodyne_payloads(distances, np.round(azimuth), mode=mode, product=product, packet_us=packet_us)
+    path = tmp_path / f"{model}.pcap"
+    path.write_bytes(pcap_bytes(payloads, 2368, step=packet_us * 1e-6))
+    return path
+
+
+def test_real_vlp16_capture():
+    log = read_velodyne(data_file("velodyne/velodyne_vlp16.pcap"), data_file("velodyne/VLP16db.yaml"))
+    assert log.shape == (2, 16, 1464)
+    assert log.sensor["columns_per_scan"] == [552, 1464]
+    valid = log.attributes["valid"]
+    assert valid.sum() == 16 * 84 * 24
+    assert abs((1 - log.hit[valid].mean()) - 0.393) < 0.002
+    assert not log.hit[~valid].any()
+    elevation = np.degrees(np.arcsin(log.directions[0, :, 0, 2]))
+    np.testing.assert_allclose(elevation, np.arange(15, -16, -2), atol=1e-4)
+    np.testing.assert_array_equal(log.attributes["laser_id"][0, :, 0], [15, 13, 11, 9, 7, 5, 3, 1, 14, 12, 10, 8, 6, 4, 2, 0])
+    assert 2.0 < np.nanmin(log.ranges) and np.nanmax(log.ranges) < 131.0
+    assert np.all(np.diff(log.times[1, 0, :1464]) > 0)
+    # Cutting at the first azimuth makes the first frame one complete revolution.
+    full = read_velodyne(data_file("velodyne/velodyne_vlp16.pcap"), data_file("velodyne/VLP16db.yaml"), cut_azimuth_deg=None)
+    assert full.sensor["columns_per_scan"][0] == 1811
+    azimuth = np.degrees(np.unwrap(np.arctan2(full.directions[0, 7, :1811, 1], full.directions[0, 7, :1811, 0])))
+    assert 359.0 < abs(azimuth[-1] - azimuth[0]) < 360.0
+
+
+@pytest.mark.parametrize("model, product", [("VLP-16", 0x22), ("HDL-32E", 0x21), ("VLP-32C", 0x28)])
+def test_models_from_product_byte(tmp_path, model, product):
+    log = read_velodyne(_capture(tmp_path, model, product=product))
+    spec = MODELS[model]
+    assert log.sensor["name"] == f"velodyne:{model}"
+    assert log.shape[1] == spec.lasers
+    assert log.shape[2] == 10 * 12 * spec.sequences_per_block
+    np.testing.assert_allclose(log.ranges[log.hit], 2500 * spec.resolution_m, rtol=1e-6)
+    elevation = np.degrees(np.arcsin(log.directions[0, :, 0, 2]))
+    np.testing.assert_allclose(elevation, np.sort(spec.elevation_deg)[::-1], atol=1e-4)
+
+
+def test_point_geometry_follows_ros_convention(tmp_path):
+    log = read_velodyne(_capture(tmp_path, "HDL-32E", start_cdeg=9000, distance=5000, product=0x21))
+    row = int(np.argmin(np.abs(np.degrees(np.arcsin(log.directions[0, :, 0, 2])))))
+    point = log.points_sensor()[0, row, 0]
+    np.testing.assert_allclose(point[1], -10.0, atol=1e-4)
+    assert abs(point[0]) < 0.02 and abs(point[2]) < 1e-3
+    assert log.attributes["laser_id"][0, row, 0] == 15
+
+
+def test_dual_returns(tmp_path):
+    distance = np.zeros((12, 32))
+    distance[0::2], distance[1::2] = 1000, 2000
+    path = _capture(tmp_path, distance=distance, mode=0x39)
+    strongest = read_velodyne(path)
+    assert strongest.shape == (1, 16, 10 * 6 * 2)
+    assert np.all(strongest.ranges == np.float32(4.0))
+    np.testing.assert_allclose(strongest.attributes["range_last"], 2.0)
+    last = read_velodyne(path, return_mode="last")
+    assert np.all(last.ranges == np.float32(2.0))
+    np.testing.assert_allclose(last.attributes["range_strongest"], 4.0)
+
+
+def test_frames_split_at_azimuth_wrap(tmp_path):
+    log = read_velodyne(_capture(tmp_path, packets=20, start_cdeg=33000))
+    counts = log.sensor["columns_per_scan"]
+    assert len(counts) == 2 and sum(counts) == 20 * 24
+    assert abs(counts[0] - 3000 / 20) <= 2
+    assert not log.attributes["valid"][0, :, counts[0]:].any()
+
+
+def test_mismatched_model_or_calibration(tmp_path):
+    path = _capture(tmp_path)
+    with pytest.raises(LogFormatError, match=r"1327\.\d us apart but a HDL-32E in strongest mode sends one every 553"):
+        read_velodyne(path, model="HDL-32E")
+    table = "lasers:\n" + "".join(
+        f"- {{laser_id: {i}, rot_correction: 0.0, vert_correction: {np.radians(i - 16):.6f}}}\n" for i in range(32)
+    )
+    (tmp_path / "32.yaml").write_text(table)
+    with pytest.raises(LogFormatError, match="calibration has 32 lasers but a VLP-16 has 16"):
+        read_velodyne(path, tmp_path / "32.yaml", model="VLP-16")
+    (tmp_path / "bad.yaml").write_text("lasers:\n- {laser_id: 0}\n")
+    with pytest.raises(LogFormatError, match=r"lasers\[0\]: bad or missing field"):
+        read_velodyne(path, tmp_path / "bad.yaml")
+    (tmp_path / "other.pcap").write_bytes(pcap_bytes([bytes(100)], 2368))
+    with pytest.raises(LogFormatError, match="no 1206-byte Velodyne data packets"):
+        read_velodyne(tmp_path / "other.pcap")
+
+
+def test_dispatch_reads_velodyne_pcap(tmp_path):
+    assert read_any(_capture(tmp_path)).sensor["name"] == "velodyne:VLP-16"
