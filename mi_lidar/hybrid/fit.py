@@ -134,13 +134,24 @@ def assign_hit_probabilities(model: HybridModel, log: Log, owner_of_ray: np.ndar
             "ellipsoid_passes": float(ep.sum()), "ground_sigma": sigma}
 
 
-def fit_model(log: Log, params: FitParams | None = None, progress: Callable[[str, float], None] | None = None) -> FitResult:
+def select_scans(log: Log, scans) -> Log:
+    """A log of the scans ``scans`` (indices or slice) of ``log``."""
+    idx = np.arange(log.n_scans)[scans]
+    pick = lambda a: a[idx] if a.shape[0] > 1 else a
+    return Log(poses=log.poses[idx], directions=pick(log.directions), origins=pick(log.origins), ranges=log.ranges[idx],
+               hit=log.hit[idx], times=log.times[idx], attributes={k: v[idx] for k, v in log.attributes.items()},
+               sensor=dict(log.sensor))
+
+
+def fit_model(log: Log, params: FitParams | None = None, progress: Callable[[str, float], None] | None = None,
+              ground_only: bool = False) -> FitResult:
     """Fit the hybrid geometric model of the scene seen by ``log``.
 
     Args:
         log: a log (world-frame points come from its poses).
         params: fitting parameters (defaults: :class:`FitParams`).
         progress: optional callback ``progress(stage, fraction_done)``.
+        ground_only: fit only the ground triangles (e.g. the ground of a composed test scene).
 
     Returns:
         The :class:`FitResult`. If the log has ``label`` / ``instance`` attributes, element labels
@@ -178,7 +189,7 @@ def fit_model(log: Log, params: FitParams | None = None, progress: Callable[[str
         grounds.append(mesh)
         timings["ground_mesh"] += time.perf_counter() - t0
         t0 = time.perf_counter()
-        inside = np.nonzero(~is_ground & np.all(keys == key, axis=1))[0]
+        inside = np.nonzero(~is_ground & np.all(keys == key, axis=1) & (not ground_only))[0]
         ell, member = fit_ellipsoids(points[inside], params.clusters)
         ell.block[:] = b
         owner[inside] = np.where(member >= 0, member + n_ell, -1)

@@ -1,0 +1,98 @@
+"""Scene files of a hybrid model: one ground mesh and one ellipsoid set per block (XML + PLY).
+
+:func:`write_scene` writes ``<name>.xml`` plus ``<name>_assets/ground_b<k>.ply`` and
+``ellipsoids_b<k>.ply`` with per-element ``p_hit``, ``range_sigma`` (0 for ellipsoids, whose
+spread is their Gaussian) and ``label``, using :mod:`mi_lidar.scene_files`; :func:`read_scene`
+reads such a scene back into a :class:`HybridModel` (instances are not stored in the files).
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+from plyfile import PlyData
+
+from ..errors import SceneError
+from ..scene_files import ShapeEntry, write_ellipsoids_ply, write_mesh_ply, write_scene_xml
+from .model import EllipsoidSet, GroundMesh, HybridModel
+
+
+def write_scene(model: HybridModel, out_dir, name: str = "scene") -> Path:
+    """Write ``model`` as a Mitsuba scene; return the XML path.
+
+    Args:
+        model: the hybrid model; elements are grouped by their ``block``.
+        out_dir: output folder (created).
+        name: XML file stem; assets go to ``<name>_assets/``.
+    """
+    out_dir = Path(out_dir)
+    assets = f"{name}_assets"
+    shapes = []
+    g, e = model.ground, model.ellipsoids
+    for b in np.unique(np.r_[g.block, e.block]):
+        sel = g.block == b
+        if sel.any():
+            faces = g.faces[sel]
+            used, inverse = np.unique(faces, return_inverse=True)
+            fname = f"{assets}/ground_b{b}.ply"
+            write_mesh_ply(out_dir / fname, g.vertices[used], inverse.reshape(-1, 3), p_hit=g.p_hit[sel],
+                           range_sigma=g.range_sigma[sel], label=g.label[sel])
+            shapes.append(ShapeEntry(id=f"ground_b{b}", kind="mesh", filename=fname))
+        sel = e.block == b
+        if sel.any():
+            scales, quats = e.subset(sel).axes()
+            fname = f"{assets}/ellipsoids_b{b}.ply"
+            write_ellipsoids_ply(out_dir / fname, e.means[sel], scales, quats, p_hit=e.p_hit[sel],
+                                 range_sigma=np.zeros(sel.sum()), label=e.label[sel])
+            shapes.append(ShapeEntry(id=f"ellipsoids_b{b}", kind="ellipsoids", filename=fname, extent=model.extent))
+    comment = (f"mi-lidar hybrid geometric scene: {len(g)} triangles, {len(e)} ellipsoids, "
+               f"{len(shapes)} shapes")
+    return write_scene_xml(out_dir / f"{name}.xml", shapes, header_comment=comment)
+
+
+def read_mesh_ply(path) -> GroundMesh:
+    """A triangle mesh PLY written by :func:`mi_lidar.scene_files.write_mesh_ply`."""
+    ply = PlyData.read(str(path))
+    v, f = ply["vertex"].data, ply["face"].data
+    names = f.dtype.names
+    get = lambda n: np.asarray(f[f"{n}_0"]) if f"{n}_0" in names else None
+    label = get("label")
+    return GroundMesh(np.c_[v["x"], v["y"], v["z"]], np.stack(f["vertex_indices"]), get("p_hit"), get("range_sigma"),
+                      None if label is None else label.astype(np.int32))
+
+
+def read_ellipsoids_ply(path) -> EllipsoidSet:
+    """An ellipsoid PLY written by :func:`mi_lidar.scene_files.write_ellipsoids_ply`."""
+    v = PlyData.read(str(path))["vertex"].data
+    names = v.dtype.names
+    scales = np.exp(np.c_[v["scale_0"], v["scale_1"], v["scale_2"]])
+    quats = np.c_[v["rot_1"], v["rot_2"], v["rot_3"], v["rot_0"]]
+    get = lambda n: np.asarray(v[f"{n}_0"]) if f"{n}_0" in names else None
+    label = get("label")
+    return EllipsoidSet.from_axes(np.c_[v["x"], v["y"], v["z"]], scales, quats, p_hit=get("p_hit"),
+                                  label=None if label is None else label.astype(np.int32))
+
+
+def read_scene(xml_path) -> HybridModel:
+    """Read a scene written by :func:`write_scene` (or any XML of ``ply`` and ``ellipsoids`` shapes)."""
+    xml_path = Path(xml_path)
+    if not xml_path.is_file():
+        raise SceneError(f"{xml_path}: no such scene file")
+    root = ET.parse(xml_path).getroot()
+    grounds, ells, extent = [], [], 3.0
+    for b, shape in enumerate(root.iter("shape")):
+        fname = next((s.get("value") for s in shape.iter("string") if s.get("name") == "filename"), None)
+        if fname is None:
+            raise SceneError(f"{xml_path}: shape {shape.get('id')!r} has no filename")
+        if shape.get("type") == "ply":
+            mesh = read_mesh_ply(xml_path.parent / fname)
+            mesh.block[:] = b
+            grounds.append(mesh)
+        elif shape.get("type") == "ellipsoids":
+            ell = read_ellipsoids_ply(xml_path.parent / fname)
+            ell.block[:] = b
+            ells.append(ell)
+            extent = float(next((f.get("value") for f in shape.iter("float") if f.get("name") == "extent"), 3.0))
+    return HybridModel(GroundMesh.concat(grounds), EllipsoidSet.concat(ells), extent)

@@ -1,0 +1,103 @@
+"""Annotations and scene composition (thesis fig. 4.13).
+
+An annotation is JSON::
+
+    {"format": "mi-lidar-annotation", "version": 1,
+     "ground": "ground.ply",                      # optional triangle mesh, relative to the file
+     "objects": [{"class": "small_tree", "center": [x, y, z], "yaw": 0.3,
+                  "extents": [lx, ly, lz]}, ...]}  # m, rad; center = object centroid
+
+A scene is the ground plus, per object, the library primitive of the same class whose box
+extents are closest, rotated by ``yaw`` about z and moved to ``center``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SceneError
+from ..scene_files import write_mesh_ply
+from .blocks import read_mesh_ply
+from .classes import CLASS_NAMES, class_id
+from .model import EllipsoidSet, GroundMesh, HybridModel
+from .primitives import PrimitiveLibrary, object_pose, oriented_box, rotation_z, sensor_velocity_at
+from .segments import Segment
+
+
+def annotation_from_segments(points: np.ndarray, segments: list[Segment], poses: np.ndarray) -> list[dict]:
+    """Annotation objects (class, centroid, yaw, box extents) of labelled segments.
+
+    Args:
+        points: (N, 3) m. segments: labelled segments. poses: (S, 4, 4) sensor poses.
+    """
+    objects = []
+    for seg in segments:
+        pts = points[seg.index]
+        center, yaw = object_pose(pts, sensor_velocity_at(poses, pts[:, :2].mean(axis=0)))
+        lo, hi = oriented_box(pts, center, yaw)
+        objects.append({"class": CLASS_NAMES[seg.label], "center": [float(x) for x in center], "yaw": yaw,
+                        "extents": [float(x) for x in hi - lo], "segment": int(seg.id)})
+    return objects
+
+
+def save_annotation(path, objects: list[dict], ground: GroundMesh | None = None) -> Path:
+    """Write an annotation JSON (and ``<stem>_ground.ply`` if ``ground`` is given); return its path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {"format": "mi-lidar-annotation", "version": 1, "objects": objects}
+    if ground is not None:
+        name = f"{path.stem}_ground.ply"
+        write_mesh_ply(path.parent / name, ground.vertices, ground.faces, ground.p_hit, ground.range_sigma, ground.label)
+        doc["ground"] = name
+    path.write_text(json.dumps(doc, indent=1))
+    return path
+
+
+def load_annotation(path) -> tuple[list[dict], GroundMesh | None]:
+    """Objects and optional ground mesh of an annotation file; errors name the bad entry."""
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"{path}: no such annotation file")
+    doc = json.loads(path.read_text())
+    if doc.get("format") != "mi-lidar-annotation":
+        raise SceneError(f"{path}: format {doc.get('format')!r}; expected 'mi-lidar-annotation'")
+    for i, obj in enumerate(doc.get("objects", [])):
+        missing = [k for k in ("class", "center", "yaw", "extents") if k not in obj]
+        if missing:
+            raise SceneError(f"{path}: object {i} lacks {missing}")
+        class_id(obj["class"])
+    ground = read_mesh_ply(path.parent / doc["ground"]) if doc.get("ground") else None
+    return doc.get("objects", []), ground
+
+
+def compose_scene(objects: list[dict], library: PrimitiveLibrary, ground: GroundMesh | None = None,
+                  extent: float = 3.5, missing: str = "skip") -> HybridModel:
+    """Build a scene from annotation objects and a primitive library.
+
+    Args:
+        objects: annotation objects (see module docstring).
+        library: primitives.
+        ground: ground mesh (None: no ground).
+        extent: ellipsoid extent, sigmas.
+        missing: ``"skip"`` leaves out objects whose class the library lacks (their indices are
+            listed in ``info["skipped"]``); ``"error"`` raises :class:`SceneError`.
+
+    Returns:
+        The model; ellipsoids carry their object's index + 1 as ``instance`` and sit in block 0.
+    """
+    if missing not in ("skip", "error"):
+        raise SceneError(f"missing={missing!r}; choose 'skip' or 'error'")
+    parts, skipped = [], []
+    for i, obj in enumerate(objects):
+        if missing == "skip" and not library.of_class(obj["class"]):
+            skipped.append(i)
+            continue
+        prim = library.best_match(obj["class"], obj["extents"])
+        ell = prim.ellipsoids.transformed(rotation_z(float(obj["yaw"])), np.asarray(obj["center"], float))
+        ell.instance[:] = i + 1
+        parts.append(ell)
+    ground = ground if ground is not None else GroundMesh(np.zeros((0, 3)), np.zeros((0, 3)))
+    return HybridModel(ground, EllipsoidSet.concat(parts), extent, info={"n_objects": len(objects), "skipped": skipped})

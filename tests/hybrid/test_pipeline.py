@@ -1,0 +1,124 @@
+import json
+
+import numpy as np
+import pytest
+
+from mi_lidar.errors import SceneError
+from mi_lidar.hybrid import commands
+from mi_lidar.hybrid.baselines import mesh_primitive_scene
+from mi_lidar.hybrid.blocks import read_scene, write_scene
+from mi_lidar.hybrid.classes import OBJECT_CLASSES
+from mi_lidar.hybrid.compose import annotation_from_segments, compose_scene, load_annotation, save_annotation
+from mi_lidar.hybrid.primitives import PrimitiveLibrary, extract_primitives, object_pose
+from mi_lidar.hybrid.segments import SizeClassifier, euclidean_segments, segment_features, segments_from_labels
+from mi_lidar.hybrid.tune import apply_vector
+from mi_lidar.hybrid.fit import FitParams
+
+
+def _segments(small_log, small_fit):
+    labels = small_log.attributes["label"].ravel()[small_fit.ray_index]
+    inst = small_log.attributes["instance"].ravel()[small_fit.ray_index]
+    return segments_from_labels(small_fit.points, labels, inst)
+
+
+def test_fit_produces_both_element_kinds_with_probabilities(small_fit):
+    m = small_fit.model
+    assert len(m.ground) > 1000 and len(m.ellipsoids) > 20
+    assert 0 < m.ground.p_hit.min() and m.ground.p_hit.max() < 1
+    assert np.all((m.ellipsoids.p_hit >= 0) & (m.ellipsoids.p_hit <= 1))
+    assert m.info["n_blocks"] >= 2 and len(np.unique(m.ground.block)) >= 2
+    assert 0.005 < m.info["ground_sigma"] < 0.75
+    assert set(np.unique(m.ellipsoids.label)) & set(OBJECT_CLASSES)
+
+
+def test_scene_files_round_trip(small_fit, tmp_path):
+    xml = write_scene(small_fit.model, tmp_path, "s")
+    back = read_scene(xml)
+    m = small_fit.model
+    assert len(back.ground) == len(m.ground) and len(back.ellipsoids) == len(m.ellipsoids)
+    np.testing.assert_allclose(np.sort(back.ellipsoids.p_hit), np.sort(m.ellipsoids.p_hit), atol=1e-6)
+    np.testing.assert_allclose(np.sort(back.ellipsoids.means[:, 0]), np.sort(m.ellipsoids.means[:, 0]), atol=1e-4)
+    assert back.extent == m.extent
+    with pytest.raises(SceneError):
+        read_scene(tmp_path / "missing.xml")
+
+
+def test_object_pose_follows_principal_axis_closest_to_velocity(rng):
+    pts = rng.normal(0, 1, (2000, 3)) * [3, 0.5, 1] + [10, 5, 2]
+    center, yaw = object_pose(pts, np.array([0.0, 1.0]))
+    assert np.allclose(center, [10, 5, 2], atol=0.15)
+    assert abs(abs(yaw) - np.pi / 2) < 0.1  # minor axis (y) is the one along the velocity
+
+
+def test_primitives_library_and_composition(small_log, small_fit, tmp_path):
+    segs = _segments(small_log, small_fit)
+    prims = extract_primitives(small_fit.model, small_fit.points, segs, small_log.poses, source="small")
+    assert prims and all(np.all(p.extents > 0) for p in prims)
+    # at identity pose, each primitive's ellipsoid means lie inside its box around the origin
+    for p in prims:
+        assert np.all(p.ellipsoids.means >= p.box_lo - 1e-9) and np.all(p.ellipsoids.means <= p.box_hi + 1e-9)
+    lib = PrimitiveLibrary(prims)
+    lib.save(tmp_path / "lib")
+    back = PrimitiveLibrary.load(tmp_path / "lib")
+    assert [r["id"] for r in back.rows()] == [r["id"] for r in lib.rows()]
+    png = back.preview(tmp_path / "prev.png")
+    assert png.stat().st_size > 10_000
+    objects = annotation_from_segments(small_fit.points, segs, small_log.poses)
+    path = save_annotation(tmp_path / "a.json", objects, small_fit.model.ground)
+    loaded, ground = load_annotation(path)
+    scene = compose_scene(loaded, back, ground)
+    assert len(scene.ground) == len(small_fit.model.ground)
+    k = next(i for i, o in enumerate(loaded) if back.of_class(o["class"]))
+    first = back.best_match(loaded[k]["class"], loaded[k]["extents"])
+    placed = scene.ellipsoids.subset(scene.ellipsoids.instance == k + 1)
+    assert len(placed) == len(first.ellipsoids)
+    assert np.linalg.norm(placed.means.mean(0)[:2] - np.array(loaded[k]["center"][:2])) < max(loaded[k]["extents"])
+    assert all(not back.of_class(loaded[i]["class"]) for i in scene.info["skipped"])
+    with pytest.raises(SceneError):
+        PrimitiveLibrary([]).best_match("large_tree", [1, 1, 1])
+    with pytest.raises(SceneError):
+        compose_scene([{"class": "large_tree", "center": [0, 0, 0], "yaw": 0, "extents": [1, 1, 1]}],
+                      PrimitiveLibrary([]), missing="error")
+
+
+def test_bad_annotation_names_the_problem(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"format": "mi-lidar-annotation", "objects": [{"class": "small_tree"}]}))
+    with pytest.raises(SceneError, match="object 0 lacks"):
+        load_annotation(bad)
+
+
+def test_mesh_baseline_is_opaque(small_log, small_fit):
+    objects = annotation_from_segments(small_fit.points, _segments(small_log, small_fit), small_log.poses)
+    base = mesh_primitive_scene(objects, small_fit.model.ground, sigma=0.05)
+    assert np.all(base.ground.p_hit == 1) and len(base.ellipsoids) == 0
+    assert len(base.ground) > len(small_fit.model.ground)
+
+
+def test_automatic_segmentation_and_classifier(small_log, small_fit):
+    segs = _segments(small_log, small_fit)
+    feats = np.stack([segment_features(small_fit.points[s.index]) for s in segs])
+    labels = np.array([s.label for s in segs])
+    clf = SizeClassifier().fit(feats, labels)
+    assert np.mean(clf.predict(feats) == labels) > 0.5
+    auto = euclidean_segments(small_fit.points[~small_fit.is_ground])
+    assert len(auto) >= 3 and all(len(s.index) >= 20 for s in auto)
+
+
+def test_commands_end_to_end(small_log, tmp_path):
+    log_path = small_log.save(tmp_path / "log.npz")
+    xml = commands.fit_scene(log_path, tmp_path / "scene")
+    assert xml.is_file() and "ellipsoids" in xml.read_text()
+    commands.primitives_extract(log_path, tmp_path / "lib")
+    rows = commands.primitives_list(tmp_path / "lib")
+    assert rows
+    assert commands.primitives_show(tmp_path / "lib", tmp_path / "p.png").is_file()
+    ann = commands.annotate(log_path, tmp_path / "ann.json")
+    out = commands.compose(ann, tmp_path / "lib", tmp_path / "composed" / "c.xml")
+    assert len(read_scene(out).ellipsoids) > 0
+
+
+def test_tuning_vector_is_clipped_into_valid_ranges():
+    p = apply_vector(FitParams(), np.array([-1.0, 5.0, 100.0, -3.0]))
+    assert p.ground.phi_thresh == 0.005 and p.clusters.clusters_per_point == 10 ** -0.5
+    assert p.extent == 6.0 and p.surface.max_edge == 0.5
