@@ -72,3 +72,15 @@ def test_render_malformed_scene_is_a_clean_error(tmp_path):
     result = runner.invoke(app, ["render", str(bad), "--out", str(tmp_path / "o")])
     assert result.exit_code == 2
     assert "bad.xml" in " ".join(result.stdout.split())
+
+
+def test_info_and_convert_on_a_simulated_log(tmp_path):
+    log_path = tmp_path / "room.npz"
+    runner.invoke(app, ["render", str(SCENES / "indoor_planar.xml"), "--out", str(tmp_path)])
+    (tmp_path / "scan.npz").rename(log_path)
+    result = runner.invoke(app, ["info", str(log_path)])
+    assert result.exit_code == 0, result.stdout
+    assert "1 x 1 x 360" in result.stdout
+    result = runner.invoke(app, ["convert", str(log_path), str(tmp_path / "room.pcd")])
+    assert result.exit_code == 0, result.stdout
+    assert (tmp_path / "room.pcd").stat().st_size > 1000
