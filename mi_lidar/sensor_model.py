@@ -147,8 +147,9 @@ class SensorModel:
         """Trace up to ``max_segments`` elements along every ray without gradients.
 
         Returns:
-            A list of ``(valid, element, point, normal_cos)``-free records: per round, the raw
-            fields needed to rebuild segments differentiably (see :meth:`log_likelihood`).
+            One record per round: a dict with ``valid`` (the ray met an element within range),
+            ``element`` (global element index) and ``si`` (the surface interaction), enough to
+            rebuild the segments with gradients in :meth:`log_likelihood`.
         """
         rays = self.prepare_rays(rays)
         records = []
