@@ -194,7 +194,7 @@ class PrimitiveLibrary:
             raise SceneError("no primitives to preview")
         cols = min(per_class if ids is None else len(chosen), len(chosen))
         rows = int(np.ceil(len(chosen) / cols))
-        fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.2 * rows), squeeze=False)
+        fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 3.0 * rows), squeeze=False, layout="constrained")
         cmap = plt.get_cmap("viridis")
         for ax, p in zip(axes.ravel(), chosen):
             e = p.ellipsoids
