@@ -31,3 +31,7 @@ class SceneError(MiLidarError):
 
 class LogFormatError(MiLidarError):
     """A log or scan file is unreadable, truncated, empty or of an unknown version."""
+
+
+class CalibrationError(MiLidarError, ValueError):
+    """A calibration request cannot be fitted: no parameter matches, the log and scene disagree, or the loss diverges."""

@@ -69,6 +69,10 @@ class RayBatch:
         beam: beam (range-image row) index of each ray.
         time: timestamp of each ray, s.
         ray_id: unique index of each ray (keys the random streams).
+        sensor_rotation: optional sensor-to-world rotation of each ray's sensor pose (effects
+            that act in the sensor frame, such as beam angle offsets and extrinsics, use it;
+            None means the world axes).
+        sensor_position: optional sensor position in the world frame, m (None: the ray origin).
     """
 
     origin: mi.Point3f
@@ -76,10 +80,13 @@ class RayBatch:
     beam: mi.UInt32
     time: mi.Float
     ray_id: mi.UInt32
+    sensor_rotation: mi.Matrix3f | None = None
+    sensor_position: mi.Point3f | None = None
 
     def __post_init__(self):
         """Broadcast fields given with one lane (a shared origin, say) to the batch width."""
-        fields = ("origin", "direction", "beam", "time", "ray_id")
+        fields = [f for f in ("origin", "direction", "beam", "time", "ray_id", "sensor_rotation", "sensor_position")
+                  if getattr(self, f) is not None]
         n = max(dr.width(getattr(self, f)) for f in fields)
         for f in fields:
             value = getattr(self, f)
@@ -91,6 +98,16 @@ class RayBatch:
         """Number of rays."""
         return dr.width(self.ray_id)
 
+    def sensor_frame(self) -> tuple[mi.Matrix3f, mi.Point3f]:
+        """Sensor-to-world rotation and sensor position (m) of each lane.
+
+        Without ``sensor_rotation`` the world axes stand in for the sensor's; without
+        ``sensor_position`` the ray origin does.
+        """
+        rotation = mi.Matrix3f(1.0) if self.sensor_rotation is None else self.sensor_rotation
+        position = self.origin if self.sensor_position is None else self.sensor_position
+        return rotation, position
+
     def take(self, index: mi.UInt32) -> "RayBatch":
         """The sub-batch of lanes ``index``."""
         return RayBatch(
@@ -99,6 +116,8 @@ class RayBatch:
             beam=dr.gather(mi.UInt32, self.beam, index),
             time=dr.gather(mi.Float, self.time, index),
             ray_id=dr.gather(mi.UInt32, self.ray_id, index),
+            sensor_rotation=None if self.sensor_rotation is None else dr.gather(mi.Matrix3f, self.sensor_rotation, index),
+            sensor_position=None if self.sensor_position is None else dr.gather(mi.Point3f, self.sensor_position, index),
         )
 
 

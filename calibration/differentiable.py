@@ -1,0 +1,275 @@
+"""Differentiable element geometry, rays from logs, and the gradient-free trace of calibration.
+
+Calibration traces every ray once without gradients (:func:`trace_records`) and keeps, per
+round ``k``, only which element the ray met (``valid``, ``element``) plus the traced nominal
+range and incidence cosine. :class:`DiffTable` then rebuilds each segment *with* gradients from
+flat arrays: the triangle entry distance ``t = dot(v0 - o, n) / dot(d, n)`` from the vertex
+positions, and the ellipsoid chord from the ``ellipsoid_data`` array, so gradients reach vertex
+heights, ellipsoid centers and scales, and (through the rays) the sensor intrinsics and
+extrinsics. :meth:`mi_lidar.sensor_model.SensorModel.log_likelihood` evaluates the
+pass-through mixture on these segments.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_lidar.effects.base import RayBatch
+from mi_lidar.elements import ELLIPSOID_STRIDE, ElementTable
+from mi_lidar.log import Log
+from mi_lidar.segment import ELLIPSOID, Segment, ray_restricted_gaussian, rotate_inverse
+from mi_lidar.sensor_model import RESTART_OFFSET, SensorModel
+
+
+@dataclass
+class TracedHit:
+    """What the gradient-free trace keeps of one round (one lane per ray).
+
+    Attributes:
+        nominal: traced nominal range, m (used for shapes that are neither meshes nor ellipsoids).
+        cos_incidence: traced |cos| of the incidence angle (same use).
+    """
+
+    nominal: mi.Float
+    cos_incidence: mi.Float
+
+
+@dataclass
+class DiffTable(ElementTable):
+    """An :class:`ElementTable` whose segments are recomputed from differentiable geometry.
+
+    Attributes:
+        vertex_positions: all meshes' vertices, flat (3 V) floats, m.
+        face_vertices: per element, 3 global vertex indices, flat (3 n_elements) (0 for non-triangles).
+        is_triangle: per element, True for mesh triangles.
+        element_shape: per element, index of its shape in ``shape_ids``.
+        vertex_offset: per shape, index of its first vertex in ``vertex_positions`` (-1 if not a mesh).
+        vertex_counts: per shape, vertex count (0 if not a mesh).
+    """
+
+    vertex_positions: mi.Float = None
+    face_vertices: mi.UInt32 = None
+    is_triangle: mi.Bool = None
+    element_shape: mi.UInt32 = None
+    vertex_offset: list = None
+    vertex_counts: list = None
+
+    @classmethod
+    def from_scene(cls, scene) -> "DiffTable":
+        """The table of a loaded scene plus its meshes' vertices and faces."""
+        base = ElementTable.from_scene(scene)
+        vertices, faces, triangle, shape_of, vertex_offset, vertex_counts = [], [], [], [], [], []
+        n_vertices = 0
+        for index, shape in enumerate(scene.shapes()):
+            count = base.element_counts[index]
+            shape_of.append(np.full(count, index, np.uint32))
+            if isinstance(shape, mi.Mesh) and base.shape_kinds[index] == "surface":
+                params = mi.traverse(shape)
+                v = np.asarray(params["vertex_positions"], np.float32)
+                vertices.append(v)
+                faces.append(np.asarray(params["faces"], np.uint32) + n_vertices)
+                triangle.append(np.ones(count, bool))
+                vertex_offset.append(n_vertices)
+                vertex_counts.append(v.size // 3)
+                n_vertices += v.size // 3
+            else:
+                faces.append(np.zeros(3 * count, np.uint32))
+                triangle.append(np.zeros(count, bool))
+                vertex_offset.append(-1)
+                vertex_counts.append(0)
+        return cls(
+            **{f.name: getattr(base, f.name) for f in fields(ElementTable)},
+            vertex_positions=mi.Float(np.concatenate(vertices) if vertices else np.zeros(3, np.float32)),
+            face_vertices=mi.UInt32(np.concatenate(faces)),
+            is_triangle=mi.Bool(np.concatenate(triangle)),
+            element_shape=mi.UInt32(np.concatenate(shape_of)),
+            vertex_offset=vertex_offset, vertex_counts=vertex_counts,
+        )
+
+    def replaced(self, **arrays) -> "DiffTable":
+        """A shallow copy with some arrays replaced (for example by differentiable ones)."""
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        values.update(arrays)
+        return DiffTable(**values)
+
+    def _vertex(self, element: mi.UInt32, corner: int, active: mi.Bool) -> mi.Point3f:
+        index = dr.gather(mi.UInt32, self.face_vertices, 3 * element + corner, active)
+        return mi.Point3f(*[dr.gather(mi.Float, self.vertex_positions, 3 * index + i, active) for i in range(3)])
+
+    def segment(self, si, valid, element, origin, direction, default_sigma: float) -> Segment:
+        """The :class:`Segment` of element ``element`` along rays ``(origin, direction)``, with gradients.
+
+        Args:
+            si: a :class:`TracedHit` of the round (its values are used only for shapes that are
+                neither meshes nor ellipsoids, whose geometry is not differentiable here).
+            valid: lanes whose ray met an element.
+            element: global element indices.
+            origin, direction: the ray origins (m) and unit directions the range is measured from.
+            default_sigma: the sensor's range sigma (m), used where an element has none.
+        """
+        p = dr.gather(mi.Float, self.p_hit, element, valid)
+        sigma = dr.gather(mi.Float, self.range_sigma, element, valid)
+        sigma = dr.select(dr.isnan(sigma), default_sigma, sigma)
+        kind = dr.gather(mi.UInt32, self.kind, element, valid)
+        triangle = valid & dr.gather(mi.Bool, self.is_triangle, element, valid)
+
+        # ---------------- Triangles: plane of the face, entry distance and incidence --------
+        v0, v1, v2 = (self._vertex(element, c, triangle) for c in range(3))
+        normal = dr.normalize(dr.cross(v1 - v0, v2 - v0))
+        d_n = dr.dot(direction, normal)
+        safe_d_n = dr.select(dr.abs(d_n) > 1e-12, d_n, 1e-12)
+        t_triangle = dr.dot(v0 - origin, normal) / safe_d_n
+
+        # ---------------- Ellipsoids: Gaussian restricted to the ray, entry at the chord ----
+        is_ellipsoid = valid & (kind == ELLIPSOID)
+        e = dr.gather(mi.UInt32, self.ellipsoid_index, element, is_ellipsoid)
+        data = [dr.gather(mi.Float, self.ellipsoid_data, e * ELLIPSOID_STRIDE + i, is_ellipsoid)
+                for i in range(ELLIPSOID_STRIDE)]
+        center = mi.Point3f(*data[0:3])
+        scale = dr.select(is_ellipsoid, mi.Vector3f(*data[3:6]), 1.0)
+        quat = dr.select(is_ellipsoid, mi.Vector4f(*data[6:10]), mi.Vector4f(0, 0, 0, 1))
+        extent = dr.gather(mi.Float, self.ellipsoid_extent, e, is_ellipsoid)
+        e_mean, e_sigma, e_lo, e_hi = ray_restricted_gaussian(center, scale, quat, extent, origin, direction)
+        entry = origin + e_lo * direction
+        local_gradient = rotate_inverse(quat, entry - center) / (scale * scale)
+        e_normal = rotate_inverse(mi.Vector4f(-quat.x, -quat.y, -quat.z, quat.w), local_gradient)
+        e_cos = dr.abs(dr.dot(dr.normalize(e_normal), direction))
+
+        nominal = dr.select(triangle, t_triangle, dr.select(is_ellipsoid, e_lo, si.nominal))
+        cos_incidence = dr.select(triangle, dr.abs(d_n), dr.select(is_ellipsoid, e_cos, si.cos_incidence))
+        return Segment(
+            valid=valid, nominal=nominal, p=p,
+            mean=dr.select(is_ellipsoid, e_mean, nominal),
+            sigma=dr.select(is_ellipsoid, e_sigma, sigma),
+            lo=dr.select(is_ellipsoid, e_lo, -dr.inf),
+            hi=dr.select(is_ellipsoid, e_hi, dr.inf),
+            cos_incidence=cos_incidence, element=element,
+            shape=dr.gather(mi.UInt32, self.element_shape, element, valid),
+            label=dr.gather(mi.UInt32, self.label, element, valid),
+            kind=kind,
+        )
+
+
+def trace_records(scene, table: ElementTable, model: SensorModel, rays: RayBatch) -> list[dict]:
+    """Trace up to ``model.max_segments`` elements along every ray, without gradients.
+
+    Follows the same rules as the sampler (restart ``RESTART_OFFSET`` past each element,
+    ``max_range`` on the nominal range) but keeps only compact per-round records.
+
+    Returns:
+        Per round, ``{"valid": Bool, "element": UInt32, "si": TracedHit}`` (one lane per ray),
+        the record format :meth:`SensorModel.log_likelihood` expects with a :class:`DiffTable`.
+    """
+    records = []
+    with dr.suspend_grad():
+        rays = model.prepare_rays(rays)
+        origin, direction = mi.Point3f(dr.detach(rays.origin)), mi.Vector3f(dr.detach(rays.direction))
+        start = mi.Point3f(origin)
+        for _ in range(model.max_segments):
+            si = scene.ray_intersect(mi.Ray3f(start, direction), mi.RayFlags.Minimal, True)
+            nominal = dr.dot(si.p - origin, direction)
+            valid = si.is_valid() & (nominal <= model.max_range)
+            element = dr.select(valid, table.element_of(si), 0)
+            hit = TracedHit(nominal=dr.select(valid, nominal, 0.0), cos_incidence=dr.abs(dr.dot(si.n, direction)))
+            dr.eval(valid, element, hit.nominal, hit.cos_incidence)
+            if not dr.any(valid):
+                break
+            records.append({"valid": valid, "element": element, "si": hit})
+            start = dr.select(valid, si.p + RESTART_OFFSET * direction, start)
+            dr.eval(start)
+    return records
+
+
+def take_records(records: list[dict], index: mi.UInt32) -> list[dict]:
+    """The lanes ``index`` of every record (rounds left without a valid lane are dropped)."""
+    taken = []
+    for record in records:
+        valid = dr.gather(mi.Bool, record["valid"], index)
+        if not dr.any(valid):
+            break
+        taken.append({
+            "valid": valid, "element": dr.gather(mi.UInt32, record["element"], index),
+            "si": TracedHit(nominal=dr.gather(mi.Float, record["si"].nominal, index),
+                            cos_incidence=dr.gather(mi.Float, record["si"].cos_incidence, index)),
+        })
+    return taken
+
+
+@dataclass
+class LogRays:
+    """The rays and measurements of a log as flat numpy arrays (one row per ray).
+
+    Attributes:
+        origin, direction: (N, 3) world-frame ray origins (m) and unit directions.
+        rotation: (N, 3, 3) sensor-to-world rotation of each ray's scan.
+        position: (N, 3) sensor position of each ray's scan, m.
+        beam: (N,) beam (row) index.
+        time: (N,) timestamp, s.
+        ranges: (N,) measured range, m (0 for misses).
+        hit: (N,) True where the sensor reported a return.
+    """
+
+    origin: np.ndarray
+    direction: np.ndarray
+    rotation: np.ndarray
+    position: np.ndarray
+    beam: np.ndarray
+    time: np.ndarray
+    ranges: np.ndarray
+    hit: np.ndarray
+
+    @classmethod
+    def from_log(cls, log: Log) -> "LogRays":
+        """Flatten a log's rays to the world frame (ray ``i`` is element ``i`` of ``log.ranges.ravel()``)."""
+        s, h, w = log.shape
+        directions = np.broadcast_to(log.directions, (s, h, w, 3)).astype(np.float64)
+        origins = np.broadcast_to(log.origins, (s, h, w, 3)).astype(np.float64)
+        rot, trans = log.poses[:, :3, :3], log.poses[:, :3, 3]
+        world_d = np.einsum("sij,shwj->shwi", rot, directions)
+        world_o = np.einsum("sij,shwj->shwi", rot, origins) + trans[:, None, None]
+        world_d /= np.linalg.norm(world_d, axis=-1, keepdims=True)
+        return cls(
+            origin=world_o.reshape(-1, 3).astype(np.float32), direction=world_d.reshape(-1, 3).astype(np.float32),
+            rotation=np.repeat(rot, h * w, axis=0).astype(np.float32),
+            position=np.repeat(trans, h * w, axis=0).astype(np.float32),
+            beam=np.tile(np.repeat(np.arange(h, dtype=np.uint32), w), s),
+            time=log.times.reshape(-1).astype(np.float32),
+            ranges=np.where(log.hit, log.ranges, 0.0).reshape(-1).astype(np.float32),
+            hit=log.hit.reshape(-1).copy(),
+        )
+
+    @property
+    def n(self) -> int:
+        return len(self.hit)
+
+    def batch(self, index: np.ndarray) -> tuple[RayBatch, mi.Float, mi.Bool]:
+        """Rays ``index`` as a :class:`RayBatch` (ray ids = their log indices), measured ranges and hits."""
+        index = np.asarray(index)
+        rot = self.rotation[index]
+        f = lambda a: mi.Float(aligned(a))  # noqa: E731
+        rays = RayBatch(
+            origin=mi.Point3f(*map(f, self.origin[index].T)), direction=mi.Vector3f(*map(f, self.direction[index].T)),
+            beam=mi.UInt32(aligned(self.beam[index])), time=f(self.time[index]),
+            ray_id=mi.UInt32(aligned(index.astype(np.uint32))),
+            sensor_rotation=mi.Matrix3f(*[f(rot[:, i, j]) for i in range(3) for j in range(3)]),
+            sensor_position=mi.Point3f(*map(f, self.position[index].T)),
+        )
+        return rays, f(self.ranges[index]), mi.Bool(aligned(self.hit[index]))
+
+
+def aligned(array: np.ndarray, alignment: int = 64) -> np.ndarray:
+    """A contiguous copy of ``array`` starting on an ``alignment``-byte boundary.
+
+    Dr.Jit wraps numpy memory without copying and compiles aligned and unaligned loads into
+    different kernels; aligned inputs let every mini-batch reuse one compiled kernel.
+    """
+    array = np.ascontiguousarray(array)
+    raw = np.empty(array.nbytes + alignment, np.uint8)
+    start = -raw.ctypes.data % alignment
+    out = raw[start:start + array.nbytes].view(array.dtype).reshape(array.shape)
+    out[...] = array
+    return out

@@ -1,0 +1,321 @@
+"""Fitting scene and sensor parameters to a log: counting start, then Adam on the likelihood.
+
+The loss is the mean negative log-likelihood per ray (nats) of the pass-through mixture
+(:meth:`mi_lidar.sensor_model.SensorModel.log_likelihood`), made robust by a small floor: a
+return the model cannot explain (no element near the measured range) contributes
+``-log(floor / max_range)`` and an impossible miss ``-log(floor)``, so single outliers of a real
+log cannot make the loss infinite. The rays of the log are split once into a training part and a
+held-out part; every step draws a mini-batch of training rays from a generator seeded by
+``(seed, step)``, and the held-out loss is evaluated every ``eval_every`` steps for early
+stopping (the best held-out parameters are kept).
+
+When no selected parameter moves geometry the segments of every ray are traced once and
+reused; otherwise the scene is updated and each mini-batch re-traced at every step.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import math
+from dataclasses import dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_lidar.errors import CalibrationError
+from mi_lidar.log import Log
+from mi_lidar.scene import scene_lidar_sensor, scene_sensor_model
+from mi_lidar.segment import ELLIPSOID
+from mi_lidar.sensor_model import SensorModel
+
+from .differentiable import LogRays, take_records, trace_records
+from .parameters import P_EPS, ParameterSpace
+
+
+@dataclass
+class FitOptions:
+    """Settings of a calibration run.
+
+    Attributes:
+        steps: maximum Adam steps.
+        batch_size: training rays per step (all of them when the log is smaller).
+        holdout: fraction of the rays held out for validation, in (0, 1).
+        eval_every: steps between held-out evaluations.
+        eval_rays: at most this many held-out rays are evaluated.
+        patience: stop after this many held-out evaluations without improvement.
+        seed: seed of the split and of the per-step mini-batch draws.
+        learning_rates: ``{glob: lr}`` overrides of the default learning rates (first match wins).
+        lr_scale: factor applied to every learning rate.
+        counting_start: start hit probabilities from the counting estimate.
+        gate: a return within ``gate`` range sigmas of a surface element counts as its hit.
+        floor: robustness floor of the likelihood (see the module docstring).
+    """
+
+    steps: int = 200
+    batch_size: int = 1 << 16
+    holdout: float = 0.2
+    eval_every: int = 10
+    eval_rays: int = 1 << 18
+    patience: int = 5
+    seed: int = 0
+    learning_rates: dict = field(default_factory=dict)
+    lr_scale: float = 1.0
+    counting_start: bool = True
+    gate: float = 3.0
+    floor: float = 1e-6
+
+
+@dataclass
+class FitResult:
+    """What a calibration run produced.
+
+    Attributes:
+        names: fitted parameter names.
+        initial, counting, fitted: natural values per name before fitting, after the counting
+            estimate (p_hit parameters only) and after fitting (the best held-out values).
+        history: rows ``(step, train loss, held-out loss or NaN)``, nats per ray.
+        initial_nll, counting_nll, fitted_nll: held-out loss of the initial, counting-estimate
+            and fitted models, nats per ray.
+        stopped_early: the held-out loss stopped improving before ``steps``.
+        steps_run: Adam steps taken.
+        table, model: the fitted element table and sensor model.
+    """
+
+    names: list
+    initial: dict
+    counting: dict
+    fitted: dict
+    history: list
+    initial_nll: float
+    counting_nll: float
+    fitted_nll: float
+    stopped_early: bool
+    steps_run: int
+    table: object
+    model: SensorModel
+
+
+def check_sensor(log: Log, scene) -> None:
+    """Raise :class:`CalibrationError` when the log was not taken with the scene's sensor pattern."""
+    sensor = scene_lidar_sensor(scene)
+    if sensor is None:
+        return
+    pattern = sensor.pattern
+    _, h, w = log.shape
+    name = log.sensor.get("pattern")
+    if (h, w) != tuple(pattern.shape) or (name is not None and name != pattern.name):
+        raise CalibrationError(
+            f"the log's sensor ({name or 'unnamed pattern'}, {h} beams x {w} firings) does not match the scene's "
+            f"`lidar` sensor ({pattern.name}, {pattern.shape[0]} x {pattern.shape[1]}); set the scene sensor's "
+            f"pattern to the log's (<string name=\"pattern\" value=\"{name or '...'}\"/>) or pick the scene the log "
+            "was recorded in"
+        )
+
+
+def logaddexp(a: mi.Float, b: mi.Float) -> mi.Float:
+    """``log(exp(a) + exp(b))`` for ``b`` finite (``a`` may be -inf)."""
+    high = dr.maximum(a, b)
+    return high + dr.log(dr.exp(a - high) + dr.exp(b - high))
+
+
+class Calibration:
+    """One calibration problem: a scene, a log, and the parameters selected by globs.
+
+    Args:
+        scene: the loaded Mitsuba scene (its geometry is updated while fitting geometry).
+        log: the measured log.
+        globs: parameter globs (see :mod:`mi_lidar.calibration.parameters`).
+        model: the sensor model to start from (default: the scene's).
+        options: fitting settings.
+
+    Raises:
+        CalibrationError: a glob matches nothing, or the log's sensor is not the scene's.
+    """
+
+    def __init__(self, scene, log: Log, globs: list[str], model: SensorModel | None = None,
+                 options: FitOptions | None = None):
+        check_sensor(log, scene)
+        self.options = options or FitOptions()
+        if not 0 < self.options.holdout < 1:
+            raise CalibrationError(f"holdout={self.options.holdout} must lie in (0, 1), e.g. 0.2")
+        self.scene = scene
+        base_model = model or scene_sensor_model(scene)[0]
+        self.space = ParameterSpace(scene, base_model, n_beams=log.shape[1])
+        self.names = self.space.select(globs)
+        self.model = self.space.calibration_model(self.names)
+        self.params = {n: self.space.params[n] for n in self.names}
+        self.geometric = any(p.geometric for p in self.params.values())
+        self.rays = LogRays.from_log(log)
+        order = np.random.default_rng(self.options.seed).permutation(self.rays.n)
+        n_held = max(1, int(round(self.options.holdout * self.rays.n)))
+        self.held_out = np.sort(order[:n_held][: self.options.eval_rays])
+        self.train = np.sort(order[n_held:])
+        self._cache: dict[str, list] = {}
+
+    # --------------------------------------------------------------------- likelihood
+    def _records(self, part: str, index: np.ndarray, position: np.ndarray | None, values: dict):
+        """Rays ``index`` of the log with their traced records (cached unless geometry is fitted)."""
+        rays, z, hit = self.rays.batch(index)
+        if self.geometric:
+            with dr.suspend_grad():
+                table, model = self.space.build({k: dr.detach(v) for k, v in values.items()}, self.model)
+                self.space.push_geometry(table)
+                return rays, z, hit, trace_records(self.scene, table, model, rays)
+        if part not in self._cache:
+            all_index = self.train if part == "train" else self.held_out
+            with dr.suspend_grad():
+                table, model = self.space.build({}, self.model)
+                all_rays, _, _ = self.rays.batch(all_index)
+                self._cache[part] = trace_records(self.scene, table, model, all_rays)
+        records = self._cache[part]
+        if position is not None:
+            records = take_records(records, mi.UInt32(position.astype(np.uint32)))
+        return rays, z, hit, records
+
+    def log_likelihood(self, values: dict, rays, z, hit, records) -> mi.Float:
+        """Per-ray robust log-likelihood (nats) under natural parameter ``values`` (keeps gradients)."""
+        table, model = self.space.build(values, self.model)
+        ll = model.log_likelihood(table, rays, records, z, hit)
+        floor = dr.select(hit, math.log(self.options.floor / model.max_range), math.log(self.options.floor))
+        return logaddexp(ll, floor)
+
+    def held_out_loss(self, values: dict) -> float:
+        """Mean negative log-likelihood per held-out ray (nats) under natural ``values``."""
+        total, size = 0.0, self.options.batch_size
+        with dr.suspend_grad():
+            for first in range(0, len(self.held_out), size):
+                position = np.arange(first, min(first + size, len(self.held_out)))
+                rays, z, hit, records = self._records("held_out", self.held_out[position], position, values)
+                total += float(dr.sum(-self.log_likelihood(values, rays, z, hit, records))[0])
+        return total / len(self.held_out)
+
+    # ------------------------------------------------------------------ counting start
+    def counting_estimate(self, values: dict) -> dict[str, np.ndarray]:
+        """Closed-form hit probabilities ``hits / (hits + pass-throughs)`` per element (thesis).
+
+        A ray's return is attributed to the first element it met whose return distribution
+        covers the measured range (within ``gate`` sigmas for surfaces, inside the chord for
+        ellipsoids); the elements met before it, and every element met by a missing ray, count
+        a pass-through. Elements no training ray met keep their values.
+
+        Returns:
+            New natural values of the selected ``elements.*.p_hit`` parameters.
+        """
+        n = self.space.table.n_elements
+        hits, passes = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
+        gate, size = self.options.gate, self.options.batch_size
+        with dr.suspend_grad():
+            table, model = self.space.build(values, self.model)
+            for first in range(0, len(self.train), size):
+                position = np.arange(first, min(first + size, len(self.train)))
+                rays, z, hit, records = self._records("train", self.train[position], position, values)
+                rays = model.prepare_rays(rays)
+                done = dr.zeros(mi.Bool, dr.width(z))
+                for record in records:
+                    seg = table.segment(record["si"], record["valid"], record["element"], rays.origin, rays.direction,
+                                        model.range_sigma)
+                    seg = model.apply_effects(seg, rays)
+                    ellipsoid = seg.kind == ELLIPSOID
+                    upper = dr.select(ellipsoid, seg.hi, seg.mean + gate * seg.sigma)
+                    lower = dr.select(ellipsoid, seg.lo, seg.mean - gate * seg.sigma)
+                    live = record["valid"] & ~done
+                    returned = live & hit & (z >= lower) & (z <= upper)
+                    passed = live & ~returned & (~hit | (z > upper))
+                    dr.scatter_reduce(dr.ReduceOp.Add, hits, 1.0, record["element"], returned)
+                    dr.scatter_reduce(dr.ReduceOp.Add, passes, 1.0, record["element"], passed)
+                    done |= returned
+                dr.eval(hits, passes)
+        hits, passes = np.asarray(hits), np.asarray(passes)
+        out = {}
+        for name, par in self.params.items():
+            if par.family != "p_hit":
+                continue
+            index = np.asarray(par.target[1])
+            seen = hits[index] + passes[index]
+            current = np.asarray(values[name]) if name in values else par.initial
+            estimate = np.where(seen > 0, hits[index] / np.maximum(seen, 1), current)
+            out[name] = np.clip(estimate, P_EPS, 1 - P_EPS)
+        return out
+
+    # ------------------------------------------------------------------------- fitting
+    def learning_rate(self, name: str) -> float:
+        """Learning rate of parameter ``name``: the first matching override, else its default, times ``lr_scale``."""
+        rate = next((lr for glob, lr in self.options.learning_rates.items() if fnmatch.fnmatchcase(name, glob)),
+                    self.params[name].lr)
+        return float(rate) * self.options.lr_scale
+
+    def fit(self, progress=None) -> FitResult:
+        """Run the counting start and Adam with early stopping; see the module docstring.
+
+        Args:
+            progress: optional callable ``progress(step, total_steps, train_loss, held_out_loss)``
+                (held-out loss NaN between evaluations).
+
+        Raises:
+            CalibrationError: the loss or a gradient becomes non-finite.
+        """
+        opts = self.options
+        initial = {n: p.initial.copy() for n, p in self.params.items()}
+        natural = {n: mi.Float(p.initial.astype(np.float32)) for n, p in self.params.items()}
+        initial_nll = self.held_out_loss(natural)
+        counting = self.counting_estimate(natural) if opts.counting_start else {}
+        natural.update({n: mi.Float(v.astype(np.float32)) for n, v in counting.items()})
+        counting_nll = self.held_out_loss(natural) if counting else initial_nll
+
+        opt = mi.ad.Adam(lr=1e-3)
+        for name, par in self.params.items():
+            opt[name] = par.to_raw(np.asarray(natural[name]))
+        opt.set_learning_rate({name: self.learning_rate(name) for name in self.params})
+        best = (counting_nll, {n: np.asarray(v).copy() for n, v in natural.items()})
+        history, stale, stopped, step = [(0, math.nan, counting_nll)], 0, False, 0
+        for step in range(1, opts.steps + 1):
+            # ---------------- Mini-batch of training rays, seeded by (seed, step) ----------------
+            if opts.batch_size >= len(self.train):
+                position = None if not self.geometric else np.arange(len(self.train))
+                index = self.train
+            else:
+                position = np.random.default_rng((opts.seed, step)).integers(0, len(self.train), opts.batch_size)
+                index = self.train[position]
+            values = {name: self.params[name].to_natural(opt[name]) for name in self.params}
+            rays, z, hit, records = self._records("train", index, position, values)
+
+            # ---------------- Loss with gradients, Adam step, constraints -------------------------
+            loss = -dr.mean(self.log_likelihood(values, rays, z, hit, records))
+            dr.backward(loss)
+            train_loss = float(loss[0])
+            bad = [n for n in self.params if not np.all(np.isfinite(np.asarray(dr.grad(opt[n]))))]
+            if not math.isfinite(train_loss) or bad:
+                raise CalibrationError(
+                    f"step {step}: the loss is {train_loss:g} and the gradients of {bad or 'no parameter'} are not "
+                    "finite; lower the learning rates (--lr-scale 0.1) or check that the log's ranges are in metres "
+                    "and the scene is the one the log was recorded in"
+                )
+            opt.step()
+            for name, par in self.params.items():
+                opt[name] = par.clip_raw(opt[name])
+
+            # ---------------- Held-out loss and early stopping -----------------------------------
+            held = math.nan
+            if step % opts.eval_every == 0 or step == opts.steps:
+                current = {name: self.params[name].to_natural(opt[name]) for name in self.params}
+                held = self.held_out_loss(current)
+                if held < best[0] - 1e-6:
+                    best, stale = (held, {n: np.asarray(v).copy() for n, v in current.items()}), 0
+                else:
+                    stale += 1
+            history.append((step, train_loss, held))
+            if progress is not None:
+                progress(step, opts.steps, train_loss, held)
+            if stale >= opts.patience:
+                stopped = True
+                break
+
+        fitted = best[1]
+        final = {n: mi.Float(v.astype(np.float32)) for n, v in fitted.items()}
+        table, model = self.space.build(final, self.model)
+        if self.geometric:
+            self.space.push_geometry(table)
+        return FitResult(names=list(self.names), initial=initial, counting=counting, fitted=fitted, history=history,
+                         initial_nll=initial_nll, counting_nll=counting_nll, fitted_nll=best[0], stopped_early=stopped,
+                         steps_run=step, table=table, model=model)
