@@ -74,6 +74,8 @@ class FitResult:
         names: fitted parameter names.
         initial, counting, fitted: natural values per name before fitting, after the counting
             estimate (p_hit parameters only) and after fitting (the best held-out values).
+        observations: per p_hit parameter, training rays that met each element (hits plus
+            pass-throughs of the counting estimate).
         history: rows ``(step, train loss, held-out loss or NaN)``, nats per ray.
         initial_nll, counting_nll, fitted_nll: held-out loss of the initial, counting-estimate
             and fitted models, nats per ray.
@@ -86,6 +88,7 @@ class FitResult:
     initial: dict
     counting: dict
     fitted: dict
+    observations: dict
     history: list
     initial_nll: float
     counting_nll: float
@@ -152,6 +155,7 @@ class Calibration:
         self.held_out = np.sort(order[:n_held][: self.options.eval_rays])
         self.train = np.sort(order[n_held:])
         self._cache: dict[str, list] = {}
+        self.observations: dict[str, np.ndarray] = {}
 
     # --------------------------------------------------------------------- likelihood
     def _records(self, part: str, index: np.ndarray, position: np.ndarray | None, values: dict):
@@ -200,7 +204,8 @@ class Calibration:
         a pass-through. Elements no training ray met keep their values.
 
         Returns:
-            New natural values of the selected ``elements.*.p_hit`` parameters.
+            New natural values of the selected ``elements.*.p_hit`` parameters; the number of
+            training rays that met each of their elements is left in :attr:`observations`.
         """
         n = self.space.table.n_elements
         hits, passes = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
@@ -233,6 +238,7 @@ class Calibration:
                 continue
             index = np.asarray(par.target[1])
             seen = hits[index] + passes[index]
+            self.observations[name] = seen
             current = np.asarray(values[name]) if name in values else par.initial
             estimate = np.where(seen > 0, hits[index] / np.maximum(seen, 1), current)
             out[name] = np.clip(estimate, P_EPS, 1 - P_EPS)
@@ -316,6 +322,7 @@ class Calibration:
         table, model = self.space.build(final, self.model)
         if self.geometric:
             self.space.push_geometry(table)
-        return FitResult(names=list(self.names), initial=initial, counting=counting, fitted=fitted, history=history,
+        return FitResult(names=list(self.names), initial=initial, counting=counting, fitted=fitted,
+                         observations=dict(self.observations), history=history,
                          initial_nll=initial_nll, counting_nll=counting_nll, fitted_nll=best[0], stopped_early=stopped,
                          steps_run=step, table=table, model=model)

@@ -53,8 +53,8 @@ class BeamOffsets(Effect):
 
     def perturb_rays(self, rays: RayBatch) -> RayBatch:
         rotation, _ = rays.sensor_frame()
-        local = dr.transpose(rotation) @ rays.direction
+        local = mi.Vector3f(rotation.T @ rays.direction)
         turned = offset_direction(local, self.per_beam("elevation", rays.beam), self.per_beam("azimuth", rays.beam))
-        return RayBatch(origin=rays.origin, direction=rotation @ turned, beam=rays.beam, time=rays.time,
+        return RayBatch(origin=rays.origin, direction=mi.Vector3f(rotation @ turned), beam=rays.beam, time=rays.time,
                         ray_id=rays.ray_id, sensor_rotation=rays.sensor_rotation,
                         sensor_position=rays.sensor_position)

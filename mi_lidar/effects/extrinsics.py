@@ -47,12 +47,12 @@ class Extrinsics(Effect):
 
     def perturb_rays(self, rays: RayBatch) -> RayBatch:
         rotation, position = rays.sensor_frame()
-        inverse = dr.transpose(rotation)
+        inverse = rotation.T
         omega = mi.Vector3f(self["rx"], self["ry"], self["rz"])
         translation = mi.Vector3f(self["tx"], self["ty"], self["tz"])
-        local_origin = inverse @ (rays.origin - position)
-        origin = position + rotation @ (rotate_vector(omega, local_origin) + translation)
-        direction = rotation @ rotate_vector(omega, inverse @ rays.direction)
-        return RayBatch(origin=mi.Point3f(origin), direction=direction, beam=rays.beam, time=rays.time,
+        local_origin = mi.Vector3f(inverse @ (rays.origin - position))
+        origin = mi.Point3f(position + rotation @ (rotate_vector(omega, local_origin) + translation))
+        direction = mi.Vector3f(rotation @ rotate_vector(omega, mi.Vector3f(inverse @ rays.direction)))
+        return RayBatch(origin=origin, direction=direction, beam=rays.beam, time=rays.time,
                         ray_id=rays.ray_id, sensor_rotation=rays.sensor_rotation,
                         sensor_position=rays.sensor_position)
