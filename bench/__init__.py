@@ -1,0 +1,1 @@
+"""Benchmarks of mi-lidar (``make bench`` runs ``python -m bench``)."""

@@ -1,0 +1,472 @@
+"""Core throughput and memory benchmark (issue 2).
+
+Measures rays per second of the simulation core against Mitsuba's raw coherent
+``scene.ray_intersect`` (the limit of this machine) and Open3D's ``RaycastingScene`` on two
+scenes built here:
+
+* **terrain**: a 1M-triangle heightfield, opaque;
+* **vegetation**: the same terrain plus 100k Gaussian ellipsoids (shrub and canopy clumps)
+  with hit probabilities in [0.2, 0.4] that beams pass through.
+
+Every measurement traces the same ~1M rays (one sweep of a dense 128 x 8192 spinning pattern
+2 m above the terrain), excludes a warm-up run (kernel compilation) and reports the median of
+:data:`REPEATS` runs, with ``dr.sync_thread()`` before each timer read. Open3D has no
+ellipsoids: on the vegetation scene it traces each ellipsoid as an icosahedron (20 triangles
+at the ellipsoid's extent) and runs the same pass-through loop in numpy, where exit faces of
+an icosahedron are crossed without a draw. Peak memory of a 4M-ray :func:`mi_lidar.simulate`
+is read from ``VmHWM`` of a child process.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import secrets
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+CORES = 2                      # the targets are set for a 2-core machine
+N_BEAMS, N_FIRINGS = 128, 8192  # 1,048,576 rays per sweep
+TERRAIN_VERTICES = 708          # per side: 2 * 707^2 = 999,698 triangles
+TERRAIN_HALF_SIZE = 125.0       # m; the sensor sits at the centre, max_range is 120 m
+N_ELLIPSOIDS = 100_000
+ELLIPSOID_EXTENT = 3.0          # sigmas
+SENSOR_HEIGHT = 2.0             # m above the terrain
+MAX_SEGMENTS = 16
+REPEATS = 3
+SEED = 7
+MEMORY_POSES = 4                # 4 sweeps of 1M rays: the 4M-ray scan
+MEMORY_LIMIT_GB = 2.0
+TERRAIN_SHARE_OF_RAW = 0.5      # direct path >= 50% of raw ray_intersect on the terrain
+VEGETATION_MRAYS = 10.0         # direct path >= 10 Mrays/s on the vegetation scene
+OPEN3D_FACTOR = 2.0             # direct path >= 2x Open3D on both scenes
+
+
+@dataclass
+class Row:
+    """One line of the result table.
+
+    Attributes:
+        benchmark: what was measured, e.g. ``"terrain: simulate_rays"``.
+        mrays: million rays per second (None for memory rows).
+        vs_raw: ``mrays`` over raw coherent ``ray_intersect`` on the same scene and rays.
+        vs_open3d: ``mrays`` over Open3D on the same scene and rays.
+        target: the target, in words ("" when the row is a reference).
+        passed: whether the target is met (None without a target).
+        failed: the checks of the target that failed, with their measured values.
+        value: text shown instead of ``mrays`` (memory rows).
+    """
+
+    benchmark: str
+    mrays: float | None = None
+    vs_raw: float | None = None
+    vs_open3d: float | None = None
+    target: str = ""
+    passed: bool | None = None
+    failed: str = ""
+    value: str = ""
+
+
+# ----------------------------------------------------------------------------------- scenes
+def terrain_height(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Rolling off-road terrain height (m) at (x, y): a few smooth waves."""
+    return (1.5 * np.sin(0.05 * x) * np.cos(0.04 * y) + 0.6 * np.sin(0.13 * x + 0.7)
+            + 0.4 * np.cos(0.11 * y - 0.3) + 0.15 * np.sin(0.9 * x) * np.sin(0.8 * y))
+
+
+def make_terrain() -> tuple[np.ndarray, np.ndarray]:
+    """The heightfield as (V, 3) vertices and (F, 3) faces, two triangles per grid cell."""
+    n = TERRAIN_VERTICES
+    axis = np.linspace(-TERRAIN_HALF_SIZE, TERRAIN_HALF_SIZE, n)
+    x, y = np.meshgrid(axis, axis, indexing="ij")
+    vertices = np.stack([x, y, terrain_height(x, y)], axis=-1).reshape(-1, 3)
+    corner = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    faces = np.concatenate([
+        np.stack([corner, corner + n, corner + n + 1], axis=1),
+        np.stack([corner, corner + n + 1, corner + 1], axis=1),
+    ])
+    return vertices, faces
+
+
+def make_vegetation(rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """100k ellipsoids in clumps of 40 over the terrain: half shrubs, half tree canopies.
+
+    Shrub clumps hold ellipsoids of 0.08-0.25 m sigma 0.2-1.5 m above the ground within
+    1.5 m of the clump centre; canopies hold 0.15-0.4 m sigmas 3-7 m up within 2.5 m. No clump
+    centre lies within 4 m of the sensor.
+
+    Returns:
+        Dict of ``centers`` (N, 3), ``scales`` (N, 3) sigmas (m), ``quaternions`` (N, 4)
+        (x, y, z, w) and ``p_hit`` (N,) hit probabilities in [0.2, 0.4] (mean 0.3).
+    """
+    per_clump = 40
+    n_clumps = N_ELLIPSOIDS // per_clump
+    clump = rng.uniform(-TERRAIN_HALF_SIZE + 3.0, TERRAIN_HALF_SIZE - 3.0, (n_clumps, 2))
+    near = np.hypot(clump[:, 0], clump[:, 1]) < 4.0
+    clump[near] += 8.0
+    tree = np.arange(n_clumps) % 2 == 1
+    spread = np.where(tree, 2.5, 1.5)[:, None, None]
+    offset = rng.uniform(-1.0, 1.0, (n_clumps, per_clump, 2)) * spread
+    xy = (clump[:, None, :] + offset).reshape(-1, 2)
+    is_tree = np.repeat(tree, per_clump)
+    n = len(xy)
+    z = terrain_height(xy[:, 0], xy[:, 1]) + np.where(is_tree, rng.uniform(3.0, 7.0, n), rng.uniform(0.2, 1.5, n))
+    low, high = np.where(is_tree, 0.15, 0.08)[:, None], np.where(is_tree, 0.4, 0.25)[:, None]
+    scales = low + (high - low) * rng.random((n, 3))
+    yaw = rng.uniform(0.0, math.pi, n)
+    quaternions = np.stack([np.zeros(n), np.zeros(n), np.sin(yaw / 2), np.cos(yaw / 2)], axis=1)
+    return {"centers": np.column_stack([xy, z]), "scales": scales, "quaternions": quaternions,
+            "p_hit": rng.uniform(0.2, 0.4, n)}
+
+
+def make_pattern():
+    """A dense spinning pattern: 128 beams from +2 to -25 degrees, 8192 firings per 0.1 s sweep."""
+    from mi_lidar.patterns import FiringPattern
+
+    period = 0.1
+    elevation = np.radians(np.linspace(2.0, -25.0, N_BEAMS))[:, None].repeat(N_FIRINGS, axis=1)
+    time_s = np.arange(N_FIRINGS)[None, :].repeat(N_BEAMS, axis=0) * (period / N_FIRINGS)
+    azimuth = math.pi - 2.0 * math.pi * time_s / period
+    azimuth = (azimuth + math.pi) % (2.0 * math.pi) - math.pi
+    return FiringPattern("bench-128x8192", elevation, azimuth, time_s, period)
+
+
+def sensor_pose(dx: float = 0.0) -> np.ndarray:
+    """Sensor-to-world pose ``dx`` m along x, :data:`SENSOR_HEIGHT` above the terrain."""
+    pose = np.eye(4)
+    pose[:3, 3] = [dx, 0.0, float(terrain_height(np.array(dx), np.array(0.0))) + SENSOR_HEIGHT]
+    return pose
+
+
+def write_scenes(folder: Path) -> dict[str, Path]:
+    """Write the assets and the two scene XMLs (lidar sensor + ``lidar_integrator``).
+
+    Returns:
+        ``{"terrain": xml, "vegetation": xml}``.
+    """
+    from mi_lidar.patterns import to_table
+    from mi_lidar.scene_files import ShapeEntry, write_ellipsoids_ply, write_mesh_ply, write_scene_xml
+
+    vertices, faces = make_terrain()
+    write_mesh_ply(folder / "terrain.ply", vertices, faces)
+    veg = make_vegetation(np.random.default_rng(SEED))
+    write_ellipsoids_ply(folder / "vegetation.ply", veg["centers"], veg["scales"], veg["quaternions"],
+                         p_hit=veg["p_hit"])
+    pattern = to_table(make_pattern(), folder / "pattern.npy").resolve()  # the sensor reads it from the cwd
+    z = sensor_pose()[2, 3]
+    sensor = (f'    <integrator type="lidar_integrator"><integer name="max_segments" value="{MAX_SEGMENTS}"/>'
+              "</integrator>\n"
+              f'    <sensor type="lidar"><string name="pattern" value="{pattern}"/>'
+              f'<transform name="to_world"><translate z="{z:.9g}"/></transform></sensor>')
+    terrain = ShapeEntry(id="terrain", kind="mesh", filename="terrain.ply", label=1)
+    vegetation = ShapeEntry(id="vegetation", kind="ellipsoids", filename="vegetation.ply", label=2,
+                            extent=ELLIPSOID_EXTENT)
+    return {
+        "terrain": write_scene_xml(folder / "terrain.xml", [terrain], "bench: terrain", sensor),
+        "vegetation": write_scene_xml(folder / "vegetation.xml", [terrain, vegetation], "bench: vegetation", sensor),
+    }
+
+
+# ----------------------------------------------------------------------------------- timing
+def median_seconds(runs: dict, repeats: int = REPEATS) -> dict[str, float]:
+    """Median wall time (s) of each callable in ``runs`` after one warm-up run each.
+
+    The runs are interleaved (one of each per round) so that they share the machine's load.
+    Each callable must evaluate its outputs; Dr.Jit's queue is synchronized before each timer
+    read.
+    """
+    import drjit as dr
+
+    for run in runs.values():
+        run()
+        dr.sync_thread()
+    times = {name: [] for name in runs}
+    for _ in range(repeats):
+        for name, run in runs.items():
+            start = time.perf_counter()
+            run()
+            dr.sync_thread()
+            times[name].append(time.perf_counter() - start)
+    return {name: statistics.median(values) for name, values in times.items()}
+
+
+def make_rays(pattern, pose: np.ndarray):
+    """The pattern's rays at ``pose`` as a RayBatch, built as :func:`mi_lidar.simulate` does."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from mi_lidar.effects.base import RayBatch
+
+    height, width = pattern.shape
+    d = pattern.directions().reshape(-1, 3).astype(np.float64) @ pose[:3, :3].T
+    o = pattern.origins().reshape(-1, 3).astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+    return RayBatch(
+        origin=mi.Point3f(*o.T.astype(np.float32)),
+        direction=dr.normalize(mi.Vector3f(*d.T.astype(np.float32))),
+        beam=mi.UInt32(np.repeat(np.arange(height, dtype=np.uint32), width)),
+        time=mi.Float(pattern.time.reshape(-1).astype(np.float32)),
+        ray_id=dr.arange(mi.UInt32, height * width),
+    )
+
+
+# ----------------------------------------------------------------------------------- Open3D
+def open3d_scene(veg: dict[str, np.ndarray] | None):
+    """Open3D scene of the terrain (geometry 0) and, given ``veg``, its ellipsoids as icosahedra (geometry 1).
+
+    Returns:
+        ``(scene, faces_per_ellipsoid)``; 0 faces without ``veg``.
+    """
+    o3d = import_open3d()
+    vertices, faces = make_terrain()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
+    faces_per_ellipsoid = 0
+    if veg is not None:
+        ico = o3d.geometry.TriangleMesh.create_icosahedron(radius=1.0)
+        unit = np.asarray(ico.vertices)
+        tri = np.asarray(ico.triangles)
+        faces_per_ellipsoid = len(tri)
+        q = veg["quaternions"]
+        rot = _quaternion_matrices(q)
+        local = unit[None] * (veg["scales"][:, None, :] * ELLIPSOID_EXTENT)
+        world = np.einsum("nij,nvj->nvi", rot, local) + veg["centers"][:, None, :]
+        all_faces = tri[None] + (np.arange(len(q)) * len(unit))[:, None, None]
+        scene.add_triangles(o3d.core.Tensor(world.reshape(-1, 3).astype(np.float32)),
+                            o3d.core.Tensor(all_faces.reshape(-1, 3).astype(np.uint32)))
+    return scene, faces_per_ellipsoid
+
+
+def import_open3d():
+    """Import Open3D, explaining the usual failure (its wheel links the system's libusb)."""
+    try:
+        import open3d
+    except ImportError as exc:
+        hint = " Install it with `apt-get install libusb-1.0-0`." if "libusb" in str(exc) else ""
+        raise RuntimeError(f"the benchmark compares with Open3D, which does not import: {exc}.{hint}") from exc
+    return open3d
+
+
+def _quaternion_matrices(q: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices of unit quaternions (x, y, z, w)."""
+    x, y, z, w = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+    ], axis=1)
+
+
+def open3d_first_hit(scene, origin: np.ndarray, direction: np.ndarray) -> dict:
+    """Open3D first hits of rays ``(origin, direction)`` on :data:`CORES` threads."""
+    o3d = import_open3d()
+    rays = o3d.core.Tensor(np.concatenate([origin, direction], axis=1).astype(np.float32))
+    return scene.cast_rays(rays, nthreads=CORES)
+
+
+def open3d_pass_through(scene, faces_per_ellipsoid: int, p_hit: np.ndarray, origin: np.ndarray,
+                        direction: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The pass-through sampling loop on Open3D: first-return range per ray (NaN = miss).
+
+    Terrain (geometry 0) is opaque; an icosahedron's entry face returns with its ellipsoid's
+    ``p_hit``, its exit face is crossed without a draw. Rays stop after ``MAX_SEGMENTS``
+    elements or beyond 120 m.
+    """
+    n = len(origin)
+    result = np.full(n, np.nan, np.float32)
+    segments = np.zeros(n, np.int32)
+    live = np.arange(n)
+    start = origin.copy()
+    while live.size:
+        hits = open3d_first_hit(scene, start[live], direction[live])
+        t = hits["t_hit"].numpy()
+        geometry = hits["geometry_ids"].numpy()
+        prim = hits["primitive_ids"].numpy()
+        normal = hits["primitive_normals"].numpy()
+        point = start[live] + t[:, None] * direction[live]
+        nominal = np.einsum("ij,ij->i", point - origin[live], direction[live])
+        valid = np.isfinite(t) & (nominal <= 120.0)
+        is_veg = valid & (geometry == 1)
+        exit_face = is_veg & (np.einsum("ij,ij->i", normal, direction[live]) > 0)
+        element = valid & ~exit_face
+        p = np.where(is_veg, p_hit[np.where(is_veg, prim // faces_per_ellipsoid, 0)], 1.0)
+        returned = element & (rng.random(live.size) < p)
+        result[live[returned]] = nominal[returned]
+        segments[live] += element
+        keep = valid & ~returned & (segments[live] < MAX_SEGMENTS)
+        start[live] = point + 1e-4 * direction[live]
+        live = live[keep]
+    return result
+
+
+# -------------------------------------------------------------------------------- measuring
+def measure_scene(name: str, xml: Path) -> dict[str, float]:
+    """Seconds per sweep of every method on one scene, plus statistics of the direct path.
+
+    Returns:
+        Dict with ``rays``; the median seconds of ``raw``, ``simulate_rays``, ``simulate``,
+        ``render`` and ``open3d``; ``new_seed``, the seconds of one ``simulate_rays`` with a seed
+        never used before (kernel compilation included); and ``hit_fraction`` /
+        ``mean_segments`` of the direct path.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    import mi_lidar
+    from mi_lidar.elements import ElementTable
+    from mi_lidar.scene import scene_sensor_model
+
+    scene = mi_lidar.load_scene(xml)
+    model, pose = scene_sensor_model(scene)
+    pattern = make_pattern()
+    rays = make_rays(pattern, pose)
+    n = dr.width(rays.ray_id)
+    table = ElementTable.from_scene(scene)
+    ray = mi.Ray3f(rays.origin, rays.direction)
+    dr.eval(rays, ray)
+
+    def raw():
+        si = scene.ray_intersect(ray, mi.RayFlags.Minimal, True)
+        dr.eval(si.t, si.prim_index, si.shape)
+
+    def direct():
+        dr.eval(model.simulate_rays(scene, table, rays, SEED))
+
+    def render():
+        dr.eval(mi.render(scene, seed=SEED))
+
+    def end_to_end():
+        mi_lidar.simulate(scene, pattern, pose, seed=SEED, model=model)
+
+    origin = np.asarray(rays.origin).T.astype(np.float32).copy()
+    direction = np.asarray(rays.direction).T.astype(np.float32).copy()
+    veg = None if name == "terrain" else make_vegetation(np.random.default_rng(SEED))
+    o3d_scene, faces = open3d_scene(veg)
+    rng = np.random.default_rng(SEED)
+
+    def open3d():
+        if veg is None:
+            open3d_first_hit(o3d_scene, origin, direction)
+        else:
+            open3d_pass_through(o3d_scene, faces, veg["p_hit"], origin, direction, rng)
+
+    seconds = median_seconds({"raw": raw, "simulate_rays": direct, "simulate": end_to_end, "render": render,
+                              "open3d": open3d})
+    fresh_seed = SEED + 1 + secrets.randbelow(1 << 30)  # not in Dr.Jit's kernel cache on disk
+    start = time.perf_counter()
+    dr.eval(model.simulate_rays(scene, table, rays, fresh_seed))
+    dr.sync_thread()
+    seconds["new_seed"] = time.perf_counter() - start
+    out = model.simulate_rays(scene, table, rays, SEED)
+    seconds["hit_fraction"] = float(np.mean(np.asarray(out["hit"])))
+    seconds["mean_segments"] = float(np.mean(np.asarray(out["segments"])))
+    seconds["rays"] = n
+    return seconds
+
+
+def peak_memory_gb(xml: Path) -> tuple[float, float, int]:
+    """Peak resident memory (GB) of a child process simulating a 4M-ray scan of ``xml``.
+
+    Returns:
+        ``(peak, baseline, rays)``: VmHWM after the scan, VmHWM after loading the scene and
+        the ray count.
+    """
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parent.parent)
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    result = subprocess.run([sys.executable, "-m", "bench.bench_core", "memory", str(xml)],
+                            capture_output=True, text=True, env=env, check=False)
+    if result.returncode != 0:
+        raise RuntimeError(f"memory probe failed:\n{result.stderr[-2000:]}")
+    report = json.loads(result.stdout.strip().splitlines()[-1])
+    return report["peak_gb"], report["baseline_gb"], report["rays"]
+
+
+def _vm_hwm_gb() -> float:
+    """This process's peak resident set size (VmHWM), GB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) * 1024 / 1e9
+    raise RuntimeError("/proc/self/status has no VmHWM line")
+
+
+def _memory_probe(xml: str) -> None:
+    """Child process: simulate a 4M-ray scan of ``xml`` and print peak memory as JSON."""
+    pin_cores()
+    import mi_lidar
+
+    scene = mi_lidar.load_scene(xml)
+    baseline = _vm_hwm_gb()
+    pattern = make_pattern()
+    poses = np.stack([sensor_pose(dx) for dx in np.linspace(0.0, 3.0, MEMORY_POSES)])
+    log = mi_lidar.simulate(scene, pattern, poses, seed=SEED)
+    rays = int(np.asarray(log.ranges).size)
+    print(json.dumps({"peak_gb": _vm_hwm_gb(), "baseline_gb": baseline, "rays": rays}))
+
+
+def pin_cores() -> None:
+    """Restrict this process to :data:`CORES` CPUs and Dr.Jit to as many threads."""
+    if hasattr(os, "sched_getaffinity") and len(os.sched_getaffinity(0)) > CORES:
+        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[:CORES])
+    import drjit as dr
+
+    import mi_lidar  # noqa: F401  (configures LLVM before Dr.Jit starts its threads)
+
+    dr.set_thread_count(CORES)
+
+
+# ---------------------------------------------------------------------------------- results
+def _verdict(checks: list[tuple[str, bool]]) -> tuple[bool, str]:
+    """Overall pass and the names of the failed checks."""
+    failed = [name for name, ok in checks if not ok]
+    return not failed, ", ".join(failed)
+
+
+def run() -> list[Row]:
+    """Run every core benchmark and return the table rows."""
+    pin_cores()
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="mi-lidar-bench-") as tmp:
+        scenes = write_scenes(Path(tmp))
+        for name, xml in scenes.items():
+            s = measure_scene(name, xml)
+            keys = ("raw", "simulate_rays", "new_seed", "simulate", "render", "open3d")
+            mrays = {k: s["rays"] / s[k] / 1e6 for k in keys}
+            raw, o3d, direct = mrays["raw"], mrays["open3d"], mrays["simulate_rays"]
+
+            def row(label: str, key: str, target: str = "", checks: list | None = None) -> Row:
+                passed, failed = _verdict(checks) if checks else (None, "")
+                return Row(f"{name}: {label}", mrays[key], mrays[key] / raw, mrays[key] / o3d, target, passed, failed)
+
+            open3d_check = (f"{direct / o3d:.2f}x Open3D", direct / o3d >= OPEN3D_FACTOR)
+            if name == "terrain":
+                target = f">= {TERRAIN_SHARE_OF_RAW:.0%} of raw, >= {OPEN3D_FACTOR:g}x Open3D"
+                checks = [(f"{direct / raw:.0%} of raw", direct / raw >= TERRAIN_SHARE_OF_RAW), open3d_check]
+            else:
+                target = f">= {VEGETATION_MRAYS:g} Mrays/s, >= {OPEN3D_FACTOR:g}x Open3D"
+                checks = [(f"{direct:.1f} Mrays/s", direct >= VEGETATION_MRAYS), open3d_check]
+            stats = f"{s['hit_fraction']:.0%} hits, {s['mean_segments']:.2f} elements/ray"
+            o3d_label = "Open3D cast_rays" if name == "terrain" else "Open3D icosahedra + numpy pass-through"
+            rows += [
+                row("raw ray_intersect (coherent, first hit)", "raw"),
+                row(f"simulate_rays ({stats})", "simulate_rays", target, checks),
+                row("simulate_rays, first call with a new seed (JIT compile)", "new_seed"),
+                row("mi_lidar.simulate (end to end)", "simulate"),
+                row("mi.render (XML, lidar_integrator)", "render"),
+                row(o3d_label, "open3d"),
+            ]
+        peak, baseline, n = peak_memory_gb(scenes["vegetation"])
+        rows.append(Row(f"vegetation: peak memory of mi_lidar.simulate, {n:,} rays", target=f"< {MEMORY_LIMIT_GB:g} GB",
+                        passed=peak < MEMORY_LIMIT_GB, value=f"{peak:.2f} GB ({baseline:.2f} GB after load)"))
+    return rows
+
+
+if __name__ == "__main__" and len(sys.argv) == 3 and sys.argv[1] == "memory":
+    _memory_probe(sys.argv[2])
