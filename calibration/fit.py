@@ -294,8 +294,9 @@ class Calibration:
             if not math.isfinite(train_loss) or bad:
                 raise CalibrationError(
                     f"step {step}: the loss is {train_loss:g} and the gradients of {bad or 'no parameter'} are not "
-                    "finite; lower the learning rates (--lr-scale 0.1) or check that the log's ranges are in metres "
-                    "and the scene is the one the log was recorded in"
+                    "finite; keep the robustness floor > 0 (FitOptions.floor, now "
+                    f"{opts.floor:g}), lower the learning rates (--lr-scale 0.1), and check that the log's ranges are "
+                    "in metres and the scene is the one the log was recorded in"
                 )
             opt.step()
             for name, par in self.params.items():

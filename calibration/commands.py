@@ -1,0 +1,136 @@
+"""``mi-lidar calibrate``: fit scene and sensor parameters to a log, as a function and a Typer command."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from mi_lidar.errors import MiLidarError
+from mi_lidar.log import Log
+from mi_lidar.scene import load_scene
+
+from .fit import Calibration, FitOptions, FitResult
+from .report import write_report
+
+console = Console()
+
+
+def parse_learning_rates(items: list[str] | None) -> dict[str, float]:
+    """``["elements.*.p_hit=0.05", ...]`` -> ``{glob: lr}``; raise :class:`MiLidarError` on a bad item."""
+    rates = {}
+    for item in items or []:
+        glob, eq, value = item.rpartition("=")
+        try:
+            rates[glob] = float(value)
+        except ValueError:
+            eq = ""
+        if not eq or not glob:
+            raise MiLidarError(f"--lr {item!r}: write GLOB=RATE, e.g. --lr 'sensor.range_bias=0.002'")
+    return rates
+
+
+def calibrate_command(log, scene, params: list[str], out, steps: int = 200, batch_size: int = 1 << 16,
+                      holdout: float = 0.2, seed: int = 0, lr: list[str] | None = None, lr_scale: float = 1.0,
+                      patience: int = 5, eval_every: int = 10, counting_start: bool = True,
+                      progress=None) -> tuple[FitResult, dict[str, Path]]:
+    """Fit the parameters ``params`` (globs) of ``scene`` to ``log`` and write the outputs to ``out``.
+
+    Args:
+        log: path of a log (``.npz``, see :mod:`mi_lidar.log`).
+        scene: path of the scene XML (its ``lidar`` sensor must be the log's).
+        params: parameter globs, e.g. ``["elements.*.p_hit", "sensor.range_bias"]``.
+        out: output folder: ``scene.xml`` (+ ``scene_assets/``), ``loss.png``, ``changes.csv``,
+            ``history.csv``, ``parameters.npz``, ``report.json``.
+        steps, batch_size, holdout, seed, patience, eval_every, counting_start: see
+            :class:`~mi_lidar.calibration.fit.FitOptions`.
+        lr: learning-rate overrides ``GLOB=RATE``.
+        lr_scale: factor on every learning rate.
+        progress: optional ``progress(step, steps, train_loss, held_out_loss)`` callback.
+
+    Returns:
+        The fit result and the written files by kind.
+
+    Raises:
+        MiLidarError: unreadable inputs, a glob matching nothing, a log from another sensor, or a
+            diverging loss (each message says what to change).
+    """
+    measured = Log.load(log)
+    loaded = load_scene(scene)
+    options = FitOptions(steps=steps, batch_size=batch_size, holdout=holdout, seed=seed, patience=patience,
+                         eval_every=eval_every, learning_rates=parse_learning_rates(lr), lr_scale=lr_scale,
+                         counting_start=counting_start)
+    calibration = Calibration(loaded, measured, list(params), options=options)
+    result = calibration.fit(progress)
+    units = {n: calibration.params[n].unit for n in result.names}
+    files = write_report(out, result, loaded, units, title=f"calibrate {Path(log).name} in {Path(scene).name}")
+    return result, files
+
+
+def result_table(result: FitResult) -> Table:
+    """A rich table: held-out loss of the initial, counting and fitted models, and the parameter changes."""
+    table = Table(title="calibration", header_style="bold")
+    for column in ("parameter", "values", "mean before", "mean after", "max |change|"):
+        table.add_column(column, justify="left" if column == "parameter" else "right")
+    for name in result.names:
+        before, after = result.initial[name], result.fitted[name]
+        table.add_row(name, f"{before.size:,}", f"{before.mean():.6g}", f"{after.mean():.6g}",
+                      f"{abs(after - before).max():.3g}")
+    table.add_section()
+    table.add_row("held-out NLL (nats/ray): initial / counting / fitted", "",
+                  f"{result.initial_nll:.5f}", f"{result.counting_nll:.5f}", f"{result.fitted_nll:.5f}")
+    table.add_row("Adam steps" + (" (early stop)" if result.stopped_early else ""), str(result.steps_run), "", "", "")
+    return table
+
+
+def calibrate(
+    log: Path = typer.Argument(..., help="Measured log (`.npz`).", exists=True, dir_okay=False),
+    scene: Path = typer.Argument(..., help="Scene XML whose `lidar` sensor recorded the log.", exists=True, dir_okay=False),
+    params: list[str] = typer.Option(..., "--params", "-p", help="Parameter glob; repeat for more, e.g. `elements.*.p_hit`, `sensor.*`."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
+    steps: int = typer.Option(200, help="Maximum Adam steps."),
+    batch_size: int = typer.Option(1 << 16, help="Training rays per step."),
+    holdout: float = typer.Option(0.2, help="Fraction of rays held out for validation and early stopping."),
+    seed: int = typer.Option(0, help="Seed of the split and of the mini-batch draws."),
+    lr: Optional[list[str]] = typer.Option(None, "--lr", help="Learning rate override GLOB=RATE; repeatable."),
+    lr_scale: float = typer.Option(1.0, help="Factor on every learning rate."),
+    patience: int = typer.Option(5, help="Held-out evaluations without improvement before stopping."),
+    counting_start: bool = typer.Option(True, help="Start hit probabilities from the counting estimate hits/(hits+pass-throughs)."),
+):
+    """Fit scene and sensor parameters to a log by Dr.Jit autodiff; write the calibrated scene and a report.
+
+    Parameter names: `elements.<shape>.p_hit|range_sigma|centers|scales`, `classes.<label>.range_sigma`,
+    `terrain.<shape>.heights`, `sensor.elevation_offset|azimuth_offset|range_bias|range_scale|extrinsics`,
+    `effects.<effect>.<parameter>`.
+
+    Examples:
+
+        mi-lidar calibrate drive.npz scenes_xml/offroad.xml --params 'elements.*.p_hit' --out out/cal
+
+        mi-lidar calibrate drive.npz scene.xml -p 'sensor.elevation_offset' -p 'sensor.range_bias' --out out/intrinsics
+    """
+    with Progress(TextColumn("calibrating [bold]{task.description}"), BarColumn(), TimeElapsedColumn(),
+                  console=console, transient=True) as bar:
+        task = bar.add_task("counting start", total=steps)
+        held = {"value": float("nan")}
+
+        def progress(step, total, train, held_out):
+            if held_out == held_out:
+                held["value"] = held_out
+            bar.update(task, completed=step,
+                       description=f"loss {train:.4f} | held-out {held['value']:.4f} nats/ray")
+
+        try:
+            result, files = calibrate_command(log, scene, params, out, steps=steps, batch_size=batch_size,
+                                              holdout=holdout, seed=seed, lr=lr, lr_scale=lr_scale, patience=patience,
+                                              progress=progress, counting_start=counting_start)
+        except (MiLidarError, ValueError, OSError) as exc:
+            console.print(f"[bold red]error:[/] {exc}")
+            raise typer.Exit(code=2)
+    console.print(result_table(result))
+    for path in files.values():
+        console.print(f"wrote {path}")
