@@ -7,8 +7,10 @@ Pipeline, as a list of verbs::
     model = fit.fit_model(log, params)                                # triangles + ellipsoids in blocks
     library = primitives.extract_primitives(model, log)               # objects at identity pose
     scene = compose.compose_scene(annotation, library, ground)        # a new scene
-    sim = raycast.simulate_model(scene, rays, seed)                   # hybrid ray caster
-    table = evaluate.observation_metrics(log, sim)                    # thesis table 4.3
+    ranges, labels = simulation.simulate_log(scene, log, seed)        # mi_lidar.simulate, the core
+    table = evaluate.observation_metrics(real, ranges, origins, dirs) # thesis table 4.3
 
-Scenes are written as Mitsuba XML + PLY with :mod:`mi_lidar.scene_files`.
+Scenes are written as Mitsuba XML + PLY with :mod:`mi_lidar.scene_files` (plus a ``lidar``
+sensor and ``lidar_integrator`` when given a :class:`.blocks.SceneSensor`), so they load with
+:func:`mi_lidar.load_scene` and render with ``mi.render``.
 """

@@ -2,30 +2,88 @@
 
 :func:`write_scene` writes ``<name>.xml`` plus ``<name>_assets/ground_b<k>.ply`` and
 ``ellipsoids_b<k>.ply`` with per-element ``p_hit``, ``range_sigma`` (0 for ellipsoids, whose
-spread is their Gaussian) and ``label``, using :mod:`mi_lidar.scene_files`; :func:`read_scene`
-reads such a scene back into a :class:`HybridModel` (instances are not stored in the files).
+spread is their Gaussian) and ``label``, using :mod:`mi_lidar.scene_files`. Given a
+:class:`SceneSensor`, the XML also holds a ``lidar`` sensor and a ``lidar_integrator``, so it
+loads with :func:`mi_lidar.load_scene`, renders with ``mi.render`` and simulates with
+:func:`mi_lidar.simulate`. :func:`read_scene` reads a scene back into a :class:`HybridModel`
+(instances are not stored in the files).
 """
 
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass
 from pathlib import Path
+from xml.sax.saxutils import quoteattr
 
 import numpy as np
 from plyfile import PlyData
 
 from ..errors import SceneError
+from ..io.pattern import pattern_from_log
+from ..log import Log
+from ..patterns import to_table
 from ..scene_files import ShapeEntry, write_ellipsoids_ply, write_mesh_ply, write_scene_xml
 from .model import EllipsoidSet, GroundMesh, HybridModel
 
 
-def write_scene(model: HybridModel, out_dir, name: str = "scene") -> Path:
+@dataclass
+class SceneSensor:
+    """The ``lidar`` sensor and ``lidar_integrator`` written into a scene XML.
+
+    Attributes:
+        pattern: firing pattern name (e.g. ``"hdl32e"``) or path of a pattern table.
+        pose: (4, 4) sensor-to-world transform.
+        min_range, max_range: reported range limits, m.
+        range_sigma: noise of elements without their own, m.
+        max_segments: elements a ray may pass before it counts as a miss.
+        firings: film width for named spinning patterns (None: the pattern's own).
+    """
+
+    pattern: str
+    pose: np.ndarray
+    min_range: float = 0.0
+    max_range: float = 120.0
+    range_sigma: float = 0.05
+    max_segments: int = 16
+    firings: int | None = None
+
+    @classmethod
+    def from_log(cls, log: Log, table_path, scan: int = 0) -> "SceneSensor":
+        """The sensor of ``log``: its scan-``scan`` pattern written to ``table_path`` (``.npy``) and pose."""
+        table = to_table(pattern_from_log(log, scan), Path(table_path))
+        return cls(str(table.resolve()), log.poses[scan], float(log.sensor.get("min_range", 0.0)),
+                   float(log.sensor.get("max_range", 120.0)))
+
+    def xml(self) -> str:
+        """The ``<default>``, ``<integrator>`` and ``<sensor>`` elements.
+
+        The pattern is a ``<default name="pattern">`` parameter, so
+        ``mi_lidar.load_scene(xml, pattern="vlp16")`` swaps it.
+        """
+        matrix = " ".join(f"{v:.9g}" for v in np.asarray(self.pose, float).ravel())
+        firings = "" if self.firings is None else f'\n        <integer name="firings" value="{int(self.firings)}"/>'
+        return (f'    <default name="pattern" value={quoteattr(str(self.pattern))}/>\n'
+                f'    <integrator type="lidar_integrator" id="integrator">\n'
+                f'        <integer name="max_segments" value="{int(self.max_segments)}"/>\n'
+                f'    </integrator>\n'
+                f'    <sensor type="lidar" id="lidar">\n'
+                f'        <string name="pattern" value="$pattern"/>{firings}\n'
+                f'        <float name="min_range" value="{self.min_range:g}"/>\n'
+                f'        <float name="max_range" value="{self.max_range:g}"/>\n'
+                f'        <float name="range_sigma" value="{self.range_sigma:g}"/>\n'
+                f'        <transform name="to_world"><matrix value="{matrix}"/></transform>\n'
+                f'    </sensor>')
+
+
+def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneSensor | None = None) -> Path:
     """Write ``model`` as a Mitsuba scene; return the XML path.
 
     Args:
         model: the hybrid model; elements are grouped by their ``block``.
         out_dir: output folder (created).
         name: XML file stem; assets go to ``<name>_assets/``.
+        sensor: sensor and integrator to include (None: shapes only).
     """
     out_dir = Path(out_dir)
     assets = f"{name}_assets"
@@ -49,7 +107,8 @@ def write_scene(model: HybridModel, out_dir, name: str = "scene") -> Path:
             shapes.append(ShapeEntry(id=f"ellipsoids_b{b}", kind="ellipsoids", filename=fname, extent=model.extent))
     comment = (f"mi-lidar hybrid geometric scene: {len(g)} triangles, {len(e)} ellipsoids, "
                f"{len(shapes)} shapes")
-    return write_scene_xml(out_dir / f"{name}.xml", shapes, header_comment=comment)
+    return write_scene_xml(out_dir / f"{name}.xml", shapes, header_comment=comment,
+                           extra_xml=sensor.xml() if sensor is not None else "")
 
 
 def read_mesh_ply(path) -> GroundMesh:

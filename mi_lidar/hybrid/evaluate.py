@@ -30,18 +30,21 @@ def pcd_error(y: np.ndarray, y_hat: np.ndarray, max_points: int = 300_000, seed:
 
 
 def observation_metrics(real: np.ndarray, sim: np.ndarray, origins: np.ndarray, directions: np.ndarray,
-                        packet: int = 32) -> dict:
+                        packet: int = 32, mask: np.ndarray | None = None) -> dict:
     """Table 4.3 metrics of simulated ranges against real ones on the same rays.
 
     Args:
         real, sim: (S, H, W) ranges, m (NaN = miss).
         origins, directions: (S*H*W, 3) world rays (for the point clouds).
         packet: firings per packet.
+        mask: optional (S, H, W) bool; only these rays are scored.
 
     Returns:
         ``packet_error`` (m), ``precision``, ``recall``, ``f1``, ``pcd_error`` (m) and counts.
     """
     s, h, w = real.shape
+    if mask is not None:
+        real, sim = np.where(mask, real, np.nan), np.where(mask, sim, np.nan)
     rh, sh = np.isfinite(real), np.isfinite(sim)
     true_hit = rh & sh
     n_true, n_false_hit, n_false_miss = int(true_hit.sum()), int((sh & ~rh).sum()), int((rh & ~sh).sum())

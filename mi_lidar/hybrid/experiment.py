@@ -7,7 +7,13 @@ log's ground points, objects are training-scene primitives; the baseline uses op
 meshes for the same annotation and ground. Also reported: ground segmentation accuracy (threshold
 tuned on the training log) and automatic segmentation + size-classifier accuracy on the tests.
 
-Run ``python -m mi_lidar.hybrid.experiment OUT_DIR``.
+Every simulation is :func:`mi_lidar.simulate` on the written scene's elements (the product's
+own core, via :func:`.simulation.simulate_log`). Besides all rays, the metrics are also reported
+on the *object rays* (the real or the simulated return is on an object class) and on the other
+rays (ground, grass, misses). With ``tune_scans > 0`` the parameters are first tuned
+(:mod:`.tune`) on the first ``tune_scans`` scans of the training log.
+
+Run ``python -m mi_lidar.hybrid.experiment OUT_DIR [TUNE_SCANS [MAX_EVALS]]``.
 """
 
 from __future__ import annotations
@@ -20,14 +26,15 @@ from pathlib import Path
 import numpy as np
 
 from .baselines import NeighborSimulator, mesh_primitive_scene
-from .blocks import write_scene
+from .blocks import SceneSensor, write_scene
 from .classes import GROUND_CLASSES, OBJECT_CLASSES
 from .compose import annotation_from_segments, compose_scene, save_annotation
 from .evaluate import observation_metrics
 from .fit import FitParams, fit_model, select_scans, world_rays
 from .ground import ground_features, tune_threshold
 from .primitives import PrimitiveLibrary, extract_primitives
-from .raycast import ModelTracer, simulate_rays
+from .simulation import simulate_log
+from .tune import tune_parameters
 from .segments import SizeClassifier, euclidean_segments, majority_label, segment_features, segments_from_labels
 from .world import SensorSpec, WorldSpec, make_world, path_poses, render_log
 
@@ -43,18 +50,30 @@ def make_log(name: str, spacing: float = 1.5, sensor: SensorSpec | None = None):
     return world, render_log(world, path_poses(world, spacing, sensor), sensor, seed=seed)
 
 
-def _simulate(model, log, seed, max_range):
+def score(model, log, seed: int) -> dict:
+    """Table 4.3 metrics of ``model`` simulated at the rays of ``log``: all, object and other rays."""
     o, d = world_rays(log)
-    sim, _ = simulate_rays(ModelTracer(model), o, d, np.random.default_rng(seed), max_range=max_range)
+    sim, sim_label = simulate_log(model, log, seed)
     real = np.where(log.hit, log.ranges, np.nan)
-    return observation_metrics(real, sim.reshape(real.shape), o, d)
+    on_object = np.isin(log.attributes["label"], OBJECT_CLASSES) | np.isin(sim_label, OBJECT_CLASSES)
+    return {"all": observation_metrics(real, sim, o, d), "object_rays": observation_metrics(real, sim, o, d, mask=on_object),
+            "other_rays": observation_metrics(real, sim, o, d, mask=~on_object)}
 
 
-def run(out_dir, params: FitParams | None = None, say=lambda message: None) -> dict:
+def _write(model, out: Path, name: str, log) -> Path:
+    (out / f"{name}_assets").mkdir(parents=True, exist_ok=True)
+    sensor = SceneSensor.from_log(log, out / f"{name}_assets" / "pattern.npy")
+    return write_scene(model, out, name, sensor)
+
+
+def run(out_dir, params: FitParams | None = None, say=lambda message: None, tune_scans: int = 0,
+        max_evals: int = 20) -> dict:
     """Run the whole evaluation, write scenes, library, annotations and ``results.json`` to ``out_dir``.
 
     Args:
         out_dir: output folder. params: fitting parameters. say: callback receiving stage messages.
+        tune_scans: tune the parameters on this many first training scans first (0: no tuning).
+        max_evals: tuning budget (fits).
     """
     out = Path(out_dir)
     params = params or FitParams()
@@ -68,6 +87,16 @@ def run(out_dir, params: FitParams | None = None, say=lambda message: None) -> d
     phi = ground_features(pts, params.ground)
     params.ground.phi_thresh, acc = tune_threshold(phi, truth)
     results["ground_segmentation"] = {"phi_thresh": params.ground.phi_thresh, "train_accuracy": acc}
+    if tune_scans > 0:
+        say("tuning")
+        t0 = time.perf_counter()
+        tuned = tune_parameters(select_scans(train_log, slice(0, tune_scans)), params, max_evals)
+        params = tuned.params
+        results["timings"]["tuning"] = time.perf_counter() - t0
+        results["tuning"] = {"initial": tuned.initial, "best": tuned.best, "evaluations": len(tuned.history),
+                             "phi_thresh": params.ground.phi_thresh,
+                             "clusters_per_point": params.clusters.clusters_per_point, "extent": params.extent,
+                             "max_edge": params.surface.max_edge, "max_residual": params.max_residual}
     say("training scene")
     even, odd = select_scans(train_log, slice(0, None, 2)), select_scans(train_log, slice(1, None, 2))
     t0 = time.perf_counter()
@@ -76,12 +105,14 @@ def run(out_dir, params: FitParams | None = None, say=lambda message: None) -> d
     results["fit_timings"] = fit.timings
     results["train_model"] = {"triangles": len(fit.model.ground), "ellipsoids": len(fit.model.ellipsoids),
                               **fit.model.info}
-    write_scene(fit.model, out / "train_scene", "train")
-    results["train"] = {"ours": _simulate(fit.model, odd, 1, params.max_range)}
+    _write(fit.model, out / "train_scene", "train", odd)
+    t0 = time.perf_counter()
+    results["train"] = {"ours": score(fit.model, odd, 1)}
+    results["timings"]["simulate_train"] = time.perf_counter() - t0
     o, d = world_rays(odd)
     nb = NeighborSimulator(even.points_world()[even.hit], d_perp=0.3).simulate(o, d, max_range=params.max_range)
     real = np.where(odd.hit, odd.ranges, np.nan)
-    results["train"]["neighbor"] = observation_metrics(real, nb.reshape(real.shape), o, d)
+    results["train"]["neighbor"] = {"all": observation_metrics(real, nb.reshape(real.shape), o, d)}
     say("primitives")
     full = fit_model(train_log, params)
     labels = train_log.attributes["label"].ravel()[full.ray_index]
@@ -106,7 +137,7 @@ def run(out_dir, params: FitParams | None = None, say=lambda message: None) -> d
         objects = annotation_from_segments(ground_fit.points, segs, log.poses)
         save_annotation(out / f"{name}_annotation.json", objects, ground_fit.model.ground)
         ours = compose_scene(objects, library, ground_fit.model.ground, params.extent)
-        write_scene(ours, out / f"{name}_scene", name)
+        _write(ours, out / f"{name}_scene", name, log)
         base = mesh_primitive_scene(objects, ground_fit.model.ground, sigma=0.05)
         auto = euclidean_segments(ground_fit.points[~ground_fit.is_ground])
         ng_labels = labels[~ground_fit.is_ground]
@@ -114,8 +145,8 @@ def run(out_dir, params: FitParams | None = None, say=lambda message: None) -> d
                    majority_label(s, ng_labels)) for s in auto]
         scored = [(p, t) for p, t in scored if t in OBJECT_CLASSES]
         results[name] = {
-            "ours": _simulate(ours, log, 2, params.max_range),
-            "mesh_primitives": _simulate(base, log, 3, params.max_range),
+            "ours": score(ours, log, 2),
+            "mesh_primitives": score(base, log, 3),
             "ground_segmentation_accuracy": float(np.mean(ground_fit.is_ground == truth)),
             "objects": len(objects),
             "auto_segments": len(scored),
@@ -126,5 +157,7 @@ def run(out_dir, params: FitParams | None = None, say=lambda message: None) -> d
 
 
 if __name__ == "__main__":
-    print(json.dumps(run(sys.argv[1] if len(sys.argv) > 1 else "hybrid_experiment",
-                        say=lambda m: print(m, file=sys.stderr, flush=True)), indent=1, default=float))
+    args = sys.argv[1:]
+    print(json.dumps(run(args[0] if args else "hybrid_experiment", say=lambda m: print(m, file=sys.stderr, flush=True),
+                         tune_scans=int(args[1]) if len(args) > 1 else 0, max_evals=int(args[2]) if len(args) > 2 else 20),
+                     indent=1, default=float))

@@ -19,7 +19,8 @@ from ..log import Log
 from .ellipsoids import ClusterParams, fit_ellipsoids
 from .ground import GroundParams, SurfaceParams, fit_ground_mesh, ground_features
 from .model import EllipsoidSet, GroundMesh, HybridModel
-from .raycast import ModelTracer, count_hits
+from .counting import count_hits
+from .simulation import load_model
 
 
 @dataclass
@@ -31,6 +32,8 @@ class FitParams:
         extent: maximum Mahalanobis distance for a hit, sigmas (the ellipsoid extent).
         tri_prior, ell_prior: (hit count prior, miss count prior) pseudo-counts.
         max_residual: ground residual still counted as a hit, m.
+        pass_sigmas: a triangle is passed only by returns beyond it by more than this many
+            standard deviations of the ground's normal residual (see :mod:`.counting`).
         block_size: block side, m. margin: extra points around a block for the ground fit, m.
         max_range: sensor range used for misses, m. max_elements: elements traced per ray.
     """
@@ -42,6 +45,7 @@ class FitParams:
     tri_prior: tuple[float, float] = (1.0, 2.0)
     ell_prior: tuple[float, float] = (0.0, 1.0)
     max_residual: float = 0.75
+    pass_sigmas: float = 3.0
     block_size: float = 50.0
     margin: float = 5.0
     max_range: float = 80.0
@@ -97,41 +101,32 @@ def majority(values: np.ndarray, groups: np.ndarray, n: int) -> np.ndarray:
     return table.argmax(axis=1).astype(np.int32)
 
 
-def assign_hit_probabilities(model: HybridModel, log: Log, owner_of_ray: np.ndarray, params: FitParams,
-                             chunk: int = 400_000) -> dict:
+def assign_hit_probabilities(model: HybridModel, log: Log, owner_of_ray: np.ndarray, params: FitParams) -> dict:
     """Set ``p_hit`` of every element and the ground ``range_sigma`` from the log's rays (in place).
 
     Args:
         model: model to update.
         log: the log the model was fitted to.
         owner_of_ray: (S*H*W,) ellipsoid owning each ray's return (-1 = none).
-        params: priors, residual and range limits.
+        params: priors, residual tests and range limits.
 
     Returns:
-        Summary counts (hits and pass-throughs per kind, ground sigma in m).
+        Summary counts (hits and pass-throughs per kind, grazing crossings, ground sigma along
+        the ray and along the normal, m).
     """
-    tracer = ModelTracer(model)
     origins, directions = world_rays(log)
     measured = np.where(log.hit, log.ranges, np.nan).ravel()
     nf, ne = len(model.ground), len(model.ellipsoids)
-    th, tp, eh, ep = np.zeros(nf), np.zeros(nf), np.zeros(ne), np.zeros(ne)
-    residuals = []
-    for start in range(0, len(origins), chunk):
-        sl = slice(start, start + chunk)
-        c = count_hits(tracer, origins[sl], directions[sl], measured[sl], owner_of_ray[sl], params.max_residual,
-                       params.max_range, params.max_elements)
-        th += c.tri_hits
-        tp += c.tri_pass
-        eh += c.ell_hits
-        ep += c.ell_pass
-        residuals.append(c.residuals)
-    residuals = np.concatenate(residuals)
-    sigma = float(np.sqrt(np.mean(residuals**2))) if len(residuals) else 0.05
-    model.ground.p_hit = hit_probability(th, tp, params.tri_prior)
+    c = count_hits(load_model(model), origins, directions, measured, owner_of_ray, nf, ne, params.max_residual,
+                   params.pass_sigmas, params.max_range, params.max_elements)
+    sigma = float(np.sqrt(np.mean(c.residuals**2))) if len(c.residuals) else 0.05
+    model.ground.p_hit = hit_probability(c.tri_hits, c.tri_pass, params.tri_prior)
     model.ground.range_sigma = np.full(nf, sigma)
-    model.ellipsoids.p_hit = hit_probability(eh, ep, params.ell_prior)
-    return {"triangle_hits": float(th.sum()), "triangle_passes": float(tp.sum()), "ellipsoid_hits": float(eh.sum()),
-            "ellipsoid_passes": float(ep.sum()), "ground_sigma": sigma}
+    model.ellipsoids.p_hit = hit_probability(c.ell_hits, c.ell_pass, params.ell_prior)
+    return {"triangle_hits": float(c.tri_hits.sum()), "triangle_passes": float(c.tri_pass.sum()),
+            "grazing_crossings": c.grazing, "ellipsoid_hits": float(c.ell_hits.sum()),
+            "ellipsoid_passes": float(c.ell_pass.sum()), "ground_sigma": sigma, "ground_sigma_normal": c.sigma_normal,
+            "mean_triangle_p_hit": float(model.ground.p_hit.mean()) if nf else float("nan")}
 
 
 def select_scans(log: Log, scans) -> Log:

@@ -1,7 +1,7 @@
 """Derivative-free tuning of the non-differentiable fitting parameters (thesis 4.4.1).
 
-Tuned: ``phi_thresh``, log10 clusters per point, ellipsoid extent (sigmas) and maximum triangle
-side (m). Objective: mean packet error + 2 (1 - F1) of the model fitted to the even scans of a
+Tuned (the parameters table 4.1 selects by optimization): ``phi_thresh``, log10 clusters per
+point, ellipsoid extent (sigmas), maximum triangle side (m) and maximum residual for hit (m). Objective: mean packet error + 2 (1 - F1) of the model fitted to the even scans of a
 short slice and simulated at its odd scans. Optimizer: scipy Nelder-Mead with a budget of
 ``max_evals`` fits.
 """
@@ -17,7 +17,7 @@ from scipy.optimize import minimize
 from ..log import Log
 from .evaluate import objective, observation_metrics
 from .fit import FitParams, fit_model, select_scans, world_rays
-from .raycast import ModelTracer, simulate_rays
+from .simulation import simulate_log
 
 
 @dataclass
@@ -31,12 +31,13 @@ class TuneResult:
 
 
 def apply_vector(base: FitParams, x: np.ndarray) -> FitParams:
-    """Copy of ``base`` with (phi_thresh, log10 clusters_per_point, extent, max_edge) = ``x``."""
+    """Copy of ``base`` with (phi_thresh, log10 clusters_per_point, extent, max_edge, max_residual) = ``x``."""
     p = copy.deepcopy(base)
     p.ground.phi_thresh = float(np.clip(x[0], 0.005, 0.3))
     p.clusters.clusters_per_point = float(10 ** np.clip(x[1], -3, -0.5))
     p.extent = float(np.clip(x[2], 1.0, 6.0))
     p.surface.max_edge = float(np.clip(x[3], 0.5, 20.0))
+    p.max_residual = float(np.clip(x[4], 0.05, 3.0))
     return p
 
 
@@ -45,15 +46,16 @@ def split_objective(log: Log, params: FitParams, seed: int = 0) -> float:
     train, test = select_scans(log, slice(0, None, 2)), select_scans(log, slice(1, None, 2))
     model = fit_model(train, params).model
     o, d = world_rays(test)
-    sim, _ = simulate_rays(ModelTracer(model), o, d, np.random.default_rng(seed), max_range=params.max_range)
+    sim, _ = simulate_log(model, test, seed)
     real = np.where(test.hit, test.ranges, np.nan)
-    return objective(observation_metrics(real, sim.reshape(real.shape), o, d))
+    return objective(observation_metrics(real, sim, o, d))
 
 
 def tune_parameters(log: Log, base: FitParams | None = None, max_evals: int = 20, seed: int = 0) -> TuneResult:
     """Tune ``base`` on ``log`` (a short slice) with Nelder-Mead; see the module docstring."""
     base = base or FitParams()
-    x0 = np.array([base.ground.phi_thresh, np.log10(base.clusters.clusters_per_point), base.extent, base.surface.max_edge])
+    x0 = np.array([base.ground.phi_thresh, np.log10(base.clusters.clusters_per_point), base.extent, base.surface.max_edge,
+                   base.max_residual])
     history = []
 
     def f(x):
@@ -61,6 +63,6 @@ def tune_parameters(log: Log, base: FitParams | None = None, max_evals: int = 20
         history.append((x.tolist(), value))
         return value
 
-    simplex = np.array([x0, x0 + [0.03, 0, 0, 0], x0 + [0, 0.3, 0, 0], x0 + [0, 0, 1.0, 0], x0 + [0, 0, 0, 2.0]])
+    simplex = x0 + np.vstack([np.zeros(5), np.diag([0.03, 0.3, 1.0, 2.0, 0.5])])
     res = minimize(f, x0, method="Nelder-Mead", options={"maxfev": max_evals, "initial_simplex": simplex})
     return TuneResult(apply_vector(base, res.x), history[0][1], float(res.fun), history)

@@ -119,6 +119,6 @@ def test_commands_end_to_end(small_log, tmp_path):
 
 
 def test_tuning_vector_is_clipped_into_valid_ranges():
-    p = apply_vector(FitParams(), np.array([-1.0, 5.0, 100.0, -3.0]))
+    p = apply_vector(FitParams(), np.array([-1.0, 5.0, 100.0, -3.0, 9.0]))
     assert p.ground.phi_thresh == 0.005 and p.clusters.clusters_per_point == 10 ** -0.5
-    assert p.extent == 6.0 and p.surface.max_edge == 0.5
+    assert p.extent == 6.0 and p.surface.max_edge == 0.5 and p.max_residual == 3.0
