@@ -26,6 +26,7 @@ from .segment import Segment, log_density, sample_range
 
 RESTART_OFFSET = 1e-4  # m: a ray continues this far past the element it passed through
 NO_ELEMENT = 0xFFFFFFFF
+VIRTUAL_SEGMENT = 1000  # random-stream segment index of the first virtual element
 CHANNELS = ("range", "hit", "element_id", "shape_id", "label", "cos_incidence", "nominal_range", "segments")
 
 
@@ -77,6 +78,32 @@ class SensorModel:
             seg = effect.modify_segment(seg, rays)
         return seg
 
+    def virtual_segments(self, rays: RayBatch) -> list[Segment]:
+        """Segments met before the scene's elements, from effects with a ``virtual_segments`` hook.
+
+        An effect may define ``virtual_segments(rays) -> list[Segment]``: elements that are not
+        in the scene (outlier returns, clutter, dust) met first along every ray, with their own
+        hit probability and truncated-Gaussian range. Other effects do not edit them.
+        """
+        segments = []
+        for effect in self.effects:
+            hook = getattr(effect, "virtual_segments", None)
+            if hook is not None:
+                segments.extend(hook(rays))
+        return segments
+
+    def likelihood_segment(self, seg: Segment, rays: RayBatch) -> Segment:
+        """Apply the effects' ``likelihood_segment(seg, rays)`` hooks (likelihood path only).
+
+        An effect whose sampler acts in :meth:`Effect.finalize_range` (quantization) uses this
+        hook to give the likelihood the matching continuous approximation.
+        """
+        for effect in self.effects:
+            hook = getattr(effect, "likelihood_segment", None)
+            if hook is not None:
+                seg = hook(seg, rays)
+        return seg
+
     def _intersect(self, scene, table: ElementTable, rays: RayBatch, start: mi.Point3f):
         """One round: the next element along each ray, as a Segment (before effects)."""
         ray = mi.Ray3f(start, rays.direction)
@@ -112,6 +139,20 @@ class SensorModel:
         }
         rays = self.prepare_rays(rays)
         index = dr.arange(mi.UInt32, n)  # ray index (into `out`) of each live lane
+        # ---------------- Virtual elements (outliers, clutter) before the scene ----------
+        for v in range(len(self.virtual_segments(rays))):
+            seg = self.virtual_segments(rays)[v]  # rebuilt on the compacted lanes
+            returned = seg.valid & (uniform(seed, rays.ray_id, VIRTUAL_SEGMENT + v, 0) < seg.p)
+            z = sample_range(seg, uniform(seed, rays.ray_id, VIRTUAL_SEGMENT + v, 1))
+            for effect in self.effects:
+                z = effect.finalize_range(z, rays)
+            reported = returned & (z >= self.min_range)
+            dr.scatter(out["range"], z, index, reported)
+            dr.scatter(out["hit"], mi.Bool(True), index, reported)
+            dr.eval(out)
+            live = dr.compress(~returned)
+            index = dr.gather(mi.UInt32, index, live)
+            rays = rays.take(live)
         start = mi.Point3f(rays.origin)
         for k in range(self.max_segments):
             # ---------------- Trace the next element of every live ray ----------------
@@ -189,18 +230,20 @@ class SensorModel:
         log_pass = dr.zeros(mi.Float, dr.width(measured))
         log_mix = dr.full(mi.Float, -dr.inf, dr.width(measured))
         z = dr.select(hit, measured, 0.0)
-        for record in records:
-            si = record["si"]
-            seg = scene_table.segment(si, record["valid"], record["element"], rays.origin, rays.direction,
-                                      self.range_sigma)
-            seg = self.apply_effects(seg, rays)
+        segments = [(seg, None) for seg in self.virtual_segments(rays)] + [(None, record) for record in records]
+        for seg, record in segments:
+            if record is not None:
+                seg = scene_table.segment(record["si"], record["valid"], record["element"], rays.origin,
+                                          rays.direction, self.range_sigma)
+                seg = self.apply_effects(seg, rays)
+            seg = self.likelihood_segment(seg, rays)
             p = dr.clip(seg.p, 1e-12, 1.0)
             term = log_pass + dr.log(p) + log_density(seg, z)
-            term = dr.select(record["valid"], term, -dr.inf)
+            term = dr.select(seg.valid, term, -dr.inf)
             high = dr.maximum(log_mix, term)
             safe = dr.select(dr.isinf(high), 0.0, high)
             log_mix = dr.select(dr.isinf(high), high, safe + dr.log(dr.exp(log_mix - safe) + dr.exp(term - safe)))
-            log_pass = log_pass + dr.select(record["valid"], dr.log(dr.maximum(1.0 - seg.p, 1e-12)), 0.0)
+            log_pass = log_pass + dr.select(seg.valid, dr.log(dr.maximum(1.0 - seg.p, 1e-12)), 0.0)
         if resolution > 0:
             log_mix = log_mix + dr.log(resolution)
         return dr.select(hit, log_mix, log_pass)
