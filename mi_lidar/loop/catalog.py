@@ -1,0 +1,42 @@
+"""Candidate effects for diagnosis: every registered effect, started where fitting can move it.
+
+An effect class may declare, besides its :class:`~mi_lidar.effects.ParamSpec` defaults:
+
+* ``fit_start``: starting values for fitting (``{name: value}``), used where the default sits on a
+  boundary with no gradient (a dropout probability of exactly 0, say);
+* ``fit_scales``: the typical size of each parameter (the fitter's step unit);
+* ``fit_exclude``: parameters that stay fixed (a sweep period, say);
+* ``per_label``: parameters holding one value per class label.
+"""
+
+from __future__ import annotations
+
+from ..effects.base import EFFECTS, Effect
+from .fit import widen
+
+# Effects that describe the scene or sensor setup rather than a measurable deviation: not offered
+# as diagnosis candidates unless asked for by name.
+NOT_CANDIDATES = ("extrinsics",)
+
+
+def candidate(name: str, n_beams: int, n_labels: int, **values) -> Effect:
+    """Instantiate effect ``name`` at its fitting start, widened to the log's beams and labels.
+
+    Args:
+        name: catalog name.
+        n_beams: beams (rows) of the log.
+        n_labels: class labels of the scene.
+        **values: overrides of the starting values.
+    """
+    cls = EFFECTS[name]
+    start = {**getattr(cls, "fit_start", {}), **values}
+    options = {k: v for k, v in start.items() if k in cls.options}
+    params = {k: v for k, v in start.items() if k in cls.specs}
+    return widen(cls(**options, **params), n_beams, n_labels)
+
+
+def candidate_names(present: list[Effect], include: list[str] | None = None) -> list[str]:
+    """Registered effects not yet in the model (``include`` restricts and orders them)."""
+    have = {e.name for e in present}
+    names = include if include is not None else [n for n in sorted(EFFECTS) if n not in NOT_CANDIDATES]
+    return [n for n in names if n not in have]
