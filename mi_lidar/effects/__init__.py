@@ -17,9 +17,3 @@ from .label_dropout import LabelDropout
 from .quantization import Quantization
 from .outliers import Outliers
 from .motion_distortion import MotionDistortion
-from .incidence_dropout import IncidenceDropout
-from .range_dropout import RangeDropout
-from .label_dropout import LabelDropout
-from .quantization import Quantization
-from .outliers import Outliers
-from .motion_distortion import MotionDistortion
