@@ -49,7 +49,8 @@ class FitOptions:
         lr_scale: factor applied to every learning rate.
         counting_start: start hit probabilities from the counting estimate.
         gate: a return within ``gate`` range sigmas of a surface element counts as its hit.
-        floor: robustness floor of the likelihood (see the module docstring).
+        floor: robustness floor of the likelihood (see the module docstring); 0 gives the pure
+            likelihood, which is infinite as soon as one return has no element near it.
     """
 
     steps: int = 200
@@ -181,6 +182,8 @@ class Calibration:
         """Per-ray robust log-likelihood (nats) under natural parameter ``values`` (keeps gradients)."""
         table, model = self.space.build(values, self.model)
         ll = model.log_likelihood(table, rays, records, z, hit)
+        if self.options.floor <= 0:
+            return ll
         floor = dr.select(hit, math.log(self.options.floor / model.max_range), math.log(self.options.floor))
         return logaddexp(ll, floor)
 

@@ -1,0 +1,105 @@
+"""The calibrate command end to end, and its bad-input errors."""
+
+import json
+
+import mitsuba as mi
+import numpy as np
+import pytest
+import typer
+from typer.testing import CliRunner
+
+import mi_lidar
+from mi_lidar.calibration import save_scene, scene_dict
+from mi_lidar.calibration.commands import calibrate, calibrate_command
+from mi_lidar.calibration.fit import Calibration, FitOptions
+from mi_lidar.elements import ElementTable
+from mi_lidar.errors import CalibrationError
+
+from .scenes import SENSOR_HEIGHT, bowl, bowl_height, pattern, sensor_pose, shrubs
+
+P_SHRUBS = [0.3, 0.6, 0.45, 0.7]
+BIAS = 0.02  # m, on every beam
+
+
+def sensor_xml(effects: str = "") -> str:
+    z = bowl_height(0.0, 0.0) + SENSOR_HEIGHT
+    effects_xml = f'<string name="effects" value="{effects}"/>' if effects else ""
+    return (f'    <sensor type="lidar" id="lidar"><string name="pattern" value="vlp16"/>'
+            f'<integer name="firings" value="400"/><float name="range_sigma" value="0.02"/>'
+            f'<transform name="to_world"><translate z="{z}"/></transform></sensor>\n'
+            f'    <integrator type="lidar_integrator">{effects_xml}</integrator>')
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("calibrate")
+    truth = save_scene(tmp / "truth.xml", {"terrain": bowl(n=9), "shrubs": shrubs(P_SHRUBS)},
+                       extra_xml=sensor_xml(f"range_bias(bias={BIAS})"))
+    start = save_scene(tmp / "start.xml", {"terrain": bowl(n=9), "shrubs": shrubs([0.5] * 4)}, extra_xml=sensor_xml())
+    pose = mi_lidar.scene.scene_lidar_sensor(mi_lidar.load_scene(truth)).to_world_matrix
+    poses = np.stack([pose] * 6)
+    poses[:, 0, 3] = np.linspace(-0.5, 0.5, 6)
+    log = mi_lidar.simulate(mi_lidar.load_scene(truth), poses=poses, seed=2)
+    return tmp, log.save(tmp / "log.npz"), start
+
+
+def test_calibrate_recovers_truth_and_writes_report(files):
+    tmp, log, start = files
+    out = tmp / "out"
+    result, written = calibrate_command(log, start, ["elements.shrubs.p_hit", "sensor.range_bias"], out, steps=80,
+                                        batch_size=1 << 14, eval_every=5)
+    assert np.abs(result.fitted["sensor.range_bias"] - BIAS).max() < 0.005
+    assert np.abs(result.fitted["elements.shrubs.p_hit"] - P_SHRUBS).max() < 0.05
+    held = [h for _, _, h in result.history if np.isfinite(h)]
+    assert held[-1] < held[0] and result.fitted_nll < result.initial_nll
+    report = json.loads((out / "report.json").read_text())
+    assert report["held_out_nll"]["fitted"] == pytest.approx(result.fitted_nll)
+    assert {p.name for p in written.values()} >= {"scene.xml", "loss.png", "changes.csv", "history.csv"}
+    # The calibrated scene reloads with the fitted values, sensor and effect.
+    scene = mi_lidar.load_scene(out / "scene.xml")
+    table = ElementTable.from_scene(scene)
+    k = table.shape_ids.index("shrubs")
+    first = sum(table.element_counts[:k])
+    np.testing.assert_allclose(np.asarray(table.p_hit)[first:first + 4], result.fitted["elements.shrubs.p_hit"], atol=1e-6)
+    params = mi.traverse(scene.integrator())
+    np.testing.assert_allclose(np.asarray(params["effects.range_bias.bias"]), result.fitted["sensor.range_bias"], atol=1e-6)
+
+
+def test_cli_prints_table(files):
+    tmp, log, start = files
+    app = typer.Typer()
+    app.command()(calibrate)
+    run = CliRunner().invoke(app, [str(log), str(start), "--params", "sensor.range_bias", "--out", str(tmp / "cli"),
+                                   "--steps", "5", "--batch-size", "4096"])
+    assert run.exit_code == 0, run.output
+    assert "held-out NLL" in run.output and (tmp / "cli" / "scene.xml").is_file()
+    bad = CliRunner().invoke(app, [str(log), str(start), "--params", "elements.*.nothing", "--out", str(tmp / "bad")])
+    assert bad.exit_code == 2 and "matches no parameter" in bad.output
+
+
+def test_glob_matching_nothing_lists_names(files):
+    _, log, start = files
+    with pytest.raises(CalibrationError, match="matches no parameter; available: elements.terrain.p_hit"):
+        Calibration(mi_lidar.load_scene(start), mi_lidar.Log.load(log), ["sensor.focal_length"])
+
+
+def test_log_from_another_sensor_is_rejected(files):
+    tmp, log, start = files
+    text = start.read_text().replace('value="vlp16"', 'value="hdl32e"')
+    other = tmp / "other.xml"
+    other.write_text(text)
+    with pytest.raises(CalibrationError, match="does not match the scene's `lidar` sensor"):
+        Calibration(mi_lidar.load_scene(other), mi_lidar.Log.load(log), ["elements.*.p_hit"])
+
+
+def test_non_finite_loss_names_the_fix():
+    # Without the robustness floor a return that no element explains has zero likelihood: here the
+    # log's shrubs stand 5 m from the sensor and the model's 7 m, so the loss is infinite.
+    log = mi_lidar.simulate(mi_lidar.load_scene(scene_dict({"shrubs": shrubs(P_SHRUBS)})), pattern(100),
+                            poses=sensor_pose(), seed=1)
+    model_scene = mi_lidar.load_scene(scene_dict({"shrubs": shrubs(P_SHRUBS, radius=7.0)}))
+    cal = Calibration(model_scene, log, ["sensor.range_bias"], options=FitOptions(steps=2, floor=0.0, counting_start=False))
+    with pytest.raises(CalibrationError, match="keep the robustness floor > 0"):
+        cal.fit()
+    robust = Calibration(model_scene, log, ["sensor.range_bias"], options=FitOptions(steps=2, counting_start=False))
+    assert np.isfinite(robust.fit().fitted_nll)
