@@ -32,6 +32,9 @@ test-all: setup
 
 bench: setup
 	$(PY) -m pip install --quiet -e ".[bench]"
+	@$(PY) -c "import open3d" 2>/dev/null || { echo "Open3D needs libusb-1.0: installing Debian's libusb-1.0-0"; \
+		$$( [ "$$(id -u)" -ne 0 ] && echo sudo ) apt-get install -y -qq libusb-1.0-0 >/dev/null || \
+		{ echo "could not install libusb-1.0-0; run: apt-get install -y libusb-1.0-0"; exit 1; }; }
 	$(PY) -m bench
 
 clean:

@@ -33,7 +33,8 @@ CHANNELS = ("range", "hit", "element_id", "shape_id", "label", "cos_incidence", 
 def uniform(seed: int, ray_id: mi.UInt32, segment: int, stream: int) -> mi.Float:
     """Counter-based uniform numbers in [0, 1): one per lane, keyed by (seed, ray, segment, stream)."""
     key = (int(seed) * 0x9E3779B1 + segment * 0x85EBCA77 + stream * 0xC2B2AE3D) & 0xFFFFFFFF
-    return mi.sample_tea_float32(ray_id, mi.UInt32(key), 8)
+    # An opaque key is a kernel input, not a constant: new seeds and rounds reuse compiled kernels.
+    return mi.sample_tea_float32(ray_id, dr.opaque(mi.UInt32, key), 8)
 
 
 @dataclass
@@ -170,7 +171,7 @@ class SensorModel:
             for name, value in (("element_id", seg.element), ("shape_id", seg.shape), ("label", seg.label),
                                 ("cos_incidence", seg.cos_incidence), ("nominal_range", seg.nominal)):
                 dr.scatter(out[name], value, index, returned)
-            dr.scatter(out["segments"], mi.UInt32(k + 1), index, seg.valid)
+            dr.scatter(out["segments"], dr.opaque(mi.UInt32, k + 1), index, seg.valid)
 
             # ---------------- Keep the rays that passed through ------------------------
             passed = seg.valid & ~returned
