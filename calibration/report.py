@@ -95,7 +95,7 @@ def loss_png(path, result: FitResult, title: str = "calibration") -> Path:
     ax.set_xlabel("Adam step")
     ax.set_ylabel("negative log-likelihood (nats / ray)")
     ax.set_title(title)
-    values = np.r_[held[:, 2], result.counting_nll, result.initial_nll]
+    values = np.r_[held[:, 2], train[:, 1], result.counting_nll, result.initial_nll]
     lo, hi = values.min(), values.max()
     pad = 0.1 * max(hi - lo, 1e-3)
     ax.set_ylim(lo - pad, hi + pad)
