@@ -2,12 +2,15 @@
 
 Examples::
 
-    fit_scene("train.npz", "out/train_scene")               # -> out/train_scene/scene.xml
+    fit_scene("train.npz", "out/train_scene")               # -> out/train_scene/scene.xml (+ previews)
     primitives_extract("train.npz", "library")              # labelled log -> primitive library
     primitives_list("library")                              # table of primitives
     primitives_show("library", "library.png")               # preview PNG
-    annotate("test.npz", "test_annotation.json")            # labelled log -> annotation + ground
-    compose("test_annotation.json", "library", "out/test.xml")
+    annotate("test.npz", "test_annotation.json")            # labelled log -> annotation + ground + sensor
+    compose("test_annotation.json", "library", "out/test.xml")  # scene + range-image and top-view PNGs
+
+Every written scene holds a ``lidar`` sensor and a ``lidar_integrator``: it loads with
+:func:`mi_lidar.load_scene`, renders with ``mi.render`` and simulates with :func:`mi_lidar.simulate`.
 """
 
 from __future__ import annotations
@@ -15,19 +18,28 @@ from __future__ import annotations
 from contextlib import contextmanager
 from pathlib import Path
 
+import mitsuba as mi
+import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from ..errors import LogFormatError
+from ..io.preview import birds_eye_png, range_image_png
 from ..log import Log
-from .blocks import write_scene
-from .compose import annotation_from_segments, compose_scene, load_annotation, save_annotation
+from ..scene import load_scene
+from ..simulate import simulate
+from .blocks import SceneSensor, write_scene
+from .compose import annotation_from_segments, annotation_sensor, compose_scene, load_annotation, save_annotation
 from .fit import FitParams, FitResult, fit_model
+from .model import HybridModel
 from .primitives import PrimitiveLibrary, extract_primitives
 from .segments import segments_from_labels
 
 console = Console(stderr=True)
+
+DEFAULT_PATTERN = "hdl32e"  # composed scenes without a sensor in their annotation
+MOUNT_HEIGHT = 1.8  # m, sensor height above the ground for such scenes
 
 
 @contextmanager
@@ -51,18 +63,55 @@ def _require_labels(log: Log, path) -> None:
                              "labelled log (e.g. a synthetic log from mi_lidar.hybrid.world.render_log)")
 
 
-def fit_scene(log_path, out_dir, params: FitParams | None = None, name: str = "scene") -> Path:
-    """Fit a hybrid model to the log at ``log_path`` and write ``<out_dir>/<name>.xml``; return its path."""
+def render_previews(xml, poses: np.ndarray | None = None, seed: int = 0, max_scans: int = 20) -> tuple[Path, Path]:
+    """Render a written scene with the core and save ``<stem>_range.png`` and ``<stem>_top.png``.
+
+    The range image is ``mi.render`` at the scene's sensor pose; the top view shows the points of
+    :func:`mi_lidar.simulate` at up to ``max_scans`` of ``poses`` (default: the sensor pose),
+    coloured by height.
+
+    Args:
+        xml: scene XML with a ``lidar`` sensor. poses: (S, 4, 4) sensor poses. seed: random seed.
+        max_scans: most poses simulated for the top view (evenly picked).
+
+    Returns:
+        The two PNG paths.
+    """
+    xml = Path(xml)
+    scene = load_scene(xml)
+    image = np.array(mi.render(scene, seed=seed))
+    ranges = np.where(image[..., 1] > 0, image[..., 0], np.nan)
+    range_png = range_image_png(xml.with_name(f"{xml.stem}_range.png"), ranges, title=f"{xml.name}: mi.render")
+    if poses is not None and len(poses) > max_scans:
+        poses = poses[np.linspace(0, len(poses) - 1, max_scans).round().astype(int)]
+    with progress_bar(f"preview {xml.name}") as report:
+        log = simulate(scene, poses=poses, seed=seed, progress=lambda done, total: report("simulate", done / total))
+    points = log.points_world()[log.hit]
+    top_png = birds_eye_png(xml.with_name(f"{xml.stem}_top.png"), points,
+                            title=f"{xml.name}: mi_lidar.simulate, {log.n_scans} scans")
+    return range_png, top_png
+
+
+def fit_scene(log_path, out_dir, params: FitParams | None = None, name: str = "scene", preview: bool = True) -> Path:
+    """Fit a hybrid model to the log at ``log_path`` and write ``<out_dir>/<name>.xml``; return its path.
+
+    The scene's sensor fires the log's scan-0 pattern (``<name>_assets/pattern.npy``) from its
+    first pose. With ``preview``, ``<name>_range.png`` and ``<name>_top.png`` are rendered.
+    """
     log = Log.load(log_path)
     result = _fit(log, params, "fit")
-    xml = write_scene(result.model, out_dir, name)
+    assets = Path(out_dir) / f"{name}_assets"
+    assets.mkdir(parents=True, exist_ok=True)
+    xml = write_scene(result.model, out_dir, name, SceneSensor.from_log(log, assets / "pattern.npy"))
     table = Table(title=f"hybrid scene {xml}")
-    for col in ("points", "ground points", "triangles", "ellipsoids", "blocks", "seconds"):
+    for col in ("points", "ground points", "triangles", "ellipsoids", "blocks", "mean triangle p_hit", "seconds"):
         table.add_column(col, justify="right")
     table.add_row(str(len(result.points)), str(int(result.is_ground.sum())), str(len(result.model.ground)),
                   str(len(result.model.ellipsoids)), str(result.model.info["n_blocks"]),
-                  f"{sum(result.timings.values()):.1f}")
+                  f"{result.model.info['mean_triangle_p_hit']:.2f}", f"{sum(result.timings.values()):.1f}")
     console.print(table)
+    if preview:
+        render_previews(xml, log.poses)
     return xml
 
 
@@ -99,19 +148,44 @@ def primitives_show(library_dir, out_png, ids: list[str] | None = None, per_clas
 
 
 def annotate(log_path, out_json, params: FitParams | None = None) -> Path:
-    """Annotation (objects from the log's labels, ground mesh fitted to its ground points) of a log."""
+    """Annotation of a labelled log: objects from its labels, ground mesh fitted to its ground
+    points, and its sensor (pattern, poses, range limits); return the JSON path."""
     log = Log.load(log_path)
     _require_labels(log, log_path)
     result = _fit(log, params, "annotate", ground_only=True)
     labels = log.attributes["label"].ravel()[result.ray_index]
     inst = log.attributes["instance"].ravel()[result.ray_index]
     objects = annotation_from_segments(result.points, segments_from_labels(result.points, labels, inst), log.poses)
-    return save_annotation(out_json, objects, result.model.ground)
+    path = save_annotation(out_json, objects, result.model.ground, log)
+    console.print(f"{len(objects)} objects, {len(result.model.ground)} ground triangles in {path}")
+    return path
 
 
-def compose(annotation, library, out_xml, extent: float = 3.5) -> Path:
-    """Build the scene of ``annotation`` from the primitive library folder ``library``; write ``out_xml``."""
+def _default_sensor(model: HybridModel) -> tuple[SceneSensor, np.ndarray]:
+    """A ``DEFAULT_PATTERN`` sensor MOUNT_HEIGHT above the middle of the scene."""
+    pts = model.ground.vertices if len(model.ground) else model.ellipsoids.means
+    pose = np.eye(4)
+    if len(pts):
+        pose[:3, 3] = np.median(pts, axis=0) + [0.0, 0.0, MOUNT_HEIGHT]
+    return SceneSensor(DEFAULT_PATTERN, pose, 1.0, 80.0), pose[None]
+
+
+def compose(annotation, library, out_xml, extent: float = 3.5, preview: bool = True) -> Path:
+    """Build the scene of ``annotation`` from the primitive library folder ``library``; write ``out_xml``.
+
+    The sensor is the annotation's (its pattern and first pose), else an ``hdl32e`` 1.8 m above
+    the middle of the scene. With ``preview``, ``<stem>_range.png`` and ``<stem>_top.png`` are
+    rendered along the annotation's poses.
+    """
     objects, ground = load_annotation(annotation)
     model = compose_scene(objects, PrimitiveLibrary.load(library), ground, extent)
+    stored = annotation_sensor(annotation)
+    sensor, poses = stored if stored is not None else _default_sensor(model)
     out_xml = Path(out_xml)
-    return write_scene(model, out_xml.parent, out_xml.stem)
+    xml = write_scene(model, out_xml.parent, out_xml.stem, sensor)
+    skipped = len(model.info["skipped"])
+    console.print(f"{len(objects) - skipped} objects placed ({skipped} skipped: class not in the library), "
+                  f"{len(model.ellipsoids)} ellipsoids, {len(model.ground)} ground triangles -> {xml}")
+    if preview:
+        render_previews(xml, poses)
+    return xml

@@ -5,7 +5,10 @@ An annotation is JSON::
     {"format": "mi-lidar-annotation", "version": 1,
      "ground": "ground.ply",                      # optional triangle mesh, relative to the file
      "objects": [{"class": "small_tree", "center": [x, y, z], "yaw": 0.3,
-                  "extents": [lx, ly, lz]}, ...]}  # m, rad; center = object centroid
+                  "extents": [lx, ly, lz]}, ...],  # m, rad; center = object centroid
+     "sensor": {"pattern": "pattern.npy",         # optional: pattern table (relative) or name,
+                "poses": [[16 floats], ...],      # row-major sensor-to-world poses along the path,
+                "min_range": 1.0, "max_range": 80.0}}  # m
 
 A scene is the ground plus, per object, the library primitive of the same class whose box
 extents are closest, rotated by ``yaw`` about z and moved to ``center``.
@@ -19,8 +22,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SceneError
+from ..io.pattern import pattern_from_log
+from ..log import Log
+from ..patterns import to_table
 from ..scene_files import write_mesh_ply
-from .blocks import read_mesh_ply
+from .blocks import SceneSensor, read_mesh_ply
 from .classes import CLASS_NAMES, class_id
 from .model import EllipsoidSet, GroundMesh, HybridModel
 from .primitives import PrimitiveLibrary, object_pose, oriented_box, rotation_z, sensor_velocity_at
@@ -43,8 +49,16 @@ def annotation_from_segments(points: np.ndarray, segments: list[Segment], poses:
     return objects
 
 
-def save_annotation(path, objects: list[dict], ground: GroundMesh | None = None) -> Path:
-    """Write an annotation JSON (and ``<stem>_ground.ply`` if ``ground`` is given); return its path."""
+def save_annotation(path, objects: list[dict], ground: GroundMesh | None = None, log: Log | None = None) -> Path:
+    """Write an annotation JSON; return its path.
+
+    Args:
+        path: output ``.json``.
+        objects: annotation objects.
+        ground: ground mesh, written to ``<stem>_ground.ply`` (None: no ground).
+        log: the log the annotation came from; its scan-0 firing pattern (``<stem>_pattern.npy``),
+            poses and range limits become the annotation's ``sensor`` (None: no sensor).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     doc = {"format": "mi-lidar-annotation", "version": 1, "objects": objects}
@@ -52,6 +66,11 @@ def save_annotation(path, objects: list[dict], ground: GroundMesh | None = None)
         name = f"{path.stem}_ground.ply"
         write_mesh_ply(path.parent / name, ground.vertices, ground.faces, ground.p_hit, ground.range_sigma, ground.label)
         doc["ground"] = name
+    if log is not None:
+        table = to_table(pattern_from_log(log), path.parent / f"{path.stem}_pattern.npy")
+        doc["sensor"] = {"pattern": table.name, "poses": log.poses.reshape(-1, 16).tolist(),
+                         "min_range": float(log.sensor.get("min_range", 0.0)),
+                         "max_range": float(log.sensor.get("max_range", 120.0))}
     path.write_text(json.dumps(doc, indent=1))
     return path
 
@@ -71,6 +90,23 @@ def load_annotation(path) -> tuple[list[dict], GroundMesh | None]:
         class_id(obj["class"])
     ground = read_mesh_ply(path.parent / doc["ground"]) if doc.get("ground") else None
     return doc.get("objects", []), ground
+
+
+def annotation_sensor(path) -> tuple[SceneSensor, np.ndarray] | None:
+    """The sensor stored in an annotation file and its (S, 4, 4) poses, or None if it has none.
+
+    The sensor sits at the first pose; a pattern given as a file is resolved next to the annotation.
+    """
+    path = Path(path)
+    info = json.loads(path.read_text()).get("sensor")
+    if info is None:
+        return None
+    poses = np.asarray(info.get("poses", [np.eye(4).ravel().tolist()]), float).reshape(-1, 4, 4)
+    pattern = str(info["pattern"])
+    if Path(pattern).suffix.lower() in (".npy", ".csv", ".json"):
+        pattern = str((path.parent / pattern).resolve())
+    sensor = SceneSensor(pattern, poses[0], float(info.get("min_range", 0.0)), float(info.get("max_range", 120.0)))
+    return sensor, poses
 
 
 def compose_scene(objects: list[dict], library: PrimitiveLibrary, ground: GroundMesh | None = None,

@@ -22,6 +22,7 @@ element and ``r = z - t``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -52,7 +53,8 @@ class HitCounts:
 
 def count_hits(scene, origins: np.ndarray, directions: np.ndarray, measured: np.ndarray, owner: np.ndarray,
                n_triangles: int, n_ellipsoids: int, max_residual: float = 0.75, pass_sigmas: float = 3.0,
-               max_range: float = 80.0, max_elements: int = 16, chunk: int = 400_000) -> HitCounts:
+               max_range: float = 80.0, max_elements: int = 16, chunk: int = 400_000,
+               progress: Callable[[float], None] | None = None) -> HitCounts:
     """Count hits and pass-throughs along logged rays (see the module docstring).
 
     Args:
@@ -65,6 +67,7 @@ def count_hits(scene, origins: np.ndarray, directions: np.ndarray, measured: np.
         pass_sigmas: k of the normal-distance test for triangle pass-throughs.
         max_range: sensor range for rays that missed, m.
         max_elements: elements traced per ray. chunk: rays traced at once.
+        progress: optional callback receiving the fraction of rays done.
 
     Returns:
         The :class:`HitCounts`.
@@ -94,6 +97,8 @@ def count_hits(scene, origins: np.ndarray, directions: np.ndarray, measured: np.
         owned = ell & (trav.index == own[:, None])
         ell_hits += np.bincount(own[own >= 0], minlength=n_ellipsoids)
         ell_pass += np.bincount(trav.index[ell & ~owned & (resid > max_residual)], minlength=n_ellipsoids)
+        if progress is not None:
+            progress(min(start + chunk, len(origins)) / max(len(origins), 1))
     normal_resid = np.concatenate(normal_resid)
     sigma_n = float(np.sqrt(np.mean(normal_resid**2))) if len(normal_resid) else 0.0
     depth = np.concatenate(pass_depth)

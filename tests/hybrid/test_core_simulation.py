@@ -8,7 +8,7 @@ from mi_lidar.hybrid.baselines import NeighborSimulator
 from mi_lidar.hybrid.blocks import SceneSensor, write_scene
 from mi_lidar.hybrid.counting import count_hits
 from mi_lidar.hybrid.evaluate import observation_metrics, pcd_error
-from mi_lidar.hybrid.fit import hit_probability, world_rays
+from mi_lidar.hybrid.fit import FitParams, assign_hit_probabilities, hit_probability, world_rays
 from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
 from mi_lidar.hybrid.simulation import load_model, simulate_log
 from mi_lidar.log import Log
@@ -128,3 +128,28 @@ def test_neighbor_simulator_replays_nearest_point_along_ray():
     sim = NeighborSimulator(pts, d_perp=0.3)
     r = sim.simulate(np.zeros((2, 3)), np.array([[1.0, 0, 0], [0, 1.0, 0]]))
     assert np.isclose(r[0], 5.0, atol=1e-5) and np.isnan(r[1])
+
+
+def test_pooled_prior_keeps_p_hit_of_sparsely_crossed_triangles(rng):
+    """A wall of 800 small triangles with p_hit 0.8, crossed about 25 times each.
+
+    The table 4.1 prior (1, 2) pulls the estimates towards 1/3; the pooled prior keeps their
+    mean within 0.02 of 0.8 (the pooled fraction has sd sqrt(0.16 / 20000) = 0.003; a
+    triangle's estimate is shrunk towards it).
+    """
+    grid = np.stack(np.meshgrid(np.linspace(-10, 10, 21), np.linspace(-10, 10, 21), indexing="ij"), -1).reshape(-1, 2)
+    vertices = np.c_[np.full(len(grid), 5.0), grid]
+    quads = [(i * 21 + j, (i + 1) * 21 + j, (i + 1) * 21 + j + 1, i * 21 + j + 1) for i in range(20) for j in range(20)]
+    faces = np.array([f for a, b, c, d in quads for f in ((a, b, c), (a, c, d))])
+    truth = HybridModel(GroundMesh(vertices, faces, p_hit=0.8, range_sigma=0.0), EllipsoidSet(np.zeros((0, 3)), np.zeros((0, 3, 3))))
+    log = _forward_log(rng, 100, 200, spread=1.9)
+    log.ranges[:], _ = simulate_log(truth, log, seed=7)
+    log.hit = np.isfinite(log.ranges)
+    owner = np.full(log.n_rays, -1)
+    means = {}
+    for strength in (0.0, 3.0):
+        model = HybridModel(GroundMesh(vertices, faces), EllipsoidSet(np.zeros((0, 3)), np.zeros((0, 3, 3))))
+        info = assign_hit_probabilities(model, log, owner, FitParams(pooled_strength=strength))
+        means[strength] = model.ground.p_hit.mean()
+    assert abs(info["pooled_triangle_p_hit"] - 0.8) < 0.012
+    assert abs(means[3.0] - 0.8) < 0.02 and means[0.0] < 0.75

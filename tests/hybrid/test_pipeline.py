@@ -3,6 +3,7 @@ import json
 import numpy as np
 import pytest
 
+import mi_lidar
 from mi_lidar.errors import SceneError
 from mi_lidar.hybrid import commands
 from mi_lidar.hybrid.baselines import mesh_primitive_scene
@@ -106,16 +107,24 @@ def test_automatic_segmentation_and_classifier(small_log, small_fit):
 
 
 def test_commands_end_to_end(small_log, tmp_path):
+    """From a log file on disk to a composed scene that loads, renders and has previews."""
     log_path = small_log.save(tmp_path / "log.npz")
-    xml = commands.fit_scene(log_path, tmp_path / "scene")
-    assert xml.is_file() and "ellipsoids" in xml.read_text()
-    commands.primitives_extract(log_path, tmp_path / "lib")
+    params = FitParams(block_size=20.0)
+    xml = commands.fit_scene(log_path, tmp_path / "scene", params)
+    assert xml.is_file() and "ellipsoids" in xml.read_text() and 'type="lidar"' in xml.read_text()
+    assert (tmp_path / "scene" / "scene_range.png").stat().st_size > 10_000
+    commands.primitives_extract(log_path, tmp_path / "lib", params)
     rows = commands.primitives_list(tmp_path / "lib")
     assert rows
     assert commands.primitives_show(tmp_path / "lib", tmp_path / "p.png").is_file()
-    ann = commands.annotate(log_path, tmp_path / "ann.json")
+    ann = commands.annotate(log_path, tmp_path / "ann.json", params)
     out = commands.compose(ann, tmp_path / "lib", tmp_path / "composed" / "c.xml")
     assert len(read_scene(out).ellipsoids) > 0
+    assert (tmp_path / "composed" / "c_top.png").stat().st_size > 10_000
+    # the composed scene's sensor replays the annotated log's rays: as many beams and firings,
+    # and a hit fraction within 0.15 of the log's (objects are replaced by library primitives)
+    scan = mi_lidar.simulate(mi_lidar.load_scene(out), poses=small_log.poses, seed=2)
+    assert scan.shape == small_log.shape and abs(scan.hit.mean() - small_log.hit.mean()) < 0.15
 
 
 def test_tuning_vector_is_clipped_into_valid_ranges():
