@@ -18,6 +18,14 @@ from .fit import widen
 # as diagnosis candidates unless asked for by name.
 NOT_CANDIDATES = ("extrinsics",)
 
+# Fitting hints for catalog effects that do not carry their own (effect name -> hints).
+HINTS = {
+    "range_noise": {"fit_start": {"sigma0": 0.002, "k": 1e-4}, "fit_scales": {"sigma0": 0.005, "k": 0.001}},
+    "range_bias": {"fit_scales": {"bias": 0.01}},
+    "range_scale": {"fit_scales": {"scale": 0.002}},
+    "beam_offsets": {"fit_scales": {"elevation": 0.002, "azimuth": 0.002}},
+}
+
 
 def candidate(name: str, n_beams: int, n_labels: int, **values) -> Effect:
     """Instantiate effect ``name`` at its fitting start, widened to the log's beams and labels.
@@ -29,10 +37,23 @@ def candidate(name: str, n_beams: int, n_labels: int, **values) -> Effect:
         **values: overrides of the starting values.
     """
     cls = EFFECTS[name]
-    start = {**getattr(cls, "fit_start", {}), **values}
+    hints = HINTS.get(name, {})
+    start = {**hints.get("fit_start", {}), **getattr(cls, "fit_start", {}), **values}
     options = {k: v for k, v in start.items() if k in cls.options}
     params = {k: v for k, v in start.items() if k in cls.specs}
-    return widen(cls(**options, **params), n_beams, n_labels)
+    effect = widen(cls(**options, **params), n_beams, n_labels)
+    if "fit_scales" in hints and not hasattr(cls, "fit_scales"):
+        effect.fit_scales = hints["fit_scales"]
+    return effect
+
+
+def variants(name: str) -> list[dict]:
+    """Option settings to try for effect ``name``: one per choice of its first option."""
+    options = EFFECTS[name].options
+    if not options:
+        return [{}]
+    key, choices = next(iter(options.items()))
+    return [{key: choice} for choice in choices]
 
 
 def candidate_names(present: list[Effect], include: list[str] | None = None) -> list[str]:

@@ -1,0 +1,237 @@
+"""Compare a sensor model with a measured log, ray by ray (``mi-lidar compare``).
+
+For every ray of the log the model is scored and simulated:
+
+* NLL: ``-log p(z | model)`` of the measured return (density x ``resolution``) or miss, nats;
+* range error: ``|z_measured - z_simulated|`` where both returned, m;
+* hit/miss confusion: precision, recall and F1 of simulated returns against measured ones;
+* histogram match: L1 distance between the CDFs of measured and simulated ranges, m.
+
+Each is broken down by nominal range, incidence angle, beam, azimuth, time, element type, label
+and shape (taken from the first element along the ray), and the groups where the model fails
+worst (largest excess NLL) lead the report.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..elements import ElementTable
+from ..log import Log
+from ..segment import ELLIPSOID
+from ..sensor_model import SensorModel
+from .fit import Problem
+from .rays import LogRays
+
+BREAKDOWNS = ("range", "incidence", "beam", "azimuth", "time", "element_type", "label", "shape")
+NO_ELEMENT_GROUP = "none"
+
+
+@dataclass
+class RayTable:
+    """Per-ray results of a comparison (numpy arrays of length N).
+
+    Attributes:
+        ll: log-likelihood of the measurement, nats.
+        measured, hit: measured range (m, NaN for a miss) and return flag.
+        sim_range, sim_hit: one simulated range (m) and return flag.
+        nominal, cos_incidence: of the first element along the ray (NaN / 0 where none).
+        kind, label, shape: of the first element (-1 where none).
+        beam, column, scan, azimuth: ray indices and sensor-frame azimuth (deg).
+    """
+
+    ll: np.ndarray
+    measured: np.ndarray
+    hit: np.ndarray
+    sim_range: np.ndarray
+    sim_hit: np.ndarray
+    nominal: np.ndarray
+    cos_incidence: np.ndarray
+    kind: np.ndarray
+    label: np.ndarray
+    shape: np.ndarray
+    beam: np.ndarray
+    column: np.ndarray
+    scan: np.ndarray
+    azimuth: np.ndarray
+
+
+def first_elements(scene, table: ElementTable, problem: Problem, model: SensorModel) -> dict:
+    """Nominal range, incidence cosine, kind, label and shape of the first element of each ray."""
+    out = {k: [] for k in ("nominal", "cos_incidence", "kind", "label", "shape")}
+    for first in range(0, problem.index.size, 1 << 20):
+        batch, _, _ = problem.rays.batch(problem.index[first:first + (1 << 20)])
+        batch = model.prepare_rays(batch)
+        with dr.suspend_grad():
+            si = scene.ray_intersect(mi.Ray3f(batch.origin, batch.direction), mi.RayFlags.Minimal, True)
+            nominal = dr.dot(si.p - batch.origin, batch.direction)
+            valid = si.is_valid() & (nominal <= model.max_range)
+            element = dr.select(valid, table.element_of(si), 0)
+            seg = table.segment(si, valid, element, batch.origin, batch.direction, model.range_sigma)
+        ok = np.asarray(valid)
+        out["nominal"].append(np.where(ok, np.asarray(seg.nominal), np.nan))
+        out["cos_incidence"].append(np.where(ok, np.asarray(seg.cos_incidence), 0.0))
+        for key in ("kind", "label", "shape"):
+            out[key].append(np.where(ok, np.asarray(getattr(seg, key)).astype(np.int64), -1))
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def simulate_log_rays(scene, table: ElementTable, rays: LogRays, model: SensorModel, seed: int) -> tuple:
+    """One simulated (range, hit) per ray of the log, same ray ids as the log."""
+    ranges, hits = [], []
+    for first in range(0, rays.n, 1 << 21):
+        batch, _, _ = rays.batch(np.arange(first, min(first + (1 << 21), rays.n)))
+        out = model.simulate_rays(scene, table, batch, seed)
+        ranges.append(np.asarray(out["range"]))
+        hits.append(np.asarray(out["hit"]))
+    return np.concatenate(ranges), np.concatenate(hits)
+
+
+def ray_table(log: Log, scene, model: SensorModel, seed: int = 0, resolution: float = 0.01) -> RayTable:
+    """Score, simulate and describe every ray of ``log`` under ``model``."""
+    rays = LogRays.from_log(log)
+    problem = Problem.build(scene, rays, np.arange(rays.n), resolution)
+    ll = problem.log_likelihood(model)
+    sim_range, sim_hit = simulate_log_rays(scene, problem.table, rays, model, seed)
+    first = first_elements(scene, problem.table, problem, model)
+    scan = rays.scan if log.directions.shape[0] > 1 else np.zeros_like(rays.scan)
+    d = log.directions[scan, rays.beam, rays.column]
+    azimuth = np.degrees(np.arctan2(d[..., 1], d[..., 0]))
+    return RayTable(ll=ll, measured=rays.measured, hit=rays.hit, sim_range=sim_range, sim_hit=sim_hit,
+                    beam=rays.beam, column=rays.column, scan=rays.scan, azimuth=azimuth, **first)
+
+
+def cdf_l1(a: np.ndarray, b: np.ndarray) -> float:
+    """L1 distance between the empirical CDFs of samples ``a`` and ``b`` (their units, m)."""
+    if a.size == 0 or b.size == 0:
+        return float("nan")
+    grid = np.sort(np.concatenate([a, b]))
+    fa = np.searchsorted(np.sort(a), grid, side="right") / a.size
+    fb = np.searchsorted(np.sort(b), grid, side="right") / b.size
+    return float(np.sum(np.abs(fa - fb)[:-1] * np.diff(grid)))
+
+
+def metrics(t: RayTable, mask: np.ndarray | None = None) -> dict:
+    """Observation losses of the rays ``mask`` (all when None)."""
+    m = np.ones(t.ll.size, bool) if mask is None else mask
+    ll, hit, sim = t.ll[m], t.hit[m], t.sim_hit[m]
+    both = hit & sim
+    err = np.abs(t.measured[m][both] - t.sim_range[m][both])
+    tp, fp, fn = int(np.sum(hit & sim)), int(np.sum(~hit & sim)), int(np.sum(hit & ~sim))
+    precision = tp / (tp + fp) if tp + fp else float("nan")
+    recall = tp / (tp + fn) if tp + fn else float("nan")
+    f1 = 2 * precision * recall / (precision + recall) if tp else float("nan")
+    return {
+        "rays": int(m.sum()), "nll": float(-np.mean(ll)) if ll.size else float("nan"),
+        "nll_median": float(-np.median(ll)) if ll.size else float("nan"),
+        "hit_rate_measured": float(hit.mean()) if hit.size else float("nan"),
+        "hit_rate_simulated": float(sim.mean()) if sim.size else float("nan"),
+        "range_error_mean": float(err.mean()) if err.size else float("nan"),
+        "range_error_median": float(np.median(err)) if err.size else float("nan"),
+        "precision": precision, "recall": recall, "f1": f1,
+        "histogram_l1": cdf_l1(t.measured[m][hit], t.sim_range[m][sim]),
+    }
+
+
+def group_keys(t: RayTable, by: str) -> np.ndarray:
+    """Group label of every ray for breakdown ``by`` (strings, sortable)."""
+    if by == "range":
+        edges = np.array([0, 1, 2, 5, 10, 20, 40, 80, 1e9])
+        idx = np.digitize(np.nan_to_num(t.nominal, nan=-1), edges)
+        names = np.array([NO_ELEMENT_GROUP] + [f"{edges[i]:g}-{edges[i + 1]:g} m" for i in range(8)] + ["far"])
+        return names[np.where(np.isnan(t.nominal), 0, idx)]
+    if by == "incidence":
+        angle = np.degrees(np.arccos(np.clip(t.cos_incidence, 0, 1)))
+        idx = np.minimum((angle // 15).astype(int), 5)
+        names = np.array([f"{15 * i:02d}-{15 * i + 15:02d} deg" for i in range(6)])
+        return np.where(t.kind < 0, NO_ELEMENT_GROUP, names[idx])
+    if by == "beam":
+        return np.char.add("beam ", np.char.zfill(t.beam.astype(str), 3))
+    if by == "azimuth":
+        idx = ((t.azimuth + 180) // 30).astype(int) % 12
+        return np.array([f"{-180 + 30 * i:+04d} deg" for i in range(12)])[idx]
+    if by == "time":
+        n = int(t.scan.max()) + 1
+        size = max(1, -(-n // 10))
+        return np.char.add("scans ", np.char.zfill((t.scan // size * size).astype(str), 5))
+    if by == "element_type":
+        return np.where(t.kind < 0, NO_ELEMENT_GROUP, np.where(t.kind == ELLIPSOID, "ellipsoid", "surface"))
+    if by == "label":
+        return np.where(t.label < 0, NO_ELEMENT_GROUP, np.char.add("label ", t.label.astype(str)))
+    return np.where(t.shape < 0, NO_ELEMENT_GROUP, np.char.add("shape ", t.shape.astype(str)))
+
+
+def breakdown(t: RayTable, by: str) -> list[dict]:
+    """Metrics per group of breakdown ``by``, with each group's excess NLL (nats, total)."""
+    keys = group_keys(t, by)
+    overall = -np.mean(t.ll)
+    rows = []
+    for key in np.unique(keys):
+        m = keys == key
+        row = {"group": str(key), **metrics(t, m)}
+        row["excess_nll"] = (row["nll"] - overall) * row["rays"]
+        row["residual_median"] = float(np.nanmedian(t.measured[m & t.hit] - t.nominal[m & t.hit])) \
+            if np.any(m & t.hit & np.isfinite(t.nominal)) else float("nan")
+        rows.append(row)
+    return rows
+
+
+@dataclass
+class Comparison:
+    """Result of :func:`compare`.
+
+    Attributes:
+        headline: overall metrics (see :func:`metrics`).
+        breakdowns: breakdown name -> rows of per-group metrics.
+        worst: the groups with the largest excess NLL across all breakdowns.
+        files: written report files.
+    """
+
+    headline: dict
+    breakdowns: dict
+    worst: list
+    table: RayTable = field(repr=False, default=None)
+    files: list = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        return {"headline": self.headline, "breakdowns": self.breakdowns, "worst": self.worst}
+
+
+def compare(log: Log, scene, model: SensorModel | None = None, out: str | Path | None = None, seed: int = 0,
+            resolution: float = 0.01, title: str = "Model vs measurements") -> Comparison:
+    """Compare ``model`` with ``log`` in ``scene`` ray by ray and optionally write a report.
+
+    Args:
+        log: measured log.
+        scene: loaded Mitsuba scene or scene XML path.
+        model: sensor model (default: the scene's sensor and integrator settings).
+        out: report folder (PNG plots, residual range image, residual PLY, report.md/.html,
+            comparison.json); nothing is written when None.
+        seed: simulation seed.
+        resolution: range bin (m) of the NLL (density x resolution; 0.01 is the thesis protocol).
+        title: report title.
+
+    Returns:
+        The :class:`Comparison`.
+    """
+    from ..scene import load_scene, scene_sensor_model
+
+    if not hasattr(scene, "shapes"):
+        scene = load_scene(scene)
+    model = model or scene_sensor_model(scene)[0]
+    t = ray_table(log, scene, model, seed, resolution)
+    result = Comparison(headline=metrics(t), breakdowns={b: breakdown(t, b) for b in BREAKDOWNS}, worst=[], table=t)
+    groups = [dict(row, breakdown=b) for b, rows in result.breakdowns.items() if b != "beam" or len(rows) > 1
+              for row in rows]
+    result.worst = sorted(groups, key=lambda r: -r["excess_nll"])[:8]
+    if out is not None:
+        from .report import write_comparison
+
+        result.files = write_comparison(result, log, Path(out), title, model)
+    return result

@@ -1,0 +1,215 @@
+"""Report writers of the loop: plots, residual range image, residual PLY, Markdown and HTML."""
+
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+PLOTTED = ("range", "incidence", "azimuth", "beam", "label", "time")
+FMT = {"rays": "{:d}", "nll": "{:.3f}", "nll_median": "{:.3f}", "hit_rate_measured": "{:.3f}",
+       "hit_rate_simulated": "{:.3f}", "range_error_mean": "{:.4f}", "range_error_median": "{:.4f}",
+       "precision": "{:.3f}", "recall": "{:.3f}", "f1": "{:.3f}", "histogram_l1": "{:.4f}",
+       "excess_nll": "{:.1f}", "residual_median": "{:+.4f}"}
+NAMES = {"rays": "rays", "nll": "NLL (nats/ray)", "nll_median": "median NLL", "hit_rate_measured": "hit rate (meas.)",
+         "hit_rate_simulated": "hit rate (sim.)", "range_error_mean": "mean |range error| (m)",
+         "range_error_median": "median |range error| (m)", "precision": "precision", "recall": "recall",
+         "f1": "F1", "histogram_l1": "histogram L1 (m)", "excess_nll": "excess NLL (nats)",
+         "residual_median": "median residual (m)"}
+
+
+def fmt(key: str, value) -> str:
+    """A metric formatted for a table."""
+    if isinstance(value, float) and not np.isfinite(value):
+        return "-"
+    return FMT.get(key, "{}").format(value)
+
+
+def markdown_table(rows: list[dict], keys: list[str]) -> str:
+    """Rows of dicts as a Markdown table over ``keys``."""
+    head = "| " + " | ".join(NAMES.get(k, k) for k in keys) + " |"
+    rule = "|" + "---|" * len(keys)
+    body = ["| " + " | ".join(fmt(k, r[k]) for k in keys) + " |" for r in rows]
+    return "\n".join([head, rule, *body])
+
+
+def plot_breakdowns(result, path: Path) -> Path:
+    """NLL and hit rates per group for the main breakdowns, one panel each."""
+    fig, axes = plt.subplots(2, 3, figsize=(15, 8))
+    twins = []
+    for ax, name in zip(axes.ravel(), PLOTTED):
+        rows = result.breakdowns[name]
+        if len(rows) > 40:
+            rows = rows[:: max(1, len(rows) // 40)]
+        x = np.arange(len(rows))
+        ax.bar(x, [r["nll"] for r in rows], color="tab:red", alpha=0.7, label="NLL (nats/ray)")
+        ax.axhline(result.headline["nll"], color="k", lw=1, ls="--", label="overall NLL")
+        ax.set_xticks(x, [r["group"] for r in rows], rotation=60, ha="right", fontsize=7)
+        ax.set_title(f"by {name}")
+        ax.set_ylabel("NLL (nats/ray)")
+        twin = ax.twinx()
+        twins.append(twin)
+        twin.plot(x, [r["hit_rate_measured"] for r in rows], "o-", color="tab:blue", ms=3, label="hit rate measured")
+        twin.plot(x, [r["hit_rate_simulated"] for r in rows], "s--", color="tab:green", ms=3, label="hit rate simulated")
+        twin.set_ylim(0, 1.05)
+        twin.set_ylabel("hit rate")
+    handles = axes[0, 0].get_legend_handles_labels()[0] + twins[0].get_legend_handles_labels()[0]
+    fig.legend(handles, [h.get_label() for h in handles], loc="upper center", ncol=4)
+    fig.tight_layout(rect=(0, 0, 1, 0.95))
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def plot_residuals(t, path: Path) -> Path:
+    """Histograms of measured and simulated ranges and of measured minus nominal range."""
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4))
+    top = np.nanpercentile(np.concatenate([t.measured[t.hit], t.sim_range[t.sim_hit]]), 99.5) if t.hit.any() else 1
+    bins = np.linspace(0, top, 80)
+    a.hist(t.measured[t.hit], bins, alpha=0.6, label="measured", density=True)
+    a.hist(t.sim_range[t.sim_hit], bins, alpha=0.6, label="simulated", density=True)
+    a.set_xlabel("range (m)")
+    a.set_ylabel("density (1/m)")
+    a.set_title("range histograms")
+    a.legend()
+    res = (t.measured - t.nominal)[t.hit & np.isfinite(t.nominal)]
+    lim = max(float(np.nanpercentile(np.abs(res), 98)), 1e-3) if res.size else 1
+    b.hist(res, np.linspace(-lim, lim, 101), color="tab:purple")
+    b.set_xlabel("measured - nominal range (m)")
+    b.set_ylabel("returns")
+    b.set_title("range residuals")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def plot_residual_image(t, shape: tuple, path: Path) -> Path:
+    """Residual range image (measured - nominal) of the scan with the worst mean NLL."""
+    s, h, w = shape
+    scan = int(np.argmin(np.bincount(t.scan, weights=t.ll, minlength=s) / np.maximum(np.bincount(t.scan, minlength=s), 1)))
+    m = t.scan == scan
+    res = np.full((h, w), np.nan)
+    res[t.beam[m], t.column[m]] = np.where(t.hit[m], t.measured[m] - t.nominal[m], np.nan)
+    nll = np.full((h, w), np.nan)
+    nll[t.beam[m], t.column[m]] = -t.ll[m]
+    lim = max(float(np.nanpercentile(np.abs(res), 95)), 1e-3) if np.isfinite(res).any() else 1
+    fig, axes = plt.subplots(2, 1, figsize=(13, 5 if h > 1 else 3.5))
+    for ax, image, cmap, label, kw in ((axes[0], res, "coolwarm", "measured - nominal (m)", dict(vmin=-lim, vmax=lim)),
+                                       (axes[1], nll, "magma", "NLL (nats)", {})):
+        colours = matplotlib.colormaps[cmap].copy()
+        colours.set_bad("black")
+        im = ax.imshow(np.repeat(image, max(1, 8 // h), axis=0) if h < 8 else image, aspect="auto",
+                       cmap=colours, interpolation="nearest", **kw)
+        fig.colorbar(im, ax=ax).set_label(label, fontsize=8)
+        ax.set_xlabel("firing (column)")
+        ax.set_ylabel("beam" if h > 1 else "")
+    axes[0].set_title(f"scan {scan}: residual range image (black: no return)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def write_residual_ply(t, log, path: Path) -> Path:
+    """Measured points coloured by residual (red: long, blue: short), with residual and NLL."""
+    from ..io import write_ply
+
+    points = log.points_world().reshape(-1, 3)[t.hit]
+    res = np.nan_to_num((t.measured - t.nominal)[t.hit])
+    lim = max(float(np.percentile(np.abs(res), 95)), 1e-3) if res.size else 1
+    x = np.clip(res / lim, -1, 1)
+    red = (255 * np.clip(x, 0, 1)).astype(np.uint8) + (127 * (1 - np.abs(x))).astype(np.uint8)
+    blue = (255 * np.clip(-x, 0, 1)).astype(np.uint8) + (127 * (1 - np.abs(x))).astype(np.uint8)
+    green = (127 * (1 - np.abs(x))).astype(np.uint8)
+    return write_ply(path, points, {"red": red, "green": green, "blue": blue,
+                                    "residual": res.astype(np.float32), "nll": (-t.ll[t.hit]).astype(np.float32)})
+
+
+def write_comparison(result, log, out: Path, title: str, model) -> list[Path]:
+    """Write the comparison report into folder ``out``; return the files."""
+    out.mkdir(parents=True, exist_ok=True)
+    t = result.table
+    files = [plot_breakdowns(result, out / "breakdowns.png"), plot_residuals(t, out / "residuals.png"),
+             plot_residual_image(t, log.shape, out / "residual_image.png")]
+    if t.hit.any():
+        files.append(write_residual_ply(t, log, out / "residuals.ply"))
+    (out / "comparison.json").write_text(json.dumps(result.to_json(), indent=1, default=float))
+    files.append(out / "comparison.json")
+    h = result.headline
+    keys = ["group", "breakdown", "rays", "nll", "excess_nll", "hit_rate_measured", "hit_rate_simulated",
+            "range_error_median", "residual_median"]
+    effects = ", ".join(e.describe() for e in model.effects) or "none"
+    lines = [
+        f"# {title}",
+        "",
+        f"Model: range sigma {model.range_sigma} m, effects: {effects}. {h['rays']} rays.",
+        "",
+        f"**NLL {h['nll']:.3f} nats/ray** (median {h['nll_median']:.3f}); hit/miss F1 {fmt('f1', h['f1'])} "
+        f"(precision {fmt('precision', h['precision'])}, recall {fmt('recall', h['recall'])}); "
+        f"median range error {fmt('range_error_median', h['range_error_median'])} m; "
+        f"histogram L1 {fmt('histogram_l1', h['histogram_l1'])} m; hit rate measured "
+        f"{h['hit_rate_measured']:.3f} vs simulated {h['hit_rate_simulated']:.3f}.",
+        "",
+        "## Where the model fails worst",
+        "",
+        "Groups with the largest excess NLL (group NLL minus overall NLL, times its rays):",
+        "",
+        markdown_table(result.worst, keys),
+        "",
+        "![breakdowns](breakdowns.png)",
+        "",
+        "![residuals](residuals.png)",
+        "",
+        "![residual image](residual_image.png)",
+        "",
+        "## Breakdowns",
+    ]
+    for name, rows in result.breakdowns.items():
+        lines += ["", f"### By {name}", "", markdown_table(rows, keys[:1] + keys[2:])]
+    lines += ["", "`residuals.ply`: measured points coloured by measured - nominal range (red long, blue short)."]
+    md = "\n".join(lines) + "\n"
+    (out / "report.md").write_text(md)
+    (out / "report.html").write_text(markdown_to_html(md, title))
+    return files + [out / "report.md", out / "report.html"]
+
+
+def markdown_to_html(md: str, title: str) -> str:
+    """Render the small Markdown subset of our reports (headings, tables, images, bold) as HTML."""
+    body, table = [], []
+
+    def flush():
+        if table:
+            rows = [r for r in table if not set(r.replace("|", "").strip()) <= {"-"}]
+            cells = [[html.escape(c.strip()) for c in r.strip().strip("|").split("|")] for r in rows]
+            body.append("<table><tr>" + "".join(f"<th>{c}</th>" for c in cells[0]) + "</tr>" +
+                        "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in cells[1:]) + "</table>")
+            table.clear()
+
+    for line in md.splitlines():
+        if line.startswith("|"):
+            table.append(line)
+            continue
+        flush()
+        if line.startswith("#"):
+            level = len(line) - len(line.lstrip("#"))
+            body.append(f"<h{level}>{html.escape(line.lstrip('#').strip())}</h{level}>")
+        elif line.startswith("!["):
+            src = line[line.index("(") + 1:line.rindex(")")]
+            body.append(f'<p><img src="{html.escape(src)}" style="max-width:100%"></p>')
+        elif line.strip():
+            text = html.escape(line)
+            parts = text.split("**")
+            text = "".join(f"<b>{p}</b>" if i % 2 else p for i, p in enumerate(parts))
+            body.append(f"<p>{text.replace('`', '')}</p>")
+    flush()
+    style = ("body{font-family:sans-serif;max-width:1100px;margin:auto} table{border-collapse:collapse;font-size:13px}"
+             "td,th{border:1px solid #ccc;padding:2px 6px;text-align:right} th{background:#eee}")
+    return f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>" \
+           f"<style>{style}</style></head><body>{''.join(body)}</body></html>\n"
