@@ -104,7 +104,7 @@ def fit_scene(log_path, out_dir, params: FitParams | None = None, name: str = "s
     assets.mkdir(parents=True, exist_ok=True)
     xml = write_scene(result.model, out_dir, name, SceneSensor.from_log(log, assets / "pattern.npy"))
     table = Table(title=f"hybrid scene {xml}")
-    for col in ("points", "ground points", "triangles", "ellipsoids", "blocks", "mean triangle p_hit", "seconds"):
+    for col in ("points", "ground points", "triangles", "ellipsoids", "blocks", "triangle p_hit", "seconds"):
         table.add_column(col, justify="right")
     table.add_row(str(len(result.points)), str(int(result.is_ground.sum())), str(len(result.model.ground)),
                   str(len(result.model.ellipsoids)), str(result.model.info["n_blocks"]),
