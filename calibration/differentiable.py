@@ -18,6 +18,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_lidar.arrays import aligned
 from mi_lidar.effects.base import RayBatch
 from mi_lidar.elements import ELLIPSOID_STRIDE, ElementTable
 from mi_lidar.log import Log
@@ -259,17 +260,3 @@ class LogRays:
             sensor_position=mi.Point3f(*map(f, self.position[index].T)),
         )
         return rays, f(self.ranges[index]), mi.Bool(aligned(self.hit[index]))
-
-
-def aligned(array: np.ndarray, alignment: int = 64) -> np.ndarray:
-    """A contiguous copy of ``array`` starting on an ``alignment``-byte boundary.
-
-    Dr.Jit wraps numpy memory without copying and compiles aligned and unaligned loads into
-    different kernels; aligned inputs let every mini-batch reuse one compiled kernel.
-    """
-    array = np.ascontiguousarray(array)
-    raw = np.empty(array.nbytes + alignment, np.uint8)
-    start = -raw.ctypes.data % alignment
-    out = raw[start:start + array.nbytes].view(array.dtype).reshape(array.shape)
-    out[...] = array
-    return out

@@ -8,6 +8,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .arrays import aligned
 from .channels import channels_to_numpy
 from .effects.base import RayBatch
 from .elements import ElementTable
@@ -84,12 +85,16 @@ def simulate(scene, pattern=None, poses=None, seed: int = 0, model: SensorModel 
         batch = range(first, min(first + per_batch, n_scans))
         world_d = np.concatenate([rotate(poses[s], local_d) for s in batch])
         world_o = np.concatenate([rotate(poses[s], local_o) + poses[s, :3, 3].astype(np.float32) for s in batch])
+        scan_of_ray = np.repeat(np.arange(batch.start, batch.stop), n)
+        rotation = poses[scan_of_ray, :3, :3].astype(np.float32)
         rays = RayBatch(
-            origin=mi.Point3f(*world_o.T),
-            direction=dr.normalize(mi.Vector3f(*world_d.T)),
+            origin=mi.Point3f(*(aligned(c) for c in world_o.T)),
+            direction=dr.normalize(mi.Vector3f(*(aligned(c) for c in world_d.T))),
             beam=dr.tile(beam, len(batch)) if len(batch) > 1 else beam,
-            time=mi.Float(np.concatenate([rel_time + scan_times[s] for s in batch]).astype(np.float32)),
+            time=mi.Float(aligned(np.concatenate([rel_time + scan_times[s] for s in batch]).astype(np.float32))),
             ray_id=dr.arange(mi.UInt32, batch.start * n, batch.stop * n),
+            sensor_rotation=mi.Matrix3f(*(aligned(rotation[:, i, j]) for i in range(3) for j in range(3))),
+            sensor_position=mi.Point3f(*(aligned(poses[scan_of_ray, i, 3].astype(np.float32)) for i in range(3))),
         )
         out = channels_to_numpy(model.simulate_rays(scene, table, rays, seed))
         for name, value in out.items():
