@@ -38,7 +38,7 @@ class MotionDistortion(Effect):
         **{f"w{a}": ParamSpec(0.0, "rad/s", f"angular velocity about sensor {a}", lower=-20.0, upper=20.0) for a in "xyz"},
         "period": ParamSpec(0.1, "s", "sweep period (sweeps start at its multiples)", lower=1e-6, upper=1e3),
     }
-    fit_scales = {**{f"v{a}": 0.5 for a in "xyz"}, **{f"w{a}": 0.05 for a in "xyz"}}
+    fit_scales = {**{f"v{a}": 1.0 for a in "xyz"}, **{f"w{a}": 0.2 for a in "xyz"}}
     fit_exclude = ("period",)
 
     def perturb_rays(self, rays: RayBatch) -> RayBatch:

@@ -1,0 +1,83 @@
+"""Shared set-up of the loop tests: bundled scenes, synthetic logs with hidden effects, fitting."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_lidar.effects import parse_effects
+from mi_lidar.loop.catalog import candidate
+from mi_lidar.loop.fit import Problem, fit_effects
+from mi_lidar.loop.rays import LogRays
+from mi_lidar.scene import load_scene, scene_sensor_model
+from mi_lidar.simulate import simulate
+
+from ..conftest import SCENES
+
+
+def room(n_scans: int = 30, seed: int = 0):
+    """The indoor planar scene, its sensor model and ``n_scans`` random poses inside the room."""
+    scene = load_scene(SCENES / "indoor_planar.xml")
+    model, pose = scene_sensor_model(scene)
+    rng = np.random.default_rng(seed)
+    poses = np.repeat(pose[None], n_scans, 0)
+    poses[:, 0, 3] += rng.uniform(-3, 3, n_scans)
+    poses[:, 1, 3] += rng.uniform(-2, 2, n_scans)
+    return scene, model, poses
+
+
+def street(n_scans: int = 2, seed: int = 0):
+    """The urban street scene (VLP-16), its sensor model and ``n_scans`` poses along the street."""
+    scene = load_scene(SCENES / "urban_street.xml")
+    model, pose = scene_sensor_model(scene)
+    poses = np.repeat(pose[None], n_scans, 0)
+    poses[:, 0, 3] += np.linspace(-4, 4, n_scans)
+    return scene, model, poses
+
+
+def hidden_log(scene, model, poses, hidden: str, seed: int = 1):
+    """A log simulated with the effects ``hidden`` added to ``model``; returns (log, true model)."""
+    true = dataclasses.replace(model, effects=model.effects + parse_effects(hidden))
+    return simulate(scene, poses=poses, model=true, seed=seed), true
+
+
+def recover(scene, model, log, name: str, steps: int = 120, **start):
+    """Fit effect ``name`` (from its fitting start) on ``log``; return the fitted effect and model."""
+    effect = candidate(name, log.shape[1], 8, **start)
+    fitted = dataclasses.replace(model, effects=model.effects + [effect])
+    rays = LogRays.from_log(log)
+    fit_effects(fitted, Problem.build(scene, rays, np.arange(rays.n)), [effect], steps=steps)
+    return effect, fitted
+
+
+def mean_ll(scene, model, log) -> float:
+    """Mean log-likelihood per ray (nats) of ``log`` under ``model``."""
+    rays = LogRays.from_log(log)
+    return float(Problem.build(scene, rays, np.arange(rays.n)).log_likelihood(model).mean())
+
+
+def finite_difference_check(scene, model, log, effect, key: str, h: float, n_rays: int = 2000):
+    """(autodiff, central finite difference) of the summed log-likelihood w.r.t. ``effect[key]``."""
+    rays = LogRays.from_log(log)
+    problem = Problem.build(scene, rays, np.arange(min(n_rays, rays.n)))
+    problem.trace(model)
+    batch, measured, hit, records = problem._chunks[0]
+    value = float(np.asarray(effect.params[key])[0])
+
+    def total(v, grad=False):
+        effect.params[key] = mi.Float(v)
+        if grad:
+            dr.enable_grad(effect.params[key])
+        ll = dr.sum(model.log_likelihood(problem.table, batch, records, measured, hit))
+        if grad:
+            dr.backward(ll)
+            return float(dr.grad(effect.params[key])[0])
+        return float(ll[0])
+
+    auto = total(value, grad=True)
+    numeric = (total(value + h) - total(value - h)) / (2 * h)
+    effect.params[key] = mi.Float(value)
+    return auto, numeric
