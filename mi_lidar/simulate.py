@@ -21,14 +21,27 @@ from .sensor_model import SensorModel
 MAX_RAYS_PER_BATCH = 1 << 22  # rays traced at once (bounds peak memory)
 
 
-def rotate(pose: np.ndarray, vectors: np.ndarray) -> np.ndarray:
-    """Rotate (N, 3) float32 ``vectors`` by the rotation of a (4, 4) pose, elementwise.
+def pose_entries(poses: np.ndarray, scan: mi.UInt32) -> list[mi.Float]:
+    """The 16 row-major entries of each lane's pose: ``poses[scan]`` gathered in Dr.Jit."""
+    table = poses.astype(np.float32)
+    return [dr.gather(mi.Float, mi.Float(aligned(table[:, i, j])), scan) for i in range(4) for j in range(4)]
 
-    Elementwise products instead of a matrix product: BLAS threads would compete with Dr.Jit's
-    thread pool (a 1M-ray rotation took 6x longer through BLAS on 2 cores).
+
+def world_rays(local_origin: mi.Point3f, local_direction: mi.Vector3f, entries: list, index: mi.UInt32):
+    """World-frame origins and unit directions of pattern rays ``index`` under per-lane poses.
+
+    Uses the same Dr.Jit transform arithmetic as the ``lidar`` sensor's ``sample_ray``, so the
+    fast path and ``mi.render`` trace bit-identical rays.
+
+    Args:
+        local_origin, local_direction: the pattern's rays in the sensor frame (one lane per ray).
+        entries: 16 row-major pose entries per lane (:func:`pose_entries`).
+        index: pattern ray of each lane.
     """
-    r = pose[:3, :3].astype(np.float32)
-    return vectors[:, :1] * r[:, 0] + vectors[:, 1:2] * r[:, 1] + vectors[:, 2:3] * r[:, 2]
+    to_world = mi.Transform4f(mi.Matrix4f(*entries))
+    origin = to_world @ dr.gather(mi.Point3f, local_origin, index)
+    direction = dr.normalize(to_world @ dr.gather(mi.Vector3f, local_direction, index))
+    return origin, direction
 
 
 def simulate(scene, pattern=None, poses=None, seed: int = 0, model: SensorModel | None = None,
@@ -75,26 +88,24 @@ def simulate(scene, pattern=None, poses=None, seed: int = 0, model: SensorModel 
 
     table = ElementTable.from_scene(scene)
     directions, origins = pattern.directions(), pattern.origins()
-    local_d = directions.reshape(-1, 3)
-    local_o = origins.reshape(-1, 3)
+    local_d = mi.Vector3f(*(aligned(c) for c in directions.reshape(-1, 3).T))
+    local_o = mi.Point3f(*(aligned(c) for c in origins.reshape(-1, 3).T))
+    ray_in_scan = dr.arange(mi.UInt32, n)
     beam = mi.UInt32(np.repeat(np.arange(height, dtype=np.uint32), width))
     rel_time = pattern.time.reshape(-1)
     channels: dict[str, list] = {}
     per_batch = max(1, MAX_RAYS_PER_BATCH // n)
     for first in range(0, n_scans, per_batch):
         batch = range(first, min(first + per_batch, n_scans))
-        world_d = np.concatenate([rotate(poses[s], local_d) for s in batch])
-        world_o = np.concatenate([rotate(poses[s], local_o) + poses[s, :3, 3].astype(np.float32) for s in batch])
-        scan_of_ray = np.repeat(np.arange(batch.start, batch.stop), n)
-        rotation = poses[scan_of_ray, :3, :3].astype(np.float32)
+        scan = dr.repeat(dr.arange(mi.UInt32, batch.start, batch.stop), n)
+        entries = pose_entries(poses, scan)
         rays = RayBatch(
-            origin=mi.Point3f(*(aligned(c) for c in world_o.T)),
-            direction=dr.normalize(mi.Vector3f(*(aligned(c) for c in world_d.T))),
-            beam=dr.tile(beam, len(batch)) if len(batch) > 1 else beam,
+            *world_rays(local_o, local_d, entries, dr.tile(ray_in_scan, len(batch))),
+            beam=dr.tile(beam, len(batch)),
             time=mi.Float(aligned(np.concatenate([rel_time + scan_times[s] for s in batch]).astype(np.float32))),
             ray_id=dr.arange(mi.UInt32, batch.start * n, batch.stop * n),
-            sensor_rotation=mi.Matrix3f(*(aligned(rotation[:, i, j]) for i in range(3) for j in range(3))),
-            sensor_position=mi.Point3f(*(aligned(poses[scan_of_ray, i, 3].astype(np.float32)) for i in range(3))),
+            sensor_rotation=mi.Matrix3f(*(entries[4 * i + j] for i in range(3) for j in range(3))),
+            sensor_position=mi.Point3f(entries[3], entries[7], entries[11]),
         )
         out = channels_to_numpy(model.simulate_rays(scene, table, rays, seed))
         for name, value in out.items():

@@ -66,6 +66,8 @@ class LidarSensor(mi.Sensor):
         name = str(props.get("pattern", "vlp16"))
         firings = props.get("firings", None)
         kwargs = {} if firings is None else {"n_firings": int(firings)}
+        if name.endswith((".csv", ".npy", ".json")):  # a table next to the scene file
+            name = str(mi.Thread.thread().file_resolver().resolve(name))
         self.pattern = get_pattern(name, **kwargs)
         height, width = self.pattern.shape
         if "film" not in props:

@@ -77,8 +77,16 @@ def test_urban_street_labels():
     assert {1, 2, 3, 4, 6} <= seen
 
 
-def test_render_and_simulate_agree_ray_for_ray():
-    scene = mi_lidar.load_scene(SCENES / "offroad.xml")
+@pytest.mark.parametrize("rotation", ["", '<rotate z="1" angle="33"/><rotate x="1" angle="7"/>'])
+def test_render_and_simulate_agree_ray_for_ray(tmp_path, rotation):
+    text = (SCENES / "offroad.xml").read_text().replace(
+        '<transform name="to_world"><translate', f'<transform name="to_world">{rotation}<translate')
+    path = SCENES / f".rotated_{tmp_path.name}.xml"
+    path.write_text(text)
+    try:
+        scene = mi_lidar.load_scene(path)
+    finally:
+        path.unlink()
     rendered = tensor_to_numpy(mi.render(scene, seed=11))
     log = mi_lidar.simulate(scene, seed=11)
     np.testing.assert_array_equal(rendered["hit"], log.hit[0])
@@ -116,3 +124,14 @@ def test_ellipsoid_returns_match_element_statistics():
     ref = stats.truncnorm(-3, 3, loc=10.0, scale=0.5)
     assert stats.kstest(z, ref.cdf).statistic < 0.007  # 0.1% KS critical value at n = 1e5 is 0.0062
     assert np.all(np.asarray(out["nominal_range"]) < 8.51)
+
+
+def test_pattern_table_is_found_next_to_the_scene(tmp_path, monkeypatch):
+    from mi_lidar.patterns import get_pattern, to_table
+
+    to_table(get_pattern("planar-180"), tmp_path / "beams.npy")
+    text = (SCENES / "indoor_planar.xml").read_text().replace('value="planar-360"', 'value="beams.npy"')
+    (tmp_path / "room.xml").write_text(text)
+    monkeypatch.chdir(SCENES)  # somewhere else than the scene folder
+    scene = mi_lidar.load_scene(tmp_path / "room.xml")
+    assert tensor_to_numpy(mi.render(scene))["range"].shape == (1, 180)
