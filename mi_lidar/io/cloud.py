@@ -110,10 +110,16 @@ def log_from_points(
 
     Returns:
         A log with ``S = 1``.
+
+    Raises:
+        LogFormatError: No points, or ring/column fields that are not non-negative integers,
+            collide, or describe a grid far larger than the cloud.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     count = len(points)
     source = (sensor or {}).get("source", "point cloud")
+    if count == 0:
+        raise LogFormatError(f"{source}: the point cloud is empty; a log needs at least one point")
     for name, values in (("ring", ring), ("column", column)):
         if values is not None and count:
             values = np.asarray(values)

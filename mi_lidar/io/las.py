@@ -58,8 +58,18 @@ def read_las_log(path: str | os.PathLike, min_range: float = 0.0) -> Log:
     path = Path(path)
     if not path.is_file():
         raise LogFormatError(f"{path}: no such LAS file")
+    size = path.stat().st_size
     try:
-        las = laspy.read(str(path))
+        with laspy.open(str(path)) as reader:
+            header = reader.header
+            need = header.offset_to_point_data + header.point_count * header.point_format.size
+            if not header.are_points_compressed and need > size:
+                raise LogFormatError(
+                    f"{path}: header field point_count = {header.point_count} needs {need} bytes of "
+                    f"{header.point_format.size}-byte records from byte {header.offset_to_point_data}; "
+                    f"the file has {size} (truncated or corrupt header)"
+                )
+            las = reader.read()
         names = set(las.point_format.dimension_names)
         fields = {"x": np.asarray(las.x), "y": np.asarray(las.y), "z": np.asarray(las.z)}
         fields["intensity"] = np.asarray(las["lidar_intensity"] if "lidar_intensity" in names else las.intensity,

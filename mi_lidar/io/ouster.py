@@ -81,6 +81,8 @@ PROFILES = {
         "near_ir": _Field(3, "u1", 0, 4),
     }),
 }
+MAX_COLUMNS = 8192
+MAX_BEAMS = 512
 _WIDE = {"u1": "<u2", "<u2": "<u2", "<u4": "<u4"}
 
 
@@ -165,8 +167,13 @@ def read_ouster_metadata(path: str | os.PathLike) -> OusterMetadata:
             f"{path}: beam_altitude_angles ({altitude.shape}), beam_azimuth_angles ({azimuth.shape}) and "
             f"pixel_shift_by_row ({shift.shape}) must all have one entry per beam"
         )
-    if transform.size != 16 or width <= 0 or per_packet <= 0 or frequency <= 0:
-        raise LogFormatError(f"{path}: invalid lidar_to_sensor_transform, lidar_mode or columns_per_packet")
+    if transform.size != 16 or not 0 < width <= MAX_COLUMNS or not 0 < per_packet <= width or not frequency > 0:
+        raise LogFormatError(
+            f"{path}: invalid lidar_to_sensor_transform (16 numbers), columns_per_frame (1..{MAX_COLUMNS}), "
+            "columns_per_packet (1..columns_per_frame) or lidar_mode (e.g. 1024x10)"
+        )
+    if height > MAX_BEAMS or not np.all(np.isfinite(altitude)) or not np.all(np.isfinite(azimuth)):
+        raise LogFormatError(f"{path}: beam angle tables must hold at most {MAX_BEAMS} finite angles (deg)")
     if profile not in PROFILES:
         raise LogFormatError(f"{path}: udp_profile_lidar {profile!r}; supported: {', '.join(PROFILES)}")
     return OusterMetadata(

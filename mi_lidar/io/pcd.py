@@ -21,6 +21,7 @@ from .cloud import cloud_from_log, log_from_fields
 _TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8",
           ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
 _MAX_HEADER_LINES = 64
+_MAX_COLUMNS = 1024
 START_TIME_COMMENT = "mi_lidar_start_time"
 
 
@@ -112,6 +113,8 @@ def read_pcd(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], int, int]:
         raise LogFormatError(f"{path}: FIELDS, SIZE, TYPE and COUNT have different lengths")
     if width < 0 or height < 0 or points != width * height or min(counts, default=1) < 1:
         raise LogFormatError(f"{path}: POINTS {points} != WIDTH {width} x HEIGHT {height} (or a COUNT < 1)")
+    if sum(counts) > _MAX_COLUMNS:
+        raise LogFormatError(f"{path}: COUNT totals {sum(counts)} values per point; at most {_MAX_COLUMNS} supported")
     if any((t, s) not in _TYPES for t, s in zip(types, sizes)):
         raise LogFormatError(f"{path}: unsupported TYPE/SIZE pair in {list(zip(types, sizes))}")
     columns = [(n if c == 1 else f"{n}_{k}", _TYPES[(t, s)]) for n, s, t, c in zip(names, sizes, types, counts)

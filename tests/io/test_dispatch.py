@@ -1,0 +1,81 @@
+import json
+
+import numpy as np
+import pytest
+
+from mi_lidar.errors import LogFormatError
+from mi_lidar.io import convert, info, pattern_from_log, read_any, read_velodyne, write_any
+from mi_lidar.io.dispatch import detect_format
+from mi_lidar.patterns import FiringPattern
+
+from .conftest import data_file
+from .synth import carmen_text, write_ouster
+from .test_clouds import synthetic_log
+
+
+@pytest.mark.parametrize(
+    "name, fmt",
+    [("a.npz", "npz"), ("a.log", "carmen"), ("a.log.gz", "carmen"), ("a.clf", "carmen"), ("a.bin", "bin"),
+     ("a.pcd.bin", "bin"), ("a.PLY", "ply"), ("a.pcd", "pcd"), ("a.las", "las"), ("a.laz", "las"),
+     ("a.bag", "rosbag"), ("a.db3", "rosbag"), ("a.exr", "exr"), ("a.pcap", "pcap")],
+)
+def test_extension_table(name, fmt):
+    assert detect_format(name) == fmt
+
+
+def test_write_formats_and_errors(tmp_path):
+    assert detect_format(tmp_path / "out", for_writing=True) == "rosbag2"
+    with pytest.raises(LogFormatError, match="unknown extension '.xyz'"):
+        read_any(tmp_path / "a.xyz")
+    with pytest.raises(LogFormatError, match="unknown compressed format"):
+        read_any(tmp_path / "a.tar.gz")
+    log = synthetic_log(scans=3)
+    with pytest.raises(LogFormatError, match="holds 3 scans and pcd holds one; pass scan="):
+        write_any(log, tmp_path / "a.pcd")
+    with pytest.raises(LogFormatError, match="scan 5 out of range"):
+        write_any(log, tmp_path / "a.pcd", scan=5)
+    with pytest.raises(LogFormatError, match="cannot write format 'carmen'"):
+        write_any(log, tmp_path / "a.log", fmt="carmen")
+    assert not any(tmp_path.iterdir())
+    back = read_any(write_any(log, tmp_path / "two.pcd", scan=2))
+    np.testing.assert_allclose(back.ranges[back.hit], log.ranges[2][log.hit[2]], atol=1e-5)
+
+
+def test_convert_and_info(tmp_path):
+    (tmp_path / "lab.log").write_text(carmen_text(scans=4))
+    summary = info(tmp_path / "lab.log")
+    assert summary["format"] == "carmen" and summary["shape"] == [4, 1, 180]
+    assert summary["miss_fraction"] == pytest.approx(1 / 180)
+    assert summary["range_m"][0] == pytest.approx(1.0) and summary["range_m"][2] == pytest.approx(2.79)
+    assert summary["scan_period_s"] == pytest.approx(1.0)
+    assert summary["trajectory_length_m"] == pytest.approx(3.0)
+    json.dumps(summary)
+    out = convert(tmp_path / "lab.log", tmp_path / "scan1.ply", scan=1)
+    back = read_any(out)
+    assert back.hit.sum() == 179
+    png = convert(tmp_path / "lab.log", tmp_path / "lab.png", scan=0)
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    npz = convert(tmp_path / "lab.log", tmp_path / "lab.npz")
+    np.testing.assert_array_equal(read_any(npz).hit, read_any(tmp_path / "lab.log").hit)
+
+
+def test_pattern_from_real_ouster_frame():
+    log = read_any(data_file("ouster/OS-1-32-G_v2.1.1_1024x10.pcap"))
+    pattern = pattern_from_log(log)
+    assert isinstance(pattern, FiringPattern)
+    assert pattern.shape == (32, 1024)
+    np.testing.assert_allclose(pattern.directions(), log.directions[0], atol=1e-6)
+    np.testing.assert_allclose(pattern.origins(), log.origins[0], atol=1e-7)
+    assert pattern.period == pytest.approx(0.1, rel=1e-3)
+    np.testing.assert_allclose(np.degrees(pattern.elevation[:, 0]), log.sensor["beam_altitude_deg"], atol=1e-4)
+
+
+def test_pattern_from_synthetic_ouster_and_velodyne(tmp_path):
+    log = read_any(write_ouster(tmp_path, np.full((8, 32), 3000, np.uint32)))
+    pattern = pattern_from_log(log)
+    assert pattern.time.min() == 0.0 and pattern.time.max() < pattern.period == pytest.approx(0.1)
+    velodyne = read_velodyne(data_file("velodyne/velodyne_vlp16.pcap"), data_file("velodyne/VLP16db.yaml"))
+    vp = pattern_from_log(velodyne, scan=1)
+    np.testing.assert_array_equal(vp.beam_id, velodyne.attributes["laser_id"][1, :, 0])
+    np.testing.assert_allclose(vp.directions(), velodyne.directions[1], atol=1e-6)
+    assert vp.origin is None
