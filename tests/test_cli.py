@@ -1,6 +1,7 @@
 """The command line as a user runs it: render, simulate, --version, errors."""
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from mi_lidar.cli import app
@@ -84,3 +85,26 @@ def test_info_and_convert_on_a_simulated_log(tmp_path):
     result = runner.invoke(app, ["convert", str(log_path), str(tmp_path / "room.pcd")])
     assert result.exit_code == 0, result.stdout
     assert (tmp_path / "room.pcd").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_hybrid_scene_flow_from_the_command_line(tmp_path):
+    import mitsuba as mi
+
+    import mi_lidar
+
+    def run(*args):
+        result = runner.invoke(app, [str(a) for a in args])
+        assert result.exit_code == 0, result.stdout
+        return result
+
+    run("synth-world", "--out", tmp_path / "train.npz", "--seed", 11, "--length", 40, "--width", 30)
+    run("synth-world", "--out", tmp_path / "test.npz", "--seed", 22, "--length", 40, "--width", 30)
+    run("fit-scene", tmp_path / "train.npz", "--out", tmp_path / "fitted")
+    run("primitives", "extract", tmp_path / "train.npz", "--library", tmp_path / "lib")
+    assert "shrub" in run("primitives", "list", tmp_path / "lib").stdout
+    run("annotate", tmp_path / "test.npz", "--out", tmp_path / "ann.json")
+    run("compose", tmp_path / "ann.json", "--library", tmp_path / "lib", "--out", tmp_path / "composed.xml")
+    for xml in (tmp_path / "fitted" / "scene.xml", tmp_path / "composed.xml"):
+        image = np.asarray(mi.render(mi_lidar.load_scene(xml)))
+        assert np.mean(image[..., 1]) > 0.2  # the scene returns beams
