@@ -10,9 +10,16 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from . import bench_core
+from . import bench_calibrate, bench_core, bench_fit_scene
 
-BENCHMARKS = {"core": bench_core.run}  # results file stem -> function returning table rows
+
+def _rows(run):
+    """Adapt a benchmark returning row dicts to :class:`bench_core.Row`."""
+    return lambda: [bench_core.Row(**row) for row in run()]
+
+
+# results file stem -> function returning table rows
+BENCHMARKS = {"core": bench_core.run, "calibrate": _rows(bench_calibrate.run), "fit_scene": _rows(bench_fit_scene.run)}
 RESULTS = Path(__file__).resolve().parent / "results"
 COLUMNS = ("benchmark", "Mrays/s", "vs raw ray_intersect", "vs Open3D", "target", "pass/fail")
 
