@@ -141,14 +141,17 @@ def read_udp(path: str | Path) -> UdpPackets:
     offset = 24
     while offset < len(data):
         if offset + 16 > len(data):
-            raise LogFormatError(f"{path}: byte {offset}: truncated pcap record header ({len(data) - offset} of 16 bytes)")
+            raise LogFormatError(
+                f"{path}: byte {offset}: truncated pcap record header ({len(data) - offset} of 16 bytes)"
+            )
         seconds, fraction, captured, _ = record.unpack_from(data, offset)
         if captured > _MAX_RECORD:
             raise LogFormatError(f"{path}: byte {offset}: record length {captured} is implausible (corrupt file?)")
         end = offset + 16 + captured
         if end > len(data):
             raise LogFormatError(
-                f"{path}: byte {offset}: record of {captured} bytes is truncated at end of file ({len(data) - offset - 16} present)"
+                f"{path}: byte {offset}: record of {captured} bytes is truncated at end of file "
+                f"({len(data) - offset - 16} present)"
             )
         ip = _network_layer(link, data[offset + 16:end])
         datagram = None if ip is None else _ipv4_udp(path, offset, ip, fragments)

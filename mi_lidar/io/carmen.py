@@ -11,8 +11,7 @@ map frame (m, rad). Each message becomes one scan with ``H = 1`` and ``W = n``:
 - beam ``i`` is timed ``ipc_timestamp + i * sweep_s / n`` (SICK LMS 2xx: 180 deg of a 75 Hz
   mirror revolution, ``sweep_s = 1 / 150`` s).
 
-Attributes: ``odometry`` is not per-ray, so the raw odometry poses go to
-``sensor['odometry']`` ((S, 3) list of x, y, theta).
+The raw odometry poses are kept in ``sensor['odometry']`` (an (S, 3) list of x, y, theta).
 """
 
 from __future__ import annotations

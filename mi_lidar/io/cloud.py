@@ -34,7 +34,9 @@ INTENSITY_SOURCES = ("intensity", "reflectivity", "signal")
 STANDARD_FIELDS = ("x", "y", "z", "intensity", "ring", "column", "time")
 
 
-def _grid_indices(count: int, ring: np.ndarray | None, column: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, int, int]:
+def _grid_indices(
+    count: int, ring: np.ndarray | None, column: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Row and column of each point, and the grid size ``(H, W)``."""
     if ring is None:
         return np.zeros(count, dtype=np.int64), np.arange(count), 1, max(count, 1)
@@ -196,7 +198,8 @@ def cloud_from_log(log: Log, scan: int = 0, organized: bool = False) -> dict[str
     _, height, width = one.shape
     points = one.points_sensor()[0]
     keep = np.ones((height, width), dtype=bool) if organized else one.hit[0]
-    intensity = next((one.attributes[n][0] for n in INTENSITY_SOURCES if n in one.attributes), np.zeros((height, width)))
+    source = next((n for n in INTENSITY_SOURCES if n in one.attributes), None)
+    intensity = one.attributes[source][0] if source else np.zeros((height, width))
     rows, cols = np.indices((height, width))
     times = one.times[0]
     return {

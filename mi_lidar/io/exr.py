@@ -113,7 +113,8 @@ def write_exr_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
     times = one.times[0]
     channels = {
         "range": np.where(one.hit[0], one.ranges[0], np.nan).astype(np.float32), "hit": one.hit[0],
-        "elevation": np.arcsin(np.clip(direction[..., 2], -1, 1)), "azimuth": np.arctan2(direction[..., 1], direction[..., 0]),
+        "elevation": np.arcsin(np.clip(direction[..., 2], -1, 1)),
+        "azimuth": np.arctan2(direction[..., 1], direction[..., 0]),
         "time": times - times.min(),
     }
     if np.any(one.origins != 0):
@@ -147,7 +148,8 @@ def read_exr_log(path: str | os.PathLike) -> Log:
     ranges = channels["range"].astype(np.float32)
     hit = channels["hit"].astype(bool) & np.isfinite(ranges) if "hit" in channels else np.isfinite(ranges)
     elevation, azimuth = channels["elevation"].astype(np.float64), channels["azimuth"].astype(np.float64)
-    directions = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], -1)
+    cos_el = np.cos(elevation)
+    directions = np.stack([cos_el * np.cos(azimuth), cos_el * np.sin(azimuth), np.sin(elevation)], axis=-1)
     origins = None
     if all(f"origin.{a}" in channels for a in "xyz"):
         origins = np.stack([channels[f"origin.{a}"] for a in "xyz"], axis=-1)[None]

@@ -103,7 +103,9 @@ def read_bin_log(path: str | os.PathLike, columns: int | None = None, min_range:
     if columns == 5:
         ring = records[:, 4]
         if len(ring) and not (np.all(ring == np.round(ring)) and ring.min() >= 0 and ring.max() < 1024):
-            raise LogFormatError(f"{path}: column 5 (ring) holds non-integer or out-of-range values; not a nuScenes scan?")
+            raise LogFormatError(
+                f"{path}: column 5 (ring) holds non-integer or out-of-range values; not a nuScenes scan?"
+            )
     return log_from_points(
         records[:, :3], {"intensity": records[:, 3]}, ring=ring, min_range=min_range,
         sensor={"name": "nuscenes" if columns == 5 else "kitti", "source": str(path), "min_range_m": min_range},

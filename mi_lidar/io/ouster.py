@@ -324,7 +324,8 @@ def read_ouster(
     sensor = {
         "name": f"ouster:{meta.product}", "source": str(path), "metadata": str(metadata),
         "profile": meta.profile, "pixel_shift_by_row": shift.tolist(), "columns_per_frame": width,
-        "frequency_hz": meta.frequency_hz, "frame_ids": [int(f) for f in frame[np.r_[0, np.flatnonzero(np.diff(scan)) + 1]]],
+        "frequency_hz": meta.frequency_hz,
+        "frame_ids": [int(f) for f in frame[np.r_[0, np.flatnonzero(np.diff(scan)) + 1]]],
         "beam_altitude_deg": meta.altitude_deg.tolist(), "beam_azimuth_deg": meta.azimuth_deg.tolist(),
         "layout": "destaggered", "range_unit": "m",
     }

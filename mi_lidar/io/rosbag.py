@@ -154,7 +154,8 @@ def write_rosbag_log(log: Log, path: str | os.PathLike, topic: str = "/points", 
                     table[name] = cloud[name]
                 start = float(log.times[index].min())
                 sec = int(np.floor(start))
-                stamp = types["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((start - sec) * 1e9)) % 1_000_000_000)
+                nanosec = int(round((start - sec) * 1e9)) % 1_000_000_000
+                stamp = types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
                 msg = types[POINTCLOUD2](
                     header=types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id),
                     height=height, width=width, fields=layout, is_bigendian=False, point_step=offset,

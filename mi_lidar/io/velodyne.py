@@ -162,11 +162,14 @@ def _choose_model(path: Path, model: str | None, calibration: Calibration | None
         chosen = MODELS[model]
     elif calibration is not None and len(calibration.vert) == 16:
         chosen = MODELS["VLP-16"]
-    elif product in PRODUCT_IDS and (calibration is None or MODELS[PRODUCT_IDS[product]].lasers == len(calibration.vert)):
+    elif product in PRODUCT_IDS and (
+        calibration is None or MODELS[PRODUCT_IDS[product]].lasers == len(calibration.vert)
+    ):
         chosen = MODELS[PRODUCT_IDS[product]]
     else:
         raise LogFormatError(
-            f"{path}: cannot tell the Velodyne model (product byte 0x{product:02x}); pass model= one of {', '.join(MODELS)}"
+            f"{path}: cannot tell the Velodyne model (product byte 0x{product:02x}); "
+            f"pass model= one of {', '.join(MODELS)}"
         )
     if calibration is not None and len(calibration.vert) != chosen.lasers:
         raise LogFormatError(
@@ -329,7 +332,8 @@ def read_velodyne(
     if dual:
         second = grid(other_distance.reshape(shape), 0)
         name = "range_last" if return_mode == "strongest" else "range_strongest"
-        attributes[name] = np.where(valid & (second > 0), second * resolution + dist_correction, np.nan).astype(np.float32)
+        second_range = np.where(valid & (second > 0), second * resolution + dist_correction, np.nan)
+        attributes[name] = second_range.astype(np.float32)
     sensor = {
         "name": f"velodyne:{sensor_model.name}", "source": str(path),
         "calibration": None if calibration is None else str(calibration),

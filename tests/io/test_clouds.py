@@ -137,3 +137,38 @@ def test_inconsistent_ring_fields_are_rejected(tmp_path):
         log_from_points(points, ring=np.array([0, -1, 1]))
     with pytest.raises(LogFormatError, match="grid for only 3 points"):
         log_from_points(points, ring=np.array([0, 1, 2]), column=np.array([0, 1, 2**40]))
+
+
+def test_ros1_bag_with_unorganized_ring_cloud(tmp_path):
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    types = store.types
+    field = types["sensor_msgs/msg/PointField"]
+    rng = np.random.default_rng(3)
+    ring = np.tile(np.arange(4, dtype=np.uint16), 10)
+    elevation = np.radians(-10.0 + 5 * ring)
+    azimuth = np.repeat(np.linspace(0, 1, 10), 4)
+    distance = rng.uniform(2, 10, 40)
+    xyz = distance[:, None] * np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                                        np.sin(elevation)], axis=1)
+    record = np.dtype({"names": ["x", "y", "z", "ring"], "formats": ["<f4", "<f4", "<f4", "<u2"],
+                       "offsets": [0, 4, 8, 16], "itemsize": 20})
+    table = np.zeros(40, record)
+    table["x"], table["y"], table["z"], table["ring"] = xyz[:, 0], xyz[:, 1], xyz[:, 2], ring
+    msg = types["sensor_msgs/msg/PointCloud2"](
+        header=types["std_msgs/msg/Header"](seq=0, stamp=types["builtin_interfaces/msg/Time"](sec=5, nanosec=0),
+                                            frame_id="velodyne"),
+        height=1, width=40, fields=[field(name=n, offset=o, datatype=d, count=1)
+                                    for n, o, d in (("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("ring", 16, 4))],
+        is_bigendian=False, point_step=20, row_step=800, data=np.frombuffer(table.tobytes(), np.uint8), is_dense=True,
+    )
+    with Writer(tmp_path / "v.bag") as writer:
+        connection = writer.add_connection("/velodyne_points", msg.__msgtype__, typestore=store)
+        writer.write(connection, 5_000_000_000, store.serialize_ros1(msg, msg.__msgtype__))
+    log = read_any(tmp_path / "v.bag")
+    assert log.shape == (1, 4, 10)
+    np.testing.assert_array_equal(log.attributes["ring"][0, :, 0], [3, 2, 1, 0])
+    np.testing.assert_allclose(log.ranges[0, ::-1].T.ravel(), distance, rtol=1e-5)
+    assert np.all(log.times == 5.0)
