@@ -58,7 +58,8 @@ def ouster_payloads(range_mm: np.ndarray, profile: str = "LEGACY", frame_id: int
     """
     height, width = range_mm.shape
     columns = np.arange(width) if columns is None else np.asarray(columns)
-    pixel = {"LEGACY": 12, "RNG19_RFL8_SIG16_NIR16": 12}[profile]
+    pixel = {"LEGACY": 12, "RNG19_RFL8_SIG16_NIR16": 12, "RNG19_RFL8_SIG16_NIR16_DUAL": 16,
+             "RNG15_RFL8_NIR8": 4}[profile]
     payloads = []
     for start in range(0, len(columns), 16):
         ids = columns[start:start + 16]
@@ -69,18 +70,25 @@ def ouster_payloads(range_mm: np.ndarray, profile: str = "LEGACY", frame_id: int
                 header = struct.pack("<QHHI", stamp, int(m), frame_id, int(m) * 88)
             else:
                 header = struct.pack("<QHH", stamp, int(m), 1)
-            pixels = b"".join(
-                struct.pack("<IHHHH", int(range_mm[u, m]), u, 100 + u, 200 + u, 0)
-                if profile == "LEGACY" else
-                struct.pack("<IBBHHH", int(range_mm[u, m]), u, 0, 100 + u, 200 + u, 0)
-                for u in range(height)
-            )
+            pixels = b"".join(_pixel(profile, int(range_mm[u, m]), u) for u in range(height))
             assert len(pixels) == height * pixel
             body.append(header + pixels + (struct.pack("<I", 0xFFFFFFFF) if profile == "LEGACY" else b""))
         if profile != "LEGACY":
             body.append(bytes(32))
         payloads.append(b"".join(body))
     return payloads
+
+
+def _pixel(profile: str, range_mm: int, row: int) -> bytes:
+    """One pixel block: range, reflectivity = row, signal = 100 + row, near-IR = 200 + row."""
+    if profile == "LEGACY":
+        return struct.pack("<IHHHH", range_mm, row, 100 + row, 200 + row, 0)
+    if profile == "RNG19_RFL8_SIG16_NIR16":
+        return struct.pack("<IBBHHH", range_mm, row, 0, 100 + row, 200 + row, 0)
+    if profile == "RNG19_RFL8_SIG16_NIR16_DUAL":  # second return 1 m further, reflectivity in byte 3
+        return struct.pack("<IIHHHH", range_mm | row << 24, (range_mm + 1000) | row << 24, 100 + row, 50 + row,
+                           200 + row, 0)
+    return struct.pack("<HBB", range_mm >> 3, row, (200 + row) >> 4)
 
 
 def write_ouster(folder, range_mm: np.ndarray, profile: str = "LEGACY", nested: bool = False, **options):

@@ -73,6 +73,19 @@ def test_synthetic_profiles_decode_exactly(tmp_path, profile, nested):
     np.testing.assert_array_equal(log.attributes["reflectivity"][0], np.broadcast_to(rows, (8, 64)))
 
 
+def test_dual_and_low_bandwidth_profiles(tmp_path):
+    staggered = (np.random.default_rng(6).integers(40, 8000, (8, 32)) * 8).astype(np.uint32)
+    dual = read_ouster(write_ouster(tmp_path, staggered, profile="RNG19_RFL8_SIG16_NIR16_DUAL"))
+    shift = dual.sensor["pixel_shift_by_row"]
+    np.testing.assert_array_equal(restagger(dual.attributes["range_mm"][0], shift), staggered)
+    np.testing.assert_array_equal(restagger(dual.attributes["range2_mm"][0], shift), staggered + 1000)
+    np.testing.assert_array_equal(dual.attributes["reflectivity2"][0][:, 0], np.arange(8))
+    np.testing.assert_array_equal(dual.attributes["signal2"][0][:, 0], 50 + np.arange(8))
+    low = read_ouster(write_ouster(tmp_path, staggered, profile="RNG15_RFL8_NIR8"))
+    np.testing.assert_array_equal(restagger(low.attributes["range_mm"][0], shift), staggered)
+    np.testing.assert_array_equal(low.attributes["near_ir"][0][:, 0], ((200 + np.arange(8)) >> 4) << 4)
+
+
 def test_partial_frames_are_kept_as_invalid_columns(tmp_path):
     staggered = np.full((4, 64), 5000, np.uint32)
     payloads = ouster_payloads(staggered, frame_id=1, columns=np.arange(32, 64))
