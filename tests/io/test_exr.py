@@ -1,3 +1,5 @@
+import os
+
 import numpy as np
 import pytest
 
@@ -48,6 +50,9 @@ def test_atomic_write_leaves_no_temporary_file(tmp_path):
     write_exr(path, {"range": np.full((2, 3), 2.0, np.float32)})
     assert [p.name for p in tmp_path.iterdir()] == ["scan.exr"]
     np.testing.assert_array_equal(read_exr(path)["range"], 2.0)
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask
 
 
 def test_read_errors_name_the_file(tmp_path):
