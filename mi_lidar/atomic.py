@@ -1,33 +1,47 @@
-"""Atomic file writes: write to a temporary file in the target folder, then rename."""
+"""Atomic file writes: write to a temporary file in the target folder, then rename.
+
+A crash or an exception leaves the previous file (or nothing) and no temporary file behind, and
+the final file gets the usual permissions (0666 minus the umask), not mkstemp's 0600.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 
-def _umask() -> int:
+def _default_mode() -> int:
+    """Permissions of a freshly created file: 0666 minus the process umask."""
     mask = os.umask(0)
     os.umask(mask)
-    return mask
+    return 0o666 & ~mask
 
 
-def atomic_write(path: str | os.PathLike, write) -> Path:
-    """Call ``write(stream)`` on a binary temporary file next to ``path``, then rename it.
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; rename it onto ``path`` when the block succeeds.
 
-    A crash or an exception leaves any previous file at ``path`` untouched and no temporary
-    file behind. The new file gets the usual permissions (0666 minus the umask).
+    The temporary name keeps the destination's suffix, so libraries that choose a format by
+    extension (OpenEXR, plyfile, laspy) work. The parent folder is created when missing.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp)
     try:
-        with os.fdopen(fd, "wb") as stream:
-            write(stream)
-        os.chmod(tmp, 0o666 & ~_umask())
+        yield tmp
+        os.chmod(tmp, _default_mode())
         os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def atomic_write(path: str | os.PathLike, write) -> Path:
+    """Call ``write(stream)`` on a binary temporary file next to ``path``, then rename it to ``path``."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as stream:
+        write(stream)
+    return Path(path)

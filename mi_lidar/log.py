@@ -62,11 +62,11 @@ class Log:
         self.ranges = np.asarray(self.ranges, dtype=np.float32)
         self.hit = np.asarray(self.hit, dtype=bool)
         self.times = np.asarray(self.times, dtype=np.float64)
+        if self.directions.ndim == 3:
+            self.directions = self.directions[None]
         if self.origins is None:
             self.origins = np.zeros((1,) + self.directions.shape[1:], dtype=np.float32)
         self.origins = np.asarray(self.origins, dtype=np.float32)
-        if self.directions.ndim == 3:
-            self.directions = self.directions[None]
         if self.origins.ndim == 3:
             self.origins = self.origins[None]
         self.validate()

@@ -14,7 +14,7 @@ from .effects.base import RayBatch
 from .elements import ElementTable
 from .errors import PatternError
 from .log import Log
-from .poses import validate_poses
+from .io.poses import validate_poses
 from .scene import load_scene, scene_lidar_sensor, scene_sensor_model
 from .sensor_model import SensorModel
 

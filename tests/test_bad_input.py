@@ -6,7 +6,7 @@ import pytest
 import mi_lidar
 from mi_lidar.effects import parse_effects
 from mi_lidar.errors import ParameterError, PatternError, PoseError, SceneError
-from mi_lidar.poses import validate_poses
+from mi_lidar.io.poses import validate_poses
 
 from .conftest import SCENES
 
@@ -78,13 +78,13 @@ def test_missing_scene_file(tmp_path):
 def test_nan_pose():
     pose = np.eye(4)
     pose[0, 3] = np.nan
-    with pytest.raises(PoseError, match="pose 0 has non-finite"):
+    with pytest.raises(PoseError, match="pose 0 is not a rigid transform: has non-finite entries"):
         validate_poses(pose)
 
 
 def test_non_rigid_pose():
     pose = np.diag([2.0, 1.0, 1.0, 1.0])
-    with pytest.raises(PoseError, match="pose 1 is not rigid"):
+    with pytest.raises(PoseError, match="pose 1 is not a rigid transform"):
         validate_poses(np.stack([np.eye(4), pose]))
 
 

@@ -68,3 +68,9 @@ def test_wrong_version(tmp_path):
     np.savez(path, **arrays)
     with pytest.raises(LogFormatError, match="version 99"):
         Log.load(path)
+
+
+def test_three_dimensional_directions_get_default_origins():
+    log = small_log(1)
+    plain = Log(poses=log.poses, directions=log.directions[0], ranges=log.ranges, hit=log.hit, times=log.times)
+    assert plain.origins.shape == (1, 3, 5, 3) and not plain.origins.any()

@@ -18,7 +18,7 @@ import OpenEXR
 
 from ..errors import LogFormatError
 from ..log import Log
-from ._atomic import atomic_path
+from ..atomic import atomic_path
 
 _UINT_MAX = np.iinfo(np.uint32).max
 _FLOAT32_EXACT = 2**24

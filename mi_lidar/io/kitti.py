@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import LogFormatError
 from ..log import Log
-from ._atomic import atomic_path
+from ..atomic import atomic_path
 from .cloud import cloud_from_log, log_from_points
 
 

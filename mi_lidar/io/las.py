@@ -18,7 +18,7 @@ import numpy as np
 
 from ..errors import LogFormatError
 from ..log import Log
-from ._atomic import atomic_path
+from ..atomic import atomic_path
 from .cloud import cloud_from_log, log_from_fields
 
 COORDINATE_SCALE = 1e-4

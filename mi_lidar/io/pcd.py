@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import LogFormatError
 from ..log import Log
-from ._atomic import atomic_path
+from ..atomic import atomic_path
 from .cloud import cloud_from_log, log_from_fields
 
 _TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8",

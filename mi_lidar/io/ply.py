@@ -16,7 +16,7 @@ import plyfile
 
 from ..errors import LogFormatError
 from ..log import Log
-from ._atomic import atomic_path
+from ..atomic import atomic_path
 from .cloud import cloud_from_log, log_from_fields
 
 _PLY_KINDS = {np.dtype(t) for t in ("i1", "u1", "i2", "u2", "i4", "u4", "f4", "f8")}

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import LogFormatError, PoseError
-from ._atomic import atomic_path
+from ..atomic import atomic_path
 
 RIGID_TOLERANCE = 1e-4
 
@@ -22,11 +22,11 @@ def validate_poses(poses: np.ndarray, source: str | os.PathLike = "poses") -> np
     """Check that every pose is a finite rigid transform.
 
     Args:
-        poses: (S, 4, 4) sensor-to-world transforms.
+        poses: (S, 4, 4) or (4, 4) sensor-to-world transforms.
         source: Name used in error messages (usually the file).
 
     Returns:
-        ``poses`` as float64.
+        ``poses`` as (S, 4, 4) float64.
 
     Raises:
         PoseError: Naming ``source``, the first bad pose index and what is wrong: non-finite
@@ -34,8 +34,12 @@ def validate_poses(poses: np.ndarray, source: str | os.PathLike = "poses") -> np
             ``0 0 0 1``.
     """
     poses = np.asarray(poses, dtype=np.float64)
+    if poses.shape == (4, 4):
+        poses = poses[None]
     if poses.ndim != 3 or poses.shape[1:] != (4, 4):
         raise PoseError(f"{source}: poses have shape {poses.shape}; expected (S, 4, 4)")
+    if len(poses) == 0:
+        raise PoseError(f"{source}: no poses; give at least one 4x4 matrix")
     finite = np.isfinite(poses).all(axis=(1, 2))
     rot = np.where(finite[:, None, None], poses[:, :3, :3], np.eye(3))
     orth = np.abs(np.swapaxes(rot, 1, 2) @ rot - np.eye(3)).max(axis=(1, 2))

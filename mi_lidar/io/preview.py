@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
 
-from ._atomic import atomic_path
+from ..atomic import atomic_path
 
 MISS_COLOUR = "#ff00ff"
 FIGURE_WIDTH_IN = 12.0
