@@ -145,7 +145,9 @@ def write_any(log: Log, path: str | os.PathLike, fmt: str | None = None, scan: i
     if fmt == "png":
         one = log.scan(scan)
         title = f"{one.sensor.get('name', 'scan')} scan {scan}"
-        return range_image_png(path, one.ranges[0], title=title, hit=one.hit[0])
+        valid = one.attributes.get("valid")
+        return range_image_png(path, one.ranges[0], title=title, hit=one.hit[0],
+                               valid=None if valid is None else valid[0])
     writers = {"bin": kitti.write_bin_log, "ply": ply.write_ply_log, "pcd": pcd.write_pcd_log,
                "las": las.write_las_log, "exr": exr.write_exr_log}
     return writers[fmt](log, path, scan=scan)

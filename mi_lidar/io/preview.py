@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib import colormaps
+from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
@@ -19,6 +20,7 @@ from matplotlib.ticker import MaxNLocator
 from ..atomic import atomic_path
 
 MISS_COLOUR = "#ff00ff"
+EMPTY_COLOUR = "#b0b0b0"
 FIGURE_WIDTH_IN = 12.0
 DPI = 110
 ROW_HEIGHT_IN = 0.1
@@ -37,8 +39,9 @@ def range_image_png(
     ranges: np.ndarray,
     title: str = "range image",
     hit: np.ndarray | None = None,
+    valid: np.ndarray | None = None,
 ) -> Path:
-    """Draw an (H, W) range image with a colour bar in metres and misses in magenta.
+    """Draw an (H, W) range image with a colour bar in metres, misses in magenta, empty cells grey.
 
     Rows are beams (top row = first beam), columns are firings. Rows are stretched so that thin
     images stay readable: a 16 x 1800 or 32 x 1024 image is drawn 12 inches wide, and each
@@ -49,6 +52,8 @@ def range_image_png(
         ranges: (H, W) ranges (m); NaN marks a miss.
         title: Figure title.
         hit: Optional (H, W) bool; False marks a miss as well.
+        valid: Optional (H, W) bool; False marks a cell the sensor did not fire (a partial
+            frame), drawn grey and left out of the miss fraction.
 
     Returns:
         The destination path.
@@ -59,20 +64,29 @@ def range_image_png(
     miss = ~np.isfinite(ranges)
     if hit is not None:
         miss |= ~np.asarray(hit, dtype=bool)
+    empty = np.zeros_like(miss) if valid is None else ~np.asarray(valid, dtype=bool)
+    miss &= ~empty
     rows, cols = ranges.shape
     image_height_in = float(np.clip(rows * ROW_HEIGHT_IN, 1.5, 8.0))
     figure = Figure(figsize=(FIGURE_WIDTH_IN, image_height_in + 1.4))
     axes = figure.add_subplot()
     cmap = colormaps["viridis"].with_extremes(bad=MISS_COLOUR)
-    shown = np.ma.masked_array(ranges, mask=miss)
+    shown = np.ma.masked_array(ranges, mask=miss | empty)
     image = axes.imshow(shown, cmap=cmap, aspect="auto", interpolation="nearest")
+    if empty.any():
+        axes.imshow(np.ma.masked_array(np.ones_like(ranges), mask=~empty), cmap=ListedColormap([EMPTY_COLOUR]),
+                    aspect="auto", interpolation="nearest")
     colour_bar = figure.colorbar(image, ax=axes, pad=0.01, fraction=0.04)
     colour_bar.set_label("range (m)")
     axes.set_xlabel("firing (column)")
     axes.set_ylabel("beam (row)")
     axes.yaxis.set_major_locator(MaxNLocator(integer=True))
-    axes.set_title(f"{title}  ({rows} x {cols}, {miss.mean():.1%} misses)" if miss.size else title)
-    axes.legend(handles=[Patch(color=MISS_COLOUR, label="miss (no return)")], loc="upper right", fontsize=8)
+    fired = miss.size - int(empty.sum())
+    axes.set_title(f"{title}  ({rows} x {cols}, {miss.sum() / fired:.1%} misses)" if fired else title)
+    handles = [Patch(color=MISS_COLOUR, label="miss (no return)")]
+    if empty.any():
+        handles.append(Patch(color=EMPTY_COLOUR, label="not fired (partial frame)"))
+    axes.legend(handles=handles, loc="upper right", fontsize=8)
     figure.tight_layout()
     return _save(figure, path)
 
