@@ -100,9 +100,9 @@ def _load(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
     missing = [c for c in _COORDS if c not in names]
     if missing:
         raise LogFormatError(f"{path}: vertex element lacks properties {missing}; expected x y z")
-    points = np.stack([vertex[c] for c in _COORDS], axis=1).astype(np.float32)
+    points = np.stack([vertex[c] for c in _COORDS], axis=1).astype(np.float32, copy=False)
     attributes = {
-        n: np.ascontiguousarray(vertex[n]).astype(vertex.dtype[n].newbyteorder("="))
+        n: vertex[n].astype(vertex.dtype[n].newbyteorder("="))
         for n in names
         if n not in _COORDS
     }
