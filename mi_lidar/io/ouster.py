@@ -220,19 +220,31 @@ def _take(block: np.ndarray, spec: _Field) -> np.ndarray:
 
 
 def _geometry(meta: OusterMetadata) -> tuple[np.ndarray, np.ndarray]:
-    """Staggered (H, W, 3) unit directions and origins (m) in the sensor frame."""
-    width = meta.columns_per_frame
-    encoder = 2 * np.pi * (1 - np.arange(width) / width)[None, :]
+    """Destaggered (H, W, 3) unit directions and origins (m) in the sensor frame.
+
+    Pixel (u, v) holds measurement id ``m = (v - pixel_shift_by_row[u]) mod W`` at encoder angle
+    ``enc = 2 pi (1 - m / W)``; ``cos(enc + az)`` and ``sin(enc + az)`` come from per-column and
+    per-beam tables by the angle-sum identities, so no trigonometry runs per pixel.
+    """
+    height, width = len(meta.altitude_deg), meta.columns_per_frame
+    encoder = 2 * np.pi * (1 - np.arange(width) / width)
+    m = (np.arange(width)[None, :] - np.asarray(meta.pixel_shift_by_row)[:, None]) % width
+    cos_e, sin_e = np.cos(encoder)[m], np.sin(encoder)[m]
     azimuth = -np.radians(meta.azimuth_deg)[:, None]
     altitude = np.radians(meta.altitude_deg)[:, None]
-    direction = np.stack(np.broadcast_arrays(
-        np.cos(encoder + azimuth) * np.cos(altitude), np.sin(encoder + azimuth) * np.cos(altitude), np.sin(altitude),
-    ), axis=-1)
+    cos_alt, sin_alt = np.cos(altitude), np.sin(altitude)
+    cos_ea = cos_e * np.cos(azimuth) - sin_e * np.sin(azimuth)
+    sin_ea = sin_e * np.cos(azimuth) + cos_e * np.sin(azimuth)
     n = meta.beam_origin_mm
-    beam_origin = np.stack(np.broadcast_arrays(n * np.cos(encoder), n * np.sin(encoder), 0 * encoder), axis=-1)
-    offset = beam_origin - n * direction
     rotation, translation = meta.lidar_to_sensor[:3, :3], meta.lidar_to_sensor[:3, 3]
-    return direction @ rotation.T, (offset @ rotation.T + translation) / 1000.0
+    # Beam origin n (cos enc, sin enc, 0) minus n * direction, then the lidar-to-sensor transform;
+    # rotations are written out elementwise (BLAS threads would compete with Dr.Jit's).
+    d = (cos_ea * cos_alt, sin_ea * cos_alt, np.broadcast_to(sin_alt, (height, width)))
+    o = (n * (cos_e - d[0]), n * (sin_e - d[1]), -n * d[2])
+    direction = np.stack([rotation[i, 0] * d[0] + rotation[i, 1] * d[1] + rotation[i, 2] * d[2] for i in range(3)], -1)
+    origin = np.stack([(rotation[i, 0] * o[0] + rotation[i, 1] * o[1] + rotation[i, 2] * o[2] + translation[i]) / 1000.0
+                       for i in range(3)], -1)
+    return direction, origin
 
 
 def read_ouster(
@@ -296,31 +308,31 @@ def read_ouster(
     scan = np.concatenate([[0], np.cumsum(frame[1:] != frame[:-1])])
     n_scans = int(scan[-1]) + 1
 
+    # Scatter every column straight to its destaggered place: row u of measurement id m lands in
+    # column (m + pixel_shift_by_row[u]) mod W.
+    shift = meta.pixel_shift_by_row
+    rows = np.arange(height)[None, :]
+    cells = (scan[:, None], rows, (measurement[:, None] + np.asarray(shift)[None, :]) % width)
     fields = {}
     for name, spec in profile.fields.items():
-        values = _take(pixels, spec).reshape(-1, height)
-        image = np.zeros((n_scans, height, width), dtype=values.dtype)
-        image[scan, :, measurement] = values
+        image = np.zeros((n_scans, height, width), dtype=_WIDE[spec.dtype])
+        image[cells] = _take(pixels, spec).reshape(-1, height)
         fields[name] = image
     valid = np.zeros((n_scans, height, width), dtype=bool)
-    valid[scan, :, measurement] = valid_column[:, None]
-    fields["range_mm"] = np.where(valid, fields["range_mm"], 0).astype(fields["range_mm"].dtype)
+    valid[cells] = valid_column[:, None]
+    fields["range_mm"][~valid] = 0
 
     period = 1.0 / meta.frequency_hz
     seconds = stamp.astype(np.float64) * 1e-9
     start = np.full(n_scans, np.nan)
     np.fmin.at(start, scan, seconds - measurement * period / width)
     times = start[:, None, None] + (np.arange(width) * period / width)[None, None, :]
-    times = np.broadcast_to(times, (n_scans, height, width)).copy()
-    times[scan, :, measurement] = seconds[:, None]
+    times = destagger(np.broadcast_to(times, (n_scans, height, width)), shift)
+    times[cells] = seconds[:, None]
 
     direction, origin = _geometry(meta)
-    shift = meta.pixel_shift_by_row
-    destaggered = {name: destagger(image, shift) for name, image in fields.items()}
-    valid = destagger(valid, shift)
-    hit = valid & (destaggered["range_mm"] > 0)
-    ranges = np.where(hit, destaggered["range_mm"] / 1000.0, np.nan)
-    geometry = [destagger(np.moveaxis(a, -1, 0), shift) for a in (direction, origin)]
+    hit = valid & (fields["range_mm"] > 0)
+    ranges = np.where(hit, fields["range_mm"] / 1000.0, np.nan)
     sensor = {
         "name": f"ouster:{meta.product}", "source": str(path), "metadata": str(metadata),
         "profile": meta.profile, "pixel_shift_by_row": shift.tolist(), "columns_per_frame": width,
@@ -331,7 +343,7 @@ def read_ouster(
     }
     return Log(
         poses=np.tile(np.eye(4), (n_scans, 1, 1)),
-        directions=np.moveaxis(geometry[0], 0, -1)[None], origins=np.moveaxis(geometry[1], 0, -1)[None],
-        ranges=ranges, hit=hit, times=destagger(times, shift),
-        attributes={**destaggered, "valid": valid}, sensor=sensor,
+        directions=direction[None], origins=origin[None],
+        ranges=ranges, hit=hit, times=times,
+        attributes={**fields, "valid": valid}, sensor=sensor,
     )
