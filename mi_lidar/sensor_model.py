@@ -80,29 +80,13 @@ class SensorModel:
         return seg
 
     def virtual_segments(self, rays: RayBatch) -> list[Segment]:
-        """Segments met before the scene's elements, from effects with a ``virtual_segments`` hook.
-
-        An effect may define ``virtual_segments(rays) -> list[Segment]``: elements that are not
-        in the scene (outlier returns, clutter, dust) met first along every ray, with their own
-        hit probability and truncated-Gaussian range. Other effects do not edit them.
-        """
-        segments = []
-        for effect in self.effects:
-            hook = getattr(effect, "virtual_segments", None)
-            if hook is not None:
-                segments.extend(hook(rays))
-        return segments
+        """Elements met before the scene's, from the effects' :meth:`Effect.virtual_segments`."""
+        return [seg for effect in self.effects for seg in effect.virtual_segments(rays)]
 
     def likelihood_segment(self, seg: Segment, rays: RayBatch) -> Segment:
-        """Apply the effects' ``likelihood_segment(seg, rays)`` hooks (likelihood path only).
-
-        An effect whose sampler acts in :meth:`Effect.finalize_range` (quantization) uses this
-        hook to give the likelihood the matching continuous approximation.
-        """
+        """Apply the effects' likelihood-only edits (:meth:`Effect.likelihood_segment`)."""
         for effect in self.effects:
-            hook = getattr(effect, "likelihood_segment", None)
-            if hook is not None:
-                seg = hook(seg, rays)
+            seg = effect.likelihood_segment(seg, rays)
         return seg
 
     def _intersect(self, scene, table: ElementTable, rays: RayBatch, start: mi.Point3f):

@@ -6,7 +6,9 @@ An effect has named parameters and acts through up to three hooks of the one sim
 * :meth:`Effect.perturb_rays` edits the rays before tracing (angle offsets, extrinsics);
 * :meth:`Effect.modify_segment` edits each element a ray meets: its hit probability ``p`` and
   the Gaussian ``N(mean, sigma^2)`` of the range it returns (noise laws, dropout, bias, scale);
-* :meth:`Effect.finalize_range` post-processes a sampled range (quantization).
+* :meth:`Effect.finalize_range` post-processes a sampled range (quantization), with
+  :meth:`Effect.likelihood_segment` as its continuous stand-in in the likelihood;
+* :meth:`Effect.virtual_segments` adds elements met before the scene (outliers, clutter).
 
 The **sampler** of an effect is the core's sampling loop run with these hooks; its
 **log-likelihood** is the core's pass-through mixture ``-log sum_k P_k N(z; mean_k, sigma_k)``
@@ -176,6 +178,14 @@ class Effect:
     def finalize_range(self, z: mi.Float, rays: RayBatch) -> mi.Float:
         """Post-process sampled ranges (default: unchanged)."""
         return z
+
+    def virtual_segments(self, rays: RayBatch) -> list[Segment]:
+        """Elements that are not in the scene (outliers, clutter, dust) met before it (default: none)."""
+        return []
+
+    def likelihood_segment(self, seg: Segment, rays: RayBatch) -> Segment:
+        """Likelihood-only edit: the continuous stand-in for a :meth:`finalize_range` sampler (default: unchanged)."""
+        return seg
 
     def describe(self) -> str:
         """``name(key=value, ...)``: the effect as written in XML or on the command line."""
