@@ -129,3 +129,37 @@ def birds_eye_png(
     axes.grid(True, linewidth=0.3)
     figure.tight_layout()
     return _save(figure, path)
+
+
+def _srgb(image: np.ndarray) -> np.ndarray:
+    """Linear RGB (H, W, 3) -> display sRGB in [0, 1]."""
+    linear = np.clip(np.asarray(image, dtype=np.float64), 0.0, 1.0)
+    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+
+
+def rgb_png(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write a linear (H, W, 3) RGB image as an sRGB PNG at its own resolution."""
+    height, width = image.shape[:2]
+    figure = Figure(figsize=(width / DPI, height / DPI))
+    axes = figure.add_axes((0, 0, 1, 1))
+    axes.imshow(_srgb(image), interpolation="nearest")
+    axes.set_axis_off()
+    return _save(figure, path)
+
+
+def overlay_png(path: str | os.PathLike, image: np.ndarray, uv: np.ndarray, depth: np.ndarray,
+                title: str = "Lidar over camera") -> Path:
+    """Draw Lidar returns (pixel coordinates ``uv`` (N, 2), depth (N,) m) over a linear RGB image."""
+    height, width = image.shape[:2]
+    figure = Figure(figsize=(FIGURE_WIDTH_IN, FIGURE_WIDTH_IN * height / width + 0.8))
+    axes = figure.add_subplot()
+    axes.imshow(_srgb(image), interpolation="nearest")
+    dots = axes.scatter(uv[:, 0], uv[:, 1], c=depth, s=2, cmap="turbo")
+    axes.set_xlim(0, width)
+    axes.set_ylim(height, 0)
+    axes.set_axis_off()
+    colour_bar = figure.colorbar(dots, ax=axes, pad=0.01, fraction=0.04)
+    colour_bar.set_label("depth (m)")
+    axes.set_title(f"{title}  ({len(uv)} points)")
+    figure.tight_layout()
+    return _save(figure, path)
