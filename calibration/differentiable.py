@@ -1,13 +1,14 @@
-"""Differentiable element geometry, rays from logs, and the gradient-free trace of calibration.
+"""Differentiable element geometry and the rays of logs.
 
-Calibration traces every ray once without gradients (:func:`trace_records`) and keeps, per
-round ``k``, only which element the ray met (``valid``, ``element``) plus the traced nominal
-range and incidence cosine. :class:`DiffTable` then rebuilds each segment *with* gradients from
-flat arrays: the triangle entry distance ``t = dot(v0 - o, n) / dot(d, n)`` from the vertex
-positions, and the ellipsoid chord from the ``ellipsoid_data`` array, so gradients reach vertex
-heights, ellipsoid centers and scales, and (through the rays) the sensor intrinsics and
-extrinsics. :meth:`mi_lidar.sensor_model.SensorModel.log_likelihood` evaluates the
-pass-through mixture on these segments.
+Calibration traces every ray once without gradients (:mod:`mi_lidar.calibration.records`: per
+entry the element met, the traced nominal range and incidence). :class:`DiffTable` then rebuilds
+each segment *with* gradients from flat arrays: the triangle entry distance
+``t = dot(v0 - o, n) / dot(d, n)`` from the vertex positions, and the ellipsoid chord from the
+``ellipsoid_data`` array, so gradients reach vertex heights, ellipsoid centers and scales, and
+(through the rays) the sensor intrinsics and extrinsics. When nothing fitted moves rays or
+geometry, :meth:`DiffTable.cached_segment` reads the geometry computed once and only gathers the
+fitted per-element values. :mod:`mi_lidar.calibration.likelihood` evaluates the pass-through
+mixture on these segments.
 """
 
 from __future__ import annotations
@@ -23,20 +24,6 @@ from mi_lidar.effects.base import RayBatch
 from mi_lidar.elements import ELLIPSOID_STRIDE, ElementTable
 from mi_lidar.log import Log
 from mi_lidar.segment import ELLIPSOID, Segment, ray_restricted_gaussian, rotate_inverse
-from mi_lidar.sensor_model import RESTART_OFFSET, SensorModel
-
-
-@dataclass
-class TracedHit:
-    """What the gradient-free trace keeps of one round (one lane per ray).
-
-    Attributes:
-        nominal: traced nominal range, m (used for shapes that are neither meshes nor ellipsoids).
-        cos_incidence: traced |cos| of the incidence angle (same use).
-    """
-
-    nominal: mi.Float
-    cos_incidence: mi.Float
 
 
 @dataclass
@@ -105,8 +92,9 @@ class DiffTable(ElementTable):
         """The :class:`Segment` of element ``element`` along rays ``(origin, direction)``, with gradients.
 
         Args:
-            si: a :class:`TracedHit` of the round (its values are used only for shapes that are
-                neither meshes nor ellipsoids, whose geometry is not differentiable here).
+            si: the traced values (``nominal`` range in m and ``cos_incidence``) of the same lanes,
+                used only for shapes that are neither meshes nor ellipsoids, whose geometry is
+                not differentiable here (a :class:`~mi_lidar.calibration.records.Round`).
             valid: lanes whose ray met an element.
             element: global element indices.
             origin, direction: the ray origins (m) and unit directions the range is measured from.
@@ -154,50 +142,32 @@ class DiffTable(ElementTable):
             kind=kind,
         )
 
+    def cached_segment(self, element: mi.UInt32, nominal: mi.Float, cos_incidence: mi.Float, cached: tuple,
+                       default_sigma: float, valid: mi.Bool) -> Segment:
+        """The :class:`Segment` of ``element`` from geometry computed once (rays and geometry fixed).
 
-def trace_records(scene, table: ElementTable, model: SensorModel, rays: RayBatch) -> list[dict]:
-    """Trace up to ``model.max_segments`` elements along every ray, without gradients.
+        Only the per-element values that can be fitted without moving anything are read from the
+        table (hit probability, and range sigma of surfaces), so gradients reach them.
 
-    Follows the same rules as the sampler (restart ``RESTART_OFFSET`` past each element,
-    ``max_range`` on the nominal range) but keeps only compact per-round records.
+        Args:
+            element: global element indices, one lane per entry.
+            nominal, cos_incidence: traced nominal range (m) and |cos| of the incidence.
+            cached: ``(mean, sigma, lo, hi)`` of the return distribution before effects (m), as
+                :meth:`segment` computed them (``sigma`` is used for ellipsoids only).
+            default_sigma: the sensor's range sigma (m), used where an element has none.
+            valid: lanes that hold an entry (the others read nothing).
+        """
+        mean, e_sigma, lo, hi = cached
+        kind = dr.gather(mi.UInt32, self.kind, element, valid)
+        sigma = dr.gather(mi.Float, self.range_sigma, element, valid)
+        sigma = dr.select(kind == ELLIPSOID, e_sigma, dr.select(dr.isnan(sigma), default_sigma, sigma))
+        return Segment(
+            valid=valid, nominal=nominal, p=dr.gather(mi.Float, self.p_hit, element, valid), mean=mean, sigma=sigma,
+            lo=lo, hi=hi, cos_incidence=cos_incidence, element=element,
+            shape=dr.gather(mi.UInt32, self.element_shape, element, valid),
+            label=dr.gather(mi.UInt32, self.label, element, valid), kind=kind,
+        )
 
-    Returns:
-        Per round, ``{"valid": Bool, "element": UInt32, "si": TracedHit}`` (one lane per ray),
-        the record format :meth:`SensorModel.log_likelihood` expects with a :class:`DiffTable`.
-    """
-    records = []
-    with dr.suspend_grad():
-        rays = model.prepare_rays(rays)
-        origin, direction = mi.Point3f(dr.detach(rays.origin)), mi.Vector3f(dr.detach(rays.direction))
-        start = mi.Point3f(origin)
-        for _ in range(model.max_segments):
-            si = scene.ray_intersect(mi.Ray3f(start, direction), mi.RayFlags.Minimal, True)
-            nominal = dr.dot(si.p - origin, direction)
-            valid = si.is_valid() & (nominal <= model.max_range)
-            element = dr.select(valid, table.element_of(si), 0)
-            hit = TracedHit(nominal=dr.select(valid, nominal, 0.0), cos_incidence=dr.abs(dr.dot(si.n, direction)))
-            dr.eval(valid, element, hit.nominal, hit.cos_incidence)
-            if not dr.any(valid):
-                break
-            records.append({"valid": valid, "element": element, "si": hit})
-            start = dr.select(valid, si.p + RESTART_OFFSET * direction, start)
-            dr.eval(start)
-    return records
-
-
-def take_records(records: list[dict], index: mi.UInt32) -> list[dict]:
-    """The lanes ``index`` of every record (rounds left without a valid lane are dropped)."""
-    taken = []
-    for record in records:
-        valid = dr.gather(mi.Bool, record["valid"], index)
-        if not dr.any(valid):
-            break
-        taken.append({
-            "valid": valid, "element": dr.gather(mi.UInt32, record["element"], index),
-            "si": TracedHit(nominal=dr.gather(mi.Float, record["si"].nominal, index),
-                            cos_incidence=dr.gather(mi.Float, record["si"].cos_incidence, index)),
-        })
-    return taken
 
 
 @dataclass

@@ -9,8 +9,18 @@ held-out part; every step draws a mini-batch of training rays from a generator s
 ``(seed, step)``, and the held-out loss is evaluated every ``eval_every`` steps for early
 stopping (the best held-out parameters are kept).
 
-When no selected parameter moves geometry the segments of every ray are traced once and
-reused; otherwise the scene is updated and each mini-batch re-traced at every step.
+The likelihood is evaluated on compact trace records (:mod:`mi_lidar.calibration.records`):
+only the (ray, element) pairs that exist, round by round. How much is computed once depends on
+what is fitted:
+
+* nothing moves rays or geometry (hit probabilities, range sigmas, range bias and scale, effects
+  that do not perturb rays): every ray of the log is traced once and each element's return
+  distribution along it computed once; a step only gathers the fitted per-element values and
+  evaluates the mixture;
+* an effect that perturbs rays is fitted: the trace is reused, the segments' geometry is rebuilt
+  along the perturbed rays at every step (gradients through the rays);
+* geometry is fitted (heights, centers, scales, beam angles, extrinsics): the scene is updated and
+  each mini-batch re-traced at every step.
 """
 
 from __future__ import annotations
@@ -23,14 +33,17 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_lidar.arrays import aligned
+from mi_lidar.effects.base import Effect
 from mi_lidar.errors import CalibrationError
 from mi_lidar.log import Log
 from mi_lidar.scene import scene_lidar_sensor, scene_sensor_model
-from mi_lidar.segment import ELLIPSOID
 from mi_lidar.sensor_model import SensorModel
 
-from .differentiable import LogRays, take_records, trace_records
+from .differentiable import LogRays
+from .likelihood import mixture_log_likelihood, returned_and_passed, round_segment
 from .parameters import P_EPS, ParameterSpace
+from .records import CachedBatch, RayCache, cache_distributions, trace_rounds
 
 
 @dataclass
@@ -150,38 +163,60 @@ class Calibration:
         self.model = self.space.calibration_model(self.names)
         self.params = {n: self.space.params[n] for n in self.names}
         self.geometric = any(p.geometric for p in self.params.values())
+        effects = {e.name: e for e in self.model.effects}
+        moves_rays = any(p.family == "effect" and type(effects[p.target[0]]).perturb_rays is not Effect.perturb_rays
+                         for p in self.params.values())
+        self.static = not (self.geometric or moves_rays)  # segment distributions computed once
+        edits = any(type(e).modify_segment is not Effect.modify_segment or hasattr(e, "likelihood_segment")
+                    for e in self.model.effects)
+        # only hit probabilities move: the densities of the measured ranges are computed once too
+        self.densities = self.static and not edits and all(p.family == "p_hit" for p in self.params.values())
         self.rays = LogRays.from_log(log)
         order = np.random.default_rng(self.options.seed).permutation(self.rays.n)
         n_held = max(1, int(round(self.options.holdout * self.rays.n)))
         self.held_out = np.sort(order[:n_held][: self.options.eval_rays])
         self.train = np.sort(order[n_held:])
-        self._cache: dict[str, list] = {}
+        self._cache: dict[str, RayCache] = {}
+        self._part_rays: dict[str, tuple] = {}
         self.observations: dict[str, np.ndarray] = {}
 
     # --------------------------------------------------------------------- likelihood
-    def _records(self, part: str, index: np.ndarray, position: np.ndarray | None, values: dict):
-        """Rays ``index`` of the log with their traced records (cached unless geometry is fitted)."""
-        rays, z, hit = self.rays.batch(index)
+    def _records(self, part: str, position: np.ndarray, values: dict):
+        """The rays at ``position`` in part ``part`` (``"train"`` or ``"held_out"``) with their records.
+
+        The part's rays are uploaded once and gathered per batch. Without fitted geometry the
+        records come from the part's :class:`RayCache` (traced once): a :class:`CachedBatch` when
+        the return distributions are cached (:attr:`static`), else compact :class:`Rounds`. With
+        fitted geometry the scene takes the detached ``values`` and the rays are traced anew.
+
+        Returns:
+            ``(rays, measured ranges (m), hits, records)`` of the batch.
+        """
+        if part not in self._part_rays:
+            self._part_rays[part] = self.rays.batch(self.train if part == "train" else self.held_out)
+        all_rays, all_z, all_hit = self._part_rays[part]
+        lanes = mi.UInt32(aligned(np.asarray(position).astype(np.uint32)))
+        rays, z, hit = all_rays.take(lanes), dr.gather(mi.Float, all_z, lanes), dr.gather(mi.Bool, all_hit, lanes)
         if self.geometric:
             with dr.suspend_grad():
                 table, model = self.space.build({k: dr.detach(v) for k, v in values.items()}, self.model)
                 self.space.push_geometry(table)
-                return rays, z, hit, trace_records(self.scene, table, model, rays)
+                return rays, z, hit, trace_rounds(self.scene, table, model, rays)
         if part not in self._cache:
-            all_index = self.train if part == "train" else self.held_out
             with dr.suspend_grad():
                 table, model = self.space.build({}, self.model)
-                all_rays, _, _ = self.rays.batch(all_index)
-                self._cache[part] = trace_records(self.scene, table, model, all_rays)
-        records = self._cache[part]
-        if position is not None:
-            records = take_records(records, mi.UInt32(position.astype(np.uint32)))
-        return rays, z, hit, records
+                rounds = trace_rounds(self.scene, table, model, all_rays)
+                if self.static:
+                    measured = dr.select(all_hit, all_z, 0.0) if self.densities else None
+                    rounds = cache_distributions(rounds, table, model, all_rays, measured)
+                self._cache[part] = RayCache.from_rounds(rounds)
+        cache = self._cache[part]
+        return rays, z, hit, cache.batch(position) if self.static else cache.select(position)
 
-    def log_likelihood(self, values: dict, rays, z, hit, records) -> mi.Float:
+    def log_likelihood(self, values: dict, rays, z, hit, rounds) -> mi.Float:
         """Per-ray robust log-likelihood (nats) under natural parameter ``values`` (keeps gradients)."""
         table, model = self.space.build(values, self.model)
-        ll = model.log_likelihood(table, rays, records, z, hit)
+        ll = mixture_log_likelihood(table, model, rays, rounds, z, hit)
         if self.options.floor <= 0:
             return ll
         floor = dr.select(hit, math.log(self.options.floor / model.max_range), math.log(self.options.floor))
@@ -193,8 +228,8 @@ class Calibration:
         with dr.suspend_grad():
             for first in range(0, len(self.held_out), size):
                 position = np.arange(first, min(first + size, len(self.held_out)))
-                rays, z, hit, records = self._records("held_out", self.held_out[position], position, values)
-                total += float(dr.sum(-self.log_likelihood(values, rays, z, hit, records))[0])
+                rays, z, hit, rounds = self._records("held_out", position, values)
+                total += float(dr.sum(-self.log_likelihood(values, rays, z, hit, rounds))[0])
         return total / len(self.held_out)
 
     # ------------------------------------------------------------------ counting start
@@ -212,28 +247,25 @@ class Calibration:
         """
         n = self.space.table.n_elements
         hits, passes = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
-        gate, size = self.options.gate, self.options.batch_size
+        size = self.options.batch_size
         with dr.suspend_grad():
             table, model = self.space.build(values, self.model)
             for first in range(0, len(self.train), size):
                 position = np.arange(first, min(first + size, len(self.train)))
-                rays, z, hit, records = self._records("train", self.train[position], position, values)
+                rays, z, hit, rounds = self._records("train", position, values)
+                rounds = rounds.rounds() if isinstance(rounds, CachedBatch) else rounds
                 rays = model.prepare_rays(rays)
-                done = dr.zeros(mi.Bool, dr.width(z))
-                for record in records:
-                    seg = table.segment(record["si"], record["valid"], record["element"], rays.origin, rays.direction,
-                                        model.range_sigma)
-                    seg = model.apply_effects(seg, rays)
-                    ellipsoid = seg.kind == ELLIPSOID
-                    upper = dr.select(ellipsoid, seg.hi, seg.mean + gate * seg.sigma)
-                    lower = dr.select(ellipsoid, seg.lo, seg.mean - gate * seg.sigma)
-                    live = record["valid"] & ~done
-                    returned = live & hit & (z >= lower) & (z <= upper)
-                    passed = live & ~returned & (~hit | (z > upper))
-                    dr.scatter_reduce(dr.ReduceOp.Add, hits, 1.0, record["element"], returned)
-                    dr.scatter_reduce(dr.ReduceOp.Add, passes, 1.0, record["element"], passed)
-                    done |= returned
-                dr.eval(hits, passes)
+                done = dr.zeros(mi.Bool, rounds.width)  # the ray's return is already attributed
+                for r in rounds.rounds:
+                    seg, _ = round_segment(table, model, rays, r)
+                    done = dr.gather(mi.Bool, done, r.prev)
+                    returned, passed = returned_and_passed(seg, dr.gather(mi.Float, z, r.ray),
+                                                           dr.gather(mi.Bool, hit, r.ray), self.options.gate)
+                    returned, passed = returned & ~done, passed & ~done
+                    dr.scatter_reduce(dr.ReduceOp.Add, hits, 1.0, r.element, returned)
+                    dr.scatter_reduce(dr.ReduceOp.Add, passes, 1.0, r.element, passed)
+                    done = done | returned
+                    dr.eval(hits, passes, done)
         hits, passes = np.asarray(hits), np.asarray(passes)
         out = {}
         for name, par in self.params.items():
@@ -281,16 +313,14 @@ class Calibration:
         for step in range(1, opts.steps + 1):
             # ---------------- Mini-batch of training rays, seeded by (seed, step) ----------------
             if opts.batch_size >= len(self.train):
-                position = None if not self.geometric else np.arange(len(self.train))
-                index = self.train
+                position = np.arange(len(self.train))
             else:
                 position = np.random.default_rng((opts.seed, step)).integers(0, len(self.train), opts.batch_size)
-                index = self.train[position]
             values = {name: self.params[name].to_natural(opt[name]) for name in self.params}
-            rays, z, hit, records = self._records("train", index, position, values)
+            rays, z, hit, rounds = self._records("train", position, values)
 
             # ---------------- Loss with gradients, Adam step, constraints -------------------------
-            loss = -dr.mean(self.log_likelihood(values, rays, z, hit, records))
+            loss = -dr.mean(self.log_likelihood(values, rays, z, hit, rounds))
             dr.backward(loss)
             train_loss = float(loss[0])
             bad = [n for n in self.params if not np.all(np.isfinite(np.asarray(dr.grad(opt[n]))))]

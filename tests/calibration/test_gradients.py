@@ -59,7 +59,7 @@ def loss_and_gradient(problem, name, start):
     par = cal.params[name]
     x0 = par.initial if start is None else start
     value = mi.Float(np.asarray(x0, np.float32))
-    rays, z, hit, records = cal._records("train", cal.train, None, {name: value})
+    rays, z, hit, records = cal._records("train", np.arange(len(cal.train)), {name: value})
 
     def loss(x):
         ll = cal.log_likelihood({name: x}, rays, z, hit, records)
