@@ -17,3 +17,4 @@ from .label_dropout import LabelDropout
 from .quantization import Quantization
 from .outliers import Outliers
 from .motion_distortion import MotionDistortion
+from .random_dropout import RandomDropout
