@@ -47,3 +47,32 @@ def sensor_pose(x: float = 0.0, y: float = 0.0, yaw: float = 0.0) -> np.ndarray:
 def pattern(firings: int = 250):
     """A VLP-16 (16 beams) with ``firings`` firings per sweep."""
     return get_pattern("vlp16", n_firings=firings)
+
+
+WALL_X = 10.0  # m: the wall of floor_and_wall() is the plane x = WALL_X
+WALL_HALF = 40.0  # m: it spans |y| <= WALL_HALF and 0 <= z <= WALL_HALF
+
+
+def floor_and_wall() -> dict:
+    """Opaque element sets: a 1 km floor at z = 0 and a wall at x = WALL_X, two triangles each."""
+    floor = np.array([[-500, -500, 0], [500, -500, 0], [500, 500, 0], [-500, 500, 0]], float)
+    wall = np.array([[WALL_X, -WALL_HALF, 0], [WALL_X, WALL_HALF, 0], [WALL_X, WALL_HALF, WALL_HALF],
+                     [WALL_X, -WALL_HALF, WALL_HALF]], float)
+    quad = np.array([[0, 1, 2], [0, 2, 3]])
+    return {name: MeshElements(vertices=v, faces=quad, p_hit=np.ones(2), label=np.ones(2))
+            for name, v in (("floor", floor), ("wall", wall))}
+
+
+def analytic_ranges(origin: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Range (m) to the first of floor_and_wall()'s planes along (..., 3) rays (inf where none is hit)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_floor = np.where(direction[..., 2] < 0, -origin[..., 2] / direction[..., 2], np.inf)
+        t_wall = np.where(direction[..., 0] > 0, (WALL_X - origin[..., 0]) / direction[..., 0], np.inf)
+    at_wall = origin + t_wall[..., None] * direction
+    inside = (np.abs(at_wall[..., 1]) <= WALL_HALF) & (at_wall[..., 2] >= 0) & (at_wall[..., 2] <= WALL_HALF)
+    return np.minimum(t_floor, np.where(inside, t_wall, np.inf))
+
+
+def unit_directions(elevation: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
+    """(..., 3) unit vectors of elevation and azimuth angles (rad; x forward, z up)."""
+    return np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], -1)
