@@ -37,6 +37,27 @@ def uniform(seed: int, ray_id: mi.UInt32, segment: int, stream: int) -> mi.Float
     return mi.sample_tea_float32(ray_id, dr.opaque(mi.UInt32, key), 8)
 
 
+def mixture_step(log_mix: mi.Float, log_pass: mi.Float, seg: Segment, z: mi.Float) -> tuple[mi.Float, mi.Float]:
+    """Add the next element along each ray to the pass-through mixture.
+
+    Args:
+        log_mix: ``log sum_{j<k} P_j f_j(z)`` over the elements met so far (nats; -inf for none).
+        log_pass: ``log prod_{j<k} (1 - p_j)``, the log-probability of passing them all (nats).
+        seg: element ``k`` (lanes where ``seg.valid`` is False leave both sums unchanged).
+        z: measured ranges (m).
+
+    Returns:
+        The updated ``(log_mix, log_pass)``, summed in log space without overflow.
+    """
+    p = dr.clip(seg.p, 1e-12, 1.0)
+    term = dr.select(seg.valid, log_pass + dr.log(p) + log_density(seg, z), -dr.inf)
+    high = dr.maximum(log_mix, term)
+    safe = dr.select(dr.isinf(high), 0.0, high)
+    log_mix = dr.select(dr.isinf(high), high, safe + dr.log(dr.exp(log_mix - safe) + dr.exp(term - safe)))
+    log_pass = log_pass + dr.select(seg.valid, dr.log(dr.maximum(1.0 - seg.p, 1e-12)), 0.0)
+    return log_mix, log_pass
+
+
 @dataclass
 class SensorModel:
     """Sensor defaults plus the effects applied on top of the scene's elements.
@@ -177,10 +198,11 @@ class SensorModel:
             ``element`` (global element index) and ``si`` (the surface interaction), enough to
             rebuild the segments with gradients in :meth:`log_likelihood`.
         """
-        rays = self.prepare_rays(rays)
         records = []
-        start = mi.Point3f(rays.origin)
         with dr.suspend_grad():
+            rays = self.prepare_rays(rays)
+            start = mi.Point3f(rays.origin)
+            dr.eval(rays.origin, rays.direction)  # perturbed once, not again in every round's kernel
             for _ in range(self.max_segments):
                 ray = mi.Ray3f(start, rays.direction)
                 si = scene.ray_intersect(ray, mi.RayFlags.Minimal, True)
@@ -188,11 +210,11 @@ class SensorModel:
                 valid = si.is_valid() & (nominal <= self.max_range)
                 element = dr.select(valid, table.element_of(si), 0)
                 record = {"valid": valid, "element": element, "si": si}
-                dr.eval(valid, element, si.p, si.n)
+                start = dr.select(valid, si.p + RESTART_OFFSET * rays.direction, start)
+                dr.eval(valid, element, si.p, si.n, start)  # each round's kernel has the same code
                 records.append(record)
                 if not dr.any(valid):
                     break
-                start = dr.select(valid, si.p + RESTART_OFFSET * rays.direction, start)
         return records
 
     def log_likelihood(self, scene_table: ElementTable, rays: RayBatch, records: list,
@@ -221,14 +243,7 @@ class SensorModel:
                 seg = scene_table.segment(record["si"], record["valid"], record["element"], rays.origin,
                                           rays.direction, self.range_sigma)
                 seg = self.apply_effects(seg, rays)
-            seg = self.likelihood_segment(seg, rays)
-            p = dr.clip(seg.p, 1e-12, 1.0)
-            term = log_pass + dr.log(p) + log_density(seg, z)
-            term = dr.select(seg.valid, term, -dr.inf)
-            high = dr.maximum(log_mix, term)
-            safe = dr.select(dr.isinf(high), 0.0, high)
-            log_mix = dr.select(dr.isinf(high), high, safe + dr.log(dr.exp(log_mix - safe) + dr.exp(term - safe)))
-            log_pass = log_pass + dr.select(seg.valid, dr.log(dr.maximum(1.0 - seg.p, 1e-12)), 0.0)
+            log_mix, log_pass = mixture_step(log_mix, log_pass, self.likelihood_segment(seg, rays), z)
         if resolution > 0:
             log_mix = log_mix + dr.log(resolution)
         return dr.select(hit, log_mix, log_pass)

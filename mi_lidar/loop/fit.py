@@ -2,10 +2,26 @@
 
 A small, self-contained fitter for the loop: it fits the parameters of chosen effects of a
 :class:`~mi_lidar.sensor_model.SensorModel` to measured rays with :class:`mi.ad.Adam`, and scores
-rays with :meth:`SensorModel.log_likelihood`. Each parameter is optimised in units of its scale
-(``Effect.fit_scales[name]``, default 0.1) and clipped to its :class:`ParamSpec` bounds after
-every step. Parameters listed in ``Effect.fit_exclude`` stay fixed; parameters listed in
-``Effect.per_label`` (and per-beam parameters) are widened to one value per label (beam) first.
+rays with the pass-through mixture of :meth:`SensorModel.log_likelihood`. Each parameter is
+optimised in units of its scale (``Effect.fit_scales[name]``, default 0.1) and clipped to its
+:class:`ParamSpec` bounds after every step. Parameters listed in ``Effect.fit_exclude`` stay fixed;
+parameters listed in ``Effect.per_label`` (and per-beam parameters) are widened to one value per
+label (beam) first.
+
+Speed. A split is traced once (:meth:`Problem.trace`) into *compact rounds*: round ``k`` holds
+only the rays that meet a ``k``-th element, with the element's segment before effects computed
+once and stored. The likelihood then evaluates one small kernel per round over those lanes (the
+kernel of rounds ``k >= 1`` is the same code, compiled once), instead of one kernel holding every
+round at full width with both the triangle and the ellipsoid geometry. Effect parameters enter
+kernels as opaque values, so one compiled kernel serves every step of a fit and every candidate
+with the same code. Only effects that move rays (:meth:`Effect.perturb_rays`) recompute the
+geometry in the kernel, from the traced tangent planes and ellipsoids (:class:`PlaneTable`).
+
+Scoring floor. A measured return that the model cannot produce at all (no element along the ray
+near the measured range, say) has log-likelihood -inf; one such ray would make a mean NLL
+infinite and hide every other difference between models. Scores are therefore floored at
+:data:`LL_FLOOR` nats per ray, in fitting and in scoring alike: such a ray costs 30 nats, about
+the NLL of a return 7.7 sigma away from its element.
 """
 
 from __future__ import annotations
@@ -17,15 +33,17 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..effects.base import Effect
+from ..arrays import aligned
+from ..effects.base import Effect, RayBatch
 from ..elements import ElementTable
-from ..segment import SURFACE
-from ..sensor_model import SensorModel
+from ..segment import SURFACE, Segment
+from ..sensor_model import SensorModel, mixture_step
 from .rays import LogRays
 
-LL_FLOOR = -30.0  # nats: per-ray log-likelihood floor in the fitting loss (keeps gradients finite)
+LL_FLOOR = -30.0  # nats: per-ray log-likelihood floor of fitting and scoring (see the module docstring)
 DEFAULT_SCALE = 0.1
 BATCH = 1 << 18  # rays scored at once
+SEGMENT_FIELDS = ("nominal", "p", "mean", "sigma", "lo", "hi", "cos_incidence", "element", "shape", "label", "kind")
 
 
 class PlaneTable(ElementTable):
@@ -57,7 +75,7 @@ def widen(effect: Effect, n_beams: int, n_labels: int) -> Effect:
         size = n_beams if spec.per_beam else n_labels if key in getattr(effect, "per_label", ()) else 1
         values = np.asarray(effect.params[key])
         if values.size == 1 and size > 1:
-            effect.params[key] = mi.Float(np.full(size, values[0], np.float32))
+            effect.params[key] = mi.Float(aligned(np.full(size, values[0], np.float32)))
     return effect
 
 
@@ -71,6 +89,131 @@ def n_parameters(effects: list[Effect]) -> int:
     return int(sum(dr.width(e.params[k]) for e in effects for k in fitted_names(e)))
 
 
+def make_opaque(effects: list[Effect]) -> None:
+    """Turn the effects' parameters into opaque kernel inputs (in place).
+
+    A width-1 array built from a Python or numpy value is a literal that Dr.Jit bakes into the
+    kernel, so every new value would compile a new kernel; opaque values are read from memory.
+    """
+    for effect in effects:
+        for key, value in effect.params.items():
+            array = mi.Float(aligned(np.asarray(dr.detach(value), dtype=np.float32)))
+            dr.make_opaque(array)
+            effect.params[key] = array
+
+
+def moves_rays(model: SensorModel) -> bool:
+    """True when an effect of ``model`` edits rays before tracing (angle offsets, extrinsics, motion)."""
+    return any(type(e).perturb_rays is not Effect.perturb_rays for e in model.effects)
+
+
+def _ray_key(model: SensorModel) -> tuple:
+    """Identity of the rays ``model`` traces: its ray-moving effects and their parameter values."""
+    return tuple((e.name, tuple(np.asarray(dr.detach(v)).tobytes() for v in e.params.values()))
+                 for e in model.effects if type(e).perturb_rays is not Effect.perturb_rays)
+
+
+@dataclass
+class Round:
+    """The rays of a chunk that meet a ``k``-th element, and that element (compact lanes).
+
+    Attributes:
+        lanes: (M,) chunk lanes (rays) of this round, ascending.
+        prev: (M,) position of each lane in the previous round (round 0: equal to ``lanes``).
+        last: (M,) True where the ray meets no further element.
+        base: the element's segment before effects (fields evaluated, no gradients), or None when
+            the rays move and the geometry is recomputed from ``si``.
+        si: the traced intersections of the lanes (only when the rays move).
+        element: (M,) global element index.
+    """
+
+    lanes: mi.UInt32
+    prev: mi.UInt32
+    last: mi.Bool
+    base: Segment | None
+    si: object
+    element: mi.UInt32
+
+
+@dataclass
+class Chunk:
+    """Up to :data:`BATCH` rays of a split, traced into compact rounds.
+
+    Attributes:
+        rays: the measured rays (before the model's ray perturbations).
+        z: (N,) measured range, m (0 for a miss).
+        hit: (N,) True where the sensor reported a return.
+        met: (N,) True where the ray meets at least one element.
+        rounds: the compact rounds, first element first.
+    """
+
+    rays: RayBatch
+    z: mi.Float
+    hit: mi.Bool
+    met: mi.Bool
+    rounds: list[Round]
+
+
+def trace_chunk(model: SensorModel, scene, table: ElementTable, rays: RayBatch, z: mi.Float, hit: mi.Bool) -> Chunk:
+    """Trace ``rays`` under ``model`` and keep, per round, only the lanes that met an element."""
+    records = model.trace_segments(scene, table, rays)
+    moving = moves_rays(model)
+    with dr.suspend_grad():
+        prepared = model.prepare_rays(rays)
+        valid = np.stack([np.asarray(r["valid"]) for r in records]) if records else np.zeros((0, rays.width), bool)
+        count = np.cumprod(valid, axis=0).sum(axis=0)  # elements met in a row from the first
+        rounds, previous = [], None
+        for k, record in enumerate(records):
+            lanes_np = np.flatnonzero(count > k).astype(np.uint32)
+            if lanes_np.size == 0:
+                break
+            prev_np = lanes_np if previous is None else np.searchsorted(previous, lanes_np).astype(np.uint32)
+            lanes = mi.UInt32(aligned(lanes_np))
+            si = dr.gather(type(record["si"]), record["si"], lanes)
+            element = dr.gather(mi.UInt32, record["element"], lanes)
+            base = None
+            if not moving:
+                sub = prepared.take(lanes)
+                seg = table.segment(si, dr.full(mi.Bool, True, lanes_np.size), element, sub.origin, sub.direction,
+                                    model.range_sigma)
+                base = seg
+                dr.eval(*(getattr(base, f) for f in ("valid",) + SEGMENT_FIELDS))
+                si = None
+            else:
+                dr.eval(si.p, si.n, element)
+            rounds.append(Round(lanes=lanes, prev=mi.UInt32(aligned(prev_np)),
+                                last=mi.Bool(aligned(count[lanes_np] == k + 1)), base=base, si=si, element=element))
+            previous = lanes_np
+    return Chunk(rays=rays, z=dr.select(hit, z, 0.0), hit=hit, met=mi.Bool(aligned(count > 0)), rounds=rounds)
+
+
+def chunk_log_likelihood(model: SensorModel, table: ElementTable, chunk: Chunk, resolution: float = 0.0) -> mi.Float:
+    """Per-ray log-likelihood (nats) of a traced chunk under ``model``; differentiable in effect parameters.
+
+    Equal to :meth:`SensorModel.log_likelihood` on the same rays: the virtual elements at full
+    width, then one compact round after the other, each lane's mixture carried over by a gather.
+    """
+    rays = model.prepare_rays(chunk.rays)
+    n = chunk.rays.width
+    log_mix, log_pass = dr.full(mi.Float, -dr.inf, n), dr.zeros(mi.Float, n)
+    for seg in model.virtual_segments(rays):
+        log_mix, log_pass = mixture_step(log_mix, log_pass, model.likelihood_segment(seg, rays), chunk.z)
+    ll = dr.select(chunk.met, 0.0, dr.select(chunk.hit, log_mix, log_pass))
+    for r in chunk.rounds:
+        sub = rays.take(r.lanes)
+        z = dr.gather(mi.Float, chunk.z, r.lanes)
+        hit = dr.gather(mi.Bool, chunk.hit, r.lanes)
+        log_mix, log_pass = dr.gather(mi.Float, log_mix, r.prev), dr.gather(mi.Float, log_pass, r.prev)
+        seg = r.base if r.base is not None else table.segment(
+            r.si, dr.full(mi.Bool, True, dr.width(r.lanes)), r.element, sub.origin, sub.direction, model.range_sigma)
+        seg = model.likelihood_segment(model.apply_effects(seg, sub), sub)
+        log_mix, log_pass = mixture_step(log_mix, log_pass, seg, z)
+        dr.scatter_add(ll, dr.select(hit, log_mix, log_pass), r.lanes, r.last)
+    if resolution > 0:
+        ll = dr.select(chunk.hit, ll + math.log(resolution), ll)
+    return ll
+
+
 @dataclass
 class Problem:
     """Measured rays of one split, traced once, ready to score and fit.
@@ -81,6 +224,7 @@ class Problem:
         rays: the log's rays.
         index: (N,) indices (into ``rays``) of the rays of this split.
         resolution: range bin (m) of the discretized score; 0 scores densities.
+        chunks: the traced chunks (see :meth:`trace`).
     """
 
     scene: object
@@ -88,7 +232,8 @@ class Problem:
     rays: LogRays
     index: np.ndarray
     resolution: float = 0.0
-    _chunks: list = field(default_factory=list, repr=False)
+    chunks: list = field(default_factory=list, repr=False)
+    _traced: tuple | None = field(default=None, repr=False)
 
     @classmethod
     def build(cls, scene, rays: LogRays, index: np.ndarray, resolution: float = 0.0) -> "Problem":
@@ -96,22 +241,29 @@ class Problem:
                    index=np.asarray(index), resolution=resolution)
 
     def trace(self, model: SensorModel) -> None:
-        """Trace every chunk of the split under ``model`` (its ray perturbations included)."""
-        self._chunks = []
+        """Trace every chunk of the split under ``model`` (its ray perturbations included).
+
+        Tracing is skipped when the rays ``model`` traces are those of the last trace (the same
+        ray-moving effects with the same values), as they are for every effect that only edits
+        segments.
+        """
+        key = (_ray_key(model), model.max_range, model.max_segments, model.range_sigma)
+        if self._traced == key and self.chunks:
+            return
+        self.chunks = []
         for first in range(0, self.index.size, BATCH):
             batch, measured, hit = self.rays.batch(self.index[first:first + BATCH])
-            records = model.trace_segments(self.scene, self.table, batch)
-            self._chunks.append((batch, measured, hit, records))
+            self.chunks.append(trace_chunk(model, self.scene, self.table, batch, measured, hit))
+        self._traced = key
 
-    def log_likelihood(self, model: SensorModel) -> np.ndarray:
-        """(N,) per-ray log-likelihood (nats) under ``model`` (traces first if needed)."""
-        if not self._chunks:
-            self.trace(model)
+    def log_likelihood(self, model: SensorModel, floor: float | None = LL_FLOOR) -> np.ndarray:
+        """(N,) per-ray log-likelihood (nats) under ``model``, floored at ``floor`` (None: not floored)."""
+        self.trace(model)
         out = []
         with dr.suspend_grad():
-            for batch, measured, hit, records in self._chunks:
-                ll = model.log_likelihood(self.table, batch, records, measured, hit, self.resolution)
-                out.append(np.asarray(ll, dtype=np.float64))
+            for chunk in self.chunks:
+                ll = np.asarray(chunk_log_likelihood(model, self.table, chunk, self.resolution), dtype=np.float64)
+                out.append(ll if floor is None else np.maximum(ll, floor))
         return np.concatenate(out) if out else np.zeros(0)
 
 
@@ -134,7 +286,7 @@ def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | No
 
     Args:
         model: sensor model holding the effects (changed in place: fitted values are written
-            into the effects' ``params``).
+            into the effects' ``params``, as opaque arrays).
         problem: the measured rays (traced on demand).
         effects: effects to fit (default: all of ``model.effects``).
         steps: Adam steps.
@@ -146,11 +298,13 @@ def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | No
         The loss history and the fitted parameters.
     """
     effects = model.effects if effects is None else effects
+    make_opaque(model.effects)
     slots = [(e, k) for e in effects for k in fitted_names(e)]
     if not slots:
         return FitResult(history=[], parameters={})
-    moves_rays = any(type(e).perturb_rays is not Effect.perturb_rays for e in model.effects)
-    start = {(id(e), k): np.asarray(e.params[k], dtype=np.float32) for e, k in slots}
+    moving = moves_rays(model)
+    start = {(id(e), k): e.params[k] for e, k in slots}
+    scales = [dr.opaque(mi.Float, getattr(e, "fit_scales", {}).get(k, DEFAULT_SCALE)) for e, k in slots]
     opt = mi.ad.Adam(lr=lr)
     for i, (e, k) in enumerate(slots):
         opt[f"{i}"] = dr.zeros(mi.Float, dr.width(e.params[k]))
@@ -158,22 +312,21 @@ def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | No
     def assign():
         for i, (e, k) in enumerate(slots):
             spec = e.specs[k]
-            scale = getattr(e, "fit_scales", {}).get(k, DEFAULT_SCALE)
-            value = mi.Float(start[(id(e), k)]) + scale * opt[f"{i}"]
+            value = start[(id(e), k)] + scales[i] * opt[f"{i}"]
             e.params[k] = dr.clip(value, max(spec.lower, -1e30), min(spec.upper, 1e30))
 
     history = []
     n = max(problem.index.size, 1)
     for step in range(steps):
-        if step == 0 or (moves_rays and step % retrace_every == 0):
+        if step == 0 or (moving and step % retrace_every == 0):
             with dr.suspend_grad():
                 assign()
             problem.trace(model)
         opt.set_learning_rate(lr * (0.1 + 0.45 * (1 + math.cos(math.pi * step / steps))))
         total = 0.0
-        for batch, measured, hit, records in problem._chunks:
+        for chunk in problem.chunks:
             assign()  # a fresh graph per chunk: backward releases the previous one
-            ll = model.log_likelihood(problem.table, batch, records, measured, hit, problem.resolution)
+            ll = chunk_log_likelihood(model, problem.table, chunk, problem.resolution)
             loss = -dr.sum(dr.maximum(ll, LL_FLOOR)) / n
             dr.backward(loss)
             total += float(loss[0])
@@ -183,8 +336,7 @@ def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | No
             progress(step + 1, steps)
     with dr.suspend_grad():
         assign()
-    for e, k in slots:
-        e.params[k] = mi.Float(np.asarray(dr.detach(e.params[k]), dtype=np.float32))
-    if moves_rays:
+    make_opaque(effects)
+    if moving:
         problem.trace(model)
     return FitResult(history=history, parameters={f"{e.name}.{k}": np.asarray(e.params[k]) for e, k in slots})

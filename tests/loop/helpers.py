@@ -10,7 +10,7 @@ import numpy as np
 
 from mi_lidar.effects import parse_effects
 from mi_lidar.loop.catalog import candidate
-from mi_lidar.loop.fit import Problem, fit_effects
+from mi_lidar.loop.fit import Problem, chunk_log_likelihood, fit_effects
 from mi_lidar.loop.rays import LogRays
 from mi_lidar.scene import load_scene, scene_sensor_model
 from mi_lidar.simulate import simulate
@@ -64,14 +64,13 @@ def finite_difference_check(scene, model, log, effect, key: str, h: float, n_ray
     rays = LogRays.from_log(log)
     problem = Problem.build(scene, rays, np.arange(min(n_rays, rays.n)))
     problem.trace(model)
-    batch, measured, hit, records = problem._chunks[0]
     value = float(np.asarray(effect.params[key])[0])
 
     def total(v, grad=False):
         effect.params[key] = mi.Float(v)
         if grad:
             dr.enable_grad(effect.params[key])
-        ll = dr.sum(model.log_likelihood(problem.table, batch, records, measured, hit))
+        ll = dr.sum(chunk_log_likelihood(model, problem.table, problem.chunks[0]))
         if grad:
             dr.backward(ll)
             return float(dr.grad(effect.params[key])[0])
