@@ -135,3 +135,14 @@ def test_pattern_table_is_found_next_to_the_scene(tmp_path, monkeypatch):
     monkeypatch.chdir(SCENES)  # somewhere else than the scene folder
     scene = mi_lidar.load_scene(tmp_path / "room.xml")
     assert tensor_to_numpy(mi.render(scene))["range"].shape == (1, 180)
+
+
+def test_simulated_ouster_fires_the_real_frame_rays(shared_data):
+    from mi_lidar.io import pattern_from_log, read_any
+
+    real = read_any(shared_data / "ouster" / "OS-1-32-G_v2.1.1_1024x10.pcap")
+    log = mi_lidar.simulate(mi_lidar.load_scene(SCENES / "urban_street.xml"), pattern_from_log(real), seed=0)
+    assert log.shape == real.shape == (1, 32, 1024)
+    np.testing.assert_allclose(log.directions, real.directions, atol=1e-6)
+    np.testing.assert_allclose(log.origins, real.origins, atol=1e-7)
+    assert 0.3 < log.hit.mean() < 1.0
