@@ -14,12 +14,13 @@ paths, and different seeds give independent scans.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
 
-from .effects.base import Effect, RayBatch
+from .effects.base import Effect, RayBatch, SubRayMoments
 from .elements import ElementTable
 from .errors import ParameterError
 from .segment import Segment, log_density, sample_range
@@ -56,6 +57,17 @@ def mixture_step(log_mix: mi.Float, log_pass: mi.Float, seg: Segment, z: mi.Floa
     log_mix = dr.select(dr.isinf(high), high, safe + dr.log(dr.exp(log_mix - safe) + dr.exp(term - safe)))
     log_pass = log_pass + dr.select(seg.valid, dr.log(dr.maximum(1.0 - seg.p, 1e-12)), 0.0)
     return log_mix, log_pass
+
+
+def moment_step(moments: SubRayMoments, seg: Segment) -> SubRayMoments:
+    """Add the next element along each (sub-)ray to its return probability and range moments."""
+    weight = dr.select(seg.valid, dr.exp(moments.log_miss) * seg.p, 0.0)
+    return SubRayMoments(
+        log_miss=moments.log_miss + dr.select(seg.valid, dr.log(dr.maximum(1.0 - seg.p, 1e-12)), 0.0),
+        p_return=moments.p_return + weight,
+        m1=moments.m1 + weight * seg.mean,
+        m2=moments.m2 + weight * (dr.square(seg.sigma) + dr.square(seg.mean)),
+    )
 
 
 @dataclass
@@ -110,6 +122,17 @@ class SensorModel:
             seg = effect.likelihood_segment(seg, rays)
         return seg
 
+    def fan_out(self, rays: RayBatch) -> tuple[Effect, RayBatch, mi.Float] | None:
+        """The effect that fans beams out into sub-rays (:meth:`Effect.footprint`), its sub-rays and weights.
+
+        Returns None when no effect does (one ray per beam, the common case).
+        """
+        fans = [(e, e.footprint(rays)) for e in self.effects]
+        fans = [(e, *fan) for e, fan in fans if fan is not None]
+        if len(fans) > 1:
+            raise ParameterError(f"sensor model: effects {[e.name for e, *_ in fans]} all fan beams out; keep one")
+        return fans[0] if fans else None
+
     def _intersect(self, scene, table: ElementTable, rays: RayBatch, start: mi.Point3f):
         """One round: the next element along each ray, as a Segment (before effects)."""
         ray = mi.Ray3f(start, rays.direction)
@@ -134,8 +157,18 @@ class SensorModel:
             Dict of per-ray arrays named as :data:`CHANNELS`: ``range`` (m, NaN for a miss),
             ``hit`` (Bool), ``element_id``/``shape_id`` (``NO_ELEMENT`` for a miss), ``label``,
             ``cos_incidence``, ``nominal_range`` (m, NaN for a miss) and ``segments`` (elements
-            traversed, including the one that returned).
+            traversed, including the one that returned). With a beam-divergence effect each beam's
+            sub-rays are simulated and the effect combines their returns (:meth:`Effect.combine`).
         """
+        rays = self.prepare_rays(rays)
+        fan = self.fan_out(rays)
+        if fan is None:
+            return self._first_returns(scene, table, rays, seed)
+        effect, sub, weight = fan
+        return effect.combine(self._first_returns(scene, table, sub, seed), weight, rays.width)
+
+    def _first_returns(self, scene, table: ElementTable, rays: RayBatch, seed: int) -> dict:
+        """The sampling loop of :meth:`simulate_rays` on prepared rays (one lane per ray)."""
         n = rays.width
         out = {
             "range": dr.full(mi.Float, dr.nan, n), "hit": dr.full(mi.Bool, False, n),
@@ -143,7 +176,6 @@ class SensorModel:
             "label": dr.zeros(mi.UInt32, n), "cos_incidence": dr.zeros(mi.Float, n),
             "nominal_range": dr.full(mi.Float, dr.nan, n), "segments": dr.zeros(mi.UInt32, n),
         }
-        rays = self.prepare_rays(rays)
         index = dr.arange(mi.UInt32, n)  # ray index (into `out`) of each live lane
         # ---------------- Virtual elements (outliers, clutter) before the scene ----------
         for v in range(len(self.virtual_segments(rays))):
@@ -196,11 +228,14 @@ class SensorModel:
         Returns:
             One record per round: a dict with ``valid`` (the ray met an element within range),
             ``element`` (global element index) and ``si`` (the surface interaction), enough to
-            rebuild the segments with gradients in :meth:`log_likelihood`.
+            rebuild the segments with gradients in :meth:`log_likelihood`. With a
+            beam-divergence effect the records are those of the sub-rays.
         """
         records = []
         with dr.suspend_grad():
             rays = self.prepare_rays(rays)
+            fan = self.fan_out(rays)
+            rays = rays if fan is None else fan[1]
             start = mi.Point3f(rays.origin)
             dr.eval(rays.origin, rays.direction)  # perturbed once, not again in every round's kernel
             for _ in range(self.max_segments):
@@ -232,8 +267,16 @@ class SensorModel:
 
         Returns:
             ``log sum_k P_k f_k(z)`` for returns and ``log prod_k (1 - p_k)`` for misses (nats).
+            With a beam-divergence effect, the effect's :meth:`Effect.combine_log_likelihood` of
+            the sub-rays' return moments (an approximation that effect documents).
         """
         rays = self.prepare_rays(rays)
+        fan = self.fan_out(rays)
+        if fan is not None:
+            effect, sub, weight = fan
+            ll = effect.combine_log_likelihood(self.sub_ray_moments(scene_table, sub, records), weight,
+                                               dr.select(hit, measured, 0.0), hit, rays.width)
+            return dr.select(hit, ll + math.log(resolution), ll) if resolution > 0 else ll
         log_pass = dr.zeros(mi.Float, dr.width(measured))
         log_mix = dr.full(mi.Float, -dr.inf, dr.width(measured))
         z = dr.select(hit, measured, 0.0)
@@ -247,3 +290,16 @@ class SensorModel:
         if resolution > 0:
             log_mix = log_mix + dr.log(resolution)
         return dr.select(hit, log_mix, log_pass)
+
+    def sub_ray_moments(self, scene_table: ElementTable, sub: RayBatch, records: list) -> SubRayMoments:
+        """Return probability and range moments of each sub-ray's first return (virtual elements first)."""
+        n = sub.width
+        moments = SubRayMoments(log_miss=dr.zeros(mi.Float, n), p_return=dr.zeros(mi.Float, n),
+                                m1=dr.zeros(mi.Float, n), m2=dr.zeros(mi.Float, n))
+        for seg in self.virtual_segments(sub):
+            moments = moment_step(moments, self.likelihood_segment(seg, sub))
+        for record in records:
+            seg = scene_table.segment(record["si"], record["valid"], record["element"], sub.origin, sub.direction,
+                                      self.range_sigma)
+            moments = moment_step(moments, self.likelihood_segment(self.apply_effects(seg, sub), sub))
+        return moments

@@ -8,7 +8,10 @@ An effect has named parameters and acts through up to three hooks of the one sim
   the Gaussian ``N(mean, sigma^2)`` of the range it returns (noise laws, dropout, bias, scale);
 * :meth:`Effect.finalize_range` post-processes a sampled range (quantization), with
   :meth:`Effect.likelihood_segment` as its continuous stand-in in the likelihood;
-* :meth:`Effect.virtual_segments` adds elements met before the scene (outliers, clutter).
+* :meth:`Effect.virtual_segments` adds elements met before the scene (outliers, clutter);
+* :meth:`Effect.footprint` fans each beam out into weighted sub-rays (beam divergence), with
+  :meth:`Effect.combine` forming the reported return from the sub-rays' returns in the sampler
+  and :meth:`Effect.combine_log_likelihood` its likelihood from their return moments.
 
 The **sampler** of an effect is the core's sampling loop run with these hooks; its
 **log-likelihood** is the core's pass-through mixture ``-log sum_k P_k N(z; mean_k, sigma_k)``
@@ -59,6 +62,25 @@ class ParamSpec:
     lower: float = -np.inf
     upper: float = np.inf
     per_beam: bool = False
+
+
+@dataclass
+class SubRayMoments:
+    """What the likelihood knows of each sub-ray's first return (one lane per sub-ray).
+
+    With ``P_k = p_k prod_{j<k} (1 - p_j)`` the probability that element ``k`` returns it:
+
+    Attributes:
+        log_miss: ``log prod_k (1 - p_k)``, nats.
+        p_return: ``sum_k P_k``.
+        m1: ``sum_k P_k mean_k``, m.
+        m2: ``sum_k P_k (sigma_k^2 + mean_k^2)``, m^2 (untruncated Gaussians).
+    """
+
+    log_miss: mi.Float
+    p_return: mi.Float
+    m1: mi.Float
+    m2: mi.Float
 
 
 @dataclass
@@ -186,6 +208,45 @@ class Effect:
     def likelihood_segment(self, seg: Segment, rays: RayBatch) -> Segment:
         """Likelihood-only edit: the continuous stand-in for a :meth:`finalize_range` sampler (default: unchanged)."""
         return seg
+
+    def footprint(self, rays: RayBatch) -> tuple[RayBatch, mi.Float] | None:
+        """Fan each beam out into sub-rays (beam divergence); default: None, one ray per beam.
+
+        An effect that returns sub-rays must also implement :meth:`combine` and
+        :meth:`combine_log_likelihood`; a model holds at most one such effect.
+
+        Returns:
+            ``(sub, weight)``: ``m`` sub-rays per beam, sub-ray ``j`` of beam ``i`` in lane
+            ``j n + i`` (``n`` beams), and each sub-ray's share of the beam's energy (weights of a
+            beam sum to 1).
+        """
+        return None
+
+    def combine(self, sub: dict, weight: mi.Float, n: int) -> dict:
+        """Form each beam's reported return from its sub-rays' first returns (sampler).
+
+        Args:
+            sub: channels of :meth:`SensorModel.simulate_rays` for the ``m n`` sub-rays.
+            weight: (m n,) energy weights of the sub-rays.
+            n: number of beams.
+
+        Returns:
+            The same channels for the ``n`` beams.
+        """
+        raise NotImplementedError(f"effect {self.name!r} fans beams out but does not combine their returns")
+
+    def combine_log_likelihood(self, moments: "SubRayMoments", weight: mi.Float, z: mi.Float, hit: mi.Bool,
+                               n: int) -> mi.Float:
+        """Log-likelihood (nats) of each beam's measured return from its sub-rays' return moments.
+
+        Args:
+            moments: per sub-ray, the probability of a return and the first two moments of its
+                range (:class:`SubRayMoments`, ``m n`` lanes).
+            weight: (m n,) energy weights of the sub-rays.
+            z, hit: (n,) measured ranges (m) and return flags of the beams.
+            n: number of beams.
+        """
+        raise NotImplementedError(f"effect {self.name!r} fans beams out but has no combined likelihood")
 
     def describe(self) -> str:
         """``name(key=value, ...)``: the effect as written in XML or on the command line."""
