@@ -3,11 +3,13 @@
 Run:  python bench/bench_diagnose.py [N_SCANS]
 Simulates N_SCANS (default 35, 16 x 1808 rays each: about 1M rays) VLP-16 scans of
 scenes_xml/urban_street.xml with a hidden per-beam range bias, runs ``diagnose`` over every
-registered effect with a progress bar, and prints one table row per stage.
+registered effect with a progress bar, and prints one table row per stage and the load average
+(the machines are shared: a load above the core count slows every stage).
 """
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
@@ -49,6 +51,8 @@ def run(n_scans: int = 35) -> list[dict]:
         {"stage": "simulate log", "rays": log.n_rays, "seconds": round(t1 - t0, 1), "result": ""},
         {"stage": "diagnose (whole catalog)", "rays": log.n_rays, "seconds": round(t2 - t1, 1),
          "result": f"first: {d.rounds[0][0].name}; selected: {d.selected}"},
+        {"stage": "load average (1, 5, 15 min)", "rays": "", "seconds": "",
+         "result": " ".join(f"{x:.2f}" for x in os.getloadavg())},
     ]
 
 

@@ -18,3 +18,4 @@ from .quantization import Quantization
 from .outliers import Outliers
 from .motion_distortion import MotionDistortion
 from .random_dropout import RandomDropout
+from .mixed_pixels import MixedPixels

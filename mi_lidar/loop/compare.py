@@ -155,7 +155,7 @@ def group_keys(t: RayTable, by: str) -> np.ndarray:
         return np.char.add("beam ", np.char.zfill(t.beam.astype(str), 3))
     if by == "azimuth":
         idx = ((t.azimuth + 180) // 30).astype(int) % 12
-        return np.array([f"{-180 + 30 * i:+04d} deg" for i in range(12)])[idx]
+        return np.array([f"{-180 + 30 * i:+04d}..{-150 + 30 * i:+04d} deg" for i in range(12)])[idx]
     if by == "time":
         n = int(t.scan.max()) + 1
         size = max(1, -(-n // 10))
@@ -167,12 +167,23 @@ def group_keys(t: RayTable, by: str) -> np.ndarray:
     return np.where(t.shape < 0, NO_ELEMENT_GROUP, np.char.add("shape ", t.shape.astype(str)))
 
 
+def group_order(key: str) -> tuple:
+    """Sort key of a group label: by its leading number where it has one (``-30..+000 deg`` before
+    ``+000..+030 deg``, ``2-5 m`` before ``10-20 m``), then as text; ``none`` last."""
+    head = key.split(" ")[-1] if key.startswith(("beam", "label", "shape", "scans")) else key.split(" ")[0]
+    number = head.split("..")[0].split("-")[0] if not head.startswith("-") else "-" + head[1:].split("..")[0]
+    try:
+        return (0, float(number), key)
+    except ValueError:
+        return (1, 0.0, key)
+
+
 def breakdown(t: RayTable, by: str) -> list[dict]:
     """Metrics per group of breakdown ``by``, with each group's excess NLL (nats, total)."""
     keys = group_keys(t, by)
     overall = -np.mean(t.ll)
     rows = []
-    for key in np.unique(keys):
+    for key in sorted(np.unique(keys), key=group_order):
         m = keys == key
         row = {"group": str(key), **metrics(t, m)}
         row["excess_nll"] = (row["nll"] - overall) * row["rays"]

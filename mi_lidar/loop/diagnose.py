@@ -11,8 +11,11 @@ candidate is **significant** when
 * it lowers the held-out NLL.
 
 Candidates are ranked by held-out NLL gain per ray. Selection is greedy: the best significant
-effect joins the model and the remaining candidates are tried again (``rounds`` times), so two
-hidden effects come out first and second.
+effect joins the model, every effect of the augmented model is refitted jointly (an effect found
+earlier may have absorbed part of the new one), and the remaining candidates are tried again
+(``rounds`` times), so two hidden effects come out first and second. Scores are floored per ray
+at :data:`~mi_lidar.loop.fit.LL_FLOOR`, so one return the model cannot produce does not make a
+held-out NLL infinite.
 """
 
 from __future__ import annotations
@@ -35,6 +38,16 @@ from .fit import Problem, fit_effects, n_parameters
 from .rays import LogRays
 
 P_VALUE = 1e-3
+MIN_NLL_FOR_PERCENT = 1.0  # nats/ray: below this a gain relative to the NLL is not meaningful
+
+
+def relative_gain(gain: float, nll: float) -> float:
+    """``gain`` as a percentage of ``|nll|`` (NaN when ``|nll| < MIN_NLL_FOR_PERCENT``).
+
+    An NLL per ray is a log-density: its zero depends on the range unit and bin, so a percentage
+    of a value near zero says nothing; the absolute gain in nats/ray is the measure then.
+    """
+    return 100.0 * gain / abs(nll) if abs(nll) >= MIN_NLL_FOR_PERCENT else float("nan")
 
 
 def split_rays(log: Log, max_train: int, max_test: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -62,7 +75,8 @@ class Candidate:
         k: scalar parameters added.
         train_gain: training log-likelihood gain, nats (total).
         test_gain: held-out NLL decrease, nats per ray.
-        test_gain_pct: the same relative to the model's held-out NLL, percent.
+        test_gain_pct: the same relative to the model's held-out NLL, percent (NaN when that NLL
+            is within 1 nat/ray of zero, see :func:`relative_gain`).
         lr: likelihood-ratio statistic ``2 train_gain``.
         p_value: chi-square(k) tail probability of ``lr``.
         delta_bic: ``k ln n - lr`` (negative favours the candidate).
@@ -212,7 +226,7 @@ def diagnose(log: Log, scene, model: SensorModel | None = None, out: str | Path 
             gain_te = (llte - base_test) / test_index.size
             label = name + (f"({', '.join(f'{k}={v}' for k, v in variant.items())})" if variant else "")
             ranked.append(Candidate(
-                name=label, k=k, train_gain=gain_tr, test_gain=gain_te, test_gain_pct=100 * gain_te / abs(nll_before),
+                name=label, k=k, train_gain=gain_tr, test_gain=gain_te, test_gain_pct=relative_gain(gain_te, nll_before),
                 lr=lr, p_value=p, delta_bic=dbic, significant=bool(p < P_VALUE and dbic < 0 and gain_te > 0),
                 parameters=fit.parameters, history=fit.history, effect=effect))
             done += 1
@@ -224,6 +238,7 @@ def diagnose(log: Log, scene, model: SensorModel | None = None, out: str | Path 
         if best is None or not best.significant:
             break
         augmented = dataclasses.replace(base, effects=base.effects + [best.effect])
+        fit_effects(augmented, train, steps=steps)  # joint refit: earlier effects adapt to the new one
         evidence.append({"effect": best.name, "groups": _evidence(test, base, augmented, table)})
         base = augmented
         selected.append(best.name)
@@ -255,7 +270,7 @@ def verdict(d: Diagnosis) -> str:
         params = ", ".join(f"{k.split('.', 1)[1]}={np.array2string(np.asarray(v), precision=4, threshold=6)}"
                            for k, v in c.parameters.items())
         text = (f"The model is missing **{name}** ({params}): held-out NLL falls by {c.test_gain:.4f} nats/ray "
-                f"({c.test_gain_pct:.1f} %); likelihood ratio {c.lr:.1f} for {c.k} parameter(s), "
+                f"{'' if math.isnan(c.test_gain_pct) else f'({c.test_gain_pct:.1f} %)'}; likelihood ratio {c.lr:.1f} for {c.k} parameter(s), "
                 f"p = {c.p_value:.2g}, dBIC = {c.delta_bic:+.1f}.")
         groups = d.evidence[i]["groups"] if i < len(d.evidence) else []
         if groups:
@@ -274,7 +289,7 @@ def diagnosis_markdown(d: Diagnosis) -> str:
         lines += [f"## Round {i + 1}", "", "| rank | candidate | k | held-out gain (nats/ray) | gain % | LR | p | dBIC | significant |",
                   "|---|---|---|---|---|---|---|---|---|"]
         for j, c in enumerate(ranked):
-            lines.append(f"| {j + 1} | {c.name} | {c.k} | {c.test_gain:+.4f} | {c.test_gain_pct:+.2f} | {c.lr:.1f} | "
+            lines.append(f"| {j + 1} | {c.name} | {c.k} | {c.test_gain:+.4f} | {'-' if math.isnan(c.test_gain_pct) else f'{c.test_gain_pct:+.2f}'} | {c.lr:.1f} | "
                          f"{c.p_value:.2g} | {c.delta_bic:+.1f} | {'yes' if c.significant else 'no'} |")
         lines.append("")
     for ev in d.evidence:

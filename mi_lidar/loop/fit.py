@@ -20,8 +20,8 @@ geometry in the kernel, from the traced tangent planes and ellipsoids (:class:`P
 Scoring floor. A measured return that the model cannot produce at all (no element along the ray
 near the measured range, say) has log-likelihood -inf; one such ray would make a mean NLL
 infinite and hide every other difference between models. Scores are therefore floored at
-:data:`LL_FLOOR` nats per ray, in fitting and in scoring alike: such a ray costs 30 nats, about
-the NLL of a return 7.7 sigma away from its element.
+:data:`LL_FLOOR` nats per ray: such a ray costs 30 nats, about the NLL of a return 7.7 sigma away
+from its element. Fitting floors at the lower :data:`FIT_FLOOR`, so that such rays keep pulling.
 """
 
 from __future__ import annotations
@@ -40,8 +40,14 @@ from ..segment import SURFACE, Segment
 from ..sensor_model import SensorModel, mixture_step
 from .rays import LogRays
 
-LL_FLOOR = -30.0  # nats: per-ray log-likelihood floor of fitting and scoring (see the module docstring)
+LL_FLOOR = -30.0  # nats: per-ray log-likelihood floor of scoring (see the module docstring)
+# nats: the fitting loss's floor, lower than the scoring one so that rays far from their element
+# (a beam tilted onto another surface) still pull the parameters back (a 45 sigma residual).
+FIT_FLOOR = -1000.0
 DEFAULT_SCALE = 0.1
+# Adam step in units of each parameter's scale; with the cosine decay to a tenth, 100 steps can
+# move a parameter about 15 scales from its start and end with steps of 0.03 scales.
+LEARNING_RATE = 0.3
 BATCH = 1 << 18  # rays scored at once
 SEGMENT_FIELDS = ("nominal", "p", "mean", "sigma", "lo", "hi", "cos_incidence", "element", "shape", "label", "kind")
 
@@ -103,14 +109,16 @@ def make_opaque(effects: list[Effect]) -> None:
 
 
 def moves_rays(model: SensorModel) -> bool:
-    """True when an effect of ``model`` edits rays before tracing (angle offsets, extrinsics, motion)."""
-    return any(type(e).perturb_rays is not Effect.perturb_rays for e in model.effects)
+    """True when an effect of ``model`` edits rays before tracing (angle offsets, extrinsics, motion, footprint)."""
+    return any(type(e).perturb_rays is not Effect.perturb_rays or type(e).footprint is not Effect.footprint
+               for e in model.effects)
 
 
 def _ray_key(model: SensorModel) -> tuple:
     """Identity of the rays ``model`` traces: its ray-moving effects and their parameter values."""
     return tuple((e.name, tuple(np.asarray(dr.detach(v)).tobytes() for v in e.params.values()))
-                 for e in model.effects if type(e).perturb_rays is not Effect.perturb_rays)
+                 for e in model.effects
+                 if type(e).perturb_rays is not Effect.perturb_rays or type(e).footprint is not Effect.footprint)
 
 
 @dataclass
@@ -145,6 +153,8 @@ class Chunk:
         hit: (N,) True where the sensor reported a return.
         met: (N,) True where the ray meets at least one element.
         rounds: the compact rounds, first element first.
+        records: the full-width records of :meth:`SensorModel.trace_segments`, kept instead of
+            rounds when an effect fans beams out into sub-rays (scored by the core likelihood).
     """
 
     rays: RayBatch
@@ -152,11 +162,15 @@ class Chunk:
     hit: mi.Bool
     met: mi.Bool
     rounds: list[Round]
+    records: list | None = None
 
 
 def trace_chunk(model: SensorModel, scene, table: ElementTable, rays: RayBatch, z: mi.Float, hit: mi.Bool) -> Chunk:
     """Trace ``rays`` under ``model`` and keep, per round, only the lanes that met an element."""
     records = model.trace_segments(scene, table, rays)
+    if any(type(e).footprint is not Effect.footprint for e in model.effects):
+        return Chunk(rays=rays, z=dr.select(hit, z, 0.0), hit=hit, met=dr.full(mi.Bool, True, rays.width), rounds=[],
+                     records=records)
     moving = moves_rays(model)
     with dr.suspend_grad():
         prepared = model.prepare_rays(rays)
@@ -193,6 +207,8 @@ def chunk_log_likelihood(model: SensorModel, table: ElementTable, chunk: Chunk, 
     Equal to :meth:`SensorModel.log_likelihood` on the same rays: the virtual elements at full
     width, then one compact round after the other, each lane's mixture carried over by a gather.
     """
+    if chunk.records is not None:
+        return model.log_likelihood(table, chunk.rays, chunk.records, chunk.z, chunk.hit, resolution)
     rays = model.prepare_rays(chunk.rays)
     n = chunk.rays.width
     log_mix, log_pass = dr.full(mi.Float, -dr.inf, n), dr.zeros(mi.Float, n)
@@ -281,7 +297,7 @@ class FitResult:
 
 
 def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | None = None, steps: int = 150,
-                lr: float = 0.1, retrace_every: int = 50, progress=None) -> FitResult:
+                lr: float = LEARNING_RATE, retrace_every: int = 10, progress=None) -> FitResult:
     """Maximise the mean log-likelihood of ``problem``'s rays over effect parameters.
 
     Args:
@@ -327,7 +343,7 @@ def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | No
         for chunk in problem.chunks:
             assign()  # a fresh graph per chunk: backward releases the previous one
             ll = chunk_log_likelihood(model, problem.table, chunk, problem.resolution)
-            loss = -dr.sum(dr.maximum(ll, LL_FLOOR)) / n
+            loss = -dr.sum(dr.maximum(ll, FIT_FLOOR)) / n
             dr.backward(loss)
             total += float(loss[0])
         opt.step()
