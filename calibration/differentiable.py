@@ -19,10 +19,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.arrays import aligned
-from mi_lidar.effects.base import RayBatch
 from mi_lidar.elements import ELLIPSOID_STRIDE, ElementTable
-from mi_lidar.log import Log
+from mi_lidar.log_rays import LogRays  # noqa: F401  (the one Log -> RayBatch builder, used by fit)
 from mi_lidar.segment import ELLIPSOID, Segment, ray_restricted_gaussian, rotate_inverse
 
 
@@ -167,66 +165,3 @@ class DiffTable(ElementTable):
             shape=dr.gather(mi.UInt32, self.element_shape, element, valid),
             label=dr.gather(mi.UInt32, self.label, element, valid), kind=kind,
         )
-
-
-
-@dataclass
-class LogRays:
-    """The rays and measurements of a log as flat numpy arrays (one row per ray).
-
-    Attributes:
-        origin, direction: (N, 3) world-frame ray origins (m) and unit directions.
-        rotation: (N, 3, 3) sensor-to-world rotation of each ray's scan.
-        position: (N, 3) sensor position of each ray's scan, m.
-        beam: (N,) beam (row) index.
-        time: (N,) timestamp, s.
-        ranges: (N,) measured range, m (0 for misses).
-        hit: (N,) True where the sensor reported a return.
-    """
-
-    origin: np.ndarray
-    direction: np.ndarray
-    rotation: np.ndarray
-    position: np.ndarray
-    beam: np.ndarray
-    time: np.ndarray
-    ranges: np.ndarray
-    hit: np.ndarray
-
-    @classmethod
-    def from_log(cls, log: Log) -> "LogRays":
-        """Flatten a log's rays to the world frame (ray ``i`` is element ``i`` of ``log.ranges.ravel()``)."""
-        s, h, w = log.shape
-        directions = np.broadcast_to(log.directions, (s, h, w, 3)).astype(np.float64)
-        origins = np.broadcast_to(log.origins, (s, h, w, 3)).astype(np.float64)
-        rot, trans = log.poses[:, :3, :3], log.poses[:, :3, 3]
-        world_d = np.einsum("sij,shwj->shwi", rot, directions)
-        world_o = np.einsum("sij,shwj->shwi", rot, origins) + trans[:, None, None]
-        world_d /= np.linalg.norm(world_d, axis=-1, keepdims=True)
-        return cls(
-            origin=world_o.reshape(-1, 3).astype(np.float32), direction=world_d.reshape(-1, 3).astype(np.float32),
-            rotation=np.repeat(rot, h * w, axis=0).astype(np.float32),
-            position=np.repeat(trans, h * w, axis=0).astype(np.float32),
-            beam=np.tile(np.repeat(np.arange(h, dtype=np.uint32), w), s),
-            time=log.times.reshape(-1).astype(np.float32),
-            ranges=np.where(log.hit, log.ranges, 0.0).reshape(-1).astype(np.float32),
-            hit=log.hit.reshape(-1).copy(),
-        )
-
-    @property
-    def n(self) -> int:
-        return len(self.hit)
-
-    def batch(self, index: np.ndarray) -> tuple[RayBatch, mi.Float, mi.Bool]:
-        """Rays ``index`` as a :class:`RayBatch` (ray ids = their log indices), measured ranges and hits."""
-        index = np.asarray(index)
-        rot = self.rotation[index]
-        f = lambda a: mi.Float(aligned(a))  # noqa: E731
-        rays = RayBatch(
-            origin=mi.Point3f(*map(f, self.origin[index].T)), direction=mi.Vector3f(*map(f, self.direction[index].T)),
-            beam=mi.UInt32(aligned(self.beam[index])), time=f(self.time[index]),
-            ray_id=mi.UInt32(aligned(index.astype(np.uint32))),
-            sensor_rotation=mi.Matrix3f(*[f(rot[:, i, j]) for i in range(3) for j in range(3)]),
-            sensor_position=mi.Point3f(*map(f, self.position[index].T)),
-        )
-        return rays, f(self.ranges[index]), mi.Bool(aligned(self.hit[index]))
