@@ -19,3 +19,4 @@ from .outliers import Outliers
 from .motion_distortion import MotionDistortion
 from .random_dropout import RandomDropout
 from .mixed_pixels import MixedPixels
+from .multiple_returns import MultipleReturns
