@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from pathlib import Path
@@ -33,11 +34,8 @@ def _versions() -> dict[str, str]:
     from . import __version__
 
     llvm = os.environ.get("DRJIT_LIBLLVM_PATH", "system default")
-    try:
-        major, minor, patch = dr.detail.llvm_version()
-        llvm = f"{major}.{minor}.{patch} ({llvm})"
-    except Exception:  # the backend reports no version before it is initialised
-        pass
+    with contextlib.suppress(RuntimeError):  # the backend reports no version before it is initialised
+        llvm = "{}.{}.{} ({})".format(*dr.detail.llvm_version(), llvm)
     return {"mi-lidar": __version__, "Mitsuba": mi.__version__, "Dr.Jit": dr.__version__,
             "variant": str(mi.variant()), "LLVM": llvm}
 
