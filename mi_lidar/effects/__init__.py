@@ -1,6 +1,6 @@
 """Catalog of physical effects; see :mod:`mi_lidar.effects.base` for the interface."""
 
-from .base import EFFECTS, Effect, ParamSpec, RayBatch, make_effect, parse_effects, register_effect
+from .base import EFFECTS, Effect, FootprintEffect, ParamSpec, RayBatch, make_effect, parse_effects, register_effect
 from .range_noise import RangeNoise
 from .beam_offsets import BeamOffsets
 from .range_bias import RangeBias
@@ -8,7 +8,7 @@ from .range_scale import RangeScale
 from .extrinsics import Extrinsics
 
 __all__ = [
-    "EFFECTS", "Effect", "ParamSpec", "RayBatch", "RangeNoise",
+    "EFFECTS", "Effect", "FootprintEffect", "ParamSpec", "RayBatch", "RangeNoise",
     "make_effect", "parse_effects", "register_effect",
 ]
 from .incidence_dropout import IncidenceDropout

@@ -33,6 +33,7 @@ Writing a new effect::
 
 from __future__ import annotations
 
+import abc
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -210,18 +211,35 @@ class Effect:
         return seg
 
     def footprint(self, rays: RayBatch) -> tuple[RayBatch, mi.Float] | None:
-        """Fan each beam out into sub-rays (beam divergence); default: None, one ray per beam.
+        """Fan each beam out into sub-rays (default: None, one ray per beam; see :class:`FootprintEffect`)."""
+        return None
 
-        An effect that returns sub-rays must also implement :meth:`combine` and
-        :meth:`combine_log_likelihood`; a model holds at most one such effect.
+    def describe(self) -> str:
+        """``name(key=value, ...)``: the effect as written in XML or on the command line."""
+        parts = [f"{k}={v}" for k, v in self.choices.items()]
+        for key, value in self.params.items():
+            array = np.asarray(value)
+            parts.append(f"{key}={array[0]:.6g}" if array.size == 1 else f"{key}=[{' '.join(f'{x:.6g}' for x in array)}]")
+        return f"{self.name}({', '.join(parts)})"
+
+
+class FootprintEffect(Effect, metaclass=abc.ABCMeta):
+    """An effect that fans each beam out into weighted sub-rays and forms one return from them.
+
+    Subclasses implement all three methods below; a model holds at most one such effect.
+    """
+
+    @abc.abstractmethod
+    def footprint(self, rays: RayBatch) -> tuple[RayBatch, mi.Float] | None:
+        """Fan each beam out into sub-rays (beam divergence).
 
         Returns:
             ``(sub, weight)``: ``m`` sub-rays per beam, sub-ray ``j`` of beam ``i`` in lane
             ``j n + i`` (``n`` beams), and each sub-ray's share of the beam's energy (weights of a
             beam sum to 1).
         """
-        return None
 
+    @abc.abstractmethod
     def combine(self, sub: dict, weight: mi.Float, n: int) -> dict:
         """Form each beam's reported return from its sub-rays' first returns (sampler).
 
@@ -233,8 +251,8 @@ class Effect:
         Returns:
             The same channels for the ``n`` beams.
         """
-        raise NotImplementedError(f"effect {self.name!r} fans beams out but does not combine their returns")
 
+    @abc.abstractmethod
     def combine_log_likelihood(self, moments: "SubRayMoments", weight: mi.Float, z: mi.Float, hit: mi.Bool,
                                n: int) -> mi.Float:
         """Log-likelihood (nats) of each beam's measured return from its sub-rays' return moments.
@@ -246,15 +264,6 @@ class Effect:
             z, hit: (n,) measured ranges (m) and return flags of the beams.
             n: number of beams.
         """
-        raise NotImplementedError(f"effect {self.name!r} fans beams out but has no combined likelihood")
-
-    def describe(self) -> str:
-        """``name(key=value, ...)``: the effect as written in XML or on the command line."""
-        parts = [f"{k}={v}" for k, v in self.choices.items()]
-        for key, value in self.params.items():
-            array = np.asarray(value)
-            parts.append(f"{key}={array[0]:.6g}" if array.size == 1 else f"{key}=[{' '.join(f'{x:.6g}' for x in array)}]")
-        return f"{self.name}({', '.join(parts)})"
 
 
 EFFECTS: dict[str, type[Effect]] = {}

@@ -7,7 +7,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from .base import Effect, ParamSpec, RayBatch, SubRayMoments, register_effect
+from .base import FootprintEffect, ParamSpec, RayBatch, SubRayMoments, register_effect
 from .beam_offsets import offset_direction
 
 # Sub-ray pattern of the footprint: (elevation, azimuth) offsets in units of ``divergence``.
@@ -17,7 +17,7 @@ MIN_VARIANCE = 1e-8  # m^2: floor of the combined range variance
 
 
 @register_effect
-class MixedPixels(Effect):
+class MixedPixels(FootprintEffect):
     """Beam divergence: each beam is 5 sub-rays whose returns merge into one energy-weighted range.
 
     The footprint is the beam axis plus four sub-rays turned by ``divergence`` (rad) up, down,
