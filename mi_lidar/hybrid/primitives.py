@@ -28,6 +28,12 @@ def rotation_z(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def closest_extents(candidates, extents) -> int:
+    """Index of the box in ``candidates`` (K, 3) closest to ``extents`` (3,) in Euclidean norm, m."""
+    d = np.linalg.norm(np.asarray(candidates, float).reshape(-1, 3) - np.asarray(extents, float), axis=1)
+    return int(np.argmin(d))
+
+
 def object_pose(points: np.ndarray, velocity_xy: np.ndarray) -> tuple[np.ndarray, float]:
     """Centroid (3,) m and yaw (rad) of an object's (M, 3) points; ``velocity_xy`` (2,) picks the x axis."""
     center = points.mean(axis=0)
@@ -134,8 +140,7 @@ class PrimitiveLibrary:
             have = sorted({p.class_name for p in self.primitives})
             raise SceneError(f"the primitive library has no {CLASS_NAMES[class_id(label)]!r}; it holds {have}. "
                              "Extract primitives from a log that contains this class.")
-        d = [np.linalg.norm(p.extents - np.asarray(extents, float)) for p in cands]
-        return cands[int(np.argmin(d))]
+        return cands[closest_extents([p.extents for p in cands], extents)]
 
     def rows(self) -> list[dict]:
         """One summary dict per primitive (id, class, ellipsoids, extents in m, source)."""

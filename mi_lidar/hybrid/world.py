@@ -41,6 +41,7 @@ CLASS_SHAPES = {
     "medium_tree": ((7.0, 10.0), 0.5, 12.0, 0.20, True),
     "large_tree": ((10.0, 13.5), 0.45, 8.0, 0.24, True),
 }
+ROCK_SIZE = (0.3, 0.9)  # m, range of a rock's largest half-axis
 REFLECTANCE = {"ground": 0.30, "grass": 0.35, "rock": 0.40, "leaf": 0.45, "bark": 0.25}
 
 
@@ -281,6 +282,27 @@ def _rock(builder: _MeshBuilder, base: np.ndarray, size: float, yaw: float, inst
     return 2 * radii * [1, 1, 0.6]
 
 
+def object_mesh(cls: str, size: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """One object of the world's generator standing on the origin, unrotated (yaw 0).
+
+    Args:
+        cls: an object class name (a key of ``CLASS_SHAPES`` or ``"rock"``).
+        size: tree or shrub height, or a rock's largest half-axis, m.
+        rng: random generator drawing the object's shape, branches and leaves.
+
+    Returns:
+        (V, 3) float32 vertices, m (the base at the origin, z up, the wider side along x) and
+        (F, 3) int32 faces.
+    """
+    builder = _MeshBuilder()
+    if cls == "rock":
+        _rock(builder, np.zeros(3), size, 0.0, 1, rng)
+    else:
+        _vegetation(builder, cls, np.zeros(3), size, 0.0, 1, rng)
+    vertices, faces, *_ = builder.build()
+    return vertices, faces
+
+
 def _grass(builder: _MeshBuilder, world_h, center, radius: float, rng, density: float = 30.0):
     n = int(density * np.pi * radius**2)
     r = radius * np.sqrt(rng.uniform(0, 1, n))
@@ -354,7 +376,7 @@ def make_world(seed: int, spec: WorldSpec | None = None) -> World:
     for i in range(n_objects):
         cls = classes[rng.choice(len(classes), p=weights / weights.sum())]
         if cls == "rock":
-            size = rng.uniform(0.3, 0.9)
+            size = rng.uniform(*ROCK_SIZE)
             rad = size
         else:
             height = rng.uniform(*CLASS_SHAPES[cls][0])
