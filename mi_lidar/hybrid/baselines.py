@@ -5,10 +5,15 @@
   returned (its along-ray distance). Implemented by ray casting spheres of radius ``d_perp``
   around the logged points (Mitsuba ``ellipsoids`` with extent 1): the first sphere met is the
   candidate with the smallest along-ray distance, up to the sphere radius.
-* **Mesh-primitive simulator**: opaque procedural meshes per class standing in for
-  "open-source" models (trees: a trunk prism and an ellipsoidal crown surface; shrubs: an
-  ellipsoid surface; rocks: a flattened ellipsoid), scaled to each annotated box, plus the
-  ground mesh; p_hit = 1 everywhere and Gaussian range noise ``sigma``.
+* **Mesh-model simulator** (the thesis's baseline): per annotated object, the stock mesh model
+  of its class with the closest box extents (:mod:`.mesh_models`), placed at the object's pose
+  without rescaling, plus the ground mesh; every triangle opaque (p_hit = 1) with Gaussian range
+  noise ``sigma``.
+* **Box-surface simulator** (a more generous variant, not in the thesis): per annotated object a
+  smooth closed surface scaled to its box (trees: a trunk prism under an ellipsoidal crown
+  surface over the top 60 % of the box height; shrubs and rocks: the ellipsoid surface
+  inscribed in the box), centred on the object's centre and turned by its yaw, plus the ground;
+  opaque, Gaussian range noise ``sigma``.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import numpy as np
 import trimesh
 
 from .classes import CLASS_ID, class_id
+from .mesh_models import MeshModelLibrary
 from .model import EllipsoidSet, GroundMesh, HybridModel
 from .primitives import rotation_z
 from .trace import ellipsoid_scene, intersect
@@ -47,8 +53,8 @@ class NeighborSimulator:
         return r
 
 
-def _class_mesh(label: int, extents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (centred on the box centre, m) and faces of the stand-in mesh of a class."""
+def _box_surface(label: int, extents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (centred on the origin, m) and faces of the closed surface scaled to box ``extents`` (3,) m."""
     lx, ly, lz = np.maximum(extents, 0.1)
     sphere = trimesh.creation.icosphere(subdivisions=2)
     if label >= CLASS_ID["small_tree"]:
@@ -56,26 +62,56 @@ def _class_mesh(label: int, extents: np.ndarray) -> tuple[np.ndarray, np.ndarray
         crown = sphere.vertices * [lx / 2, ly / 2, crown_h / 2] + [0, 0, lz / 2 - crown_h / 2]
         tv, tf = prism(np.array([0, 0, -lz / 2]), np.array([0, 0, lz / 2 - crown_h / 2]), 0.03 * lz, 0.02 * lz)
         return np.r_[crown, tv], np.r_[sphere.faces, tf + len(crown)]
-    if label == CLASS_ID["rock"]:
-        return sphere.vertices * [lx / 2, ly / 2, lz / 2], sphere.faces
     return sphere.vertices * [lx / 2, ly / 2, lz / 2], sphere.faces
 
 
-def mesh_primitive_scene(objects: list[dict], ground: GroundMesh | None, sigma: float = 0.05) -> HybridModel:
-    """Opaque-mesh baseline scene for annotation ``objects`` (see :mod:`.compose`), m and rad.
+def _opaque_scene(ground: GroundMesh | None, objects: list[tuple[np.ndarray, np.ndarray, int]],
+                  sigma: float) -> HybridModel:
+    """A model of opaque triangles (p_hit = 1, range sigma ``sigma`` m): the ground and per object
+    (world vertices (V, 3) m, faces (F, 3), class id); object ``i`` gets instance ``i + 1``."""
+    parts = []
+    if ground is not None and len(ground):
+        parts.append(GroundMesh(ground.vertices, ground.faces, 1.0, sigma, ground.label))
+    for i, (vertices, faces, label) in enumerate(objects):
+        parts.append(GroundMesh(vertices, faces, 1.0, sigma, label, i + 1))
+    return HybridModel(GroundMesh.concat(parts), EllipsoidSet(np.zeros((0, 3)), np.zeros((0, 3, 3))))
+
+
+def mesh_model_scene(objects: list[dict], ground: GroundMesh | None, library: MeshModelLibrary,
+                     sigma: float = 0.05) -> HybridModel:
+    """The thesis's mesh-model baseline scene for annotation ``objects`` (see :mod:`.compose`).
 
     Args:
-        objects: annotation objects. ground: ground mesh (made opaque). sigma: range noise, m.
+        objects: annotation objects (class, center m, yaw rad, extents m).
+        ground: ground mesh (made opaque); None for none.
+        library: stock models; each object gets the model of its class with the closest box.
+        sigma: Gaussian range noise, m.
+
+    Returns:
+        A model with only triangles (p_hit = 1, range_sigma = ``sigma``); ``info["models"]``
+        lists the chosen model id per object.
+    """
+    chosen = [library.best_match(obj["class"], obj["extents"]) for obj in objects]
+    meshes = [(m.placed(float(obj["yaw"]), obj["center"]), m.faces, m.label) for m, obj in zip(chosen, objects)]
+    model = _opaque_scene(ground, meshes, sigma)
+    model.info["models"] = [m.id for m in chosen]
+    return model
+
+
+def box_surface_scene(objects: list[dict], ground: GroundMesh | None, sigma: float = 0.05) -> HybridModel:
+    """The box-surface baseline scene: a closed surface scaled to each annotated box, at its pose.
+
+    Args:
+        objects: annotation objects (class, center m, yaw rad, extents m).
+        ground: ground mesh (made opaque); None for none.
+        sigma: Gaussian range noise, m.
 
     Returns:
         A model with only triangles (p_hit = 1, range_sigma = ``sigma``).
     """
-    parts = []
-    if ground is not None and len(ground):
-        parts.append(GroundMesh(ground.vertices, ground.faces, 1.0, sigma, ground.label))
-    for i, obj in enumerate(objects):
+    meshes = []
+    for obj in objects:
         label = class_id(obj["class"])
-        v, f = _class_mesh(label, np.asarray(obj["extents"], float))
-        v = v @ rotation_z(float(obj["yaw"])).T + np.asarray(obj["center"], float)
-        parts.append(GroundMesh(v, f, 1.0, sigma, label, i + 1))
-    return HybridModel(GroundMesh.concat(parts), EllipsoidSet(np.zeros((0, 3)), np.zeros((0, 3, 3))))
+        vertices, faces = _box_surface(label, np.asarray(obj["extents"], float))
+        meshes.append((vertices @ rotation_z(float(obj["yaw"])).T + np.asarray(obj["center"], float), faces, label))
+    return _opaque_scene(ground, meshes, sigma)

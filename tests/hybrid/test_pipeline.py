@@ -6,7 +6,6 @@ import pytest
 import mi_lidar
 from mi_lidar.errors import SceneError
 from mi_lidar.hybrid import commands
-from mi_lidar.hybrid.baselines import mesh_primitive_scene
 from mi_lidar.hybrid.blocks import read_scene, write_scene
 from mi_lidar.hybrid.classes import OBJECT_CLASSES
 from mi_lidar.hybrid.compose import annotation_from_segments, compose_scene, load_annotation, save_annotation
@@ -87,13 +86,6 @@ def test_bad_annotation_names_the_problem(tmp_path):
     bad.write_text(json.dumps({"format": "mi-lidar-annotation", "objects": [{"class": "small_tree"}]}))
     with pytest.raises(SceneError, match="object 0 lacks"):
         load_annotation(bad)
-
-
-def test_mesh_baseline_is_opaque(small_log, small_fit):
-    objects = annotation_from_segments(small_fit.points, _segments(small_log, small_fit), small_log.poses)
-    base = mesh_primitive_scene(objects, small_fit.model.ground, sigma=0.05)
-    assert np.all(base.ground.p_hit == 1) and len(base.ellipsoids) == 0
-    assert len(base.ground) > len(small_fit.model.ground)
 
 
 def test_automatic_segmentation_and_classifier(small_log, small_fit):
