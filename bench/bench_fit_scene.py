@@ -2,10 +2,11 @@
 
 A synthetic world (200 m x 60 m) is ray cast by the true sensor (32 x 1024 rays per scan, a scan
 every 3 m: about 2M rays, 1.1-1.3M returns; not timed), then :func:`fit_model` runs ground
-segmentation, per-block ground meshes and ellipsoids, and hit probabilities over every ray.
+segmentation, per-block ground meshes and ellipsoids, and hit probabilities over every ray
+(counted with the core's multi-element traversal, :func:`mi_lidar.hybrid.simulation.trace_elements`).
 Target: under 120 s on 2 cores.
 
-Usage: ``python bench/bench_fit_scene.py [--spacing 3.0]``
+Usage: ``python -m bench.bench_fit_scene [--spacing 3.0]`` (alone) or ``python -m bench`` (every benchmark).
 """
 
 from __future__ import annotations
@@ -24,13 +25,16 @@ TARGET_S = 120.0
 def measure(spacing: float = 3.0) -> dict:
     """Fit the model to the benchmark world's log; return the point count and seconds per stage."""
     sensor = SensorSpec(n_firings=1024)
+    start = time.perf_counter()
     world = make_world(7, WorldSpec(length=200, width=60))
     log = render_log(world, path_poses(world, spacing, sensor), sensor, seed=7)
+    log_seconds = time.perf_counter() - start
     start = time.perf_counter()
     result = fit_model(log, FitParams())
     return {"points": int(log.hit.sum()), "rays": log.n_rays, "total": time.perf_counter() - start,
             "stages": dict(result.timings), "triangles": len(result.model.ground),
-            "ellipsoids": len(result.model.ellipsoids)}
+            "ellipsoids": len(result.model.ellipsoids), "world_triangles": len(world.faces),
+            "log_seconds": log_seconds, "blocks": result.model.info["n_blocks"]}
 
 
 def run() -> list[dict]:
@@ -49,7 +53,9 @@ def main() -> None:
     parser.add_argument("--spacing", type=float, default=3.0, help="metres between scans")
     args = parser.parse_args()
     r = measure(args.spacing)
-    print(f"{r['rays']} rays, {r['points']} points, cpus={os.cpu_count()}")
+    print(f"{r['world_triangles']} world triangles, {r['rays']} rays, {r['points']} points "
+          f"(log {r['log_seconds']:.1f} s, not timed below), cpus={os.cpu_count()}, load {os.getloadavg()[0]:.1f}")
+    print(f"fit: {r['triangles']} triangles, {r['ellipsoids']} ellipsoids, {r['blocks']} blocks")
     print(f"{'stage':<20}{'seconds':>10}")
     for stage, seconds in r["stages"].items():
         print(f"{stage:<20}{seconds:>10.1f}")
