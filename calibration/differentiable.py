@@ -21,7 +21,9 @@ import numpy as np
 
 from mi_lidar.elements import ELLIPSOID_STRIDE, ElementTable
 from mi_lidar.log_rays import LogRays  # noqa: F401  (the one Log -> RayBatch builder, used by fit)
-from mi_lidar.segment import ELLIPSOID, Segment, ray_restricted_gaussian, rotate_inverse
+from mi_lidar.segment import ELLIPSOID, Segment, ray_quadratic, ray_restricted_gaussian, rotate_inverse
+
+from .smoothing import presence
 
 
 @dataclass
@@ -35,6 +37,8 @@ class DiffTable(ElementTable):
         element_shape: per element, index of its shape in ``shape_ids``.
         vertex_offset: per shape, index of its first vertex in ``vertex_positions`` (-1 if not a mesh).
         vertex_counts: per shape, vertex count (0 if not a mesh).
+        smoothing: > 0 while fitting ellipsoid geometry: ellipsoids return with the soft
+            silhouette of :mod:`~mi_lidar.calibration.smoothing` (sigmas of the element); 0 is exact.
     """
 
     vertex_positions: mi.Float = None
@@ -43,6 +47,7 @@ class DiffTable(ElementTable):
     element_shape: mi.UInt32 = None
     vertex_offset: list = None
     vertex_counts: list = None
+    smoothing: float = 0.0
 
     @classmethod
     def from_scene(cls, scene) -> "DiffTable":
@@ -125,6 +130,9 @@ class DiffTable(ElementTable):
         local_gradient = rotate_inverse(quat, entry - center) / (scale * scale)
         e_normal = rotate_inverse(mi.Vector4f(-quat.x, -quat.y, -quat.z, quat.w), local_gradient)
         e_cos = dr.abs(dr.dot(dr.normalize(e_normal), direction))
+        if self.smoothing > 0:
+            soft = presence(*ray_quadratic(center, scale, quat, origin, direction), extent, self.smoothing)
+            p = dr.select(is_ellipsoid, p * soft, p)
 
         nominal = dr.select(triangle, t_triangle, dr.select(is_ellipsoid, e_lo, si.nominal))
         cos_incidence = dr.select(triangle, dr.abs(d_n), dr.select(is_ellipsoid, e_cos, si.cos_incidence))

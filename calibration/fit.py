@@ -21,6 +21,10 @@ what is fitted:
   along the perturbed rays at every step (gradients through the rays);
 * geometry is fitted (heights, centers, scales, beam angles, extrinsics): the scene is updated and
   each mini-batch re-traced at every step.
+
+While ellipsoid centers or scales are fitted, the training loss is the smoothed surrogate of
+:mod:`~mi_lidar.calibration.smoothing` (annealed to the exact model, learning rates shrinking with
+it); the held-out loss is always exact.
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ from .differentiable import LogRays
 from .likelihood import mixture_log_likelihood, returned_and_passed, round_segment
 from .parameters import P_EPS, ParameterSpace
 from .records import CachedBatch, RayCache, cache_distributions, trace_rounds
+from .smoothing import smoothing_at
 
 
 @dataclass
@@ -64,6 +69,10 @@ class FitOptions:
         gate: a return within ``gate`` range sigmas of a surface element counts as its hit.
         floor: robustness floor of the likelihood (see the module docstring); 0 gives the pure
             likelihood, which is infinite as soon as one return has no element near it.
+        smoothing, smoothing_final: while ellipsoid centers or scales are fitted, the training
+            loss smooths ellipsoids by this many sigmas of the element, annealed geometrically
+            over ``steps`` (:mod:`~mi_lidar.calibration.smoothing`); 0 trains on the exact
+            likelihood. The held-out loss is always exact.
     """
 
     steps: int = 200
@@ -78,6 +87,8 @@ class FitOptions:
     counting_start: bool = True
     gate: float = 3.0
     floor: float = 1e-6
+    smoothing: float = 0.1
+    smoothing_final: float = 0.01
 
 
 @dataclass
@@ -156,6 +167,10 @@ class Calibration:
         self.options = options or FitOptions()
         if not 0 < self.options.holdout < 1:
             raise CalibrationError(f"holdout={self.options.holdout} must lie in (0, 1), e.g. 0.2")
+        if not (self.options.smoothing == 0 or self.options.smoothing >= self.options.smoothing_final > 0):
+            raise CalibrationError(f"smoothing={self.options.smoothing}, smoothing_final={self.options.smoothing_final}: "
+                                   "use smoothing=0 (exact likelihood) or smoothing >= smoothing_final > 0 (sigmas), "
+                                   "e.g. 0.1 and 0.01")
         self.scene = scene
         base_model = model or scene_sensor_model(scene)[0]
         self.space = ParameterSpace(scene, base_model, n_beams=log.shape[1])
@@ -163,6 +178,8 @@ class Calibration:
         self.model = self.space.calibration_model(self.names)
         self.params = {n: self.space.params[n] for n in self.names}
         self.geometric = any(p.geometric for p in self.params.values())
+        self.smoothed = self.options.smoothing > 0 and any(p.family in ("centers", "scales")
+                                                           for p in self.params.values())
         effects = {e.name: e for e in self.model.effects}
         moves_rays = any(p.family == "effect" and type(effects[p.target[0]]).perturb_rays is not Effect.perturb_rays
                          for p in self.params.values())
@@ -181,13 +198,14 @@ class Calibration:
         self.observations: dict[str, np.ndarray] = {}
 
     # --------------------------------------------------------------------- likelihood
-    def _records(self, part: str, position: np.ndarray, values: dict):
+    def _records(self, part: str, position: np.ndarray, values: dict, smoothing: float = 0.0):
         """The rays at ``position`` in part ``part`` (``"train"`` or ``"held_out"``) with their records.
 
         The part's rays are uploaded once and gathered per batch. Without fitted geometry the
         records come from the part's :class:`RayCache` (traced once): a :class:`CachedBatch` when
         the return distributions are cached (:attr:`static`), else compact :class:`Rounds`. With
-        fitted geometry the scene takes the detached ``values`` and the rays are traced anew.
+        fitted geometry the scene takes the detached ``values`` and the rays are traced anew, with
+        the margin of ellipsoid ``smoothing`` (sigmas) when it is > 0.
 
         Returns:
             ``(rays, measured ranges (m), hits, records)`` of the batch.
@@ -200,6 +218,7 @@ class Calibration:
         if self.geometric:
             with dr.suspend_grad():
                 table, model = self.space.build({k: dr.detach(v) for k, v in values.items()}, self.model)
+                table = table.replaced(smoothing=smoothing)
                 self.space.push_geometry(table)
                 return rays, z, hit, trace_rounds(self.scene, table, model, rays)
         if part not in self._cache:
@@ -213,9 +232,14 @@ class Calibration:
         cache = self._cache[part]
         return rays, z, hit, cache.batch(position) if self.static else cache.select(position)
 
-    def log_likelihood(self, values: dict, rays, z, hit, rounds) -> mi.Float:
-        """Per-ray robust log-likelihood (nats) under natural parameter ``values`` (keeps gradients)."""
+    def log_likelihood(self, values: dict, rays, z, hit, rounds, smoothing: float = 0.0) -> mi.Float:
+        """Per-ray robust log-likelihood (nats) under natural parameter ``values`` (keeps gradients).
+
+        ``smoothing`` > 0 (sigmas) scores ellipsoids with the fitting-only surrogate of
+        :mod:`~mi_lidar.calibration.smoothing` (the records must be traced with the same smoothing).
+        """
         table, model = self.space.build(values, self.model)
+        table = table.replaced(smoothing=smoothing)
         ll = mixture_log_likelihood(table, model, rays, rounds, z, hit)
         if self.options.floor <= 0:
             return ll
@@ -317,10 +341,14 @@ class Calibration:
             else:
                 position = np.random.default_rng((opts.seed, step)).integers(0, len(self.train), opts.batch_size)
             values = {name: self.params[name].to_natural(opt[name]) for name in self.params}
-            rays, z, hit, rounds = self._records("train", position, values)
+            kappa = smoothing_at(step - 1, opts.steps, opts.smoothing, opts.smoothing_final) if self.smoothed else 0.0
+            if self.smoothed:  # steps shrink with the smoothing, so the fit settles as the surrogate sharpens
+                opt.set_learning_rate({name: self.learning_rate(name) * math.sqrt(kappa / opts.smoothing)
+                                       for name in self.params})
+            rays, z, hit, rounds = self._records("train", position, values, kappa)
 
             # ---------------- Loss with gradients, Adam step, constraints -------------------------
-            loss = -dr.mean(self.log_likelihood(values, rays, z, hit, rounds))
+            loss = -dr.mean(self.log_likelihood(values, rays, z, hit, rounds, kappa))
             dr.backward(loss)
             train_loss = float(loss[0])
             bad = [n for n in self.params if not np.all(np.isfinite(np.asarray(dr.grad(opt[n]))))]

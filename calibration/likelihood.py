@@ -6,7 +6,8 @@ the log-likelihood of a measured return ``z`` is ``log sum_k P_k f_k(z)`` and th
 :meth:`mi_lidar.sensor_model.SensorModel.log_likelihood`, with the same numerics). Here it is
 evaluated on :class:`~mi_lidar.calibration.records.Rounds`: each round works only on the rays that
 met an element in it and reads the running sums of its rays from the previous round (``prev``);
-a ray's value is written when its last element has been folded in.
+a ray's value is written when its last element has been folded in. A table with ``smoothing > 0``
+scores its ellipsoids with the fitting-only surrogate of :mod:`~mi_lidar.calibration.smoothing`.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from mi_lidar.segment import ELLIPSOID, Segment, log_density
 from mi_lidar.sensor_model import SensorModel
 
 from .records import CachedBatch, Round, Rounds
+from .smoothing import smoothed_log_density
 
 
 def round_segment(table, model: SensorModel, rays: RayBatch, r: Round) -> tuple[Segment, RayBatch]:
@@ -106,8 +108,10 @@ def mixture_log_likelihood(table, model: SensorModel, rays: RayBatch, rounds: Ro
     for r in rounds.rounds:
         seg, sub = round_segment(table, model, rays, r)
         seg = model.likelihood_segment(seg, sub)
+        z_entry = dr.gather(mi.Float, z, r.ray)
+        density = smoothed_log_density(seg, z_entry, table.smoothing) if table.smoothing > 0 else log_density(seg, z_entry)
         log_pass, log_mix = _fold(dr.gather(mi.Float, log_pass, r.prev), dr.gather(mi.Float, log_mix, r.prev),
-                                  seg.valid, seg.p, log_density(seg, dr.gather(mi.Float, z, r.ray)))
+                                  seg.valid, seg.p, density)
         value = dr.select(dr.gather(mi.Bool, hit, r.ray), log_mix, log_pass)
         ll = _add_at(ll, value, r.ray, r.last)
     return ll

@@ -42,6 +42,7 @@ from mi_lidar.segment import ELLIPSOID
 from mi_lidar.sensor_model import SensorModel
 
 from .differentiable import DiffTable
+from .smoothing import inflation
 
 P_EPS = 1e-4  # hit probabilities are kept in [P_EPS, 1 - P_EPS] so that their logits stay finite
 MIN_SCALE = 1e-3  # m: smallest ellipsoid scale and range sigma
@@ -252,10 +253,18 @@ class ParameterSpace:
         return self.table.replaced(**arrays), new_model
 
     def push_geometry(self, table: DiffTable) -> None:
-        """Write ``table``'s vertex positions and ellipsoid data into the Mitsuba scene (for tracing)."""
+        """Write ``table``'s vertex positions and ellipsoid data into the Mitsuba scene (for tracing).
+
+        A smoothed table (``table.smoothing > 0``) is written with its ellipsoids inflated by the
+        traced margin of :func:`~mi_lidar.calibration.smoothing.inflation`.
+        """
         params = mi.traverse(self.scene)
         vertices = np.asarray(dr.detach(table.vertex_positions))
         data = np.asarray(dr.detach(table.ellipsoid_data))
+        if table.smoothing > 0:
+            data = data.reshape(-1, ELLIPSOID_STRIDE).copy()
+            data[:, 3:6] = inflation(data[:, 3:6], table.smoothing, np.asarray(table.ellipsoid_extent))
+            data = data.ravel().astype(np.float32)
         e_offset = 0
         for k, shape_id in enumerate(self.table.shape_ids):
             if self.table.vertex_offset[k] >= 0:

@@ -110,26 +110,37 @@ def rotate_inverse(q: mi.Vector4f, v: mi.Vector3f) -> mi.Vector3f:
     return v + 2.0 * dr.cross(u, dr.cross(u, v) + q.w * v)
 
 
-def ray_restricted_gaussian(center, scale, quat, extent, origin, direction):
-    """Gaussian of an ellipsoid element restricted to the ray ``origin + t direction``.
+def ray_quadratic(center, scale, quat, origin, direction):
+    """Squared Mahalanobis distance of an ellipsoid element along the ray ``origin + t direction``.
 
     Args:
         center: (3,) lanes of ellipsoid means, m.
         scale: (3,) lanes of standard deviations along the principal axes, m.
         quat: (4,) lanes of rotations (x, y, z, w).
-        extent: Mahalanobis radius of the element's surface, in sigmas.
         origin, direction: ray origin (m) and unit direction.
 
     Returns:
-        ``(mean, sigma, lo, hi)``: the restricted Gaussian's mean and standard deviation in t
-        (m), and the chord of the ellipsoid along the ray (m).
+        ``(a, b, c)`` with the distance ``a t^2 + 2 b t + c`` (sigmas squared, ``t`` in m).
     """
     o = rotate_inverse(quat, origin - center) / scale
     d = rotate_inverse(quat, direction) / scale
-    a = dr.squared_norm(d)
-    b = dr.dot(o, d)
-    c = dr.squared_norm(o)
+    return dr.squared_norm(d), dr.dot(o, d), dr.squared_norm(o)
+
+
+def ray_restricted_gaussian(center, scale, quat, extent, origin, direction):
+    """Gaussian of an ellipsoid element restricted to the ray ``origin + t direction``.
+
+    Args:
+        center, scale, quat, origin, direction: as in :func:`ray_quadratic`.
+        extent: Mahalanobis radius of the element's surface, in sigmas.
+
+    Returns:
+        ``(mean, sigma, lo, hi)``: the restricted Gaussian's mean and standard deviation in t
+        (m), and the chord of the ellipsoid along the ray (m; ``lo = hi = mean`` for a ray that
+        passes outside, whose gradients stay finite).
+    """
+    a, b, c = ray_quadratic(center, scale, quat, origin, direction)
     mean = -b / a
-    closest2 = dr.maximum(c - b * b / a, 0.0)
-    half = dr.sqrt(dr.maximum(extent * extent - closest2, 0.0) / a)
+    room = extent * extent - dr.maximum(c - b * b / a, 0.0)  # E^2 - m^2
+    half = dr.select(room > 0, dr.sqrt(dr.maximum(room, 1e-30) / a), 0.0)
     return mean, dr.rsqrt(a), mean - half, mean + half

@@ -76,3 +76,15 @@ def analytic_ranges(origin: np.ndarray, direction: np.ndarray) -> np.ndarray:
 def unit_directions(elevation: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
     """(..., 3) unit vectors of elevation and azimuth angles (rad; x forward, z up)."""
     return np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], -1)
+
+
+def bushes(n: int = 24, seed: int = 0) -> EllipsoidElements:
+    """``n`` rotated ellipsoids 3-6 m around the sensor near its height, scales 0.3-0.6 m, seeded."""
+    rng = np.random.default_rng(seed)
+    angle = rng.uniform(0, 2 * np.pi, n)
+    radius = rng.uniform(3.0, 6.0, n)
+    yaw = rng.uniform(0, np.pi, n)
+    centers = np.c_[radius * np.cos(angle), radius * np.sin(angle), SENSOR_HEIGHT + rng.uniform(-0.4, 0.4, n)]
+    return EllipsoidElements(centers=centers, scales=rng.uniform(0.3, 0.6, (n, 3)),
+                             quaternions=np.c_[np.zeros((n, 2)), np.sin(yaw / 2), np.cos(yaw / 2)],
+                             p_hit=rng.uniform(0.3, 0.7, n), label=np.full(n, 5), extent=3.0)

@@ -5,7 +5,8 @@ segments traced once, so it is a smooth function of the parameters; it is summed
 For each family the gradient ``g`` is projected on two unit directions ``v`` (``g / |g|`` and a
 seeded random one) and compared with ``(L(x + h v) - L(x - h v)) / 2h``: the difference must
 stay below 3% of ``|g|`` (float32 evaluation noise of the loss is below 0.5% of ``|g|`` at the
-chosen steps ``h``).
+chosen steps ``h``). The smoothed ellipsoid loss used while fitting their geometry
+(:mod:`mi_lidar.calibration.smoothing`) is checked the same way, on records traced with its margin.
 """
 
 import drjit as dr
@@ -24,22 +25,24 @@ from .scenes import bowl, pattern, sensor_pose, shrubs
 EFFECTS = ("range_noise(sigma0=0.01), beam_offsets(elevation=[0.001 -0.002 0.0005], azimuth=[0.001 0 -0.001]), "
            "extrinsics(rz=0.002, tx=0.01), range_scale(scale=1.001), range_bias(bias=[0.003 -0.002])")
 
-# name, step h (natural units), starting values (None: the scene's)
+# name, step h (natural units), starting values (None: the scene's), smoothing (sigmas; 0: exact)
 FAMILIES = [
-    ("elements.terrain.p_hit", 1e-3, None),
-    ("elements.shrubs.p_hit", 1e-3, None),
-    ("elements.terrain.range_sigma", 1e-4, None),
-    ("classes.1.range_sigma", 1e-4, None),
-    ("elements.shrubs.centers", 1e-4, None),
-    ("elements.shrubs.scales", 1e-5, None),
-    ("terrain.terrain.heights", 1e-3, None),
-    ("sensor.elevation_offset", 1e-5, None),
-    ("sensor.azimuth_offset", 1e-5, None),
-    ("sensor.range_bias", 1e-4, None),
-    ("sensor.range_scale", 1e-5, None),
-    ("sensor.extrinsics", 1e-5, None),
-    ("sensor.extrinsics", 1e-5, np.zeros(6)),  # at identity, where fitting starts
-    ("effects.range_noise.sigma0", 1e-4, None),
+    ("elements.terrain.p_hit", 1e-3, None, 0.0),
+    ("elements.shrubs.p_hit", 1e-3, None, 0.0),
+    ("elements.terrain.range_sigma", 1e-4, None, 0.0),
+    ("classes.1.range_sigma", 1e-4, None, 0.0),
+    ("elements.shrubs.centers", 1e-4, None, 0.0),
+    ("elements.shrubs.scales", 1e-5, None, 0.0),
+    ("terrain.terrain.heights", 1e-3, None, 0.0),
+    ("sensor.elevation_offset", 1e-5, None, 0.0),
+    ("sensor.azimuth_offset", 1e-5, None, 0.0),
+    ("sensor.range_bias", 1e-4, None, 0.0),
+    ("sensor.range_scale", 1e-5, None, 0.0),
+    ("sensor.extrinsics", 1e-5, None, 0.0),
+    ("sensor.extrinsics", 1e-5, np.zeros(6), 0.0),  # at identity, where fitting starts
+    ("effects.range_noise.sigma0", 1e-4, None, 0.0),
+    ("elements.shrubs.centers", 1e-4, None, 0.05),  # the smoothed training loss of ellipsoid geometry
+    ("elements.shrubs.scales", 1e-5, None, 0.05),
 ]
 
 
@@ -53,17 +56,16 @@ def problem():
     return scene, log, model
 
 
-def loss_and_gradient(problem, name, start):
+def loss_and_gradient(problem, name, start, smoothing=0.0):
     scene, log, model = problem
     cal = Calibration(scene, log, [name], model=model, options=FitOptions(holdout=0.5))
     par = cal.params[name]
     x0 = par.initial if start is None else start
     value = mi.Float(np.asarray(x0, np.float32))
-    rays, z, hit, records = cal._records("train", np.arange(len(cal.train)), {name: value})
+    rays, z, hit, records = cal._records("train", np.arange(len(cal.train)), {name: value}, smoothing)
 
     def loss(x):
-        ll = cal.log_likelihood({name: x}, rays, z, hit, records)
-        return ll
+        return cal.log_likelihood({name: x}, rays, z, hit, records, smoothing)
 
     dr.enable_grad(value)
     ll = loss(value)
@@ -74,9 +76,10 @@ def loss_and_gradient(problem, name, start):
     return np.asarray(x0, np.float64), gradient, f
 
 
-@pytest.mark.parametrize("name,h,start", FAMILIES, ids=[f"{n}{'@0' if s is not None else ''}" for n, _, s in FAMILIES])
-def test_gradient_matches_finite_differences(problem, name, h, start):
-    x0, gradient, f = loss_and_gradient(problem, name, start)
+@pytest.mark.parametrize("name,h,start,smoothing", FAMILIES,
+                         ids=[f"{n}{'@0' if s is not None else ''}{'~smoothed' if k else ''}" for n, _, s, k in FAMILIES])
+def test_gradient_matches_finite_differences(problem, name, h, start, smoothing):
+    x0, gradient, f = loss_and_gradient(problem, name, start, smoothing)
     assert np.all(np.isfinite(gradient))
     norm = np.linalg.norm(gradient)
     assert norm > 0, f"{name}: zero gradient; the loss does not depend on it"
