@@ -55,6 +55,9 @@ class ParamSpec:
         doc: one-line meaning.
         lower, upper: allowed closed range (checked on construction).
         per_beam: the parameter holds one value per beam (a list in XML).
+        fit_lower: lower bound kept while fitting, when above ``lower``: a scale whose variance is
+            quadratic in it (a noise sigma) has zero gradient at 0, so an optimizer that reaches
+            0 would stay there whatever the data say.
     """
 
     default: float | None
@@ -63,6 +66,12 @@ class ParamSpec:
     lower: float = -np.inf
     upper: float = np.inf
     per_beam: bool = False
+    fit_lower: float | None = None
+
+    @property
+    def fit_bound(self) -> float:
+        """The lower bound of fitted values: ``fit_lower`` if set, else ``lower``."""
+        return self.lower if self.fit_lower is None else max(self.lower, self.fit_lower)
 
 
 @dataclass

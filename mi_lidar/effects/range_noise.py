@@ -22,7 +22,7 @@ class RangeNoise(Effect):
     name = "range_noise"
     options = {"law": ("constant", "proportional", "physics")}
     specs = {
-        "sigma0": ParamSpec(0.0, "m", "constant part of the noise", lower=0.0),
+        "sigma0": ParamSpec(0.0, "m", "constant part of the noise", lower=0.0, fit_lower=1e-4),
         "k": ParamSpec(0.0, "m/m (proportional) or 1 (physics K)", "range-dependent coefficient", lower=0.0),
     }
 

@@ -325,11 +325,20 @@ def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | No
     for i, (e, k) in enumerate(slots):
         opt[f"{i}"] = dr.zeros(mi.Float, dr.width(e.params[k]))
 
+    bounds = [(max(e.specs[k].fit_bound, -1e30), min(e.specs[k].upper, 1e30)) for e, k in slots]
+
     def assign():
         for i, (e, k) in enumerate(slots):
-            spec = e.specs[k]
             value = start[(id(e), k)] + scales[i] * opt[f"{i}"]
-            e.params[k] = dr.clip(value, max(spec.lower, -1e30), min(spec.upper, 1e30))
+            # straight-through clip: the value is kept in bounds, its gradient is the one at the bound
+            e.params[k] = value + dr.detach(dr.clip(value, *bounds[i]) - value)
+
+    def project():
+        """Move the optimizer's variables back into the bounds (projected gradient steps)."""
+        for i, (e, k) in enumerate(slots):
+            base = start[(id(e), k)]
+            inside = dr.clip(dr.detach(base + scales[i] * opt[f"{i}"]), *bounds[i])
+            opt[f"{i}"] = (inside - dr.detach(base)) / scales[i]
 
     history = []
     n = max(problem.index.size, 1)
@@ -347,6 +356,7 @@ def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | No
             dr.backward(loss)
             total += float(loss[0])
         opt.step()
+        project()
         history.append(-total)
         if progress is not None:
             progress(step + 1, steps)
