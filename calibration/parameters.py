@@ -183,7 +183,7 @@ class ParameterSpace:
                 initial = values[np.minimum(np.arange(self.n_beams), values.size - 1)]
             else:
                 initial = np.array([float(np.asarray(effect.params[k])[0]) for k in keys])
-            self._add(Parameter(name, "sensor", initial, "value", spec.lower, spec.upper, lr, unit, geometric,
+            self._add(Parameter(name, "sensor", initial, "value", spec.fit_bound, spec.upper, lr, unit, geometric,
                                 (effect_name, keys)))
         sensor_effects = {v[0] for v in SENSOR_EFFECTS.values()}
         for effect in self.model.effects:
@@ -191,7 +191,7 @@ class ParameterSpace:
                 continue
             for key, spec in effect.specs.items():
                 self._add(Parameter(f"effects.{effect.name}.{key}", "effect", np.asarray(effect.params[key], np.float64),
-                                    "value", spec.lower, spec.upper, 1e-3, spec.unit, False, (effect.name, (key,))))
+                                    "value", spec.fit_bound, spec.upper, 1e-3, spec.unit, False, (effect.name, (key,))))
 
     def select(self, globs: list[str]) -> list[str]:
         """Names matched by ``fnmatch`` globs, in namespace order.
