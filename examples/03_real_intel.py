@@ -14,11 +14,10 @@ import time
 from pathlib import Path
 
 from rich.console import Console
-from rich.table import Table
 
 import mi_lidar  # noqa: F401  (selects the variant, registers the plugins)
 from mi_lidar.io.carmen import read_carmen
-from mi_lidar.loop.real_data import IntelData, intel_development_path
+from mi_lidar.loop.real_data import IntelData, development_table, intel_development_path
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "carmen" / "intel-corrected.log.gz"
 
@@ -30,10 +29,5 @@ if __name__ == "__main__":
     data = IntelData(read_carmen(DATA))
     say(f"count map: grid {data.grid.shape} of {data.grid.cell} m, {len(data.test)} test scans")
     rows = intel_development_path(data, n_test=limit, n_train=limit, progress=say)
-    table = Table(title="Intel lab, nats per test beam (1 cm bins); references 5.01 / 4.24 / 3.63")
-    for column in ("model", "added", "test NLL", "calibration NLL", "fitted"):
-        table.add_column(column)
-    for row in rows:
-        fitted = ", ".join(f"{k}={v:.4g}" for k, v in row.fitted.items())
-        table.add_row(row.model, row.added, f"{row.nll:.3f}", f"{row.train_nll:.3f}", fitted)
-    console.print(table)
+    console.print(development_table(rows, "Intel lab, nats per test beam (1 cm bins); references 5.01 / 4.24 / 3.63"))
+    console.print("final parameters: " + ", ".join(f"{k}={v:.4g}" for k, v in rows[-1].fitted.items()))

@@ -26,6 +26,15 @@ class RangeNoise(Effect):
         "k": ParamSpec(0.0, "m/m (proportional) or 1 (physics K)", "range-dependent coefficient", lower=0.0),
     }
 
+    @property
+    def fit_scales(self) -> dict:
+        """Typical sizes of the parameters (the loop's fitting steps are measured in them).
+
+        ``k`` differs by orders of magnitude between laws: 0.003 (3 mm per m) for the
+        proportional law, 1e-4 for the physics law's K (sigma 1 cm at 1 m, normal incidence).
+        """
+        return {"sigma0": 0.01, "k": {"constant": 0.01, "proportional": 0.003, "physics": 1e-4}[self.choices["law"]]}
+
     def extra_variance(self, seg: Segment):
         """Variance (m^2) this law adds to each segment."""
         r = dr.maximum(seg.nominal, 0.0)

@@ -307,6 +307,8 @@ def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | No
         effects: effects to fit (default: all of ``model.effects``).
         steps: Adam steps.
         lr: learning rate in units of each parameter's scale (decays to lr/10, cosine).
+            The parameters returned are those of the lowest loss seen (the loss is over every
+            ray, so a refit never ends worse than its start).
         retrace_every: steps between re-traces when an effect perturbs rays.
         progress: optional callable ``progress(step, steps)``.
 
@@ -341,6 +343,7 @@ def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | No
             opt[f"{i}"] = (inside - dr.detach(base)) / scales[i]
 
     history = []
+    best = (math.inf, None)  # lowest loss seen and the optimizer's variables it was measured at
     n = max(problem.index.size, 1)
     for step in range(steps):
         if step == 0 or (moving and step % retrace_every == 0):
@@ -355,11 +358,15 @@ def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | No
             loss = -dr.sum(dr.maximum(ll, FIT_FLOOR)) / n
             dr.backward(loss)
             total += float(loss[0])
+        if total < best[0]:
+            best = (total, [np.array(opt[f"{i}"]) for i in range(len(slots))])
         opt.step()
         project()
         history.append(-total)
         if progress is not None:
             progress(step + 1, steps)
+    for i, values in enumerate(best[1]):
+        opt[f"{i}"] = mi.Float(values)
     with dr.suspend_grad():
         assign()
     make_opaque(effects)

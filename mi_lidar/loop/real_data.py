@@ -286,6 +286,22 @@ class Step:
     fitted: dict
 
 
+def development_table(rows: list[Step], title: str):
+    """A rich table of a development path; each row lists the parameters new since the previous row of its model."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    for column in ("model", "added", "test NLL", "calibration NLL", "new parameters"):
+        table.add_column(column)
+    previous, model = {}, None
+    for row in rows:
+        previous = previous if row.model == model else {}
+        fitted = ", ".join(f"{k}={v:.4g}" for k, v in row.fitted.items() if k not in previous)
+        table.add_row(row.model, row.added, f"{row.nll:.3f}", f"{row.train_nll:.3f}", fitted)
+        previous, model = row.fitted, row.model
+    return table
+
+
 def describe_effects(effects: list[Effect]) -> dict:
     """``{"effect.param": first value}`` of every parameter of ``effects``."""
     return {f"{e.name}.{k}": float(np.asarray(v)[0]) for e in effects for k, v in e.params.items()}
@@ -330,7 +346,7 @@ def baseline_rows(train: Scored, test: Scored, grid_name: str, steps: int, say) 
     return rows
 
 
-def intel_development_path(data: IntelData, n_test: int | None = None, n_train: int | None = None, steps: int = 150,
+def intel_development_path(data: IntelData, n_test: int | None = None, n_train: int | None = None, steps: int = 300,
                            priors: list[EllipsoidPrior] | None = None, progress=None) -> list[Step]:
     """Baselines, then the permeable map with effects added one by one; every fit on calibration scans only.
 
@@ -367,30 +383,34 @@ def intel_development_path(data: IntelData, n_test: int | None = None, n_train: 
     nll, train_nll = fit_and_score(ours_train, ours_test, model, [], steps)
     rows.append(Step("permeable ellipsoid map, counting p_hit", "(map only)", nll, train_nll, {}))
     say(f"permeable map: {nll:.3f}")
-    added = [
-        ("outliers", make_effect("outliers", p_near=0.02, near_scale=2.0, p_uniform=0.005, uniform_max=81.83)),
-        ("range_noise (physics law)", make_effect("range_noise", law="physics", sigma0=0.005, k=1e-5)),
-        ("incidence_dropout", make_effect("incidence_dropout", gamma=0.3)),
-        ("range_dropout", make_effect("range_dropout", rate=0.05, power=2.0)),
+    starts = [  # (row label, effect, its fitting start)
+        ("outliers", "outliers", dict(p_near=0.02, near_scale=2.0, p_uniform=0.005, uniform_max=81.83)),
+        ("range_noise (physics law)", "range_noise", dict(law="physics", sigma0=0.005, k=1e-5)),
+        ("incidence_dropout", "incidence_dropout", dict(gamma=0.3)),
+        ("range_dropout", "range_dropout", dict(rate=0.05, power=2.0)),
     ]
-    for label, effect in added:
-        model.effects = model.effects + [effect]
+    for label, name, start in starts:
+        model.effects = model.effects + [make_effect(name, **start)]
         nll, train_nll = fit_and_score(ours_train, ours_test, model, model.effects, steps)
         rows.append(Step("permeable ellipsoid map", f"+ {label}", nll, train_nll, describe_effects(model.effects)))
         say(f"+ {label}: {nll:.3f}")
 
     # ---------------- Last step: the map's end-point spread, chosen on calibration scans ----------
+    # Two starts per candidate (the current fit and the effects' fitting starts): the likelihood
+    # is not convex in the dropout and outlier parameters, and a map change moves its optimum.
     candidates = []
     for candidate in priors or SPREAD_CANDIDATES:
-        trial = copy.deepcopy(model)
         train = Scored.build(data.log, train_layers, ellipsoid_elements(data.grid, train_layers, candidate))
-        train.fit(trial, trial.effects, steps=steps)
-        candidates.append((train.nll(trial), candidate, trial))
-        say(f"map spread s_min={candidate.s_min} m, extent {candidate.extent}: calibration NLL {candidates[-1][0]:.3f}")
+        fresh = copy.deepcopy(model)
+        fresh.effects = [make_effect(name, **start) for _, name, start in starts]
+        for trial in (copy.deepcopy(model), fresh):
+            train.fit(trial, trial.effects, steps=steps)
+            candidates.append((train.nll(trial), candidate, trial))
+        say(f"map spread s_min={candidate.s_min} m: calibration NLL {min(c[0] for c in candidates[-2:]):.3f}")
     train_nll, prior, model = min(candidates, key=lambda c: c[0])
     ours_test = Scored.build(data.log, test_layers, ellipsoid_elements(data.grid, test_layers, prior))
     nll = ours_test.nll(model)
-    choices = ", ".join(f"{c.s_min * 100:g}" for _, c, _ in candidates)
+    choices = ", ".join(f"{c.s_min * 100:g}" for _, c, _ in candidates[::2])
     rows.append(Step("permeable ellipsoid map", f"+ end-point spread s_min = {prior.s_min * 100:g} cm (of {choices} cm, "
                      "by calibration NLL)", nll, train_nll, {"map.s_min": prior.s_min, **describe_effects(model.effects)}))
     say(f"+ spread s_min={prior.s_min}: {nll:.3f}")
