@@ -10,7 +10,7 @@ columns (nats per ray, 1 cm bins). The loop, as a user runs it:
 3. add effects one by one, fitted on the calibration columns, and print the development path;
 4. compare the final model with the test columns (OUT/final/).
 
-OUT defaults to ouster_loop/. About 5 minutes on 2 cores.
+OUT defaults to ouster_loop/. About 2 minutes on 2 cores.
 """
 
 import sys
