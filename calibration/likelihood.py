@@ -110,11 +110,22 @@ def mixture_log_likelihood(table, model: SensorModel, rays: RayBatch, rounds: Ro
         seg = model.likelihood_segment(seg, sub)
         z_entry = dr.gather(mi.Float, z, r.ray)
         density = smoothed_log_density(seg, z_entry, table.smoothing) if table.smoothing > 0 else log_density(seg, z_entry)
-        log_pass, log_mix = _fold(dr.gather(mi.Float, log_pass, r.prev), dr.gather(mi.Float, log_mix, r.prev),
-                                  seg.valid, seg.p, density)
+        log_pass, log_mix = _fold(_previous(log_pass, r.prev), _previous(log_mix, r.prev), seg.valid, seg.p, density)
         value = dr.select(dr.gather(mi.Bool, hit, r.ray), log_mix, log_pass)
         ll = _add_at(ll, value, r.ray, r.last)
     return ll
+
+
+def _previous(running: mi.Float, prev: mi.UInt32) -> mi.Float:
+    """The previous round's running sums ``running`` (nats) read at ``prev``, with gradients.
+
+    The indices of a round are distinct, so the gather's derivative (a scatter-add into an array
+    as long as the previous round) is compiled without conflict handling. Dr.Jit's default mode on
+    the LLVM backend would expand the target per thread and write its length into the kernel as a
+    constant; that length changes with every batch of rays, so the backward kernel of every round
+    would be compiled anew at every step of a geometry fit.
+    """
+    return dr.gather(mi.Float, running, prev, mode=dr.ReduceMode.NoConflicts)
 
 
 def _add_at(target: mi.Float, value: mi.Float, index: mi.UInt32, active: mi.Bool) -> mi.Float:

@@ -35,6 +35,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_lidar.arrays import aligned
 from mi_lidar.effects import make_effect
 from mi_lidar.elements import ELLIPSOID_STRIDE
 from mi_lidar.errors import CalibrationError
@@ -256,7 +257,8 @@ class ParameterSpace:
         """Write ``table``'s vertex positions and ellipsoid data into the Mitsuba scene (for tracing).
 
         A smoothed table (``table.smoothing > 0``) is written with its ellipsoids inflated by the
-        traced margin of :func:`~mi_lidar.calibration.smoothing.inflation`.
+        traced margin of :func:`~mi_lidar.calibration.smoothing.inflation`. The arrays are handed over
+        in aligned memory: unaligned numpy slices compile other variants of the trace kernels.
         """
         params = mi.traverse(self.scene)
         vertices = np.asarray(dr.detach(table.vertex_positions))
@@ -268,11 +270,12 @@ class ParameterSpace:
         e_offset = 0
         for k, shape_id in enumerate(self.table.shape_ids):
             if self.table.vertex_offset[k] >= 0:
-                start = 3 * self.table.vertex_offset[k]
-                params[f"{shape_id}.vertex_positions"] = mi.Float(vertices[start:start + 3 * self.table.vertex_counts[k]])
+                first = self.table.vertex_offset[k]
+                mesh = vertices[3 * first:3 * (first + self.table.vertex_counts[k])]
+                params[f"{shape_id}.vertex_positions"] = mi.Float(aligned(mesh))
             elif self.table.shape_kinds[k] == "ellipsoids":
                 n = ELLIPSOID_STRIDE * self.table.element_counts[k]
-                params[f"{shape_id}.data"] = mi.Float(data[e_offset:e_offset + n])
+                params[f"{shape_id}.data"] = mi.Float(aligned(data[e_offset:e_offset + n]))
                 e_offset += n
         params.update()
 
