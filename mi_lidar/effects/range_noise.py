@@ -30,10 +30,10 @@ class RangeNoise(Effect):
     def fit_scales(self) -> dict:
         """Typical sizes of the parameters (the loop's fitting steps are measured in them).
 
-        ``k`` differs by orders of magnitude between laws: 0.003 (3 mm per m) for the
+        ``k`` differs by orders of magnitude between laws: 0.01 (1 cm per m) for the
         proportional law, 1e-4 for the physics law's K (sigma 1 cm at 1 m, normal incidence).
         """
-        return {"sigma0": 0.01, "k": {"constant": 0.01, "proportional": 0.003, "physics": 1e-4}[self.choices["law"]]}
+        return {"sigma0": 0.01, "k": {"constant": 0.01, "proportional": 0.01, "physics": 1e-4}[self.choices["law"]]}
 
     def extra_variance(self, seg: Segment):
         """Variance (m^2) this law adds to each segment."""
