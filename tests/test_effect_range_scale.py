@@ -6,21 +6,11 @@ each range is exactly ``scale`` times the unscaled one (within 2e-6 relative, fl
 
 import numpy as np
 
-import mi_lidar
-from mi_lidar.calibration import scene_dict
-from mi_lidar.effects import parse_effects
-from mi_lidar.sensor_model import SensorModel
-
-from .calibration.scenes import floor_and_wall, pattern
+from .calibration.scenes import floor_and_wall_scan
 
 
 def simulate(effects: str):
-    pose = np.eye(4)
-    pose[2, 3] = 2.0
-    model = SensorModel(range_sigma=0.03, effects=parse_effects(effects))
-    log = mi_lidar.simulate(mi_lidar.load_scene(scene_dict(floor_and_wall())), pattern(300), poses=pose, seed=6,
-                            model=model)
-    return log.ranges[0], log.hit[0]
+    return floor_and_wall_scan(effects, seed=6)
 
 
 def test_ranges_scale():

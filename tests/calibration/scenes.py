@@ -2,8 +2,11 @@
 
 import numpy as np
 
-from mi_lidar.calibration import EllipsoidElements, MeshElements
+import mi_lidar
+from mi_lidar.calibration import EllipsoidElements, MeshElements, scene_dict
+from mi_lidar.effects import parse_effects
 from mi_lidar.patterns import get_pattern
+from mi_lidar.sensor_model import SensorModel
 
 SENSOR_HEIGHT = 1.5  # m above the bowl's floor
 
@@ -61,6 +64,20 @@ def floor_and_wall() -> dict:
     quad = np.array([[0, 1, 2], [0, 2, 3]])
     return {name: MeshElements(vertices=v, faces=quad, p_hit=np.ones(2), label=np.ones(2))
             for name, v in (("floor", floor), ("wall", wall))}
+
+
+def floor_and_wall_scan(effects: str, seed: int, range_sigma: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+    """One VLP-16 scan (300 firings) 2 m above floor_and_wall() with the effects ``effects``.
+
+    Returns:
+        (16, 300) ranges (m) and hit flags.
+    """
+    pose = np.eye(4)
+    pose[2, 3] = 2.0
+    model = SensorModel(range_sigma=range_sigma, effects=parse_effects(effects))
+    log = mi_lidar.simulate(mi_lidar.load_scene(scene_dict(floor_and_wall())), pattern(300), poses=pose, seed=seed,
+                            model=model)
+    return log.ranges[0], log.hit[0]
 
 
 def analytic_ranges(origin: np.ndarray, direction: np.ndarray) -> np.ndarray:
