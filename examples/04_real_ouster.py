@@ -33,8 +33,8 @@ from mi_lidar.loop.real_ouster import MESH_EVERY, column_log, ouster_development
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "ouster" / "OS-1-32-G_v2.1.1_1024x10.pcap"
 
 
-def report(name: str, mesh, model) -> None:
-    """Compare ``model`` in the scene of ``mesh`` with the test columns and write OUT/name/."""
+def report(name: str, mesh, model, test_log, out: Path, say) -> None:
+    """Compare ``model`` in the scene of ``mesh`` with ``test_log`` and write ``out / name``."""
     result = compare(test_log, mi.load_dict(scene_dict({"map": mesh})), model, out=out / name,
                      title=f"Ouster frame, test columns: {name}")
     head = result.headline
@@ -53,7 +53,7 @@ if __name__ == "__main__":
     mesh = range_image_mesh(log, columns[columns % MESH_EVERY == 0])
 
     # 1. compare
-    report("mesh_only", mesh, mi_lidar.SensorModel(range_sigma=0.01, max_range=120.0, max_segments=4))
+    report("mesh_only", mesh, mi_lidar.SensorModel(range_sigma=0.01, max_range=120.0, max_segments=4), test_log, out, say)
 
     # 2. diagnose (the mesh explains no return where no face is on the ray: start with outliers)
     outliers = make_effect("outliers", p_near=0.02, near_scale=2.0, p_uniform=0.005, uniform_max=120.0)
@@ -68,4 +68,4 @@ if __name__ == "__main__":
     console.print("final parameters: " + ", ".join(f"{k}={v:.4g}" for k, v in path.rows[-1].fitted.items()))
 
     # 4. compare again
-    report("final", path.mesh, path.model)
+    report("final", path.mesh, path.model, test_log, out, say)

@@ -33,7 +33,7 @@ class RangeNoise(Effect):
         ``k`` differs by orders of magnitude between laws: 0.01 (1 cm per m) for the
         proportional law, 1e-4 for the physics law's K (sigma 1 cm at 1 m, normal incidence).
         """
-        return {"sigma0": 0.01, "k": {"constant": 0.01, "proportional": 0.01, "physics": 1e-4}[self.choices["law"]]}
+        return {"sigma0": 0.01, "k": 1e-4 if self.choices["law"] == "physics" else 0.01}
 
     def extra_variance(self, seg: Segment):
         """Variance (m^2) this law adds to each segment."""

@@ -307,13 +307,12 @@ def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | No
         effects: effects to fit (default: all of ``model.effects``).
         steps: Adam steps.
         lr: learning rate in units of each parameter's scale (decays to lr/10, cosine).
-            The parameters returned are those of the lowest loss seen (the loss is over every
-            ray, so a refit never ends worse than its start).
         retrace_every: steps between re-traces when an effect perturbs rays.
         progress: optional callable ``progress(step, steps)``.
 
     Returns:
-        The loss history and the fitted parameters.
+        The loss history and the fitted parameters: those of the lowest loss seen (the loss is
+        over every ray, so a refit never ends worse than its start).
     """
     effects = model.effects if effects is None else effects
     make_opaque(model.effects)
@@ -366,7 +365,7 @@ def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | No
         if progress is not None:
             progress(step + 1, steps)
     for i, values in enumerate(best[1]):
-        opt[f"{i}"] = mi.Float(values)
+        opt[f"{i}"] = mi.Float(aligned(values))
     with dr.suspend_grad():
         assign()
     make_opaque(effects)

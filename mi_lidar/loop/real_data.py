@@ -314,6 +314,13 @@ def fit_and_score(train: Scored, test: Scored, model: SensorModel, fit: list[Eff
     return test.nll(model), train.nll(model)
 
 
+def effect_step(model_name: str, label: str, train: Scored, test: Scored, model: SensorModel, steps: int, say) -> Step:
+    """Refit every effect of ``model`` on ``train``, score it on ``test``: the development-path row ``+ label``."""
+    nll, train_nll = fit_and_score(train, test, model, model.effects, steps)
+    say(f"+ {label}: {nll:.3f}")
+    return Step(model_name, f"+ {label}", nll, train_nll, describe_effects(model.effects))
+
+
 def baseline_rows(train: Scored, test: Scored, grid_name: str, steps: int, say) -> list[Step]:
     """The ideal ray cast (one Gaussian sigma and a miss probability) and the classic beam model on boxes.
 
@@ -391,9 +398,7 @@ def intel_development_path(data: IntelData, n_test: int | None = None, n_train: 
     ]
     for label, name, start in starts:
         model.effects = model.effects + [make_effect(name, **start)]
-        nll, train_nll = fit_and_score(ours_train, ours_test, model, model.effects, steps)
-        rows.append(Step("permeable ellipsoid map", f"+ {label}", nll, train_nll, describe_effects(model.effects)))
-        say(f"+ {label}: {nll:.3f}")
+        rows.append(effect_step("permeable ellipsoid map", label, ours_train, ours_test, model, steps, say))
 
     # ---------------- Last step: the map's end-point spread, chosen on calibration scans ----------
     # Two starts per candidate (the current fit and the effects' fitting starts): the likelihood

@@ -27,7 +27,7 @@ from ..elements import ElementTable
 from ..log import Log
 from ..sensor_model import SensorModel
 from .rays import LogRays
-from .real_data import Scored, Step, describe_effects, fit_and_score, ray_subset
+from .real_data import Scored, Step, effect_step, ray_subset
 
 MESH_EVERY = 4  # mesh columns: 0 mod MESH_EVERY; calibration columns: MESH_EVERY / 2 mod MESH_EVERY
 
@@ -149,9 +149,7 @@ def ouster_development_path(log: Log, steps: int = 1500, progress=None) -> Ouste
     def add(label: str, effect=None) -> None:
         if effect is not None:
             model.effects = model.effects + [effect]
-        nll, train_nll = fit_and_score(train, test, model, model.effects, steps)
-        rows.append(Step("range-image mesh", f"+ {label}", nll, train_nll, describe_effects(model.effects)))
-        say(f"+ {label}: {nll:.3f}")
+        rows.append(effect_step("range-image mesh", label, train, test, model, steps, say))
 
     add("outliers", make_effect("outliers", p_near=0.02, near_scale=2.0, p_uniform=0.005, uniform_max=120.0))
     add("range_noise (proportional)", make_effect("range_noise", law="proportional", sigma0=0.02, k=0.002))
