@@ -31,7 +31,7 @@ def _scene_and_log():
     """The benchmark scene and its simulated log."""
     import mi_lidar
     from mi_lidar.calibration import EllipsoidElements, MeshElements, scene_dict
-    from mi_lidar.patterns import FiringPattern
+    from mi_lidar.core.patterns import FiringPattern
 
     rng = np.random.default_rng(0)
     n = 101
@@ -67,8 +67,8 @@ def _child() -> dict:
     import mi_lidar  # noqa: F401
     from mi_lidar.calibration.differentiable import LogRays
     from mi_lidar.calibration.fit import Calibration, FitOptions
-    from mi_lidar.elements import ElementTable
-    from mi_lidar.scene import scene_sensor_model
+    from mi_lidar.core.elements import ElementTable
+    from mi_lidar.scene.loading import scene_sensor_model
 
     scene, log = _scene_and_log()
     model = scene_sensor_model(scene)[0]

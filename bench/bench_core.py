@@ -129,7 +129,7 @@ def make_vegetation(rng: np.random.Generator) -> dict[str, np.ndarray]:
 
 def make_pattern():
     """A dense spinning pattern: 128 beams from +2 to -25 degrees, 8192 firings per 0.1 s sweep."""
-    from mi_lidar.patterns import FiringPattern
+    from mi_lidar.core.patterns import FiringPattern
 
     period = 0.1
     elevation = np.radians(np.linspace(2.0, -25.0, N_BEAMS))[:, None].repeat(N_FIRINGS, axis=1)
@@ -152,8 +152,8 @@ def write_scenes(folder: Path) -> dict[str, Path]:
     Returns:
         ``{"terrain": xml, "vegetation": xml}``.
     """
-    from mi_lidar.patterns import to_table
-    from mi_lidar.scene_files import ShapeEntry, write_ellipsoids_ply, write_mesh_ply, write_scene_xml
+    from mi_lidar.core.patterns import to_table
+    from mi_lidar.scene.files import ShapeEntry, write_ellipsoids_ply, write_mesh_ply, write_scene_xml
 
     vertices, faces = make_terrain()
     write_mesh_ply(folder / "terrain.ply", vertices, faces)
@@ -203,7 +203,7 @@ def make_rays(pattern, pose: np.ndarray):
     import drjit as dr
     import mitsuba as mi
 
-    from mi_lidar.effects.base import RayBatch
+    from mi_lidar.core.rays import RayBatch
 
     height, width = pattern.shape
     d = pattern.directions().reshape(-1, 3).astype(np.float64) @ pose[:3, :3].T
@@ -320,8 +320,8 @@ def measure_scene(name: str, xml: Path) -> dict[str, float]:
     import mitsuba as mi
 
     import mi_lidar
-    from mi_lidar.elements import ElementTable
-    from mi_lidar.scene import scene_sensor_model
+    from mi_lidar.core.elements import ElementTable
+    from mi_lidar.scene.loading import scene_sensor_model
 
     scene = mi_lidar.load_scene(xml)
     model, pose = scene_sensor_model(scene)

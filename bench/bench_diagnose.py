@@ -21,10 +21,10 @@ from rich.progress import Progress
 from rich.table import Table
 
 import mi_lidar  # noqa: F401
-from mi_lidar.effects import parse_effects
+from mi_lidar.core.effects import parse_effects
 from mi_lidar.loop import diagnose
-from mi_lidar.scene import load_scene, scene_sensor_model
-from mi_lidar.simulate import simulate
+from mi_lidar.scene.loading import load_scene, scene_sensor_model
+from mi_lidar.scene.simulation import simulate
 
 STREET = Path(__file__).resolve().parents[1] / "scenes_xml" / "urban_street.xml"
 

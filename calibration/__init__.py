@@ -1,8 +1,4 @@
-"""Calibration layer: scene dicts from element sets, and (with autodiff) fitting them to logs.
+"""Calibration layer: fit scene and sensor parameters to a log by Dr.Jit autodiff (``mi-lidar calibrate``).
 
-Imported as :mod:`mi_lidar.calibration`.
+Imported as :mod:`mi_lidar.calibration`. Scene dicts from element sets live in :mod:`mi_lidar.scene.dicts`.
 """
-
-from .scene_dicts import EllipsoidElements, MeshElements, save_scene, scene_dict
-
-__all__ = ["EllipsoidElements", "MeshElements", "save_scene", "scene_dict"]

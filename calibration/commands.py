@@ -1,23 +1,15 @@
-"""``mi-lidar calibrate``: fit scene and sensor parameters to a log, as a function and a Typer command."""
+"""``mi-lidar calibrate`` as a plain function: read the log and scene, fit, write the outputs."""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
-import typer
-from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-from rich.table import Table
+from mi_lidar.core.errors import MiLidarError
+from mi_lidar.core.log import Log
+from mi_lidar.scene.loading import load_scene
 
-from mi_lidar.errors import MiLidarError
-from mi_lidar.log import Log
-from mi_lidar.scene import load_scene
-
-from .fit import Calibration, FitOptions, FitResult
-from .report import write_report
-
-console = Console()
+from mi_lidar.calibration.fit import Calibration, FitOptions, FitResult
+from mi_lidar.calibration.report import write_report
 
 
 def parse_learning_rates(items: list[str] | None) -> dict[str, float]:
@@ -41,7 +33,7 @@ def calibrate_command(log, scene, params: list[str], out, steps: int = 200, batc
     """Fit the parameters ``params`` (globs) of ``scene`` to ``log`` and write the outputs to ``out``.
 
     Args:
-        log: path of a log (``.npz``, see :mod:`mi_lidar.log`).
+        log: path of a log (``.npz``, see :mod:`mi_lidar.core.log`).
         scene: path of the scene XML (its ``lidar`` sensor must be the log's).
         params: parameter globs, e.g. ``["elements.*.p_hit", "sensor.range_bias"]``.
         out: output folder: ``scene.xml`` (+ ``scene_assets/``), ``loss.png``, ``changes.csv``,
@@ -69,68 +61,3 @@ def calibrate_command(log, scene, params: list[str], out, steps: int = 200, batc
     units = {n: calibration.params[n].unit for n in result.names}
     files = write_report(out, result, loaded, units, title=f"calibrate {Path(log).name} in {Path(scene).name}")
     return result, files
-
-
-def result_table(result: FitResult) -> Table:
-    """A rich table: held-out loss of the initial, counting and fitted models, and the parameter changes."""
-    table = Table(title="calibration", header_style="bold")
-    for column in ("parameter", "values", "mean before", "mean after", "max |change|"):
-        table.add_column(column, justify="left" if column == "parameter" else "right")
-    for name in result.names:
-        before, after = result.initial[name], result.fitted[name]
-        table.add_row(name, f"{before.size:,}", f"{before.mean():.6g}", f"{after.mean():.6g}",
-                      f"{abs(after - before).max():.3g}")
-    table.add_section()
-    table.add_row("held-out NLL (nats/ray): initial / counting / fitted", "",
-                  f"{result.initial_nll:.5f}", f"{result.counting_nll:.5f}", f"{result.fitted_nll:.5f}")
-    table.add_row("Adam steps" + (" (early stop)" if result.stopped_early else ""), str(result.steps_run), "", "", "")
-    return table
-
-
-def calibrate(
-    log: Path = typer.Argument(..., help="Measured log (`.npz`).", exists=True, dir_okay=False),
-    scene: Path = typer.Argument(..., help="Scene XML whose `lidar` sensor recorded the log.", exists=True, dir_okay=False),
-    params: list[str] = typer.Option(..., "--params", "-p", help="Parameter glob; repeat for more, e.g. `elements.*.p_hit`, `sensor.*`."),
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
-    steps: int = typer.Option(200, help="Maximum Adam steps."),
-    batch_size: int = typer.Option(1 << 16, help="Training rays per step."),
-    holdout: float = typer.Option(0.2, help="Fraction of rays held out for validation and early stopping."),
-    seed: int = typer.Option(0, help="Seed of the split and of the mini-batch draws."),
-    lr: Optional[list[str]] = typer.Option(None, "--lr", help="Learning rate override GLOB=RATE; repeatable."),
-    lr_scale: float = typer.Option(1.0, help="Factor on every learning rate."),
-    patience: int = typer.Option(5, help="Held-out evaluations without improvement before stopping."),
-    counting_start: bool = typer.Option(True, help="Start hit probabilities from the counting estimate hits/(hits+pass-throughs)."),
-):
-    """Fit scene and sensor parameters to a log by Dr.Jit autodiff; write the calibrated scene and a report.
-
-    Parameter names: `elements.<shape>.p_hit|range_sigma|centers|scales`, `classes.<label>.range_sigma`,
-    `terrain.<shape>.heights`, `sensor.elevation_offset|azimuth_offset|range_bias|range_scale|extrinsics`,
-    `effects.<effect>.<parameter>`.
-
-    Examples:
-
-        mi-lidar calibrate drive.npz scenes_xml/offroad.xml --params 'elements.*.p_hit' --out out/cal
-
-        mi-lidar calibrate drive.npz scene.xml -p 'sensor.elevation_offset' -p 'sensor.range_bias' --out out/intrinsics
-    """
-    with Progress(TextColumn("calibrating [bold]{task.description}"), BarColumn(), TimeElapsedColumn(),
-                  console=console, transient=True) as bar:
-        task = bar.add_task("counting start", total=steps)
-        held = {"value": float("nan")}
-
-        def progress(step, total, train, held_out):
-            if held_out == held_out:
-                held["value"] = held_out
-            bar.update(task, completed=step,
-                       description=f"loss {train:.4f} | held-out {held['value']:.4f} nats/ray")
-
-        try:
-            result, files = calibrate_command(log, scene, params, out, steps=steps, batch_size=batch_size,
-                                              holdout=holdout, seed=seed, lr=lr, lr_scale=lr_scale, patience=patience,
-                                              progress=progress, counting_start=counting_start)
-        except (MiLidarError, ValueError, OSError) as exc:
-            console.print(f"[bold red]error:[/] {exc}")
-            raise typer.Exit(code=2)
-    console.print(result_table(result))
-    for path in files.values():
-        console.print(f"wrote {path}")

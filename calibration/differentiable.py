@@ -19,11 +19,11 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.elements import ELLIPSOID_STRIDE, ElementTable
-from mi_lidar.log_rays import LogRays  # noqa: F401  (the one Log -> RayBatch builder, used by fit)
-from mi_lidar.segment import ELLIPSOID, Segment, ray_quadratic, ray_restricted_gaussian, rotate_inverse
+from mi_lidar.core.elements import ELLIPSOID_STRIDE, ElementTable, ordered_shapes
+from mi_lidar.core.rays import LogRays  # noqa: F401  (the one Log -> RayBatch builder, used by fit)
+from mi_lidar.core.segment import ELLIPSOID, Segment, ray_quadratic, ray_restricted_gaussian, rotate_inverse
 
-from .smoothing import presence
+from mi_lidar.calibration.smoothing import presence
 
 
 @dataclass
@@ -55,7 +55,7 @@ class DiffTable(ElementTable):
         base = ElementTable.from_scene(scene)
         vertices, faces, triangle, shape_of, vertex_offset, vertex_counts = [], [], [], [], [], []
         n_vertices = 0
-        for index, shape in enumerate(scene.shapes()):
+        for index, shape in enumerate(ordered_shapes(scene)):
             count = base.element_counts[index]
             shape_of.append(np.full(count, index, np.uint32))
             if isinstance(shape, mi.Mesh) and base.shape_kinds[index] == "surface":

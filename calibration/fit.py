@@ -1,7 +1,7 @@
 """Fitting scene and sensor parameters to a log: counting start, then Adam on the likelihood.
 
 The loss is the mean negative log-likelihood per ray (nats) of the pass-through mixture
-(:meth:`mi_lidar.sensor_model.SensorModel.log_likelihood`), made robust by a small floor: a
+(:meth:`mi_lidar.core.sensor_model.SensorModel.log_likelihood`), made robust by a small floor: a
 return the model cannot explain (no element near the measured range) contributes
 ``-log(floor / max_range)`` and an impossible miss ``-log(floor)``, so single outliers of a real
 log cannot make the loss infinite. The rays of the log are split once into a training part and a
@@ -37,18 +37,18 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.arrays import aligned
-from mi_lidar.effects.base import Effect
-from mi_lidar.errors import CalibrationError
-from mi_lidar.log import Log
-from mi_lidar.scene import scene_lidar_sensor, scene_sensor_model
-from mi_lidar.sensor_model import SensorModel
+from mi_lidar.core.arrays import aligned
+from mi_lidar.core.effects.base import Effect
+from mi_lidar.core.errors import CalibrationError
+from mi_lidar.core.log import Log
+from mi_lidar.scene.loading import scene_lidar_sensor, scene_sensor_model
+from mi_lidar.core.sensor_model import SensorModel
 
-from .differentiable import LogRays
-from .likelihood import mixture_log_likelihood, returned_and_passed, round_segment
-from .parameters import P_EPS, ParameterSpace
-from .records import CachedBatch, RayCache, cache_distributions, trace_rounds
-from .smoothing import smoothing_at
+from mi_lidar.calibration.differentiable import LogRays
+from mi_lidar.calibration.likelihood import mixture_log_likelihood, returned_and_passed, round_segment
+from mi_lidar.calibration.parameters import P_EPS, ParameterSpace
+from mi_lidar.calibration.records import CachedBatch, RayCache, cache_distributions, trace_rounds
+from mi_lidar.calibration.smoothing import smoothing_at
 
 
 @dataclass

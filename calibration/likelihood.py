@@ -3,7 +3,7 @@
 Along each ray the elements ``k = 1..K`` return with probability ``P_k = p_k prod_{j<k}(1 - p_j)``;
 the log-likelihood of a measured return ``z`` is ``log sum_k P_k f_k(z)`` and that of a miss
 ``log prod_k (1 - p_k)`` (the same mixture as
-:meth:`mi_lidar.sensor_model.SensorModel.log_likelihood`, with the same numerics). Here it is
+:meth:`mi_lidar.core.sensor_model.SensorModel.log_likelihood`, with the same numerics). Here it is
 evaluated on :class:`~mi_lidar.calibration.records.Rounds`: each round works only on the rays that
 met an element in it and reads the running sums of its rays from the previous round (``prev``);
 a ray's value is written when its last element has been folded in. A table with ``smoothing > 0``
@@ -15,12 +15,12 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.effects.base import RayBatch
-from mi_lidar.segment import ELLIPSOID, Segment, log_density
-from mi_lidar.sensor_model import SensorModel
+from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.segment import ELLIPSOID, Segment, log_density
+from mi_lidar.core.sensor_model import SensorModel
 
-from .records import CachedBatch, Round, Rounds
-from .smoothing import smoothed_log_density
+from mi_lidar.calibration.records import CachedBatch, Round, Rounds
+from mi_lidar.calibration.smoothing import smoothed_log_density
 
 
 def round_segment(table, model: SensorModel, rays: RayBatch, r: Round) -> tuple[Segment, RayBatch]:

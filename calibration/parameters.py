@@ -35,15 +35,15 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.arrays import aligned
-from mi_lidar.effects import make_effect
-from mi_lidar.elements import ELLIPSOID_STRIDE
-from mi_lidar.errors import CalibrationError
-from mi_lidar.segment import ELLIPSOID
-from mi_lidar.sensor_model import SensorModel
+from mi_lidar.core.arrays import aligned
+from mi_lidar.core.effects import make_effect
+from mi_lidar.core.elements import ELLIPSOID_STRIDE
+from mi_lidar.core.errors import CalibrationError
+from mi_lidar.core.segment import ELLIPSOID
+from mi_lidar.core.sensor_model import SensorModel
 
-from .differentiable import DiffTable
-from .smoothing import inflation
+from mi_lidar.calibration.differentiable import DiffTable
+from mi_lidar.calibration.smoothing import inflation
 
 P_EPS = 1e-4  # hit probabilities are kept in [P_EPS, 1 - P_EPS] so that their logits stay finite
 MIN_SCALE = 1e-3  # m: smallest ellipsoid scale and range sigma

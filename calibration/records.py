@@ -30,10 +30,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.arrays import aligned
-from mi_lidar.effects.base import RayBatch
-from mi_lidar.segment import log_density
-from mi_lidar.sensor_model import RESTART_OFFSET, SensorModel
+from mi_lidar.core.arrays import aligned
+from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.segment import log_density
+from mi_lidar.core.sensor_model import RESTART_OFFSET, SensorModel
 
 CACHED_FIELDS = ("mean", "sigma", "lo", "hi")  # return distribution before effects, m
 

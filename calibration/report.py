@@ -13,13 +13,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mi_lidar.elements import ELLIPSOID_STRIDE  # noqa: E402
-from mi_lidar.errors import CalibrationError  # noqa: E402
-from mi_lidar.patterns import get_pattern  # noqa: E402
-from mi_lidar.scene import scene_lidar_sensor  # noqa: E402
+from mi_lidar.core.elements import ELLIPSOID_STRIDE, ordered_shapes  # noqa: E402
+from mi_lidar.core.errors import CalibrationError  # noqa: E402
+from mi_lidar.core.patterns import get_pattern  # noqa: E402
+from mi_lidar.scene.loading import scene_lidar_sensor  # noqa: E402
 
-from .fit import FitResult  # noqa: E402
-from .scene_dicts import EllipsoidElements, MeshElements, save_scene  # noqa: E402
+from mi_lidar.calibration.fit import FitResult  # noqa: E402
+from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, save_scene  # noqa: E402
 
 
 def element_sets(table, scene) -> dict:
@@ -50,7 +50,7 @@ def element_sets(table, scene) -> dict:
                 label=label[sl], range_sigma=None if np.all(np.isnan(mesh_sigma)) else np.nan_to_num(mesh_sigma, nan=0.0))
         else:
             raise CalibrationError(
-                f"shape {shape_id!r} is an analytic {type(list(scene.shapes())[k]).__name__}; calibrated scenes are "
+                f"shape {shape_id!r} is an analytic {type(ordered_shapes(scene)[k]).__name__}; calibrated scenes are "
                 "written as meshes and ellipsoid sets: convert it to a triangle mesh (e.g. a PLY) first")
     return sets
 

@@ -31,7 +31,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.segment import ELLIPSOID, LOG_SQRT_2PI, Segment, log_density, normal_cdf
+from mi_lidar.core.segment import ELLIPSOID, LOG_SQRT_2PI, Segment, log_density, normal_cdf
 
 REACH = 3.0  # traced margin of the soft silhouette, in smoothings (Phi(-3) = 0.1 % presence)
 NARROW = 1e-3  # intervals narrower than this (standard units) use the midpoint rule
@@ -48,7 +48,7 @@ def presence(a: mi.Float, b: mi.Float, c: mi.Float, extent: mi.Float, kappa: flo
     """Soft indicator ``Phi((E - m) / kappa)`` that the ray meets the element.
 
     Args:
-        a, b, c: the ray's squared Mahalanobis quadratic (:func:`mi_lidar.segment.ray_quadratic`).
+        a, b, c: the ray's squared Mahalanobis quadratic (:func:`mi_lidar.core.segment.ray_quadratic`).
         extent: the element's extent ``E``, sigmas.
         kappa: smoothing, sigmas (> 0).
     """
@@ -77,9 +77,9 @@ def smoothed_log_density(seg: Segment, z: mi.Float, kappa: float) -> mi.Float:
     ``N(0, tau^2)``, ``tau = kappa sigma``, normalized in closed form (``S^2 = sigma^2 + tau^2``):
     ``N(z; mean, sigma^2) (Phi((hi - z) / tau) - Phi((lo - z) / tau)) / (Phi((hi - mean) / S) - Phi((lo - mean) / S))``.
     Inside the chord, away from its ends, it is the exact density (the spread is not widened); it
-    tends to :func:`~mi_lidar.segment.log_density` as ``kappa -> 0`` and stays finite, a Gaussian of
+    tends to :func:`~mi_lidar.core.segment.log_density` as ``kappa -> 0`` and stays finite, a Gaussian of
     width about ``tau`` at ``mean``, as the chord shrinks to a point. Other lanes:
-    :func:`~mi_lidar.segment.log_density`.
+    :func:`~mi_lidar.core.segment.log_density`.
     """
     sigma = dr.maximum(seg.sigma, 1e-9)
     tau = dr.opaque(mi.Float, kappa) * sigma  # a kernel input: annealing does not recompile

@@ -8,7 +8,7 @@ registered, found by diagnose and fitted, and the script prints the NLL curve ov
 import dataclasses
 
 import mi_lidar  # noqa: F401
-from mi_lidar.effects import Effect, ParamSpec, register_effect
+from mi_lidar.core.effects import Effect, ParamSpec, register_effect
 from mi_lidar.loop import diagnose
 from mi_lidar.loop.demo import make_hidden_log
 

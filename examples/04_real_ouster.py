@@ -22,8 +22,8 @@ import numpy as np
 from rich.console import Console
 
 import mi_lidar
-from mi_lidar.calibration.scene_dicts import scene_dict
-from mi_lidar.effects import make_effect
+from mi_lidar.scene.dicts import scene_dict
+from mi_lidar.core.effects import make_effect
 from mi_lidar.io import read_any
 from mi_lidar.loop.compare import compare
 from mi_lidar.loop.diagnose import diagnose, verdict

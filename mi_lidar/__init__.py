@@ -5,21 +5,21 @@ Importing the package finds a suitable LLVM, activates the ``llvm_ad_rgb`` varia
 (``lidar`` sensor, ``lidar_integrator``, ``lidar_material``).
 """
 
-from ._variant import configure_llvm
+from mi_lidar._variant import configure_llvm
 
 configure_llvm()
 
 import mitsuba as mi  # noqa: E402  (LLVM must be configured before Dr.Jit loads)
 
-from ._variant import select_variant  # noqa: E402
+from mi_lidar._variant import select_variant  # noqa: E402
 
 __version__ = "0.1.0"
 VARIANT = select_variant(mi)
 
-from . import plugins  # noqa: E402,F401  (registers the plugins)
-from .log import Log  # noqa: E402
-from .scene import load_scene  # noqa: E402
-from .sensor_model import CHANNELS, SensorModel  # noqa: E402
-from .simulate import simulate  # noqa: E402
+from mi_lidar import plugins  # noqa: E402,F401  (registers the plugins)
+from mi_lidar.core.log import Log  # noqa: E402
+from mi_lidar.scene.loading import load_scene  # noqa: E402
+from mi_lidar.core.sensor_model import CHANNELS, SensorModel  # noqa: E402
+from mi_lidar.scene.simulation import simulate  # noqa: E402
 
 __all__ = ["CHANNELS", "Log", "SensorModel", "VARIANT", "__version__", "load_scene", "simulate"]

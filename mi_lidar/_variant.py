@@ -11,7 +11,7 @@ import glob
 import os
 import re
 
-from .errors import SetupError
+from mi_lidar.core.errors import SetupError
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 MIN_LLVM_MAJOR = 16

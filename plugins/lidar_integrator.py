@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.errors import ParameterError
+from mi_lidar.core.errors import ParameterError
 
 
 class LidarIntegrator(mi.SamplingIntegrator):
@@ -19,7 +19,7 @@ class LidarIntegrator(mi.SamplingIntegrator):
     Traces every ray of a ``lidar`` sensor through up to ``max_segments`` elements. At each
     element a Bernoulli draw with its hit probability decides between a return and a
     pass-through; triangles return their nominal range plus Gaussian noise, ellipsoids a range
-    drawn from their Gaussian restricted to the ray (see :mod:`mi_lidar.segment`).
+    drawn from their Gaussian restricted to the ray (see :mod:`mi_lidar.core.segment`).
 
     .. pluginparameters::
 
@@ -29,7 +29,7 @@ class LidarIntegrator(mi.SamplingIntegrator):
      * - effects
        - |string|
        - Physical effects applied on top of the elements, e.g.
-         ``range_noise(law=proportional, sigma0=0.005, k=0.001)`` (see :mod:`mi_lidar.effects`).
+         ``range_noise(law=proportional, sigma0=0.005, k=0.001)`` (see :mod:`mi_lidar.core.effects`).
          Their parameters are traversed as ``effects.<name>.<parameter>``. Default: none.
 
     ``mi.render`` returns a tensor of shape (beams, firings, 8) whose channels are, in order,
@@ -52,7 +52,7 @@ class LidarIntegrator(mi.SamplingIntegrator):
     """
 
     def __init__(self, props: mi.Properties):
-        from mi_lidar.effects import parse_effects
+        from mi_lidar.core.effects import parse_effects
 
         super().__init__(props)
         self.max_segments = int(props.get("max_segments", 16))
@@ -61,16 +61,16 @@ class LidarIntegrator(mi.SamplingIntegrator):
         self.effects = parse_effects(str(props.get("effects", "")))
 
     def sensor_model(self, sensor):
-        """The :class:`~mi_lidar.sensor_model.SensorModel` of ``sensor`` with this integrator's settings."""
-        from mi_lidar.sensor_model import SensorModel
+        """The :class:`~mi_lidar.core.sensor_model.SensorModel` of ``sensor`` with this integrator's settings."""
+        from mi_lidar.core.sensor_model import SensorModel
 
         return SensorModel(range_sigma=sensor.range_sigma, min_range=sensor.min_range, max_range=sensor.max_range,
                            max_segments=self.max_segments, effects=self.effects)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        from mi_lidar.channels import channels_to_tensor
-        from mi_lidar.effects.base import RayBatch
-        from mi_lidar.elements import ElementTable
+        from mi_lidar.core.channels import channels_to_tensor
+        from mi_lidar.core.rays import RayBatch
+        from mi_lidar.core.elements import ElementTable
         from mi_lidar.plugins.lidar_sensor import LidarSensor
 
         if isinstance(sensor, int):
@@ -95,7 +95,7 @@ class LidarIntegrator(mi.SamplingIntegrator):
                 callback.put(f"effects.{effect.name}.{key}", value, mi.ParamFlags.Differentiable)
 
     def aov_names(self):
-        from mi_lidar.sensor_model import CHANNELS
+        from mi_lidar.core.sensor_model import CHANNELS
 
         return list(CHANNELS)
 

@@ -7,7 +7,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.errors import ParameterError
+from mi_lidar.core.errors import ParameterError
 
 
 class LidarMaterial(mi.BSDF):
@@ -21,7 +21,7 @@ class LidarMaterial(mi.BSDF):
        - |float|
        - Probability (0 to 1) that the element returns a beam that meets it; otherwise the beam
          passes through (permeable vegetation, glass, dust). Default: 1 (opaque). Differentiable
-         through :class:`mi_lidar.elements.ElementTable`.
+         through :class:`mi_lidar.core.elements.ElementTable`.
      * - range_sigma
        - |float|
        - Standard deviation (m) of the range returned by this shape's triangles. Default: the

@@ -6,7 +6,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.errors import ParameterError
+from mi_lidar.core.errors import ParameterError
 
 
 class LidarSensor(mi.Sensor):
@@ -61,13 +61,13 @@ class LidarSensor(mi.Sensor):
     """
 
     def __init__(self, props: mi.Properties):
-        from mi_lidar.patterns import get_pattern
+        from mi_lidar.core.patterns import get_pattern
 
         name = str(props.get("pattern", "vlp16"))
         firings = props.get("firings", None)
         kwargs = {} if firings is None else {"n_firings": int(firings)}
         if name.endswith((".csv", ".npy", ".json")):  # a table next to the scene file
-            name = str(mi.Thread.thread().file_resolver().resolve(name))
+            name = str(mi.file_resolver().resolve(name))
         self.pattern = get_pattern(name, **kwargs)
         height, width = self.pattern.shape
         if "film" not in props:

@@ -41,9 +41,9 @@ def simulate_case(name: str) -> dict[str, np.ndarray]:
     import dataclasses
 
     import mi_lidar
-    from mi_lidar.effects import parse_effects
-    from mi_lidar.patterns import get_pattern
-    from mi_lidar.scene import scene_sensor_model
+    from mi_lidar.core.effects import parse_effects
+    from mi_lidar.core.patterns import get_pattern
+    from mi_lidar.scene.loading import scene_sensor_model
 
     scene_file, pattern, options, poses, effects, seed = CASES[name]
     scene = mi_lidar.load_scene(SCENES / scene_file)

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 import mi_lidar
-from mi_lidar.effects import parse_effects
-from mi_lidar.errors import ParameterError, PatternError, PoseError, SceneError
-from mi_lidar.io.poses import validate_poses
+from mi_lidar.core.effects import parse_effects
+from mi_lidar.core.errors import ParameterError, PatternError, PoseError, SceneError
+from mi_lidar.core.poses import validate_poses
 
 from .conftest import SCENES
 

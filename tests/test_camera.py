@@ -5,7 +5,7 @@ import numpy as np
 from typer.testing import CliRunner
 
 import mi_lidar
-from mi_lidar.camera import PinholeCamera, camera_lidar_frame
+from mi_lidar.scene.camera import PinholeCamera, camera_lidar_frame
 from mi_lidar.cli import app
 
 from .conftest import SCENES

@@ -6,7 +6,7 @@ from typer.testing import CliRunner
 
 from mi_lidar.cli import app
 from mi_lidar.io import read_exr, read_ply
-from mi_lidar.log import Log
+from mi_lidar.core.log import Log
 
 from .conftest import SCENES
 

@@ -8,9 +8,9 @@ tracing), and differ from the unturned beam's range.
 import numpy as np
 
 import mi_lidar
-from mi_lidar.calibration import scene_dict
-from mi_lidar.effects import BeamOffsets, parse_effects
-from mi_lidar.sensor_model import SensorModel
+from mi_lidar.scene.dicts import scene_dict
+from mi_lidar.core.effects import BeamOffsets, parse_effects
+from mi_lidar.core.sensor_model import SensorModel
 
 from .calibration.scenes import analytic_ranges, floor_and_wall, pattern, unit_directions
 

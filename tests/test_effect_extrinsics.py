@@ -11,10 +11,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import mi_lidar
-from mi_lidar.calibration import scene_dict
-from mi_lidar.effects import parse_effects
-from mi_lidar.effects.extrinsics import rotate_vector
-from mi_lidar.sensor_model import SensorModel
+from mi_lidar.scene.dicts import scene_dict
+from mi_lidar.core.effects import parse_effects
+from mi_lidar.core.effects.extrinsics import rotate_vector
+from mi_lidar.core.sensor_model import SensorModel
 
 from .calibration.scenes import analytic_ranges, floor_and_wall, pattern, unit_directions
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mi_lidar.effects import make_effect, parse_effects
+from mi_lidar.core.effects import make_effect, parse_effects
 
 from .loop.helpers import finite_difference_check, hidden_log, mean_ll, recover, room
 

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 import mi_lidar
-from mi_lidar.effects import RangeNoise, parse_effects
-from mi_lidar.elements import ElementTable
+from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.effects import RangeNoise, parse_effects
+from mi_lidar.core.elements import ElementTable
 
 from .conftest import SCENES
 
@@ -55,7 +56,7 @@ def test_likelihood_matches_pass_through_mixture():
     model, _ = mi_lidar.scene.scene_sensor_model(scene)
     table = ElementTable.from_scene(scene)
     n = 4
-    rays = mi_lidar.effects.RayBatch(origin=mi.Point3f(0, 0, 0), direction=mi.Vector3f(1, 0, 0),
+    rays = RayBatch(origin=mi.Point3f(0, 0, 0), direction=mi.Vector3f(1, 0, 0),
                                      beam=dr.zeros(mi.UInt32, n), time=dr.zeros(mi.Float, n),
                                      ray_id=dr.arange(mi.UInt32, n))
     records = model.trace_segments(scene, table, rays)

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from mi_lidar.errors import LogFormatError
-from mi_lidar.log import Log
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.log import Log
 
 
 def small_log(scans=2):

@@ -8,21 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mi_lidar.errors import PatternError
-from mi_lidar.patterns import (
-    PATTERN_NAMES,
-    FiringPattern,
-    from_table,
-    get_pattern,
-    ouster,
-    packet_32x32,
-    planar,
-    raster,
-    rosette,
-    spinning,
-    to_table,
-)
-from mi_lidar.sensor_tables import HDL64E
+from mi_lidar.core.errors import PatternError
+from mi_lidar.core.patterns import PATTERN_NAMES, FiringPattern, from_table, get_pattern, ouster, packet_32x32, planar, raster, rosette, spinning, to_table
+from mi_lidar.core.patterns.vendor import HDL64E
 
 DATA = (Path(__file__).parents[1] / ".." / "shared" / "data").resolve()
 OUSTER_JSON = DATA / "ouster" / "OS-1-32-G_v2.1.1_1024x10.json"

@@ -7,7 +7,7 @@ import pytest
 from scipy import stats
 
 import mi_lidar
-from mi_lidar.channels import tensor_to_numpy
+from mi_lidar.core.channels import tensor_to_numpy
 
 from .conftest import SCENES
 
@@ -113,8 +113,8 @@ def test_ellipsoid_returns_match_element_statistics():
         "type": "ellipsoids", "centers": mi.TensorXf(np.array([[10.0, 0, 0]], np.float32)),
         "scales": mi.TensorXf(np.array([[0.5, 0.3, 0.3]], np.float32)),
         "quaternions": mi.TensorXf(np.array([[0, 0, 0, 1.0]], np.float32))}})
-    from mi_lidar.effects import RayBatch
-    from mi_lidar.elements import ElementTable
+    from mi_lidar.core.rays import RayBatch
+    from mi_lidar.core.elements import ElementTable
 
     n = 100_000
     rays = RayBatch(origin=mi.Point3f(0, 0, 0), direction=mi.Vector3f(1, 0, 0), beam=dr.zeros(mi.UInt32, n),
@@ -127,7 +127,7 @@ def test_ellipsoid_returns_match_element_statistics():
 
 
 def test_pattern_table_is_found_next_to_the_scene(tmp_path, monkeypatch):
-    from mi_lidar.patterns import get_pattern, to_table
+    from mi_lidar.core.patterns import get_pattern, to_table
 
     to_table(get_pattern("planar-180"), tmp_path / "beams.npy")
     text = (SCENES / "indoor_planar.xml").read_text().replace('value="planar-360"', 'value="beams.npy"')
@@ -138,7 +138,8 @@ def test_pattern_table_is_found_next_to_the_scene(tmp_path, monkeypatch):
 
 
 def test_simulated_ouster_fires_the_real_frame_rays(shared_data):
-    from mi_lidar.io import pattern_from_log, read_any
+    from mi_lidar.core.patterns.from_log import pattern_from_log
+    from mi_lidar.io import read_any
 
     real = read_any(shared_data / "ouster" / "OS-1-32-G_v2.1.1_1024x10.pcap")
     log = mi_lidar.simulate(mi_lidar.load_scene(SCENES / "urban_street.xml"), pattern_from_log(real), seed=0)

@@ -9,7 +9,7 @@ import pytest
 from scipy import stats
 
 import mi_lidar  # noqa: F401  (selects the variant)
-from mi_lidar.segment import ELLIPSOID, Segment, log_density, ray_restricted_gaussian, sample_range
+from mi_lidar.core.segment import ELLIPSOID, Segment, log_density, ray_restricted_gaussian, sample_range
 
 
 def make_segment(n, mean, sigma, lo, hi):

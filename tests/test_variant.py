@@ -3,7 +3,7 @@
 import pytest
 
 from mi_lidar._variant import find_llvm, require_jit_variant, select_variant
-from mi_lidar.errors import SetupError
+from mi_lidar.core.errors import SetupError
 
 
 class FakeMitsuba:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.scene_files import write_ellipsoids_ply, write_mesh_ply
+from mi_lidar.scene.files import write_ellipsoids_ply, write_mesh_ply
 
 ASSETS = Path(__file__).resolve().parents[1] / "scenes_xml" / "assets"
 LABEL_GROUND, LABEL_SHRUB, LABEL_TREE = 1, 5, 6

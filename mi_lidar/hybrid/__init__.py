@@ -10,7 +10,7 @@ Pipeline, as a list of verbs::
     ranges, labels = simulation.simulate_log(scene, log, seed)        # mi_lidar.simulate, the core
     table = evaluate.observation_metrics(real, ranges, origins, dirs) # thesis table 4.3
 
-Scenes are written as Mitsuba XML + PLY with :mod:`mi_lidar.scene_files` (plus a ``lidar``
+Scenes are written as Mitsuba XML + PLY with :mod:`mi_lidar.scene.files` (plus a ``lidar``
 sensor and ``lidar_integrator`` when given a :class:`.blocks.SceneSensor`), so they load with
 :func:`mi_lidar.load_scene` and render with ``mi.render``.
 """

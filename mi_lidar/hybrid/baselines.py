@@ -21,12 +21,12 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from .classes import CLASS_ID, class_id
-from .mesh_models import MeshModelLibrary
-from .model import EllipsoidSet, GroundMesh, HybridModel
-from .primitives import rotation_z
-from .trace import ellipsoid_scene, intersect
-from .world import prism
+from mi_lidar.hybrid.classes import CLASS_ID, class_id
+from mi_lidar.hybrid.mesh_models import MeshModelLibrary
+from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
+from mi_lidar.hybrid.primitives import rotation_z
+from mi_lidar.hybrid.trace import ellipsoid_scene, intersect
+from mi_lidar.hybrid.world import prism
 
 
 class NeighborSimulator:

@@ -2,7 +2,7 @@
 
 :func:`write_scene` writes ``<name>.xml`` plus ``<name>_assets/ground_b<k>.ply`` and
 ``ellipsoids_b<k>.ply`` with per-element ``p_hit``, ``range_sigma`` (0 for ellipsoids, whose
-spread is their Gaussian) and ``label``, using :mod:`mi_lidar.scene_files`. Given a
+spread is their Gaussian) and ``label``, using :mod:`mi_lidar.scene.files`. Given a
 :class:`SceneSensor`, the XML also holds a ``lidar`` sensor and a ``lidar_integrator``, so it
 loads with :func:`mi_lidar.load_scene`, renders with ``mi.render`` and simulates with
 :func:`mi_lidar.simulate`. :func:`read_scene` reads a scene back into a :class:`HybridModel`
@@ -19,12 +19,12 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 from plyfile import PlyData
 
-from ..errors import SceneError
-from ..io.pattern import pattern_from_log
-from ..log import Log
-from ..patterns import to_table
-from ..scene_files import ShapeEntry, write_ellipsoids_ply, write_mesh_ply, write_scene_xml
-from .model import EllipsoidSet, GroundMesh, HybridModel
+from mi_lidar.core.errors import SceneError
+from mi_lidar.core.patterns.from_log import pattern_from_log
+from mi_lidar.core.log import Log
+from mi_lidar.core.patterns import to_table
+from mi_lidar.scene.files import ShapeEntry, write_ellipsoids_ply, write_mesh_ply, write_scene_xml
+from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
 
 
 @dataclass
@@ -112,7 +112,7 @@ def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneS
 
 
 def read_mesh_ply(path) -> GroundMesh:
-    """A triangle mesh PLY written by :func:`mi_lidar.scene_files.write_mesh_ply`."""
+    """A triangle mesh PLY written by :func:`mi_lidar.scene.files.write_mesh_ply`."""
     ply = PlyData.read(str(path))
     v, f = ply["vertex"].data, ply["face"].data
     names = f.dtype.names
@@ -123,7 +123,7 @@ def read_mesh_ply(path) -> GroundMesh:
 
 
 def read_ellipsoids_ply(path) -> EllipsoidSet:
-    """An ellipsoid PLY written by :func:`mi_lidar.scene_files.write_ellipsoids_ply`."""
+    """An ellipsoid PLY written by :func:`mi_lidar.scene.files.write_ellipsoids_ply`."""
     v = PlyData.read(str(path))["vertex"].data
     names = v.dtype.names
     scales = np.exp(np.c_[v["scale_0"], v["scale_1"], v["scale_2"]])

@@ -24,17 +24,17 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from ..errors import LogFormatError
-from ..io.preview import birds_eye_png, range_image_png
-from ..log import Log
-from ..scene import load_scene
-from ..simulate import simulate
-from .blocks import SceneSensor, write_scene
-from .compose import annotation_from_segments, annotation_sensor, compose_scene, load_annotation, save_annotation
-from .fit import FitParams, FitResult, fit_model
-from .model import HybridModel
-from .primitives import PrimitiveLibrary, extract_primitives
-from .segments import segments_from_labels
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.io.preview import birds_eye_png, range_image_png
+from mi_lidar.core.log import Log
+from mi_lidar.scene.loading import load_scene
+from mi_lidar.scene.simulation import simulate
+from mi_lidar.hybrid.blocks import SceneSensor, write_scene
+from mi_lidar.hybrid.compose import annotation_from_segments, annotation_sensor, compose_scene, load_annotation, save_annotation
+from mi_lidar.hybrid.fit import FitParams, FitResult, fit_model
+from mi_lidar.hybrid.model import HybridModel
+from mi_lidar.hybrid.primitives import PrimitiveLibrary, extract_primitives
+from mi_lidar.hybrid.segments import segments_from_labels
 
 console = Console(stderr=True)
 

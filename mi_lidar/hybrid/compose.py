@@ -21,16 +21,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SceneError
-from ..io.pattern import pattern_from_log
-from ..log import Log
-from ..patterns import to_table
-from ..scene_files import write_mesh_ply
-from .blocks import SceneSensor, read_mesh_ply
-from .classes import CLASS_NAMES, class_id
-from .model import EllipsoidSet, GroundMesh, HybridModel
-from .primitives import PrimitiveLibrary, object_pose, oriented_box, rotation_z, sensor_velocity_at
-from .segments import Segment
+from mi_lidar.core.errors import SceneError
+from mi_lidar.core.patterns.from_log import pattern_from_log
+from mi_lidar.core.log import Log
+from mi_lidar.core.patterns import to_table
+from mi_lidar.scene.files import write_mesh_ply
+from mi_lidar.hybrid.blocks import SceneSensor, read_mesh_ply
+from mi_lidar.hybrid.classes import CLASS_NAMES, class_id
+from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
+from mi_lidar.hybrid.primitives import PrimitiveLibrary, object_pose, oriented_box, rotation_z, sensor_velocity_at
+from mi_lidar.hybrid.segments import Segment
 
 
 def annotation_from_segments(points: np.ndarray, segments: list[Segment], poses: np.ndarray) -> list[dict]:

@@ -26,8 +26,8 @@ from typing import Callable
 
 import numpy as np
 
-from ..elements import ElementTable
-from .simulation import ELLIPSOIDS_ID, GROUND_ID, trace_elements
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.hybrid.simulation import ELLIPSOIDS_ID, GROUND_ID, trace_elements
 
 
 @dataclass

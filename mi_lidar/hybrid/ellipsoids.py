@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .model import EllipsoidSet
+from mi_lidar.hybrid.model import EllipsoidSet
 
 
 @dataclass

@@ -29,20 +29,20 @@ from pathlib import Path
 
 import numpy as np
 
-from .baselines import NeighborSimulator, box_surface_scene, mesh_model_scene
-from .blocks import SceneSensor, write_scene
-from .classes import GROUND_CLASSES, OBJECT_CLASSES
-from .commands import render_previews
-from .compose import annotation_from_segments, compose_scene, save_annotation
-from .evaluate import observation_metrics
-from .fit import FitParams, fit_model, select_scans, world_rays
-from .ground import ground_features, tune_threshold
-from .mesh_models import MeshModelLibrary
-from .primitives import PrimitiveLibrary, extract_primitives
-from .simulation import simulate_log
-from .tune import tune_parameters
-from .segments import SizeClassifier, euclidean_segments, majority_label, segment_features, segments_from_labels
-from .world import SensorSpec, WorldSpec, make_world, path_poses, render_log
+from mi_lidar.hybrid.baselines import NeighborSimulator, box_surface_scene, mesh_model_scene
+from mi_lidar.hybrid.blocks import SceneSensor, write_scene
+from mi_lidar.hybrid.classes import GROUND_CLASSES, OBJECT_CLASSES
+from mi_lidar.hybrid.commands import render_previews
+from mi_lidar.hybrid.compose import annotation_from_segments, compose_scene, save_annotation
+from mi_lidar.hybrid.evaluate import observation_metrics
+from mi_lidar.hybrid.fit import FitParams, fit_model, select_scans, world_rays
+from mi_lidar.hybrid.ground import ground_features, tune_threshold
+from mi_lidar.hybrid.mesh_models import MeshModelLibrary
+from mi_lidar.hybrid.primitives import PrimitiveLibrary, extract_primitives
+from mi_lidar.hybrid.simulation import simulate_log
+from mi_lidar.hybrid.tune import tune_parameters
+from mi_lidar.hybrid.segments import SizeClassifier, euclidean_segments, majority_label, segment_features, segments_from_labels
+from mi_lidar.hybrid.world import SensorSpec, WorldSpec, make_world, path_poses, render_log
 
 SCENES = {"train": (11, WorldSpec(length=100, width=50)),
           "test1": (22, WorldSpec(length=120, width=50, object_density=1.5, n_patches=3)),

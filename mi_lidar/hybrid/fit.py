@@ -16,12 +16,12 @@ from typing import Callable
 
 import numpy as np
 
-from ..log import Log
-from .ellipsoids import ClusterParams, fit_ellipsoids
-from .ground import GroundParams, SurfaceParams, fit_ground_mesh, ground_features
-from .model import EllipsoidSet, GroundMesh, HybridModel
-from .counting import count_hits
-from .simulation import load_model
+from mi_lidar.core.log import Log
+from mi_lidar.hybrid.ellipsoids import ClusterParams, fit_ellipsoids
+from mi_lidar.hybrid.ground import GroundParams, SurfaceParams, fit_ground_mesh, ground_features
+from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
+from mi_lidar.hybrid.counting import count_hits
+from mi_lidar.hybrid.simulation import load_model
 
 
 @dataclass

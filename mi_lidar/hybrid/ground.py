@@ -23,7 +23,7 @@ from scipy import sparse
 from scipy.sparse.linalg import cg
 from scipy.spatial import Delaunay, cKDTree
 
-from .model import GroundMesh
+from mi_lidar.hybrid.model import GroundMesh
 
 
 @dataclass

@@ -29,10 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SceneError
-from .classes import CLASS_NAMES, OBJECT_CLASSES, class_id
-from .primitives import closest_extents, rotation_z
-from .world import CLASS_SHAPES, ROCK_SIZE, object_mesh
+from mi_lidar.core.errors import SceneError
+from mi_lidar.hybrid.classes import CLASS_NAMES, OBJECT_CLASSES, class_id
+from mi_lidar.hybrid.primitives import closest_extents, rotation_z
+from mi_lidar.hybrid.world import CLASS_SHAPES, ROCK_SIZE, object_mesh
 
 LIBRARY_SEED = 4317  # first word of every model's seed sequence
 

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SceneError
-from .classes import CLASS_NAMES, class_id
-from .model import EllipsoidSet, HybridModel
-from .segments import Segment
+from mi_lidar.core.errors import SceneError
+from mi_lidar.hybrid.classes import CLASS_NAMES, class_id
+from mi_lidar.hybrid.model import EllipsoidSet, HybridModel
+from mi_lidar.hybrid.segments import Segment
 
 
 def rotation_z(yaw: float) -> np.ndarray:

@@ -17,7 +17,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .classes import OBJECT_CLASSES, PATCH_BASE
+from mi_lidar.hybrid.classes import OBJECT_CLASSES, PATCH_BASE
 
 
 @dataclass

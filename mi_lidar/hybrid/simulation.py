@@ -1,7 +1,7 @@
 """A hybrid model in the product's simulation core: scene, simulation of logged rays, traversal.
 
 The model becomes a Mitsuba scene through the calibration layer
-(:func:`mi_lidar.calibration.scene_dicts.scene_dict`): one triangle mesh ``ground`` with per-face
+(:func:`mi_lidar.scene.dicts.scene_dict`): one triangle mesh ``ground`` with per-face
 ``p_hit``, ``range_sigma`` and ``label``, and one ``ellipsoids`` shape with per-ellipsoid
 ``p_hit`` and ``label``. Simulation is :func:`mi_lidar.simulate` with the log's own firing
 pattern and poses, so every number of this package comes from the same core as ``mi.render``.
@@ -17,14 +17,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..calibration.scene_dicts import EllipsoidElements, MeshElements, scene_dict
-from ..elements import ElementTable
-from ..io.pattern import pattern_from_log
-from ..log import Log
-from ..scene import load_scene
-from ..sensor_model import RESTART_OFFSET, SensorModel
-from ..simulate import simulate
-from .model import HybridModel
+from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, scene_dict
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.patterns.from_log import pattern_from_log
+from mi_lidar.core.log import Log
+from mi_lidar.scene.loading import load_scene
+from mi_lidar.core.sensor_model import RESTART_OFFSET, SensorModel
+from mi_lidar.scene.simulation import simulate
+from mi_lidar.hybrid.model import HybridModel
 
 GROUND_ID = "ground"
 ELLIPSOIDS_ID = "ellipsoids"
@@ -101,7 +101,7 @@ def trace_elements(scene, table: ElementTable, origins: np.ndarray, directions: 
 
     Each round intersects the live rays (``coherent=True``), maps hits to elements with
     ``table.element_of`` and restarts rays ``RESTART_OFFSET`` past the element met, exactly as
-    :meth:`mi_lidar.sensor_model.SensorModel.simulate_rays`; rays that meet nothing or pass
+    :meth:`mi_lidar.core.sensor_model.SensorModel.simulate_rays`; rays that meet nothing or pass
     ``limit`` drop out.
 
     Args:

@@ -14,10 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
-from ..log import Log
-from .evaluate import objective, observation_metrics
-from .fit import FitParams, fit_model, select_scans, world_rays
-from .simulation import simulate_log
+from mi_lidar.core.log import Log
+from mi_lidar.hybrid.evaluate import objective, observation_metrics
+from mi_lidar.hybrid.fit import FitParams, fit_model, select_scans, world_rays
+from mi_lidar.hybrid.simulation import simulate_log
 
 
 @dataclass

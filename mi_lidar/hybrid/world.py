@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..log import Log
-from .classes import CLASS_ID, PATCH_BASE
+from mi_lidar.core.log import Log
+from mi_lidar.hybrid.classes import CLASS_ID, PATCH_BASE
 
 # (height range m, crown width / height, leaf density per m^3, leaf size m, is_tree)
 CLASS_SHAPES = {
@@ -124,7 +124,7 @@ class World:
     def mitsuba_scene(self):
         """A Mitsuba scene holding the world mesh (built once)."""
         if self._scene is None:
-            from .trace import mesh_scene
+            from mi_lidar.hybrid.trace import mesh_scene
             self._scene = mesh_scene(self.vertices, self.faces)
         return self._scene
 
@@ -498,7 +498,7 @@ def render_log(world: World, poses: np.ndarray, sensor: SensorSpec | None = None
     Returns:
         A log with attributes ``label`` and ``instance`` (int32; 0 / -1 for misses).
     """
-    from .trace import intersect
+    from mi_lidar.hybrid.trace import intersect
 
     sensor = sensor or SensorSpec()
     rng = np.random.default_rng(seed)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError
 
 _MAGIC = {
     b"\xd4\xc3\xb2\xa1": ("<", 1e-6),

@@ -1,4 +1,4 @@
-"""CARMEN planar laser logs (``FLASER`` / ``RLASER`` messages, plain or gzip) -> :class:`~mi_lidar.log.Log`.
+"""CARMEN planar laser logs (``FLASER`` / ``RLASER`` messages, plain or gzip) -> :class:`~mi_lidar.core.log.Log`.
 
 A message line is ``FLASER n r_0 .. r_{n-1} x y theta odom_x odom_y odom_theta ipc_timestamp host
 logger_timestamp``; ``x y theta`` is the (in corrected logs, SLAM-corrected) laser pose in the
@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import LogFormatError
-from ..log import Log
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.log import Log
 
 SICK_MAX_RANGE = 81.83
 SICK_SWEEP_S = 1.0 / 150.0

@@ -1,4 +1,4 @@
-"""Conversions between point clouds and :class:`~mi_lidar.log.Log` range images.
+"""Conversions between point clouds and :class:`~mi_lidar.core.log.Log` range images.
 
 Point-cloud formats (KITTI/nuScenes ``.bin``, PLY, PCD, LAS, ROS ``PointCloud2``) carry points,
 not rays. :func:`log_from_points` rebuilds the ray grid:
@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import LogFormatError
-from ..log import Log
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.log import Log
 
 MAX_EMPTY_CELLS = 1 << 22
 INTENSITY_SOURCES = ("intensity", "reflectivity", "signal")

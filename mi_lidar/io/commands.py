@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .dispatch import detect_format, read_any, write_any
+from mi_lidar.io.dispatch import detect_format, read_any, write_any
 
 
 def convert(in_path: str | os.PathLike, out_path: str | os.PathLike, to: str | None = None,

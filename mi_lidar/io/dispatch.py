@@ -29,11 +29,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..errors import LogFormatError
-from ..log import Log
-from . import carmen, exr, kitti, las, ouster, pcd, ply, rosbag, velodyne
-from ._pcap import read_udp
-from .preview import range_image_png
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.log import Log
+from mi_lidar.io import carmen, exr, kitti, las, ouster, pcd, ply, rosbag, velodyne
+from mi_lidar.io._pcap import read_udp
+from mi_lidar.io.preview import range_image_png
 
 READ_FORMATS = ("npz", "carmen", "ouster", "velodyne", "bin", "ply", "pcd", "las", "rosbag", "exr")
 WRITE_FORMATS = ("npz", "bin", "ply", "pcd", "las", "rosbag2", "exr", "png")

@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
-from ..errors import LogFormatError
-from ..log import Log
-from ..atomic import atomic_path
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.log import Log
+from mi_lidar.core.atomic import atomic_path
 
 _UINT_MAX = np.iinfo(np.uint32).max
 _FLOAT32_EXACT = 2**24

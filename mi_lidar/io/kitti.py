@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import LogFormatError
-from ..log import Log
-from ..atomic import atomic_path
-from .cloud import cloud_from_log, log_from_points
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.log import Log
+from mi_lidar.core.atomic import atomic_path
+from mi_lidar.io.cloud import cloud_from_log, log_from_points
 
 
 def write_kitti_bin(path: str | os.PathLike, points: np.ndarray, intensity: np.ndarray | None = None) -> Path:

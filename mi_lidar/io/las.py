@@ -16,10 +16,10 @@ from pathlib import Path
 import laspy
 import numpy as np
 
-from ..errors import LogFormatError
-from ..log import Log
-from ..atomic import atomic_path
-from .cloud import cloud_from_log, log_from_fields
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.log import Log
+from mi_lidar.core.atomic import atomic_path
+from mi_lidar.io.cloud import cloud_from_log, log_from_fields
 
 COORDINATE_SCALE = 1e-4
 

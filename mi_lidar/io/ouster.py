@@ -1,4 +1,4 @@
-"""Ouster lidar pcap captures + sensor metadata JSON -> :class:`~mi_lidar.log.Log`.
+"""Ouster lidar pcap captures + sensor metadata JSON -> :class:`~mi_lidar.core.log.Log`.
 
 Supported UDP lidar profiles: ``LEGACY`` (firmware <= 2.1), ``RNG19_RFL8_SIG16_NIR16``,
 ``RNG19_RFL8_SIG16_NIR16_DUAL`` and ``RNG15_RFL8_NIR8``. Metadata may be the legacy flat JSON
@@ -35,9 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import LogFormatError
-from ..log import Log
-from ._pcap import read_udp
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.log import Log
+from mi_lidar.io._pcap import read_udp
 
 
 @dataclass(frozen=True)

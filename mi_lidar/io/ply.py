@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import plyfile
 
-from ..errors import LogFormatError
-from ..log import Log
-from ..atomic import atomic_path
-from .cloud import cloud_from_log, log_from_fields
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.log import Log
+from mi_lidar.core.atomic import atomic_path
+from mi_lidar.io.cloud import cloud_from_log, log_from_fields
 
 _PLY_KINDS = {np.dtype(t) for t in ("i1", "u1", "i2", "u2", "i4", "u4", "f4", "f8")}
 _COORDS = ("x", "y", "z")

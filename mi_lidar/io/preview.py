@@ -17,7 +17,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
 
-from ..atomic import atomic_path
+from mi_lidar.core.atomic import atomic_path
 
 MISS_COLOUR = "#ff00ff"
 EMPTY_COLOUR = "#b0b0b0"

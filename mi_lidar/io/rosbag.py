@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import LogFormatError
-from ..log import Log
-from .cloud import cloud_from_log, log_from_fields, stack_scans
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.log import Log
+from mi_lidar.io.cloud import cloud_from_log, log_from_fields, stack_scans
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}

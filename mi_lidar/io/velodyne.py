@@ -1,4 +1,4 @@
-"""Velodyne VLP-16, VLP-32C and HDL-32E pcap captures (+ calibration) -> :class:`~mi_lidar.log.Log`.
+"""Velodyne VLP-16, VLP-32C and HDL-32E pcap captures (+ calibration) -> :class:`~mi_lidar.core.log.Log`.
 
 Each 1206-byte data packet holds 12 blocks ``[0xFFEE, azimuth * 100 (u16), 32 x (distance u16 in
 resolution units, reflectivity u8)]``, a u32 timestamp (us past the hour), a return-mode byte
@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import LogFormatError
-from ..log import Log
-from ._pcap import read_udp
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.log import Log
+from mi_lidar.io._pcap import read_udp
 
 PACKET_SIZE = 1206
 DATA_PORT = 2368

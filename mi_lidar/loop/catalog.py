@@ -1,6 +1,6 @@
 """Candidate effects for diagnosis: every registered effect, started where fitting can move it.
 
-An effect class may declare, besides its :class:`~mi_lidar.effects.ParamSpec` defaults:
+An effect class may declare, besides its :class:`~mi_lidar.core.effects.ParamSpec` defaults:
 
 * ``fit_start``: starting values for fitting (``{name: value}``), used where the default sits on a
   boundary with no gradient (a dropout probability of exactly 0, say);
@@ -11,8 +11,8 @@ An effect class may declare, besides its :class:`~mi_lidar.effects.ParamSpec` de
 
 from __future__ import annotations
 
-from ..effects.base import EFFECTS, Effect
-from .fit import widen
+from mi_lidar.core.effects.base import EFFECTS, Effect
+from mi_lidar.loop.fit import widen
 
 # Effects that describe the scene or sensor setup rather than a measurable deviation: not offered
 # as diagnosis candidates unless asked for by name.

@@ -22,12 +22,12 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..elements import ElementTable
-from ..log import Log
-from ..segment import ELLIPSOID
-from ..sensor_model import SensorModel
-from .fit import Problem
-from .rays import LogRays
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.log import Log
+from mi_lidar.core.segment import ELLIPSOID
+from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.loop.fit import Problem
+from mi_lidar.core.rays import LogRays
 
 BREAKDOWNS = ("range", "incidence", "beam", "azimuth", "time", "element_type", "label", "shape")
 NO_ELEMENT_GROUP = "none"
@@ -231,7 +231,7 @@ def compare(log: Log, scene, model: SensorModel | None = None, out: str | Path |
     Returns:
         The :class:`Comparison`.
     """
-    from ..scene import load_scene, scene_sensor_model
+    from mi_lidar.scene.loading import load_scene, scene_sensor_model
 
     if not hasattr(scene, "shapes"):
         scene = load_scene(scene)
@@ -242,7 +242,7 @@ def compare(log: Log, scene, model: SensorModel | None = None, out: str | Path |
               for row in rows]
     result.worst = sorted(groups, key=lambda r: -r["excess_nll"])[:8]
     if out is not None:
-        from .report import write_comparison
+        from mi_lidar.loop.report import write_comparison
 
         result.files = write_comparison(result, log, Path(out), title, model)
     return result

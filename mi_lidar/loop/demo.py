@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..effects import parse_effects
-from ..scene import load_scene, scene_sensor_model
-from ..simulate import simulate
-from .compare import compare
-from .diagnose import diagnose
+from mi_lidar.core.effects import parse_effects
+from mi_lidar.scene.loading import load_scene, scene_sensor_model
+from mi_lidar.scene.simulation import simulate
+from mi_lidar.loop.compare import compare
+from mi_lidar.loop.diagnose import diagnose
 
 ROOM = Path(__file__).resolve().parents[2] / "scenes_xml" / "indoor_planar.xml"
 HIDDEN = "incidence_dropout(gamma=2)"

@@ -30,12 +30,12 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from ..log import Log
-from ..sensor_model import SensorModel
-from .catalog import candidate, candidate_names, variants
-from .compare import BREAKDOWNS, RayTable, first_elements, group_keys
-from .fit import Problem, fit_effects, n_parameters
-from .rays import LogRays
+from mi_lidar.core.log import Log
+from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.loop.catalog import candidate, candidate_names, variants
+from mi_lidar.loop.compare import BREAKDOWNS, RayTable, first_elements, group_keys
+from mi_lidar.loop.fit import Problem, fit_effects, n_parameters
+from mi_lidar.core.rays import LogRays
 
 P_VALUE = 1e-3
 MIN_NLL_FOR_PERCENT = 1.0  # nats/ray: below this a gain relative to the NLL is not meaningful
@@ -180,7 +180,7 @@ def diagnose(log: Log, scene, model: SensorModel | None = None, out: str | Path 
     Returns:
         The :class:`Diagnosis`.
     """
-    from ..scene import load_scene, scene_sensor_model
+    from mi_lidar.scene.loading import load_scene, scene_sensor_model
 
     if not hasattr(scene, "shapes"):
         scene = load_scene(scene)

@@ -1,7 +1,7 @@
 """Fit effect parameters by maximum likelihood (Adam on the pass-through mixture).
 
 A small, self-contained fitter for the loop: it fits the parameters of chosen effects of a
-:class:`~mi_lidar.sensor_model.SensorModel` to measured rays with :class:`mi.ad.Adam`, and scores
+:class:`~mi_lidar.core.sensor_model.SensorModel` to measured rays with :class:`mi.ad.Adam`, and scores
 rays with the pass-through mixture of :meth:`SensorModel.log_likelihood`. Each parameter is
 optimised in units of its scale (``Effect.fit_scales[name]``, default 0.1) and clipped to its
 :class:`ParamSpec` bounds after every step. Parameters listed in ``Effect.fit_exclude`` stay fixed;
@@ -33,12 +33,13 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..arrays import aligned
-from ..effects.base import Effect, RayBatch
-from ..elements import ElementTable
-from ..segment import SURFACE, Segment
-from ..sensor_model import SensorModel, mixture_step
-from .rays import LogRays
+from mi_lidar.core.arrays import aligned
+from mi_lidar.core.effects.base import Effect
+from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.segment import SURFACE, Segment
+from mi_lidar.core.sensor_model import SensorModel, mixture_step
+from mi_lidar.core.rays import LogRays
 
 LL_FLOOR = -30.0  # nats: per-ray log-likelihood floor of scoring (see the module docstring)
 # nats: the fitting loss's floor, lower than the scoring one so that rays far from their element

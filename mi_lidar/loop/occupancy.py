@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ParameterError
-from ..log import Log
+from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.log import Log
 
 MOMENTS = ("n_hit", "n_pass", "sx", "sy", "sxx", "sxy", "syy")
 

@@ -32,14 +32,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..calibration.scene_dicts import EllipsoidElements, MeshElements, scene_dict
-from ..effects.base import Effect
-from ..elements import ElementTable
-from ..log import Log
-from ..sensor_model import SensorModel
-from .fit import Problem, fit_effects
-from .occupancy import CountMap, Grid, count_scans, planar_rays, ray_cells
-from .rays import LogRays
+from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, scene_dict
+from mi_lidar.core.effects.base import Effect
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.log import Log
+from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.loop.fit import Problem, fit_effects
+from mi_lidar.loop.occupancy import CountMap, Grid, count_scans, planar_rays, ray_cells
+from mi_lidar.core.rays import LogRays
 
 LAYER = 4.0  # m: height between the stacked per-scan maps
 BOX_HALF_HEIGHT = 0.5  # m
@@ -330,7 +330,7 @@ def baseline_rows(train: Scored, test: Scored, grid_name: str, steps: int, say) 
     with Adam from a narrow Gaussian (a wide start ends in a worse optimum: 6.9 against 5.1 nats
     on 60 scans).
     """
-    from ..effects import make_effect
+    from mi_lidar.core.effects import make_effect
 
     noise, drop = make_effect("range_noise", sigma0=0.2), make_effect("random_dropout", p_drop=0.02)
     model = SensorModel(range_sigma=1e-3, max_range=90.0, max_segments=3, effects=[noise, drop])
@@ -368,7 +368,7 @@ def intel_development_path(data: IntelData, n_test: int | None = None, n_train: 
     Returns:
         The development path: one :class:`Step` per row.
     """
-    from ..effects import make_effect
+    from mi_lidar.core.effects import make_effect
 
     say = progress or (lambda message: None)
     test_layers = data.layers(data.test[:n_test], calibration=False)

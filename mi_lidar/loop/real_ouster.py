@@ -21,13 +21,13 @@ from dataclasses import dataclass
 import mitsuba as mi
 import numpy as np
 
-from ..calibration.fit import Calibration, FitOptions
-from ..calibration.scene_dicts import MeshElements, scene_dict
-from ..elements import ElementTable
-from ..log import Log
-from ..sensor_model import SensorModel
-from .rays import LogRays
-from .real_data import Scored, Step, effect_step, ray_subset
+from mi_lidar.calibration.fit import Calibration, FitOptions
+from mi_lidar.scene.dicts import MeshElements, scene_dict
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.log import Log
+from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.core.rays import LogRays
+from mi_lidar.loop.real_data import Scored, Step, effect_step, ray_subset
 
 MESH_EVERY = 4  # mesh columns: 0 mod MESH_EVERY; calibration columns: MESH_EVERY / 2 mod MESH_EVERY
 
@@ -123,7 +123,7 @@ def ouster_development_path(log: Log, steps: int = 1500, progress=None) -> Ouste
     Returns:
         The development path and the final model.
     """
-    from ..effects import make_effect
+    from mi_lidar.core.effects import make_effect
 
     say = progress or (lambda message: None)
     w = log.shape[2]

@@ -119,7 +119,7 @@ def plot_residual_image(t, shape: tuple, path: Path) -> Path:
 
 def write_residual_ply(t, log, path: Path) -> Path:
     """Measured points coloured by residual (red: long, blue: short), with residual and NLL."""
-    from ..io import write_ply
+    from mi_lidar.io import write_ply
 
     points = log.points_world().reshape(-1, 3)[t.hit]
     res = np.nan_to_num((t.measured - t.nominal)[t.hit])

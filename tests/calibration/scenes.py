@@ -3,10 +3,10 @@
 import numpy as np
 
 import mi_lidar
-from mi_lidar.calibration import EllipsoidElements, MeshElements, scene_dict
-from mi_lidar.effects import parse_effects
-from mi_lidar.patterns import get_pattern
-from mi_lidar.sensor_model import SensorModel
+from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, scene_dict
+from mi_lidar.core.effects import parse_effects
+from mi_lidar.core.patterns import get_pattern
+from mi_lidar.core.sensor_model import SensorModel
 
 SENSOR_HEIGHT = 1.5  # m above the bowl's floor
 

@@ -8,16 +8,16 @@ import numpy as np
 import pytest
 
 import mi_lidar
-from mi_lidar.calibration import save_scene, scene_dict
-from mi_lidar.calibration.composed import composed_element_sets, hybrid_element_sets
+from mi_lidar.scene.dicts import save_scene, scene_dict
+from mi_lidar.hybrid.element_sets import composed_element_sets, hybrid_element_sets
 from mi_lidar.calibration.fit import Calibration, FitOptions
-from mi_lidar.elements import ElementTable
-from mi_lidar.errors import SceneError
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.errors import SceneError
 from mi_lidar.hybrid.classes import CLASS_ID
 from mi_lidar.hybrid.compose import save_annotation
 from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh
 from mi_lidar.hybrid.primitives import Primitive, PrimitiveLibrary
-from mi_lidar.sensor_model import SensorModel
+from mi_lidar.core.sensor_model import SensorModel
 
 from .scenes import pattern
 

@@ -14,9 +14,9 @@ import drjit as dr
 import numpy as np
 
 import mi_lidar
-from mi_lidar.calibration import scene_dict
+from mi_lidar.scene.dicts import scene_dict
 from mi_lidar.calibration.fit import Calibration, FitOptions
-from mi_lidar.sensor_model import SensorModel
+from mi_lidar.core.sensor_model import SensorModel
 
 from .scenes import bowl, bushes, pattern, sensor_pose
 

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 
 import mi_lidar
-from mi_lidar.calibration import scene_dict
+from mi_lidar.scene.dicts import scene_dict
 from mi_lidar.calibration.differentiable import DiffTable, LogRays
 from mi_lidar.calibration.likelihood import mixture_log_likelihood
 from mi_lidar.calibration.records import RayCache, cache_distributions, trace_rounds
-from mi_lidar.effects import parse_effects
-from mi_lidar.elements import ElementTable
-from mi_lidar.sensor_model import SensorModel
+from mi_lidar.core.effects import parse_effects
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.sensor_model import SensorModel
 
 from .scenes import bowl, pattern, sensor_pose, shrubs
 

@@ -18,9 +18,10 @@ import numpy as np
 import pytest
 
 import mi_lidar
-from mi_lidar.calibration import EllipsoidElements, scene_dict
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.scene.dicts import EllipsoidElements, scene_dict
 from mi_lidar.calibration.fit import Calibration, FitOptions
-from mi_lidar.sensor_model import SensorModel
+from mi_lidar.core.sensor_model import SensorModel
 
 from .scenes import bowl, bushes, pattern, sensor_pose
 
@@ -43,13 +44,14 @@ def perturbed(truth: EllipsoidElements, centers: float, scales: float) -> Ellips
 @pytest.fixture(scope="module")
 def truth_and_log():
     truth = bushes()
-    log = mi_lidar.simulate(mi_lidar.load_scene(scene_dict({"terrain": bowl(n=9), "bushes": truth})), pattern(500),
-                            poses=poses(4), seed=5, model=MODEL)
-    shape = np.asarray(log.attributes["shape_id"]).ravel()
-    element = np.asarray(log.attributes["element_id"]).ravel()
-    first = 128  # the bowl's triangles come first
-    returns = np.bincount(element[log.hit.ravel() & (element >= first) & (shape != 0xFFFFFFFF)] - first,
-                          minlength=len(truth.p_hit))
+    scene = mi_lidar.load_scene(scene_dict({"terrain": bowl(n=9), "bushes": truth}))
+    log = mi_lidar.simulate(scene, pattern(500), poses=poses(4), seed=5, model=MODEL)
+    table = ElementTable.from_scene(scene)
+    k = table.shape_ids.index("bushes")
+    first = sum(table.element_counts[:k])
+    element = np.asarray(log.attributes["element_id"]).ravel().astype(np.int64) - first
+    ours = log.hit.ravel() & (element >= 0) & (element < len(truth.p_hit))
+    returns = np.bincount(element[ours], minlength=len(truth.p_hit))
     return truth, log, returns >= SEEN
 
 

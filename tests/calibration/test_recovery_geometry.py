@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 import mi_lidar
-from mi_lidar.calibration import scene_dict
+from mi_lidar.scene.dicts import scene_dict
 from mi_lidar.calibration.fit import Calibration, FitOptions
-from mi_lidar.effects import parse_effects
-from mi_lidar.sensor_model import SensorModel
+from mi_lidar.core.effects import parse_effects
+from mi_lidar.core.sensor_model import SensorModel
 
 from .scenes import bowl, pattern, sensor_pose
 

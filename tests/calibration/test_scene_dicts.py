@@ -3,8 +3,8 @@
 import numpy as np
 
 import mi_lidar
-from mi_lidar.calibration import EllipsoidElements, MeshElements, save_scene, scene_dict
-from mi_lidar.elements import ElementTable
+from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, save_scene, scene_dict
+from mi_lidar.core.elements import ElementTable
 
 
 def element_sets():

@@ -11,7 +11,7 @@ from mi_lidar.hybrid.evaluate import observation_metrics, pcd_error
 from mi_lidar.hybrid.fit import FitParams, assign_hit_probabilities, hit_probability, world_rays
 from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
 from mi_lidar.hybrid.simulation import load_model, simulate_log
-from mi_lidar.log import Log
+from mi_lidar.core.log import Log
 
 
 def _two_walls(p_front):

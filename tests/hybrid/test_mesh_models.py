@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mi_lidar.errors import SceneError
+from mi_lidar.core.errors import SceneError
 from mi_lidar.hybrid.baselines import box_surface_scene, mesh_model_scene
 from mi_lidar.hybrid.classes import CLASS_ID, OBJECT_CLASSES
 from mi_lidar.hybrid.compose import annotation_from_segments

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import mi_lidar
-from mi_lidar.errors import SceneError
+from mi_lidar.core.errors import SceneError
 from mi_lidar.hybrid import commands
 from mi_lidar.hybrid.blocks import read_scene, write_scene
 from mi_lidar.hybrid.classes import OBJECT_CLASSES

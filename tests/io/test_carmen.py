@@ -3,7 +3,7 @@ import gzip
 import numpy as np
 import pytest
 
-from mi_lidar.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError
 from mi_lidar.io import read_any, read_carmen
 from mi_lidar.io.carmen import beam_angles
 

@@ -1,12 +1,9 @@
 import numpy as np
 import pytest
 
-from mi_lidar.errors import LogFormatError
-from mi_lidar.io import (
-    cloud_from_log, log_from_points, read_any, read_bin_log, read_pcd, read_pcd_log, read_rosbag_log, write_any,
-    write_pcd,
-)
-from mi_lidar.log import Log
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.io import cloud_from_log, log_from_points, read_any, read_bin_log, read_pcd, read_pcd_log, read_rosbag_log, write_any, write_pcd
+from mi_lidar.core.log import Log
 
 from .conftest import data_file
 

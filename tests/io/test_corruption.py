@@ -10,12 +10,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mi_lidar.errors import LogFormatError
-from mi_lidar.io import (
-    read_bin_log, read_carmen, read_exr_log, read_las_log, read_ouster, read_pcd_log, read_ply_log,
-    read_rosbag_log, read_velodyne, write_any, write_pcd,
-)
-from mi_lidar.log import Log
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.io import read_bin_log, read_carmen, read_exr_log, read_las_log, read_ouster, read_pcd_log, read_ply_log, read_rosbag_log, read_velodyne, write_any, write_pcd
+from mi_lidar.core.log import Log
 
 from .synth import carmen_text, pcap_bytes, velodyne_payloads, write_ouster
 from .test_clouds import synthetic_log

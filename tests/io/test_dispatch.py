@@ -3,10 +3,11 @@ import json
 import numpy as np
 import pytest
 
-from mi_lidar.errors import LogFormatError
-from mi_lidar.io import convert, info, pattern_from_log, read_any, read_velodyne, write_any
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.io import convert, info, read_any, read_velodyne, write_any
+from mi_lidar.core.patterns.from_log import pattern_from_log
 from mi_lidar.io.dispatch import detect_format
-from mi_lidar.patterns import FiringPattern
+from mi_lidar.core.patterns import FiringPattern
 
 from .conftest import data_file
 from .synth import carmen_text, write_ouster

@@ -3,7 +3,7 @@ import os
 import numpy as np
 import pytest
 
-from mi_lidar.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError
 from mi_lidar.io import read_exr, write_exr
 
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from mi_lidar.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError
 from mi_lidar.io import read_kitti_bin, write_kitti_bin
 
 

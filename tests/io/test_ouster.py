@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from mi_lidar.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError
 from mi_lidar.io import range_digest, read_any, read_ouster
 from mi_lidar.io.ouster import destagger, restagger
 

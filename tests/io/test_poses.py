@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from mi_lidar.errors import LogFormatError, PoseError
+from mi_lidar.core.errors import LogFormatError, PoseError
 from mi_lidar.io import read_kitti_poses, read_pose_matrices, write_kitti_poses
 
 

@@ -6,9 +6,9 @@ import dataclasses
 
 import numpy as np
 
-from mi_lidar.effects import make_effect
+from mi_lidar.core.effects import make_effect
 from mi_lidar.loop.fit import Problem, fit_effects
-from mi_lidar.loop.rays import LogRays
+from mi_lidar.core.rays import LogRays
 
 from .helpers import hidden_log, room
 

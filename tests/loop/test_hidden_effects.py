@@ -14,7 +14,7 @@ import pytest
 from mi_lidar.loop import diagnose
 from mi_lidar.loop.diagnose import split_rays
 from mi_lidar.loop.fit import Problem
-from mi_lidar.loop.rays import LogRays
+from mi_lidar.core.rays import LogRays
 
 from .helpers import hidden_log, room, street
 

@@ -1,7 +1,7 @@
 """Mixed pixels (beam divergence): the sampler and the approximate likelihood agree.
 
 In the room every sub-ray meets one opaque wall with Gaussian noise, where the likelihood of
-:class:`~mi_lidar.effects.mixed_pixels.MixedPixels` is exact: the combined range of each beam is
+:class:`~mi_lidar.core.effects.mixed_pixels.MixedPixels` is exact: the combined range of each beam is
 Gaussian with the mean and variance the likelihood implies. 60 simulated scans (fixed seeds) are
 checked against it, and the likelihood's gradient in ``divergence`` against finite differences.
 """
@@ -10,10 +10,10 @@ import dataclasses
 
 import numpy as np
 
-from mi_lidar.effects import parse_effects
+from mi_lidar.core.effects import parse_effects
 from mi_lidar.loop.fit import Problem
-from mi_lidar.loop.rays import LogRays
-from mi_lidar.simulate import simulate
+from mi_lidar.core.rays import LogRays
+from mi_lidar.scene.simulation import simulate
 
 from .helpers import finite_difference_check, hidden_log, room
 

@@ -2,7 +2,7 @@
 
 Where every sub-ray of a beam meets an opaque surface first (all rays of the room but those
 through its glass pane), the ``first`` and ``last`` likelihoods of
-:class:`~mi_lidar.effects.multiple_returns.MultipleReturns` are exact. For 60 simulated scans
+:class:`~mi_lidar.core.effects.multiple_returns.MultipleReturns` are exact. For 60 simulated scans
 (fixed seeds) the probability integral transform of every return under the likelihood (its CDF,
 integrated by the trapezoid rule on a 1 mm grid) must be uniform: Kolmogorov-Smirnov distance below 0.02 over about 20 000
 returns (the 1 % critical value is 0.012; the grid and float32 add a few thousandths).
@@ -15,10 +15,10 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_lidar.effects import parse_effects
-from mi_lidar.elements import ElementTable
-from mi_lidar.loop.rays import LogRays
-from mi_lidar.simulate import simulate
+from mi_lidar.core.effects import parse_effects
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.rays import LogRays
+from mi_lidar.scene.simulation import simulate
 
 from .helpers import room
 

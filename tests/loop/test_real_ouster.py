@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mi_lidar.log import Log
+from mi_lidar.core.log import Log
 from mi_lidar.loop.real_ouster import column_log, ouster_development_path, range_image_mesh
 
 

@@ -1,0 +1,17 @@
+"""The ``mi-lidar`` command line: one module per verb group, one error handler (:mod:`.app`).
+
+=====================  ==========================================================================
+module                 verbs
+=====================  ==========================================================================
+:mod:`.render`         ``render``, ``simulate``, ``camera-lidar``, ``demo``
+:mod:`.convert`        ``convert``, ``info``
+:mod:`.hybrid`         ``synth-world``, ``fit-scene``, ``primitives ...``, ``annotate``, ``compose``
+:mod:`.loop`           ``compare``, ``diagnose``
+:mod:`.calibrate`      ``calibrate``
+=====================  ==========================================================================
+"""
+
+from mi_lidar.cli import calibrate, convert, hybrid, loop, render  # noqa: F401  (register the commands)
+from mi_lidar.cli.app import app
+
+__all__ = ["app"]

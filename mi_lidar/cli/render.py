@@ -1,0 +1,233 @@
+"""Verbs that make scans: ``render``, ``simulate``, ``camera-lidar`` and ``demo``."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+from rich.table import Table
+
+from mi_lidar.cli.app import app, console
+from mi_lidar.core.errors import MiLidarError, ParameterError
+
+DEFAULT_SCENE = Path(__file__).resolve().parents[2] / "scenes_xml" / "offroad.xml"
+
+
+def scan_summary(log, title: str, elapsed: float | None = None) -> Table:
+    """A rich table summarising a log: rays, hit fraction, range quantiles, returns per label."""
+    table = Table(title=title, show_header=True, header_style="bold")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    s, h, w = log.shape
+    hits = log.hit
+    ranges = log.ranges[hits]
+    table.add_row("scans x beams x firings", f"{s} x {h} x {w}")
+    table.add_row("rays", f"{log.n_rays:,}")
+    table.add_row("returns", f"{hits.sum():,} ({hits.mean():.1%})")
+    if ranges.size:
+        q = np.quantile(ranges, [0.0, 0.5, 1.0])
+        table.add_row("range min / median / max (m)", f"{q[0]:.2f} / {q[1]:.2f} / {q[2]:.2f}")
+    if "segments" in log.attributes:
+        table.add_row("rays passing >= 1 element", f"{np.mean(log.attributes['segments'] > 1):.1%}")
+    if "label" in log.attributes and ranges.size:
+        labels, counts = np.unique(log.attributes["label"][hits], return_counts=True)
+        table.add_row("returns per label", ", ".join(f"{lab}: {c:,}" for lab, c in zip(labels, counts)))
+    if elapsed is not None:
+        table.add_row("time (s)", f"{elapsed:.2f} ({log.n_rays / max(elapsed, 1e-9) / 1e6:.1f} M rays/s)")
+    return table
+
+
+def write_scan_outputs(log, out: Path, scene_name: str) -> list[Path]:
+    """Write ``scan.exr``, ``points.ply``, ``scan.bin`` (KITTI), ``scan.npz`` and PNG previews of scan 0."""
+    from mi_lidar.core.channels import INTEGER_CHANNELS
+    from mi_lidar.io import birds_eye_png, range_image_png, write_exr, write_kitti_bin, write_ply
+
+    out.mkdir(parents=True, exist_ok=True)
+    scan = log.scan(0)
+    channels = {"range": scan.ranges[0], "hit": scan.hit[0].astype(np.float32)}
+    channels.update({k: v[0] for k, v in scan.attributes.items()})
+    exr = write_exr(out / "scan.exr", {k: np.asarray(v, np.float32) if k not in INTEGER_CHANNELS else v
+                                       for k, v in channels.items()})
+    hit = scan.hit[0]
+    points = scan.points_world()[0][hit].astype(np.float32)
+    beam = np.broadcast_to(np.arange(hit.shape[0])[:, None], hit.shape)[hit].astype(np.uint16)
+    attributes = {"range": scan.ranges[0][hit], "ring": beam}
+    attributes.update({k: v[0][hit] for k, v in scan.attributes.items()})
+    ply = write_ply(out / "points.ply", points, attributes)
+    kitti = write_kitti_bin(out / "scan.bin", scan.points_sensor()[0][hit], None)
+    npz = scan.save(out / "scan.npz")
+    png_range = range_image_png(out / "range.png", scan.ranges[0], title=f"{scene_name}: range (m)")
+    values = scan.attributes["label"][0][hit] if "label" in scan.attributes else None
+    png_bev = birds_eye_png(out / "birds_eye.png", points, values=values, title=f"{scene_name}: returns by label")
+    return [exr, ply, kitti, npz, png_range, png_bev]
+
+
+@app.command(rich_help_panel="Make scans")
+def render(
+    scene: Path = typer.Argument(..., help="Scene XML with a `lidar` sensor.", exists=True, dir_okay=False),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
+    seed: int = typer.Option(0, min=0, help="Random seed (same seed, same scan)."),
+    pattern: Optional[str] = typer.Option(None, help="Override the firing pattern, e.g. `hdl32e`, `os1-32`, `planar-360`."),
+):
+    """Render one scan of SCENE and write `scan.exr`, `points.ply`, `scan.bin`, `scan.npz` and PNG previews.
+
+    Examples:
+
+        mi-lidar render scenes_xml/offroad.xml --out out/offroad
+
+        mi-lidar render scenes_xml/urban_street.xml --out out/street --pattern hdl64e --seed 3
+    """
+    import mitsuba as mi
+
+    from mi_lidar.core.channels import tensor_to_numpy
+    from mi_lidar.core.log import Log
+    from mi_lidar.scene import load_scene, scene_lidar_sensor
+    from mi_lidar.scene.simulation import simulate
+
+    loaded = load_scene(scene)
+    start = time.perf_counter()
+    sensor = scene_lidar_sensor(loaded)
+    if pattern is None:
+        if sensor is None:
+            raise MiLidarError(f"{scene}: the scene has no `lidar` sensor; add <sensor type=\"lidar\"> or pass --pattern")
+        channels = tensor_to_numpy(mi.render(loaded, seed=seed))
+        pat = sensor.pattern
+        log = Log(
+            poses=sensor.to_world_matrix[None], directions=pat.directions()[None], origins=pat.origins()[None],
+            ranges=channels.pop("range")[None], hit=channels.pop("hit")[None], times=pat.time[None],
+            attributes={k: v[None] for k, v in channels.items()}, sensor={"pattern": pat.name, "seed": seed},
+        )
+    else:
+        log = simulate(loaded, pattern, seed=seed)
+    elapsed = time.perf_counter() - start
+    files = write_scan_outputs(log, out, scene.stem)
+    console.print(scan_summary(log, f"{scene.name} (seed {seed})", elapsed))
+    for path in files:
+        console.print(f"wrote {path}")
+
+
+def read_poses(path: Path) -> np.ndarray:
+    """Sensor poses from ``.npy`` (S, 4, 4), text with 16 numbers per line, or a KITTI poses file."""
+    from mi_lidar.io import read_kitti_poses, read_pose_matrices
+
+    if path.suffix == ".npy":
+        return read_pose_matrices(path)
+    first = next((line.split() for line in path.read_text().splitlines() if line.strip()), [])
+    return read_kitti_poses(path) if len(first) == 12 else read_pose_matrices(path)
+
+
+@app.command(rich_help_panel="Make scans")
+def simulate(
+    scene: Path = typer.Argument(..., help="Scene XML.", exists=True, dir_okay=False),
+    poses: Path = typer.Option(..., help="Sensor poses: `.npy` (S, 4, 4), text with 16 numbers per line, or a KITTI poses file (12 per line).", exists=True, dir_okay=False),
+    out: Path = typer.Option(..., "--out", "-o", help="Output log (`.npz`)."),
+    seed: int = typer.Option(0, min=0, help="Random seed."),
+    pattern: Optional[str] = typer.Option(None, help="Firing pattern (default: the scene sensor's)."),
+):
+    """Simulate one scan per pose and write a log (`.npz`, see `mi_lidar.core.log`).
+
+    Examples:
+
+        mi-lidar simulate scenes_xml/offroad.xml --poses poses.txt --out drive.npz
+
+        mi-lidar simulate scenes_xml/indoor_planar.xml --poses kitti_poses.txt --out room.npz --pattern planar-180
+    """
+    from rich.progress import Progress
+
+    from mi_lidar.scene import load_scene
+    from mi_lidar.scene.simulation import simulate as run
+
+    loaded = load_scene(scene)
+    pose_array = read_poses(poses)
+    start = time.perf_counter()
+    with Progress(console=console, transient=True) as progress:
+        task = progress.add_task("simulating scans", total=len(pose_array))
+        log = run(loaded, pattern, poses=pose_array, seed=seed,
+                  progress=lambda done, total: progress.update(task, completed=done))
+    elapsed = time.perf_counter() - start
+    path = log.save(out)
+    console.print(scan_summary(log, f"{scene.name}: {len(pose_array)} scans (seed {seed})", elapsed))
+    console.print(f"wrote {path}")
+
+
+def parse_vector(text: str, name: str) -> list[float]:
+    """Three comma-separated numbers (m); raise a ParameterError naming the option otherwise."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(np.isfinite(values)):
+        raise ParameterError(f"{name} needs three comma-separated finite numbers (m), e.g. 0,0,1.8; got {text!r}")
+    return values
+
+
+@app.command("camera-lidar", rich_help_panel="Make scans")
+def camera_lidar(
+    scene: Path = typer.Argument(..., help="Scene XML with a `lidar` sensor (add emitters to light the camera).", exists=True, dir_okay=False),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
+    camera_from: str = typer.Option("0,0,1.8", "--from", help="Camera position x,y,z (m)."),
+    camera_to: str = typer.Option("10,0,1.5", "--to", help="Point the camera looks at x,y,z (m)."),
+    width: int = typer.Option(640, min=1, help="Image width (pixels)."),
+    height: int = typer.Option(400, min=1, help="Image height (pixels)."),
+    fov: float = typer.Option(70.0, min=1.0, max=179.0, help="Horizontal field of view (deg)."),
+    spp: int = typer.Option(64, min=1, help="Camera samples per pixel."),
+    seed: int = typer.Option(0, min=0, help="Random seed."),
+):
+    """Synthetic camera + Lidar data from one scene: image, scan, projection and calibration (KITTI-style).
+
+    Writes `image.png` (sRGB), `image.exr` (linear), `points.ply` (world frame), `scan.npz`,
+    `overlay.png` (Lidar returns over the image, coloured by depth) and `calib.json` (K, lidar_to_camera).
+
+    Example:
+
+        mi-lidar camera-lidar scenes_xml/urban_street.xml --out out/frame --from 0,0,1.8 --to 10,2,1.5
+    """
+    import json
+
+    from mi_lidar.core.atomic import atomic_write
+    from mi_lidar.io import write_exr, write_ply
+    from mi_lidar.io.preview import overlay_png, rgb_png
+    from mi_lidar.scene import load_scene
+    from mi_lidar.scene.camera import PinholeCamera, camera_lidar_frame
+
+    loaded = load_scene(scene)
+    camera = PinholeCamera.look_at(parse_vector(camera_from, "--from"), parse_vector(camera_to, "--to"),
+                                   width=width, height=height, fov_deg=fov)
+    with console.status("rendering the camera image and the Lidar scan"):
+        frame = camera_lidar_frame(loaded, camera, seed=seed, spp=spp)
+    out.mkdir(parents=True, exist_ok=True)
+    files = [
+        rgb_png(out / "image.png", frame["image"]),
+        write_exr(out / "image.exr", {c: frame["image"][..., i] for i, c in enumerate("RGB")}),
+        write_ply(out / "points.ply", frame["points"].astype(np.float32)),
+        frame["log"].save(out / "scan.npz"),
+        overlay_png(out / "overlay.png", frame["image"], frame["uv"][frame["visible"]], frame["depth"][frame["visible"]],
+                    title=f"{scene.name}: Lidar returns over the camera image"),
+    ]
+    calib = {"K": frame["K"].tolist(), "lidar_to_camera": frame["lidar_to_camera"].tolist(),
+             "camera_convention": "OpenCV (x right, y down, z forward)", "width": width, "height": height}
+    files.append(atomic_write(out / "calib.json", lambda stream: stream.write(json.dumps(calib, indent=1).encode())))
+    console.print(f"{int(frame['visible'].sum()):,} of {len(frame['points']):,} Lidar returns fall in the image")
+    for path in files:
+        console.print(f"wrote {path}")
+
+
+@app.command(rich_help_panel="Make scans")
+def demo(
+    out: Path = typer.Option(Path("demo_out"), "--out", "-o", help="Output folder."),
+    seed: int = typer.Option(0, min=0, help="Random seed."),
+):
+    """The main job of `make demo`: render the bundled off-road scene, then run the loop on a log with a hidden effect.
+
+    Example:
+
+        mi-lidar demo --out demo_out
+    """
+    from mi_lidar.loop.demo import run_demo
+
+    render(DEFAULT_SCENE, out, seed=seed, pattern=None)
+    console.rule("The loop: a log with a hidden effect, its diagnosis, the error before and after")
+    run_demo(out=out / "loop", echo=console.print)

@@ -1,0 +1,28 @@
+"""Dropout independent of range and angle: the max-range readings of the classic beam model."""
+
+from __future__ import annotations
+
+from mi_lidar.core.segment import Segment
+from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
+from mi_lidar.core.rays import RayBatch
+
+
+@register_effect
+class RandomDropout(Effect):
+    """Scale each element's hit probability by ``1 - p_drop``.
+
+    The classic beam model's max-range component (thesis ch. 2): with probability ``p_drop`` a
+    beam that meets a surface reports no return (specular or dark targets, glass, electronics),
+    whatever the range or incidence. ``p_drop = 0`` disables the effect. Differentiable.
+
+    Example: ``random_dropout(p_drop=0.02)``: 2 % of the beams that meet an opaque wall are misses.
+    """
+
+    name = "random_dropout"
+    specs = {"p_drop": ParamSpec(0.0, "1", "probability that a surface does not return the beam", lower=0.0,
+                                 upper=1.0)}
+    fit_scales = {"p_drop": 0.01}
+    fit_start = {"p_drop": 0.01}
+
+    def modify_segment(self, seg: Segment, rays: RayBatch) -> Segment:
+        return seg.with_(p=seg.p * (1.0 - self["p_drop"]))

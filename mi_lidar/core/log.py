@@ -1,0 +1,184 @@
+"""The scan/log data model and its on-disk format (``.npz``, format ``mi-lidar-log``, version 1).
+
+A :class:`Log` holds ``S`` scans of one sensor whose rays form an ``H x W`` grid: ``H`` beams
+(rows of the range image) by ``W`` firings (columns). A single scan is a log with ``S = 1``.
+
+Conventions (every array is numpy):
+
+========================  =====================  =========================================
+field                     shape, dtype           meaning
+========================  =====================  =========================================
+``poses``                 (S, 4, 4) float64      sensor-to-world transform at sweep start
+``directions``            (1|S, H, W, 3) float32 unit ray directions in the sensor frame
+``origins``               (1|S, H, W, 3) float32 ray origins in the sensor frame (m)
+``ranges``                (S, H, W) float32      measured range along the ray (m); NaN = miss
+``hit``                   (S, H, W) bool         True where the sensor reported a return
+``times``                 (S, H, W) float64      absolute timestamp of each ray (s)
+``attributes[name]``      (S, H, W) any          per-ray extras (element_id, label, ...)
+``sensor``                dict                   JSON-able metadata (name, pattern, ranges)
+========================  =====================  =========================================
+
+A leading axis of 1 in ``directions``/``origins`` means that every scan shares the pattern.
+Misses are explicit: ``hit`` is False and ``ranges`` is NaN; nothing is silently dropped.
+
+On disk a log is one ``.npz`` archive holding the arrays above (attributes as ``attr/<name>``)
+plus ``meta``: a JSON string with ``format``, ``version``, ``sensor`` and the attribute names.
+Files are written to a temporary name and renamed, so a crash never leaves half a file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mi_lidar.core.atomic import atomic_write
+from mi_lidar.core.errors import LogFormatError
+
+FORMAT_NAME = "mi-lidar-log"
+FORMAT_VERSION = 1
+
+
+@dataclass
+class Log:
+    """``S`` Lidar scans on an ``H x W`` (beams x firings) ray grid; see the module docstring."""
+
+    poses: np.ndarray
+    directions: np.ndarray
+    ranges: np.ndarray
+    hit: np.ndarray
+    times: np.ndarray
+    origins: np.ndarray | None = None
+    attributes: dict[str, np.ndarray] = field(default_factory=dict)
+    sensor: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.poses = np.asarray(self.poses, dtype=np.float64)
+        self.directions = np.asarray(self.directions, dtype=np.float32)
+        self.ranges = np.asarray(self.ranges, dtype=np.float32)
+        self.hit = np.asarray(self.hit, dtype=bool)
+        self.times = np.asarray(self.times, dtype=np.float64)
+        if self.directions.ndim == 3:
+            self.directions = self.directions[None]
+        if self.origins is None:
+            self.origins = np.zeros((1,) + self.directions.shape[1:], dtype=np.float32)
+        self.origins = np.asarray(self.origins, dtype=np.float32)
+        if self.origins.ndim == 3:
+            self.origins = self.origins[None]
+        self.validate()
+
+    # ------------------------------------------------------------------ shape
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """``(S, H, W)``: scans, beams, firings."""
+        return tuple(self.ranges.shape)
+
+    @property
+    def n_scans(self) -> int:
+        return self.ranges.shape[0]
+
+    @property
+    def n_rays(self) -> int:
+        return int(self.ranges.size)
+
+    def validate(self) -> None:
+        """Raise :class:`LogFormatError` naming the first inconsistent field."""
+        if self.ranges.ndim != 3:
+            raise LogFormatError(f"ranges must have shape (S, H, W); got {self.ranges.shape}")
+        s, h, w = self.ranges.shape
+        expect = {
+            "poses": (self.poses, (s, 4, 4)),
+            "hit": (self.hit, (s, h, w)),
+            "times": (self.times, (s, h, w)),
+        }
+        for name, (array, shape) in expect.items():
+            if array.shape != shape:
+                raise LogFormatError(f"{name} has shape {array.shape}; expected {shape} to match ranges")
+        for name in ("directions", "origins"):
+            array = getattr(self, name)
+            if array.shape not in ((1, h, w, 3), (s, h, w, 3)):
+                raise LogFormatError(
+                    f"{name} has shape {array.shape}; expected (1, {h}, {w}, 3) or ({s}, {h}, {w}, 3)"
+                )
+        for name, array in self.attributes.items():
+            if np.shape(array) != (s, h, w):
+                raise LogFormatError(f"attribute {name!r} has shape {np.shape(array)}; expected {(s, h, w)}")
+        if np.any(self.hit & ~np.isfinite(self.ranges)):
+            raise LogFormatError("a ray flagged as hit has a non-finite range; set hit=False for misses")
+
+    # --------------------------------------------------------------- helpers
+    def scan(self, index: int) -> "Log":
+        """The ``index``-th scan as a one-scan log (arrays are views where possible)."""
+        sl = slice(index, index + 1)
+        pick = (lambda a: a[sl] if a.shape[0] > 1 else a)
+        return Log(
+            poses=self.poses[sl], directions=pick(self.directions), origins=pick(self.origins),
+            ranges=self.ranges[sl], hit=self.hit[sl], times=self.times[sl],
+            attributes={k: v[sl] for k, v in self.attributes.items()}, sensor=dict(self.sensor),
+        )
+
+    def points_sensor(self) -> np.ndarray:
+        """(S, H, W, 3) float32 return points in the sensor frame; NaN for misses."""
+        r = np.where(self.hit, self.ranges, np.nan)[..., None]
+        return (self.origins + r * self.directions).astype(np.float32)
+
+    def points_world(self) -> np.ndarray:
+        """(S, H, W, 3) float64 return points in the world frame; NaN for misses."""
+        p = self.points_sensor().astype(np.float64)
+        rot, trans = self.poses[:, None, None, :3, :3], self.poses[:, None, None, :3, 3]
+        return np.einsum("shwij,shwj->shwi", np.broadcast_to(rot, p.shape[:3] + (3, 3)), p) + trans
+
+    # ---------------------------------------------------------------- on disk
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the log to ``path`` (``.npz``) atomically and return the path."""
+        path = Path(path)
+        arrays = {
+            "poses": self.poses, "directions": self.directions, "origins": self.origins,
+            "ranges": self.ranges, "hit": self.hit, "times": self.times,
+        }
+        arrays.update({f"attr/{k}": np.asarray(v) for k, v in self.attributes.items()})
+        meta = {
+            "format": FORMAT_NAME, "version": FORMAT_VERSION,
+            "sensor": self.sensor, "attributes": sorted(self.attributes),
+        }
+        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+        atomic_write(path, lambda stream: np.savez_compressed(stream, **arrays))
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Log":
+        """Read a log written by :meth:`save`; raise :class:`LogFormatError` on any defect."""
+        path = Path(path)
+        if not path.is_file():
+            raise LogFormatError(f"{path}: no such log file")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+        except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+            raise LogFormatError(
+                f"{path}: not a readable mi-lidar log ({exc}); was it truncated? Re-create it with "
+                "`mi-lidar simulate` or `mi-lidar convert`."
+            ) from exc
+        if "meta" not in arrays:
+            raise LogFormatError(f"{path}: missing 'meta' entry; this .npz is not an mi-lidar log")
+        meta = json.loads(arrays.pop("meta").tobytes().decode())
+        if meta.get("format") != FORMAT_NAME:
+            raise LogFormatError(f"{path}: format {meta.get('format')!r}; expected {FORMAT_NAME!r}")
+        if meta.get("version") != FORMAT_VERSION:
+            raise LogFormatError(
+                f"{path}: log format version {meta.get('version')}; this mi-lidar reads version "
+                f"{FORMAT_VERSION}. Upgrade mi-lidar or convert the file."
+            )
+        missing = [k for k in ("poses", "directions", "origins", "ranges", "hit", "times") if k not in arrays]
+        if missing:
+            raise LogFormatError(f"{path}: missing arrays {missing}")
+        attributes = {k[len("attr/"):]: v for k, v in arrays.items() if k.startswith("attr/")}
+        return cls(
+            poses=arrays["poses"], directions=arrays["directions"], origins=arrays["origins"],
+            ranges=arrays["ranges"], hit=arrays["hit"], times=arrays["times"],
+            attributes=attributes, sensor=meta.get("sensor", {}),
+        )

@@ -1,0 +1,146 @@
+"""One element met by a ray: its hit probability and the distribution of the range it returns.
+
+Every element a ray meets becomes a :class:`Segment`, a struct of Dr.Jit arrays (one lane per
+ray). Its return range follows a Gaussian ``N(mean, sigma^2)`` truncated to ``[lo, hi]``:
+
+* a triangle returns its nominal range plus noise: ``mean = r``, ``sigma = range_sigma``,
+  ``[lo, hi] = (-inf, inf)``;
+* an ellipsoid returns a range drawn from its 3D Gaussian ``N(mu, Sigma)`` *restricted to the
+  ray* (the conditional density along the beam, which keeps the point on the beam), truncated to
+  the chord the ray cuts through the ellipsoid's ``extent``. Along ``o + t d`` the Mahalanobis
+  distance is the quadratic ``a t^2 + 2 b t + c``, so the restricted Gaussian has
+  ``mean = -b / a``, ``sigma = 1 / sqrt(a)`` and the chord is ``mean +- sqrt((E^2 - m^2) / a)``
+  with ``m^2 = c - b^2 / a`` the closest approach and ``E`` the extent.
+
+Effects (``mi_lidar.core.effects``) edit ``p``, ``mean`` and ``sigma``; sampling
+(:func:`sample_range`) and the likelihood (:func:`log_density`) read the edited values, so the
+two stay consistent by construction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import drjit as dr
+import mitsuba as mi
+
+SURFACE = 0
+ELLIPSOID = 1
+INV_SQRT2 = 1.0 / math.sqrt(2.0)
+LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+@dataclass
+class Segment:
+    """Element ``k`` met along each ray (all fields have one lane per ray).
+
+    Attributes:
+        valid: the ray met an element in this round.
+        nominal: nominal range: distance from the ray origin to the entry point (m).
+        p: probability that the element returns the beam (pass-through otherwise).
+        mean, sigma: Gaussian of the returned range (m).
+        lo, hi: truncation bounds of that Gaussian (m; +-inf for surfaces).
+        cos_incidence: |cos| of the angle between the beam and the surface normal.
+        element: global element index (see :class:`mi_lidar.core.elements.ElementTable`).
+        shape: shape index in the element table.
+        label: class label of the element.
+        kind: ``SURFACE`` or ``ELLIPSOID``.
+    """
+
+    valid: mi.Bool
+    nominal: mi.Float
+    p: mi.Float
+    mean: mi.Float
+    sigma: mi.Float
+    lo: mi.Float
+    hi: mi.Float
+    cos_incidence: mi.Float
+    element: mi.UInt32
+    shape: mi.UInt32
+    label: mi.UInt32
+    kind: mi.UInt32
+
+    def with_(self, **changes) -> "Segment":
+        """A copy with some fields replaced (effects use this)."""
+        return replace(self, **changes)
+
+
+def normal_cdf(x: mi.Float) -> mi.Float:
+    """Standard normal CDF."""
+    return 0.5 * (1.0 + dr.erf(x * INV_SQRT2))
+
+
+def sample_range(seg: Segment, u: mi.Float) -> mi.Float:
+    """Draw the returned range of each lane from its truncated Gaussian by inversion.
+
+    Args:
+        seg: the segment (``mean``, ``sigma``, ``lo``, ``hi``).
+        u: uniform samples in [0, 1), one per lane.
+
+    Returns:
+        Ranges in m; where the truncated mass is negligible (< 1e-6, a grazing chord far from the
+        mean) the range is uniform on ``[lo, hi]``.
+    """
+    sigma = dr.maximum(seg.sigma, 1e-9)
+    cdf_lo = normal_cdf((seg.lo - seg.mean) / sigma)
+    cdf_hi = normal_cdf((seg.hi - seg.mean) / sigma)
+    mass = cdf_hi - cdf_lo
+    v = dr.clip(cdf_lo + u * mass, 1e-7, 1.0 - 1e-7)
+    z = seg.mean + sigma * math.sqrt(2.0) * dr.erfinv(2.0 * v - 1.0)
+    z = dr.clip(z, seg.lo, seg.hi)
+    return dr.select(mass > 1e-6, z, seg.lo + u * (seg.hi - seg.lo))
+
+
+def log_density(seg: Segment, z: mi.Float) -> mi.Float:
+    """Log density (1/m) of range ``z`` under each lane's truncated Gaussian (-inf outside)."""
+    sigma = dr.maximum(seg.sigma, 1e-9)
+    x = (z - seg.mean) / sigma
+    mass = normal_cdf((seg.hi - seg.mean) / sigma) - normal_cdf((seg.lo - seg.mean) / sigma)
+    uniform = -dr.log(dr.maximum(seg.hi - seg.lo, 1e-9))
+    gaussian = -0.5 * x * x - dr.log(sigma) - LOG_SQRT_2PI - dr.log(dr.maximum(mass, 1e-30))
+    inside = (z >= seg.lo) & (z <= seg.hi)
+    value = dr.select(mass > 1e-6, gaussian, uniform)
+    return dr.select(inside, value, -dr.inf)
+
+
+def rotate_inverse(q: mi.Vector4f, v: mi.Vector3f) -> mi.Vector3f:
+    """Rotate ``v`` by the inverse of unit quaternion ``q`` given as (x, y, z, w)."""
+    u = mi.Vector3f(-q.x, -q.y, -q.z)
+    return v + 2.0 * dr.cross(u, dr.cross(u, v) + q.w * v)
+
+
+def ray_quadratic(center, scale, quat, origin, direction):
+    """Squared Mahalanobis distance of an ellipsoid element along the ray ``origin + t direction``.
+
+    Args:
+        center: (3,) lanes of ellipsoid means, m.
+        scale: (3,) lanes of standard deviations along the principal axes, m.
+        quat: (4,) lanes of rotations (x, y, z, w).
+        origin, direction: ray origin (m) and unit direction.
+
+    Returns:
+        ``(a, b, c)`` with the distance ``a t^2 + 2 b t + c`` (sigmas squared, ``t`` in m).
+    """
+    o = rotate_inverse(quat, origin - center) / scale
+    d = rotate_inverse(quat, direction) / scale
+    return dr.squared_norm(d), dr.dot(o, d), dr.squared_norm(o)
+
+
+def ray_restricted_gaussian(center, scale, quat, extent, origin, direction):
+    """Gaussian of an ellipsoid element restricted to the ray ``origin + t direction``.
+
+    Args:
+        center, scale, quat, origin, direction: as in :func:`ray_quadratic`.
+        extent: Mahalanobis radius of the element's surface, in sigmas.
+
+    Returns:
+        ``(mean, sigma, lo, hi)``: the restricted Gaussian's mean and standard deviation in t
+        (m), and the chord of the ellipsoid along the ray (m; ``lo = hi = mean`` for a ray that
+        passes outside, whose gradients stay finite).
+    """
+    a, b, c = ray_quadratic(center, scale, quat, origin, direction)
+    mean = -b / a
+    room = extent * extent - dr.maximum(c - b * b / a, 0.0)  # E^2 - m^2
+    half = dr.select(room > 0, dr.sqrt(dr.maximum(room, 1e-30) / a), 0.0)
+    return mean, dr.rsqrt(a), mean - half, mean + half

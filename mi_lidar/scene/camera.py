@@ -1,0 +1,110 @@
+"""Camera and Lidar from one scene: synchronized images, scans and the calibration that ties them.
+
+The same scene XML serves both sensors: ``lidar_material`` carries a diffuse ``reflectance`` for
+cameras next to its Lidar values, and emitters in the scene light the camera image (the Lidar
+ignores them). :func:`camera_lidar_frame` renders a path-traced RGB image from a pinhole camera
+and a Lidar scan from the scene's ``lidar`` sensor, and projects the Lidar returns into the
+image (KITTI-style: image, points in the camera frame, intrinsics and extrinsics).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import mitsuba as mi
+import numpy as np
+
+from mi_lidar.core.errors import ParameterError
+
+
+@dataclass
+class PinholeCamera:
+    """A pinhole camera (Mitsuba's ``perspective`` sensor).
+
+    Attributes:
+        to_world: (4, 4) camera-to-world transform in Mitsuba's convention (camera looks along
+            +z, x left, y up in its own frame).
+        width, height: image size, pixels.
+        fov_deg: horizontal field of view, degrees.
+    """
+
+    to_world: np.ndarray
+    width: int = 640
+    height: int = 400
+    fov_deg: float = 70.0
+
+    def __post_init__(self):
+        if not (self.width > 0 and self.height > 0 and 0 < self.fov_deg < 180):
+            raise ParameterError(
+                f"camera: need width, height > 0 and 0 < fov_deg < 180; got {self.width}, {self.height}, {self.fov_deg}")
+
+    @classmethod
+    def look_at(cls, origin, target, up=(0.0, 0.0, 1.0), **kwargs) -> "PinholeCamera":
+        """A camera at ``origin`` (m) looking at ``target`` (m)."""
+        transform = mi.ScalarTransform4f().look_at(origin=list(map(float, origin)), target=list(map(float, target)),
+                                                   up=list(map(float, up)))
+        return cls(to_world=np.array(transform.matrix, dtype=np.float64), **kwargs)
+
+    @property
+    def intrinsics(self) -> np.ndarray:
+        """(3, 3) pixel intrinsics K for the OpenCV convention (x right, y down, z forward)."""
+        f = 0.5 * self.width / math.tan(math.radians(self.fov_deg) / 2)
+        return np.array([[f, 0, self.width / 2], [0, f, self.height / 2], [0, 0, 1.0]])
+
+    @property
+    def world_to_opencv(self) -> np.ndarray:
+        """(4, 4) world-to-camera transform in the OpenCV convention."""
+        flip = np.diag([-1.0, -1.0, 1.0, 1.0])  # Mitsuba camera frame (x left, y up) -> OpenCV (x right, y down)
+        return flip @ np.linalg.inv(self.to_world)
+
+    def sensor(self, spp: int = 64):
+        """The Mitsuba ``perspective`` sensor of this camera."""
+        return mi.load_dict({
+            "type": "perspective", "fov": float(self.fov_deg), "fov_axis": "x",
+            "to_world": mi.ScalarTransform4f(self.to_world.astype(np.float32)),
+            "film": {"type": "hdrfilm", "width": int(self.width), "height": int(self.height), "pixel_format": "rgb"},
+            "sampler": {"type": "independent", "sample_count": int(spp)},
+        })
+
+    def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Project (N, 3) world points (m) to pixels.
+
+        Returns:
+            ``(uv, depth, visible)``: (N, 2) pixel coordinates, (N,) depth along the optical axis
+            (m) and (N,) True where the point is in front of the camera and inside the image.
+        """
+        p = np.c_[points_world, np.ones(len(points_world))] @ self.world_to_opencv.T
+        depth = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = (p[:, :3] @ self.intrinsics.T)[:, :2] / depth[:, None]
+        visible = (depth > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & (uv[:, 1] < self.height)
+        return uv, depth, visible
+
+
+def render_camera(scene, camera: PinholeCamera, spp: int = 64, seed: int = 0) -> np.ndarray:
+    """Path-trace the camera's (height, width, 3) linear RGB image of ``scene``."""
+    image = mi.render(scene, sensor=camera.sensor(spp), integrator=mi.load_dict({"type": "path", "max_depth": 6}),
+                      seed=seed)
+    return np.asarray(image, dtype=np.float32)
+
+
+def camera_lidar_frame(scene, camera: PinholeCamera, seed: int = 0, spp: int = 64) -> dict:
+    """One synchronized camera image and Lidar scan of ``scene``, with the Lidar points projected.
+
+    Returns:
+        Dict with ``image`` (H, W, 3) linear RGB, ``log`` (the one-scan Lidar
+        :class:`~mi_lidar.core.log.Log`), ``points`` (N, 3) world-frame returns (m), ``uv`` (N, 2),
+        ``depth`` (N,) m and ``visible`` (N,) for the projection, ``K`` (3, 3) and
+        ``lidar_to_camera`` (4, 4, OpenCV camera frame).
+    """
+    from mi_lidar.scene.simulation import simulate
+
+    log = simulate(scene, seed=seed)
+    points = log.points_world()[0][log.hit[0]]
+    uv, depth, visible = camera.project(points)
+    return {
+        "image": render_camera(scene, camera, spp=spp, seed=seed), "log": log, "points": points,
+        "uv": uv, "depth": depth, "visible": visible, "K": camera.intrinsics,
+        "lidar_to_camera": camera.world_to_opencv @ log.poses[0],
+    }

@@ -1,0 +1,133 @@
+"""Mitsuba scene dicts from element sets, and saving them as XML plus PLY assets.
+
+An element set is what the hybrid-scene pipeline fits and what calibration adjusts: a triangle
+mesh with per-face Lidar values (:class:`MeshElements`) or a set of Gaussian ellipsoids
+(:class:`EllipsoidElements`). :func:`scene_dict` turns a mapping ``id -> element set`` into a
+dict for ``mi.load_dict``; :func:`save_scene` writes the same scene as XML plus PLY assets that
+load back unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+
+from mi_lidar.core.errors import ParameterError
+from mi_lidar.scene.files import ShapeEntry, write_ellipsoids_ply, write_mesh_ply, write_scene_xml
+
+
+@dataclass
+class MeshElements:
+    """A triangle mesh with per-face Lidar values.
+
+    Attributes:
+        vertices: (V, 3) positions, m.
+        faces: (F, 3) vertex indices.
+        p_hit: (F,) hit probabilities in [0, 1].
+        range_sigma: (F,) range standard deviations (m), or None for the sensor default.
+        label: (F,) class labels.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    p_hit: np.ndarray
+    label: np.ndarray
+    range_sigma: np.ndarray | None = None
+
+
+@dataclass
+class EllipsoidElements:
+    """Gaussian ellipsoids with per-ellipsoid Lidar values.
+
+    Attributes:
+        centers: (N, 3) means, m.
+        scales: (N, 3) standard deviations along the principal axes, m.
+        quaternions: (N, 4) rotations (x, y, z, w).
+        p_hit: (N,) hit probabilities in [0, 1].
+        label: (N,) class labels.
+        extent: Mahalanobis radius of the element surfaces, in sigmas.
+    """
+
+    centers: np.ndarray
+    scales: np.ndarray
+    quaternions: np.ndarray
+    p_hit: np.ndarray
+    label: np.ndarray
+    extent: float = 3.0
+
+
+def _column(values, n: int, name: str) -> np.ndarray:
+    array = np.asarray(values, dtype=np.float32).reshape(-1)
+    if array.size != n:
+        raise ParameterError(f"{name} has {array.size} values for {n} elements; give one per element")
+    return array
+
+
+def mesh_object(name: str, elements: MeshElements):
+    """A ``mi.Mesh`` holding the triangles and face attributes ``face_p_hit``/``face_label``/``face_range_sigma``."""
+    vertices = np.asarray(elements.vertices, dtype=np.float32)
+    faces = np.asarray(elements.faces, dtype=np.uint32)
+    mesh = mi.Mesh(name, len(vertices), len(faces), has_vertex_normals=False)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(vertices.ravel())
+    params["faces"] = mi.UInt32(faces.ravel())
+    params.update()
+    columns = {"p_hit": elements.p_hit, "label": elements.label}
+    if elements.range_sigma is not None:
+        columns["range_sigma"] = elements.range_sigma
+    for key, values in columns.items():
+        mesh.add_attribute(f"face_{key}", 1, mi.Float(_column(values, len(faces), key)))
+    return mesh
+
+
+def ellipsoids_dict(elements: EllipsoidElements) -> dict:
+    """The ``ellipsoids`` shape dict of an ellipsoid set (attributes as (N, 1) tensors)."""
+    n = len(elements.centers)
+    tensor = lambda a, w: mi.TensorXf(np.asarray(a, dtype=np.float32).reshape(n, w))  # noqa: E731
+    return {
+        "type": "ellipsoids", "extent": float(elements.extent),
+        "centers": tensor(elements.centers, 3), "scales": tensor(elements.scales, 3),
+        "quaternions": tensor(elements.quaternions, 4),
+        "p_hit": tensor(_column(elements.p_hit, n, "p_hit"), 1),
+        "label": tensor(_column(elements.label, n, "label"), 1),
+    }
+
+
+def scene_dict(element_sets: dict, sensor: dict | None = None, integrator: dict | None = None) -> dict:
+    """A scene dict for ``mi.load_dict`` from ``{shape id: MeshElements | EllipsoidElements}``."""
+    scene = {"type": "scene"}
+    for key, elements in element_sets.items():
+        if isinstance(elements, MeshElements):
+            scene[key] = mesh_object(key, elements)
+        elif isinstance(elements, EllipsoidElements):
+            scene[key] = ellipsoids_dict(elements)
+        else:
+            raise ParameterError(f"element set {key!r} is a {type(elements).__name__}; expected MeshElements or EllipsoidElements")
+    if sensor is not None:
+        scene["sensor"] = sensor
+    if integrator is not None:
+        scene["integrator"] = integrator
+    return scene
+
+
+def save_scene(path, element_sets: dict, extra_xml: str = "") -> Path:
+    """Write ``element_sets`` as a scene XML at ``path`` with PLY assets in ``<stem>_assets/``."""
+    path = Path(path)
+    assets = path.parent / f"{path.stem}_assets"
+    entries = []
+    for key, elements in element_sets.items():
+        filename = assets / f"{key}.ply"
+        if isinstance(elements, MeshElements):
+            write_mesh_ply(filename, elements.vertices, elements.faces, p_hit=elements.p_hit,
+                           range_sigma=elements.range_sigma, label=elements.label)
+            entries.append(ShapeEntry(id=key, kind="mesh", filename=f"{assets.name}/{key}.ply"))
+        else:
+            write_ellipsoids_ply(filename, elements.centers, elements.scales, elements.quaternions,
+                                 p_hit=elements.p_hit, label=elements.label)
+            entries.append(ShapeEntry(id=key, kind="ellipsoids", filename=f"{assets.name}/{key}.ply",
+                                      extent=elements.extent))
+    return write_scene_xml(path, entries, header_comment="written by mi_lidar.calibration.save_scene",
+                           extra_xml=extra_xml)

@@ -1,0 +1,171 @@
+"""Writers for scene assets: element PLY files and Mitsuba XML scenes.
+
+Two element kinds make a scene (thesis ch. 4.3):
+
+* **triangle meshes** (``<shape type="ply">``): per-face ``p_hit`` (hit probability),
+  ``range_sigma`` (m) and ``label`` (class id) are PLY face properties named ``p_hit_0``,
+  ``range_sigma_0`` and ``label_0``; Mitsuba loads them as mesh attributes ``face_p_hit`` ...
+* **ellipsoid sets** (``<shape type="ellipsoids">``): Mitsuba's PLY layout, one vertex per
+  ellipsoid: ``x y z nx ny nz [p_hit_0 range_sigma_0 label_0] scale_0..2 rot_0..3`` where the
+  scales are stored as natural logs (Mitsuba applies ``exp``) and ``rot_0`` is the real part.
+  Scales are the Gaussian's standard deviations along its principal axes (m); the shape's
+  ``extent`` (in sigmas, default 3) is the Mahalanobis radius of the drawn surface.
+
+Per-shape values (used where a per-element value is absent) go in a nested
+``<bsdf type="lidar_material">`` with ``p_hit``, ``range_sigma`` and ``label``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+from plyfile import PlyData, PlyElement
+
+from mi_lidar.core.atomic import atomic_write
+from mi_lidar.core.errors import ParameterError
+
+ELEMENT_ATTRIBUTES = ("p_hit", "range_sigma", "label")
+
+
+def _element_columns(n: int, p_hit, range_sigma, label) -> list[tuple[str, np.ndarray]]:
+    """Validated per-element attribute columns, in the fixed order of ELEMENT_ATTRIBUTES."""
+    columns = []
+    for name, values in zip(ELEMENT_ATTRIBUTES, (p_hit, range_sigma, label)):
+        if values is None:
+            continue
+        values = np.broadcast_to(np.asarray(values, dtype=np.float32), (n,))
+        if not np.all(np.isfinite(values)):
+            raise ParameterError(f"{name} has non-finite values; give finite numbers per element")
+        if name == "p_hit" and (values.min() < 0 or values.max() > 1):
+            raise ParameterError(
+                f"p_hit must lie in [0, 1]; got values in [{values.min():.3g}, {values.max():.3g}]"
+            )
+        if name == "range_sigma" and values.min() < 0:
+            raise ParameterError(f"range_sigma must be >= 0 m; got minimum {values.min():.3g}")
+        columns.append((f"{name}_0", values))
+    return columns
+
+
+def write_mesh_ply(path, vertices, faces, p_hit=None, range_sigma=None, label=None) -> Path:
+    """Write a triangle mesh with optional per-face element attributes as binary PLY.
+
+    Args:
+        path: output ``.ply``.
+        vertices: (V, 3) positions, m.
+        faces: (F, 3) vertex indices.
+        p_hit, range_sigma, label: (F,) or scalar per-face values, or None to leave to the material.
+    """
+    vertices = np.asarray(vertices, dtype=np.float32)
+    faces = np.asarray(faces, dtype=np.int32)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise ParameterError(f"mesh needs (V, 3) vertices and (F, 3) faces; got {vertices.shape}, {faces.shape}")
+    vert = np.empty(len(vertices), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    vert["x"], vert["y"], vert["z"] = vertices.T
+    columns = _element_columns(len(faces), p_hit, range_sigma, label)
+    face = np.empty(len(faces), dtype=[("vertex_indices", "i4", (3,))] + [(n, "f4") for n, _ in columns])
+    face["vertex_indices"] = faces
+    for name, values in columns:
+        face[name] = values
+    ply = PlyData([PlyElement.describe(vert, "vertex"), PlyElement.describe(face, "face")], text=False)
+    return atomic_write(path, ply.write)
+
+
+def write_ellipsoids_ply(path, centers, scales, quaternions, p_hit=None, range_sigma=None, label=None) -> Path:
+    """Write an ellipsoid set in Mitsuba's ``ellipsoids`` PLY layout.
+
+    Args:
+        path: output ``.ply``.
+        centers: (N, 3) Gaussian means, m.
+        scales: (N, 3) standard deviations along the principal axes, m (> 0).
+        quaternions: (N, 4) rotations to world in (x, y, z, w) order (real part last).
+        p_hit, range_sigma, label: (N,) or scalar per-ellipsoid values, or None.
+    """
+    centers = np.asarray(centers, dtype=np.float32).reshape(-1, 3)
+    scales = np.asarray(scales, dtype=np.float32).reshape(-1, 3)
+    quaternions = np.asarray(quaternions, dtype=np.float32).reshape(-1, 4)
+    n = len(centers)
+    if len(scales) != n or len(quaternions) != n:
+        raise ParameterError(f"ellipsoids need equal counts: {n} centers, {len(scales)} scales, {len(quaternions)} quaternions")
+    if n and scales.min() <= 0:
+        raise ParameterError(f"ellipsoid scales must be > 0 m; got minimum {scales.min():.3g}")
+    columns = _element_columns(n, p_hit, range_sigma, label)
+    names = ["x", "y", "z", "nx", "ny", "nz"] + [c for c, _ in columns]
+    names += ["scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    rows = np.zeros(n, dtype=[(name, "f4") for name in names])
+    rows["x"], rows["y"], rows["z"] = centers.T
+    for name, values in columns:
+        rows[name] = values
+    log_scales = np.log(scales)
+    for i in range(3):
+        rows[f"scale_{i}"] = log_scales[:, i]
+    norm = np.linalg.norm(quaternions, axis=1, keepdims=True)
+    q = quaternions / np.where(norm > 0, norm, 1)
+    rows["rot_0"], rows["rot_1"], rows["rot_2"], rows["rot_3"] = q[:, 3], q[:, 0], q[:, 1], q[:, 2]
+    return atomic_write(path, PlyData([PlyElement.describe(rows, "vertex")], text=False).write)
+
+
+@dataclass
+class ShapeEntry:
+    """One ``<shape>`` of a scene XML.
+
+    Attributes:
+        id: unique shape id.
+        kind: ``"mesh"`` (a PLY triangle mesh) or ``"ellipsoids"``.
+        filename: PLY path, relative to the XML file.
+        p_hit, range_sigma, label: per-shape defaults written to a nested ``lidar_material``
+            (None leaves Mitsuba's/sensor's default).
+        extent: ellipsoid extent in sigmas (ellipsoids only).
+    """
+
+    id: str
+    kind: str
+    filename: str
+    p_hit: float | None = None
+    range_sigma: float | None = None
+    label: int | None = None
+    extent: float | None = None
+
+
+def shape_xml(entry: ShapeEntry, indent: str = "    ") -> str:
+    """The ``<shape>`` element of ``entry`` as an XML string."""
+    mitsuba_type = {"mesh": "ply", "ellipsoids": "ellipsoids"}.get(entry.kind)
+    if mitsuba_type is None:
+        raise ParameterError(f"shape {entry.id!r}: kind {entry.kind!r} is not 'mesh' or 'ellipsoids'")
+    lines = [f"{indent}<shape type=\"{mitsuba_type}\" id={quoteattr(entry.id)}>",
+             f"{indent}    <string name=\"filename\" value={quoteattr(entry.filename)}/>"]
+    if entry.extent is not None:
+        lines.append(f"{indent}    <float name=\"extent\" value=\"{entry.extent:g}\"/>")
+    material = []
+    if entry.p_hit is not None:
+        material.append(f"<float name=\"p_hit\" value=\"{entry.p_hit:.9g}\"/>")
+    if entry.range_sigma is not None:
+        material.append(f"<float name=\"range_sigma\" value=\"{entry.range_sigma:.9g}\"/>")
+    if entry.label is not None:
+        material.append(f"<integer name=\"label\" value=\"{int(entry.label)}\"/>")
+    if material:
+        lines.append(f"{indent}    <bsdf type=\"lidar_material\">")
+        lines += [f"{indent}        {m}" for m in material]
+        lines.append(f"{indent}    </bsdf>")
+    lines.append(f"{indent}</shape>")
+    return "\n".join(lines)
+
+
+def write_scene_xml(path, shapes: list[ShapeEntry], header_comment: str = "", extra_xml: str = "") -> Path:
+    """Write a Mitsuba scene XML listing ``shapes`` (plus raw ``extra_xml``, e.g. a sensor)."""
+    ids = [s.id for s in shapes]
+    duplicates = sorted({i for i in ids if ids.count(i) > 1})
+    if duplicates:
+        raise ParameterError(f"shape ids must be unique; repeated: {duplicates}")
+    body = ["<?xml version=\"1.0\" encoding=\"utf-8\"?>"]
+    if header_comment:
+        body.append(f"<!-- {header_comment} -->")
+    body.append("<scene version=\"3.0.0\">")
+    body += [shape_xml(s) for s in shapes]
+    if extra_xml:
+        body.append(extra_xml)
+    body.append("</scene>\n")
+    text = "\n".join(body).encode()
+    return atomic_write(path, lambda stream: stream.write(text))

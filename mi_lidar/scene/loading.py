@@ -1,0 +1,67 @@
+"""Loading scenes (XML files or dicts) with clear errors, and reading their Lidar settings."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+
+from mi_lidar.core.errors import MiLidarError, SceneError
+from mi_lidar.core.sensor_model import SensorModel
+
+
+def load_scene(source, **parameters):
+    """Load a Mitsuba scene from an XML path or a scene dict.
+
+    Args:
+        source: path of a scene XML, or a dict for ``mi.load_dict``.
+        parameters: values for the XML's ``<default>`` parameters (``$name``).
+
+    Raises:
+        SceneError: the file is missing, malformed, or names an unknown plugin or property;
+            the message keeps Mitsuba's explanation and names the file.
+    """
+    try:
+        if isinstance(source, dict):
+            return mi.load_dict(source)
+        path = Path(source)
+        if not path.is_file():
+            raise SceneError(f"{path}: no such scene file")
+        return mi.load_file(os.fspath(path), **{k: str(v) for k, v in parameters.items()})
+    except MiLidarError:
+        raise
+    except Exception as exc:
+        where = "scene dict" if isinstance(source, dict) else str(source)
+        hint = ""
+        if 'plugin "lidar" is of type "sensor"' in str(exc):
+            hint = '\nThe integrator is called `lidar_integrator`: write <integrator type="lidar_integrator">.'
+        raise SceneError(f"{where}: could not load the scene:\n{exc}{hint}") from exc
+
+
+def scene_lidar_sensor(scene):
+    """The scene's first ``lidar`` sensor, or None."""
+    from mi_lidar.plugins.lidar_sensor import LidarSensor
+
+    return next((s for s in scene.sensors() if isinstance(s, LidarSensor)), None)
+
+
+def scene_sensor_model(scene) -> tuple[SensorModel, np.ndarray]:
+    """The sensor model and (4, 4) pose given by the scene's ``lidar`` sensor and integrator.
+
+    Scenes without a ``lidar`` sensor give the default model and the identity pose.
+    """
+    from mi_lidar.plugins.lidar_integrator import LidarIntegrator
+
+    sensor = scene_lidar_sensor(scene)
+    integrator = scene.integrator()
+    if sensor is not None and isinstance(integrator, LidarIntegrator):
+        return integrator.sensor_model(sensor), sensor.to_world_matrix
+    model = SensorModel()
+    if sensor is not None:
+        model = SensorModel(range_sigma=sensor.range_sigma, min_range=sensor.min_range, max_range=sensor.max_range)
+        return model, sensor.to_world_matrix
+    if isinstance(integrator, LidarIntegrator):
+        model = SensorModel(max_segments=integrator.max_segments, effects=integrator.effects)
+    return model, np.eye(4)
