@@ -7,7 +7,7 @@ PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 PYTEST_FLAGS ?= -n 2
 
-.PHONY: setup demo test test-all bench clean llvm
+.PHONY: setup demo test test-all bench clean llvm lint
 
 setup: $(STAMP) llvm
 
@@ -24,10 +24,13 @@ llvm:
 demo: setup
 	$(VENV)/bin/mi-lidar demo --out demo_out
 
-test: setup
+lint: setup
+	@bash tools/lint.sh
+
+test: setup lint
 	$(PY) -m pytest -m "not slow" $(PYTEST_FLAGS) -q
 
-test-all: setup
+test-all: setup lint
 	$(PY) -m pytest $(PYTEST_FLAGS) -q
 
 bench: setup

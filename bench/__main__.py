@@ -19,14 +19,20 @@ def _rows(run):
 
 
 # results file stem -> function returning table rows
-BENCHMARKS = {"core": bench_core.run, "calibrate": _rows(bench_calibrate.run), "fit_scene": _rows(bench_fit_scene.run),
-              "io": _rows(bench_io.run), "diagnose": _rows(bench_diagnose.run)}
+BENCHMARKS = {
+    "core": bench_core.run,
+    "calibrate": _rows(bench_calibrate.run),
+    "fit_scene": _rows(bench_fit_scene.run),
+    "io": _rows(bench_io.run),
+    "diagnose": _rows(bench_diagnose.run),
+}
 RESULTS = Path(__file__).resolve().parent / "results"
 COLUMNS = ("benchmark", "Mrays/s", "vs raw ray_intersect", "vs Open3D", "target", "pass/fail")
 
 
 def _cells(row: bench_core.Row) -> list[str]:
     """Table cells of one row."""
+
     def ratio(value):
         return "" if value is None else f"{value:.2f}x"
 
@@ -41,9 +47,11 @@ def _machine(start_load: float) -> str:
     import mitsuba as mi
 
     load = f"{start_load:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
-    return (f"{platform.node()} ({os.cpu_count()} CPUs, benchmarks pinned to {bench_core.CORES}), "
-            f"mitsuba {mi.__version__} / drjit {dr.__version__} ({mi.variant()}), load average {load}, "
-            f"{time.strftime('%Y-%m-%d %H:%M')}")
+    return (
+        f"{platform.node()} ({os.cpu_count()} CPUs, benchmarks pinned to {bench_core.CORES}), "
+        f"mitsuba {mi.__version__} / drjit {dr.__version__} ({mi.variant()}), load average {load}, "
+        f"{time.strftime('%Y-%m-%d %H:%M')}"
+    )
 
 
 def _markdown(rows: list[bench_core.Row], header: str) -> str:
@@ -56,8 +64,10 @@ def _markdown(rows: list[bench_core.Row], header: str) -> str:
 def main() -> None:
     """Run the benchmarks, print the table and write one Markdown file per benchmark."""
     console = Console(width=200)
-    table = Table(title="mi-lidar benchmarks (rays per second: median of "
-                        f"{bench_core.REPEATS} runs after a warm-up, ~1M rays each)")
+    table = Table(
+        title="mi-lidar benchmarks (rays per second: median of "
+        f"{bench_core.REPEATS} runs after a warm-up, ~1M rays each)"
+    )
     for column in COLUMNS:
         table.add_column(column, justify="left" if column in ("benchmark", "target") else "right")
     RESULTS.mkdir(exist_ok=True)

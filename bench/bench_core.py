@@ -33,21 +33,21 @@ from pathlib import Path
 
 import numpy as np
 
-CORES = 2                      # the targets are set for a 2-core machine
+CORES = 2  # the targets are set for a 2-core machine
 N_BEAMS, N_FIRINGS = 128, 8192  # 1,048,576 rays per sweep
-TERRAIN_VERTICES = 708          # per side: 2 * 707^2 = 999,698 triangles
-TERRAIN_HALF_SIZE = 125.0       # m; the sensor sits at the centre, max_range is 120 m
+TERRAIN_VERTICES = 708  # per side: 2 * 707^2 = 999,698 triangles
+TERRAIN_HALF_SIZE = 125.0  # m; the sensor sits at the centre, max_range is 120 m
 N_ELLIPSOIDS = 100_000
-ELLIPSOID_EXTENT = 3.0          # sigmas
-SENSOR_HEIGHT = 2.0             # m above the terrain
+ELLIPSOID_EXTENT = 3.0  # sigmas
+SENSOR_HEIGHT = 2.0  # m above the terrain
 MAX_SEGMENTS = 16
 REPEATS = 3
 SEED = 7
-MEMORY_POSES = 4                # 4 sweeps of 1M rays: the 4M-ray scan
+MEMORY_POSES = 4  # 4 sweeps of 1M rays: the 4M-ray scan
 MEMORY_LIMIT_GB = 2.0
-TERRAIN_SHARE_OF_RAW = 0.5      # direct path >= 50% of raw ray_intersect on the terrain
-VEGETATION_MRAYS = 10.0         # direct path >= 10 Mrays/s on the vegetation scene
-OPEN3D_FACTOR = 2.0             # direct path >= 2x Open3D on both scenes
+TERRAIN_SHARE_OF_RAW = 0.5  # direct path >= 50% of raw ray_intersect on the terrain
+VEGETATION_MRAYS = 10.0  # direct path >= 10 Mrays/s on the vegetation scene
+OPEN3D_FACTOR = 2.0  # direct path >= 2x Open3D on both scenes
 
 
 @dataclass
@@ -78,8 +78,12 @@ class Row:
 # ----------------------------------------------------------------------------------- scenes
 def terrain_height(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Rolling off-road terrain height (m) at (x, y): a few smooth waves."""
-    return (1.5 * np.sin(0.05 * x) * np.cos(0.04 * y) + 0.6 * np.sin(0.13 * x + 0.7)
-            + 0.4 * np.cos(0.11 * y - 0.3) + 0.15 * np.sin(0.9 * x) * np.sin(0.8 * y))
+    return (
+        1.5 * np.sin(0.05 * x) * np.cos(0.04 * y)
+        + 0.6 * np.sin(0.13 * x + 0.7)
+        + 0.4 * np.cos(0.11 * y - 0.3)
+        + 0.15 * np.sin(0.9 * x) * np.sin(0.8 * y)
+    )
 
 
 def make_terrain() -> tuple[np.ndarray, np.ndarray]:
@@ -89,10 +93,12 @@ def make_terrain() -> tuple[np.ndarray, np.ndarray]:
     x, y = np.meshgrid(axis, axis, indexing="ij")
     vertices = np.stack([x, y, terrain_height(x, y)], axis=-1).reshape(-1, 3)
     corner = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
-    faces = np.concatenate([
-        np.stack([corner, corner + n, corner + n + 1], axis=1),
-        np.stack([corner, corner + n + 1, corner + 1], axis=1),
-    ])
+    faces = np.concatenate(
+        [
+            np.stack([corner, corner + n, corner + n + 1], axis=1),
+            np.stack([corner, corner + n + 1, corner + 1], axis=1),
+        ]
+    )
     return vertices, faces
 
 
@@ -123,8 +129,12 @@ def make_vegetation(rng: np.random.Generator) -> dict[str, np.ndarray]:
     scales = low + (high - low) * rng.random((n, 3))
     yaw = rng.uniform(0.0, math.pi, n)
     quaternions = np.stack([np.zeros(n), np.zeros(n), np.sin(yaw / 2), np.cos(yaw / 2)], axis=1)
-    return {"centers": np.column_stack([xy, z]), "scales": scales, "quaternions": quaternions,
-            "p_hit": rng.uniform(0.2, 0.4, n)}
+    return {
+        "centers": np.column_stack([xy, z]),
+        "scales": scales,
+        "quaternions": quaternions,
+        "p_hit": rng.uniform(0.2, 0.4, n),
+    }
 
 
 def make_pattern():
@@ -158,17 +168,21 @@ def write_scenes(folder: Path) -> dict[str, Path]:
     vertices, faces = make_terrain()
     write_mesh_ply(folder / "terrain.ply", vertices, faces)
     veg = make_vegetation(np.random.default_rng(SEED))
-    write_ellipsoids_ply(folder / "vegetation.ply", veg["centers"], veg["scales"], veg["quaternions"],
-                         p_hit=veg["p_hit"])
+    write_ellipsoids_ply(
+        folder / "vegetation.ply", veg["centers"], veg["scales"], veg["quaternions"], p_hit=veg["p_hit"]
+    )
     pattern = to_table(make_pattern(), folder / "pattern.npy").resolve()  # the sensor reads it from the cwd
     z = sensor_pose()[2, 3]
-    sensor = (f'    <integrator type="lidar_integrator"><integer name="max_segments" value="{MAX_SEGMENTS}"/>'
-              "</integrator>\n"
-              f'    <sensor type="lidar"><string name="pattern" value="{pattern}"/>'
-              f'<transform name="to_world"><translate z="{z:.9g}"/></transform></sensor>')
+    sensor = (
+        f'    <integrator type="lidar_integrator"><integer name="max_segments" value="{MAX_SEGMENTS}"/>'
+        "</integrator>\n"
+        f'    <sensor type="lidar"><string name="pattern" value="{pattern}"/>'
+        f'<transform name="to_world"><translate z="{z:.9g}"/></transform></sensor>'
+    )
     terrain = ShapeEntry(id="terrain", kind="mesh", filename="terrain.ply", label=1)
-    vegetation = ShapeEntry(id="vegetation", kind="ellipsoids", filename="vegetation.ply", label=2,
-                            extent=ELLIPSOID_EXTENT)
+    vegetation = ShapeEntry(
+        id="vegetation", kind="ellipsoids", filename="vegetation.ply", label=2, extent=ELLIPSOID_EXTENT
+    )
     return {
         "terrain": write_scene_xml(folder / "terrain.xml", [terrain], "bench: terrain", sensor),
         "vegetation": write_scene_xml(folder / "vegetation.xml", [terrain, vegetation], "bench: vegetation", sensor),
@@ -239,8 +253,10 @@ def open3d_scene(veg: dict[str, np.ndarray] | None):
         local = unit[None] * (veg["scales"][:, None, :] * ELLIPSOID_EXTENT)
         world = np.einsum("nij,nvj->nvi", rot, local) + veg["centers"][:, None, :]
         all_faces = tri[None] + (np.arange(len(q)) * len(unit))[:, None, None]
-        scene.add_triangles(o3d.core.Tensor(world.reshape(-1, 3).astype(np.float32)),
-                            o3d.core.Tensor(all_faces.reshape(-1, 3).astype(np.uint32)))
+        scene.add_triangles(
+            o3d.core.Tensor(world.reshape(-1, 3).astype(np.float32)),
+            o3d.core.Tensor(all_faces.reshape(-1, 3).astype(np.uint32)),
+        )
     return scene, faces_per_ellipsoid
 
 
@@ -257,11 +273,14 @@ def import_open3d():
 def _quaternion_matrices(q: np.ndarray) -> np.ndarray:
     """(N, 3, 3) rotation matrices of unit quaternions (x, y, z, w)."""
     x, y, z, w = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
-    ], axis=1)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+        ],
+        axis=1,
+    )
 
 
 def open3d_first_hit(scene, origin: np.ndarray, direction: np.ndarray) -> dict:
@@ -271,8 +290,14 @@ def open3d_first_hit(scene, origin: np.ndarray, direction: np.ndarray) -> dict:
     return scene.cast_rays(rays, nthreads=CORES)
 
 
-def open3d_pass_through(scene, faces_per_ellipsoid: int, p_hit: np.ndarray, origin: np.ndarray,
-                        direction: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def open3d_pass_through(
+    scene,
+    faces_per_ellipsoid: int,
+    p_hit: np.ndarray,
+    origin: np.ndarray,
+    direction: np.ndarray,
+    rng: np.random.Generator,
+) -> np.ndarray:
     """The pass-through sampling loop on Open3D: first-return range per ray (NaN = miss).
 
     Terrain (geometry 0) is opaque; an icosahedron's entry face returns with its ellipsoid's
@@ -357,8 +382,9 @@ def measure_scene(name: str, xml: Path) -> dict[str, float]:
         else:
             open3d_pass_through(o3d_scene, faces, veg["p_hit"], origin, direction, rng)
 
-    seconds = median_seconds({"raw": raw, "simulate_rays": direct, "simulate": end_to_end, "render": render,
-                              "open3d": open3d})
+    seconds = median_seconds(
+        {"raw": raw, "simulate_rays": direct, "simulate": end_to_end, "render": render, "open3d": open3d}
+    )
     fresh_seed = SEED + 1 + secrets.randbelow(1 << 30)  # not in Dr.Jit's kernel cache on disk
     start = time.perf_counter()
     dr.eval(model.simulate_rays(scene, table, rays, fresh_seed))
@@ -381,8 +407,13 @@ def peak_memory_gb(xml: Path) -> tuple[float, float, int]:
     env = dict(os.environ)
     root = str(Path(__file__).resolve().parent.parent)
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
-    result = subprocess.run([sys.executable, "-m", "bench.bench_core", "memory", str(xml)],
-                            capture_output=True, text=True, env=env, check=False)
+    result = subprocess.run(
+        [sys.executable, "-m", "bench.bench_core", "memory", str(xml)],
+        capture_output=True,
+        text=True,
+        env=env,
+        check=False,
+    )
     if result.returncode != 0:
         raise RuntimeError(f"memory probe failed:\n{result.stderr[-2000:]}")
     report = json.loads(result.stdout.strip().splitlines()[-1])
@@ -441,9 +472,12 @@ def run() -> list[Row]:
             mrays = {k: s["rays"] / s[k] / 1e6 for k in keys}
             raw, o3d, direct = mrays["raw"], mrays["open3d"], mrays["simulate_rays"]
 
-            def row(label: str, key: str, target: str = "", checks: list | None = None) -> Row:
+            def row(label: str, key: str, target: str = "", checks: list | None = None, name=name, mrays=mrays) -> Row:
                 passed, failed = _verdict(checks) if checks else (None, "")
-                return Row(f"{name}: {label}", mrays[key], mrays[key] / raw, mrays[key] / o3d, target, passed, failed)
+                rate = mrays[key]
+                return Row(
+                    f"{name}: {label}", rate, rate / mrays["raw"], rate / mrays["open3d"], target, passed, failed
+                )
 
             open3d_check = (f"{direct / o3d:.2f}x Open3D", direct / o3d >= OPEN3D_FACTOR)
             if name == "terrain":
@@ -463,8 +497,14 @@ def run() -> list[Row]:
                 row(o3d_label, "open3d"),
             ]
         peak, baseline, n = peak_memory_gb(scenes["vegetation"])
-        rows.append(Row(f"vegetation: peak memory of mi_lidar.simulate, {n:,} rays", target=f"< {MEMORY_LIMIT_GB:g} GB",
-                        passed=peak < MEMORY_LIMIT_GB, value=f"{peak:.2f} GB ({baseline:.2f} GB after load)"))
+        rows.append(
+            Row(
+                f"vegetation: peak memory of mi_lidar.simulate, {n:,} rays",
+                target=f"< {MEMORY_LIMIT_GB:g} GB",
+                passed=peak < MEMORY_LIMIT_GB,
+                value=f"{peak:.2f} GB ({baseline:.2f} GB after load)",
+            )
+        )
     return rows
 
 

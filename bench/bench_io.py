@@ -80,8 +80,12 @@ def _compare(benchmark: str, ours, peers: dict, target: bool) -> dict:
         ratio = mine / timed[best]
         cells.append(f"ours / best ({best}) = {ratio:.2f}x")
         passed = ratio <= RATIO_LIMIT if target else None
-    return {"benchmark": benchmark, "value": "; ".join(cells),
-            "target": f"ours / best peer <= {RATIO_LIMIT:.2f}" if target else "", "passed": passed}
+    return {
+        "benchmark": benchmark,
+        "value": "; ".join(cells),
+        "target": f"ours / best peer <= {RATIO_LIMIT:.2f}" if target else "",
+        "passed": passed,
+    }
 
 
 def _ouster_sdk(pcap: Path, metadata: Path, full: bool):
@@ -95,10 +99,12 @@ def _ouster_sdk(pcap: Path, metadata: Path, full: bool):
     """
     if _module("ouster.sdk.pcap") is None:
         return None
-    from ouster.sdk import core, pcap as sdk_pcap
+    from ouster.sdk import core
+    from ouster.sdk import pcap as sdk_pcap
 
-    fields = [core.ChanField.RANGE] + ([core.ChanField.REFLECTIVITY, core.ChanField.SIGNAL,
-                                        core.ChanField.NEAR_IR] if full else [])
+    fields = [core.ChanField.RANGE] + (
+        [core.ChanField.REFLECTIVITY, core.ChanField.SIGNAL, core.ChanField.NEAR_IR] if full else []
+    )
 
     def read():
         source = sdk_pcap.PcapFrameSetSource(str(pcap), meta=[str(metadata)])
@@ -122,22 +128,46 @@ def _ouster_rows(folder: Path) -> list[dict]:
     pcap, metadata, written = write_legacy_capture(folder, beams=128, columns=1024)
     log = read_ouster(pcap, metadata)
     shift = log.sensor["pixel_shift_by_row"]
-    exact = log.shape == (1, 128, 1024) and all(
-        np.array_equal(restagger(log.attributes[name][0], shift), values) for name, values in written.items()
-    ) and bool(log.attributes["valid"].all()) and np.array_equal(log.hit[0], log.attributes["range_mm"][0] > 0)
-    rows = [{"benchmark": "io: synthetic Ouster 128 x 1024 LEGACY pcap decodes to the values written",
-             "value": "bit-exact" if exact else "MISMATCH", "target": "bit-exact", "passed": exact}]
-    rows.append(_compare("io: Ouster 128 x 1024 frame (synthetic LEGACY pcap) -> destaggered range",
-                         lambda: read_ouster(pcap, metadata),
-                         {"ouster-sdk": _ouster_sdk(pcap, metadata, full=False)}, target=True))
-    rows.append(_compare("io: Ouster 128 x 1024 frame, SDK doing our work (4 fields + XYZ, destaggered)",
-                         lambda: read_ouster(pcap, metadata),
-                         {"ouster-sdk": _ouster_sdk(pcap, metadata, full=True)}, target=False))
+    exact = (
+        log.shape == (1, 128, 1024)
+        and all(np.array_equal(restagger(log.attributes[name][0], shift), values) for name, values in written.items())
+        and bool(log.attributes["valid"].all())
+        and np.array_equal(log.hit[0], log.attributes["range_mm"][0] > 0)
+    )
+    rows = [
+        {
+            "benchmark": "io: synthetic Ouster 128 x 1024 LEGACY pcap decodes to the values written",
+            "value": "bit-exact" if exact else "MISMATCH",
+            "target": "bit-exact",
+            "passed": exact,
+        }
+    ]
+    rows.append(
+        _compare(
+            "io: Ouster 128 x 1024 frame (synthetic LEGACY pcap) -> destaggered range",
+            lambda: read_ouster(pcap, metadata),
+            {"ouster-sdk": _ouster_sdk(pcap, metadata, full=False)},
+            target=True,
+        )
+    )
+    rows.append(
+        _compare(
+            "io: Ouster 128 x 1024 frame, SDK doing our work (4 fields + XYZ, destaggered)",
+            lambda: read_ouster(pcap, metadata),
+            {"ouster-sdk": _ouster_sdk(pcap, metadata, full=True)},
+            target=False,
+        )
+    )
     real_pcap, real_meta = OUSTER_REAL.with_suffix(".pcap"), OUSTER_REAL.with_suffix(".json")
     if real_pcap.is_file():
-        rows.append(_compare("io: Ouster real OS-1-32 32 x 1024 frame -> destaggered range",
-                             lambda: read_ouster(real_pcap, real_meta),
-                             {"ouster-sdk": _ouster_sdk(real_pcap, real_meta, full=False)}, target=False))
+        rows.append(
+            _compare(
+                "io: Ouster real OS-1-32 32 x 1024 frame -> destaggered range",
+                lambda: read_ouster(real_pcap, real_meta),
+                {"ouster-sdk": _ouster_sdk(real_pcap, real_meta, full=False)},
+                target=False,
+            )
+        )
     return rows
 
 
@@ -146,9 +176,11 @@ def _cloud() -> tuple[np.ndarray, dict[str, np.ndarray]]:
     float32 time)."""
     rng = np.random.default_rng(3)
     points = rng.uniform(-80, 80, (N_POINTS, 3)).astype(np.float32)
-    return points, {"intensity": rng.uniform(0, 255, N_POINTS).astype(np.float32),
-                    "ring": rng.integers(0, 128, N_POINTS).astype(np.uint16),
-                    "time": np.sort(rng.uniform(0, 0.1, N_POINTS)).astype(np.float32)}
+    return points, {
+        "intensity": rng.uniform(0, 255, N_POINTS).astype(np.float32),
+        "ring": rng.integers(0, 128, N_POINTS).astype(np.uint16),
+        "time": np.sort(rng.uniform(0, 0.1, N_POINTS)).astype(np.float32),
+    }
 
 
 def _open3d(path: Path):
@@ -171,11 +203,16 @@ def _ply_row(folder: Path) -> dict:
         return np.stack([vertex[c] for c in "xyz"], axis=1), {n: vertex[n] for n in attributes}
 
     trimesh = _module("trimesh")
-    return _compare(f"io: PLY {N_POINTS // 1000}k points, x y z + 3 attributes (binary)",
-                    lambda: read_ply(path),
-                    {"plyfile": with_plyfile, "open3d (xyz only)": _open3d(path),
-                     "trimesh": None if trimesh is None else lambda: np.asarray(trimesh.load(str(path)).vertices)},
-                    target=True)
+    return _compare(
+        f"io: PLY {N_POINTS // 1000}k points, x y z + 3 attributes (binary)",
+        lambda: read_ply(path),
+        {
+            "plyfile": with_plyfile,
+            "open3d (xyz only)": _open3d(path),
+            "trimesh": None if trimesh is None else lambda: np.asarray(trimesh.load(str(path)).vertices),
+        },
+        target=True,
+    )
 
 
 def _las_row(folder: Path) -> dict:
@@ -198,8 +235,12 @@ def _las_row(folder: Path) -> dict:
         data = laspy.read(str(path))
         return np.stack([data.x, data.y, data.z], axis=1)
 
-    return _compare(f"io: LAS {N_POINTS // 1000}k points (read_las_log: whole log)", lambda: read_las_log(path),
-                    {"laspy": with_laspy}, target=False)
+    return _compare(
+        f"io: LAS {N_POINTS // 1000}k points (read_las_log: whole log)",
+        lambda: read_las_log(path),
+        {"laspy": with_laspy},
+        target=False,
+    )
 
 
 def _pcd_row(folder: Path) -> dict:
@@ -209,9 +250,15 @@ def _pcd_row(folder: Path) -> dict:
     points, attributes = _cloud()
     path = write_pcd(folder / "cloud.pcd", {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2], **attributes})
     pypcd4 = _module("pypcd4")
-    return _compare(f"io: PCD {N_POINTS // 1000}k points, binary", lambda: read_pcd(path),
-                    {"pypcd4": None if pypcd4 is None else lambda: pypcd4.PointCloud.from_path(path).numpy(),
-                     "open3d (xyz only)": _open3d(path)}, target=False)
+    return _compare(
+        f"io: PCD {N_POINTS // 1000}k points, binary",
+        lambda: read_pcd(path),
+        {
+            "pypcd4": None if pypcd4 is None else lambda: pypcd4.PointCloud.from_path(path).numpy(),
+            "open3d (xyz only)": _open3d(path),
+        },
+        target=False,
+    )
 
 
 def _real_rows() -> list[dict]:
@@ -221,8 +268,11 @@ def _real_rows() -> list[dict]:
     velodyne, carmen = DATA / "velodyne", DATA / "carmen" / "intel-corrected.log.gz"
     rows = []
     for label, path, read in (
-        ("Velodyne VLP-16 pcap (1.11 revolutions)", velodyne / "velodyne_vlp16.pcap",
-         lambda: read_velodyne(velodyne / "velodyne_vlp16.pcap", velodyne / "VLP16db.yaml")),
+        (
+            "Velodyne VLP-16 pcap (1.11 revolutions)",
+            velodyne / "velodyne_vlp16.pcap",
+            lambda: read_velodyne(velodyne / "velodyne_vlp16.pcap", velodyne / "VLP16db.yaml"),
+        ),
         ("CARMEN log (910 scans x 180 beams, gzip)", carmen, lambda: read_carmen(carmen)),
     ):
         value = f"ours {_median_s(read) * 1e3:.1f} ms" if path.is_file() else "data not found"

@@ -16,31 +16,53 @@ from pathlib import Path
 import numpy as np
 
 LIDAR_PORT = 7502
-ENCODER_TICKS = 90112          # encoder counts per revolution (LEGACY firmware)
+ENCODER_TICKS = 90112  # encoder counts per revolution (LEGACY firmware)
 COLUMNS_PER_PACKET = 16
-PIXEL = np.dtype([("range", "<u4"), ("reflectivity", "<u2"), ("signal", "<u2"), ("near_ir", "<u2"),
-                  ("unused", "<u2")])
+PIXEL = np.dtype([("range", "<u4"), ("reflectivity", "<u2"), ("signal", "<u2"), ("near_ir", "<u2"), ("unused", "<u2")])
 
 
 def _column_dtype(beams: int) -> np.dtype:
     """One measurement block (column) of a LEGACY packet with ``beams`` pixels."""
-    return np.dtype([("timestamp", "<u8"), ("measurement_id", "<u2"), ("frame_id", "<u2"),
-                     ("encoder", "<u4"), ("pixels", PIXEL, (beams,)), ("status", "<u4")])
+    return np.dtype(
+        [
+            ("timestamp", "<u8"),
+            ("measurement_id", "<u2"),
+            ("frame_id", "<u2"),
+            ("encoder", "<u4"),
+            ("pixels", PIXEL, (beams,)),
+            ("status", "<u4"),
+        ]
+    )
 
 
 def _frame(payload: bytes) -> bytes:
     """An Ethernet/IPv4/UDP frame from 127.0.0.1 to 127.0.0.1:``LIDAR_PORT`` carrying ``payload``."""
     udp = struct.pack(">HHHH", LIDAR_PORT, LIDAR_PORT, 8 + len(payload), 0)
-    ip = struct.pack(">BBHHHBBH4s4s", 0x45, 0, 20 + len(udp) + len(payload), 1, 0, 128, 17, 0,
-                     bytes([127, 0, 0, 1]), bytes([127, 0, 0, 1]))
+    ip = struct.pack(
+        ">BBHHHBBH4s4s",
+        0x45,
+        0,
+        20 + len(udp) + len(payload),
+        1,
+        0,
+        128,
+        17,
+        0,
+        bytes([127, 0, 0, 1]),
+        bytes([127, 0, 0, 1]),
+    )
     checksum = sum(struct.unpack(">10H", ip))
     checksum = (checksum & 0xFFFF) + (checksum >> 16)
     ip = ip[:10] + struct.pack(">H", ~((checksum & 0xFFFF) + (checksum >> 16)) & 0xFFFF) + ip[12:]
     return b"\0" * 12 + b"\x08\x00" + ip + udp + payload
 
 
-def write_legacy_capture(folder: Path, beams: int = 128, columns: int = 1024, seed: int = 0,
-                         ) -> tuple[Path, Path, dict[str, np.ndarray]]:
+def write_legacy_capture(
+    folder: Path,
+    beams: int = 128,
+    columns: int = 1024,
+    seed: int = 0,
+) -> tuple[Path, Path, dict[str, np.ndarray]]:
     """Write one full frame of a synthetic LEGACY-profile Ouster sensor.
 
     Args:
@@ -56,8 +78,9 @@ def write_legacy_capture(folder: Path, beams: int = 128, columns: int = 1024, se
     """
     rng = np.random.default_rng(seed)
     written = {
-        "range_mm": np.where(rng.random((beams, columns)) < 0.17, 0,
-                             rng.integers(300, 120_000, (beams, columns))).astype(np.uint32),
+        "range_mm": np.where(
+            rng.random((beams, columns)) < 0.17, 0, rng.integers(300, 120_000, (beams, columns))
+        ).astype(np.uint32),
         "reflectivity": rng.integers(0, 1 << 16, (beams, columns), dtype=np.uint16),
         "signal": rng.integers(0, 1 << 16, (beams, columns), dtype=np.uint16),
         "near_ir": rng.integers(0, 1 << 16, (beams, columns), dtype=np.uint16),
@@ -76,18 +99,27 @@ def write_legacy_capture(folder: Path, beams: int = 128, columns: int = 1024, se
 
     altitude = np.linspace(22.5, -22.5, beams)
     metadata = {
-        "beam_altitude_angles": altitude.tolist(), "beam_azimuth_angles": np.tile([4.2, 1.4, -1.4, -4.2], beams // 4).tolist(),
-        "lidar_origin_to_beam_origin_mm": 15.806, "lidar_mode": f"{columns}x10", "prod_line": f"OS-1-{beams}",
+        "beam_altitude_angles": altitude.tolist(),
+        "beam_azimuth_angles": np.tile([4.2, 1.4, -1.4, -4.2], beams // 4).tolist(),
+        "lidar_origin_to_beam_origin_mm": 15.806,
+        "lidar_mode": f"{columns}x10",
+        "prod_line": f"OS-1-{beams}",
         "lidar_to_sensor_transform": [-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 36.18, 0, 0, 0, 1],
         "imu_to_sensor_transform": [1, 0, 0, 6.253, 0, 1, 0, -11.775, 0, 0, 1, 7.645, 0, 0, 0, 1],
-        "build_rev": "v2.1.1", "proto_rev": "v1.1.1", "status": "RUNNING",
-        "data_format": {"columns_per_frame": columns, "columns_per_packet": COLUMNS_PER_PACKET,
-                        "column_window": [0, columns - 1], "pixels_per_column": beams,
-                        "pixel_shift_by_row": np.tile([18, 12, 6, 0], beams // 4).tolist()},
+        "build_rev": "v2.1.1",
+        "proto_rev": "v1.1.1",
+        "status": "RUNNING",
+        "data_format": {
+            "columns_per_frame": columns,
+            "columns_per_packet": COLUMNS_PER_PACKET,
+            "column_window": [0, columns - 1],
+            "pixels_per_column": beams,
+            "pixel_shift_by_row": np.tile([18, 12, 6, 0], beams // 4).tolist(),
+        },
     }
     records = []
     for first in range(0, columns, COLUMNS_PER_PACKET):
-        frame = _frame(blocks[first:first + COLUMNS_PER_PACKET].tobytes())
+        frame = _frame(blocks[first : first + COLUMNS_PER_PACKET].tobytes())
         stamp = 1_700_000_000 * 1_000_000 + first * 100_000 // columns
         records.append(struct.pack("<IIII", stamp // 1_000_000, stamp % 1_000_000, len(frame), len(frame)) + frame)
     pcap, meta_path = folder / "os-synthetic.pcap", folder / "os-synthetic.json"

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from mi_lidar.calibration.fit import Calibration, FitOptions, FitResult
+from mi_lidar.calibration.report import write_report
 from mi_lidar.core.errors import MiLidarError
 from mi_lidar.core.log import Log
 from mi_lidar.scene.loading import load_scene
-
-from mi_lidar.calibration.fit import Calibration, FitOptions, FitResult
-from mi_lidar.calibration.report import write_report
 
 
 def parse_learning_rates(items: list[str] | None) -> dict[str, float]:
@@ -26,10 +25,22 @@ def parse_learning_rates(items: list[str] | None) -> dict[str, float]:
     return rates
 
 
-def calibrate_command(log, scene, params: list[str], out, steps: int = 200, batch_size: int = 1 << 16,
-                      holdout: float = 0.2, seed: int = 0, lr: list[str] | None = None, lr_scale: float = 1.0,
-                      patience: int = 5, eval_every: int = 10, counting_start: bool = True,
-                      progress=None) -> tuple[FitResult, dict[str, Path]]:
+def calibrate_command(
+    log,
+    scene,
+    params: list[str],
+    out,
+    steps: int = 200,
+    batch_size: int = 1 << 16,
+    holdout: float = 0.2,
+    seed: int = 0,
+    lr: list[str] | None = None,
+    lr_scale: float = 1.0,
+    patience: int = 5,
+    eval_every: int = 10,
+    counting_start: bool = True,
+    progress=None,
+) -> tuple[FitResult, dict[str, Path]]:
     """Fit the parameters ``params`` (globs) of ``scene`` to ``log`` and write the outputs to ``out``.
 
     Args:
@@ -53,9 +64,17 @@ def calibrate_command(log, scene, params: list[str], out, steps: int = 200, batc
     """
     measured = Log.load(log)
     loaded = load_scene(scene)
-    options = FitOptions(steps=steps, batch_size=batch_size, holdout=holdout, seed=seed, patience=patience,
-                         eval_every=eval_every, learning_rates=parse_learning_rates(lr), lr_scale=lr_scale,
-                         counting_start=counting_start)
+    options = FitOptions(
+        steps=steps,
+        batch_size=batch_size,
+        holdout=holdout,
+        seed=seed,
+        patience=patience,
+        eval_every=eval_every,
+        learning_rates=parse_learning_rates(lr),
+        lr_scale=lr_scale,
+        counting_start=counting_start,
+    )
     calibration = Calibration(loaded, measured, list(params), options=options)
     result = calibration.fit(progress)
     units = {n: calibration.params[n].unit for n in result.names}

@@ -19,11 +19,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_lidar.calibration.smoothing import presence
 from mi_lidar.core.elements import ELLIPSOID_STRIDE, ElementTable, ordered_shapes
 from mi_lidar.core.rays import LogRays  # noqa: F401  (the one Log -> RayBatch builder, used by fit)
 from mi_lidar.core.segment import ELLIPSOID, Segment, ray_quadratic, ray_restricted_gaussian, rotate_inverse
-
-from mi_lidar.calibration.smoothing import presence
 
 
 @dataclass
@@ -50,7 +49,7 @@ class DiffTable(ElementTable):
     smoothing: float = 0.0
 
     @classmethod
-    def from_scene(cls, scene) -> "DiffTable":
+    def from_scene(cls, scene) -> DiffTable:
         """The table of a loaded scene plus its meshes' vertices and faces."""
         base = ElementTable.from_scene(scene)
         vertices, faces, triangle, shape_of, vertex_offset, vertex_counts = [], [], [], [], [], []
@@ -78,10 +77,11 @@ class DiffTable(ElementTable):
             face_vertices=mi.UInt32(np.concatenate(faces)),
             is_triangle=mi.Bool(np.concatenate(triangle)),
             element_shape=mi.UInt32(np.concatenate(shape_of)),
-            vertex_offset=vertex_offset, vertex_counts=vertex_counts,
+            vertex_offset=vertex_offset,
+            vertex_counts=vertex_counts,
         )
 
-    def replaced(self, **arrays) -> "DiffTable":
+    def replaced(self, **arrays) -> DiffTable:
         """A shallow copy with some arrays replaced (for example by differentiable ones)."""
         values = {f.name: getattr(self, f.name) for f in fields(self)}
         values.update(arrays)
@@ -119,8 +119,10 @@ class DiffTable(ElementTable):
         # ---------------- Ellipsoids: Gaussian restricted to the ray, entry at the chord ----
         is_ellipsoid = valid & (kind == ELLIPSOID)
         e = dr.gather(mi.UInt32, self.ellipsoid_index, element, is_ellipsoid)
-        data = [dr.gather(mi.Float, self.ellipsoid_data, e * ELLIPSOID_STRIDE + i, is_ellipsoid)
-                for i in range(ELLIPSOID_STRIDE)]
+        data = [
+            dr.gather(mi.Float, self.ellipsoid_data, e * ELLIPSOID_STRIDE + i, is_ellipsoid)
+            for i in range(ELLIPSOID_STRIDE)
+        ]
         center = mi.Point3f(*data[0:3])
         scale = dr.select(is_ellipsoid, mi.Vector3f(*data[3:6]), 1.0)
         quat = dr.select(is_ellipsoid, mi.Vector4f(*data[6:10]), mi.Vector4f(0, 0, 0, 1))
@@ -137,19 +139,29 @@ class DiffTable(ElementTable):
         nominal = dr.select(triangle, t_triangle, dr.select(is_ellipsoid, e_lo, si.nominal))
         cos_incidence = dr.select(triangle, dr.abs(d_n), dr.select(is_ellipsoid, e_cos, si.cos_incidence))
         return Segment(
-            valid=valid, nominal=nominal, p=p,
+            valid=valid,
+            nominal=nominal,
+            p=p,
             mean=dr.select(is_ellipsoid, e_mean, nominal),
             sigma=dr.select(is_ellipsoid, e_sigma, sigma),
             lo=dr.select(is_ellipsoid, e_lo, -dr.inf),
             hi=dr.select(is_ellipsoid, e_hi, dr.inf),
-            cos_incidence=cos_incidence, element=element,
+            cos_incidence=cos_incidence,
+            element=element,
             shape=dr.gather(mi.UInt32, self.element_shape, element, valid),
             label=dr.gather(mi.UInt32, self.label, element, valid),
             kind=kind,
         )
 
-    def cached_segment(self, element: mi.UInt32, nominal: mi.Float, cos_incidence: mi.Float, cached: tuple,
-                       default_sigma: float, valid: mi.Bool) -> Segment:
+    def cached_segment(
+        self,
+        element: mi.UInt32,
+        nominal: mi.Float,
+        cos_incidence: mi.Float,
+        cached: tuple,
+        default_sigma: float,
+        valid: mi.Bool,
+    ) -> Segment:
         """The :class:`Segment` of ``element`` from geometry computed once (rays and geometry fixed).
 
         Only the per-element values that can be fitted without moving anything are read from the
@@ -168,8 +180,16 @@ class DiffTable(ElementTable):
         sigma = dr.gather(mi.Float, self.range_sigma, element, valid)
         sigma = dr.select(kind == ELLIPSOID, e_sigma, dr.select(dr.isnan(sigma), default_sigma, sigma))
         return Segment(
-            valid=valid, nominal=nominal, p=dr.gather(mi.Float, self.p_hit, element, valid), mean=mean, sigma=sigma,
-            lo=lo, hi=hi, cos_incidence=cos_incidence, element=element,
+            valid=valid,
+            nominal=nominal,
+            p=dr.gather(mi.Float, self.p_hit, element, valid),
+            mean=mean,
+            sigma=sigma,
+            lo=lo,
+            hi=hi,
+            cos_incidence=cos_incidence,
+            element=element,
             shape=dr.gather(mi.UInt32, self.element_shape, element, valid),
-            label=dr.gather(mi.UInt32, self.label, element, valid), kind=kind,
+            label=dr.gather(mi.UInt32, self.label, element, valid),
+            kind=kind,
         )

@@ -37,18 +37,17 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.core.arrays import aligned
-from mi_lidar.core.effects.base import Effect
-from mi_lidar.core.errors import CalibrationError
-from mi_lidar.core.log import Log
-from mi_lidar.scene.loading import scene_lidar_sensor, scene_sensor_model
-from mi_lidar.core.sensor_model import SensorModel
-
 from mi_lidar.calibration.differentiable import LogRays
 from mi_lidar.calibration.likelihood import mixture_log_likelihood, returned_and_passed, round_segment
 from mi_lidar.calibration.parameters import P_EPS, ParameterSpace
 from mi_lidar.calibration.records import CachedBatch, RayCache, cache_distributions, trace_rounds
 from mi_lidar.calibration.smoothing import smoothing_at
+from mi_lidar.core.arrays import aligned
+from mi_lidar.core.effects.base import Effect
+from mi_lidar.core.errors import CalibrationError
+from mi_lidar.core.log import Log
+from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.scene.loading import scene_lidar_sensor, scene_sensor_model
 
 
 @dataclass
@@ -136,7 +135,7 @@ def check_sensor(log: Log, scene) -> None:
         raise CalibrationError(
             f"the log's sensor ({name or 'unnamed pattern'}, {h} beams x {w} firings) does not match the scene's "
             f"`lidar` sensor ({pattern.name}, {pattern.shape[0]} x {pattern.shape[1]}); set the scene sensor's "
-            f"pattern to the log's (<string name=\"pattern\" value=\"{name or '...'}\"/>) or pick the scene the log "
+            f'pattern to the log\'s (<string name="pattern" value="{name or "..."}"/>) or pick the scene the log '
             "was recorded in"
         )
 
@@ -161,16 +160,19 @@ class Calibration:
         CalibrationError: a glob matches nothing, or the log's sensor is not the scene's.
     """
 
-    def __init__(self, scene, log: Log, globs: list[str], model: SensorModel | None = None,
-                 options: FitOptions | None = None):
+    def __init__(
+        self, scene, log: Log, globs: list[str], model: SensorModel | None = None, options: FitOptions | None = None
+    ):
         check_sensor(log, scene)
         self.options = options or FitOptions()
         if not 0 < self.options.holdout < 1:
             raise CalibrationError(f"holdout={self.options.holdout} must lie in (0, 1), e.g. 0.2")
         if not (self.options.smoothing == 0 or self.options.smoothing >= self.options.smoothing_final > 0):
-            raise CalibrationError(f"smoothing={self.options.smoothing}, smoothing_final={self.options.smoothing_final}: "
-                                   "use smoothing=0 (exact likelihood) or smoothing >= smoothing_final > 0 (sigmas), "
-                                   "e.g. 0.1 and 0.01")
+            raise CalibrationError(
+                f"smoothing={self.options.smoothing}, smoothing_final={self.options.smoothing_final}: "
+                "use smoothing=0 (exact likelihood) or smoothing >= smoothing_final > 0 (sigmas), "
+                "e.g. 0.1 and 0.01"
+            )
         self.scene = scene
         base_model = model or scene_sensor_model(scene)[0]
         self.space = ParameterSpace(scene, base_model, n_beams=log.shape[1])
@@ -178,14 +180,19 @@ class Calibration:
         self.model = self.space.calibration_model(self.names)
         self.params = {n: self.space.params[n] for n in self.names}
         self.geometric = any(p.geometric for p in self.params.values())
-        self.smoothed = self.options.smoothing > 0 and any(p.family in ("centers", "scales")
-                                                           for p in self.params.values())
+        self.smoothed = self.options.smoothing > 0 and any(
+            p.family in ("centers", "scales") for p in self.params.values()
+        )
         effects = {e.name: e for e in self.model.effects}
-        moves_rays = any(p.family == "effect" and type(effects[p.target[0]]).perturb_rays is not Effect.perturb_rays
-                         for p in self.params.values())
+        moves_rays = any(
+            p.family == "effect" and type(effects[p.target[0]]).perturb_rays is not Effect.perturb_rays
+            for p in self.params.values()
+        )
         self.static = not (self.geometric or moves_rays)  # segment distributions computed once
-        edits = any(type(e).modify_segment is not Effect.modify_segment or hasattr(e, "likelihood_segment")
-                    for e in self.model.effects)
+        edits = any(
+            type(e).modify_segment is not Effect.modify_segment or hasattr(e, "likelihood_segment")
+            for e in self.model.effects
+        )
         # only hit probabilities move: the densities of the measured ranges are computed once too
         self.densities = self.static and not edits and all(p.family == "p_hit" for p in self.params.values())
         self.rays = LogRays.from_log(log, relative_time=False)
@@ -283,8 +290,9 @@ class Calibration:
                 for r in rounds.rounds:
                     seg, _ = round_segment(table, model, rays, r)
                     done = dr.gather(mi.Bool, done, r.prev)
-                    returned, passed = returned_and_passed(seg, dr.gather(mi.Float, z, r.ray),
-                                                           dr.gather(mi.Bool, hit, r.ray), self.options.gate)
+                    returned, passed = returned_and_passed(
+                        seg, dr.gather(mi.Float, z, r.ray), dr.gather(mi.Bool, hit, r.ray), self.options.gate
+                    )
                     returned, passed = returned & ~done, passed & ~done
                     dr.scatter_reduce(dr.ReduceOp.Add, hits, 1.0, r.element, returned)
                     dr.scatter_reduce(dr.ReduceOp.Add, passes, 1.0, r.element, passed)
@@ -306,8 +314,10 @@ class Calibration:
     # ------------------------------------------------------------------------- fitting
     def learning_rate(self, name: str) -> float:
         """Learning rate of parameter ``name``: the first matching override, else its default, times ``lr_scale``."""
-        rate = next((lr for glob, lr in self.options.learning_rates.items() if fnmatch.fnmatchcase(name, glob)),
-                    self.params[name].lr)
+        rate = next(
+            (lr for glob, lr in self.options.learning_rates.items() if fnmatch.fnmatchcase(name, glob)),
+            self.params[name].lr,
+        )
         return float(rate) * self.options.lr_scale
 
     def fit(self, progress=None) -> FitResult:
@@ -343,8 +353,9 @@ class Calibration:
             values = {name: self.params[name].to_natural(opt[name]) for name in self.params}
             kappa = smoothing_at(step - 1, opts.steps, opts.smoothing, opts.smoothing_final) if self.smoothed else 0.0
             if self.smoothed:  # steps shrink with the smoothing, so the fit settles as the surrogate sharpens
-                opt.set_learning_rate({name: self.learning_rate(name) * math.sqrt(kappa / opts.smoothing)
-                                       for name in self.params})
+                opt.set_learning_rate(
+                    {name: self.learning_rate(name) * math.sqrt(kappa / opts.smoothing) for name in self.params}
+                )
             rays, z, hit, rounds = self._records("train", position, values, kappa)
 
             # ---------------- Loss with gradients, Adam step, constraints -------------------------
@@ -384,7 +395,18 @@ class Calibration:
         table, model = self.space.build(final, self.model)
         if self.geometric:
             self.space.push_geometry(table)
-        return FitResult(names=list(self.names), initial=initial, counting=counting, fitted=fitted,
-                         observations=dict(self.observations), history=history,
-                         initial_nll=initial_nll, counting_nll=counting_nll, fitted_nll=best[0], stopped_early=stopped,
-                         steps_run=step, table=table, model=model)
+        return FitResult(
+            names=list(self.names),
+            initial=initial,
+            counting=counting,
+            fitted=fitted,
+            observations=dict(self.observations),
+            history=history,
+            initial_nll=initial_nll,
+            counting_nll=counting_nll,
+            fitted_nll=best[0],
+            stopped_early=stopped,
+            steps_run=step,
+            table=table,
+            model=model,
+        )

@@ -15,12 +15,11 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mi_lidar.calibration.records import CachedBatch, Round, Rounds
+from mi_lidar.calibration.smoothing import smoothed_log_density
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import ELLIPSOID, Segment, log_density
 from mi_lidar.core.sensor_model import SensorModel
-
-from mi_lidar.calibration.records import CachedBatch, Round, Rounds
-from mi_lidar.calibration.smoothing import smoothed_log_density
 
 
 def round_segment(table, model: SensorModel, rays: RayBatch, r: Round) -> tuple[Segment, RayBatch]:
@@ -46,8 +45,9 @@ def round_segment(table, model: SensorModel, rays: RayBatch, r: Round) -> tuple[
     return model.apply_effects(seg, sub), sub
 
 
-def _fold(log_pass: mi.Float, log_mix: mi.Float, valid: mi.Bool, p: mi.Float,
-          density: mi.Float) -> tuple[mi.Float, mi.Float]:
+def _fold(
+    log_pass: mi.Float, log_mix: mi.Float, valid: mi.Bool, p: mi.Float, density: mi.Float
+) -> tuple[mi.Float, mi.Float]:
     """Add one element to the running ``log prod(1 - p_j)`` and ``log sum P_k f_k(z)`` (nats).
 
     Args:
@@ -64,8 +64,9 @@ def _fold(log_pass: mi.Float, log_mix: mi.Float, valid: mi.Bool, p: mi.Float,
     return log_pass, log_mix
 
 
-def mixture_log_likelihood(table, model: SensorModel, rays: RayBatch, rounds: Rounds, measured: mi.Float,
-                           hit: mi.Bool) -> mi.Float:
+def mixture_log_likelihood(
+    table, model: SensorModel, rays: RayBatch, rounds: Rounds, measured: mi.Float, hit: mi.Bool
+) -> mi.Float:
     """Per-ray log-likelihood (nats) of measured ranges under the pass-through mixture.
 
     Args:
@@ -92,13 +93,19 @@ def mixture_log_likelihood(table, model: SensorModel, rays: RayBatch, rounds: Ro
         for k in range(cache.max_count):
             active = rounds.count > k
             entry = rounds.start + k
-            read = lambda array: dr.gather(type(array), array, entry, active)  # noqa: E731
+            read = lambda array, entry=entry, active=active: dr.gather(type(array), array, entry, active)
             element = read(cache.element)
             if cache.log_density is not None:  # only the hit probabilities move
                 p, density = dr.gather(mi.Float, table.p_hit, element, active), read(cache.log_density)
             else:
-                seg = table.cached_segment(element, read(cache.nominal), read(cache.cos_incidence),
-                                           tuple(read(a) for a in cache.cached), model.range_sigma, active)
+                seg = table.cached_segment(
+                    element,
+                    read(cache.nominal),
+                    read(cache.cos_incidence),
+                    tuple(read(a) for a in cache.cached),
+                    model.range_sigma,
+                    active,
+                )
                 seg = model.likelihood_segment(model.apply_effects(seg, rays), rays)
                 p, density = seg.p, log_density(seg, z)
             log_pass, log_mix = _fold(log_pass, log_mix, active, p, density)
@@ -109,7 +116,9 @@ def mixture_log_likelihood(table, model: SensorModel, rays: RayBatch, rounds: Ro
         seg, sub = round_segment(table, model, rays, r)
         seg = model.likelihood_segment(seg, sub)
         z_entry = dr.gather(mi.Float, z, r.ray)
-        density = smoothed_log_density(seg, z_entry, table.smoothing) if table.smoothing > 0 else log_density(seg, z_entry)
+        density = (
+            smoothed_log_density(seg, z_entry, table.smoothing) if table.smoothing > 0 else log_density(seg, z_entry)
+        )
         log_pass, log_mix = _fold(_previous(log_pass, r.prev), _previous(log_mix, r.prev), seg.valid, seg.p, density)
         value = dr.select(dr.gather(mi.Bool, hit, r.ray), log_mix, log_pass)
         ll = _add_at(ll, value, r.ray, r.last)

@@ -35,15 +35,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_lidar.calibration.differentiable import DiffTable
+from mi_lidar.calibration.smoothing import inflation
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.effects import make_effect
 from mi_lidar.core.elements import ELLIPSOID_STRIDE
 from mi_lidar.core.errors import CalibrationError
 from mi_lidar.core.segment import ELLIPSOID
 from mi_lidar.core.sensor_model import SensorModel
-
-from mi_lidar.calibration.differentiable import DiffTable
-from mi_lidar.calibration.smoothing import inflation
 
 P_EPS = 1e-4  # hit probabilities are kept in [P_EPS, 1 - P_EPS] so that their logits stay finite
 MIN_SCALE = 1e-3  # m: smallest ellipsoid scale and range sigma
@@ -147,30 +146,92 @@ class ParameterSpace:
         for k, (shape_id, count) in enumerate(zip(t.shape_ids, t.element_counts)):
             elements = np.arange(offset, offset + count, dtype=np.uint32)
             offset += count
-            self._add(Parameter(f"elements.{shape_id}.p_hit", "p_hit", p_hit[elements], "logit", P_EPS, 1 - P_EPS,
-                                0.1, "probability", False, ("p_hit", mi.UInt32(elements))))
+            self._add(
+                Parameter(
+                    f"elements.{shape_id}.p_hit",
+                    "p_hit",
+                    p_hit[elements],
+                    "logit",
+                    P_EPS,
+                    1 - P_EPS,
+                    0.1,
+                    "probability",
+                    False,
+                    ("p_hit", mi.UInt32(elements)),
+                )
+            )
             if t.shape_kinds[k] == "ellipsoids":
                 e = e_index[elements].astype(np.uint32)
-                for name, first, transform, lr, low in (("centers", 0, "value", 0.01, -np.inf),
-                                                       ("scales", 3, "log", 0.02, MIN_SCALE)):
+                for name, first, transform, lr, low in (
+                    ("centers", 0, "value", 0.01, -np.inf),
+                    ("scales", 3, "log", 0.02, MIN_SCALE),
+                ):
                     index = (e[:, None] * ELLIPSOID_STRIDE + first + np.arange(3, dtype=np.uint32)).ravel()
-                    self._add(Parameter(f"elements.{shape_id}.{name}", name, data[e, first:first + 3].ravel(),
-                                        transform, low, np.inf, lr, "m", True, ("ellipsoid_data", mi.UInt32(index))))
+                    self._add(
+                        Parameter(
+                            f"elements.{shape_id}.{name}",
+                            name,
+                            data[e, first : first + 3].ravel(),
+                            transform,
+                            low,
+                            np.inf,
+                            lr,
+                            "m",
+                            True,
+                            ("ellipsoid_data", mi.UInt32(index)),
+                        )
+                    )
                 continue
             values = np.where(np.isnan(sigma[elements]), self.model.range_sigma, sigma[elements])
-            self._add(Parameter(f"elements.{shape_id}.range_sigma", "range_sigma", np.maximum(values, MIN_SCALE),
-                                "log", MIN_SCALE, 10.0, 0.02, "m", False, ("range_sigma", mi.UInt32(elements))))
+            self._add(
+                Parameter(
+                    f"elements.{shape_id}.range_sigma",
+                    "range_sigma",
+                    np.maximum(values, MIN_SCALE),
+                    "log",
+                    MIN_SCALE,
+                    10.0,
+                    0.02,
+                    "m",
+                    False,
+                    ("range_sigma", mi.UInt32(elements)),
+                )
+            )
             if t.vertex_offset[k] >= 0:
                 v = np.arange(t.vertex_offset[k], t.vertex_offset[k] + t.vertex_counts[k], dtype=np.uint32)
-                self._add(Parameter(f"terrain.{shape_id}.heights", "heights", vertices[v, 2], "value", -np.inf,
-                                    np.inf, 0.005, "m", True, ("vertex_positions", mi.UInt32(3 * v + 2))))
+                self._add(
+                    Parameter(
+                        f"terrain.{shape_id}.heights",
+                        "heights",
+                        vertices[v, 2],
+                        "value",
+                        -np.inf,
+                        np.inf,
+                        0.005,
+                        "m",
+                        True,
+                        ("vertex_positions", mi.UInt32(3 * v + 2)),
+                    )
+                )
         surfaces = kind != ELLIPSOID
         for value in np.unique(label[surfaces]):
             members = surfaces & (label == value)
             current = sigma[members]
             start = float(np.nanmean(current)) if np.any(~np.isnan(current)) else self.model.range_sigma
-            self._add(Parameter(f"classes.{int(value)}.range_sigma", "class_sigma", np.array([max(start, MIN_SCALE)]),
-                                "log", MIN_SCALE, 10.0, 0.02, "m", False, ("range_sigma", mi.Bool(members))))
+            self._add(
+                Parameter(
+                    f"classes.{int(value)}.range_sigma",
+                    "class_sigma",
+                    np.array([max(start, MIN_SCALE)]),
+                    "log",
+                    MIN_SCALE,
+                    10.0,
+                    0.02,
+                    "m",
+                    False,
+                    ("range_sigma", mi.Bool(members)),
+                )
+            )
 
     def _effect(self, name: str):
         return next((e for e in self.model.effects if e.name == name), None)
@@ -184,15 +245,39 @@ class ParameterSpace:
                 initial = values[np.minimum(np.arange(self.n_beams), values.size - 1)]
             else:
                 initial = np.array([float(np.asarray(effect.params[k])[0]) for k in keys])
-            self._add(Parameter(name, "sensor", initial, "value", spec.fit_bound, spec.upper, lr, unit, geometric,
-                                (effect_name, keys)))
+            self._add(
+                Parameter(
+                    name,
+                    "sensor",
+                    initial,
+                    "value",
+                    spec.fit_bound,
+                    spec.upper,
+                    lr,
+                    unit,
+                    geometric,
+                    (effect_name, keys),
+                )
+            )
         sensor_effects = {v[0] for v in SENSOR_EFFECTS.values()}
         for effect in self.model.effects:
             if effect.name in sensor_effects:
                 continue
             for key, spec in effect.specs.items():
-                self._add(Parameter(f"effects.{effect.name}.{key}", "effect", np.asarray(effect.params[key], np.float64),
-                                    "value", spec.fit_bound, spec.upper, 1e-3, spec.unit, False, (effect.name, (key,))))
+                self._add(
+                    Parameter(
+                        f"effects.{effect.name}.{key}",
+                        "effect",
+                        np.asarray(effect.params[key], np.float64),
+                        "value",
+                        spec.fit_bound,
+                        spec.upper,
+                        1e-3,
+                        spec.unit,
+                        False,
+                        (effect.name, (key,)),
+                    )
+                )
 
     def select(self, globs: list[str]) -> list[str]:
         """Names matched by ``fnmatch`` globs, in namespace order.
@@ -216,9 +301,13 @@ class ParameterSpace:
         needed = {self.params[n].target[0] for n in names if n in SENSOR_EFFECTS}
         present = {e.name for e in self.model.effects}
         extra = [make_effect(e) for e in EFFECT_ORDER if e in needed and e not in present]
-        return SensorModel(range_sigma=self.model.range_sigma, min_range=self.model.min_range,
-                           max_range=self.model.max_range, max_segments=self.model.max_segments,
-                           effects=list(self.model.effects) + extra)
+        return SensorModel(
+            range_sigma=self.model.range_sigma,
+            min_range=self.model.min_range,
+            max_range=self.model.max_range,
+            max_segments=self.model.max_segments,
+            effects=list(self.model.effects) + extra,
+        )
 
     def build(self, values: dict[str, mi.Float], model: SensorModel) -> tuple[DiffTable, SensorModel]:
         """The table and model with natural ``values`` (name -> array, may carry gradients) applied.
@@ -249,8 +338,13 @@ class ParameterSpace:
                 array = mi.Float(array)
                 dr.scatter(array, value, index)
             arrays[array_name] = array
-        new_model = SensorModel(range_sigma=model.range_sigma, min_range=model.min_range, max_range=model.max_range,
-                                max_segments=model.max_segments, effects=[effects[e.name] for e in model.effects])
+        new_model = SensorModel(
+            range_sigma=model.range_sigma,
+            min_range=model.min_range,
+            max_range=model.max_range,
+            max_segments=model.max_segments,
+            effects=[effects[e.name] for e in model.effects],
+        )
         return self.table.replaced(**arrays), new_model
 
     def push_geometry(self, table: DiffTable) -> None:
@@ -271,11 +365,10 @@ class ParameterSpace:
         for k, shape_id in enumerate(self.table.shape_ids):
             if self.table.vertex_offset[k] >= 0:
                 first = self.table.vertex_offset[k]
-                mesh = vertices[3 * first:3 * (first + self.table.vertex_counts[k])]
+                mesh = vertices[3 * first : 3 * (first + self.table.vertex_counts[k])]
                 params[f"{shape_id}.vertex_positions"] = mi.Float(aligned(mesh))
             elif self.table.shape_kinds[k] == "ellipsoids":
                 n = ELLIPSOID_STRIDE * self.table.element_counts[k]
-                params[f"{shape_id}.data"] = mi.Float(aligned(data[e_offset:e_offset + n]))
+                params[f"{shape_id}.data"] = mi.Float(aligned(data[e_offset : e_offset + n]))
                 e_offset += n
         params.update()
-

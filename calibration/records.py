@@ -130,10 +130,16 @@ def trace_rounds(scene, table, model: SensorModel, rays: RayBatch) -> Rounds:
                 break
             # ---------------- Keep the entries, continue past them ----------------
             lanes = dr.gather(mi.UInt32, lanes, keep)
-            rounds.append(Round(ray=lanes, prev=keep, last=dr.full(mi.Bool, True, dr.width(keep)),
-                                element=dr.gather(mi.UInt32, element, keep),
-                                nominal=dr.gather(mi.Float, nominal, keep),
-                                cos_incidence=dr.gather(mi.Float, cos_incidence, keep)))
+            rounds.append(
+                Round(
+                    ray=lanes,
+                    prev=keep,
+                    last=dr.full(mi.Bool, True, dr.width(keep)),
+                    element=dr.gather(mi.UInt32, element, keep),
+                    nominal=dr.gather(mi.Float, nominal, keep),
+                    cos_incidence=dr.gather(mi.Float, cos_incidence, keep),
+                )
+            )
             origin = dr.gather(mi.Point3f, origin, keep)
             direction = dr.gather(mi.Vector3f, direction, keep)
             start = dr.gather(mi.Point3f, si.p, keep) + RESTART_OFFSET * direction
@@ -141,8 +147,9 @@ def trace_rounds(scene, table, model: SensorModel, rays: RayBatch) -> Rounds:
     return Rounds(width=n, none=none, rounds=rounds)
 
 
-def cache_distributions(rounds: Rounds, table, model: SensorModel, rays: RayBatch,
-                        measured: mi.Float | None = None) -> Rounds:
+def cache_distributions(
+    rounds: Rounds, table, model: SensorModel, rays: RayBatch, measured: mi.Float | None = None
+) -> Rounds:
     """``rounds`` with each entry's return distribution computed once (:attr:`Round.cached`).
 
     Valid while nothing fitted moves rays or geometry: the cached values are those of the current
@@ -158,8 +165,9 @@ def cache_distributions(rounds: Rounds, table, model: SensorModel, rays: RayBatc
         rays = model.prepare_rays(rays)
         for r in rounds.rounds:
             sub = rays.take(r.ray)
-            seg = table.segment(r, dr.full(mi.Bool, True, r.width), r.element, sub.origin, sub.direction,
-                                model.range_sigma)
+            seg = table.segment(
+                r, dr.full(mi.Bool, True, r.width), r.element, sub.origin, sub.direction, model.range_sigma
+            )
             cached = tuple(getattr(seg, f) for f in CACHED_FIELDS)
             density = None
             if measured is not None:
@@ -192,7 +200,7 @@ class RayCache:
     log_density: mi.Float | None = None
 
     @classmethod
-    def from_rounds(cls, rounds: Rounds) -> "RayCache":
+    def from_rounds(cls, rounds: Rounds) -> RayCache:
         """Reorder the rounds of a batch (round by round) into the ray-by-ray layout."""
         rays = [np.asarray(r.ray, np.int64) for r in rounds.rounds]
         count = np.zeros(rounds.width, np.int64)
@@ -216,8 +224,15 @@ class RayCache:
             if with_density:
                 dr.scatter(density, r.log_density, slot)
             dr.eval(element, nominal, cos_incidence, cached, density)
-        return cls(start=start, count=count, element=element, nominal=nominal, cos_incidence=cos_incidence,
-                   cached=cached, log_density=density)
+        return cls(
+            start=start,
+            count=count,
+            element=element,
+            nominal=nominal,
+            cos_incidence=cos_incidence,
+            cached=cached,
+            log_density=density,
+        )
 
     @property
     def n(self) -> int:
@@ -229,11 +244,15 @@ class RayCache:
         """Most entries of any ray."""
         return int(self.count.max(initial=0))
 
-    def batch(self, position: np.ndarray) -> "CachedBatch":
+    def batch(self, position: np.ndarray) -> CachedBatch:
         """The rays at ``position`` (batch lane ``i`` = ray ``position[i]``, repeats allowed), ray by ray."""
         position = np.asarray(position, np.int64)
-        return CachedBatch(cache=self, start=mi.UInt32(aligned(self.start[position].astype(np.uint32))),
-                           count=mi.UInt32(aligned(self.count[position].astype(np.uint32))), position=position)
+        return CachedBatch(
+            cache=self,
+            start=mi.UInt32(aligned(self.start[position].astype(np.uint32))),
+            count=mi.UInt32(aligned(self.count[position].astype(np.uint32))),
+            position=position,
+        )
 
     def select(self, position: np.ndarray) -> Rounds:
         """The :class:`Rounds` of the rays at ``position`` (batch lane ``i`` = ray ``position[i]``).
@@ -252,14 +271,19 @@ class RayCache:
                 prev = np.flatnonzero(count[lanes] > k)  # positions among the previous round's entries
             lanes = lanes[prev]
             entry = mi.UInt32(aligned((start[lanes] + k).astype(np.uint32)))
-            gather = lambda array: dr.gather(type(array), array, entry)  # noqa: E731
-            rounds.append(Round(ray=mi.UInt32(aligned(lanes.astype(np.uint32))),
-                                prev=mi.UInt32(aligned(prev.astype(np.uint32))),
-                                last=mi.Bool(aligned(count[lanes] == k + 1)),
-                                element=gather(self.element), nominal=gather(self.nominal),
-                                cos_incidence=gather(self.cos_incidence),
-                                cached=None if self.cached is None else tuple(gather(a) for a in self.cached),
-                                log_density=None if self.log_density is None else gather(self.log_density)))
+            gather = lambda array, entry=entry: dr.gather(type(array), array, entry)
+            rounds.append(
+                Round(
+                    ray=mi.UInt32(aligned(lanes.astype(np.uint32))),
+                    prev=mi.UInt32(aligned(prev.astype(np.uint32))),
+                    last=mi.Bool(aligned(count[lanes] == k + 1)),
+                    element=gather(self.element),
+                    nominal=gather(self.nominal),
+                    cos_incidence=gather(self.cos_incidence),
+                    cached=None if self.cached is None else tuple(gather(a) for a in self.cached),
+                    log_density=None if self.log_density is None else gather(self.log_density),
+                )
+            )
         return Rounds(width=len(position), none=mi.Bool(aligned(count == 0)), rounds=rounds)
 
 

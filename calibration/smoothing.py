@@ -95,4 +95,3 @@ def smoothed_log_density(seg: Segment, z: mi.Float, kappa: float) -> mi.Float:
 def inflation(scales: np.ndarray, kappa: float, extent: np.ndarray) -> np.ndarray:
     """(N, 3) scales (m) inflated so that the extent-``E`` surface lies at ``E + REACH kappa`` sigmas."""
     return scales * (1.0 + REACH * kappa / np.asarray(extent, np.float64))[:, None]
-

@@ -5,8 +5,6 @@ The log hides a constant 3 cm range offset; `range_offset` below is written from
 registered, found by diagnose and fitted, and the script prints the NLL curve over iterations.
 """
 
-import dataclasses
-
 import mi_lidar  # noqa: F401
 from mi_lidar.core.effects import Effect, ParamSpec, register_effect
 from mi_lidar.loop import diagnose
@@ -31,5 +29,7 @@ if __name__ == "__main__":
     print(d.summary)
     best = d.rounds[0][0]
     print("fitted:", {k: v.tolist() for k, v in best.parameters.items()})
-    print("mean log-likelihood per ray over iterations:",
-          " ".join(f"{x:.3f}" for x in best.history[:: max(1, len(best.history) // 10)]))
+    print(
+        "mean log-likelihood per ray over iterations:",
+        " ".join(f"{x:.3f}" for x in best.history[:: max(1, len(best.history) // 10)]),
+    )

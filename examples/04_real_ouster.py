@@ -22,24 +22,31 @@ import numpy as np
 from rich.console import Console
 
 import mi_lidar
-from mi_lidar.scene.dicts import scene_dict
 from mi_lidar.core.effects import make_effect
 from mi_lidar.io import read_any
 from mi_lidar.loop.compare import compare
 from mi_lidar.loop.diagnose import diagnose, verdict
 from mi_lidar.loop.real_data import development_table
 from mi_lidar.loop.real_ouster import MESH_EVERY, column_log, ouster_development_path, range_image_mesh
+from mi_lidar.scene.dicts import scene_dict
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "ouster" / "OS-1-32-G_v2.1.1_1024x10.pcap"
 
 
 def report(name: str, mesh, model, test_log, out: Path, say) -> None:
     """Compare ``model`` in the scene of ``mesh`` with ``test_log`` and write ``out / name``."""
-    result = compare(test_log, mi.load_dict(scene_dict({"map": mesh})), model, out=out / name,
-                     title=f"Ouster frame, test columns: {name}")
+    result = compare(
+        test_log,
+        mi.load_dict(scene_dict({"map": mesh})),
+        model,
+        out=out / name,
+        title=f"Ouster frame, test columns: {name}",
+    )
     head = result.headline
-    say(f"{name}: NLL {head['nll']:.3f} nats/ray (floored), F1 {head['f1']:.3f}, median |simulated - measured| "
-        f"{head['range_error_median']:.3f} m -> {out / name / 'report.html'}")
+    say(
+        f"{name}: NLL {head['nll']:.3f} nats/ray (floored), F1 {head['f1']:.3f}, median |simulated - measured| "
+        f"{head['range_error_median']:.3f} m -> {out / name / 'report.html'}"
+    )
 
 
 if __name__ == "__main__":
@@ -53,13 +60,19 @@ if __name__ == "__main__":
     mesh = range_image_mesh(log, columns[columns % MESH_EVERY == 0])
 
     # 1. compare
-    report("mesh_only", mesh, mi_lidar.SensorModel(range_sigma=0.01, max_range=120.0, max_segments=4), test_log, out, say)
+    report(
+        "mesh_only", mesh, mi_lidar.SensorModel(range_sigma=0.01, max_range=120.0, max_segments=4), test_log, out, say
+    )
 
     # 2. diagnose (the mesh explains no return where no face is on the ray: start with outliers)
     outliers = make_effect("outliers", p_near=0.02, near_scale=2.0, p_uniform=0.005, uniform_max=120.0)
     start_model = mi_lidar.SensorModel(range_sigma=0.01, max_range=120.0, max_segments=4, effects=[outliers])
-    found = diagnose(column_log(log, columns[columns % MESH_EVERY == MESH_EVERY // 2]), mi.load_dict(scene_dict({"map": mesh})),
-                     start_model, out=out / "diagnosis")
+    found = diagnose(
+        column_log(log, columns[columns % MESH_EVERY == MESH_EVERY // 2]),
+        mi.load_dict(scene_dict({"map": mesh})),
+        start_model,
+        out=out / "diagnosis",
+    )
     console.print(verdict(found))
 
     # 3. add effects, watch the error fall

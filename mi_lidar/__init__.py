@@ -18,8 +18,8 @@ VARIANT = select_variant(mi)
 
 from mi_lidar import plugins  # noqa: E402,F401  (registers the plugins)
 from mi_lidar.core.log import Log  # noqa: E402
-from mi_lidar.scene.loading import load_scene  # noqa: E402
 from mi_lidar.core.sensor_model import CHANNELS, SensorModel  # noqa: E402
+from mi_lidar.scene.loading import load_scene  # noqa: E402
 from mi_lidar.scene.simulation import simulate  # noqa: E402
 
 __all__ = ["CHANNELS", "Log", "SensorModel", "VARIANT", "__version__", "load_scene", "simulate"]

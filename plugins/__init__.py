@@ -13,7 +13,6 @@ import importlib
 import mitsuba as mi
 
 from mi_lidar._variant import require_jit_variant
-
 from mi_lidar.plugins import lidar_integrator, lidar_material, lidar_sensor
 
 _MODULES = (lidar_material, lidar_sensor, lidar_integrator)

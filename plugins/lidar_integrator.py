@@ -64,13 +64,18 @@ class LidarIntegrator(mi.SamplingIntegrator):
         """The :class:`~mi_lidar.core.sensor_model.SensorModel` of ``sensor`` with this integrator's settings."""
         from mi_lidar.core.sensor_model import SensorModel
 
-        return SensorModel(range_sigma=sensor.range_sigma, min_range=sensor.min_range, max_range=sensor.max_range,
-                           max_segments=self.max_segments, effects=self.effects)
+        return SensorModel(
+            range_sigma=sensor.range_sigma,
+            min_range=sensor.min_range,
+            max_range=sensor.max_range,
+            max_segments=self.max_segments,
+            effects=self.effects,
+        )
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         from mi_lidar.core.channels import channels_to_tensor
-        from mi_lidar.core.rays import RayBatch
         from mi_lidar.core.elements import ElementTable
+        from mi_lidar.core.rays import RayBatch
         from mi_lidar.plugins.lidar_sensor import LidarSensor
 
         if isinstance(sensor, int):
@@ -78,7 +83,7 @@ class LidarIntegrator(mi.SamplingIntegrator):
         if not isinstance(sensor, LidarSensor):
             raise ParameterError(
                 f"lidar integrator: the sensor is {type(sensor).__name__}, not a `lidar` sensor; "
-                "add <sensor type=\"lidar\"> to the scene"
+                'add <sensor type="lidar"> to the scene'
             )
         height, width = sensor.pattern.shape
         index = dr.arange(mi.UInt32, height * width)

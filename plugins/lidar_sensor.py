@@ -71,10 +71,16 @@ class LidarSensor(mi.Sensor):
         self.pattern = get_pattern(name, **kwargs)
         height, width = self.pattern.shape
         if "film" not in props:
-            props["film"] = mi.load_dict({
-                "type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
-                "pixel_format": "luminance", "component_format": "float32",
-            })
+            props["film"] = mi.load_dict(
+                {
+                    "type": "hdrfilm",
+                    "width": width,
+                    "height": height,
+                    "rfilter": {"type": "box"},
+                    "pixel_format": "luminance",
+                    "component_format": "float32",
+                }
+            )
         super().__init__(props)
         film_size = tuple(int(v) for v in self.film().size())
         if film_size != (width, height):
@@ -89,7 +95,8 @@ class LidarSensor(mi.Sensor):
         self.to_world = mi.ScalarTransform4f(self.to_world_matrix.astype(np.float32))
         if not (0 <= self.min_range < self.max_range):
             raise ParameterError(
-                f"lidar sensor: need 0 <= min_range < max_range; got min_range={self.min_range}, max_range={self.max_range}"
+                f"lidar sensor: need 0 <= min_range < max_range; got min_range={self.min_range}, "
+                f"max_range={self.max_range}"
             )
         if not self.range_sigma >= 0:
             raise ParameterError(f"lidar sensor: range_sigma={self.range_sigma} must be >= 0 m")
@@ -109,7 +116,9 @@ class LidarSensor(mi.Sensor):
         to_world = mi.Transform4f(self.to_world)
         direction = to_world @ dr.gather(mi.Vector3f, self.local_directions, index, active)
         origin = to_world @ dr.gather(mi.Point3f, self.local_origins, index, active)
-        ray = mi.Ray3f(origin, dr.normalize(direction), time + dr.gather(mi.Float, self.times, index, active), mi.Color0f())
+        ray = mi.Ray3f(
+            origin, dr.normalize(direction), time + dr.gather(mi.Float, self.times, index, active), mi.Color0f()
+        )
         ray.maxt = self.max_range
         return ray, mi.Spectrum(1.0)
 

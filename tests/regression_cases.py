@@ -28,11 +28,23 @@ CASES = {
     "indoor_planar": ("indoor_planar.xml", "planar-360", {}, None, "", 3),
     "permeable_layers": ("permeable_layers.xml", None, {}, None, "", 1),
     "offroad": ("offroad.xml", "vlp16", {"n_firings": 90}, _poses(2, 1.5, 1.8), "", 0),
-    "urban_effects": ("urban_street.xml", "hdl32e", {"n_firings": 60}, _poses(2, 2.0, 1.8),
-                      "range_noise(law=physics, sigma0=0.01, k=1e-4), outliers(p_near=0.02, p_uniform=0.01), "
-                      "incidence_dropout(gamma=1.5), range_bias(bias=0.02)", 5),
-    "urban_footprint": ("urban_street.xml", "vlp16", {"n_firings": 45}, _poses(1, 0.0, 1.8),
-                        "mixed_pixels(divergence=0.004)", 7),
+    "urban_effects": (
+        "urban_street.xml",
+        "hdl32e",
+        {"n_firings": 60},
+        _poses(2, 2.0, 1.8),
+        "range_noise(law=physics, sigma0=0.01, k=1e-4), outliers(p_near=0.02, p_uniform=0.01), "
+        "incidence_dropout(gamma=1.5), range_bias(bias=0.02)",
+        5,
+    ),
+    "urban_footprint": (
+        "urban_street.xml",
+        "vlp16",
+        {"n_firings": 45},
+        _poses(1, 0.0, 1.8),
+        "mixed_pixels(divergence=0.004)",
+        7,
+    ),
 }
 
 
@@ -50,8 +62,9 @@ def simulate_case(name: str) -> dict[str, np.ndarray]:
     model = scene_sensor_model(scene)[0]
     if effects:
         model = dataclasses.replace(model, effects=parse_effects(effects))
-    log = mi_lidar.simulate(scene, get_pattern(pattern, **options) if pattern else None, poses=poses, seed=seed,
-                            model=model)
+    log = mi_lidar.simulate(
+        scene, get_pattern(pattern, **options) if pattern else None, poses=poses, seed=seed, model=model
+    )
     out = {"range": log.ranges, "hit": log.hit}
     out.update({k: log.attributes[k] for k in CHANNELS if k in log.attributes})
     return out

@@ -36,19 +36,27 @@ def test_unknown_pattern_in_xml(tmp_path):
 
 @pytest.mark.parametrize("value", ["1.5", "-0.1"])
 def test_hit_probability_outside_unit_interval(tmp_path, value):
-    body = f'<shape type="sphere" id="ball"><bsdf type="lidar_material"><float name="p_hit" value="{value}"/></bsdf></shape>'
+    body = (
+        f'<shape type="sphere" id="ball"><bsdf type="lidar_material">'
+        f'<float name="p_hit" value="{value}"/></bsdf></shape>'
+    )
     with pytest.raises(SceneError, match=rf"p_hit={float(value)}.*\[0, 1\]"):
         mi_lidar.load_scene(write(tmp_path, scene_xml(body)))
 
 
 def test_negative_sigma(tmp_path):
-    body = '<shape type="sphere" id="ball"><bsdf type="lidar_material"><float name="range_sigma" value="-0.01"/></bsdf></shape>'
+    body = (
+        '<shape type="sphere" id="ball"><bsdf type="lidar_material">'
+        '<float name="range_sigma" value="-0.01"/></bsdf></shape>'
+    )
     with pytest.raises(SceneError, match=r"range_sigma=-0.01"):
         mi_lidar.load_scene(write(tmp_path, scene_xml(body)))
 
 
 def test_negative_sensor_sigma_and_bad_ranges(tmp_path):
-    text = scene_xml("").replace("</sensor>", '<float name="min_range" value="5"/><float name="max_range" value="2"/></sensor>')
+    text = scene_xml("").replace(
+        "</sensor>", '<float name="min_range" value="5"/><float name="max_range" value="2"/></sensor>'
+    )
     with pytest.raises(SceneError, match=r"min_range=5.0, max_range=2.0"):
         mi_lidar.load_scene(write(tmp_path, text))
 
@@ -59,7 +67,9 @@ def test_malformed_xml(tmp_path):
 
 
 def test_unknown_property_is_named(tmp_path):
-    body = '<shape type="sphere" id="ball"><bsdf type="lidar_material"><float name="p_hitt" value="0.5"/></bsdf></shape>'
+    body = (
+        '<shape type="sphere" id="ball"><bsdf type="lidar_material"><float name="p_hitt" value="0.5"/></bsdf></shape>'
+    )
     with pytest.raises(SceneError, match="p_hitt"):
         mi_lidar.load_scene(write(tmp_path, scene_xml(body)))
 
@@ -94,13 +104,16 @@ def test_simulate_rejects_bad_pose_before_tracing():
         mi_lidar.simulate(scene, "planar-180", poses=np.full((4, 4), np.nan))
 
 
-@pytest.mark.parametrize("spec,match", [
-    ("no_such_effect()", "unknown effect 'no_such_effect'"),
-    ("range_noise(law=cubic)", "law='cubic'"),
-    ("range_noise(sigma0=-1)", "sigma0=-1"),
-    ("range_noise(sigmaa=1)", r"unknown parameter\(s\) \['sigmaa'\]"),
-    ("range_noise(sigma0=1", "missing '\\)'"),
-])
+@pytest.mark.parametrize(
+    "spec,match",
+    [
+        ("no_such_effect()", "unknown effect 'no_such_effect'"),
+        ("range_noise(law=cubic)", "law='cubic'"),
+        ("range_noise(sigma0=-1)", "sigma0=-1"),
+        ("range_noise(sigmaa=1)", r"unknown parameter\(s\) \['sigmaa'\]"),
+        ("range_noise(sigma0=1", "missing '\\)'"),
+    ],
+)
 def test_bad_effect_specs(spec, match):
     with pytest.raises(ParameterError, match=match):
         parse_effects(spec)

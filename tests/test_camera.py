@@ -5,8 +5,8 @@ import numpy as np
 from typer.testing import CliRunner
 
 import mi_lidar
-from mi_lidar.scene.camera import PinholeCamera, camera_lidar_frame
 from mi_lidar.cli import app
+from mi_lidar.scene.camera import PinholeCamera, camera_lidar_frame
 
 from .conftest import SCENES
 
@@ -15,8 +15,9 @@ def test_projected_lidar_returns_match_the_camera_depth_image():
     scene = mi_lidar.load_scene(SCENES / "urban_street.xml")
     camera = PinholeCamera.look_at([0.5, -0.5, 2.2], [10, 3, 1.5], width=320, height=200)
     frame = camera_lidar_frame(scene, camera, spp=4)
-    distance = np.asarray(mi.render(scene, sensor=camera.sensor(spp=1),
-                                    integrator=mi.load_dict({"type": "depth"})))[..., 0]
+    distance = np.asarray(mi.render(scene, sensor=camera.sensor(spp=1), integrator=mi.load_dict({"type": "depth"})))[
+        ..., 0
+    ]
     uv, visible = frame["uv"][frame["visible"]], frame["visible"]
     assert visible.sum() > 500
     pixel = np.floor(uv).astype(int)
@@ -28,8 +29,21 @@ def test_projected_lidar_returns_match_the_camera_depth_image():
 
 
 def test_camera_lidar_command_writes_a_frame(tmp_path):
-    result = CliRunner().invoke(app, ["camera-lidar", str(SCENES / "urban_street.xml"), "--out", str(tmp_path),
-                                      "--width", "160", "--height", "100", "--spp", "4"])
+    result = CliRunner().invoke(
+        app,
+        [
+            "camera-lidar",
+            str(SCENES / "urban_street.xml"),
+            "--out",
+            str(tmp_path),
+            "--width",
+            "160",
+            "--height",
+            "100",
+            "--spp",
+            "4",
+        ],
+    )
     assert result.exit_code == 0, result.stdout
     for name in ("image.png", "image.exr", "points.ply", "scan.npz", "overlay.png", "calib.json"):
         assert (tmp_path / name).stat().st_size > 100

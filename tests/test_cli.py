@@ -5,8 +5,8 @@ import pytest
 from typer.testing import CliRunner
 
 from mi_lidar.cli import app
-from mi_lidar.io import read_exr, read_ply
 from mi_lidar.core.log import Log
+from mi_lidar.io import read_exr, read_ply
 
 from .conftest import SCENES
 
@@ -26,7 +26,9 @@ def test_render_writes_every_output(tmp_path):
     assert result.exit_code == 0, result.stdout
     assert "returns" in result.stdout
     channels = read_exr(tmp_path / "scan.exr")
-    assert {"range", "hit", "element_id", "shape_id", "label", "cos_incidence", "nominal_range", "segments"} <= set(channels)
+    assert {"range", "hit", "element_id", "shape_id", "label", "cos_incidence", "nominal_range", "segments"} <= set(
+        channels
+    )
     assert channels["range"].shape == (1, 360) and channels["range"].dtype == np.float32
     points, attributes = read_ply(tmp_path / "points.ply")
     assert len(points) == int(channels["hit"].sum())
@@ -37,7 +39,9 @@ def test_render_writes_every_output(tmp_path):
 
 
 def test_render_pattern_override(tmp_path):
-    result = runner.invoke(app, ["render", str(SCENES / "urban_street.xml"), "--out", str(tmp_path), "--pattern", "hdl32e"])
+    result = runner.invoke(
+        app, ["render", str(SCENES / "urban_street.xml"), "--out", str(tmp_path), "--pattern", "hdl32e"]
+    )
     assert result.exit_code == 0, result.stdout
     assert read_exr(tmp_path / "scan.exr")["range"].shape[0] == 32
 
@@ -48,8 +52,9 @@ def test_simulate_writes_a_log_per_pose(tmp_path):
     poses[:, 2, 3] = 0.5
     np.save(tmp_path / "poses.npy", poses)
     out = tmp_path / "room.npz"
-    result = runner.invoke(app, ["simulate", str(SCENES / "indoor_planar.xml"), "--poses", str(tmp_path / "poses.npy"),
-                                 "--out", str(out)])
+    result = runner.invoke(
+        app, ["simulate", str(SCENES / "indoor_planar.xml"), "--poses", str(tmp_path / "poses.npy"), "--out", str(out)]
+    )
     assert result.exit_code == 0, result.stdout
     log = Log.load(out)
     assert log.shape == (3, 1, 360)
@@ -59,9 +64,20 @@ def test_simulate_writes_a_log_per_pose(tmp_path):
 
 
 def test_simulate_rejects_non_rigid_pose_file(tmp_path):
-    (tmp_path / "poses.txt").write_text(" ".join(["2"] + ["0"] * 4 + ["1"] + ["0"] * 4 + ["1"] + ["0"] * 4 + ["1"]) + "\n")
-    result = runner.invoke(app, ["simulate", str(SCENES / "indoor_planar.xml"), "--poses", str(tmp_path / "poses.txt"),
-                                 "--out", str(tmp_path / "x.npz")])
+    (tmp_path / "poses.txt").write_text(
+        " ".join(["2"] + ["0"] * 4 + ["1"] + ["0"] * 4 + ["1"] + ["0"] * 4 + ["1"]) + "\n"
+    )
+    result = runner.invoke(
+        app,
+        [
+            "simulate",
+            str(SCENES / "indoor_planar.xml"),
+            "--poses",
+            str(tmp_path / "poses.txt"),
+            "--out",
+            str(tmp_path / "x.npz"),
+        ],
+    )
     assert result.exit_code == 2
     assert "not a rigid transform" in " ".join(result.stdout.split())
     assert not (tmp_path / "x.npz").exists()

@@ -8,9 +8,9 @@ tracing), and differ from the unturned beam's range.
 import numpy as np
 
 import mi_lidar
-from mi_lidar.scene.dicts import scene_dict
 from mi_lidar.core.effects import BeamOffsets, parse_effects
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.scene.dicts import scene_dict
 
 from .calibration.scenes import analytic_ranges, floor_and_wall, pattern, unit_directions
 
@@ -21,8 +21,13 @@ def simulate(effects: str):
     pose = np.eye(4)
     pose[2, 3] = HEIGHT
     p = pattern(360)
-    log = mi_lidar.simulate(mi_lidar.load_scene(scene_dict(floor_and_wall())), p, poses=pose, seed=0,
-                            model=SensorModel(range_sigma=0.0, effects=parse_effects(effects)))
+    log = mi_lidar.simulate(
+        mi_lidar.load_scene(scene_dict(floor_and_wall())),
+        p,
+        poses=pose,
+        seed=0,
+        model=SensorModel(range_sigma=0.0, effects=parse_effects(effects)),
+    )
     return p, log.ranges[0], log.hit[0]
 
 

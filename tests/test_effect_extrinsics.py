@@ -11,18 +11,20 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import mi_lidar
-from mi_lidar.scene.dicts import scene_dict
 from mi_lidar.core.effects import parse_effects
 from mi_lidar.core.effects.extrinsics import rotate_vector
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.scene.dicts import scene_dict
 
 from .calibration.scenes import analytic_ranges, floor_and_wall, pattern, unit_directions
 
 HEIGHT = 2.0  # m
 
 
-@pytest.mark.parametrize("rotation,translation", [((0, 0, 0), (0.3, -0.2, 0.5)), ((0.0, 0.02, -0.03), (0, 0, 0)),
-                                                  ((0.01, -0.015, 0.02), (-0.4, 0.1, 0.25))])
+@pytest.mark.parametrize(
+    "rotation,translation",
+    [((0, 0, 0), (0.3, -0.2, 0.5)), ((0.0, 0.02, -0.03), (0, 0, 0)), ((0.01, -0.015, 0.02), (-0.4, 0.1, 0.25))],
+)
 def test_pose_offset_moves_hits_where_geometry_says(rotation, translation):
     names = dict(zip(("rx", "ry", "rz", "tx", "ty", "tz"), (*rotation, *translation)))
     effect = "extrinsics(" + ", ".join(f"{k}={v}" for k, v in names.items()) + ")"
@@ -31,8 +33,13 @@ def test_pose_offset_moves_hits_where_geometry_says(rotation, translation):
     pose[:3, :3] = Rotation.from_rotvec([0, 0, yaw]).as_matrix()
     pose[2, 3] = HEIGHT
     p = pattern(360)
-    log = mi_lidar.simulate(mi_lidar.load_scene(scene_dict(floor_and_wall())), p, poses=pose, seed=0,
-                            model=SensorModel(range_sigma=0.0, effects=parse_effects(effect)))
+    log = mi_lidar.simulate(
+        mi_lidar.load_scene(scene_dict(floor_and_wall())),
+        p,
+        poses=pose,
+        seed=0,
+        model=SensorModel(range_sigma=0.0, effects=parse_effects(effect)),
+    )
     rotation_matrix = pose[:3, :3] @ Rotation.from_rotvec(rotation).as_matrix()
     directions = unit_directions(p.elevation, p.azimuth) @ rotation_matrix.T
     origin = pose[:3, 3] + pose[:3, :3] @ np.asarray(translation, float)
@@ -46,7 +53,8 @@ def test_rotation_vector_matches_rodrigues():
     omega = np.array([0.3, -0.2, 0.1])
     v = np.array([0.2, 0.5, -0.8])
     turned = rotate_vector(mi.Vector3f(*map(float, omega)), mi.Vector3f(*map(float, v)))
-    np.testing.assert_allclose(np.array([turned.x[0], turned.y[0], turned.z[0]]),
-                               Rotation.from_rotvec(omega).apply(v), atol=1e-6)
+    np.testing.assert_allclose(
+        np.array([turned.x[0], turned.y[0], turned.z[0]]), Rotation.from_rotvec(omega).apply(v), atol=1e-6
+    )
     at_zero = rotate_vector(mi.Vector3f(0, 0, 0), mi.Vector3f(*map(float, v)))
     np.testing.assert_allclose(np.array([at_zero.x[0], at_zero.y[0], at_zero.z[0]]), v, atol=1e-7)

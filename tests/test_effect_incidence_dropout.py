@@ -9,12 +9,15 @@ from .loop.helpers import finite_difference_check, hidden_log, mean_ll, recover,
 
 
 def test_keep_fraction_follows_cos_power():
-    """Rate at which the first element returns, per incidence bin matches cos(delta)^gamma within 3 sigma of the binomial noise."""
+    """Rate at which the first element returns, per incidence bin matches cos(delta)^gamma within 3 sigma of the
+    binomial noise."""
     scene, model, poses = room(20)
     log, _ = hidden_log(scene, model, poses, "incidence_dropout(gamma=2)")
     clean, _ = hidden_log(scene, model, poses, "incidence_dropout(gamma=0)")
     cos = clean.attributes["cos_incidence"][clean.hit]
-    kept = (log.hit & (log.attributes["element_id"] == clean.attributes["element_id"]))[clean.hit]  # first element returned
+    kept = (log.hit & (log.attributes["element_id"] == clean.attributes["element_id"]))[
+        clean.hit
+    ]  # first element returned
     for lo, hi in ((0.9, 1.0), (0.6, 0.7), (0.3, 0.4)):
         m = (cos >= lo) & (cos < hi)
         expect = np.mean(cos[m] ** 2)
@@ -36,8 +39,9 @@ def test_gradient_matches_finite_difference():
     scene, model, poses = room(4)
     log, _ = hidden_log(scene, model, poses, "incidence_dropout(gamma=1.5)")
     trial = parse_effects("incidence_dropout(gamma=1.2)")
-    auto, numeric = finite_difference_check(scene, model.__class__(**{**model.__dict__, "effects": trial}), log,
-                                            trial[0], "gamma", 1e-2)
+    auto, numeric = finite_difference_check(
+        scene, model.__class__(**{**model.__dict__, "effects": trial}), log, trial[0], "gamma", 1e-2
+    )
     assert auto == pytest.approx(numeric, rel=0.02)
 
 

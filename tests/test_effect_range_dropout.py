@@ -7,12 +7,15 @@ from .loop.helpers import hidden_log, mean_ll, recover, room
 
 
 def test_keep_fraction_follows_law():
-    """Rate at which the first element returns, per range bin matches exp(-rate (r/10)^power) within 3 binomial sigma + 0.02."""
+    """Rate at which the first element returns, per range bin matches exp(-rate (r/10)^power) within 3 binomial sigma +
+    0.02."""
     scene, model, poses = room(20)
     log, _ = hidden_log(scene, model, poses, "range_dropout(rate=2, power=1)")
     clean, _ = hidden_log(scene, model, poses, "range_dropout(rate=0)")
     r = clean.attributes["nominal_range"][clean.hit]
-    kept = (log.hit & (log.attributes["element_id"] == clean.attributes["element_id"]))[clean.hit]  # first element returned
+    kept = (log.hit & (log.attributes["element_id"] == clean.attributes["element_id"]))[
+        clean.hit
+    ]  # first element returned
     for lo, hi in ((0.5, 1.5), (3, 4), (6, 8)):
         m = (r >= lo) & (r < hi)
         expect = np.mean(np.exp(-2 * r[m] / 10))

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 import mi_lidar
-from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.effects import RangeNoise, parse_effects
 from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.rays import RayBatch
 
 from .conftest import SCENES
 
@@ -16,32 +16,44 @@ from .conftest import SCENES
 def test_parse_effects_round_trip():
     effects = parse_effects("range_noise(law=proportional, sigma0=0.005, k=0.001), range_noise(sigma0=0.02)")
     assert [e.describe() for e in effects] == [
-        "range_noise(law=proportional, sigma0=0.005, k=0.001)", "range_noise(law=constant, sigma0=0.02, k=0)"]
+        "range_noise(law=proportional, sigma0=0.005, k=0.001)",
+        "range_noise(law=constant, sigma0=0.02, k=0)",
+    ]
     assert parse_effects("") == []
 
 
-@pytest.mark.parametrize("law,sigma0,k,expected", [
-    ("constant", 0.05, 0.0, np.sqrt(0.005**2 + 0.05**2)),
-    ("proportional", 0.0, 0.01, np.sqrt(0.005**2 + (0.01 * 8.0) ** 2)),
-    ("physics", 0.0, 1e-4, np.sqrt(0.005**2 + 1e-4 * 64.0)),
-])
+@pytest.mark.parametrize(
+    "law,sigma0,k,expected",
+    [
+        ("constant", 0.05, 0.0, np.sqrt(0.005**2 + 0.05**2)),
+        ("proportional", 0.0, 0.01, np.sqrt(0.005**2 + (0.01 * 8.0) ** 2)),
+        ("physics", 0.0, 1e-4, np.sqrt(0.005**2 + 1e-4 * 64.0)),
+    ],
+)
 def test_range_noise_law_in_simulation(law, sigma0, k, expected):
-    # Wall at 8 m behind transparent layers (p = 0), facing the sensor: cos(incidence) > 0.99 near the centre, so r is 8 m within 1%.
+    # Wall at 8 m behind transparent layers (p = 0), facing the sensor: cos(incidence) > 0.99 near the centre, so r
+    # is 8 m within 1%.
     scene = mi_lidar.load_scene(SCENES / "permeable_layers.xml", p1=0.0, p2=0.0, p3=0.0)
     model, pose = mi_lidar.scene.scene_sensor_model(scene)
     model.effects = [RangeNoise(law=law, sigma0=sigma0, k=k)]
     logs = [mi_lidar.simulate(scene, "raster", model=model, seed=s) for s in range(3)]
-    centre = np.concatenate([
-        (log.ranges - log.attributes["nominal_range"])[0][log.attributes["cos_incidence"][0] > 0.99] for log in logs])
+    centre = np.concatenate(
+        [(log.ranges - log.attributes["nominal_range"])[0][log.attributes["cos_incidence"][0] > 0.99] for log in logs]
+    )
     assert len(centre) > 2000
     # Sample std of >2000 Gaussian draws: relative standard error < 1.6%; allow 6%.
     assert abs(centre.std() / expected - 1) < 0.06
 
 
 def test_effects_from_xml_are_traversed(tmp_path):
-    text = (SCENES / "permeable_layers.xml").read_text().replace(
-        '<integer name="max_segments" value="8"/>',
-        '<integer name="max_segments" value="8"/><string name="effects" value="range_noise(sigma0=0.03)"/>')
+    text = (
+        (SCENES / "permeable_layers.xml")
+        .read_text()
+        .replace(
+            '<integer name="max_segments" value="8"/>',
+            '<integer name="max_segments" value="8"/><string name="effects" value="range_noise(sigma0=0.03)"/>',
+        )
+    )
     path = tmp_path / "scene.xml"
     path.write_text(text)
     scene = mi_lidar.load_scene(path)
@@ -56,9 +68,13 @@ def test_likelihood_matches_pass_through_mixture():
     model, _ = mi_lidar.scene.scene_sensor_model(scene)
     table = ElementTable.from_scene(scene)
     n = 4
-    rays = RayBatch(origin=mi.Point3f(0, 0, 0), direction=mi.Vector3f(1, 0, 0),
-                                     beam=dr.zeros(mi.UInt32, n), time=dr.zeros(mi.Float, n),
-                                     ray_id=dr.arange(mi.UInt32, n))
+    rays = RayBatch(
+        origin=mi.Point3f(0, 0, 0),
+        direction=mi.Vector3f(1, 0, 0),
+        beam=dr.zeros(mi.UInt32, n),
+        time=dr.zeros(mi.Float, n),
+        ray_id=dr.arange(mi.UInt32, n),
+    )
     records = model.trace_segments(scene, table, rays)
     z = mi.Float([4.001, 8.0, 0.0, 5.0])
     hit = mi.Bool([True, True, False, True])

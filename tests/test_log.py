@@ -15,9 +15,15 @@ def small_log(scans=2):
     ranges = rng.uniform(1, 10, (scans, h, w)).astype(np.float32)
     hit = rng.random((scans, h, w)) > 0.3
     ranges[~hit] = np.nan
-    return Log(poses=np.stack([np.eye(4)] * scans), directions=d, ranges=ranges, hit=hit,
-               times=np.zeros((scans, h, w)), attributes={"label": rng.integers(0, 4, (scans, h, w)).astype(np.int32)},
-               sensor={"pattern": "test"})
+    return Log(
+        poses=np.stack([np.eye(4)] * scans),
+        directions=d,
+        ranges=ranges,
+        hit=hit,
+        times=np.zeros((scans, h, w)),
+        attributes={"label": rng.integers(0, 4, (scans, h, w)).astype(np.int32)},
+        sensor={"pattern": "test"},
+    )
 
 
 def test_round_trip_is_exact(tmp_path):

@@ -9,7 +9,19 @@ import numpy as np
 import pytest
 
 from mi_lidar.core.errors import PatternError
-from mi_lidar.core.patterns import PATTERN_NAMES, FiringPattern, from_table, get_pattern, ouster, packet_32x32, planar, raster, rosette, spinning, to_table
+from mi_lidar.core.patterns import (
+    PATTERN_NAMES,
+    FiringPattern,
+    from_table,
+    get_pattern,
+    ouster,
+    packet_32x32,
+    planar,
+    raster,
+    rosette,
+    spinning,
+    to_table,
+)
 from mi_lidar.core.patterns.vendor import HDL64E
 
 DATA = (Path(__file__).parents[1] / ".." / "shared" / "data").resolve()
@@ -43,13 +55,19 @@ def test_every_named_pattern_is_valid(name):
 
 
 def test_directions_follow_the_ros_convention():
-    p = FiringPattern("t", elevation=[[0.0, 0.0, math.pi / 2]], azimuth=[[0.0, math.pi / 2, 0.0]],
-                      time=[[0.0, 0.01, 0.02]], period=0.1)
+    p = FiringPattern(
+        "t",
+        elevation=[[0.0, 0.0, math.pi / 2]],
+        azimuth=[[0.0, math.pi / 2, 0.0]],
+        time=[[0.0, 0.01, 0.02]],
+        period=0.1,
+    )
     np.testing.assert_allclose(p.directions()[0], [[1, 0, 0], [0, 1, 0], [0, 0, 1]], atol=1e-7)
 
 
-@pytest.mark.parametrize("model,lo,hi,lasers,cycle", [("vlp16", -15.0, 15.0, 16, 55.296e-6),
-                                                      ("hdl32e", -30.67, 10.67, 32, 46.08e-6)])
+@pytest.mark.parametrize(
+    "model,lo,hi,lasers,cycle", [("vlp16", -15.0, 15.0, 16, 55.296e-6), ("hdl32e", -30.67, 10.67, 32, 46.08e-6)]
+)
 def test_velodyne_elevations_and_timing_match_the_manuals(model, lo, hi, lasers, cycle):
     p = spinning(model)
     assert p.shape == (lasers, math.floor(0.1 / cycle))
@@ -95,7 +113,9 @@ def test_hdl64e_uses_the_published_calibration_and_its_beam_origins():
     p = spinning("hdl64e")
     assert p.shape[0] == 64 and sorted(p.beam_id.tolist()) == list(range(64))
     np.testing.assert_allclose(np.degrees(p.elevation[:, 0]), np.asarray(HDL64E.elevation_deg)[p.beam_id])
-    assert np.degrees(p.elevation).max() == pytest.approx(1.9601) and np.degrees(p.elevation).min() == pytest.approx(-24.5551)
+    assert np.degrees(p.elevation).max() == pytest.approx(1.9601) and np.degrees(p.elevation).min() == pytest.approx(
+        -24.5551
+    )
     # upper and lower blocks fire together
     upper, lower = p.beam_id.tolist().index(5), p.beam_id.tolist().index(37)
     np.testing.assert_allclose(p.time[upper], p.time[lower])
@@ -139,9 +159,14 @@ def test_ouster_points_follow_the_vendor_formula():
     enc = 2 * math.pi * (1 - mid / 1024)[None, :]
     theta = -np.radians(meta["beam_azimuth_angles"])[:, None]
     phi = np.radians(meta["beam_altitude_angles"])[:, None]
-    lidar = np.stack(np.broadcast_arrays((r - n) * np.cos(enc + theta) * np.cos(phi) + n * np.cos(enc),
-                                         (r - n) * np.sin(enc + theta) * np.cos(phi) + n * np.sin(enc),
-                                         (r - n) * np.sin(phi)), axis=-1)
+    lidar = np.stack(
+        np.broadcast_arrays(
+            (r - n) * np.cos(enc + theta) * np.cos(phi) + n * np.cos(enc),
+            (r - n) * np.sin(enc + theta) * np.cos(phi) + n * np.sin(enc),
+            (r - n) * np.sin(phi),
+        ),
+        axis=-1,
+    )
     transform = np.asarray(meta["lidar_to_sensor_transform"], dtype=np.float64).reshape(4, 4)
     expected = lidar @ transform[:3, :3].T + transform[:3, 3] / 1000
     point = q.origin + r * q.directions().astype(np.float64)
@@ -150,9 +175,13 @@ def test_ouster_points_follow_the_vendor_formula():
 
 def test_ouster_nested_metadata_layout(tmp_path):
     meta = json.loads(need(OUSTER_JSON).read_text())
-    nested = {"beam_intrinsics": {k: meta[k] for k in ("beam_altitude_angles", "beam_azimuth_angles",
-                                                        "lidar_origin_to_beam_origin_mm")},
-              "lidar_data_format": meta["data_format"], "config_params": {"lidar_mode": "1024x20"}}
+    nested = {
+        "beam_intrinsics": {
+            k: meta[k] for k in ("beam_altitude_angles", "beam_azimuth_angles", "lidar_origin_to_beam_origin_mm")
+        },
+        "lidar_data_format": meta["data_format"],
+        "config_params": {"lidar_mode": "1024x20"},
+    }
     path = tmp_path / "nested.json"
     path.write_text(json.dumps(nested))
     p = ouster(path)
@@ -183,7 +212,9 @@ def test_packet_is_32_yaws_by_32_pitches_over_1_8_degrees():
 def test_planar_180_by_1_degree():
     p = get_pattern("planar-180")
     assert p.shape == (1, 180)
-    np.testing.assert_allclose(np.degrees(p.azimuth[0]), np.arange(-90, 90), atol=1e-9)  # CARMEN: theta - pi/2 + i pi/180
+    np.testing.assert_allclose(
+        np.degrees(p.azimuth[0]), np.arange(-90, 90), atol=1e-9
+    )  # CARMEN: theta - pi/2 + i pi/180
     assert np.all(p.elevation == 0) and np.all(np.diff(p.time[0]) > 0)
     q = planar(360)
     np.testing.assert_allclose(np.diff(np.degrees(np.unwrap(q.azimuth[0]))), 1.0)
@@ -247,54 +278,60 @@ def test_user_npy_rows_with_times_infer_the_period(tmp_path):
 # ------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("call,named", [
-    (lambda: get_pattern("vlp-16"), "'vlp-16'"),
-    (lambda: get_pattern("vlp16", speed=3), "speed"),
-    (lambda: planar(0), "n_bearings"),
-    (lambda: planar(-3), "-3"),
-    (lambda: planar(2.5), "2.5"),
-    (lambda: planar(360, fov_deg=400), "400"),
-    (lambda: planar(360, period=0), "period"),
-    (lambda: planar(360, start_deg=float("nan")), "start_deg"),
-    (lambda: spinning("hdl128"), "'hdl128'"),
-    (lambda: spinning("vlp16", rpm=-600), "-600"),
-    (lambda: spinning("vlp16", rpm=2e7), "20000000.0"),
-    (lambda: spinning("vlp16", n_firings=4000), "4000"),
-    (lambda: ouster(beams=48), "48"),
-    (lambda: ouster(columns=0), "columns"),
-    (lambda: ouster("/nonexistent/meta.json"), "/nonexistent/meta.json"),
-    (lambda: raster(width=0), "width"),
-    (lambda: raster(v_fov_deg=200), "200"),
-    (lambda: rosette(n_points=0), "n_points"),
-    (lambda: rosette(fov_deg=180), "180"),
-    (lambda: rosette(petals=0), "petals"),
-    (lambda: from_table("/nonexistent/rays.csv"), "/nonexistent/rays.csv"),
-    (lambda: from_table("rays.txt"), "rays.txt"),
-    (lambda: FiringPattern("bad", [[0.0, float("inf")]], [[0.0, 0.0]], [[0.0, 0.0]], 0.1), "inf"),
-    (lambda: FiringPattern("bad", [[2.0]], [[0.0]], [[0.0]], 0.1), "2.0"),
-    (lambda: FiringPattern("bad", [[0.0]], [[0.0]], [[0.2]], 0.1), "0.2"),
-    (lambda: FiringPattern("bad", [[0.0]], [[0.0, 1.0]], [[0.0]], 0.1), "(1, 2)"),
-    (lambda: FiringPattern("bad", [[0.0]], [[0.0]], [[0.0]], 0.1, origin=np.zeros((1, 1, 2))), "(1, 1, 2)"),
-    (lambda: FiringPattern("bad", [[0.0]], [[0.0]], [[0.0]], 0.1, beam_id=[0.5]), "float64"),
-])
+@pytest.mark.parametrize(
+    "call,named",
+    [
+        (lambda: get_pattern("vlp-16"), "'vlp-16'"),
+        (lambda: get_pattern("vlp16", speed=3), "speed"),
+        (lambda: planar(0), "n_bearings"),
+        (lambda: planar(-3), "-3"),
+        (lambda: planar(2.5), "2.5"),
+        (lambda: planar(360, fov_deg=400), "400"),
+        (lambda: planar(360, period=0), "period"),
+        (lambda: planar(360, start_deg=float("nan")), "start_deg"),
+        (lambda: spinning("hdl128"), "'hdl128'"),
+        (lambda: spinning("vlp16", rpm=-600), "-600"),
+        (lambda: spinning("vlp16", rpm=2e7), "20000000.0"),
+        (lambda: spinning("vlp16", n_firings=4000), "4000"),
+        (lambda: ouster(beams=48), "48"),
+        (lambda: ouster(columns=0), "columns"),
+        (lambda: ouster("/nonexistent/meta.json"), "/nonexistent/meta.json"),
+        (lambda: raster(width=0), "width"),
+        (lambda: raster(v_fov_deg=200), "200"),
+        (lambda: rosette(n_points=0), "n_points"),
+        (lambda: rosette(fov_deg=180), "180"),
+        (lambda: rosette(petals=0), "petals"),
+        (lambda: from_table("/nonexistent/rays.csv"), "/nonexistent/rays.csv"),
+        (lambda: from_table("rays.txt"), "rays.txt"),
+        (lambda: FiringPattern("bad", [[0.0, float("inf")]], [[0.0, 0.0]], [[0.0, 0.0]], 0.1), "inf"),
+        (lambda: FiringPattern("bad", [[2.0]], [[0.0]], [[0.0]], 0.1), "2.0"),
+        (lambda: FiringPattern("bad", [[0.0]], [[0.0]], [[0.2]], 0.1), "0.2"),
+        (lambda: FiringPattern("bad", [[0.0]], [[0.0, 1.0]], [[0.0]], 0.1), "(1, 2)"),
+        (lambda: FiringPattern("bad", [[0.0]], [[0.0]], [[0.0]], 0.1, origin=np.zeros((1, 1, 2))), "(1, 1, 2)"),
+        (lambda: FiringPattern("bad", [[0.0]], [[0.0]], [[0.0]], 0.1, beam_id=[0.5]), "float64"),
+    ],
+)
 def test_errors_name_the_value(call, named):
     with pytest.raises(PatternError) as info:
         call()
     assert named in str(info.value)
 
 
-@pytest.mark.parametrize("text,named", [
-    ("elevation_deg\n1\n", "azimuth_deg"),
-    ("elevation_deg,azimuth_deg\n", "no rays"),
-    ("elevation_deg,azimuth_deg\n1,abc\n", "'abc'"),
-    ("elevation_deg,azimuth_deg\n1,nan\n", "nan"),
-    ("elevation_deg,azimuth_deg,row\n1,2,0\n", "row/col"),
-    ("elevation_deg,azimuth_deg,row,col\n1,2,0,0\n1,2,0,0\n", "row=0, col=0"),
-    ("elevation_deg,azimuth_deg,row,col\n1,2,0,0\n1,2,1,1\n", "row=0, col=1"),
-    ("elevation_deg,azimuth_deg,row,col\n1,2,0,-1\n", "-1"),
-    ("elevation_deg,azimuth_deg,time_s\n1,2,-0.5\n", "-0.5"),
-    ("elevation_deg,azimuth_deg\n100,0\n", "100.0"),
-])
+@pytest.mark.parametrize(
+    "text,named",
+    [
+        ("elevation_deg\n1\n", "azimuth_deg"),
+        ("elevation_deg,azimuth_deg\n", "no rays"),
+        ("elevation_deg,azimuth_deg\n1,abc\n", "'abc'"),
+        ("elevation_deg,azimuth_deg\n1,nan\n", "nan"),
+        ("elevation_deg,azimuth_deg,row\n1,2,0\n", "row/col"),
+        ("elevation_deg,azimuth_deg,row,col\n1,2,0,0\n1,2,0,0\n", "row=0, col=0"),
+        ("elevation_deg,azimuth_deg,row,col\n1,2,0,0\n1,2,1,1\n", "row=0, col=1"),
+        ("elevation_deg,azimuth_deg,row,col\n1,2,0,-1\n", "-1"),
+        ("elevation_deg,azimuth_deg,time_s\n1,2,-0.5\n", "-0.5"),
+        ("elevation_deg,azimuth_deg\n100,0\n", "100.0"),
+    ],
+)
 def test_malformed_csv_is_refused(tmp_path, text, named):
     path = tmp_path / "t.csv"
     path.write_text(text)
@@ -312,16 +349,22 @@ def test_malformed_npy_is_refused(tmp_path, array, named):
     assert named in str(info.value)
 
 
-@pytest.mark.parametrize("content,named", [
-    ("{not json", "not valid JSON"),
-    ("[1, 2]", "list"),
-    ('{"beam_altitude_angles": [1, 2]}', "beam_azimuth_angles"),
-    ('{"beam_altitude_angles": [1, 2], "beam_azimuth_angles": [0], "lidar_mode": "1024x10"}', "1 beam_azimuth"),
-    ('{"beam_altitude_angles": [1, null], "beam_azimuth_angles": [0, 0], "lidar_mode": "1024x10"}', "None"),
-    ('{"beam_altitude_angles": [1], "beam_azimuth_angles": [0]}', "columns_per_frame"),
-    ('{"beam_altitude_angles": [1], "beam_azimuth_angles": [0], "lidar_mode": "512x10",'
-     ' "lidar_to_sensor_transform": [2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}', "[2, 0, 0"),
-])
+@pytest.mark.parametrize(
+    "content,named",
+    [
+        ("{not json", "not valid JSON"),
+        ("[1, 2]", "list"),
+        ('{"beam_altitude_angles": [1, 2]}', "beam_azimuth_angles"),
+        ('{"beam_altitude_angles": [1, 2], "beam_azimuth_angles": [0], "lidar_mode": "1024x10"}', "1 beam_azimuth"),
+        ('{"beam_altitude_angles": [1, null], "beam_azimuth_angles": [0, 0], "lidar_mode": "1024x10"}', "None"),
+        ('{"beam_altitude_angles": [1], "beam_azimuth_angles": [0]}', "columns_per_frame"),
+        (
+            '{"beam_altitude_angles": [1], "beam_azimuth_angles": [0], "lidar_mode": "512x10",'
+            ' "lidar_to_sensor_transform": [2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}',
+            "[2, 0, 0",
+        ),
+    ],
+)
 def test_broken_ouster_metadata_is_refused(tmp_path, content, named):
     path = tmp_path / "meta.json"
     path.write_text(content)

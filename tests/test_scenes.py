@@ -50,8 +50,9 @@ def test_layer_pass_fraction_is_binomial():
 
 @pytest.mark.parametrize("probabilities", [(0.3, 0.5, 0.2), (0.6, 0.1, 0.9)])
 def test_first_return_frequencies_match_pass_through_law(probabilities):
-    scene = mi_lidar.load_scene(SCENES / "permeable_layers.xml", p1=probabilities[0], p2=probabilities[1],
-                                p3=probabilities[2])
+    scene = mi_lidar.load_scene(
+        SCENES / "permeable_layers.xml", p1=probabilities[0], p2=probabilities[1], p3=probabilities[2]
+    )
     counts = np.zeros(4)
     for seed in range(4):
         labels = tensor_to_numpy(mi.render(scene, seed=seed))["label"].ravel()
@@ -79,8 +80,11 @@ def test_urban_street_labels():
 
 @pytest.mark.parametrize("rotation", ["", '<rotate z="1" angle="33"/><rotate x="1" angle="7"/>'])
 def test_render_and_simulate_agree_ray_for_ray(tmp_path, rotation):
-    text = (SCENES / "offroad.xml").read_text().replace(
-        '<transform name="to_world"><translate', f'<transform name="to_world">{rotation}<translate')
+    text = (
+        (SCENES / "offroad.xml")
+        .read_text()
+        .replace('<transform name="to_world"><translate', f'<transform name="to_world">{rotation}<translate')
+    )
     path = SCENES / f".rotated_{tmp_path.name}.xml"
     path.write_text(text)
     try:
@@ -109,16 +113,28 @@ def test_same_seed_identical_different_seeds_independent():
 def test_ellipsoid_returns_match_element_statistics():
     # Rays along +x through the centre of one ellipsoid (sigma_x = 0.5 m at x = 10 m, extent 3):
     # returns follow N(10, 0.5^2) truncated to [8.5, 11.5] (std 0.5 * 0.9866).
-    scene = mi.load_dict({"type": "scene", "veg": {
-        "type": "ellipsoids", "centers": mi.TensorXf(np.array([[10.0, 0, 0]], np.float32)),
-        "scales": mi.TensorXf(np.array([[0.5, 0.3, 0.3]], np.float32)),
-        "quaternions": mi.TensorXf(np.array([[0, 0, 0, 1.0]], np.float32))}})
-    from mi_lidar.core.rays import RayBatch
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "veg": {
+                "type": "ellipsoids",
+                "centers": mi.TensorXf(np.array([[10.0, 0, 0]], np.float32)),
+                "scales": mi.TensorXf(np.array([[0.5, 0.3, 0.3]], np.float32)),
+                "quaternions": mi.TensorXf(np.array([[0, 0, 0, 1.0]], np.float32)),
+            },
+        }
+    )
     from mi_lidar.core.elements import ElementTable
+    from mi_lidar.core.rays import RayBatch
 
     n = 100_000
-    rays = RayBatch(origin=mi.Point3f(0, 0, 0), direction=mi.Vector3f(1, 0, 0), beam=dr.zeros(mi.UInt32, n),
-                    time=dr.zeros(mi.Float, n), ray_id=dr.arange(mi.UInt32, n))
+    rays = RayBatch(
+        origin=mi.Point3f(0, 0, 0),
+        direction=mi.Vector3f(1, 0, 0),
+        beam=dr.zeros(mi.UInt32, n),
+        time=dr.zeros(mi.Float, n),
+        ray_id=dr.arange(mi.UInt32, n),
+    )
     out = mi_lidar.SensorModel().simulate_rays(scene, ElementTable.from_scene(scene), rays, seed=2)
     z = np.asarray(out["range"])
     ref = stats.truncnorm(-3, 3, loc=10.0, scale=0.5)

@@ -14,9 +14,20 @@ from mi_lidar.core.segment import ELLIPSOID, Segment, log_density, ray_restricte
 
 def make_segment(n, mean, sigma, lo, hi):
     full = lambda v: dr.full(mi.Float, v, n)  # noqa: E731
-    return Segment(valid=dr.full(mi.Bool, True, n), nominal=full(lo), p=full(1.0), mean=full(mean), sigma=full(sigma),
-                   lo=full(lo), hi=full(hi), cos_incidence=full(1.0), element=dr.zeros(mi.UInt32, n),
-                   shape=dr.zeros(mi.UInt32, n), label=dr.zeros(mi.UInt32, n), kind=dr.full(mi.UInt32, ELLIPSOID, n))
+    return Segment(
+        valid=dr.full(mi.Bool, True, n),
+        nominal=full(lo),
+        p=full(1.0),
+        mean=full(mean),
+        sigma=full(sigma),
+        lo=full(lo),
+        hi=full(hi),
+        cos_incidence=full(1.0),
+        element=dr.zeros(mi.UInt32, n),
+        shape=dr.zeros(mi.UInt32, n),
+        label=dr.zeros(mi.UInt32, n),
+        kind=dr.full(mi.UInt32, ELLIPSOID, n),
+    )
 
 
 @pytest.mark.parametrize("lo,hi", [(-math.inf, math.inf), (9.0, 10.5), (10.5, 12.0)])
@@ -46,8 +57,9 @@ def test_ray_restricted_gaussian_axis_aligned():
     center = mi.Point3f(10, 0, 0)
     scale = mi.Vector3f(0.5, 0.2, 0.3)
     quat = mi.Vector4f(0, 0, 0, 1)
-    mean, sigma, lo, hi = ray_restricted_gaussian(center, scale, quat, 3.0, mi.Point3f([0, 0], [0, 0.3], [0, 0]),
-                                                  mi.Vector3f(1, 0, 0))
+    mean, sigma, lo, hi = ray_restricted_gaussian(
+        center, scale, quat, 3.0, mi.Point3f([0, 0], [0, 0.3], [0, 0]), mi.Vector3f(1, 0, 0)
+    )
     np.testing.assert_allclose(np.asarray(mean), [10, 10], atol=1e-5)
     np.testing.assert_allclose(np.broadcast_to(np.asarray(sigma), (2,)), [0.5, 0.5], atol=1e-6)
     np.testing.assert_allclose(np.asarray(lo), [8.5, 10 - 0.5 * math.sqrt(9 - 2.25)], atol=1e-5)
@@ -61,9 +73,13 @@ def test_ray_restricted_gaussian_rotated_matches_direct_formula():
     angle = 0.7
     q = np.r_[axis * math.sin(angle / 2), math.cos(angle / 2)]
     x, y, z, w = q
-    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                    [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                    [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    rot = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
     s = np.array([0.4, 0.9, 0.2])
     cov = rot @ np.diag(s**2) @ rot.T
     mu, o = np.array([5.0, 1.0, 0.5]), np.zeros(3)
@@ -73,7 +89,8 @@ def test_ray_restricted_gaussian_rotated_matches_direct_formula():
     a = d @ prec @ d
     expect_mean = d @ prec @ (mu - o) / a
     f = lambda v: [float(x) for x in v]  # noqa: E731
-    mean, sigma, _, _ = ray_restricted_gaussian(mi.Point3f(*f(mu)), mi.Vector3f(*f(s)), mi.Vector4f(*f(q)), 3.0,
-                                                mi.Point3f(*f(o)), mi.Vector3f(*f(d)))
+    mean, sigma, _, _ = ray_restricted_gaussian(
+        mi.Point3f(*f(mu)), mi.Vector3f(*f(s)), mi.Vector4f(*f(q)), 3.0, mi.Point3f(*f(o)), mi.Vector3f(*f(d))
+    )
     assert abs(np.asarray(mean)[0] - expect_mean) < 1e-4
     assert abs(np.asarray(sigma)[0] - 1 / math.sqrt(a)) < 1e-5

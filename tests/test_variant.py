@@ -55,9 +55,14 @@ def test_plugins_are_registered_again_after_a_variant_change():
 
     mi.set_variant("llvm_ad_mono")
     try:
-        scene = mi.load_dict({"type": "scene", "sensor": {"type": "lidar", "pattern": "planar-180"},
-                              "integrator": {"type": "lidar_integrator"},
-                              "ball": {"type": "sphere", "bsdf": {"type": "lidar_material", "p_hit": 1.0}}})
+        scene = mi.load_dict(
+            {
+                "type": "scene",
+                "sensor": {"type": "lidar", "pattern": "planar-180"},
+                "integrator": {"type": "lidar_integrator"},
+                "ball": {"type": "sphere", "bsdf": {"type": "lidar_material", "p_hit": 1.0}},
+            }
+        )
         image = mi.render(scene)
         assert image.shape == (1, 180, 8)
     finally:

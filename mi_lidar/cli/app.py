@@ -54,8 +54,13 @@ def versions() -> dict[str, str]:
     llvm = os.environ.get("DRJIT_LIBLLVM_PATH", "system default")
     with contextlib.suppress(RuntimeError):  # the backend reports no version before it is initialised
         llvm = "{}.{}.{} ({})".format(*dr.detail.llvm_version(), llvm)
-    return {"mi-lidar": __version__, "Mitsuba": mi.__version__, "Dr.Jit": dr.__version__,
-            "variant": str(mi.variant()), "LLVM": llvm}
+    return {
+        "mi-lidar": __version__,
+        "Mitsuba": mi.__version__,
+        "Dr.Jit": dr.__version__,
+        "variant": str(mi.variant()),
+        "LLVM": llvm,
+    }
 
 
 def _version_callback(value: bool):
@@ -67,7 +72,12 @@ def _version_callback(value: bool):
 
 @app.callback()
 def main(
-    version: bool = typer.Option(False, "--version", callback=_version_callback, is_eager=True,
-                                 help="Print the versions of mi-lidar, Mitsuba, Dr.Jit, the variant and LLVM."),
+    version: bool = typer.Option(
+        False,
+        "--version",
+        callback=_version_callback,
+        is_eager=True,
+        help="Print the versions of mi-lidar, Mitsuba, Dr.Jit, the variant and LLVM.",
+    ),
 ):
     """Lidar simulation for robot application development."""

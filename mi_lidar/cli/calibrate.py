@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -21,11 +20,17 @@ def result_table(result: FitResult) -> Table:
         table.add_column(column, justify="left" if column == "parameter" else "right")
     for name in result.names:
         before, after = result.initial[name], result.fitted[name]
-        table.add_row(name, f"{before.size:,}", f"{before.mean():.6g}", f"{after.mean():.6g}",
-                      f"{abs(after - before).max():.3g}")
+        table.add_row(
+            name, f"{before.size:,}", f"{before.mean():.6g}", f"{after.mean():.6g}", f"{abs(after - before).max():.3g}"
+        )
     table.add_section()
-    table.add_row("held-out NLL (nats/ray): initial / counting / fitted", "",
-                  f"{result.initial_nll:.5f}", f"{result.counting_nll:.5f}", f"{result.fitted_nll:.5f}")
+    table.add_row(
+        "held-out NLL (nats/ray): initial / counting / fitted",
+        "",
+        f"{result.initial_nll:.5f}",
+        f"{result.counting_nll:.5f}",
+        f"{result.fitted_nll:.5f}",
+    )
     table.add_row("Adam steps" + (" (early stop)" if result.stopped_early else ""), str(result.steps_run), "", "", "")
     return table
 
@@ -33,17 +38,23 @@ def result_table(result: FitResult) -> Table:
 @app.command(rich_help_panel="The loop")
 def calibrate(
     log: Path = typer.Argument(..., help="Measured log (`.npz`).", exists=True, dir_okay=False),
-    scene: Path = typer.Argument(..., help="Scene XML whose `lidar` sensor recorded the log.", exists=True, dir_okay=False),
-    params: list[str] = typer.Option(..., "--params", "-p", help="Parameter glob; repeat for more, e.g. `elements.*.p_hit`, `sensor.*`."),
+    scene: Path = typer.Argument(
+        ..., help="Scene XML whose `lidar` sensor recorded the log.", exists=True, dir_okay=False
+    ),
+    params: list[str] = typer.Option(
+        ..., "--params", "-p", help="Parameter glob; repeat for more, e.g. `elements.*.p_hit`, `sensor.*`."
+    ),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
     steps: int = typer.Option(200, min=1, help="Maximum Adam steps."),
     batch_size: int = typer.Option(1 << 16, min=1, help="Training rays per step."),
     holdout: float = typer.Option(0.2, help="Fraction of rays held out for validation and early stopping."),
     seed: int = typer.Option(0, min=0, help="Seed of the split and of the mini-batch draws."),
-    lr: Optional[list[str]] = typer.Option(None, "--lr", help="Learning rate override GLOB=RATE; repeatable."),
+    lr: list[str] | None = typer.Option(None, "--lr", help="Learning rate override GLOB=RATE; repeatable."),
     lr_scale: float = typer.Option(1.0, help="Factor on every learning rate."),
     patience: int = typer.Option(5, min=1, help="Held-out evaluations without improvement before stopping."),
-    counting_start: bool = typer.Option(True, help="Start hit probabilities from the counting estimate hits/(hits+pass-throughs)."),
+    counting_start: bool = typer.Option(
+        True, help="Start hit probabilities from the counting estimate hits/(hits+pass-throughs)."
+    ),
 ):
     """Fit scene and sensor parameters to a log by Dr.Jit autodiff; write the calibrated scene and a report.
 
@@ -57,20 +68,36 @@ def calibrate(
 
         mi-lidar calibrate drive.npz scene.xml -p 'sensor.elevation_offset' -p 'sensor.range_bias' --out out/intrinsics
     """
-    with Progress(TextColumn("calibrating [bold]{task.description}"), BarColumn(), TimeElapsedColumn(),
-                  console=console, transient=True) as bar:
+    with Progress(
+        TextColumn("calibrating [bold]{task.description}"),
+        BarColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
         task = bar.add_task("counting start", total=steps)
         held = {"value": float("nan")}
 
         def progress(step, total, train, held_out):
             if held_out == held_out:
                 held["value"] = held_out
-            bar.update(task, completed=step,
-                       description=f"loss {train:.4f} | held-out {held['value']:.4f} nats/ray")
+            bar.update(task, completed=step, description=f"loss {train:.4f} | held-out {held['value']:.4f} nats/ray")
 
-        result, files = calibrate_command(log, scene, params, out, steps=steps, batch_size=batch_size,
-                                          holdout=holdout, seed=seed, lr=lr, lr_scale=lr_scale, patience=patience,
-                                          progress=progress, counting_start=counting_start)
+        result, files = calibrate_command(
+            log,
+            scene,
+            params,
+            out,
+            steps=steps,
+            batch_size=batch_size,
+            holdout=holdout,
+            seed=seed,
+            lr=lr,
+            lr_scale=lr_scale,
+            patience=patience,
+            progress=progress,
+            counting_start=counting_start,
+        )
     console.print(result_table(result))
     for path in files.values():
         console.print(f"wrote {path}")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 from rich.table import Table
@@ -11,18 +10,25 @@ from rich.table import Table
 from mi_lidar.cli.app import app, console
 
 
-def _reader_options(metadata: Optional[Path], calibration: Optional[Path]) -> dict:
+def _reader_options(metadata: Path | None, calibration: Path | None) -> dict:
     return {k: v for k, v in (("metadata", metadata), ("calibration", calibration)) if v is not None}
 
 
 @app.command(rich_help_panel="Sensor files")
 def convert(
-    source: Path = typer.Argument(..., help="Input: .pcap (Ouster/Velodyne), CARMEN .log[.gz], .bin, .ply, .pcd, .las, ROS 2 bag folder, .npz log, .exr.", exists=True),
+    source: Path = typer.Argument(
+        ...,
+        help="Input: .pcap (Ouster/Velodyne), CARMEN .log[.gz], .bin, .ply, .pcd, .las, ROS 2 bag folder, "
+        ".npz log, .exr.",
+        exists=True,
+    ),
     target: Path = typer.Argument(..., help="Output file; its extension picks the format unless --to is given."),
-    to: Optional[str] = typer.Option(None, help="Output format: npz, bin, ply, pcd, las, rosbag2, exr, png."),
-    scan: Optional[int] = typer.Option(None, min=0, help="Scan to write when the output holds one scan (required for multi-scan logs)."),
-    metadata: Optional[Path] = typer.Option(None, help="Ouster metadata JSON (default: next to the pcap)."),
-    calibration: Optional[Path] = typer.Option(None, help="Velodyne calibration YAML (default: next to the pcap)."),
+    to: str | None = typer.Option(None, help="Output format: npz, bin, ply, pcd, las, rosbag2, exr, png."),
+    scan: int | None = typer.Option(
+        None, min=0, help="Scan to write when the output holds one scan (required for multi-scan logs)."
+    ),
+    metadata: Path | None = typer.Option(None, help="Ouster metadata JSON (default: next to the pcap)."),
+    calibration: Path | None = typer.Option(None, help="Velodyne calibration YAML (default: next to the pcap)."),
 ):
     """Convert a Lidar file to another format, keeping misses explicit where the format allows.
 
@@ -44,8 +50,8 @@ def convert(
 @app.command(rich_help_panel="Sensor files")
 def info(
     source: Path = typer.Argument(..., help="Any file `convert` reads.", exists=True),
-    metadata: Optional[Path] = typer.Option(None, help="Ouster metadata JSON (default: next to the pcap)."),
-    calibration: Optional[Path] = typer.Option(None, help="Velodyne calibration YAML (default: next to the pcap)."),
+    metadata: Path | None = typer.Option(None, help="Ouster metadata JSON (default: next to the pcap)."),
+    calibration: Path | None = typer.Option(None, help="Velodyne calibration YAML (default: next to the pcap)."),
 ):
     """Summarise a Lidar file: sensor, beams, firings, scans, miss fraction, range span, pose extents.
 
@@ -64,9 +70,12 @@ def info(
     table.add_column("value", justify="right")
     s, h, w = summary["shape"]
     rows = [
-        ("format", summary["format"]), ("sensor", summary["sensor"]),
-        ("scans x beams x firings", f"{s} x {h} x {w}"), ("rays", f"{summary['rays']:,}"),
-        ("miss fraction", f"{summary['miss_fraction']:.1%}"), ("invalid cells", f"{summary['invalid_fraction']:.1%}"),
+        ("format", summary["format"]),
+        ("sensor", summary["sensor"]),
+        ("scans x beams x firings", f"{s} x {h} x {w}"),
+        ("rays", f"{summary['rays']:,}"),
+        ("miss fraction", f"{summary['miss_fraction']:.1%}"),
+        ("invalid cells", f"{summary['invalid_fraction']:.1%}"),
     ]
     if summary["range_m"]:
         rows.append(("range min / median / max (m)", " / ".join(f"{v:.2f}" for v in summary["range_m"])))

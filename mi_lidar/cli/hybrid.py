@@ -14,13 +14,16 @@ from mi_lidar.cli.render import scan_summary
 
 @app.command("synth-world", rich_help_panel="Hybrid scenes")
 def synth_world(
-    out: Path = typer.Option(..., "--out", "-o", help="Output log (`.npz`) with ground-truth `label` and `instance` per ray."),
+    out: Path = typer.Option(
+        ..., "--out", "-o", help="Output log (`.npz`) with ground-truth `label` and `instance` per ray."
+    ),
     seed: int = typer.Option(11, min=0, help="World seed (layout, objects, noise)."),
     length: float = typer.Option(100.0, min=10.0, max=10_000.0, help="World length along the vehicle path (m)."),
     width: float = typer.Option(50.0, min=10.0, max=10_000.0, help="World width (m)."),
     spacing: float = typer.Option(1.5, min=0.1, help="Distance between scans along the path (m)."),
 ):
-    """Generate a synthetic off-road world (terrain, trees and shrubs of leaf triangles, grass, rocks) and log a drive through it with a true sensor (beam divergence, mixed pixels, dropouts).
+    """Generate a synthetic off-road world (terrain, trees and shrubs of leaf triangles, grass, rocks) and log a drive
+    through it with a true sensor (beam divergence, mixed pixels, dropouts).
 
     Examples:
 
@@ -40,7 +43,9 @@ def synth_world(
 
 @app.command("fit-scene", rich_help_panel="Hybrid scenes")
 def fit_scene(
-    log: Path = typer.Argument(..., help="Labeled log (`.npz`), e.g. from `mi-lidar synth-world`.", exists=True, dir_okay=False),
+    log: Path = typer.Argument(
+        ..., help="Labeled log (`.npz`), e.g. from `mi-lidar synth-world`.", exists=True, dir_okay=False
+    ),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the scene XML, PLY assets and previews."),
     name: str = typer.Option("scene", help="Scene name (XML file stem)."),
 ):
@@ -55,8 +60,9 @@ def fit_scene(
     console.print(f"wrote {run(log, out, name=name)}")
 
 
-primitives_app = typer.Typer(cls=FriendlyGroup, help="The primitive library: labeled objects cut from fitted scenes.",
-                             no_args_is_help=True)
+primitives_app = typer.Typer(
+    cls=FriendlyGroup, help="The primitive library: labeled objects cut from fitted scenes.", no_args_is_help=True
+)
 app.add_typer(primitives_app, name="primitives", rich_help_panel="Hybrid scenes")
 
 
@@ -133,11 +139,16 @@ def annotate(
 
 @app.command(rich_help_panel="Hybrid scenes")
 def compose(
-    annotation: Path = typer.Argument(..., help="Annotation JSON (from `mi-lidar annotate` or written by hand).", exists=True, dir_okay=False),
-    library: Path = typer.Option(..., "--library", "-l", help="Primitive library folder.", exists=True, file_okay=False),
+    annotation: Path = typer.Argument(
+        ..., help="Annotation JSON (from `mi-lidar annotate` or written by hand).", exists=True, dir_okay=False
+    ),
+    library: Path = typer.Option(
+        ..., "--library", "-l", help="Primitive library folder.", exists=True, file_okay=False
+    ),
     out: Path = typer.Option(..., "--out", "-o", help="Output scene XML."),
 ):
-    """Build a new scene from an annotation: per object, the primitive of its class with the closest box, placed at its pose.
+    """Build a new scene from an annotation: per object, the primitive of its class with the closest box, placed at its
+    pose.
 
     Example:
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -13,11 +12,19 @@ from mi_lidar.cli.app import app, console
 @app.command("compare", rich_help_panel="The loop")
 def compare_command(
     log: Path = typer.Argument(..., help="Measured log (any format `convert` reads).", exists=True),
-    scene: Path = typer.Argument(..., help="Scene XML of the model (its sensor and integrator settings and effects).", exists=True, dir_okay=False),
-    out: Path = typer.Option(..., "--out", "-o", help="Report folder: report.md/.html, PNG plots, residual image, residuals.ply."),
+    scene: Path = typer.Argument(
+        ...,
+        help="Scene XML of the model (its sensor and integrator settings and effects).",
+        exists=True,
+        dir_okay=False,
+    ),
+    out: Path = typer.Option(
+        ..., "--out", "-o", help="Report folder: report.md/.html, PNG plots, residual image, residuals.ply."
+    ),
     seed: int = typer.Option(0, min=0, help="Seed of the simulated scan."),
 ):
-    """Compare the model with a measured log ray by ray: NLL, range error, hit/miss F1, histogram match, and where it fails worst.
+    """Compare the model with a measured log ray by ray: NLL, range error, hit/miss F1, histogram match, and where it
+    fails worst.
 
     Examples:
 
@@ -30,8 +37,10 @@ def compare_command(
     with console.status("simulating the log's rays and comparing"):
         result = run(read_any(log), load_scene(scene), out=out, seed=seed)
     head = result.headline
-    console.print(f"NLL {head['nll']:.3f} nats/ray, hit/miss F1 {head['f1']:.3f}; worst: "
-                  f"{result.worst[0]['breakdown']} {result.worst[0]['group']} ({result.worst[0]['nll']:.2f} nats/ray)")
+    console.print(
+        f"NLL {head['nll']:.3f} nats/ray, hit/miss F1 {head['f1']:.3f}; worst: "
+        f"{result.worst[0]['breakdown']} {result.worst[0]['group']} ({result.worst[0]['nll']:.2f} nats/ray)"
+    )
     console.print(f"report: {out / 'report.html'}")
 
 
@@ -41,16 +50,20 @@ def diagnose_command(
     scene: Path = typer.Argument(..., help="Scene XML of the current model.", exists=True, dir_okay=False),
     out: Path = typer.Option(..., "--out", "-o", help="Report folder."),
     as_json: bool = typer.Option(False, "--json", help="Print the ranking as JSON (for scripts)."),
-    candidate: Optional[list[str]] = typer.Option(None, "--candidate", help="Only try these effects (repeatable); default: the whole catalog."),
+    candidate: list[str] | None = typer.Option(
+        None, "--candidate", help="Only try these effects (repeatable); default: the whole catalog."
+    ),
     steps: int = typer.Option(120, min=1, help="Adam steps per candidate fit."),
 ):
-    """Find the physical effect the model lacks: fit every candidate on a training split, rank by held-out gain with a likelihood-ratio / BIC test.
+    """Find the physical effect the model lacks: fit every candidate on a training split, rank by held-out gain with a
+    likelihood-ratio / BIC test.
 
     Examples:
 
         mi-lidar diagnose room.npz scenes_xml/indoor_planar.xml --out reports/diagnosis
 
-        mi-lidar diagnose room.npz scenes_xml/indoor_planar.xml --out d --json --candidate incidence_dropout --candidate outliers
+        mi-lidar diagnose room.npz scenes_xml/indoor_planar.xml --out d --json \\
+            --candidate incidence_dropout --candidate outliers
     """
     import json
 
@@ -62,8 +75,14 @@ def diagnose_command(
 
     with Progress(console=console, transient=True) as bar:
         task = bar.add_task("diagnose", total=None)
-        result = run(read_any(log), load_scene(scene), out=out, candidates=candidate or None, steps=steps,
-                     progress=lambda i, n, label: bar.update(task, completed=i, total=n, description=label))
+        result = run(
+            read_any(log),
+            load_scene(scene),
+            out=out,
+            candidates=candidate or None,
+            steps=steps,
+            progress=lambda i, n, label: bar.update(task, completed=i, total=n, description=label),
+        )
     if as_json:
         typer.echo(json.dumps(result.ranking(), indent=1, default=float))
     else:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import typer
@@ -49,8 +48,10 @@ def write_scan_outputs(log, out: Path, scene_name: str) -> list[Path]:
     scan = log.scan(0)
     channels = {"range": scan.ranges[0], "hit": scan.hit[0].astype(np.float32)}
     channels.update({k: v[0] for k, v in scan.attributes.items()})
-    exr = write_exr(out / "scan.exr", {k: np.asarray(v, np.float32) if k not in INTEGER_CHANNELS else v
-                                       for k, v in channels.items()})
+    exr = write_exr(
+        out / "scan.exr",
+        {k: np.asarray(v, np.float32) if k not in INTEGER_CHANNELS else v for k, v in channels.items()},
+    )
     hit = scan.hit[0]
     points = scan.points_world()[0][hit].astype(np.float32)
     beam = np.broadcast_to(np.arange(hit.shape[0])[:, None], hit.shape)[hit].astype(np.uint16)
@@ -70,7 +71,9 @@ def render(
     scene: Path = typer.Argument(..., help="Scene XML with a `lidar` sensor.", exists=True, dir_okay=False),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
     seed: int = typer.Option(0, min=0, help="Random seed (same seed, same scan)."),
-    pattern: Optional[str] = typer.Option(None, help="Override the firing pattern, e.g. `hdl32e`, `os1-32`, `planar-360`."),
+    pattern: str | None = typer.Option(
+        None, help="Override the firing pattern, e.g. `hdl32e`, `os1-32`, `planar-360`."
+    ),
 ):
     """Render one scan of SCENE and write `scan.exr`, `points.ply`, `scan.bin`, `scan.npz` and PNG previews.
 
@@ -92,13 +95,18 @@ def render(
     sensor = scene_lidar_sensor(loaded)
     if pattern is None:
         if sensor is None:
-            raise MiLidarError(f"{scene}: the scene has no `lidar` sensor; add <sensor type=\"lidar\"> or pass --pattern")
+            raise MiLidarError(f'{scene}: the scene has no `lidar` sensor; add <sensor type="lidar"> or pass --pattern')
         channels = tensor_to_numpy(mi.render(loaded, seed=seed))
         pat = sensor.pattern
         log = Log(
-            poses=sensor.to_world_matrix[None], directions=pat.directions()[None], origins=pat.origins()[None],
-            ranges=channels.pop("range")[None], hit=channels.pop("hit")[None], times=pat.time[None],
-            attributes={k: v[None] for k, v in channels.items()}, sensor={"pattern": pat.name, "seed": seed},
+            poses=sensor.to_world_matrix[None],
+            directions=pat.directions()[None],
+            origins=pat.origins()[None],
+            ranges=channels.pop("range")[None],
+            hit=channels.pop("hit")[None],
+            times=pat.time[None],
+            attributes={k: v[None] for k, v in channels.items()},
+            sensor={"pattern": pat.name, "seed": seed},
         )
     else:
         log = simulate(loaded, pattern, seed=seed)
@@ -122,10 +130,15 @@ def read_poses(path: Path) -> np.ndarray:
 @app.command(rich_help_panel="Make scans")
 def simulate(
     scene: Path = typer.Argument(..., help="Scene XML.", exists=True, dir_okay=False),
-    poses: Path = typer.Option(..., help="Sensor poses: `.npy` (S, 4, 4), text with 16 numbers per line, or a KITTI poses file (12 per line).", exists=True, dir_okay=False),
+    poses: Path = typer.Option(
+        ...,
+        help="Sensor poses: `.npy` (S, 4, 4), text with 16 numbers per line, or a KITTI poses file (12 per line).",
+        exists=True,
+        dir_okay=False,
+    ),
     out: Path = typer.Option(..., "--out", "-o", help="Output log (`.npz`)."),
     seed: int = typer.Option(0, min=0, help="Random seed."),
-    pattern: Optional[str] = typer.Option(None, help="Firing pattern (default: the scene sensor's)."),
+    pattern: str | None = typer.Option(None, help="Firing pattern (default: the scene sensor's)."),
 ):
     """Simulate one scan per pose and write a log (`.npz`, see `mi_lidar.core.log`).
 
@@ -145,8 +158,13 @@ def simulate(
     start = time.perf_counter()
     with Progress(console=console, transient=True) as progress:
         task = progress.add_task("simulating scans", total=len(pose_array))
-        log = run(loaded, pattern, poses=pose_array, seed=seed,
-                  progress=lambda done, total: progress.update(task, completed=done))
+        log = run(
+            loaded,
+            pattern,
+            poses=pose_array,
+            seed=seed,
+            progress=lambda done, total: progress.update(task, completed=done),
+        )
     elapsed = time.perf_counter() - start
     path = log.save(out)
     console.print(scan_summary(log, f"{scene.name}: {len(pose_array)} scans (seed {seed})", elapsed))
@@ -166,7 +184,9 @@ def parse_vector(text: str, name: str) -> list[float]:
 
 @app.command("camera-lidar", rich_help_panel="Make scans")
 def camera_lidar(
-    scene: Path = typer.Argument(..., help="Scene XML with a `lidar` sensor (add emitters to light the camera).", exists=True, dir_okay=False),
+    scene: Path = typer.Argument(
+        ..., help="Scene XML with a `lidar` sensor (add emitters to light the camera).", exists=True, dir_okay=False
+    ),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
     camera_from: str = typer.Option("0,0,1.8", "--from", help="Camera position x,y,z (m)."),
     camera_to: str = typer.Option("10,0,1.5", "--to", help="Point the camera looks at x,y,z (m)."),
@@ -194,8 +214,9 @@ def camera_lidar(
     from mi_lidar.scene.camera import PinholeCamera, camera_lidar_frame
 
     loaded = load_scene(scene)
-    camera = PinholeCamera.look_at(parse_vector(camera_from, "--from"), parse_vector(camera_to, "--to"),
-                                   width=width, height=height, fov_deg=fov)
+    camera = PinholeCamera.look_at(
+        parse_vector(camera_from, "--from"), parse_vector(camera_to, "--to"), width=width, height=height, fov_deg=fov
+    )
     with console.status("rendering the camera image and the Lidar scan"):
         frame = camera_lidar_frame(loaded, camera, seed=seed, spp=spp)
     out.mkdir(parents=True, exist_ok=True)
@@ -204,11 +225,21 @@ def camera_lidar(
         write_exr(out / "image.exr", {c: frame["image"][..., i] for i, c in enumerate("RGB")}),
         write_ply(out / "points.ply", frame["points"].astype(np.float32)),
         frame["log"].save(out / "scan.npz"),
-        overlay_png(out / "overlay.png", frame["image"], frame["uv"][frame["visible"]], frame["depth"][frame["visible"]],
-                    title=f"{scene.name}: Lidar returns over the camera image"),
+        overlay_png(
+            out / "overlay.png",
+            frame["image"],
+            frame["uv"][frame["visible"]],
+            frame["depth"][frame["visible"]],
+            title=f"{scene.name}: Lidar returns over the camera image",
+        ),
     ]
-    calib = {"K": frame["K"].tolist(), "lidar_to_camera": frame["lidar_to_camera"].tolist(),
-             "camera_convention": "OpenCV (x right, y down, z forward)", "width": width, "height": height}
+    calib = {
+        "K": frame["K"].tolist(),
+        "lidar_to_camera": frame["lidar_to_camera"].tolist(),
+        "camera_convention": "OpenCV (x right, y down, z forward)",
+        "width": width,
+        "height": height,
+    }
     files.append(atomic_write(out / "calib.json", lambda stream: stream.write(json.dumps(calib, indent=1).encode())))
     console.print(f"{int(frame['visible'].sum()):,} of {len(frame['points']):,} Lidar returns fall in the image")
     for path in files:

@@ -14,6 +14,6 @@ def aligned(array: np.ndarray, alignment: int = 64) -> np.ndarray:
     array = np.ascontiguousarray(array)
     raw = np.empty(array.nbytes + alignment, np.uint8)
     start = -raw.ctypes.data % alignment
-    out = raw[start:start + array.nbytes].view(array.dtype).reshape(array.shape)
+    out = raw[start : start + array.nbytes].view(array.dtype).reshape(array.shape)
     out[...] = array
     return out

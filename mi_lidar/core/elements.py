@@ -115,7 +115,7 @@ class ElementTable:
         return int(sum(self.element_counts))
 
     @classmethod
-    def from_scene(cls, scene) -> "ElementTable":
+    def from_scene(cls, scene) -> ElementTable:
         """Build the table of a loaded scene; raise :class:`SceneError` on invalid values."""
         shapes = ordered_shapes(scene)
         if not shapes:
@@ -161,13 +161,18 @@ class ElementTable:
             counts.append(count)
         cat = {k: np.concatenate(v) for k, v in columns.items()}
         return cls(
-            shape_ids=ids, shape_kinds=kinds, element_counts=counts,
-            element_offset=mi.UInt32(element_offset), shape_index=mi.UInt32(shape_index),
+            shape_ids=ids,
+            shape_kinds=kinds,
+            element_counts=counts,
+            element_offset=mi.UInt32(element_offset),
+            shape_index=mi.UInt32(shape_index),
             p_hit=mi.Float(cat["p_hit"].astype(np.float32)),
             range_sigma=mi.Float(cat["range_sigma"].astype(np.float32)),
             label=mi.UInt32(cat["label"].astype(np.uint32)),
             kind=mi.UInt32(cat["kind"]),
-            ellipsoid_data=mi.Float(np.concatenate(ellipsoid_data) if ellipsoid_data else np.zeros(ELLIPSOID_STRIDE, np.float32)),
+            ellipsoid_data=mi.Float(
+                np.concatenate(ellipsoid_data) if ellipsoid_data else np.zeros(ELLIPSOID_STRIDE, np.float32)
+            ),
             ellipsoid_extent=mi.Float(np.concatenate(ellipsoid_extent) if ellipsoid_extent else np.ones(1, np.float32)),
             ellipsoid_index=mi.UInt32(cat["ellipsoid_index"]),
         )
@@ -195,9 +200,12 @@ class ElementTable:
         kind = dr.gather(mi.UInt32, self.kind, element, valid)
         is_ellipsoid = valid & (kind == ELLIPSOID)
         e = dr.gather(mi.UInt32, self.ellipsoid_index, element, is_ellipsoid)
+
         def fetch(first: int, n: int):
-            return [dr.gather(mi.Float, self.ellipsoid_data, e * ELLIPSOID_STRIDE + first + i, is_ellipsoid)
-                    for i in range(n)]
+            return [
+                dr.gather(mi.Float, self.ellipsoid_data, e * ELLIPSOID_STRIDE + first + i, is_ellipsoid)
+                for i in range(n)
+            ]
 
         center = mi.Point3f(*fetch(0, 3))
         scale = mi.Vector3f(*fetch(3, 3))

@@ -34,4 +34,5 @@ class LogFormatError(MiLidarError):
 
 
 class CalibrationError(MiLidarError, ValueError):
-    """A calibration request cannot be fitted: no parameter matches, the log and scene disagree, or the loss diverges."""
+    """A calibration request cannot be fitted: no parameter matches, the log and scene disagree, or the loss
+    diverges."""

@@ -101,9 +101,7 @@ class Log:
         for name in ("directions", "origins"):
             array = getattr(self, name)
             if array.shape not in ((1, h, w, 3), (s, h, w, 3)):
-                raise LogFormatError(
-                    f"{name} has shape {array.shape}; expected (1, {h}, {w}, 3) or ({s}, {h}, {w}, 3)"
-                )
+                raise LogFormatError(f"{name} has shape {array.shape}; expected (1, {h}, {w}, 3) or ({s}, {h}, {w}, 3)")
         for name, array in self.attributes.items():
             if np.shape(array) != (s, h, w):
                 raise LogFormatError(f"attribute {name!r} has shape {np.shape(array)}; expected {(s, h, w)}")
@@ -111,14 +109,19 @@ class Log:
             raise LogFormatError("a ray flagged as hit has a non-finite range; set hit=False for misses")
 
     # --------------------------------------------------------------- helpers
-    def scan(self, index: int) -> "Log":
+    def scan(self, index: int) -> Log:
         """The ``index``-th scan as a one-scan log (arrays are views where possible)."""
         sl = slice(index, index + 1)
-        pick = (lambda a: a[sl] if a.shape[0] > 1 else a)
+        pick = lambda a: a[sl] if a.shape[0] > 1 else a
         return Log(
-            poses=self.poses[sl], directions=pick(self.directions), origins=pick(self.origins),
-            ranges=self.ranges[sl], hit=self.hit[sl], times=self.times[sl],
-            attributes={k: v[sl] for k, v in self.attributes.items()}, sensor=dict(self.sensor),
+            poses=self.poses[sl],
+            directions=pick(self.directions),
+            origins=pick(self.origins),
+            ranges=self.ranges[sl],
+            hit=self.hit[sl],
+            times=self.times[sl],
+            attributes={k: v[sl] for k, v in self.attributes.items()},
+            sensor=dict(self.sensor),
         )
 
     def points_sensor(self) -> np.ndarray:
@@ -137,20 +140,26 @@ class Log:
         """Write the log to ``path`` (``.npz``) atomically and return the path."""
         path = Path(path)
         arrays = {
-            "poses": self.poses, "directions": self.directions, "origins": self.origins,
-            "ranges": self.ranges, "hit": self.hit, "times": self.times,
+            "poses": self.poses,
+            "directions": self.directions,
+            "origins": self.origins,
+            "ranges": self.ranges,
+            "hit": self.hit,
+            "times": self.times,
         }
         arrays.update({f"attr/{k}": np.asarray(v) for k, v in self.attributes.items()})
         meta = {
-            "format": FORMAT_NAME, "version": FORMAT_VERSION,
-            "sensor": self.sensor, "attributes": sorted(self.attributes),
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "sensor": self.sensor,
+            "attributes": sorted(self.attributes),
         }
         arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
         atomic_write(path, lambda stream: np.savez_compressed(stream, **arrays))
         return path
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "Log":
+    def load(cls, path: str | os.PathLike) -> Log:
         """Read a log written by :meth:`save`; raise :class:`LogFormatError` on any defect."""
         path = Path(path)
         if not path.is_file():
@@ -176,9 +185,14 @@ class Log:
         missing = [k for k in ("poses", "directions", "origins", "ranges", "hit", "times") if k not in arrays]
         if missing:
             raise LogFormatError(f"{path}: missing arrays {missing}")
-        attributes = {k[len("attr/"):]: v for k, v in arrays.items() if k.startswith("attr/")}
+        attributes = {k[len("attr/") :]: v for k, v in arrays.items() if k.startswith("attr/")}
         return cls(
-            poses=arrays["poses"], directions=arrays["directions"], origins=arrays["origins"],
-            ranges=arrays["ranges"], hit=arrays["hit"], times=arrays["times"],
-            attributes=attributes, sensor=meta.get("sensor", {}),
+            poses=arrays["poses"],
+            directions=arrays["directions"],
+            origins=arrays["origins"],
+            ranges=arrays["ranges"],
+            hit=arrays["hit"],
+            times=arrays["times"],
+            attributes=attributes,
+            sensor=meta.get("sensor", {}),
         )

@@ -46,8 +46,11 @@ class RayBatch:
 
     def __post_init__(self):
         """Broadcast fields given with one lane (a shared origin, say) to the batch width."""
-        fields = [f for f in ("origin", "direction", "beam", "time", "ray_id", "sensor_rotation", "sensor_position")
-                  if getattr(self, f) is not None]
+        fields = [
+            f
+            for f in ("origin", "direction", "beam", "time", "ray_id", "sensor_rotation", "sensor_position")
+            if getattr(self, f) is not None
+        ]
         n = max(dr.width(getattr(self, f)) for f in fields)
         for f in fields:
             value = getattr(self, f)
@@ -69,7 +72,7 @@ class RayBatch:
         position = self.origin if self.sensor_position is None else self.sensor_position
         return rotation, position
 
-    def take(self, index: mi.UInt32) -> "RayBatch":
+    def take(self, index: mi.UInt32) -> RayBatch:
         """The sub-batch of lanes ``index``."""
         return RayBatch(
             origin=dr.gather(mi.Point3f, self.origin, index),
@@ -77,8 +80,12 @@ class RayBatch:
             beam=dr.gather(mi.UInt32, self.beam, index),
             time=dr.gather(mi.Float, self.time, index),
             ray_id=dr.gather(mi.UInt32, self.ray_id, index),
-            sensor_rotation=None if self.sensor_rotation is None else dr.gather(mi.Matrix3f, self.sensor_rotation, index),
-            sensor_position=None if self.sensor_position is None else dr.gather(mi.Point3f, self.sensor_position, index),
+            sensor_rotation=None
+            if self.sensor_rotation is None
+            else dr.gather(mi.Matrix3f, self.sensor_rotation, index),
+            sensor_position=None
+            if self.sensor_position is None
+            else dr.gather(mi.Point3f, self.sensor_position, index),
         )
 
 
@@ -103,7 +110,7 @@ class LogRays:
     hit: np.ndarray
 
     @classmethod
-    def from_log(cls, log: Log, relative_time: bool = True) -> "LogRays":
+    def from_log(cls, log: Log, relative_time: bool = True) -> LogRays:
         """Flatten a log.
 
         Args:
@@ -114,8 +121,15 @@ class LogRays:
         s, h, w = log.shape
         scan, beam, column = (a.ravel() for a in np.meshgrid(np.arange(s), np.arange(h), np.arange(w), indexing="ij"))
         times = log.times - log.times.reshape(-1)[0] if relative_time else log.times
-        return cls(log=log, scan=scan, beam=beam, column=column, time=times.ravel(),
-                   measured=log.ranges.ravel().astype(np.float32), hit=log.hit.ravel())
+        return cls(
+            log=log,
+            scan=scan,
+            beam=beam,
+            column=column,
+            time=times.ravel(),
+            measured=log.ranges.ravel().astype(np.float32),
+            hit=log.hit.ravel(),
+        )
 
     @property
     def n(self) -> int:
@@ -133,7 +147,7 @@ class LogRays:
         index = np.arange(self.n) if index is None else np.asarray(index)
         scan, beam, column = self.scan[index], self.beam[index], self.column[index]
         log = self.log
-        pick = (lambda a: a[scan if a.shape[0] > 1 else 0, beam, column].astype(np.float64))
+        pick = lambda a: a[scan if a.shape[0] > 1 else 0, beam, column].astype(np.float64)
         rotation = log.poses[scan, :3, :3]
         position = log.poses[scan, :3, 3]
         direction = np.einsum("nij,nj->ni", rotation, pick(log.directions))

@@ -61,7 +61,7 @@ class Segment:
     label: mi.UInt32
     kind: mi.UInt32
 
-    def with_(self, **changes) -> "Segment":
+    def with_(self, **changes) -> Segment:
         """A copy with some fields replaced (effects use this)."""
         return replace(self, **changes)
 

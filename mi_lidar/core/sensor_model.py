@@ -21,9 +21,9 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_lidar.core.effects.base import Effect, SubRayMoments
-from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment, log_density, sample_range
 
 RESTART_OFFSET = 1e-4  # m: a ray continues this far past the element it passed through
@@ -172,10 +172,14 @@ class SensorModel:
         """The sampling loop of :meth:`simulate_rays` on prepared rays (one lane per ray)."""
         n = rays.width
         out = {
-            "range": dr.full(mi.Float, dr.nan, n), "hit": dr.full(mi.Bool, False, n),
-            "element_id": dr.full(mi.UInt32, NO_ELEMENT, n), "shape_id": dr.full(mi.UInt32, NO_ELEMENT, n),
-            "label": dr.zeros(mi.UInt32, n), "cos_incidence": dr.zeros(mi.Float, n),
-            "nominal_range": dr.full(mi.Float, dr.nan, n), "segments": dr.zeros(mi.UInt32, n),
+            "range": dr.full(mi.Float, dr.nan, n),
+            "hit": dr.full(mi.Bool, False, n),
+            "element_id": dr.full(mi.UInt32, NO_ELEMENT, n),
+            "shape_id": dr.full(mi.UInt32, NO_ELEMENT, n),
+            "label": dr.zeros(mi.UInt32, n),
+            "cos_incidence": dr.zeros(mi.Float, n),
+            "nominal_range": dr.full(mi.Float, dr.nan, n),
+            "segments": dr.zeros(mi.UInt32, n),
         }
         index = dr.arange(mi.UInt32, n)  # ray index (into `out`) of each live lane
         # ---------------- Virtual elements (outliers, clutter) before the scene ----------
@@ -206,8 +210,13 @@ class SensorModel:
             reported = returned & (z >= self.min_range)
             dr.scatter(out["range"], z, index, reported)
             dr.scatter(out["hit"], mi.Bool(True), index, reported)
-            for name, value in (("element_id", seg.element), ("shape_id", seg.shape), ("label", seg.label),
-                                ("cos_incidence", seg.cos_incidence), ("nominal_range", seg.nominal)):
+            for name, value in (
+                ("element_id", seg.element),
+                ("shape_id", seg.shape),
+                ("label", seg.label),
+                ("cos_incidence", seg.cos_incidence),
+                ("nominal_range", seg.nominal),
+            ):
                 dr.scatter(out[name], value, index, returned)
             dr.scatter(out["segments"], dr.opaque(mi.UInt32, k + 1), index, seg.valid)
 
@@ -253,8 +262,15 @@ class SensorModel:
                     break
         return records
 
-    def log_likelihood(self, scene_table: ElementTable, rays: RayBatch, records: list,
-                       measured: mi.Float, hit: mi.Bool, resolution: float = 0.0) -> mi.Float:
+    def log_likelihood(
+        self,
+        scene_table: ElementTable,
+        rays: RayBatch,
+        records: list,
+        measured: mi.Float,
+        hit: mi.Bool,
+        resolution: float = 0.0,
+    ) -> mi.Float:
         """Per-ray log-likelihood of measured ranges under the pass-through mixture.
 
         Args:
@@ -275,8 +291,9 @@ class SensorModel:
         fan = self.fan_out(rays)
         if fan is not None:
             effect, sub, weight = fan
-            ll = effect.combine_log_likelihood(self.sub_ray_moments(scene_table, sub, records), weight,
-                                               dr.select(hit, measured, 0.0), hit, rays.width)
+            ll = effect.combine_log_likelihood(
+                self.sub_ray_moments(scene_table, sub, records), weight, dr.select(hit, measured, 0.0), hit, rays.width
+            )
             return dr.select(hit, ll + math.log(resolution), ll) if resolution > 0 else ll
         log_pass = dr.zeros(mi.Float, dr.width(measured))
         log_mix = dr.full(mi.Float, -dr.inf, dr.width(measured))
@@ -284,8 +301,9 @@ class SensorModel:
         segments = [(seg, None) for seg in self.virtual_segments(rays)] + [(None, record) for record in records]
         for seg, record in segments:
             if record is not None:
-                seg = scene_table.segment(record["si"], record["valid"], record["element"], rays.origin,
-                                          rays.direction, self.range_sigma)
+                seg = scene_table.segment(
+                    record["si"], record["valid"], record["element"], rays.origin, rays.direction, self.range_sigma
+                )
                 seg = self.apply_effects(seg, rays)
             log_mix, log_pass = mixture_step(log_mix, log_pass, self.likelihood_segment(seg, rays), z)
         if resolution > 0:
@@ -295,12 +313,17 @@ class SensorModel:
     def sub_ray_moments(self, scene_table: ElementTable, sub: RayBatch, records: list) -> SubRayMoments:
         """Return probability and range moments of each sub-ray's first return (virtual elements first)."""
         n = sub.width
-        moments = SubRayMoments(log_miss=dr.zeros(mi.Float, n), p_return=dr.zeros(mi.Float, n),
-                                m1=dr.zeros(mi.Float, n), m2=dr.zeros(mi.Float, n))
+        moments = SubRayMoments(
+            log_miss=dr.zeros(mi.Float, n),
+            p_return=dr.zeros(mi.Float, n),
+            m1=dr.zeros(mi.Float, n),
+            m2=dr.zeros(mi.Float, n),
+        )
         for seg in self.virtual_segments(sub):
             moments = moment_step(moments, self.likelihood_segment(seg, sub))
         for record in records:
-            seg = scene_table.segment(record["si"], record["valid"], record["element"], sub.origin, sub.direction,
-                                      self.range_sigma)
+            seg = scene_table.segment(
+                record["si"], record["valid"], record["element"], sub.origin, sub.direction, self.range_sigma
+            )
             moments = moment_step(moments, self.likelihood_segment(self.apply_effects(seg, sub), sub))
         return moments

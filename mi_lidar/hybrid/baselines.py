@@ -42,8 +42,9 @@ class NeighborSimulator:
         n = len(self.points)
         self.scene = ellipsoid_scene(self.points, np.full((n, 3), d_perp), np.tile([0, 0, 0, 1.0], (n, 1)), 1.0)
 
-    def simulate(self, origins: np.ndarray, directions: np.ndarray, min_range: float = 1.0,
-                 max_range: float = 80.0) -> np.ndarray:
+    def simulate(
+        self, origins: np.ndarray, directions: np.ndarray, min_range: float = 1.0, max_range: float = 80.0
+    ) -> np.ndarray:
         """(N,) ranges (m, NaN = null) for (N, 3) world rays."""
         t, prim = intersect(self.scene, origins, directions)
         r = np.full(len(origins), np.nan)
@@ -65,8 +66,9 @@ def _box_surface(label: int, extents: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return sphere.vertices * [lx / 2, ly / 2, lz / 2], sphere.faces
 
 
-def _opaque_scene(ground: GroundMesh | None, objects: list[tuple[np.ndarray, np.ndarray, int]],
-                  sigma: float) -> HybridModel:
+def _opaque_scene(
+    ground: GroundMesh | None, objects: list[tuple[np.ndarray, np.ndarray, int]], sigma: float
+) -> HybridModel:
     """A model of opaque triangles (p_hit = 1, range sigma ``sigma`` m): the ground and per object
     (world vertices (V, 3) m, faces (F, 3), class id); object ``i`` gets instance ``i + 1``."""
     parts = []
@@ -77,8 +79,9 @@ def _opaque_scene(ground: GroundMesh | None, objects: list[tuple[np.ndarray, np.
     return HybridModel(GroundMesh.concat(parts), EllipsoidSet(np.zeros((0, 3)), np.zeros((0, 3, 3))))
 
 
-def mesh_model_scene(objects: list[dict], ground: GroundMesh | None, library: MeshModelLibrary,
-                     sigma: float = 0.05) -> HybridModel:
+def mesh_model_scene(
+    objects: list[dict], ground: GroundMesh | None, library: MeshModelLibrary, sigma: float = 0.05
+) -> HybridModel:
     """The thesis's mesh-model baseline scene for annotation ``objects`` (see :mod:`.compose`).
 
     Args:

@@ -20,11 +20,11 @@ import numpy as np
 from plyfile import PlyData
 
 from mi_lidar.core.errors import SceneError
-from mi_lidar.core.patterns.from_log import pattern_from_log
 from mi_lidar.core.log import Log
 from mi_lidar.core.patterns import to_table
-from mi_lidar.scene.files import ShapeEntry, write_ellipsoids_ply, write_mesh_ply, write_scene_xml
+from mi_lidar.core.patterns.from_log import pattern_from_log
 from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
+from mi_lidar.scene.files import ShapeEntry, write_ellipsoids_ply, write_mesh_ply, write_scene_xml
 
 
 @dataclass
@@ -49,11 +49,15 @@ class SceneSensor:
     firings: int | None = None
 
     @classmethod
-    def from_log(cls, log: Log, table_path, scan: int = 0) -> "SceneSensor":
+    def from_log(cls, log: Log, table_path, scan: int = 0) -> SceneSensor:
         """The sensor of ``log``: its scan-``scan`` pattern written to ``table_path`` (``.npy``) and pose."""
         table = to_table(pattern_from_log(log, scan), Path(table_path))
-        return cls(str(table.resolve()), log.poses[scan], float(log.sensor.get("min_range", 0.0)),
-                   float(log.sensor.get("max_range", 120.0)))
+        return cls(
+            str(table.resolve()),
+            log.poses[scan],
+            float(log.sensor.get("min_range", 0.0)),
+            float(log.sensor.get("max_range", 120.0)),
+        )
 
     def xml(self) -> str:
         """The ``<default>``, ``<integrator>`` and ``<sensor>`` elements.
@@ -63,17 +67,19 @@ class SceneSensor:
         """
         matrix = " ".join(f"{v:.9g}" for v in np.asarray(self.pose, float).ravel())
         firings = "" if self.firings is None else f'\n        <integer name="firings" value="{int(self.firings)}"/>'
-        return (f'    <default name="pattern" value={quoteattr(str(self.pattern))}/>\n'
-                f'    <integrator type="lidar_integrator" id="integrator">\n'
-                f'        <integer name="max_segments" value="{int(self.max_segments)}"/>\n'
-                f'    </integrator>\n'
-                f'    <sensor type="lidar" id="lidar">\n'
-                f'        <string name="pattern" value="$pattern"/>{firings}\n'
-                f'        <float name="min_range" value="{self.min_range:g}"/>\n'
-                f'        <float name="max_range" value="{self.max_range:g}"/>\n'
-                f'        <float name="range_sigma" value="{self.range_sigma:g}"/>\n'
-                f'        <transform name="to_world"><matrix value="{matrix}"/></transform>\n'
-                f'    </sensor>')
+        return (
+            f'    <default name="pattern" value={quoteattr(str(self.pattern))}/>\n'
+            f'    <integrator type="lidar_integrator" id="integrator">\n'
+            f'        <integer name="max_segments" value="{int(self.max_segments)}"/>\n'
+            f"    </integrator>\n"
+            f'    <sensor type="lidar" id="lidar">\n'
+            f'        <string name="pattern" value="$pattern"/>{firings}\n'
+            f'        <float name="min_range" value="{self.min_range:g}"/>\n'
+            f'        <float name="max_range" value="{self.max_range:g}"/>\n'
+            f'        <float name="range_sigma" value="{self.range_sigma:g}"/>\n'
+            f'        <transform name="to_world"><matrix value="{matrix}"/></transform>\n'
+            f"    </sensor>"
+        )
 
 
 def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneSensor | None = None) -> Path:
@@ -95,20 +101,33 @@ def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneS
             faces = g.faces[sel]
             used, inverse = np.unique(faces, return_inverse=True)
             fname = f"{assets}/ground_b{b}.ply"
-            write_mesh_ply(out_dir / fname, g.vertices[used], inverse.reshape(-1, 3), p_hit=g.p_hit[sel],
-                           range_sigma=g.range_sigma[sel], label=g.label[sel])
+            write_mesh_ply(
+                out_dir / fname,
+                g.vertices[used],
+                inverse.reshape(-1, 3),
+                p_hit=g.p_hit[sel],
+                range_sigma=g.range_sigma[sel],
+                label=g.label[sel],
+            )
             shapes.append(ShapeEntry(id=f"ground_b{b}", kind="mesh", filename=fname))
         sel = e.block == b
         if sel.any():
             scales, quats = e.subset(sel).axes()
             fname = f"{assets}/ellipsoids_b{b}.ply"
-            write_ellipsoids_ply(out_dir / fname, e.means[sel], scales, quats, p_hit=e.p_hit[sel],
-                                 range_sigma=np.zeros(sel.sum()), label=e.label[sel])
+            write_ellipsoids_ply(
+                out_dir / fname,
+                e.means[sel],
+                scales,
+                quats,
+                p_hit=e.p_hit[sel],
+                range_sigma=np.zeros(sel.sum()),
+                label=e.label[sel],
+            )
             shapes.append(ShapeEntry(id=f"ellipsoids_b{b}", kind="ellipsoids", filename=fname, extent=model.extent))
-    comment = (f"mi-lidar hybrid geometric scene: {len(g)} triangles, {len(e)} ellipsoids, "
-               f"{len(shapes)} shapes")
-    return write_scene_xml(out_dir / f"{name}.xml", shapes, header_comment=comment,
-                           extra_xml=sensor.xml() if sensor is not None else "")
+    comment = f"mi-lidar hybrid geometric scene: {len(g)} triangles, {len(e)} ellipsoids, {len(shapes)} shapes"
+    return write_scene_xml(
+        out_dir / f"{name}.xml", shapes, header_comment=comment, extra_xml=sensor.xml() if sensor is not None else ""
+    )
 
 
 def read_mesh_ply(path) -> GroundMesh:
@@ -118,8 +137,13 @@ def read_mesh_ply(path) -> GroundMesh:
     names = f.dtype.names
     get = lambda n: np.asarray(f[f"{n}_0"]) if f"{n}_0" in names else None
     label = get("label")
-    return GroundMesh(np.c_[v["x"], v["y"], v["z"]], np.stack(f["vertex_indices"]), get("p_hit"), get("range_sigma"),
-                      None if label is None else label.astype(np.int32))
+    return GroundMesh(
+        np.c_[v["x"], v["y"], v["z"]],
+        np.stack(f["vertex_indices"]),
+        get("p_hit"),
+        get("range_sigma"),
+        None if label is None else label.astype(np.int32),
+    )
 
 
 def read_ellipsoids_ply(path) -> EllipsoidSet:
@@ -130,8 +154,13 @@ def read_ellipsoids_ply(path) -> EllipsoidSet:
     quats = np.c_[v["rot_1"], v["rot_2"], v["rot_3"], v["rot_0"]]
     get = lambda n: np.asarray(v[f"{n}_0"]) if f"{n}_0" in names else None
     label = get("label")
-    return EllipsoidSet.from_axes(np.c_[v["x"], v["y"], v["z"]], scales, quats, p_hit=get("p_hit"),
-                                  label=None if label is None else label.astype(np.int32))
+    return EllipsoidSet.from_axes(
+        np.c_[v["x"], v["y"], v["z"]],
+        scales,
+        quats,
+        p_hit=get("p_hit"),
+        label=None if label is None else label.astype(np.int32),
+    )
 
 
 def read_scene(xml_path) -> HybridModel:

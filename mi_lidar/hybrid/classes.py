@@ -8,9 +8,17 @@ PATCH_BASE - 1`` for single objects and ``>= PATCH_BASE`` for shrub patches.
 from __future__ import annotations
 
 CLASS_NAMES = (
-    "none", "ground", "grass", "rock",
-    "low_shrub", "small_shrub", "medium_shrub", "large_shrub",
-    "small_tree", "medium_tree", "large_tree",
+    "none",
+    "ground",
+    "grass",
+    "rock",
+    "low_shrub",
+    "small_shrub",
+    "medium_shrub",
+    "large_shrub",
+    "small_tree",
+    "medium_tree",
+    "large_tree",
 )
 CLASS_ID = {name: i for i, name in enumerate(CLASS_NAMES)}
 GROUND_CLASSES = (CLASS_ID["ground"], CLASS_ID["grass"])

@@ -25,16 +25,22 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from mi_lidar.core.errors import LogFormatError
-from mi_lidar.io.preview import birds_eye_png, range_image_png
 from mi_lidar.core.log import Log
-from mi_lidar.scene.loading import load_scene
-from mi_lidar.scene.simulation import simulate
 from mi_lidar.hybrid.blocks import SceneSensor, write_scene
-from mi_lidar.hybrid.compose import annotation_from_segments, annotation_sensor, compose_scene, load_annotation, save_annotation
+from mi_lidar.hybrid.compose import (
+    annotation_from_segments,
+    annotation_sensor,
+    compose_scene,
+    load_annotation,
+    save_annotation,
+)
 from mi_lidar.hybrid.fit import FitParams, FitResult, fit_model
 from mi_lidar.hybrid.model import HybridModel
 from mi_lidar.hybrid.primitives import PrimitiveLibrary, extract_primitives
 from mi_lidar.hybrid.segments import segments_from_labels
+from mi_lidar.io.preview import birds_eye_png, range_image_png
+from mi_lidar.scene.loading import load_scene
+from mi_lidar.scene.simulation import simulate
 
 console = Console(stderr=True)
 
@@ -45,8 +51,13 @@ MOUNT_HEIGHT = 1.8  # m, sensor height above the ground for such scenes
 @contextmanager
 def progress_bar(title: str):
     """A rich progress bar; yields a ``progress(stage, fraction)`` callback for :func:`fit_model`."""
-    with Progress(TextColumn(f"{title}: [bold]{{task.description}}"), BarColumn(), TimeElapsedColumn(),
-                  console=console, transient=True) as bar:
+    with Progress(
+        TextColumn(f"{title}: [bold]{{task.description}}"),
+        BarColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
         task = bar.add_task("start", total=1.0)
         yield lambda stage, fraction: bar.update(task, description=stage, completed=fraction)
 
@@ -59,8 +70,10 @@ def _fit(log: Log, params: FitParams | None, title: str, ground_only: bool = Fal
 def _require_labels(log: Log, path) -> None:
     missing = [k for k in ("label", "instance") if k not in log.attributes]
     if missing:
-        raise LogFormatError(f"{path}: the log has no {missing} attributes; primitives and annotations need a "
-                             "labelled log (e.g. a synthetic log from mi_lidar.hybrid.world.render_log)")
+        raise LogFormatError(
+            f"{path}: the log has no {missing} attributes; primitives and annotations need a "
+            "labelled log (e.g. a synthetic log from mi_lidar.hybrid.world.render_log)"
+        )
 
 
 def render_previews(xml, poses: np.ndarray | None = None, seed: int = 0, max_scans: int = 20) -> tuple[Path, Path]:
@@ -87,8 +100,9 @@ def render_previews(xml, poses: np.ndarray | None = None, seed: int = 0, max_sca
     with progress_bar(f"preview {xml.name}") as report:
         log = simulate(scene, poses=poses, seed=seed, progress=lambda done, total: report("simulate", done / total))
     points = log.points_world()[log.hit]
-    top_png = birds_eye_png(xml.with_name(f"{xml.stem}_top.png"), points,
-                            title=f"{xml.name}: mi_lidar.simulate, {log.n_scans} scans")
+    top_png = birds_eye_png(
+        xml.with_name(f"{xml.stem}_top.png"), points, title=f"{xml.name}: mi_lidar.simulate, {log.n_scans} scans"
+    )
     return range_png, top_png
 
 
@@ -106,9 +120,15 @@ def fit_scene(log_path, out_dir, params: FitParams | None = None, name: str = "s
     table = Table(title=f"hybrid scene {xml}")
     for col in ("points", "ground points", "triangles", "ellipsoids", "blocks", "triangle p_hit", "seconds"):
         table.add_column(col, justify="right")
-    table.add_row(str(len(result.points)), str(int(result.is_ground.sum())), str(len(result.model.ground)),
-                  str(len(result.model.ellipsoids)), str(result.model.info["n_blocks"]),
-                  f"{result.model.info['mean_triangle_p_hit']:.2f}", f"{sum(result.timings.values()):.1f}")
+    table.add_row(
+        str(len(result.points)),
+        str(int(result.is_ground.sum())),
+        str(len(result.model.ground)),
+        str(len(result.model.ellipsoids)),
+        str(result.model.info["n_blocks"]),
+        f"{result.model.info['mean_triangle_p_hit']:.2f}",
+        f"{sum(result.timings.values()):.1f}",
+    )
     console.print(table)
     if preview:
         render_previews(xml, log.poses)
@@ -123,7 +143,9 @@ def primitives_extract(log_path, library_dir, params: FitParams | None = None) -
     labels = log.attributes["label"].ravel()[result.ray_index]
     inst = log.attributes["instance"].ravel()[result.ray_index]
     segs = segments_from_labels(result.points, labels, inst)
-    library = PrimitiveLibrary.load(library_dir) if (Path(library_dir) / "library.json").is_file() else PrimitiveLibrary()
+    library = (
+        PrimitiveLibrary.load(library_dir) if (Path(library_dir) / "library.json").is_file() else PrimitiveLibrary()
+    )
     library.add(extract_primitives(result.model, result.points, segs, log.poses, source=Path(log_path).stem))
     library.save(library_dir)
     console.print(f"{len(library)} primitives in {library_dir}")
@@ -184,8 +206,10 @@ def compose(annotation, library, out_xml, extent: float = 3.5, preview: bool = T
     out_xml = Path(out_xml)
     xml = write_scene(model, out_xml.parent, out_xml.stem, sensor)
     skipped = len(model.info["skipped"])
-    console.print(f"{len(objects) - skipped} objects placed ({skipped} skipped: class not in the library), "
-                  f"{len(model.ellipsoids)} ellipsoids, {len(model.ground)} ground triangles -> {xml}")
+    console.print(
+        f"{len(objects) - skipped} objects placed ({skipped} skipped: class not in the library), "
+        f"{len(model.ellipsoids)} ellipsoids, {len(model.ground)} ground triangles -> {xml}"
+    )
     if preview:
         render_previews(xml, poses)
     return xml

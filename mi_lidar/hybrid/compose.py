@@ -22,15 +22,15 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.errors import SceneError
-from mi_lidar.core.patterns.from_log import pattern_from_log
 from mi_lidar.core.log import Log
 from mi_lidar.core.patterns import to_table
-from mi_lidar.scene.files import write_mesh_ply
+from mi_lidar.core.patterns.from_log import pattern_from_log
 from mi_lidar.hybrid.blocks import SceneSensor, read_mesh_ply
 from mi_lidar.hybrid.classes import CLASS_NAMES, class_id
 from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
 from mi_lidar.hybrid.primitives import PrimitiveLibrary, object_pose, oriented_box, rotation_z, sensor_velocity_at
 from mi_lidar.hybrid.segments import Segment
+from mi_lidar.scene.files import write_mesh_ply
 
 
 def annotation_from_segments(points: np.ndarray, segments: list[Segment], poses: np.ndarray) -> list[dict]:
@@ -44,8 +44,15 @@ def annotation_from_segments(points: np.ndarray, segments: list[Segment], poses:
         pts = points[seg.index]
         center, yaw = object_pose(pts, sensor_velocity_at(poses, pts[:, :2].mean(axis=0)))
         lo, hi = oriented_box(pts, center, yaw)
-        objects.append({"class": CLASS_NAMES[seg.label], "center": [float(x) for x in center], "yaw": yaw,
-                        "extents": [float(x) for x in hi - lo], "segment": int(seg.id)})
+        objects.append(
+            {
+                "class": CLASS_NAMES[seg.label],
+                "center": [float(x) for x in center],
+                "yaw": yaw,
+                "extents": [float(x) for x in hi - lo],
+                "segment": int(seg.id),
+            }
+        )
     return objects
 
 
@@ -64,13 +71,18 @@ def save_annotation(path, objects: list[dict], ground: GroundMesh | None = None,
     doc = {"format": "mi-lidar-annotation", "version": 1, "objects": objects}
     if ground is not None:
         name = f"{path.stem}_ground.ply"
-        write_mesh_ply(path.parent / name, ground.vertices, ground.faces, ground.p_hit, ground.range_sigma, ground.label)
+        write_mesh_ply(
+            path.parent / name, ground.vertices, ground.faces, ground.p_hit, ground.range_sigma, ground.label
+        )
         doc["ground"] = name
     if log is not None:
         table = to_table(pattern_from_log(log), path.parent / f"{path.stem}_pattern.npy")
-        doc["sensor"] = {"pattern": table.name, "poses": log.poses.reshape(-1, 16).tolist(),
-                         "min_range": float(log.sensor.get("min_range", 0.0)),
-                         "max_range": float(log.sensor.get("max_range", 120.0))}
+        doc["sensor"] = {
+            "pattern": table.name,
+            "poses": log.poses.reshape(-1, 16).tolist(),
+            "min_range": float(log.sensor.get("min_range", 0.0)),
+            "max_range": float(log.sensor.get("max_range", 120.0)),
+        }
     path.write_text(json.dumps(doc, indent=1))
     return path
 
@@ -109,8 +121,13 @@ def annotation_sensor(path) -> tuple[SceneSensor, np.ndarray] | None:
     return sensor, poses
 
 
-def compose_scene(objects: list[dict], library: PrimitiveLibrary, ground: GroundMesh | None = None,
-                  extent: float = 3.5, missing: str = "skip") -> HybridModel:
+def compose_scene(
+    objects: list[dict],
+    library: PrimitiveLibrary,
+    ground: GroundMesh | None = None,
+    extent: float = 3.5,
+    missing: str = "skip",
+) -> HybridModel:
     """Build a scene from annotation objects and a primitive library.
 
     Args:

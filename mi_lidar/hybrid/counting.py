@@ -21,8 +21,8 @@ element and ``r = z - t``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -51,10 +51,21 @@ class HitCounts:
     grazing: int
 
 
-def count_hits(scene, origins: np.ndarray, directions: np.ndarray, measured: np.ndarray, owner: np.ndarray,
-               n_triangles: int, n_ellipsoids: int, max_residual: float = 0.75, pass_sigmas: float = 3.0,
-               max_range: float = 80.0, max_elements: int = 16, chunk: int = 400_000,
-               progress: Callable[[float], None] | None = None) -> HitCounts:
+def count_hits(
+    scene,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    measured: np.ndarray,
+    owner: np.ndarray,
+    n_triangles: int,
+    n_ellipsoids: int,
+    max_residual: float = 0.75,
+    pass_sigmas: float = 3.0,
+    max_range: float = 80.0,
+    max_elements: int = 16,
+    chunk: int = 400_000,
+    progress: Callable[[float], None] | None = None,
+) -> HitCounts:
     """Count hits and pass-throughs along logged rays (see the module docstring).
 
     Args:
@@ -80,8 +91,9 @@ def count_hits(scene, origins: np.ndarray, directions: np.ndarray, measured: np.
         z = measured[sl]
         hit = np.isfinite(z)
         z = np.where(hit, z, np.inf)
-        trav = trace_elements(scene, table, origins[sl], directions[sl], np.where(hit, z + max_residual, max_range),
-                              max_elements)
+        trav = trace_elements(
+            scene, table, origins[sl], directions[sl], np.where(hit, z + max_residual, max_range), max_elements
+        )
         tri, ell = trav.of(GROUND_ID), trav.of(ELLIPSOIDS_ID)
         resid = np.where(trav.shape >= 0, z[:, None] - np.where(trav.shape >= 0, trav.t, 0.0), -np.inf)
         own = owner[sl]
@@ -104,5 +116,4 @@ def count_hits(scene, origins: np.ndarray, directions: np.ndarray, measured: np.
     depth = np.concatenate(pass_depth)
     passed = depth > pass_sigmas * sigma_n
     tri_pass = np.bincount(np.concatenate(pass_tri)[passed], minlength=n_triangles).astype(float)
-    return HitCounts(tri_hits, tri_pass, ell_hits, ell_pass, np.concatenate(residuals), sigma_n,
-                     int((~passed).sum()))
+    return HitCounts(tri_hits, tri_pass, ell_hits, ell_pass, np.concatenate(residuals), sigma_n, int((~passed).sum()))

@@ -22,7 +22,6 @@ from mi_lidar.hybrid.classes import CLASS_NAMES
 from mi_lidar.hybrid.compose import compose_scene, load_annotation
 from mi_lidar.hybrid.model import HybridModel
 from mi_lidar.hybrid.primitives import PrimitiveLibrary
-
 from mi_lidar.scene.dicts import EllipsoidElements, MeshElements
 
 GROUND_ID = "ground"

@@ -38,7 +38,9 @@ class ClusterParams:
 
 def _cluster_stats(points: np.ndarray, labels: np.ndarray, n: int):
     count = np.bincount(labels, minlength=n).astype(float)
-    mean = np.stack([np.bincount(labels, points[:, i], minlength=n) for i in range(3)], 1) / np.maximum(count, 1)[:, None]
+    mean = (
+        np.stack([np.bincount(labels, points[:, i], minlength=n) for i in range(3)], 1) / np.maximum(count, 1)[:, None]
+    )
     d = points - mean[labels]
     outer = d[:, :, None] * d[:, None, :]
     second = np.stack([np.bincount(labels, outer[:, i, j], minlength=n) for i in range(3) for j in range(3)], 1)

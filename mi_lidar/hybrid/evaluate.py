@@ -29,8 +29,14 @@ def pcd_error(y: np.ndarray, y_hat: np.ndarray, max_points: int = 300_000, seed:
     return 0.5 * (asymmetric_pcd_error(y, y_hat) + asymmetric_pcd_error(y_hat, y))
 
 
-def observation_metrics(real: np.ndarray, sim: np.ndarray, origins: np.ndarray, directions: np.ndarray,
-                        packet: int = 32, mask: np.ndarray | None = None) -> dict:
+def observation_metrics(
+    real: np.ndarray,
+    sim: np.ndarray,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    packet: int = 32,
+    mask: np.ndarray | None = None,
+) -> dict:
     """Table 4.3 metrics of simulated ranges against real ones on the same rays.
 
     Args:
@@ -58,9 +64,16 @@ def observation_metrics(real: np.ndarray, sim: np.ndarray, origins: np.ndarray, 
     cnt_p = np.pad(true_hit, ((0, 0), (0, 0), (0, pad))).reshape(s, h, n_pk, packet).sum(axis=(1, 3))
     packet_error = float(np.mean(err_p[cnt_p > 0] / cnt_p[cnt_p > 0])) if (cnt_p > 0).any() else float("nan")
     pts = lambda r: (origins + directions * r.reshape(-1, 1))[np.isfinite(r.ravel())]
-    return {"packet_error": packet_error, "precision": precision, "recall": recall, "f1": f1,
-            "pcd_error": pcd_error(pts(real), pts(sim)), "true_hits": n_true, "false_hits": n_false_hit,
-            "false_misses": n_false_miss}
+    return {
+        "packet_error": packet_error,
+        "precision": precision,
+        "recall": recall,
+        "f1": f1,
+        "pcd_error": pcd_error(pts(real), pts(sim)),
+        "true_hits": n_true,
+        "false_hits": n_false_hit,
+        "false_misses": n_false_miss,
+    }
 
 
 def objective(metrics: dict) -> float:

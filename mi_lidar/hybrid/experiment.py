@@ -39,14 +39,22 @@ from mi_lidar.hybrid.fit import FitParams, fit_model, select_scans, world_rays
 from mi_lidar.hybrid.ground import ground_features, tune_threshold
 from mi_lidar.hybrid.mesh_models import MeshModelLibrary
 from mi_lidar.hybrid.primitives import PrimitiveLibrary, extract_primitives
+from mi_lidar.hybrid.segments import (
+    SizeClassifier,
+    euclidean_segments,
+    majority_label,
+    segment_features,
+    segments_from_labels,
+)
 from mi_lidar.hybrid.simulation import simulate_log
 from mi_lidar.hybrid.tune import tune_parameters
-from mi_lidar.hybrid.segments import SizeClassifier, euclidean_segments, majority_label, segment_features, segments_from_labels
 from mi_lidar.hybrid.world import SensorSpec, WorldSpec, make_world, path_poses, render_log
 
-SCENES = {"train": (11, WorldSpec(length=100, width=50)),
-          "test1": (22, WorldSpec(length=120, width=50, object_density=1.5, n_patches=3)),
-          "test2": (33, WorldSpec(length=90, width=60, object_density=1.0, n_patches=1, relief=1.8))}
+SCENES = {
+    "train": (11, WorldSpec(length=100, width=50)),
+    "test1": (22, WorldSpec(length=120, width=50, object_density=1.5, n_patches=3)),
+    "test2": (33, WorldSpec(length=90, width=60, object_density=1.0, n_patches=1, relief=1.8)),
+}
 
 
 def make_log(name: str, spacing: float = 1.5, sensor: SensorSpec | None = None):
@@ -62,8 +70,11 @@ def score(model, log, seed: int) -> dict:
     sim, sim_label = simulate_log(model, log, seed)
     real = np.where(log.hit, log.ranges, np.nan)
     on_object = np.isin(log.attributes["label"], OBJECT_CLASSES) | np.isin(sim_label, OBJECT_CLASSES)
-    return {"all": observation_metrics(real, sim, o, d), "object_rays": observation_metrics(real, sim, o, d, mask=on_object),
-            "other_rays": observation_metrics(real, sim, o, d, mask=~on_object)}
+    return {
+        "all": observation_metrics(real, sim, o, d),
+        "object_rays": observation_metrics(real, sim, o, d, mask=on_object),
+        "other_rays": observation_metrics(real, sim, o, d, mask=~on_object),
+    }
 
 
 def _write(model, out: Path, name: str, log) -> Path:
@@ -72,8 +83,9 @@ def _write(model, out: Path, name: str, log) -> Path:
     return write_scene(model, out, name, sensor)
 
 
-def run(out_dir, params: FitParams | None = None, say=lambda message: None, tune_scans: int = 0,
-        max_evals: int = 20) -> dict:
+def run(
+    out_dir, params: FitParams | None = None, say=lambda message: None, tune_scans: int = 0, max_evals: int = 20
+) -> dict:
     """Run the whole evaluation, write scenes, library, annotations and ``results.json`` to ``out_dir``.
 
     Args:
@@ -99,18 +111,27 @@ def run(out_dir, params: FitParams | None = None, say=lambda message: None, tune
         tuned = tune_parameters(select_scans(train_log, slice(0, tune_scans)), params, max_evals)
         params = tuned.params
         results["timings"]["tuning"] = time.perf_counter() - t0
-        results["tuning"] = {"initial": tuned.initial, "best": tuned.best, "evaluations": len(tuned.history),
-                             "phi_thresh": params.ground.phi_thresh,
-                             "clusters_per_point": params.clusters.clusters_per_point, "extent": params.extent,
-                             "max_edge": params.surface.max_edge, "max_residual": params.max_residual}
+        results["tuning"] = {
+            "initial": tuned.initial,
+            "best": tuned.best,
+            "evaluations": len(tuned.history),
+            "phi_thresh": params.ground.phi_thresh,
+            "clusters_per_point": params.clusters.clusters_per_point,
+            "extent": params.extent,
+            "max_edge": params.surface.max_edge,
+            "max_residual": params.max_residual,
+        }
     say("training scene")
     even, odd = select_scans(train_log, slice(0, None, 2)), select_scans(train_log, slice(1, None, 2))
     t0 = time.perf_counter()
     fit = fit_model(even, params)
     results["timings"]["fit_train_even"] = time.perf_counter() - t0
     results["fit_timings"] = fit.timings
-    results["train_model"] = {"triangles": len(fit.model.ground), "ellipsoids": len(fit.model.ellipsoids),
-                              **fit.model.info}
+    results["train_model"] = {
+        "triangles": len(fit.model.ground),
+        "ellipsoids": len(fit.model.ellipsoids),
+        **fit.model.info,
+    }
     _write(fit.model, out / "train_scene", "train", odd)
     t0 = time.perf_counter()
     results["train"] = {"ours": score(fit.model, odd, 1)}
@@ -127,14 +148,19 @@ def run(out_dir, params: FitParams | None = None, say=lambda message: None, tune
     library = PrimitiveLibrary(extract_primitives(full.model, full.points, segs, train_log.poses, source="train"))
     library.save(out / "library")
     library.preview(out / "library_preview.png")
-    results["library"] = {c: int(sum(1 for p in library.primitives if p.class_name == c))
-                          for c in sorted({p.class_name for p in library.primitives})}
+    results["library"] = {
+        c: int(sum(1 for p in library.primitives if p.class_name == c))
+        for c in sorted({p.class_name for p in library.primitives})
+    }
     mesh_models = MeshModelLibrary.generate()
     mesh_models.preview(out / "mesh_models_preview.png")
-    results["mesh_models"] = {"models": len(mesh_models),
-                              "triangles": int(sum(len(m.faces) for m in mesh_models.models))}
-    clf = SizeClassifier().fit(np.stack([segment_features(full.points[s.index]) for s in segs]),
-                               np.array([s.label for s in segs]))
+    results["mesh_models"] = {
+        "models": len(mesh_models),
+        "triangles": int(sum(len(m.faces) for m in mesh_models.models)),
+    }
+    clf = SizeClassifier().fit(
+        np.stack([segment_features(full.points[s.index]) for s in segs]), np.array([s.label for s in segs])
+    )
     # ---- test scenes
     for name in ("test1", "test2"):
         say(name)
@@ -152,8 +178,13 @@ def run(out_dir, params: FitParams | None = None, say=lambda message: None, tune
         render_previews(_write(base, out / f"{name}_mesh_models", name, log), log.poses)
         auto = euclidean_segments(ground_fit.points[~ground_fit.is_ground])
         ng_labels = labels[~ground_fit.is_ground]
-        scored = [(clf.predict(segment_features(ground_fit.points[~ground_fit.is_ground][s.index]))[0],
-                   majority_label(s, ng_labels)) for s in auto]
+        scored = [
+            (
+                clf.predict(segment_features(ground_fit.points[~ground_fit.is_ground][s.index]))[0],
+                majority_label(s, ng_labels),
+            )
+            for s in auto
+        ]
         scored = [(p, t) for p, t in scored if t in OBJECT_CLASSES]
         results[name] = {
             "ours": score(ours, log, 2),
@@ -171,6 +202,15 @@ def run(out_dir, params: FitParams | None = None, say=lambda message: None, tune
 
 if __name__ == "__main__":
     args = sys.argv[1:]
-    print(json.dumps(run(args[0] if args else "hybrid_experiment", say=lambda m: print(m, file=sys.stderr, flush=True),
-                         tune_scans=int(args[1]) if len(args) > 1 else 0, max_evals=int(args[2]) if len(args) > 2 else 20),
-                     indent=1, default=float))
+    print(
+        json.dumps(
+            run(
+                args[0] if args else "hybrid_experiment",
+                say=lambda m: print(m, file=sys.stderr, flush=True),
+                tune_scans=int(args[1]) if len(args) > 1 else 0,
+                max_evals=int(args[2]) if len(args) > 2 else 20,
+            ),
+            indent=1,
+            default=float,
+        )
+    )

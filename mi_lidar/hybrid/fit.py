@@ -11,16 +11,16 @@ the ground residuals (:func:`robust_sigma`).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
 from mi_lidar.core.log import Log
+from mi_lidar.hybrid.counting import count_hits
 from mi_lidar.hybrid.ellipsoids import ClusterParams, fit_ellipsoids
 from mi_lidar.hybrid.ground import GroundParams, SurfaceParams, fit_ground_mesh, ground_features
 from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
-from mi_lidar.hybrid.counting import count_hits
 from mi_lidar.hybrid.simulation import load_model
 
 
@@ -81,8 +81,13 @@ def world_rays(log: Log) -> tuple[np.ndarray, np.ndarray]:
     """(S*H*W, 3) world ray origins (m) and unit directions of every ray of ``log``."""
     s, h, w = log.shape
     rot, trans = log.poses[:, None, None, :3, :3], log.poses[:, None, None, :3, 3]
-    d = np.einsum("shwij,shwj->shwi", np.broadcast_to(rot, (s, h, w, 3, 3)), np.broadcast_to(log.directions, (s, h, w, 3)))
-    o = np.einsum("shwij,shwj->shwi", np.broadcast_to(rot, (s, h, w, 3, 3)), np.broadcast_to(log.origins, (s, h, w, 3))) + trans
+    d = np.einsum(
+        "shwij,shwj->shwi", np.broadcast_to(rot, (s, h, w, 3, 3)), np.broadcast_to(log.directions, (s, h, w, 3))
+    )
+    o = (
+        np.einsum("shwij,shwj->shwi", np.broadcast_to(rot, (s, h, w, 3, 3)), np.broadcast_to(log.origins, (s, h, w, 3)))
+        + trans
+    )
     return o.reshape(-1, 3), d.reshape(-1, 3)
 
 
@@ -122,8 +127,13 @@ def majority(values: np.ndarray, groups: np.ndarray, n: int) -> np.ndarray:
     return table.argmax(axis=1).astype(np.int32)
 
 
-def assign_hit_probabilities(model: HybridModel, log: Log, owner_of_ray: np.ndarray, params: FitParams,
-                             progress: Callable[[float], None] | None = None) -> dict:
+def assign_hit_probabilities(
+    model: HybridModel,
+    log: Log,
+    owner_of_ray: np.ndarray,
+    params: FitParams,
+    progress: Callable[[float], None] | None = None,
+) -> dict:
     """Set ``p_hit`` of every element and the ground ``range_sigma`` from the log's rays (in place).
 
     A fine ground mesh gets only a few rays per triangle, and with so few counts the table 4.1
@@ -147,35 +157,67 @@ def assign_hit_probabilities(model: HybridModel, log: Log, owner_of_ray: np.ndar
     origins, directions = world_rays(log)
     measured = np.where(log.hit, log.ranges, np.nan).ravel()
     nf, ne = len(model.ground), len(model.ellipsoids)
-    c = count_hits(load_model(model), origins, directions, measured, owner_of_ray, nf, ne, params.max_residual,
-                   params.pass_sigmas, params.max_range, params.max_elements, progress=progress)
+    c = count_hits(
+        load_model(model),
+        origins,
+        directions,
+        measured,
+        owner_of_ray,
+        nf,
+        ne,
+        params.max_residual,
+        params.pass_sigmas,
+        params.max_range,
+        params.max_elements,
+        progress=progress,
+    )
     sigma = robust_sigma(c.residuals)
     crossings = c.tri_hits.sum() + c.tri_pass.sum()
     pooled = float(c.tri_hits.sum() / crossings) if crossings else 1.0
     prior = (params.pooled_strength * pooled, params.pooled_strength * (1 - pooled))
     crossed = (c.tri_hits + c.tri_pass) > 0
-    model.ground.p_hit = np.where(crossed & (params.pooled_strength > 0), hit_probability(c.tri_hits, c.tri_pass, prior),
-                                  hit_probability(c.tri_hits, c.tri_pass, params.tri_prior))
+    model.ground.p_hit = np.where(
+        crossed & (params.pooled_strength > 0),
+        hit_probability(c.tri_hits, c.tri_pass, prior),
+        hit_probability(c.tri_hits, c.tri_pass, params.tri_prior),
+    )
     model.ground.range_sigma = np.full(nf, sigma)
     model.ellipsoids.p_hit = hit_probability(c.ell_hits, c.ell_pass, params.ell_prior)
-    return {"triangle_hits": float(c.tri_hits.sum()), "triangle_passes": float(c.tri_pass.sum()),
-            "grazing_crossings": c.grazing, "ellipsoid_hits": float(c.ell_hits.sum()),
-            "ellipsoid_passes": float(c.ell_pass.sum()), "ground_sigma": sigma, "ground_sigma_normal": c.sigma_normal,
-            "pooled_triangle_p_hit": pooled,
-            "mean_triangle_p_hit": float(model.ground.p_hit.mean()) if nf else float("nan")}
+    return {
+        "triangle_hits": float(c.tri_hits.sum()),
+        "triangle_passes": float(c.tri_pass.sum()),
+        "grazing_crossings": c.grazing,
+        "ellipsoid_hits": float(c.ell_hits.sum()),
+        "ellipsoid_passes": float(c.ell_pass.sum()),
+        "ground_sigma": sigma,
+        "ground_sigma_normal": c.sigma_normal,
+        "pooled_triangle_p_hit": pooled,
+        "mean_triangle_p_hit": float(model.ground.p_hit.mean()) if nf else float("nan"),
+    }
 
 
 def select_scans(log: Log, scans) -> Log:
     """A log of the scans ``scans`` (indices or slice) of ``log``."""
     idx = np.arange(log.n_scans)[scans]
     pick = lambda a: a[idx] if a.shape[0] > 1 else a
-    return Log(poses=log.poses[idx], directions=pick(log.directions), origins=pick(log.origins), ranges=log.ranges[idx],
-               hit=log.hit[idx], times=log.times[idx], attributes={k: v[idx] for k, v in log.attributes.items()},
-               sensor=dict(log.sensor))
+    return Log(
+        poses=log.poses[idx],
+        directions=pick(log.directions),
+        origins=pick(log.origins),
+        ranges=log.ranges[idx],
+        hit=log.hit[idx],
+        times=log.times[idx],
+        attributes={k: v[idx] for k, v in log.attributes.items()},
+        sensor=dict(log.sensor),
+    )
 
 
-def fit_model(log: Log, params: FitParams | None = None, progress: Callable[[str, float], None] | None = None,
-              ground_only: bool = False) -> FitResult:
+def fit_model(
+    log: Log,
+    params: FitParams | None = None,
+    progress: Callable[[str, float], None] | None = None,
+    ground_only: bool = False,
+) -> FitResult:
     """Fit the hybrid geometric model of the scene seen by ``log``.
 
     Args:
@@ -227,8 +269,12 @@ def fit_model(log: Log, params: FitParams | None = None, progress: Callable[[str
         n_ell += len(ell)
         ells.append(ell)
         timings["ellipsoids"] += time.perf_counter() - t0
-    model = HybridModel(GroundMesh.concat(grounds), EllipsoidSet.concat(ells), params.extent,
-                        info={"n_blocks": int(len(blocks)), "block_size": params.block_size})
+    model = HybridModel(
+        GroundMesh.concat(grounds),
+        EllipsoidSet.concat(ells),
+        params.extent,
+        info={"n_blocks": int(len(blocks)), "block_size": params.block_size},
+    )
     if "label" in log.attributes and len(model.ellipsoids):
         labels = log.attributes["label"].ravel()[ray_index]
         inst = log.attributes["instance"].ravel()[ray_index] if "instance" in log.attributes else np.zeros_like(labels)
@@ -241,8 +287,11 @@ def fit_model(log: Log, params: FitParams | None = None, progress: Callable[[str
     t0 = time.perf_counter()
     owner_of_ray = np.full(log.n_rays, -1, np.int64)
     owner_of_ray[ray_index] = owner
-    model.info.update(assign_hit_probabilities(model, log, owner_of_ray, params,
-                                               lambda fraction: report("hit probabilities", fraction)))
+    model.info.update(
+        assign_hit_probabilities(
+            model, log, owner_of_ray, params, lambda fraction: report("hit probabilities", fraction)
+        )
+    )
     timings["hit_probabilities"] = time.perf_counter() - t0
     report("done", 1.0)
     return FitResult(model, points, ray_index, is_ground, owner, timings)

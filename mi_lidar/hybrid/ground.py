@@ -85,8 +85,9 @@ def voxel_index(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarra
     return first, inverse.ravel()
 
 
-def spherical_variation(points: np.ndarray, radius: float, k: int, min_neighbors: int, default: float,
-                        workers: int = -1) -> np.ndarray:
+def spherical_variation(
+    points: np.ndarray, radius: float, k: int, min_neighbors: int, default: float, workers: int = -1
+) -> np.ndarray:
     """phi = l1 / (l1 + l2 + l3) of each point's neighbourhood (thesis 4.3.1.1).
 
     Args:
@@ -110,8 +111,9 @@ def spherical_variation(points: np.ndarray, radius: float, k: int, min_neighbors
     return np.where(count >= min_neighbors, phi, default)
 
 
-def smooth_variation(points: np.ndarray, phi: np.ndarray, radius: float, eta_d: float, eta_phi: float,
-                     k: int = 24, workers: int = -1) -> np.ndarray:
+def smooth_variation(
+    points: np.ndarray, phi: np.ndarray, radius: float, eta_d: float, eta_phi: float, k: int = 24, workers: int = -1
+) -> np.ndarray:
     """Bilateral smoothing of phi over neighbours within ``radius`` (m), eqs. 4.1-4.2."""
     tree = cKDTree(points)
     dist, idx = tree.query(points, k=min(k, len(points)), distance_upper_bound=radius, workers=workers)

@@ -92,7 +92,7 @@ class MeshModelLibrary:
         return len(self.models)
 
     @classmethod
-    def generate(cls, per_class: int = 4, seed: int = LIBRARY_SEED) -> "MeshModelLibrary":
+    def generate(cls, per_class: int = 4, seed: int = LIBRARY_SEED) -> MeshModelLibrary:
         """``per_class`` generator models of every object class (rock, shrubs, trees).
 
         Args:
@@ -116,8 +116,10 @@ class MeshModelLibrary:
         candidates = [m for m in self.models if m.label == c]
         if not candidates:
             have = sorted({CLASS_NAMES[m.label] for m in self.models})
-            raise SceneError(f"the mesh-model library has no {CLASS_NAMES[c]!r}; it holds {have}. "
-                             "Generate it with MeshModelLibrary.generate().")
+            raise SceneError(
+                f"the mesh-model library has no {CLASS_NAMES[c]!r}; it holds {have}. "
+                "Generate it with MeshModelLibrary.generate()."
+            )
         return candidates[closest_extents([m.extents for m in candidates], extents)]
 
     def preview(self, path) -> Path:
@@ -134,21 +136,27 @@ class MeshModelLibrary:
 
         labels = sorted({m.label for m in self.models})
         cols = max(sum(m.label == c for m in self.models) for c in labels)
-        fig, axes = plt.subplots(len(labels), cols, figsize=(2.2 * cols, 2.2 * len(labels)), squeeze=False,
-                                 layout="constrained")
+        fig, axes = plt.subplots(
+            len(labels), cols, figsize=(2.2 * cols, 2.2 * len(labels)), squeeze=False, layout="constrained"
+        )
         for row, c in zip(axes, labels):
             models = [m for m in self.models if m.label == c]
             for ax, m in zip(row, models):
-                ax.add_collection(PolyCollection(m.vertices[m.faces][:, :, [0, 2]], facecolor="forestgreen",
-                                                 edgecolor="none", alpha=0.6))
+                ax.add_collection(
+                    PolyCollection(
+                        m.vertices[m.faces][:, :, [0, 2]], facecolor="forestgreen", edgecolor="none", alpha=0.6
+                    )
+                )
                 lo, hi = m.vertices.min(axis=0) - 0.3, m.vertices.max(axis=0) + 0.3
                 ax.set_xlim(lo[0], hi[0])
                 ax.set_ylim(lo[2], hi[2])
                 ax.set_aspect("equal")
-                ax.set_title(f"{m.id}: {len(m.faces)} faces\nbox {m.extents[0]:.1f} x {m.extents[1]:.1f} x "
-                             f"{m.extents[2]:.1f} m", fontsize=7)
+                ax.set_title(
+                    f"{m.id}: {len(m.faces)} faces\nbox {m.extents[0]:.1f} x {m.extents[1]:.1f} x {m.extents[2]:.1f} m",
+                    fontsize=7,
+                )
                 ax.tick_params(labelsize=6)
-            for ax in row[len(models):]:
+            for ax in row[len(models) :]:
                 ax.axis("off")
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -48,18 +48,32 @@ class GroundMesh:
         return len(self.faces)
 
     @staticmethod
-    def concat(parts: list["GroundMesh"]) -> "GroundMesh":
+    def concat(parts: list[GroundMesh]) -> GroundMesh:
         """Concatenate meshes (vertex indices are shifted)."""
         parts = [p for p in parts if len(p)] or [GroundMesh(np.zeros((0, 3)), np.zeros((0, 3)))]
         offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
         cat = lambda name: np.concatenate([getattr(p, name) for p in parts])
-        return GroundMesh(cat("vertices"), np.concatenate([p.faces + o for p, o in zip(parts, offsets)]),
-                          cat("p_hit"), cat("range_sigma"), cat("label"), cat("instance"), cat("block"))
+        return GroundMesh(
+            cat("vertices"),
+            np.concatenate([p.faces + o for p, o in zip(parts, offsets)]),
+            cat("p_hit"),
+            cat("range_sigma"),
+            cat("label"),
+            cat("instance"),
+            cat("block"),
+        )
 
-    def subset(self, mask: np.ndarray) -> "GroundMesh":
+    def subset(self, mask: np.ndarray) -> GroundMesh:
         """The faces where ``mask`` (F,) is True (vertices are kept)."""
-        return GroundMesh(self.vertices, self.faces[mask], self.p_hit[mask], self.range_sigma[mask],
-                          self.label[mask], self.instance[mask], self.block[mask])
+        return GroundMesh(
+            self.vertices,
+            self.faces[mask],
+            self.p_hit[mask],
+            self.range_sigma[mask],
+            self.label[mask],
+            self.instance[mask],
+            self.block[mask],
+        )
 
 
 @dataclass
@@ -94,22 +108,24 @@ class EllipsoidSet:
         return len(self.means)
 
     @staticmethod
-    def concat(parts: list["EllipsoidSet"]) -> "EllipsoidSet":
+    def concat(parts: list[EllipsoidSet]) -> EllipsoidSet:
         """Concatenate ellipsoid sets."""
         parts = [p for p in parts if len(p)] or [EllipsoidSet(np.zeros((0, 3)), np.zeros((0, 3, 3)))]
         cat = lambda name: np.concatenate([getattr(p, name) for p in parts])
         return EllipsoidSet(cat("means"), cat("covs"), cat("p_hit"), cat("label"), cat("instance"), cat("block"))
 
-    def subset(self, mask: np.ndarray) -> "EllipsoidSet":
+    def subset(self, mask: np.ndarray) -> EllipsoidSet:
         """The ellipsoids selected by boolean or index array ``mask``."""
-        return EllipsoidSet(self.means[mask], self.covs[mask], self.p_hit[mask], self.label[mask],
-                            self.instance[mask], self.block[mask])
+        return EllipsoidSet(
+            self.means[mask], self.covs[mask], self.p_hit[mask], self.label[mask], self.instance[mask], self.block[mask]
+        )
 
-    def transformed(self, rotation: np.ndarray, translation: np.ndarray) -> "EllipsoidSet":
+    def transformed(self, rotation: np.ndarray, translation: np.ndarray) -> EllipsoidSet:
         """The set moved by ``x -> rotation @ x + translation`` ((3, 3), (3,) m)."""
         r = np.asarray(rotation, float)
-        return EllipsoidSet(self.means @ r.T + translation, r @ self.covs @ r.T, self.p_hit, self.label,
-                            self.instance, self.block)
+        return EllipsoidSet(
+            self.means @ r.T + translation, r @ self.covs @ r.T, self.p_hit, self.label, self.instance, self.block
+        )
 
     def axes(self, min_sigma: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
         """Principal standard deviations (N, 3) (m, floored at ``min_sigma``) and quaternions (N, 4) (x, y, z, w)."""
@@ -120,7 +136,7 @@ class EllipsoidSet:
         return np.sqrt(np.maximum(w, min_sigma**2)), Rotation.from_matrix(v).as_quat()
 
     @staticmethod
-    def from_axes(means, scales, quaternions, **attributes) -> "EllipsoidSet":
+    def from_axes(means, scales, quaternions, **attributes) -> EllipsoidSet:
         """Build a set from (N, 3) means, (N, 3) standard deviations (m) and (N, 4) (x, y, z, w) quaternions."""
         r = Rotation.from_quat(np.asarray(quaternions, float)).as_matrix() if len(means) else np.zeros((0, 3, 3))
         variances = np.asarray(scales, float) ** 2

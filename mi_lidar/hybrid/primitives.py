@@ -83,8 +83,14 @@ def sensor_velocity_at(poses: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return v if np.linalg.norm(v) > 0 else np.array([1.0, 0.0])
 
 
-def extract_primitives(model: HybridModel, points: np.ndarray, segments: list[Segment], poses: np.ndarray,
-                       source: str = "", min_ellipsoids: int = 1) -> list[Primitive]:
+def extract_primitives(
+    model: HybridModel,
+    points: np.ndarray,
+    segments: list[Segment],
+    poses: np.ndarray,
+    source: str = "",
+    min_ellipsoids: int = 1,
+) -> list[Primitive]:
     """Primitives of labelled segments.
 
     Args:
@@ -110,8 +116,16 @@ def extract_primitives(model: HybridModel, points: np.ndarray, segments: list[Se
         ell.label[:] = seg.label
         ell.instance[:] = 0
         ell.block[:] = 0
-        out.append(Primitive(f"{source or 'scene'}_{CLASS_NAMES[seg.label]}_{seg.id}", seg.label, ell, lo, hi,
-                             {"scene": source, "segment": int(seg.id), "patch": bool(seg.patch), "n_points": int(len(pts))}))
+        out.append(
+            Primitive(
+                f"{source or 'scene'}_{CLASS_NAMES[seg.label]}_{seg.id}",
+                seg.label,
+                ell,
+                lo,
+                hi,
+                {"scene": source, "segment": int(seg.id), "patch": bool(seg.patch), "n_points": int(len(pts))},
+            )
+        )
     return out
 
 
@@ -138,14 +152,24 @@ class PrimitiveLibrary:
         cands = self.of_class(label)
         if not cands:
             have = sorted({p.class_name for p in self.primitives})
-            raise SceneError(f"the primitive library has no {CLASS_NAMES[class_id(label)]!r}; it holds {have}. "
-                             "Extract primitives from a log that contains this class.")
+            raise SceneError(
+                f"the primitive library has no {CLASS_NAMES[class_id(label)]!r}; it holds {have}. "
+                "Extract primitives from a log that contains this class."
+            )
         return cands[closest_extents([p.extents for p in cands], extents)]
 
     def rows(self) -> list[dict]:
         """One summary dict per primitive (id, class, ellipsoids, extents in m, source)."""
-        return [{"id": p.id, "class": p.class_name, "ellipsoids": len(p.ellipsoids),
-                 "extents": [round(float(x), 3) for x in p.extents], "source": p.source} for p in self.primitives]
+        return [
+            {
+                "id": p.id,
+                "class": p.class_name,
+                "ellipsoids": len(p.ellipsoids),
+                "extents": [round(float(x), 3) for x in p.extents],
+                "source": p.source,
+            }
+            for p in self.primitives
+        ]
 
     def save(self, folder) -> Path:
         """Write ``library.json`` and one ``.npz`` per primitive to ``folder``; return the index path."""
@@ -154,15 +178,18 @@ class PrimitiveLibrary:
         index = []
         for p in self.primitives:
             e = p.ellipsoids
-            np.savez_compressed(folder / f"{p.id}.npz", means=e.means, covs=e.covs, p_hit=e.p_hit,
-                                box_lo=p.box_lo, box_hi=p.box_hi)
-            index.append({"id": p.id, "label": int(p.label), "class": p.class_name, "file": f"{p.id}.npz", "source": p.source})
+            np.savez_compressed(
+                folder / f"{p.id}.npz", means=e.means, covs=e.covs, p_hit=e.p_hit, box_lo=p.box_lo, box_hi=p.box_hi
+            )
+            index.append(
+                {"id": p.id, "label": int(p.label), "class": p.class_name, "file": f"{p.id}.npz", "source": p.source}
+            )
         path = folder / "library.json"
         path.write_text(json.dumps({"format": "mi-lidar-primitives", "version": 1, "primitives": index}, indent=1))
         return path
 
     @classmethod
-    def load(cls, folder) -> "PrimitiveLibrary":
+    def load(cls, folder) -> PrimitiveLibrary:
         """Read a library written by :meth:`save`."""
         path = Path(folder) / "library.json"
         if not path.is_file():
@@ -172,7 +199,9 @@ class PrimitiveLibrary:
         for item in index["primitives"]:
             with np.load(Path(folder) / item["file"]) as d:
                 ell = EllipsoidSet(d["means"], d["covs"], d["p_hit"], label=item["label"])
-                prims.append(Primitive(item["id"], item["label"], ell, d["box_lo"], d["box_hi"], item.get("source", {})))
+                prims.append(
+                    Primitive(item["id"], item["label"], ell, d["box_lo"], d["box_hi"], item.get("source", {}))
+                )
         return cls(prims)
 
     def preview(self, path, per_class: int = 4, ids: list[str] | None = None) -> Path:
@@ -206,15 +235,24 @@ class PrimitiveLibrary:
             for mu, cov, ph in zip(e.means, e.covs, e.p_hit):
                 w, v = np.linalg.eigh(cov[np.ix_([0, 2], [0, 2])])
                 ang = np.degrees(np.arctan2(v[1, 1], v[0, 1]))
-                ax.add_patch(Ellipse((mu[0], mu[2]), 2 * np.sqrt(w[1]), 2 * np.sqrt(w[0]), angle=ang,
-                                     facecolor=cmap(ph), alpha=0.5, edgecolor="none"))
+                ax.add_patch(
+                    Ellipse(
+                        (mu[0], mu[2]),
+                        2 * np.sqrt(w[1]),
+                        2 * np.sqrt(w[0]),
+                        angle=ang,
+                        facecolor=cmap(ph),
+                        alpha=0.5,
+                        edgecolor="none",
+                    )
+                )
             ax.add_patch(Rectangle((p.box_lo[0], p.box_lo[2]), *(p.extents[[0, 2]]), fill=False, edgecolor="k", lw=0.8))
             ax.set_xlim(p.box_lo[0] - 0.5, p.box_hi[0] + 0.5)
             ax.set_ylim(p.box_lo[2] - 0.5, p.box_hi[2] + 0.5)
             ax.set_aspect("equal")
             ax.set_title(f"{p.class_name}\n{len(e)} ellipsoids", fontsize=8)
             ax.tick_params(labelsize=6)
-        for ax in axes.ravel()[len(chosen):]:
+        for ax in axes.ravel()[len(chosen) :]:
             ax.axis("off")
         fig.colorbar(plt.cm.ScalarMappable(cmap=cmap), ax=axes, label="p_hit", shrink=0.6)
         path = Path(path)

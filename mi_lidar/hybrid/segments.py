@@ -34,8 +34,9 @@ class Segment:
     patch: bool = False
 
 
-def segments_from_labels(points: np.ndarray, labels: np.ndarray, instances: np.ndarray, min_points: int = 20,
-                         patch_cell: float = 4.0) -> list[Segment]:
+def segments_from_labels(
+    points: np.ndarray, labels: np.ndarray, instances: np.ndarray, min_points: int = 20, patch_cell: float = 4.0
+) -> list[Segment]:
     """Segments of labelled object instances (classes in ``OBJECT_CLASSES``).
 
     Args:
@@ -60,7 +61,9 @@ def segments_from_labels(points: np.ndarray, labels: np.ndarray, instances: np.n
     return out
 
 
-def euclidean_segments(points: np.ndarray, radius: float = 0.5, min_points: int = 20, voxel: float = 0.15) -> list[Segment]:
+def euclidean_segments(
+    points: np.ndarray, radius: float = 0.5, min_points: int = 20, voxel: float = 0.15
+) -> list[Segment]:
     """Connected components of points linked within ``radius`` (m); label 0 (unknown).
 
     Args:
@@ -94,7 +97,7 @@ def segment_features(points: np.ndarray) -> np.ndarray:
 class SizeClassifier:
     """Nearest class centroid on standardized size features (:func:`segment_features`)."""
 
-    def fit(self, features: np.ndarray, labels: np.ndarray) -> "SizeClassifier":
+    def fit(self, features: np.ndarray, labels: np.ndarray) -> SizeClassifier:
         """Learn centroids from (M, 4) features and (M,) class ids; return self."""
         self.mean, self.std = features.mean(axis=0), features.std(axis=0) + 1e-9
         z = (features - self.mean) / self.std

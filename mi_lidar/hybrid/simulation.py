@@ -17,14 +17,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, scene_dict
 from mi_lidar.core.elements import ElementTable
-from mi_lidar.core.patterns.from_log import pattern_from_log
 from mi_lidar.core.log import Log
-from mi_lidar.scene.loading import load_scene
+from mi_lidar.core.patterns.from_log import pattern_from_log
 from mi_lidar.core.sensor_model import RESTART_OFFSET, SensorModel
-from mi_lidar.scene.simulation import simulate
 from mi_lidar.hybrid.model import HybridModel
+from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, scene_dict
+from mi_lidar.scene.loading import load_scene
+from mi_lidar.scene.simulation import simulate
 
 GROUND_ID = "ground"
 ELLIPSOIDS_ID = "ellipsoids"
@@ -49,8 +49,11 @@ def load_model(model: HybridModel):
 
 def log_sensor_model(log: Log, max_segments: int = 16) -> SensorModel:
     """Sensor model with the log's range limits (``min_range``/``max_range`` metadata, m)."""
-    return SensorModel(min_range=float(log.sensor.get("min_range", 0.0)),
-                       max_range=float(log.sensor.get("max_range", 120.0)), max_segments=max_segments)
+    return SensorModel(
+        min_range=float(log.sensor.get("min_range", 0.0)),
+        max_range=float(log.sensor.get("max_range", 120.0)),
+        max_segments=max_segments,
+    )
 
 
 def simulate_log(scene, log: Log, seed: int = 0, sensor: SensorModel | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -95,8 +98,14 @@ class Traversal:
         return self.shape == (self.shape_ids.index(shape_id) if shape_id in self.shape_ids else -2)
 
 
-def trace_elements(scene, table: ElementTable, origins: np.ndarray, directions: np.ndarray,
-                   limit: np.ndarray | float, max_elements: int = 16) -> Traversal:
+def trace_elements(
+    scene,
+    table: ElementTable,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    limit: np.ndarray | float,
+    max_elements: int = 16,
+) -> Traversal:
     """All elements met along rays up to a per-ray range, with the core's intersection rules.
 
     Each round intersects the live rays (``coherent=True``), maps hits to elements with

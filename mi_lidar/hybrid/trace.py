@@ -7,9 +7,8 @@ skips the exit surface of the one entered (GUIDE section 5), so each step yields
 
 from __future__ import annotations
 
-import numpy as np
-
 import mitsuba as mi
+import numpy as np
 
 RESTART_EPS = 1e-4  # m, offset of a restarted ray past the element it met
 
@@ -37,9 +36,18 @@ def ellipsoid_scene(centers: np.ndarray, scales: np.ndarray, quaternions: np.nda
         extent: drawn Mahalanobis radius, in sigmas.
     """
     as_tensor = lambda a: mi.TensorXf(np.ascontiguousarray(a, np.float32))
-    return mi.load_dict({"type": "scene", "ellipsoids": {
-        "type": "ellipsoids", "centers": as_tensor(centers), "scales": as_tensor(scales),
-        "quaternions": as_tensor(quaternions), "extent": float(extent)}})
+    return mi.load_dict(
+        {
+            "type": "scene",
+            "ellipsoids": {
+                "type": "ellipsoids",
+                "centers": as_tensor(centers),
+                "scales": as_tensor(scales),
+                "quaternions": as_tensor(quaternions),
+                "extent": float(extent),
+            },
+        }
+    )
 
 
 def intersect(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -61,8 +69,9 @@ def intersect(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.nd
     return t, prim
 
 
-def trace_elements(scene, origins: np.ndarray, directions: np.ndarray, max_range: np.ndarray | float,
-                   max_elements: int = 16) -> tuple[np.ndarray, np.ndarray]:
+def trace_elements(
+    scene, origins: np.ndarray, directions: np.ndarray, max_range: np.ndarray | float, max_elements: int = 16
+) -> tuple[np.ndarray, np.ndarray]:
     """All elements met along each ray up to ``max_range``, in order.
 
     Args:

@@ -1,7 +1,8 @@
 """Derivative-free tuning of the non-differentiable fitting parameters (thesis 4.4.1).
 
 Tuned (the parameters table 4.1 selects by optimization): ``phi_thresh``, log10 clusters per
-point, ellipsoid extent (sigmas), maximum triangle side (m) and maximum residual for hit (m). Objective: mean packet error + 2 (1 - F1) of the model fitted to the even scans of a
+point, ellipsoid extent (sigmas), maximum triangle side (m) and maximum residual for hit (m). Objective: mean packet
+error + 2 (1 - F1) of the model fitted to the even scans of a
 short slice and simulated at its odd scans. Optimizer: scipy Nelder-Mead with a budget of
 ``max_evals`` fits.
 """
@@ -54,8 +55,15 @@ def split_objective(log: Log, params: FitParams, seed: int = 0) -> float:
 def tune_parameters(log: Log, base: FitParams | None = None, max_evals: int = 20, seed: int = 0) -> TuneResult:
     """Tune ``base`` on ``log`` (a short slice) with Nelder-Mead; see the module docstring."""
     base = base or FitParams()
-    x0 = np.array([base.ground.phi_thresh, np.log10(base.clusters.clusters_per_point), base.extent, base.surface.max_edge,
-                   base.max_residual])
+    x0 = np.array(
+        [
+            base.ground.phi_thresh,
+            np.log10(base.clusters.clusters_per_point),
+            base.extent,
+            base.surface.max_edge,
+            base.max_residual,
+        ]
+    )
     history = []
 
     def f(x):

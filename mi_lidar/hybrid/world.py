@@ -125,6 +125,7 @@ class World:
         """A Mitsuba scene holding the world mesh (built once)."""
         if self._scene is None:
             from mi_lidar.hybrid.trace import mesh_scene
+
             self._scene = mesh_scene(self.vertices, self.faces)
         return self._scene
 
@@ -152,9 +153,18 @@ def _make_terrain(spec: WorldSpec, rng: np.random.Generator) -> dict:
         wavelength = rng.uniform(15, 60)
         theta = rng.uniform(0, np.pi)
         k = 2 * np.pi / wavelength
-        waves.append((spec.relief * rng.uniform(0.2, 0.5), k * np.cos(theta), k * np.sin(theta), rng.uniform(0, 2 * np.pi)))
-    bumps = [(spec.relief * rng.uniform(-1, 1), rng.uniform(0, spec.length), rng.uniform(-spec.width / 2, spec.width / 2),
-              rng.uniform(3, 8)) for _ in range(int(spec.length * spec.width / 400) + 1)]
+        waves.append(
+            (spec.relief * rng.uniform(0.2, 0.5), k * np.cos(theta), k * np.sin(theta), rng.uniform(0, 2 * np.pi))
+        )
+    bumps = [
+        (
+            spec.relief * rng.uniform(-1, 1),
+            rng.uniform(0, spec.length),
+            rng.uniform(-spec.width / 2, spec.width / 2),
+            rng.uniform(3, 8),
+        )
+        for _ in range(int(spec.length * spec.width / 400) + 1)
+    ]
     path = (rng.uniform(2, 0.12 * spec.width), rng.uniform(60, 140), rng.uniform(0, 2 * np.pi))
     return {"waves": waves, "bumps": bumps, "path": path}
 
@@ -235,7 +245,9 @@ class _MeshBuilder:
         return verts, faces, per_face(2, np.int32), per_face(3, np.int32), per_face(4, np.float32)
 
 
-def _vegetation(builder: _MeshBuilder, cls: str, base: np.ndarray, height: float, yaw: float, instance: int, rng) -> np.ndarray:
+def _vegetation(
+    builder: _MeshBuilder, cls: str, base: np.ndarray, height: float, yaw: float, instance: int, rng
+) -> np.ndarray:
     """Add one tree or shrub standing at ``base`` (m); return its box extents (m)."""
     _, width_ratio, density, leaf, is_tree = CLASS_SHAPES[cls]
     label = CLASS_ID[cls]
@@ -257,7 +269,9 @@ def _vegetation(builder: _MeshBuilder, cls: str, base: np.ndarray, height: float
     n_branch = int(6 + 2 * height)
     for _ in range(n_branch):
         tip = center + rot @ (radii * _crown_points(1, 0, 0.8, rng)[0])
-        start = center - [0, 0, radii[2] * rng.uniform(0.2, 0.9)] if is_tree else base + rng.normal(0, 0.1, 3) * [1, 1, 0]
+        start = (
+            center - [0, 0, radii[2] * rng.uniform(0.2, 0.9)] if is_tree else base + rng.normal(0, 0.1, 3) * [1, 1, 0]
+        )
         v, f = prism(start, tip, 0.012 * height if is_tree else 0.02, 0.01)
         builder.add(v, f, label, instance, REFLECTANCE["bark"])
     volume = 4 / 3 * np.pi * radii.prod()
@@ -484,8 +498,9 @@ def _echo(r, energy, active, window):
     return mean, total, member
 
 
-def render_log(world: World, poses: np.ndarray, sensor: SensorSpec | None = None, seed: int = 0,
-               scans_per_batch: int = 8) -> Log:
+def render_log(
+    world: World, poses: np.ndarray, sensor: SensorSpec | None = None, seed: int = 0, scans_per_batch: int = 8
+) -> Log:
     """Ray-cast the true sensor in ``world`` at ``poses`` and return a labeled :class:`Log`.
 
     Args:
@@ -512,7 +527,7 @@ def render_log(world: World, poses: np.ndarray, sensor: SensorSpec | None = None
     instances = np.full((s_count, h, w), -1, np.int32)
     scene = world.mitsuba_scene()
     for s0 in range(0, s_count, scans_per_batch):
-        batch = poses[s0:s0 + scans_per_batch]
+        batch = poses[s0 : s0 + scans_per_batch]
         b = len(batch)
         d_world = np.einsum("bij,hwkj->bhwki", batch[:, :3, :3], subs).reshape(-1, 3)
         o_world = np.broadcast_to(batch[:, None, None, None, :3, 3], (b, h, w, k, 3)).reshape(-1, 3)
@@ -535,14 +550,26 @@ def render_log(world: World, poses: np.ndarray, sensor: SensorSpec | None = None
         face = safe[np.arange(len(best)), best]
         r = r + rng.normal(0, sensor.range_noise, len(r))
         ok = np.isfinite(r) & (r >= sensor.min_range) & (r <= sensor.max_range)
-        ranges[s0:s0 + b] = np.where(ok, r, np.nan).reshape(b, h, w)
-        labels[s0:s0 + b] = np.where(ok, world.label[face], 0).reshape(b, h, w)
-        instances[s0:s0 + b] = np.where(ok, world.instance[face], -1).reshape(b, h, w)
+        ranges[s0 : s0 + b] = np.where(ok, r, np.nan).reshape(b, h, w)
+        labels[s0 : s0 + b] = np.where(ok, world.label[face], 0).reshape(b, h, w)
+        instances[s0 : s0 + b] = np.where(ok, world.instance[face], -1).reshape(b, h, w)
     hit = np.isfinite(ranges)
     col_time = np.arange(w) / w * sensor.sweep_time
     times = (np.arange(s_count)[:, None, None] * sensor.sweep_time + col_time[None, None, :]) * np.ones((1, h, 1))
-    meta = {"name": "synthetic-true-sensor", "world_seed": world.seed, "min_range": sensor.min_range,
-            "max_range": sensor.max_range, "divergence": sensor.divergence, "range_noise": sensor.range_noise}
-    return Log(poses=poses, directions=dirs[None], ranges=ranges, hit=hit, times=times,
-               attributes={"label": labels, "instance": instances}, sensor=meta)
-
+    meta = {
+        "name": "synthetic-true-sensor",
+        "world_seed": world.seed,
+        "min_range": sensor.min_range,
+        "max_range": sensor.max_range,
+        "divergence": sensor.divergence,
+        "range_noise": sensor.range_noise,
+    }
+    return Log(
+        poses=poses,
+        directions=dirs[None],
+        ranges=ranges,
+        hit=hit,
+        times=times,
+        attributes={"label": labels, "instance": instances},
+        sensor=meta,
+    )

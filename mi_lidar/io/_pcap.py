@@ -52,8 +52,7 @@ class UdpPackets:
             and (P',) record offsets.
         """
         keep = [
-            i for i, p in enumerate(self.payloads)
-            if len(p) == size and (port is None or self.dst_ports[i] == port)
+            i for i, p in enumerate(self.payloads) if len(p) == size and (port is None or self.dst_ports[i] == port)
         ]
         data = np.frombuffer(b"".join(self.payloads[i] for i in keep), dtype=np.uint8).reshape(len(keep), size)
         return data, self.times[keep], self.offsets[keep]
@@ -153,7 +152,7 @@ def read_udp(path: str | Path) -> UdpPackets:
                 f"{path}: byte {offset}: record of {captured} bytes is truncated at end of file "
                 f"({len(data) - offset - 16} present)"
             )
-        ip = _network_layer(link, data[offset + 16:end])
+        ip = _network_layer(link, data[offset + 16 : end])
         datagram = None if ip is None else _ipv4_udp(path, offset, ip, fragments)
         if datagram is not None:
             times.append(seconds + fraction * tick)
@@ -162,6 +161,8 @@ def read_udp(path: str | Path) -> UdpPackets:
             offsets.append(offset)
         offset = end
     return UdpPackets(
-        times=np.array(times, dtype=np.float64), dst_ports=np.array(ports, dtype=np.int64),
-        payloads=payloads, offsets=np.array(offsets, dtype=np.int64),
+        times=np.array(times, dtype=np.float64),
+        dst_ports=np.array(ports, dtype=np.int64),
+        payloads=payloads,
+        offsets=np.array(offsets, dtype=np.int64),
     )

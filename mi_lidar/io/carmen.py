@@ -80,7 +80,7 @@ def read_carmen(
             n = int(tokens[1])
             if n <= 1:
                 raise ValueError(f"beam count {n} must be > 1")
-            values = np.array(tokens[2:2 + n + 7], dtype=np.float64)
+            values = np.array(tokens[2 : 2 + n + 7], dtype=np.float64)
         except (IndexError, ValueError) as exc:
             raise LogFormatError(f"{path}: line {number}: malformed {message} message ({exc})") from exc
         if len(values) != n + 7 or len(tokens) < n + 10:
@@ -99,7 +99,7 @@ def read_carmen(
     if not np.isfinite(table).all():
         bad = int(np.argmax(~np.isfinite(table).all(axis=1)))
         raise LogFormatError(f"{path}: line {numbers[bad]}: non-finite value in a {message} message")
-    readings, pose, odometry, stamp = table[:, :n], table[:, n:n + 3], table[:, n + 3:n + 6], table[:, n + 6]
+    readings, pose, odometry, stamp = table[:, :n], table[:, n : n + 3], table[:, n + 3 : n + 6], table[:, n + 6]
     hit = (readings < max_range - 0.005) & (readings > 0)
     angles = beam_angles(n)
     directions = np.stack([np.cos(angles), np.sin(angles), np.zeros(n)], axis=-1)[None, None]
@@ -109,10 +109,17 @@ def read_carmen(
     poses[:, :2, 3] = pose[:, :2]
     times = stamp[:, None, None] + (np.arange(n) * sweep_s / n)[None, None, :]
     return Log(
-        poses=poses, directions=directions, ranges=np.where(hit, readings, np.nan)[:, None, :],
-        hit=hit[:, None, :], times=times,
+        poses=poses,
+        directions=directions,
+        ranges=np.where(hit, readings, np.nan)[:, None, :],
+        hit=hit[:, None, :],
+        times=times,
         sensor={
-            "name": f"carmen:{message}", "source": str(path), "max_range_m": max_range,
-            "beam_angles_rad": angles.tolist(), "odometry": odometry.tolist(), "range_unit": "m",
+            "name": f"carmen:{message}",
+            "source": str(path),
+            "max_range_m": max_range,
+            "beam_angles_rad": angles.tolist(),
+            "odometry": odometry.tolist(),
+            "range_unit": "m",
         },
     )

@@ -175,8 +175,11 @@ def log_from_points(
         ranges, hit, directions, cell_times = ranges[::-1], hit[::-1], directions[::-1], cell_times[::-1]
         grid_attributes = {k: v[::-1] for k, v in grid_attributes.items()}
     return Log(
-        poses=(np.eye(4) if pose is None else np.asarray(pose))[None], directions=directions[None],
-        ranges=ranges[None], hit=hit[None], times=cell_times[None],
+        poses=(np.eye(4) if pose is None else np.asarray(pose))[None],
+        directions=directions[None],
+        ranges=ranges[None],
+        hit=hit[None],
+        times=cell_times[None],
         attributes={k: np.ascontiguousarray(v)[None] for k, v in grid_attributes.items()},
         sensor={"layout": "ring grid" if ring is not None else "points (H=1, W=N)", **(sensor or {})},
     )
@@ -213,8 +216,9 @@ def cloud_from_log(log: Log, scan: int = 0, organized: bool = False) -> dict[str
     }
 
 
-def log_from_fields(fields: dict[str, np.ndarray], min_range: float = 0.0, sensor: dict | None = None,
-                    start_time: float = 0.0) -> Log:
+def log_from_fields(
+    fields: dict[str, np.ndarray], min_range: float = 0.0, sensor: dict | None = None, start_time: float = 0.0
+) -> Log:
     """A one-scan log from named point fields (``x y z`` plus optional standard fields).
 
     ``ring`` and ``column`` fields select the grid layout; a ``time``/``t``/``timestamp`` field
@@ -231,8 +235,9 @@ def log_from_fields(fields: dict[str, np.ndarray], min_range: float = 0.0, senso
         times = start_time + np.asarray(fields[time_name], dtype=np.float64)
     skip = {"x", "y", "z", "ring", "column", time_name}
     attributes = {k: np.asarray(v) for k, v in fields.items() if k not in skip and np.asarray(v).dtype.kind in "biuf"}
-    return log_from_points(points, attributes, ring=ring, column=column, times=times, min_range=min_range,
-                           sensor=sensor)
+    return log_from_points(
+        points, attributes, ring=ring, column=column, times=times, min_range=min_range, sensor=sensor
+    )
 
 
 def stack_scans(logs: list[Log]) -> Log:
@@ -247,7 +252,7 @@ def stack_scans(logs: list[Log]) -> Log:
 
     def pad(array: np.ndarray, fill) -> np.ndarray:
         out = np.full((1, height, width) + array.shape[3:], fill, dtype=array.dtype)
-        out[:, :array.shape[1], :array.shape[2]] = array
+        out[:, : array.shape[1], : array.shape[2]] = array
         return out
 
     pieces = {k: [] for k in ("directions", "origins", "ranges", "hit", "times")}
@@ -264,9 +269,12 @@ def stack_scans(logs: list[Log]) -> Log:
     empty = np.linalg.norm(directions, axis=-1) == 0
     directions[empty] = (1.0, 0.0, 0.0)
     return Log(
-        poses=np.concatenate([log.poses for log in logs]), directions=directions,
-        origins=np.concatenate(pieces["origins"]), ranges=np.concatenate(pieces["ranges"]),
-        hit=np.concatenate(pieces["hit"]), times=np.concatenate(pieces["times"]),
+        poses=np.concatenate([log.poses for log in logs]),
+        directions=directions,
+        origins=np.concatenate(pieces["origins"]),
+        ranges=np.concatenate(pieces["ranges"]),
+        hit=np.concatenate(pieces["hit"]),
+        times=np.concatenate(pieces["times"]),
         attributes={n: np.concatenate(v) for n, v in attributes.items()},
         sensor={**logs[0].sensor, "scans": len(logs)},
     )

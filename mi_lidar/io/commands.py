@@ -16,8 +16,13 @@ import numpy as np
 from mi_lidar.io.dispatch import detect_format, read_any, write_any
 
 
-def convert(in_path: str | os.PathLike, out_path: str | os.PathLike, to: str | None = None,
-            scan: int | None = None, **read_options) -> Path:
+def convert(
+    in_path: str | os.PathLike,
+    out_path: str | os.PathLike,
+    to: str | None = None,
+    scan: int | None = None,
+    **read_options,
+) -> Path:
     """Read ``in_path`` (any readable format) and write it to ``out_path``.
 
     Args:

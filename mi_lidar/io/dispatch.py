@@ -38,9 +38,20 @@ from mi_lidar.io.preview import range_image_png
 READ_FORMATS = ("npz", "carmen", "ouster", "velodyne", "bin", "ply", "pcd", "las", "rosbag", "exr")
 WRITE_FORMATS = ("npz", "bin", "ply", "pcd", "las", "rosbag2", "exr", "png")
 _SUFFIX_FORMATS = {
-    ".npz": "npz", ".log": "carmen", ".clf": "carmen", ".gz": "carmen", ".bin": "bin", ".ply": "ply",
-    ".pcd": "pcd", ".las": "las", ".laz": "las", ".bag": "rosbag", ".db3": "rosbag", ".mcap": "rosbag",
-    ".exr": "exr", ".png": "png",
+    ".npz": "npz",
+    ".log": "carmen",
+    ".clf": "carmen",
+    ".gz": "carmen",
+    ".bin": "bin",
+    ".ply": "ply",
+    ".pcd": "pcd",
+    ".las": "las",
+    ".laz": "las",
+    ".bag": "rosbag",
+    ".db3": "rosbag",
+    ".mcap": "rosbag",
+    ".exr": "exr",
+    ".png": "png",
 }
 
 
@@ -104,8 +115,13 @@ def read_any(path: str | os.PathLike, **options) -> Log:
     if fmt == "png":
         raise LogFormatError(f"{path}: PNG previews cannot be read back; read the scan's source file")
     readers = {
-        "npz": Log.load, "carmen": carmen.read_carmen, "bin": kitti.read_bin_log, "ply": ply.read_ply_log,
-        "pcd": pcd.read_pcd_log, "las": las.read_las_log, "rosbag": rosbag.read_rosbag_log,
+        "npz": Log.load,
+        "carmen": carmen.read_carmen,
+        "bin": kitti.read_bin_log,
+        "ply": ply.read_ply_log,
+        "pcd": pcd.read_pcd_log,
+        "las": las.read_las_log,
+        "rosbag": rosbag.read_rosbag_log,
         "exr": exr.read_exr_log,
     }
     if fmt == "pcap":
@@ -146,8 +162,14 @@ def write_any(log: Log, path: str | os.PathLike, fmt: str | None = None, scan: i
         one = log.scan(scan)
         title = f"{one.sensor.get('name', 'scan')} scan {scan}"
         valid = one.attributes.get("valid")
-        return range_image_png(path, one.ranges[0], title=title, hit=one.hit[0],
-                               valid=None if valid is None else valid[0])
-    writers = {"bin": kitti.write_bin_log, "ply": ply.write_ply_log, "pcd": pcd.write_pcd_log,
-               "las": las.write_las_log, "exr": exr.write_exr_log}
+        return range_image_png(
+            path, one.ranges[0], title=title, hit=one.hit[0], valid=None if valid is None else valid[0]
+        )
+    writers = {
+        "bin": kitti.write_bin_log,
+        "ply": ply.write_ply_log,
+        "pcd": pcd.write_pcd_log,
+        "las": las.write_las_log,
+        "exr": exr.write_exr_log,
+    }
     return writers[fmt](log, path, scan=scan)

@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
+from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
-from mi_lidar.core.atomic import atomic_path
 
 _UINT_MAX = np.iinfo(np.uint32).max
 _FLOAT32_EXACT = 2**24
@@ -112,7 +112,8 @@ def write_exr_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
     direction = one.directions[0].astype(np.float64)
     times = one.times[0]
     channels = {
-        "range": np.where(one.hit[0], one.ranges[0], np.nan).astype(np.float32), "hit": one.hit[0],
+        "range": np.where(one.hit[0], one.ranges[0], np.nan).astype(np.float32),
+        "hit": one.hit[0],
         "elevation": np.arcsin(np.clip(direction[..., 2], -1, 1)),
         "azimuth": np.arctan2(direction[..., 1], direction[..., 0]),
         "time": times - times.min(),
@@ -121,7 +122,8 @@ def write_exr_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
         channels.update({f"origin.{a}": one.origins[0, ..., i] for i, a in enumerate("xyz")})
     channels.update({f"attr.{k}": v[0] for k, v in one.attributes.items() if np.asarray(v).dtype.kind in "biuf"})
     metadata = {
-        "mi_lidar_start_time": repr(float(times.min())), "mi_lidar_pose": json.dumps(one.poses[0].tolist()),
+        "mi_lidar_start_time": repr(float(times.min())),
+        "mi_lidar_pose": json.dumps(one.poses[0].tolist()),
         "mi_lidar_sensor": json.dumps(one.sensor, default=str),
     }
     return write_exr(path, channels, metadata)
@@ -155,8 +157,12 @@ def read_exr_log(path: str | os.PathLike) -> Log:
         origins = np.stack([channels[f"origin.{a}"] for a in "xyz"], axis=-1)[None]
     times = start + channels.get("time", np.zeros_like(ranges)).astype(np.float64)
     return Log(
-        poses=pose[None], directions=directions[None], origins=origins,
-        ranges=np.where(hit, ranges, np.nan)[None], hit=hit[None], times=times[None],
-        attributes={k[len("attr."):]: v[None] for k, v in channels.items() if k.startswith("attr.")},
+        poses=pose[None],
+        directions=directions[None],
+        origins=origins,
+        ranges=np.where(hit, ranges, np.nan)[None],
+        hit=hit[None],
+        times=times[None],
+        attributes={k[len("attr.") :]: v[None] for k, v in channels.items() if k.startswith("attr.")},
         sensor={**sensor, "source": str(path)},
     )

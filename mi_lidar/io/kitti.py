@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
-from mi_lidar.core.atomic import atomic_path
 from mi_lidar.io.cloud import cloud_from_log, log_from_points
 
 
@@ -107,7 +107,10 @@ def read_bin_log(path: str | os.PathLike, columns: int | None = None, min_range:
                 f"{path}: column 5 (ring) holds non-integer or out-of-range values; not a nuScenes scan?"
             )
     return log_from_points(
-        records[:, :3], {"intensity": records[:, 3]}, ring=ring, min_range=min_range,
+        records[:, :3],
+        {"intensity": records[:, 3]},
+        ring=ring,
+        min_range=min_range,
         sensor={"name": "nuscenes" if columns == 5 else "kitti", "source": str(path), "min_range_m": min_range},
     )
 

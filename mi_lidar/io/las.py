@@ -16,9 +16,9 @@ from pathlib import Path
 import laspy
 import numpy as np
 
+from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
-from mi_lidar.core.atomic import atomic_path
 from mi_lidar.io.cloud import cloud_from_log, log_from_fields
 
 COORDINATE_SCALE = 1e-4
@@ -28,11 +28,13 @@ def write_las_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
     """Write the hits of one scan as a LAS 1.4 file, atomically (see the module docstring)."""
     cloud = cloud_from_log(log, scan)
     header = laspy.LasHeader(point_format=6, version="1.4")
-    header.add_extra_dims([
-        laspy.ExtraBytesParams(name="lidar_intensity", type=np.float32),
-        laspy.ExtraBytesParams(name="ring", type=np.uint16),
-        laspy.ExtraBytesParams(name="column", type=np.uint32),
-    ])
+    header.add_extra_dims(
+        [
+            laspy.ExtraBytesParams(name="lidar_intensity", type=np.float32),
+            laspy.ExtraBytesParams(name="ring", type=np.uint16),
+            laspy.ExtraBytesParams(name="column", type=np.uint32),
+        ]
+    )
     xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float64)
     header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
     header.scales = np.full(3, COORDINATE_SCALE)
@@ -72,8 +74,9 @@ def read_las_log(path: str | os.PathLike, min_range: float = 0.0) -> Log:
             las = reader.read()
         names = set(las.point_format.dimension_names)
         fields = {"x": np.asarray(las.x), "y": np.asarray(las.y), "z": np.asarray(las.z)}
-        fields["intensity"] = np.asarray(las["lidar_intensity"] if "lidar_intensity" in names else las.intensity,
-                                         dtype=np.float32)
+        fields["intensity"] = np.asarray(
+            las["lidar_intensity"] if "lidar_intensity" in names else las.intensity, dtype=np.float32
+        )
         for name in ("ring", "column"):
             if name in names:
                 fields[name] = np.asarray(las[name])

@@ -63,23 +63,60 @@ class _Profile:
 
 
 PROFILES = {
-    "LEGACY": _Profile(0, 16, 12, 4, 0, {
-        "range_mm": _Field(0, "<u4", 0x000FFFFF), "reflectivity": _Field(4, "<u2"),
-        "signal": _Field(6, "<u2"), "near_ir": _Field(8, "<u2"),
-    }),
-    "RNG19_RFL8_SIG16_NIR16": _Profile(32, 12, 12, 0, 32, {
-        "range_mm": _Field(0, "<u4", 0x0007FFFF), "reflectivity": _Field(4, "u1"),
-        "signal": _Field(6, "<u2"), "near_ir": _Field(8, "<u2"),
-    }),
-    "RNG19_RFL8_SIG16_NIR16_DUAL": _Profile(32, 12, 16, 0, 32, {
-        "range_mm": _Field(0, "<u4", 0x0007FFFF), "reflectivity": _Field(3, "u1"),
-        "range2_mm": _Field(4, "<u4", 0x0007FFFF), "reflectivity2": _Field(7, "u1"),
-        "signal": _Field(8, "<u2"), "signal2": _Field(10, "<u2"), "near_ir": _Field(12, "<u2"),
-    }),
-    "RNG15_RFL8_NIR8": _Profile(32, 12, 4, 0, 32, {
-        "range_mm": _Field(0, "<u2", 0x7FFF, 3), "reflectivity": _Field(2, "u1"),
-        "near_ir": _Field(3, "u1", 0, 4),
-    }),
+    "LEGACY": _Profile(
+        0,
+        16,
+        12,
+        4,
+        0,
+        {
+            "range_mm": _Field(0, "<u4", 0x000FFFFF),
+            "reflectivity": _Field(4, "<u2"),
+            "signal": _Field(6, "<u2"),
+            "near_ir": _Field(8, "<u2"),
+        },
+    ),
+    "RNG19_RFL8_SIG16_NIR16": _Profile(
+        32,
+        12,
+        12,
+        0,
+        32,
+        {
+            "range_mm": _Field(0, "<u4", 0x0007FFFF),
+            "reflectivity": _Field(4, "u1"),
+            "signal": _Field(6, "<u2"),
+            "near_ir": _Field(8, "<u2"),
+        },
+    ),
+    "RNG19_RFL8_SIG16_NIR16_DUAL": _Profile(
+        32,
+        12,
+        16,
+        0,
+        32,
+        {
+            "range_mm": _Field(0, "<u4", 0x0007FFFF),
+            "reflectivity": _Field(3, "u1"),
+            "range2_mm": _Field(4, "<u4", 0x0007FFFF),
+            "reflectivity2": _Field(7, "u1"),
+            "signal": _Field(8, "<u2"),
+            "signal2": _Field(10, "<u2"),
+            "near_ir": _Field(12, "<u2"),
+        },
+    ),
+    "RNG15_RFL8_NIR8": _Profile(
+        32,
+        12,
+        4,
+        0,
+        32,
+        {
+            "range_mm": _Field(0, "<u2", 0x7FFF, 3),
+            "reflectivity": _Field(2, "u1"),
+            "near_ir": _Field(3, "u1", 0, 4),
+        },
+    ),
 }
 MAX_COLUMNS = 8192
 MAX_BEAMS = 512
@@ -137,9 +174,15 @@ def read_ouster_metadata(path: str | os.PathLike) -> OusterMetadata:
         raise LogFormatError(f"{path}: top level is {type(meta).__name__}; expected an Ouster metadata object")
 
     def find(*keys, default=None):
-        for section in (meta, meta.get("beam_intrinsics"), meta.get("lidar_intrinsics"),
-                        meta.get("lidar_data_format"), meta.get("data_format"), meta.get("config_params"),
-                        meta.get("sensor_info")):
+        for section in (
+            meta,
+            meta.get("beam_intrinsics"),
+            meta.get("lidar_intrinsics"),
+            meta.get("lidar_data_format"),
+            meta.get("data_format"),
+            meta.get("config_params"),
+            meta.get("sensor_info"),
+        ):
             if isinstance(section, dict):
                 for key in keys:
                     if key in section:
@@ -177,9 +220,15 @@ def read_ouster_metadata(path: str | os.PathLike) -> OusterMetadata:
     if profile not in PROFILES:
         raise LogFormatError(f"{path}: udp_profile_lidar {profile!r}; supported: {', '.join(PROFILES)}")
     return OusterMetadata(
-        altitude_deg=altitude, azimuth_deg=azimuth, beam_origin_mm=origin,
-        lidar_to_sensor=transform.reshape(4, 4), pixel_shift_by_row=shift, columns_per_frame=width,
-        columns_per_packet=per_packet, profile=profile, frequency_hz=frequency,
+        altitude_deg=altitude,
+        azimuth_deg=azimuth,
+        beam_origin_mm=origin,
+        lidar_to_sensor=transform.reshape(4, 4),
+        pixel_shift_by_row=shift,
+        columns_per_frame=width,
+        columns_per_packet=per_packet,
+        profile=profile,
+        frequency_hz=frequency,
         product=str(meta.get("prod_line", find("prod_line", default="ouster"))),
     )
 
@@ -210,7 +259,7 @@ def range_digest(log: Log, scan: int = 0) -> str:
 def _take(block: np.ndarray, spec: _Field) -> np.ndarray:
     """Decode field ``spec`` from the last axis (bytes) of ``block``."""
     size = np.dtype(spec.dtype).itemsize
-    raw = np.ascontiguousarray(block[..., spec.offset:spec.offset + size]).view(spec.dtype)[..., 0]
+    raw = np.ascontiguousarray(block[..., spec.offset : spec.offset + size]).view(spec.dtype)[..., 0]
     values = raw.astype(_WIDE[spec.dtype])
     if spec.mask:
         values &= spec.mask
@@ -242,8 +291,13 @@ def _geometry(meta: OusterMetadata) -> tuple[np.ndarray, np.ndarray]:
     d = (cos_ea * cos_alt, sin_ea * cos_alt, np.broadcast_to(sin_alt, (height, width)))
     o = (n * (cos_e - d[0]), n * (sin_e - d[1]), -n * d[2])
     direction = np.stack([rotation[i, 0] * d[0] + rotation[i, 1] * d[1] + rotation[i, 2] * d[2] for i in range(3)], -1)
-    origin = np.stack([(rotation[i, 0] * o[0] + rotation[i, 1] * o[1] + rotation[i, 2] * o[2] + translation[i]) / 1000.0
-                       for i in range(3)], -1)
+    origin = np.stack(
+        [
+            (rotation[i, 0] * o[0] + rotation[i, 1] * o[1] + rotation[i, 2] * o[2] + translation[i]) / 1000.0
+            for i in range(3)
+        ],
+        -1,
+    )
     return direction, origin
 
 
@@ -283,7 +337,7 @@ def read_ouster(
             f"{per_packet} columns per packet per {metadata.name}); UDP payload sizes found: {sizes[:8]}. "
             "Check that the metadata JSON belongs to this capture."
         )
-    columns = data[:, profile.packet_header:profile.packet_header + per_packet * column_size]
+    columns = data[:, profile.packet_header : profile.packet_header + per_packet * column_size]
     columns = columns.reshape(len(data), per_packet, column_size)
     stamp = np.ascontiguousarray(columns[..., 0:8]).view("<u8")[..., 0]
     measurement = _take(columns, _Field(8, "<u2"))
@@ -300,7 +354,7 @@ def read_ouster(
             f"{path}: packet at byte {offsets[packet]}: measurement id {int(measurement[bad][0])} >= "
             f"{width} columns per frame ({metadata.name}); wrong metadata or corrupt packet"
         )
-    pixels = columns[..., profile.column_header:profile.column_header + height * profile.pixel]
+    pixels = columns[..., profile.column_header : profile.column_header + height * profile.pixel]
     pixels = pixels.reshape(len(data), per_packet, height, profile.pixel)
 
     frame, measurement, stamp = frame.ravel(), measurement.ravel().astype(np.int64), stamp.ravel()
@@ -334,16 +388,26 @@ def read_ouster(
     hit = valid & (fields["range_mm"] > 0)
     ranges = np.where(hit, fields["range_mm"] / 1000.0, np.nan)
     sensor = {
-        "name": f"ouster:{meta.product}", "source": str(path), "metadata": str(metadata),
-        "profile": meta.profile, "pixel_shift_by_row": shift.tolist(), "columns_per_frame": width,
+        "name": f"ouster:{meta.product}",
+        "source": str(path),
+        "metadata": str(metadata),
+        "profile": meta.profile,
+        "pixel_shift_by_row": shift.tolist(),
+        "columns_per_frame": width,
         "frequency_hz": meta.frequency_hz,
         "frame_ids": [int(f) for f in frame[np.r_[0, np.flatnonzero(np.diff(scan)) + 1]]],
-        "beam_altitude_deg": meta.altitude_deg.tolist(), "beam_azimuth_deg": meta.azimuth_deg.tolist(),
-        "layout": "destaggered", "range_unit": "m",
+        "beam_altitude_deg": meta.altitude_deg.tolist(),
+        "beam_azimuth_deg": meta.azimuth_deg.tolist(),
+        "layout": "destaggered",
+        "range_unit": "m",
     }
     return Log(
         poses=np.tile(np.eye(4), (n_scans, 1, 1)),
-        directions=direction[None], origins=origin[None],
-        ranges=ranges, hit=hit, times=times,
-        attributes={**fields, "valid": valid}, sensor=sensor,
+        directions=direction[None],
+        origins=origin[None],
+        ranges=ranges,
+        hit=hit,
+        times=times,
+        attributes={**fields, "valid": valid},
+        sensor=sensor,
     )

@@ -13,13 +13,23 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
-from mi_lidar.core.atomic import atomic_path
 from mi_lidar.io.cloud import cloud_from_log, log_from_fields
 
-_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8",
-          ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
+_TYPES = {
+    ("F", 4): "f4",
+    ("F", 8): "f8",
+    ("I", 1): "i1",
+    ("I", 2): "i2",
+    ("I", 4): "i4",
+    ("I", 8): "i8",
+    ("U", 1): "u1",
+    ("U", 2): "u2",
+    ("U", 4): "u4",
+    ("U", 8): "u8",
+}
 _MAX_HEADER_LINES = 64
 _MAX_COLUMNS = 1024
 START_TIME_COMMENT = "mi_lidar_start_time"
@@ -36,7 +46,7 @@ def _lzf_decompress(data: bytes, size: int, path: Path) -> bytes:
             length = control + 1
             if i + length > n:
                 raise LogFormatError(f"{path}: LZF literal run overruns the compressed block at byte {i}")
-            out += data[i:i + length]
+            out += data[i : i + length]
             i += length
         else:
             length = control >> 5
@@ -117,8 +127,11 @@ def read_pcd(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], int, int]:
         raise LogFormatError(f"{path}: COUNT totals {sum(counts)} values per point; at most {_MAX_COLUMNS} supported")
     if any((t, s) not in _TYPES for t, s in zip(types, sizes)):
         raise LogFormatError(f"{path}: unsupported TYPE/SIZE pair in {list(zip(types, sizes))}")
-    columns = [(n if c == 1 else f"{n}_{k}", _TYPES[(t, s)]) for n, s, t, c in zip(names, sizes, types, counts)
-               for k in range(c)]
+    columns = [
+        (n if c == 1 else f"{n}_{k}", _TYPES[(t, s)])
+        for n, s, t, c in zip(names, sizes, types, counts)
+        for k in range(c)
+    ]
     unique = [(f"{n}__{i}" if n == "_" else n, t) for i, (n, t) in enumerate(columns)]
     if len({n for n, _ in unique}) != len(unique):
         raise LogFormatError(f"{path}: duplicate field names in FIELDS {names}")
@@ -129,7 +142,7 @@ def read_pcd(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], int, int]:
         if len(rows) < points * len(unique):
             raise LogFormatError(f"{path}: ascii data holds {len(rows)} values; header promises {points * len(unique)}")
         try:
-            table = np.array(rows[:points * len(unique)], dtype=np.float64).reshape(points, len(unique))
+            table = np.array(rows[: points * len(unique)], dtype=np.float64).reshape(points, len(unique))
         except ValueError as exc:
             raise LogFormatError(f"{path}: non-numeric ascii value ({exc})") from exc
         fields = {n: table[:, i].astype(t) for i, (n, t) in enumerate(unique)}
@@ -149,7 +162,7 @@ def read_pcd(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], int, int]:
                 f"{path}: compressed block claims {compressed} -> {size} bytes; expected {points * record.itemsize} "
                 f"uncompressed and at most {len(body) - 8} compressed"
             )
-        data = _lzf_decompress(body[8:8 + int(compressed)], int(size), path)
+        data = _lzf_decompress(body[8 : 8 + int(compressed)], int(size), path)
         fields, start = {}, 0
         for name in record.names:
             dtype = record[name]
@@ -166,8 +179,14 @@ def read_pcd(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], int, int]:
     return fields, width, height
 
 
-def write_pcd(path: str | os.PathLike, fields: dict[str, np.ndarray], width: int | None = None,
-              height: int = 1, binary: bool = True, start_time: float | None = None) -> Path:
+def write_pcd(
+    path: str | os.PathLike,
+    fields: dict[str, np.ndarray],
+    width: int | None = None,
+    height: int = 1,
+    binary: bool = True,
+    start_time: float | None = None,
+) -> Path:
     """Write named (N,) fields as a PCD v0.7 file, atomically.
 
     Args:
@@ -186,13 +205,25 @@ def write_pcd(path: str | os.PathLike, fields: dict[str, np.ndarray], width: int
     kinds = {"f": "F", "i": "I", "u": "U", "b": "U"}
     types = [kinds[a.dtype.kind] for a in arrays.values()]
     sizes = [a.dtype.itemsize for a in arrays.values()]
-    header = "\n".join([
-        "# .PCD v0.7 - Point Cloud Data file format (written by mi-lidar)",
-        *([] if start_time is None else [f"# {START_TIME_COMMENT} {start_time!r}"]), "VERSION 0.7",
-        "FIELDS " + " ".join(arrays), "SIZE " + " ".join(map(str, sizes)), "TYPE " + " ".join(types),
-        "COUNT " + " ".join("1" for _ in arrays), f"WIDTH {width}", f"HEIGHT {height}",
-        "VIEWPOINT 0 0 0 1 0 0 0", f"POINTS {count}", f"DATA {'binary' if binary else 'ascii'}",
-    ]) + "\n"
+    header = (
+        "\n".join(
+            [
+                "# .PCD v0.7 - Point Cloud Data file format (written by mi-lidar)",
+                *([] if start_time is None else [f"# {START_TIME_COMMENT} {start_time!r}"]),
+                "VERSION 0.7",
+                "FIELDS " + " ".join(arrays),
+                "SIZE " + " ".join(map(str, sizes)),
+                "TYPE " + " ".join(types),
+                "COUNT " + " ".join("1" for _ in arrays),
+                f"WIDTH {width}",
+                f"HEIGHT {height}",
+                "VIEWPOINT 0 0 0 1 0 0 0",
+                f"POINTS {count}",
+                f"DATA {'binary' if binary else 'ascii'}",
+            ]
+        )
+        + "\n"
+    )
     record = np.dtype([(n, "<" + a.dtype.str[1:]) for n, a in arrays.items()])
     table = np.empty(count, dtype=record)
     for name, values in arrays.items():
@@ -204,8 +235,9 @@ def write_pcd(path: str | os.PathLike, fields: dict[str, np.ndarray], width: int
                 stream.write(table.tobytes())
             else:
                 formats = {4: "%.9g", 8: "%.17g"}
-                columns = [np.char.mod(formats[a.dtype.itemsize] if a.dtype.kind == "f" else "%d", a)
-                           for a in arrays.values()]
+                columns = [
+                    np.char.mod(formats[a.dtype.itemsize] if a.dtype.kind == "f" else "%d", a) for a in arrays.values()
+                ]
                 stream.write("\n".join(" ".join(row) for row in zip(*columns)).encode("ascii") + b"\n")
     return Path(path)
 
@@ -213,8 +245,14 @@ def write_pcd(path: str | os.PathLike, fields: dict[str, np.ndarray], width: int
 def write_pcd_log(log: Log, path: str | os.PathLike, scan: int = 0, binary: bool = True) -> Path:
     """Write one scan as an organized ``H x W`` PCD (misses are NaN points)."""
     _, height, width = log.shape
-    return write_pcd(path, cloud_from_log(log, scan, organized=True), width=width, height=height, binary=binary,
-                     start_time=float(log.times[scan].min()))
+    return write_pcd(
+        path,
+        cloud_from_log(log, scan, organized=True),
+        width=width,
+        height=height,
+        binary=binary,
+        start_time=float(log.times[scan].min()),
+    )
 
 
 def read_pcd_log(path: str | os.PathLike, min_range: float = 0.0) -> Log:

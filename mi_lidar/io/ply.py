@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import plyfile
 
+from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
-from mi_lidar.core.atomic import atomic_path
 from mi_lidar.io.cloud import cloud_from_log, log_from_fields
 
 _PLY_KINDS = {np.dtype(t) for t in ("i1", "u1", "i2", "u2", "i4", "u4", "f4", "f8")}
@@ -29,7 +29,7 @@ def _ply_dtype(name: str, values: np.ndarray) -> np.dtype:
     dtype = values.dtype
     if dtype.newbyteorder("=") in _PLY_KINDS:
         return dtype.newbyteorder("=")
-    if dtype == bool:
+    if dtype == np.bool_:
         return np.dtype("u1")
     for wide, narrow in (("i8", "i4"), ("u8", "u4")):
         if dtype == np.dtype(wide):
@@ -101,11 +101,7 @@ def _load(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
     if missing:
         raise LogFormatError(f"{path}: vertex element lacks properties {missing}; expected x y z")
     points = np.stack([vertex[c] for c in _COORDS], axis=1).astype(np.float32, copy=False)
-    attributes = {
-        n: vertex[n].astype(vertex.dtype[n].newbyteorder("="))
-        for n in names
-        if n not in _COORDS
-    }
+    attributes = {n: vertex[n].astype(vertex.dtype[n].newbyteorder("=")) for n in names if n not in _COORDS}
     return points, attributes, list(data.comments)
 
 

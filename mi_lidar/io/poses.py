@@ -12,9 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError, PoseError
 from mi_lidar.core.atomic import atomic_path
+from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.poses import validate_poses
+
 
 def _read_text_rows(path: Path, width: int) -> np.ndarray:
     """Rows of ``width`` numbers from a whitespace-separated text file (blank lines skipped)."""

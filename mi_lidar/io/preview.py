@@ -10,8 +10,8 @@ import os
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib import colormaps
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
@@ -74,8 +74,12 @@ def range_image_png(
     shown = np.ma.masked_array(ranges, mask=miss | empty)
     image = axes.imshow(shown, cmap=cmap, aspect="auto", interpolation="nearest")
     if empty.any():
-        axes.imshow(np.ma.masked_array(np.ones_like(ranges), mask=~empty), cmap=ListedColormap([EMPTY_COLOUR]),
-                    aspect="auto", interpolation="nearest")
+        axes.imshow(
+            np.ma.masked_array(np.ones_like(ranges), mask=~empty),
+            cmap=ListedColormap([EMPTY_COLOUR]),
+            aspect="auto",
+            interpolation="nearest",
+        )
     colour_bar = figure.colorbar(image, ax=axes, pad=0.01, fraction=0.04)
     colour_bar.set_label("range (m)")
     axes.set_xlabel("firing (column)")
@@ -147,8 +151,9 @@ def rgb_png(path: str | os.PathLike, image: np.ndarray) -> Path:
     return _save(figure, path)
 
 
-def overlay_png(path: str | os.PathLike, image: np.ndarray, uv: np.ndarray, depth: np.ndarray,
-                title: str = "Lidar over camera") -> Path:
+def overlay_png(
+    path: str | os.PathLike, image: np.ndarray, uv: np.ndarray, depth: np.ndarray, title: str = "Lidar over camera"
+) -> Path:
     """Draw Lidar returns (pixel coordinates ``uv`` (N, 2), depth (N,) m) over a linear RGB image."""
     height, width = image.shape[:2]
     figure = Figure(figsize=(FIGURE_WIDTH_IN, FIGURE_WIDTH_IN * height / width + 0.8))

@@ -50,8 +50,10 @@ def decode_pointcloud2(msg, where: str) -> tuple[dict[str, np.ndarray], int, int
             formats.append(order + _DATATYPES[field.datatype])
             offsets.append(int(field.offset) + k * np.dtype(_DATATYPES[field.datatype]).itemsize)
     data = np.asarray(msg.data, dtype=np.uint8)
-    if row_step < width * step or len(data) < height * row_step or (
-        offsets and max(o + np.dtype(f).itemsize for o, f in zip(offsets, formats)) > step
+    if (
+        row_step < width * step
+        or len(data) < height * row_step
+        or (offsets and max(o + np.dtype(f).itemsize for o, f in zip(offsets, formats)) > step)
     ):
         raise LogFormatError(
             f"{where}: PointCloud2 layout inconsistent (height {height}, width {width}, point_step {step}, "
@@ -61,7 +63,7 @@ def decode_pointcloud2(msg, where: str) -> tuple[dict[str, np.ndarray], int, int
         record = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
     except ValueError as exc:
         raise LogFormatError(f"{where}: invalid PointCloud2 fields ({exc})") from exc
-    rows = data[:height * row_step].reshape(height, row_step)[:, :width * step]
+    rows = data[: height * row_step].reshape(height, row_step)[:, : width * step]
     table = np.ascontiguousarray(rows).view(record).reshape(-1)
     return {n: table[n].astype(record[n].newbyteorder("=")) for n in names}, width, height
 
@@ -105,9 +107,14 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
                     rows, cols = np.indices((height, width))
                     fields.update(ring=(height - 1 - rows).ravel(), column=cols.ravel())
                 stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
-                logs.append(log_from_fields(fields, min_range=min_range, start_time=stamp,
-                                            sensor={"name": f"rosbag:{chosen}", "source": str(path),
-                                                    "frame_id": msg.header.frame_id}))
+                logs.append(
+                    log_from_fields(
+                        fields,
+                        min_range=min_range,
+                        start_time=stamp,
+                        sensor={"name": f"rosbag:{chosen}", "source": str(path), "frame_id": msg.header.frame_id},
+                    )
+                )
     except LogFormatError:
         raise
     except Exception as exc:  # rosbags raises many reader/deserializer error types.
@@ -138,9 +145,14 @@ def write_rosbag_log(log: Log, path: str | os.PathLike, topic: str = "/points", 
     for name, datatype in _WRITE_FIELDS:
         layout.append(point_field(name=name, offset=offset, datatype=datatype, count=1))
         offset += np.dtype(_DATATYPES[datatype]).itemsize
-    record = np.dtype({"names": [n for n, _ in _WRITE_FIELDS],
-                       "formats": ["<" + _DATATYPES[d] for _, d in _WRITE_FIELDS],
-                       "offsets": [f.offset for f in layout], "itemsize": offset})
+    record = np.dtype(
+        {
+            "names": [n for n, _ in _WRITE_FIELDS],
+            "formats": ["<" + _DATATYPES[d] for _, d in _WRITE_FIELDS],
+            "offsets": [f.offset for f in layout],
+            "itemsize": offset,
+        }
+    )
     _, height, width = log.shape
     staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
     try:
@@ -158,8 +170,13 @@ def write_rosbag_log(log: Log, path: str | os.PathLike, topic: str = "/points", 
                 stamp = types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
                 msg = types[POINTCLOUD2](
                     header=types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id),
-                    height=height, width=width, fields=layout, is_bigendian=False, point_step=offset,
-                    row_step=offset * width, data=np.frombuffer(table.tobytes(), dtype=np.uint8),
+                    height=height,
+                    width=width,
+                    fields=layout,
+                    is_bigendian=False,
+                    point_step=offset,
+                    row_step=offset * width,
+                    data=np.frombuffer(table.tobytes(), dtype=np.uint8),
                     is_dense=bool(log.hit[index].all()),
                 )
                 writer.write(connection, int(round(start * 1e9)), store.serialize_cdr(msg, POINTCLOUD2))

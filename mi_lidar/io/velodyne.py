@@ -58,22 +58,139 @@ class Model:
 
 MODELS = {
     "VLP-16": Model(
-        "VLP-16", 16, 2, 55.296, np.arange(16) * 2.304, 0.002,
-        np.array([-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13, -1, 15], float), np.zeros(16),
+        "VLP-16",
+        16,
+        2,
+        55.296,
+        np.arange(16) * 2.304,
+        0.002,
+        np.array([-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13, -1, 15], float),
+        np.zeros(16),
     ),
     "HDL-32E": Model(
-        "HDL-32E", 32, 1, 46.08, np.arange(32) * 1.152, 0.002,
-        np.array([-30.67, -9.33, -29.33, -8.00, -28.00, -6.66, -26.66, -5.33, -25.33, -4.00, -24.00, -2.67,
-                  -22.67, -1.33, -21.33, 0.00, -20.00, 1.33, -18.67, 2.67, -17.33, 4.00, -16.00, 5.33,
-                  -14.67, 6.67, -13.33, 8.00, -12.00, 9.33, -10.67, 10.67]), np.zeros(32),
+        "HDL-32E",
+        32,
+        1,
+        46.08,
+        np.arange(32) * 1.152,
+        0.002,
+        np.array(
+            [
+                -30.67,
+                -9.33,
+                -29.33,
+                -8.00,
+                -28.00,
+                -6.66,
+                -26.66,
+                -5.33,
+                -25.33,
+                -4.00,
+                -24.00,
+                -2.67,
+                -22.67,
+                -1.33,
+                -21.33,
+                0.00,
+                -20.00,
+                1.33,
+                -18.67,
+                2.67,
+                -17.33,
+                4.00,
+                -16.00,
+                5.33,
+                -14.67,
+                6.67,
+                -13.33,
+                8.00,
+                -12.00,
+                9.33,
+                -10.67,
+                10.67,
+            ]
+        ),
+        np.zeros(32),
     ),
     "VLP-32C": Model(
-        "VLP-32C", 32, 1, 55.296, (np.arange(32) // 2) * 2.304, 0.004,
-        np.array([-25, -1, -1.667, -15.639, -11.31, 0, -0.667, -8.843, -7.254, 0.333, -0.333, -6.148,
-                  -5.333, 1.333, 0.667, -4, -4.667, 1.667, 1, -3.667, -3.333, 3.333, 2.333, -2.667,
-                  -3, 7, 4.667, -2.333, -2, 15, 10.333, -1.333]),
-        np.array([1.4, -4.2, 1.4, -1.4, 1.4, -1.4, 4.2, -1.4, 1.4, -4.2, 1.4, -1.4, 4.2, -1.4, 4.2, -1.4,
-                  1.4, -4.2, 1.4, -4.2, 4.2, -1.4, 1.4, -1.4, 1.4, -1.4, 1.4, -4.2, 4.2, -1.4, 1.4, -1.4]),
+        "VLP-32C",
+        32,
+        1,
+        55.296,
+        (np.arange(32) // 2) * 2.304,
+        0.004,
+        np.array(
+            [
+                -25,
+                -1,
+                -1.667,
+                -15.639,
+                -11.31,
+                0,
+                -0.667,
+                -8.843,
+                -7.254,
+                0.333,
+                -0.333,
+                -6.148,
+                -5.333,
+                1.333,
+                0.667,
+                -4,
+                -4.667,
+                1.667,
+                1,
+                -3.667,
+                -3.333,
+                3.333,
+                2.333,
+                -2.667,
+                -3,
+                7,
+                4.667,
+                -2.333,
+                -2,
+                15,
+                10.333,
+                -1.333,
+            ]
+        ),
+        np.array(
+            [
+                1.4,
+                -4.2,
+                1.4,
+                -1.4,
+                1.4,
+                -1.4,
+                4.2,
+                -1.4,
+                1.4,
+                -4.2,
+                1.4,
+                -1.4,
+                4.2,
+                -1.4,
+                4.2,
+                -1.4,
+                1.4,
+                -4.2,
+                1.4,
+                -4.2,
+                4.2,
+                -1.4,
+                1.4,
+                -1.4,
+                1.4,
+                -1.4,
+                1.4,
+                -4.2,
+                4.2,
+                -1.4,
+                1.4,
+                -1.4,
+            ]
+        ),
     ),
 }
 
@@ -99,11 +216,17 @@ class Calibration:
     resolution_m: float
 
     @classmethod
-    def of_model(cls, model: Model) -> "Calibration":
+    def of_model(cls, model: Model) -> Calibration:
         """The nominal table from the model's manual (no per-unit corrections)."""
         zeros = np.zeros(model.lasers)
-        return cls(np.radians(model.elevation_deg), np.radians(model.azimuth_offset_deg), zeros, zeros, zeros,
-                   model.resolution_m)
+        return cls(
+            np.radians(model.elevation_deg),
+            np.radians(model.azimuth_offset_deg),
+            zeros,
+            zeros,
+            zeros,
+            model.resolution_m,
+        )
 
 
 def read_calibration(path: str | os.PathLike) -> Calibration:
@@ -128,8 +251,16 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
     if not isinstance(lasers, list) or not lasers:
         raise LogFormatError(f"{path}: no 'lasers' list; expected a velodyne_pointcloud calibration")
     count = len(lasers)
-    columns = {k: np.zeros(count) for k in ("vert_correction", "rot_correction", "dist_correction",
-                                             "vert_offset_correction", "horiz_offset_correction")}
+    columns = {
+        k: np.zeros(count)
+        for k in (
+            "vert_correction",
+            "rot_correction",
+            "dist_correction",
+            "vert_offset_correction",
+            "horiz_offset_correction",
+        )
+    }
     seen = set()
     for index, laser in enumerate(lasers):
         try:
@@ -149,8 +280,12 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
     except (TypeError, ValueError) as exc:
         raise LogFormatError(f"{path}: distance_resolution is not a number ({exc})") from exc
     return Calibration(
-        columns["vert_correction"], columns["rot_correction"], columns["dist_correction"],
-        columns["vert_offset_correction"], columns["horiz_offset_correction"], resolution,
+        columns["vert_correction"],
+        columns["rot_correction"],
+        columns["dist_correction"],
+        columns["vert_offset_correction"],
+        columns["horiz_offset_correction"],
+        resolution,
     )
 
 
@@ -180,7 +315,7 @@ def _choose_model(path: Path, model: str | None, calibration: Calibration | None
 
 
 def _u16(block: np.ndarray, offset: int) -> np.ndarray:
-    return np.ascontiguousarray(block[..., offset:offset + 2]).view("<u2")[..., 0]
+    return np.ascontiguousarray(block[..., offset : offset + 2]).view("<u2")[..., 0]
 
 
 def read_velodyne(
@@ -266,7 +401,7 @@ def read_velodyne(
     lasers, per_block = sensor_model.lasers, sensor_model.sequences_per_block
     if dual:
         pick = 1 if return_mode == "strongest" else 0
-        other_distance = distance[:, 1 - pick::2]
+        other_distance = distance[:, 1 - pick :: 2]
         distance, reflectivity, azimuth = distance[:, pick::2], reflectivity[:, pick::2], azimuth[:, pick::2]
     shape = (len(data), firings_per_packet * per_block, lasers)
     distance, reflectivity = distance.reshape(shape), reflectivity.reshape(shape)
@@ -281,8 +416,11 @@ def read_velodyne(
 
     def azimuth_at(t: np.ndarray) -> np.ndarray:
         inside = np.interp(t, knots_t, knots_a)
-        return np.where(t < knots_t[0], knots_a[0] + (t - knots_t[0]) * rate,
-                        np.where(t > knots_t[-1], knots_a[-1] + (t - knots_t[-1]) * rate, inside))
+        return np.where(
+            t < knots_t[0],
+            knots_a[0] + (t - knots_t[0]) * rate,
+            np.where(t > knots_t[-1], knots_a[-1] + (t - knots_t[-1]) * rate, inside),
+        )
 
     column_azimuth = azimuth_at(column_time)
     cut = column_azimuth[0] if cut_azimuth_deg is None else cut_azimuth_deg
@@ -308,11 +446,14 @@ def read_velodyne(
     omega = np.broadcast_to(calib.vert[order][None, :, None], alpha.shape)
     direction = np.stack([np.cos(omega) * np.cos(alpha), -np.cos(omega) * np.sin(alpha), np.sin(omega)], axis=-1)
     vo, ho = calib.vert_offset[order][None, :, None], calib.horiz_offset[order][None, :, None]
-    origin = np.stack([
-        -vo * np.sin(omega) * np.cos(alpha) + ho * np.sin(alpha),
-        vo * np.sin(omega) * np.sin(alpha) + ho * np.cos(alpha),
-        np.broadcast_to(vo * np.cos(omega), alpha.shape),
-    ], axis=-1)
+    origin = np.stack(
+        [
+            -vo * np.sin(omega) * np.cos(alpha) + ho * np.sin(alpha),
+            vo * np.sin(omega) * np.sin(alpha) + ho * np.cos(alpha),
+            np.broadcast_to(vo * np.cos(omega), alpha.shape),
+        ],
+        axis=-1,
+    )
 
     def grid(values: np.ndarray, fill) -> np.ndarray:
         """(P * columns, lasers) per-firing values -> (S, H, W) in elevation order."""
@@ -327,7 +468,8 @@ def read_velodyne(
     ranges = np.where(hit, raw * resolution + dist_correction, np.nan)
     attributes = {
         "laser_id": np.broadcast_to(order.astype(np.uint8)[None, :, None], raw.shape).copy(),
-        "intensity": grid(reflectivity, 0), "valid": valid.copy(),
+        "intensity": grid(reflectivity, 0),
+        "valid": valid.copy(),
     }
     if dual:
         second = grid(other_distance.reshape(shape), 0)
@@ -335,13 +477,23 @@ def read_velodyne(
         second_range = np.where(valid & (second > 0), second * resolution + dist_correction, np.nan)
         attributes[name] = second_range.astype(np.float32)
     sensor = {
-        "name": f"velodyne:{sensor_model.name}", "source": str(path),
+        "name": f"velodyne:{sensor_model.name}",
+        "source": str(path),
         "calibration": None if calibration is None else str(calibration),
         "return_mode": RETURN_MODES[mode_byte] if not dual else f"dual ({return_mode} in ranges)",
-        "product_byte": product, "distance_resolution_m": resolution, "layout": "firing order, rows by elevation",
-        "columns_per_scan": np.bincount(scan).tolist(), "range_unit": "m",
+        "product_byte": product,
+        "distance_resolution_m": resolution,
+        "layout": "firing order, rows by elevation",
+        "columns_per_scan": np.bincount(scan).tolist(),
+        "range_unit": "m",
     }
     return Log(
-        poses=np.tile(np.eye(4), (n_scans, 1, 1)), directions=direction, origins=origin,
-        ranges=ranges, hit=hit, times=laser_time, attributes=attributes, sensor=sensor,
+        poses=np.tile(np.eye(4), (n_scans, 1, 1)),
+        directions=direction,
+        origins=origin,
+        ranges=ranges,
+        hit=hit,
+        times=laser_time,
+        attributes=attributes,
+        sensor=sensor,
     )

@@ -6,9 +6,9 @@
 * :func:`fit_effects`: the small maximum-likelihood fitter both use.
 """
 
+from mi_lidar.core.rays import LogRays
 from mi_lidar.loop.compare import Comparison, compare
 from mi_lidar.loop.diagnose import Diagnosis, diagnose
 from mi_lidar.loop.fit import FitResult, Problem, fit_effects
-from mi_lidar.core.rays import LogRays
 
 __all__ = ["Comparison", "Diagnosis", "FitResult", "LogRays", "Problem", "compare", "diagnose", "fit_effects"]

@@ -14,7 +14,6 @@ worst (largest excess NLL) lead the report.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,10 +23,10 @@ import numpy as np
 
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.log import Log
+from mi_lidar.core.rays import LogRays
 from mi_lidar.core.segment import ELLIPSOID
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop.fit import Problem
-from mi_lidar.core.rays import LogRays
 
 BREAKDOWNS = ("range", "incidence", "beam", "azimuth", "time", "element_type", "label", "shape")
 NO_ELEMENT_GROUP = "none"
@@ -66,7 +65,7 @@ def first_elements(scene, table: ElementTable, problem: Problem, model: SensorMo
     """Nominal range, incidence cosine, kind, label and shape of the first element of each ray."""
     out = {k: [] for k in ("nominal", "cos_incidence", "kind", "label", "shape")}
     for first in range(0, problem.index.size, 1 << 20):
-        batch, _, _ = problem.rays.batch(problem.index[first:first + (1 << 20)])
+        batch, _, _ = problem.rays.batch(problem.index[first : first + (1 << 20)])
         batch = model.prepare_rays(batch)
         with dr.suspend_grad():
             si = scene.ray_intersect(mi.Ray3f(batch.origin, batch.direction), mi.RayFlags.Minimal, True)
@@ -103,8 +102,18 @@ def ray_table(log: Log, scene, model: SensorModel, seed: int = 0, resolution: fl
     scan = rays.scan if log.directions.shape[0] > 1 else np.zeros_like(rays.scan)
     d = log.directions[scan, rays.beam, rays.column]
     azimuth = np.degrees(np.arctan2(d[..., 1], d[..., 0]))
-    return RayTable(ll=ll, measured=rays.measured, hit=rays.hit, sim_range=sim_range, sim_hit=sim_hit,
-                    beam=rays.beam, column=rays.column, scan=rays.scan, azimuth=azimuth, **first)
+    return RayTable(
+        ll=ll,
+        measured=rays.measured,
+        hit=rays.hit,
+        sim_range=sim_range,
+        sim_hit=sim_hit,
+        beam=rays.beam,
+        column=rays.column,
+        scan=rays.scan,
+        azimuth=azimuth,
+        **first,
+    )
 
 
 def cdf_l1(a: np.ndarray, b: np.ndarray) -> float:
@@ -128,13 +137,16 @@ def metrics(t: RayTable, mask: np.ndarray | None = None) -> dict:
     recall = tp / (tp + fn) if tp + fn else float("nan")
     f1 = 2 * precision * recall / (precision + recall) if tp else float("nan")
     return {
-        "rays": int(m.sum()), "nll": float(-np.mean(ll)) if ll.size else float("nan"),
+        "rays": int(m.sum()),
+        "nll": float(-np.mean(ll)) if ll.size else float("nan"),
         "nll_median": float(-np.median(ll)) if ll.size else float("nan"),
         "hit_rate_measured": float(hit.mean()) if hit.size else float("nan"),
         "hit_rate_simulated": float(sim.mean()) if sim.size else float("nan"),
         "range_error_mean": float(err.mean()) if err.size else float("nan"),
         "range_error_median": float(np.median(err)) if err.size else float("nan"),
-        "precision": precision, "recall": recall, "f1": f1,
+        "precision": precision,
+        "recall": recall,
+        "f1": f1,
         "histogram_l1": cdf_l1(t.measured[m][hit], t.sim_range[m][sim]),
     }
 
@@ -187,8 +199,11 @@ def breakdown(t: RayTable, by: str) -> list[dict]:
         m = keys == key
         row = {"group": str(key), **metrics(t, m)}
         row["excess_nll"] = (row["nll"] - overall) * row["rays"]
-        row["residual_median"] = float(np.nanmedian(t.measured[m & t.hit] - t.nominal[m & t.hit])) \
-            if np.any(m & t.hit & np.isfinite(t.nominal)) else float("nan")
+        row["residual_median"] = (
+            float(np.nanmedian(t.measured[m & t.hit] - t.nominal[m & t.hit]))
+            if np.any(m & t.hit & np.isfinite(t.nominal))
+            else float("nan")
+        )
         rows.append(row)
     return rows
 
@@ -214,8 +229,15 @@ class Comparison:
         return {"headline": self.headline, "breakdowns": self.breakdowns, "worst": self.worst}
 
 
-def compare(log: Log, scene, model: SensorModel | None = None, out: str | Path | None = None, seed: int = 0,
-            resolution: float = 0.01, title: str = "Model vs measurements") -> Comparison:
+def compare(
+    log: Log,
+    scene,
+    model: SensorModel | None = None,
+    out: str | Path | None = None,
+    seed: int = 0,
+    resolution: float = 0.01,
+    title: str = "Model vs measurements",
+) -> Comparison:
     """Compare ``model`` with ``log`` in ``scene`` ray by ray and optionally write a report.
 
     Args:
@@ -238,8 +260,9 @@ def compare(log: Log, scene, model: SensorModel | None = None, out: str | Path |
     model = model or scene_sensor_model(scene)[0]
     t = ray_table(log, scene, model, seed, resolution)
     result = Comparison(headline=metrics(t), breakdowns={b: breakdown(t, b) for b in BREAKDOWNS}, worst=[], table=t)
-    groups = [dict(row, breakdown=b) for b, rows in result.breakdowns.items() if b != "beam" or len(rows) > 1
-              for row in rows]
+    groups = [
+        dict(row, breakdown=b) for b, rows in result.breakdowns.items() if b != "beam" or len(rows) > 1 for row in rows
+    ]
     result.worst = sorted(groups, key=lambda r: -r["excess_nll"])[:8]
     if out is not None:
         from mi_lidar.loop.report import write_comparison

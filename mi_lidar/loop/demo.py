@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.effects import parse_effects
-from mi_lidar.scene.loading import load_scene, scene_sensor_model
-from mi_lidar.scene.simulation import simulate
 from mi_lidar.loop.compare import compare
 from mi_lidar.loop.diagnose import diagnose
+from mi_lidar.scene.loading import load_scene, scene_sensor_model
+from mi_lidar.scene.simulation import simulate
 
 ROOM = Path(__file__).resolve().parents[2] / "scenes_xml" / "indoor_planar.xml"
 HIDDEN = "incidence_dropout(gamma=2)"
@@ -34,8 +34,9 @@ def make_hidden_log(hidden: str = HIDDEN, n_scans: int = 24, seed: int = 1):
     return scene, model, simulate(scene, poses=poses, model=true, seed=seed)
 
 
-def run_demo(out: str | Path | None = None, hidden: str = HIDDEN, candidates: list[str] | None = CANDIDATES,
-             echo=print) -> dict:
+def run_demo(
+    out: str | Path | None = None, hidden: str = HIDDEN, candidates: list[str] | None = CANDIDATES, echo=print
+) -> dict:
     """Run compare -> diagnose -> compare on a log with a hidden effect and print the story.
 
     Args:
@@ -50,16 +51,27 @@ def run_demo(out: str | Path | None = None, hidden: str = HIDDEN, candidates: li
     scene, model, log = make_hidden_log(hidden)
     out = None if out is None else Path(out)
     before = compare(log, scene, model, out=None if out is None else out / "before", title="Before: the default model")
-    echo(f"Hidden in the log: {hidden}. The default model scores {before.headline['nll']:.3f} nats/ray; "
-         f"worst group: {before.worst[0]['breakdown']} {before.worst[0]['group']} ({before.worst[0]['nll']:.2f} nats/ray).")
+    echo(
+        f"Hidden in the log: {hidden}. The default model scores {before.headline['nll']:.3f} nats/ray; "
+        f"worst group: {before.worst[0]['breakdown']} {before.worst[0]['group']} "
+        f"({before.worst[0]['nll']:.2f} nats/ray)."
+    )
     d = diagnose(log, scene, model, out=out, candidates=candidates, rounds=1, steps=100)
     echo("Ranking (held-out NLL gain per ray, k added parameters, BIC change):")
     for i, c in enumerate(d.rounds[0]):
-        echo(f"  {i + 1}. {c.name:28s} gain {c.test_gain:+8.4f}  k={c.k:<3d} dBIC {c.delta_bic:+10.1f}  "
-             f"{'significant' if c.significant else '-'}")
+        echo(
+            f"  {i + 1}. {c.name:28s} gain {c.test_gain:+8.4f}  k={c.k:<3d} dBIC {c.delta_bic:+10.1f}  "
+            f"{'significant' if c.significant else '-'}"
+        )
     echo(d.summary)
     after = compare(log, scene, d.model, out=None if out is None else out / "after", title="After: the diagnosed model")
-    echo(f"NLL per ray: {before.headline['nll']:.3f} -> {after.headline['nll']:.3f} nats; hit/miss F1 "
-         f"{before.headline['f1']:.3f} -> {after.headline['f1']:.3f}.")
-    return {"ranking": d.ranking(), "selected": d.selected, "nll_before": before.headline["nll"],
-            "nll_after": after.headline["nll"]}
+    echo(
+        f"NLL per ray: {before.headline['nll']:.3f} -> {after.headline['nll']:.3f} nats; hit/miss F1 "
+        f"{before.headline['f1']:.3f} -> {after.headline['f1']:.3f}."
+    )
+    return {
+        "ranking": d.ranking(),
+        "selected": d.selected,
+        "nll_before": before.headline["nll"],
+        "nll_after": after.headline["nll"],
+    }

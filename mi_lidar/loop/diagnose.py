@@ -31,11 +31,11 @@ import numpy as np
 from scipy import stats
 
 from mi_lidar.core.log import Log
+from mi_lidar.core.rays import LogRays
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop.catalog import candidate, candidate_names, variants
 from mi_lidar.loop.compare import BREAKDOWNS, RayTable, first_elements, group_keys
 from mi_lidar.loop.fit import Problem, fit_effects, n_parameters
-from mi_lidar.core.rays import LogRays
 
 P_VALUE = 1e-3
 MIN_NLL_FOR_PERCENT = 1.0  # nats/ray: below this a gain relative to the NLL is not meaningful
@@ -100,7 +100,8 @@ class Candidate:
 
     def row(self) -> dict:
         return {k: v for k, v in dataclasses.asdict(self).items() if k not in ("effect", "history")} | {
-            "parameters": {k: np.round(np.asarray(v, dtype=float), 6).tolist() for k, v in self.parameters.items()}}
+            "parameters": {k: np.round(np.asarray(v, dtype=float), 6).tolist() for k, v in self.parameters.items()}
+        }
 
 
 @dataclass
@@ -129,9 +130,14 @@ class Diagnosis:
         return [c.row() for c in self.rounds[0]] if self.rounds else []
 
     def to_json(self) -> dict:
-        return {"selected": self.selected, "nll_before": self.nll_before, "nll_after": self.nll_after,
-                "rounds": [[c.row() for c in r] for r in self.rounds], "evidence": self.evidence,
-                "summary": self.summary}
+        return {
+            "selected": self.selected,
+            "nll_before": self.nll_before,
+            "nll_after": self.nll_after,
+            "rounds": [[c.row() for c in r] for r in self.rounds],
+            "evidence": self.evidence,
+            "summary": self.summary,
+        }
 
 
 def _evidence(test: Problem, model_before: SensorModel, model_after: SensorModel, table: RayTable) -> list[dict]:
@@ -149,8 +155,16 @@ def _evidence(test: Problem, model_before: SensorModel, model_after: SensorModel
         for key in groups:
             m = keys == key
             gain = float(np.sum(after[m] - before[m]))
-            rows.append({"breakdown": by, "group": str(key), "rays": int(m.sum()), "gain": gain,
-                         "nll_before": float(-before[m].mean()), "nll_after": float(-after[m].mean())})
+            rows.append(
+                {
+                    "breakdown": by,
+                    "group": str(key),
+                    "rays": int(m.sum()),
+                    "gain": gain,
+                    "nll_before": float(-before[m].mean()),
+                    "nll_after": float(-after[m].mean()),
+                }
+            )
     best = {}
     for row in sorted(rows, key=lambda r: -(r["nll_before"] - r["nll_after"])):
         if row["rays"] >= 0.02 * before.size and row["breakdown"] not in best:
@@ -158,9 +172,20 @@ def _evidence(test: Problem, model_before: SensorModel, model_after: SensorModel
     return sorted(best.values(), key=lambda r: -(r["nll_before"] - r["nll_after"]))[:3]
 
 
-def diagnose(log: Log, scene, model: SensorModel | None = None, out: str | Path | None = None,
-             candidates: list[str] | None = None, steps: int = 120, rounds: int = 2, max_train: int = 200_000,
-             max_test: int = 200_000, resolution: float = 0.0, seed: int = 0, progress=None) -> Diagnosis:
+def diagnose(
+    log: Log,
+    scene,
+    model: SensorModel | None = None,
+    out: str | Path | None = None,
+    candidates: list[str] | None = None,
+    steps: int = 120,
+    rounds: int = 2,
+    max_train: int = 200_000,
+    max_test: int = 200_000,
+    resolution: float = 0.0,
+    seed: int = 0,
+    progress=None,
+) -> Diagnosis:
     """Rank the effects missing from ``model`` by their held-out gain on ``log``.
 
     Args:
@@ -193,11 +218,31 @@ def diagnose(log: Log, scene, model: SensorModel | None = None, out: str | Path 
     if base.effects:
         fit_effects(base, train, steps=steps)
     first = first_elements(scene, test.table, test, base)
-    azimuth = np.degrees(np.arctan2(*[log.directions[0 if log.directions.shape[0] == 1 else rays.scan[test_index],
-                                                     rays.beam[test_index], rays.column[test_index], i] for i in (1, 0)]))
-    table = RayTable(ll=np.zeros(test_index.size), measured=rays.measured[test_index], hit=rays.hit[test_index],
-                     sim_range=rays.measured[test_index], sim_hit=rays.hit[test_index], beam=rays.beam[test_index],
-                     column=rays.column[test_index], scan=rays.scan[test_index], azimuth=azimuth, **first)
+    azimuth = np.degrees(
+        np.arctan2(
+            *[
+                log.directions[
+                    0 if log.directions.shape[0] == 1 else rays.scan[test_index],
+                    rays.beam[test_index],
+                    rays.column[test_index],
+                    i,
+                ]
+                for i in (1, 0)
+            ]
+        )
+    )
+    table = RayTable(
+        ll=np.zeros(test_index.size),
+        measured=rays.measured[test_index],
+        hit=rays.hit[test_index],
+        sim_range=rays.measured[test_index],
+        sim_hit=rays.hit[test_index],
+        beam=rays.beam[test_index],
+        column=rays.column[test_index],
+        scan=rays.scan[test_index],
+        azimuth=azimuth,
+        **first,
+    )
 
     def score(m: SensorModel) -> tuple[float, float]:
         train.trace(m)
@@ -225,10 +270,22 @@ def diagnose(log: Log, scene, model: SensorModel | None = None, out: str | Path 
             dbic = k * math.log(train_index.size) - lr
             gain_te = (llte - base_test) / test_index.size
             label = name + (f"({', '.join(f'{k}={v}' for k, v in variant.items())})" if variant else "")
-            ranked.append(Candidate(
-                name=label, k=k, train_gain=gain_tr, test_gain=gain_te, test_gain_pct=relative_gain(gain_te, nll_before),
-                lr=lr, p_value=p, delta_bic=dbic, significant=bool(p < P_VALUE and dbic < 0 and gain_te > 0),
-                parameters=fit.parameters, history=fit.history, effect=effect))
+            ranked.append(
+                Candidate(
+                    name=label,
+                    k=k,
+                    train_gain=gain_tr,
+                    test_gain=gain_te,
+                    test_gain_pct=relative_gain(gain_te, nll_before),
+                    lr=lr,
+                    p_value=p,
+                    delta_bic=dbic,
+                    significant=bool(p < P_VALUE and dbic < 0 and gain_te > 0),
+                    parameters=fit.parameters,
+                    history=fit.history,
+                    effect=effect,
+                )
+            )
             done += 1
             if progress is not None:
                 progress(done, total, label)
@@ -246,8 +303,15 @@ def diagnose(log: Log, scene, model: SensorModel | None = None, out: str | Path 
         chosen = best.name.split("(")[0]
         names = [(n, v) for n, v in names if n != chosen]
         done = len(all_rounds) * len(names)
-    result = Diagnosis(rounds=all_rounds, selected=selected, nll_before=nll_before,
-                       nll_after=-base_test / test_index.size, evidence=evidence, summary="", model=base)
+    result = Diagnosis(
+        rounds=all_rounds,
+        selected=selected,
+        nll_before=nll_before,
+        nll_after=-base_test / test_index.size,
+        evidence=evidence,
+        summary="",
+        model=base,
+    )
     result.summary = verdict(result)
     if out is not None:
         out = Path(out)
@@ -261,22 +325,35 @@ def verdict(d: Diagnosis) -> str:
     """The diagnosis in plain words."""
     if not d.selected:
         best = d.rounds[0][0] if d.rounds and d.rounds[0] else None
-        tail = (f" The best candidate, {best.name}, gains {best.test_gain:+.4f} nats/ray held out "
-                f"(p = {best.p_value:.2g}, dBIC = {best.delta_bic:+.1f}).") if best else ""
+        tail = (
+            (
+                f" The best candidate, {best.name}, gains {best.test_gain:+.4f} nats/ray held out "
+                f"(p = {best.p_value:.2g}, dBIC = {best.delta_bic:+.1f})."
+            )
+            if best
+            else ""
+        )
         return f"No missing effect found: no candidate improves the model significantly.{tail}"
     parts = []
     for i, name in enumerate(d.selected):
         c = next(c for c in d.rounds[i] if c.name == name)
-        params = ", ".join(f"{k.split('.', 1)[1]}={np.array2string(np.asarray(v), precision=4, threshold=6)}"
-                           for k, v in c.parameters.items())
-        text = (f"The model is missing **{name}** ({params}): held-out NLL falls by {c.test_gain:.4f} nats/ray "
-                f"{'' if math.isnan(c.test_gain_pct) else f'({c.test_gain_pct:.1f} %)'}; likelihood ratio {c.lr:.1f} for {c.k} parameter(s), "
-                f"p = {c.p_value:.2g}, dBIC = {c.delta_bic:+.1f}.")
+        params = ", ".join(
+            f"{k.split('.', 1)[1]}={np.array2string(np.asarray(v), precision=4, threshold=6)}"
+            for k, v in c.parameters.items()
+        )
+        text = (
+            f"The model is missing **{name}** ({params}): held-out NLL falls by {c.test_gain:.4f} nats/ray "
+            f"{'' if math.isnan(c.test_gain_pct) else f'({c.test_gain_pct:.1f} %)'}; "
+            f"likelihood ratio {c.lr:.1f} for {c.k} parameter(s), "
+            f"p = {c.p_value:.2g}, dBIC = {c.delta_bic:+.1f}."
+        )
         groups = d.evidence[i]["groups"] if i < len(d.evidence) else []
         if groups:
             g = groups[0]
-            text += (f" Its signature shows by {g['breakdown']}: in {g['group']} the NLL falls from "
-                     f"{g['nll_before']:.3f} to {g['nll_after']:.3f} nats/ray.")
+            text += (
+                f" Its signature shows by {g['breakdown']}: in {g['group']} the NLL falls from "
+                f"{g['nll_before']:.3f} to {g['nll_after']:.3f} nats/ray."
+            )
         parts.append(text)
     parts.append(f"Held-out NLL: {d.nll_before:.4f} -> {d.nll_after:.4f} nats/ray.")
     return " ".join(parts)
@@ -286,16 +363,29 @@ def diagnosis_markdown(d: Diagnosis) -> str:
     """The diagnosis as a Markdown report: verdict, then each round's ranking."""
     lines = ["# Diagnosis", "", d.summary, ""]
     for i, ranked in enumerate(d.rounds):
-        lines += [f"## Round {i + 1}", "", "| rank | candidate | k | held-out gain (nats/ray) | gain % | LR | p | dBIC | significant |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+        lines += [
+            f"## Round {i + 1}",
+            "",
+            "| rank | candidate | k | held-out gain (nats/ray) | gain % | LR | p | dBIC | significant |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
         for j, c in enumerate(ranked):
-            lines.append(f"| {j + 1} | {c.name} | {c.k} | {c.test_gain:+.4f} | {'-' if math.isnan(c.test_gain_pct) else f'{c.test_gain_pct:+.2f}'} | {c.lr:.1f} | "
-                         f"{c.p_value:.2g} | {c.delta_bic:+.1f} | {'yes' if c.significant else 'no'} |")
+            pct = "-" if math.isnan(c.test_gain_pct) else f"{c.test_gain_pct:+.2f}"
+            lines.append(
+                f"| {j + 1} | {c.name} | {c.k} | {c.test_gain:+.4f} | {pct} | {c.lr:.1f} | "
+                f"{c.p_value:.2g} | {c.delta_bic:+.1f} | {'yes' if c.significant else 'no'} |"
+            )
         lines.append("")
     for ev in d.evidence:
-        lines += [f"### Where {ev['effect']} shows", "", "| breakdown | group | rays | NLL before | NLL after |",
-                  "|---|---|---|---|---|"]
-        lines += [f"| {g['breakdown']} | {g['group']} | {g['rays']} | {g['nll_before']:.3f} | {g['nll_after']:.3f} |"
-                  for g in ev["groups"]]
+        lines += [
+            f"### Where {ev['effect']} shows",
+            "",
+            "| breakdown | group | rays | NLL before | NLL after |",
+            "|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {g['breakdown']} | {g['group']} | {g['rays']} | {g['nll_before']:.3f} | {g['nll_after']:.3f} |"
+            for g in ev["groups"]
+        ]
         lines.append("")
     return "\n".join(lines)

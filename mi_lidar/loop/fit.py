@@ -35,11 +35,10 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.effects.base import Effect
-from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.rays import LogRays, RayBatch
 from mi_lidar.core.segment import SURFACE, Segment
 from mi_lidar.core.sensor_model import SensorModel, mixture_step
-from mi_lidar.core.rays import LogRays
 
 LL_FLOOR = -30.0  # nats: per-ray log-likelihood floor of scoring (see the module docstring)
 # nats: the fitting loss's floor, lower than the scoring one so that rays far from their element
@@ -62,7 +61,7 @@ class PlaneTable(ElementTable):
     """
 
     @classmethod
-    def of(cls, table: ElementTable) -> "PlaneTable":
+    def of(cls, table: ElementTable) -> PlaneTable:
         """Wrap an existing table (arrays shared)."""
         return cls(**{k: getattr(table, k) for k in table.__dataclass_fields__})
 
@@ -73,7 +72,9 @@ class PlaneTable(ElementTable):
         safe = dr.select(dr.abs(denom) > 1e-6, denom, 1e-6)
         t = dr.dot(dr.detach(si.p) - origin, n) / safe
         surface = seg.kind == SURFACE
-        return seg.with_(nominal=dr.select(surface, t, seg.nominal), mean=dr.select(surface, seg.mean - seg.nominal + t, seg.mean))
+        return seg.with_(
+            nominal=dr.select(surface, t, seg.nominal), mean=dr.select(surface, seg.mean - seg.nominal + t, seg.mean)
+        )
 
 
 def widen(effect: Effect, n_beams: int, n_labels: int) -> Effect:
@@ -111,15 +112,19 @@ def make_opaque(effects: list[Effect]) -> None:
 
 def moves_rays(model: SensorModel) -> bool:
     """True when an effect of ``model`` edits rays before tracing (angle offsets, extrinsics, motion, footprint)."""
-    return any(type(e).perturb_rays is not Effect.perturb_rays or type(e).footprint is not Effect.footprint
-               for e in model.effects)
+    return any(
+        type(e).perturb_rays is not Effect.perturb_rays or type(e).footprint is not Effect.footprint
+        for e in model.effects
+    )
 
 
 def _ray_key(model: SensorModel) -> tuple:
     """Identity of the rays ``model`` traces: its ray-moving effects and their parameter values."""
-    return tuple((e.name, tuple(np.asarray(dr.detach(v)).tobytes() for v in e.params.values()))
-                 for e in model.effects
-                 if type(e).perturb_rays is not Effect.perturb_rays or type(e).footprint is not Effect.footprint)
+    return tuple(
+        (e.name, tuple(np.asarray(dr.detach(v)).tobytes() for v in e.params.values()))
+        for e in model.effects
+        if type(e).perturb_rays is not Effect.perturb_rays or type(e).footprint is not Effect.footprint
+    )
 
 
 @dataclass
@@ -170,8 +175,14 @@ def trace_chunk(model: SensorModel, scene, table: ElementTable, rays: RayBatch, 
     """Trace ``rays`` under ``model`` and keep, per round, only the lanes that met an element."""
     records = model.trace_segments(scene, table, rays)
     if any(type(e).footprint is not Effect.footprint for e in model.effects):
-        return Chunk(rays=rays, z=dr.select(hit, z, 0.0), hit=hit, met=dr.full(mi.Bool, True, rays.width), rounds=[],
-                     records=records)
+        return Chunk(
+            rays=rays,
+            z=dr.select(hit, z, 0.0),
+            hit=hit,
+            met=dr.full(mi.Bool, True, rays.width),
+            rounds=[],
+            records=records,
+        )
     moving = moves_rays(model)
     with dr.suspend_grad():
         prepared = model.prepare_rays(rays)
@@ -189,15 +200,24 @@ def trace_chunk(model: SensorModel, scene, table: ElementTable, rays: RayBatch, 
             base = None
             if not moving:
                 sub = prepared.take(lanes)
-                seg = table.segment(si, dr.full(mi.Bool, True, lanes_np.size), element, sub.origin, sub.direction,
-                                    model.range_sigma)
+                seg = table.segment(
+                    si, dr.full(mi.Bool, True, lanes_np.size), element, sub.origin, sub.direction, model.range_sigma
+                )
                 base = seg
                 dr.eval(*(getattr(base, f) for f in ("valid",) + SEGMENT_FIELDS))
                 si = None
             else:
                 dr.eval(si.p, si.n, element)
-            rounds.append(Round(lanes=lanes, prev=mi.UInt32(aligned(prev_np)),
-                                last=mi.Bool(aligned(count[lanes_np] == k + 1)), base=base, si=si, element=element))
+            rounds.append(
+                Round(
+                    lanes=lanes,
+                    prev=mi.UInt32(aligned(prev_np)),
+                    last=mi.Bool(aligned(count[lanes_np] == k + 1)),
+                    base=base,
+                    si=si,
+                    element=element,
+                )
+            )
             previous = lanes_np
     return Chunk(rays=rays, z=dr.select(hit, z, 0.0), hit=hit, met=mi.Bool(aligned(count > 0)), rounds=rounds)
 
@@ -221,8 +241,13 @@ def chunk_log_likelihood(model: SensorModel, table: ElementTable, chunk: Chunk, 
         z = dr.gather(mi.Float, chunk.z, r.lanes)
         hit = dr.gather(mi.Bool, chunk.hit, r.lanes)
         log_mix, log_pass = dr.gather(mi.Float, log_mix, r.prev), dr.gather(mi.Float, log_pass, r.prev)
-        seg = r.base if r.base is not None else table.segment(
-            r.si, dr.full(mi.Bool, True, dr.width(r.lanes)), r.element, sub.origin, sub.direction, model.range_sigma)
+        seg = (
+            r.base
+            if r.base is not None
+            else table.segment(
+                r.si, dr.full(mi.Bool, True, dr.width(r.lanes)), r.element, sub.origin, sub.direction, model.range_sigma
+            )
+        )
         seg = model.likelihood_segment(model.apply_effects(seg, sub), sub)
         log_mix, log_pass = mixture_step(log_mix, log_pass, seg, z)
         dr.scatter_add(ll, dr.select(hit, log_mix, log_pass), r.lanes, r.last)
@@ -253,9 +278,14 @@ class Problem:
     _traced: tuple | None = field(default=None, repr=False)
 
     @classmethod
-    def build(cls, scene, rays: LogRays, index: np.ndarray, resolution: float = 0.0) -> "Problem":
-        return cls(scene=scene, table=PlaneTable.of(ElementTable.from_scene(scene)), rays=rays,
-                   index=np.asarray(index), resolution=resolution)
+    def build(cls, scene, rays: LogRays, index: np.ndarray, resolution: float = 0.0) -> Problem:
+        return cls(
+            scene=scene,
+            table=PlaneTable.of(ElementTable.from_scene(scene)),
+            rays=rays,
+            index=np.asarray(index),
+            resolution=resolution,
+        )
 
     def trace(self, model: SensorModel) -> None:
         """Trace every chunk of the split under ``model`` (its ray perturbations included).
@@ -269,7 +299,7 @@ class Problem:
             return
         self.chunks = []
         for first in range(0, self.index.size, BATCH):
-            batch, measured, hit = self.rays.batch(self.index[first:first + BATCH])
+            batch, measured, hit = self.rays.batch(self.index[first : first + BATCH])
             self.chunks.append(trace_chunk(model, self.scene, self.table, batch, measured, hit))
         self._traced = key
 
@@ -297,8 +327,15 @@ class FitResult:
     parameters: dict[str, np.ndarray]
 
 
-def fit_effects(model: SensorModel, problem: Problem, effects: list[Effect] | None = None, steps: int = 150,
-                lr: float = LEARNING_RATE, retrace_every: int = 10, progress=None) -> FitResult:
+def fit_effects(
+    model: SensorModel,
+    problem: Problem,
+    effects: list[Effect] | None = None,
+    steps: int = 150,
+    lr: float = LEARNING_RATE,
+    retrace_every: int = 10,
+    progress=None,
+) -> FitResult:
     """Maximise the mean log-likelihood of ``problem``'s rays over effect parameters.
 
     Args:

@@ -37,7 +37,7 @@ class Grid:
     shape: tuple[int, int]
 
     @classmethod
-    def around(cls, points: np.ndarray, cell: float, margin: float = 1.0) -> "Grid":
+    def around(cls, points: np.ndarray, cell: float, margin: float = 1.0) -> Grid:
         """The grid covering (N, 2) ``points`` (m) plus ``margin`` (m) on every side."""
         if cell <= 0:
             raise ParameterError(f"grid: cell={cell} m must be > 0, e.g. 0.05")
@@ -71,12 +71,15 @@ class Grid:
         lo = np.asarray(self.origin)
         hi = lo + np.asarray(self.shape) * self.cell
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where(direction > 0, (hi - origin) / direction, np.where(direction < 0, (lo - origin) / direction, np.inf))
+            t = np.where(
+                direction > 0, (hi - origin) / direction, np.where(direction < 0, (lo - origin) / direction, np.inf)
+            )
         return np.maximum(t.min(axis=1), 0.0)
 
 
-def ray_cells(grid: Grid, origin: np.ndarray, direction: np.ndarray, length: np.ndarray, step: float,
-              dilate: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def ray_cells(
+    grid: Grid, origin: np.ndarray, direction: np.ndarray, length: np.ndarray, step: float, dilate: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """Cells each ray crosses on ``[0, length)``, sampled every ``step``.
 
     Args:
@@ -95,7 +98,9 @@ def ray_cells(grid: Grid, origin: np.ndarray, direction: np.ndarray, length: np.
     t = (np.arange(ray.size) - first) * step
     ij = np.floor((origin[ray] + t[:, None] * direction[ray] - np.asarray(grid.origin)) / grid.cell).astype(np.int64)
     if dilate > 0:
-        offsets = np.stack(np.meshgrid(np.arange(-dilate, dilate + 1), np.arange(-dilate, dilate + 1)), -1).reshape(-1, 2)
+        offsets = np.stack(np.meshgrid(np.arange(-dilate, dilate + 1), np.arange(-dilate, dilate + 1)), -1).reshape(
+            -1, 2
+        )
         key = np.unique(ray * grid.size + np.maximum(grid.index(ij), 0))  # thin the samples first
         ray, flat = key // grid.size, key % grid.size
         ij = np.stack([flat // grid.shape[1], flat % grid.shape[1]], -1)
@@ -135,15 +140,24 @@ class ScanCounts:
         """Dense per-cell sums (:data:`MOMENTS`) of the contributions of ``scans``."""
         scans = np.asarray(scans, dtype=np.int64)
         size = self.grid.size
-        take = lambda start: np.concatenate([np.arange(start[s], start[s + 1]) for s in scans]) if len(scans) else np.zeros(0, np.int64)  # noqa: E731
+        take = lambda start: (
+            np.concatenate([np.arange(start[s], start[s + 1]) for s in scans]) if len(scans) else np.zeros(0, np.int64)
+        )  # noqa: E731
         hits, passes = take(self.hit_start), take(self.pass_start)
         cell, xy = self.hit_cell[hits], self.hit_xy[hits]
         keep = cell >= 0
         cell, xy = cell[keep], xy[keep] - self.grid.center(cell[keep])  # moments about the cell center
-        out = {"n_hit": np.bincount(cell, minlength=size).astype(np.float64),
-               "n_pass": np.bincount(self.pass_cell[passes], minlength=size).astype(np.float64)}
-        for name, w in (("sx", xy[:, 0]), ("sy", xy[:, 1]), ("sxx", xy[:, 0] ** 2), ("sxy", xy[:, 0] * xy[:, 1]),
-                        ("syy", xy[:, 1] ** 2)):
+        out = {
+            "n_hit": np.bincount(cell, minlength=size).astype(np.float64),
+            "n_pass": np.bincount(self.pass_cell[passes], minlength=size).astype(np.float64),
+        }
+        for name, w in (
+            ("sx", xy[:, 0]),
+            ("sy", xy[:, 1]),
+            ("sxx", xy[:, 0] ** 2),
+            ("sxy", xy[:, 0] * xy[:, 1]),
+            ("syy", xy[:, 1] ** 2),
+        ):
             out[name] = np.bincount(cell, weights=w, minlength=size)
         return out
 
@@ -153,11 +167,17 @@ def planar_rays(log: Log, scans: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     poses = log.poses[scans]
     directions = log.directions[0, 0] if log.directions.shape[0] == 1 else None
     if directions is None:
-        raise ParameterError("planar maps need a log whose scans share one beam pattern (directions of shape (1, 1, W, 3))")
+        raise ParameterError(
+            "planar maps need a log whose scans share one beam pattern (directions of shape (1, 1, W, 3))"
+        )
     world = np.einsum("sij,wj->swi", poses[:, :2, :2], directions[:, :2].astype(np.float64))
     origin = np.repeat(poses[:, :2, 3][:, None, :], directions.shape[0], axis=1)
-    return (origin.reshape(-1, 2), world.reshape(-1, 2), np.nan_to_num(log.ranges[scans, 0].reshape(-1).astype(np.float64)),
-            log.hit[scans, 0].reshape(-1))
+    return (
+        origin.reshape(-1, 2),
+        world.reshape(-1, 2),
+        np.nan_to_num(log.ranges[scans, 0].reshape(-1).astype(np.float64)),
+        log.hit[scans, 0].reshape(-1),
+    )
 
 
 def count_scans(log: Log, grid: Grid, step: float | None = None, chunk: int = 50) -> ScanCounts:
@@ -192,10 +212,16 @@ def count_scans(log: Log, grid: Grid, step: float | None = None, chunk: int = 50
             hit_start.append(hit_start[-1] + int(mask.sum()))
         bounds = np.searchsorted(scan_of_pass, np.arange(len(scans) + 1))
         for local in range(len(scans)):
-            pass_cell.append(cell[bounds[local]:bounds[local + 1]])
+            pass_cell.append(cell[bounds[local] : bounds[local + 1]])
             pass_start.append(pass_start[-1] + int(bounds[local + 1] - bounds[local]))
-    return ScanCounts(grid=grid, hit_start=np.asarray(hit_start), hit_cell=np.concatenate(hit_cell),
-                      hit_xy=np.concatenate(hit_xy), pass_start=np.asarray(pass_start), pass_cell=np.concatenate(pass_cell))
+    return ScanCounts(
+        grid=grid,
+        hit_start=np.asarray(hit_start),
+        hit_cell=np.concatenate(hit_cell),
+        hit_xy=np.concatenate(hit_xy),
+        pass_start=np.asarray(pass_start),
+        pass_cell=np.concatenate(pass_cell),
+    )
 
 
 class CountMap:

@@ -32,14 +32,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, scene_dict
 from mi_lidar.core.effects.base import Effect
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.log import Log
+from mi_lidar.core.rays import LogRays
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop.fit import Problem, fit_effects
 from mi_lidar.loop.occupancy import CountMap, Grid, count_scans, planar_rays, ray_cells
-from mi_lidar.core.rays import LogRays
+from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, scene_dict
 
 LAYER = 4.0  # m: height between the stacked per-scan maps
 BOX_HALF_HEIGHT = 0.5  # m
@@ -60,8 +60,14 @@ def stacked_log(log: Log, scans: np.ndarray) -> Log:
     """The scans of ``log`` with scan ``j`` lifted to height ``j * LAYER`` m (its map layer)."""
     poses = log.poses[scans].copy()
     poses[:, 2, 3] = np.arange(len(scans)) * LAYER
-    return Log(poses=poses, directions=log.directions, ranges=log.ranges[scans], hit=log.hit[scans],
-               times=log.times[scans], sensor=dict(log.sensor))
+    return Log(
+        poses=poses,
+        directions=log.directions,
+        ranges=log.ranges[scans],
+        hit=log.hit[scans],
+        times=log.times[scans],
+        sensor=dict(log.sensor),
+    )
 
 
 @dataclass
@@ -146,8 +152,9 @@ class IntelData:
         return layers
 
 
-def box_elements(grid: Grid, layers: Layers, log: Log | None = None, ring_radius: float = 81.83,
-                 occupancy: str = "majority") -> MeshElements:
+def box_elements(
+    grid: Grid, layers: Layers, log: Log | None = None, ring_radius: float = 81.83, occupancy: str = "majority"
+) -> MeshElements:
     """The occupied cells of every layer as opaque vertical boxes (8 triangles each).
 
     ``occupancy="majority"``: a cell is occupied when it has more hits than pass-throughs (an
@@ -185,7 +192,9 @@ def box_elements(grid: Grid, layers: Layers, log: Log | None = None, ring_radius
         for j, scan in enumerate(layers.scans):
             xy = log.poses[scan, :2, 3] + circle
             base = len(vertices) + j * 720
-            ring_v.append(np.concatenate([np.c_[xy, np.full(360, j * LAYER - h)], np.c_[xy, np.full(360, j * LAYER + h)]]))
+            ring_v.append(
+                np.concatenate([np.c_[xy, np.full(360, j * LAYER - h)], np.c_[xy, np.full(360, j * LAYER + h)]])
+            )
             a, b = np.arange(360), (np.arange(360) + 1) % 360
             ring_f.append(base + np.concatenate([np.stack([a, b, b + 360], -1), np.stack([a, b + 360, a + 360], -1)]))
         vertices = np.concatenate([vertices] + ring_v)
@@ -200,22 +209,37 @@ def ellipsoid_elements(grid: Grid, layers: Layers, prior: EllipsoidPrior) -> Ell
     for j, (cells, m) in enumerate(zip(layers.cells, layers.maps)):
         n = m["n_hit"]
         mx, my = m["sx"] / n, m["sy"] / n
-        cxx = np.maximum(m["sxx"] / n - mx * mx, 0.0) + prior.s_min ** 2
-        cyy = np.maximum(m["syy"] / n - my * my, 0.0) + prior.s_min ** 2
+        cxx = np.maximum(m["sxx"] / n - mx * mx, 0.0) + prior.s_min**2
+        cyy = np.maximum(m["syy"] / n - my * my, 0.0) + prior.s_min**2
         cxy = m["sxy"] / n - mx * my
         # ---------------- Eigen-decomposition of the 2x2 covariance ----------------
         half_trace, diff = 0.5 * (cxx + cyy), 0.5 * (cxx - cyy)
         root = np.sqrt(diff * diff + cxy * cxy)
-        major, minor = half_trace + root, np.maximum(half_trace - root, prior.s_min ** 2)
+        major, minor = half_trace + root, np.maximum(half_trace - root, prior.s_min**2)
         angle = 0.5 * np.arctan2(2 * cxy, cxx - cyy)
-        centers.append(np.stack([grid.center(cells)[:, 0] + mx, grid.center(cells)[:, 1] + my, np.full(len(cells), j * LAYER)], -1))
-        scales.append(np.stack([np.minimum(np.sqrt(major), prior.s_max), np.minimum(np.sqrt(minor), prior.s_max),
-                                np.full(len(cells), prior.s_z)], -1))
+        centers.append(
+            np.stack([grid.center(cells)[:, 0] + mx, grid.center(cells)[:, 1] + my, np.full(len(cells), j * LAYER)], -1)
+        )
+        scales.append(
+            np.stack(
+                [
+                    np.minimum(np.sqrt(major), prior.s_max),
+                    np.minimum(np.sqrt(minor), prior.s_max),
+                    np.full(len(cells), prior.s_z),
+                ],
+                -1,
+            )
+        )
         quats.append(np.stack([np.zeros_like(angle), np.zeros_like(angle), np.sin(angle / 2), np.cos(angle / 2)], -1))
         p_hit.append((n + prior.a) / (n + m["n_pass"] + prior.a + prior.b))
-    return EllipsoidElements(centers=np.concatenate(centers), scales=np.concatenate(scales),
-                             quaternions=np.concatenate(quats), p_hit=np.concatenate(p_hit),
-                             label=np.zeros(sum(len(c) for c in layers.cells)), extent=prior.extent)
+    return EllipsoidElements(
+        centers=np.concatenate(centers),
+        scales=np.concatenate(scales),
+        quaternions=np.concatenate(quats),
+        p_hit=np.concatenate(p_hit),
+        label=np.zeros(sum(len(c) for c in layers.cells)),
+        extent=prior.extent,
+    )
 
 
 @dataclass
@@ -236,12 +260,16 @@ class Scored:
     _records: dict = field(default_factory=dict, repr=False)
 
     @classmethod
-    def build(cls, log: Log, layers: Layers, elements) -> "Scored":
+    def build(cls, log: Log, layers: Layers, elements) -> Scored:
         """Load ``elements`` (all layers) as one scene and attach the layers' scans as rays."""
         scene = mi.load_dict(scene_dict({"map": elements}))
         n = len(elements.faces) if isinstance(elements, MeshElements) else len(elements.centers)
-        return cls(scene=scene, table=ElementTable.from_scene(scene), rays=LogRays.from_log(stacked_log(log, layers.scans)),
-                   n_elements=n)
+        return cls(
+            scene=scene,
+            table=ElementTable.from_scene(scene),
+            rays=LogRays.from_log(stacked_log(log, layers.scans)),
+            n_elements=n,
+        )
 
     def per_beam(self, model: SensorModel) -> np.ndarray:
         """(N,) log-likelihood per beam (nats, 1 cm range bins) under ``model``; not floored."""
@@ -307,7 +335,9 @@ def describe_effects(effects: list[Effect]) -> dict:
     return {f"{e.name}.{k}": float(np.asarray(v)[0]) for e in effects for k, v in e.params.items()}
 
 
-def fit_and_score(train: Scored, test: Scored, model: SensorModel, fit: list[Effect], steps: int) -> tuple[float, float]:
+def fit_and_score(
+    train: Scored, test: Scored, model: SensorModel, fit: list[Effect], steps: int
+) -> tuple[float, float]:
     """Fit ``fit`` (effects of ``model``) on ``train``, then return the test and training NLL (nats/beam)."""
     if fit:
         train.fit(model, fit, steps=steps)
@@ -340,21 +370,41 @@ def baseline_rows(train: Scored, test: Scored, grid_name: str, steps: int, say) 
             noise.params["sigma0"], drop.params["p_drop"] = mi.Float(sigma), mi.Float(p_drop)
             best = min(best or (np.inf, 0, 0), (train.nll(model), sigma, p_drop))
     noise.params["sigma0"], drop.params["p_drop"] = mi.Float(best[1]), mi.Float(best[2])
-    rows = [Step(f"ideal ray cast, 5 cm {grid_name}", "one Gaussian sigma + miss probability", test.nll(model), best[0],
-                 describe_effects(model.effects))]
+    rows = [
+        Step(
+            f"ideal ray cast, 5 cm {grid_name}",
+            "one Gaussian sigma + miss probability",
+            test.nll(model),
+            best[0],
+            describe_effects(model.effects),
+        )
+    ]
     say(f"ideal ray cast, {grid_name}: {rows[-1].nll:.3f}")
     noise.params["sigma0"] = mi.Float(0.05)
     outliers = make_effect("outliers", p_near=0.05, near_scale=2.0, p_uniform=0.01, uniform_max=81.83)
     model.effects = [outliers, noise, drop]
     nll, train_nll = fit_and_score(train, test, model, model.effects, 4 * steps)
-    rows.append(Step(f"classic beam model, {grid_name}", "short (near) + random + max-range components", nll, train_nll,
-                     describe_effects(model.effects)))
+    rows.append(
+        Step(
+            f"classic beam model, {grid_name}",
+            "short (near) + random + max-range components",
+            nll,
+            train_nll,
+            describe_effects(model.effects),
+        )
+    )
     say(f"classic beam, {grid_name}: {nll:.3f}")
     return rows
 
 
-def intel_development_path(data: IntelData, n_test: int | None = None, n_train: int | None = None, steps: int = 300,
-                           priors: list[EllipsoidPrior] | None = None, progress=None) -> list[Step]:
+def intel_development_path(
+    data: IntelData,
+    n_test: int | None = None,
+    n_train: int | None = None,
+    steps: int = 300,
+    priors: list[EllipsoidPrior] | None = None,
+    progress=None,
+) -> list[Step]:
     """Baselines, then the permeable map with effects added one by one; every fit on calibration scans only.
 
     Args:
@@ -378,8 +428,10 @@ def intel_development_path(data: IntelData, n_test: int | None = None, n_train: 
 
     # ---------------- Baselines: ray casts on opaque boxes of the occupied cells ----------------
     for occupancy, grid_name in (("majority", "occupancy grid (hits > passes)"), ("any", "hit grid (any hit)")):
-        box_test, box_train = (Scored.build(data.log, layers, box_elements(data.grid, layers, data.log, occupancy=occupancy))
-                               for layers in (test_layers, train_layers))
+        box_test, box_train = (
+            Scored.build(data.log, layers, box_elements(data.grid, layers, data.log, occupancy=occupancy))
+            for layers in (test_layers, train_layers)
+        )
         rows += baseline_rows(box_train, box_test, grid_name, steps, say)
 
     # ---------------- Ours: permeable ellipsoids with counting hit probabilities ----------
@@ -416,8 +468,15 @@ def intel_development_path(data: IntelData, n_test: int | None = None, n_train: 
     ours_test = Scored.build(data.log, test_layers, ellipsoid_elements(data.grid, test_layers, prior))
     nll = ours_test.nll(model)
     choices = ", ".join(f"{c.s_min * 100:g}" for _, c, _ in candidates[::2])
-    rows.append(Step("permeable ellipsoid map", f"+ end-point spread s_min = {prior.s_min * 100:g} cm (of {choices} cm, "
-                     "by calibration NLL)", nll, train_nll, {"map.s_min": prior.s_min, **describe_effects(model.effects)}))
+    rows.append(
+        Step(
+            "permeable ellipsoid map",
+            f"+ end-point spread s_min = {prior.s_min * 100:g} cm (of {choices} cm, by calibration NLL)",
+            nll,
+            train_nll,
+            {"map.s_min": prior.s_min, **describe_effects(model.effects)},
+        )
+    )
     say(f"+ spread s_min={prior.s_min}: {nll:.3f}")
     return rows
 
@@ -425,8 +484,16 @@ def intel_development_path(data: IntelData, n_test: int | None = None, n_train: 
 def ray_subset(rays: LogRays, keep: np.ndarray) -> LogRays:
     """The rays of ``rays`` where ``keep`` holds (ray ids stay the log's flat indices)."""
     index = np.flatnonzero(keep)
-    return _IndexedRays(log=rays.log, scan=rays.scan[index], beam=rays.beam[index], column=rays.column[index],
-                        time=rays.time[index], measured=rays.measured[index], hit=rays.hit[index], ids=index)
+    return _IndexedRays(
+        log=rays.log,
+        scan=rays.scan[index],
+        beam=rays.beam[index],
+        column=rays.column[index],
+        time=rays.time[index],
+        measured=rays.measured[index],
+        hit=rays.hit[index],
+        ids=index,
+    )
 
 
 @dataclass
@@ -437,8 +504,15 @@ class _IndexedRays(LogRays):
 
     def batch(self, index: np.ndarray | None = None):
         index = np.arange(self.n) if index is None else np.asarray(index)
-        full = LogRays(log=self.log, scan=self.scan, beam=self.beam, column=self.column, time=self.time,
-                       measured=self.measured, hit=self.hit)
+        full = LogRays(
+            log=self.log,
+            scan=self.scan,
+            beam=self.beam,
+            column=self.column,
+            time=self.time,
+            measured=self.measured,
+            hit=self.hit,
+        )
         rays, measured, hit = full.batch(index)
         rays.ray_id = mi.UInt32(self.ids[index].astype(np.uint32))
         return rays, measured, hit

@@ -22,12 +22,12 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.calibration.fit import Calibration, FitOptions
-from mi_lidar.scene.dicts import MeshElements, scene_dict
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.log import Log
-from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.rays import LogRays
+from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop.real_data import Scored, Step, effect_step, ray_subset
+from mi_lidar.scene.dicts import MeshElements, scene_dict
 
 MESH_EVERY = 4  # mesh columns: 0 mod MESH_EVERY; calibration columns: MESH_EVERY / 2 mod MESH_EVERY
 
@@ -71,12 +71,20 @@ def range_image_mesh(log: Log, columns: np.ndarray) -> MeshElements:
 def column_log(log: Log, columns: np.ndarray) -> Log:
     """The rays of ``columns`` of a one-scan log, as a log of its own (same pose and sensor)."""
     cols = np.asarray(columns)
-    return Log(poses=log.poses, directions=log.directions[:, :, cols], origins=log.origins[:, :, cols],
-               ranges=log.ranges[:, :, cols], hit=log.hit[:, :, cols], times=log.times[:, :, cols],
-               sensor=dict(log.sensor))
+    return Log(
+        poses=log.poses,
+        directions=log.directions[:, :, cols],
+        origins=log.origins[:, :, cols],
+        ranges=log.ranges[:, :, cols],
+        hit=log.hit[:, :, cols],
+        times=log.times[:, :, cols],
+        sensor=dict(log.sensor),
+    )
 
 
-def counted_hit_probabilities(mesh: MeshElements, log: Log, model: SensorModel, steps: int, seed: int = 0) -> np.ndarray:
+def counted_hit_probabilities(
+    mesh: MeshElements, log: Log, model: SensorModel, steps: int, seed: int = 0
+) -> np.ndarray:
     """Per-face hit probabilities fitted to ``log`` by the calibration layer (``elements.*.p_hit``).
 
     The counting estimate ``hits / (hits + pass-throughs)`` starts Adam on the log's likelihood
@@ -86,8 +94,13 @@ def counted_hit_probabilities(mesh: MeshElements, log: Log, model: SensorModel, 
         (F,) hit probabilities, in the order of ``mesh.faces``.
     """
     scene = mi.load_dict(scene_dict({"map": mesh}))
-    calibration = Calibration(scene, log, ["elements.*.p_hit"], model=model,
-                              options=FitOptions(steps=steps, seed=seed, eval_every=10, patience=3))
+    calibration = Calibration(
+        scene,
+        log,
+        ["elements.*.p_hit"],
+        model=model,
+        options=FitOptions(steps=steps, seed=seed, eval_every=10, patience=3),
+    )
     result = calibration.fit()
     (name,) = result.names
     return np.asarray(result.fitted[name], dtype=np.float64)
@@ -135,16 +148,27 @@ def ouster_development_path(log: Log, steps: int = 1500, progress=None) -> Ouste
     def scored(elements: MeshElements) -> tuple[Scored, Scored]:
         scene = mi.load_dict(scene_dict({"map": elements}))
         table = ElementTable.from_scene(scene)
-        return tuple(Scored(scene=scene, table=table, rays=ray_subset(rays, keep), n_elements=len(elements.faces))
-                     for keep in (train_keep, test_keep))
+        return tuple(
+            Scored(scene=scene, table=table, rays=ray_subset(rays, keep), n_elements=len(elements.faces))
+            for keep in (train_keep, test_keep)
+        )
 
     train, test = scored(mesh)
-    say(f"mesh: {len(mesh.faces)} faces from {w // MESH_EVERY} columns; {train.rays.n} calibration and "
-        f"{test.rays.n} test rays")
+    say(
+        f"mesh: {len(mesh.faces)} faces from {w // MESH_EVERY} columns; {train.rays.n} calibration and "
+        f"{test.rays.n} test rays"
+    )
     model = SensorModel(range_sigma=0.01, max_range=120.0, max_segments=4, effects=[])
     ll = test.per_beam(model)
-    rows = [Step("range-image mesh, opaque, sigma 1 cm", "(mesh only)", float(-np.mean(ll)), train.nll(model),
-                 {"test returns with no face on their ray": int(np.sum(~np.isfinite(ll)))})]
+    rows = [
+        Step(
+            "range-image mesh, opaque, sigma 1 cm",
+            "(mesh only)",
+            float(-np.mean(ll)),
+            train.nll(model),
+            {"test returns with no face on their ray": int(np.sum(~np.isfinite(ll)))},
+        )
+    ]
 
     def add(label: str, effect=None) -> None:
         if effect is not None:
@@ -153,9 +177,14 @@ def ouster_development_path(log: Log, steps: int = 1500, progress=None) -> Ouste
 
     add("outliers", make_effect("outliers", p_near=0.02, near_scale=2.0, p_uniform=0.005, uniform_max=120.0))
     add("range_noise (proportional)", make_effect("range_noise", law="proportional", sigma0=0.02, k=0.002))
-    mesh = MeshElements(vertices=mesh.vertices, faces=mesh.faces, label=mesh.label,
-                        p_hit=counted_hit_probabilities(mesh, column_log(log, column[column % MESH_EVERY == MESH_EVERY // 2]),
-                                                        model, steps))
+    mesh = MeshElements(
+        vertices=mesh.vertices,
+        faces=mesh.faces,
+        label=mesh.label,
+        p_hit=counted_hit_probabilities(
+            mesh, column_log(log, column[column % MESH_EVERY == MESH_EVERY // 2]), model, steps
+        ),
+    )
     train, test = scored(mesh)
     add("permeability (per-face p_hit: counting, then Adam)")
     add("incidence_dropout", make_effect("incidence_dropout", gamma=0.3))

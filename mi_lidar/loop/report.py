@@ -13,15 +13,36 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 PLOTTED = ("range", "incidence", "azimuth", "beam", "label", "time")
-FMT = {"rays": "{:d}", "nll": "{:.3f}", "nll_median": "{:.3f}", "hit_rate_measured": "{:.3f}",
-       "hit_rate_simulated": "{:.3f}", "range_error_mean": "{:.4f}", "range_error_median": "{:.4f}",
-       "precision": "{:.3f}", "recall": "{:.3f}", "f1": "{:.3f}", "histogram_l1": "{:.4f}",
-       "excess_nll": "{:.1f}", "residual_median": "{:+.4f}"}
-NAMES = {"rays": "rays", "nll": "NLL (nats/ray)", "nll_median": "median NLL", "hit_rate_measured": "hit rate (meas.)",
-         "hit_rate_simulated": "hit rate (sim.)", "range_error_mean": "mean |range error| (m)",
-         "range_error_median": "median |range error| (m)", "precision": "precision", "recall": "recall",
-         "f1": "F1", "histogram_l1": "histogram L1 (m)", "excess_nll": "excess NLL (nats)",
-         "residual_median": "median residual (m)"}
+FMT = {
+    "rays": "{:d}",
+    "nll": "{:.3f}",
+    "nll_median": "{:.3f}",
+    "hit_rate_measured": "{:.3f}",
+    "hit_rate_simulated": "{:.3f}",
+    "range_error_mean": "{:.4f}",
+    "range_error_median": "{:.4f}",
+    "precision": "{:.3f}",
+    "recall": "{:.3f}",
+    "f1": "{:.3f}",
+    "histogram_l1": "{:.4f}",
+    "excess_nll": "{:.1f}",
+    "residual_median": "{:+.4f}",
+}
+NAMES = {
+    "rays": "rays",
+    "nll": "NLL (nats/ray)",
+    "nll_median": "median NLL",
+    "hit_rate_measured": "hit rate (meas.)",
+    "hit_rate_simulated": "hit rate (sim.)",
+    "range_error_mean": "mean |range error| (m)",
+    "range_error_median": "median |range error| (m)",
+    "precision": "precision",
+    "recall": "recall",
+    "f1": "F1",
+    "histogram_l1": "histogram L1 (m)",
+    "excess_nll": "excess NLL (nats)",
+    "residual_median": "median residual (m)",
+}
 
 
 def fmt(key: str, value) -> str:
@@ -56,7 +77,9 @@ def plot_breakdowns(result, path: Path) -> Path:
         twin = ax.twinx()
         twins.append(twin)
         twin.plot(x, [r["hit_rate_measured"] for r in rows], "o-", color="tab:blue", ms=3, label="hit rate measured")
-        twin.plot(x, [r["hit_rate_simulated"] for r in rows], "s--", color="tab:green", ms=3, label="hit rate simulated")
+        twin.plot(
+            x, [r["hit_rate_simulated"] for r in rows], "s--", color="tab:green", ms=3, label="hit rate simulated"
+        )
         twin.set_ylim(0, 1.05)
         twin.set_ylabel("hit rate")
     handles = axes[0, 0].get_legend_handles_labels()[0] + twins[0].get_legend_handles_labels()[0]
@@ -93,7 +116,9 @@ def plot_residuals(t, path: Path) -> Path:
 def plot_residual_image(t, shape: tuple, path: Path) -> Path:
     """Residual range image (measured - nominal) of the scan with the worst mean NLL."""
     s, h, w = shape
-    scan = int(np.argmin(np.bincount(t.scan, weights=t.ll, minlength=s) / np.maximum(np.bincount(t.scan, minlength=s), 1)))
+    scan = int(
+        np.argmin(np.bincount(t.scan, weights=t.ll, minlength=s) / np.maximum(np.bincount(t.scan, minlength=s), 1))
+    )
     m = t.scan == scan
     res = np.full((h, w), np.nan)
     res[t.beam[m], t.column[m]] = np.where(t.hit[m], t.measured[m] - t.nominal[m], np.nan)
@@ -101,12 +126,19 @@ def plot_residual_image(t, shape: tuple, path: Path) -> Path:
     nll[t.beam[m], t.column[m]] = -t.ll[m]
     lim = max(float(np.nanpercentile(np.abs(res), 95)), 1e-3) if np.isfinite(res).any() else 1
     fig, axes = plt.subplots(2, 1, figsize=(13, 5 if h > 1 else 3.5))
-    for ax, image, cmap, label, kw in ((axes[0], res, "coolwarm", "measured - nominal (m)", dict(vmin=-lim, vmax=lim)),
-                                       (axes[1], nll, "magma", "NLL (nats)", {})):
+    for ax, image, cmap, label, kw in (
+        (axes[0], res, "coolwarm", "measured - nominal (m)", dict(vmin=-lim, vmax=lim)),
+        (axes[1], nll, "magma", "NLL (nats)", {}),
+    ):
         colours = matplotlib.colormaps[cmap].copy()
         colours.set_bad("black")
-        im = ax.imshow(np.repeat(image, max(1, 8 // h), axis=0) if h < 8 else image, aspect="auto",
-                       cmap=colours, interpolation="nearest", **kw)
+        im = ax.imshow(
+            np.repeat(image, max(1, 8 // h), axis=0) if h < 8 else image,
+            aspect="auto",
+            cmap=colours,
+            interpolation="nearest",
+            **kw,
+        )
         fig.colorbar(im, ax=ax).set_label(label, fontsize=8)
         ax.set_xlabel("firing (column)")
         ax.set_ylabel("beam" if h > 1 else "")
@@ -128,23 +160,44 @@ def write_residual_ply(t, log, path: Path) -> Path:
     red = (255 * np.clip(x, 0, 1)).astype(np.uint8) + (127 * (1 - np.abs(x))).astype(np.uint8)
     blue = (255 * np.clip(-x, 0, 1)).astype(np.uint8) + (127 * (1 - np.abs(x))).astype(np.uint8)
     green = (127 * (1 - np.abs(x))).astype(np.uint8)
-    return write_ply(path, points, {"red": red, "green": green, "blue": blue,
-                                    "residual": res.astype(np.float32), "nll": (-t.ll[t.hit]).astype(np.float32)})
+    return write_ply(
+        path,
+        points,
+        {
+            "red": red,
+            "green": green,
+            "blue": blue,
+            "residual": res.astype(np.float32),
+            "nll": (-t.ll[t.hit]).astype(np.float32),
+        },
+    )
 
 
 def write_comparison(result, log, out: Path, title: str, model) -> list[Path]:
     """Write the comparison report into folder ``out``; return the files."""
     out.mkdir(parents=True, exist_ok=True)
     t = result.table
-    files = [plot_breakdowns(result, out / "breakdowns.png"), plot_residuals(t, out / "residuals.png"),
-             plot_residual_image(t, log.shape, out / "residual_image.png")]
+    files = [
+        plot_breakdowns(result, out / "breakdowns.png"),
+        plot_residuals(t, out / "residuals.png"),
+        plot_residual_image(t, log.shape, out / "residual_image.png"),
+    ]
     if t.hit.any():
         files.append(write_residual_ply(t, log, out / "residuals.ply"))
     (out / "comparison.json").write_text(json.dumps(result.to_json(), indent=1, default=float))
     files.append(out / "comparison.json")
     h = result.headline
-    keys = ["group", "breakdown", "rays", "nll", "excess_nll", "hit_rate_measured", "hit_rate_simulated",
-            "range_error_median", "residual_median"]
+    keys = [
+        "group",
+        "breakdown",
+        "rays",
+        "nll",
+        "excess_nll",
+        "hit_rate_measured",
+        "hit_rate_simulated",
+        "range_error_median",
+        "residual_median",
+    ]
     effects = ", ".join(e.describe() for e in model.effects) or "none"
     lines = [
         f"# {title}",
@@ -188,8 +241,13 @@ def markdown_to_html(md: str, title: str) -> str:
         if table:
             rows = [r for r in table if not set(r.replace("|", "").strip()) <= {"-"}]
             cells = [[html.escape(c.strip()) for c in r.strip().strip("|").split("|")] for r in rows]
-            body.append("<table><tr>" + "".join(f"<th>{c}</th>" for c in cells[0]) + "</tr>" +
-                        "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in cells[1:]) + "</table>")
+            body.append(
+                "<table><tr>"
+                + "".join(f"<th>{c}</th>" for c in cells[0])
+                + "</tr>"
+                + "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in cells[1:])
+                + "</table>"
+            )
             table.clear()
 
     for line in md.splitlines():
@@ -201,7 +259,7 @@ def markdown_to_html(md: str, title: str) -> str:
             level = len(line) - len(line.lstrip("#"))
             body.append(f"<h{level}>{html.escape(line.lstrip('#').strip())}</h{level}>")
         elif line.startswith("!["):
-            src = line[line.index("(") + 1:line.rindex(")")]
+            src = line[line.index("(") + 1 : line.rindex(")")]
             body.append(f'<p><img src="{html.escape(src)}" style="max-width:100%"></p>')
         elif line.strip():
             text = html.escape(line)
@@ -209,7 +267,11 @@ def markdown_to_html(md: str, title: str) -> str:
             text = "".join(f"<b>{p}</b>" if i % 2 else p for i, p in enumerate(parts))
             body.append(f"<p>{text.replace('`', '')}</p>")
     flush()
-    style = ("body{font-family:sans-serif;max-width:1100px;margin:auto} table{border-collapse:collapse;font-size:13px}"
-             "td,th{border:1px solid #ccc;padding:2px 6px;text-align:right} th{background:#eee}")
-    return f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>" \
-           f"<style>{style}</style></head><body>{''.join(body)}</body></html>\n"
+    style = (
+        "body{font-family:sans-serif;max-width:1100px;margin:auto} table{border-collapse:collapse;font-size:13px}"
+        "td,th{border:1px solid #ccc;padding:2px 6px;text-align:right} th{background:#eee}"
+    )
+    return (
+        f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+        f"<style>{style}</style></head><body>{''.join(body)}</body></html>\n"
+    )

@@ -37,13 +37,15 @@ class PinholeCamera:
     def __post_init__(self):
         if not (self.width > 0 and self.height > 0 and 0 < self.fov_deg < 180):
             raise ParameterError(
-                f"camera: need width, height > 0 and 0 < fov_deg < 180; got {self.width}, {self.height}, {self.fov_deg}")
+                f"camera: need width, height > 0 and 0 < fov_deg < 180; got {self.width}, {self.height}, {self.fov_deg}"
+            )
 
     @classmethod
-    def look_at(cls, origin, target, up=(0.0, 0.0, 1.0), **kwargs) -> "PinholeCamera":
+    def look_at(cls, origin, target, up=(0.0, 0.0, 1.0), **kwargs) -> PinholeCamera:
         """A camera at ``origin`` (m) looking at ``target`` (m)."""
-        transform = mi.ScalarTransform4f().look_at(origin=list(map(float, origin)), target=list(map(float, target)),
-                                                   up=list(map(float, up)))
+        transform = mi.ScalarTransform4f().look_at(
+            origin=list(map(float, origin)), target=list(map(float, target)), up=list(map(float, up))
+        )
         return cls(to_world=np.array(transform.matrix, dtype=np.float64), **kwargs)
 
     @property
@@ -60,12 +62,21 @@ class PinholeCamera:
 
     def sensor(self, spp: int = 64):
         """The Mitsuba ``perspective`` sensor of this camera."""
-        return mi.load_dict({
-            "type": "perspective", "fov": float(self.fov_deg), "fov_axis": "x",
-            "to_world": mi.ScalarTransform4f(self.to_world.astype(np.float32)),
-            "film": {"type": "hdrfilm", "width": int(self.width), "height": int(self.height), "pixel_format": "rgb"},
-            "sampler": {"type": "independent", "sample_count": int(spp)},
-        })
+        return mi.load_dict(
+            {
+                "type": "perspective",
+                "fov": float(self.fov_deg),
+                "fov_axis": "x",
+                "to_world": mi.ScalarTransform4f(self.to_world.astype(np.float32)),
+                "film": {
+                    "type": "hdrfilm",
+                    "width": int(self.width),
+                    "height": int(self.height),
+                    "pixel_format": "rgb",
+                },
+                "sampler": {"type": "independent", "sample_count": int(spp)},
+            }
+        )
 
     def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Project (N, 3) world points (m) to pixels.
@@ -78,14 +89,17 @@ class PinholeCamera:
         depth = p[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = (p[:, :3] @ self.intrinsics.T)[:, :2] / depth[:, None]
-        visible = (depth > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & (uv[:, 1] < self.height)
+        visible = (
+            (depth > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & (uv[:, 1] < self.height)
+        )
         return uv, depth, visible
 
 
 def render_camera(scene, camera: PinholeCamera, spp: int = 64, seed: int = 0) -> np.ndarray:
     """Path-trace the camera's (height, width, 3) linear RGB image of ``scene``."""
-    image = mi.render(scene, sensor=camera.sensor(spp), integrator=mi.load_dict({"type": "path", "max_depth": 6}),
-                      seed=seed)
+    image = mi.render(
+        scene, sensor=camera.sensor(spp), integrator=mi.load_dict({"type": "path", "max_depth": 6}), seed=seed
+    )
     return np.asarray(image, dtype=np.float32)
 
 
@@ -104,7 +118,12 @@ def camera_lidar_frame(scene, camera: PinholeCamera, seed: int = 0, spp: int = 6
     points = log.points_world()[0][log.hit[0]]
     uv, depth, visible = camera.project(points)
     return {
-        "image": render_camera(scene, camera, spp=spp, seed=seed), "log": log, "points": points,
-        "uv": uv, "depth": depth, "visible": visible, "K": camera.intrinsics,
+        "image": render_camera(scene, camera, spp=spp, seed=seed),
+        "log": log,
+        "points": points,
+        "uv": uv,
+        "depth": depth,
+        "visible": visible,
+        "K": camera.intrinsics,
         "lidar_to_camera": camera.world_to_opencv @ log.poses[0],
     }

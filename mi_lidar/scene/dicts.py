@@ -88,8 +88,10 @@ def ellipsoids_dict(elements: EllipsoidElements) -> dict:
     n = len(elements.centers)
     tensor = lambda a, w: mi.TensorXf(np.asarray(a, dtype=np.float32).reshape(n, w))  # noqa: E731
     return {
-        "type": "ellipsoids", "extent": float(elements.extent),
-        "centers": tensor(elements.centers, 3), "scales": tensor(elements.scales, 3),
+        "type": "ellipsoids",
+        "extent": float(elements.extent),
+        "centers": tensor(elements.centers, 3),
+        "scales": tensor(elements.scales, 3),
         "quaternions": tensor(elements.quaternions, 4),
         "p_hit": tensor(_column(elements.p_hit, n, "p_hit"), 1),
         "label": tensor(_column(elements.label, n, "label"), 1),
@@ -105,7 +107,9 @@ def scene_dict(element_sets: dict, sensor: dict | None = None, integrator: dict 
         elif isinstance(elements, EllipsoidElements):
             scene[key] = ellipsoids_dict(elements)
         else:
-            raise ParameterError(f"element set {key!r} is a {type(elements).__name__}; expected MeshElements or EllipsoidElements")
+            raise ParameterError(
+                f"element set {key!r} is a {type(elements).__name__}; expected MeshElements or EllipsoidElements"
+            )
     if sensor is not None:
         scene["sensor"] = sensor
     if integrator is not None:
@@ -121,13 +125,27 @@ def save_scene(path, element_sets: dict, extra_xml: str = "") -> Path:
     for key, elements in element_sets.items():
         filename = assets / f"{key}.ply"
         if isinstance(elements, MeshElements):
-            write_mesh_ply(filename, elements.vertices, elements.faces, p_hit=elements.p_hit,
-                           range_sigma=elements.range_sigma, label=elements.label)
+            write_mesh_ply(
+                filename,
+                elements.vertices,
+                elements.faces,
+                p_hit=elements.p_hit,
+                range_sigma=elements.range_sigma,
+                label=elements.label,
+            )
             entries.append(ShapeEntry(id=key, kind="mesh", filename=f"{assets.name}/{key}.ply"))
         else:
-            write_ellipsoids_ply(filename, elements.centers, elements.scales, elements.quaternions,
-                                 p_hit=elements.p_hit, label=elements.label)
-            entries.append(ShapeEntry(id=key, kind="ellipsoids", filename=f"{assets.name}/{key}.ply",
-                                      extent=elements.extent))
-    return write_scene_xml(path, entries, header_comment="written by mi_lidar.calibration.save_scene",
-                           extra_xml=extra_xml)
+            write_ellipsoids_ply(
+                filename,
+                elements.centers,
+                elements.scales,
+                elements.quaternions,
+                p_hit=elements.p_hit,
+                label=elements.label,
+            )
+            entries.append(
+                ShapeEntry(id=key, kind="ellipsoids", filename=f"{assets.name}/{key}.ply", extent=elements.extent)
+            )
+    return write_scene_xml(
+        path, entries, header_comment="written by mi_lidar.calibration.save_scene", extra_xml=extra_xml
+    )

@@ -40,9 +40,7 @@ def _element_columns(n: int, p_hit, range_sigma, label) -> list[tuple[str, np.nd
         if not np.all(np.isfinite(values)):
             raise ParameterError(f"{name} has non-finite values; give finite numbers per element")
         if name == "p_hit" and (values.min() < 0 or values.max() > 1):
-            raise ParameterError(
-                f"p_hit must lie in [0, 1]; got values in [{values.min():.3g}, {values.max():.3g}]"
-            )
+            raise ParameterError(f"p_hit must lie in [0, 1]; got values in [{values.min():.3g}, {values.max():.3g}]")
         if name == "range_sigma" and values.min() < 0:
             raise ParameterError(f"range_sigma must be >= 0 m; got minimum {values.min():.3g}")
         columns.append((f"{name}_0", values))
@@ -88,7 +86,9 @@ def write_ellipsoids_ply(path, centers, scales, quaternions, p_hit=None, range_s
     quaternions = np.asarray(quaternions, dtype=np.float32).reshape(-1, 4)
     n = len(centers)
     if len(scales) != n or len(quaternions) != n:
-        raise ParameterError(f"ellipsoids need equal counts: {n} centers, {len(scales)} scales, {len(quaternions)} quaternions")
+        raise ParameterError(
+            f"ellipsoids need equal counts: {n} centers, {len(scales)} scales, {len(quaternions)} quaternions"
+        )
     if n and scales.min() <= 0:
         raise ParameterError(f"ellipsoid scales must be > 0 m; got minimum {scales.min():.3g}")
     columns = _element_columns(n, p_hit, range_sigma, label)
@@ -134,19 +134,21 @@ def shape_xml(entry: ShapeEntry, indent: str = "    ") -> str:
     mitsuba_type = {"mesh": "ply", "ellipsoids": "ellipsoids"}.get(entry.kind)
     if mitsuba_type is None:
         raise ParameterError(f"shape {entry.id!r}: kind {entry.kind!r} is not 'mesh' or 'ellipsoids'")
-    lines = [f"{indent}<shape type=\"{mitsuba_type}\" id={quoteattr(entry.id)}>",
-             f"{indent}    <string name=\"filename\" value={quoteattr(entry.filename)}/>"]
+    lines = [
+        f'{indent}<shape type="{mitsuba_type}" id={quoteattr(entry.id)}>',
+        f'{indent}    <string name="filename" value={quoteattr(entry.filename)}/>',
+    ]
     if entry.extent is not None:
-        lines.append(f"{indent}    <float name=\"extent\" value=\"{entry.extent:g}\"/>")
+        lines.append(f'{indent}    <float name="extent" value="{entry.extent:g}"/>')
     material = []
     if entry.p_hit is not None:
-        material.append(f"<float name=\"p_hit\" value=\"{entry.p_hit:.9g}\"/>")
+        material.append(f'<float name="p_hit" value="{entry.p_hit:.9g}"/>')
     if entry.range_sigma is not None:
-        material.append(f"<float name=\"range_sigma\" value=\"{entry.range_sigma:.9g}\"/>")
+        material.append(f'<float name="range_sigma" value="{entry.range_sigma:.9g}"/>')
     if entry.label is not None:
-        material.append(f"<integer name=\"label\" value=\"{int(entry.label)}\"/>")
+        material.append(f'<integer name="label" value="{int(entry.label)}"/>')
     if material:
-        lines.append(f"{indent}    <bsdf type=\"lidar_material\">")
+        lines.append(f'{indent}    <bsdf type="lidar_material">')
         lines += [f"{indent}        {m}" for m in material]
         lines.append(f"{indent}    </bsdf>")
     lines.append(f"{indent}</shape>")
@@ -159,10 +161,10 @@ def write_scene_xml(path, shapes: list[ShapeEntry], header_comment: str = "", ex
     duplicates = sorted({i for i in ids if ids.count(i) > 1})
     if duplicates:
         raise ParameterError(f"shape ids must be unique; repeated: {duplicates}")
-    body = ["<?xml version=\"1.0\" encoding=\"utf-8\"?>"]
+    body = ['<?xml version="1.0" encoding="utf-8"?>']
     if header_comment:
         body.append(f"<!-- {header_comment} -->")
-    body.append("<scene version=\"3.0.0\">")
+    body.append('<scene version="3.0.0">')
     body += [shape_xml(s) for s in shapes]
     if extra_xml:
         body.append(extra_xml)

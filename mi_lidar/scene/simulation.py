@@ -10,13 +10,13 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.channels import channels_to_numpy
-from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import PatternError
 from mi_lidar.core.log import Log
 from mi_lidar.core.poses import validate_poses
-from mi_lidar.scene.loading import load_scene, scene_lidar_sensor, scene_sensor_model
+from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.scene.loading import load_scene, scene_lidar_sensor, scene_sensor_model
 
 MAX_RAYS_PER_BATCH = 1 << 22  # rays traced at once (bounds peak memory)
 
@@ -44,8 +44,9 @@ def world_rays(local_origin: mi.Point3f, local_direction: mi.Vector3f, entries: 
     return origin, direction
 
 
-def simulate(scene, pattern=None, poses=None, seed: int = 0, model: SensorModel | None = None,
-             scan_times=None, progress=None) -> Log:
+def simulate(
+    scene, pattern=None, poses=None, seed: int = 0, model: SensorModel | None = None, scan_times=None, progress=None
+) -> Log:
     """Simulate one scan per pose and return them as a :class:`~mi_lidar.core.log.Log`.
 
     Args:
@@ -70,7 +71,9 @@ def simulate(scene, pattern=None, poses=None, seed: int = 0, model: SensorModel 
     if pattern is None:
         sensor = scene_lidar_sensor(scene)
         if sensor is None:
-            raise PatternError("the scene has no `lidar` sensor to take a firing pattern from; pass pattern='vlp16' (or another name)")
+            raise PatternError(
+                "the scene has no `lidar` sensor to take a firing pattern from; pass pattern='vlp16' (or another name)"
+            )
         pattern = sensor.pattern
     if not isinstance(pattern, FiringPattern):
         pattern = get_pattern(str(pattern))
@@ -115,9 +118,20 @@ def simulate(scene, pattern=None, poses=None, seed: int = 0, model: SensorModel 
     merged = {name: np.concatenate(values) for name, values in channels.items()}
     times = scan_times[:, None, None] + rel_time.reshape(1, height, width)
     return Log(
-        poses=poses, directions=directions[None], origins=origins[None],
-        ranges=merged.pop("range"), hit=merged.pop("hit"), times=times, attributes=merged,
-        sensor={"pattern": pattern.name, "min_range": model.min_range, "max_range": model.max_range,
-                "range_sigma": model.range_sigma, "max_segments": model.max_segments,
-                "effects": [e.describe() for e in model.effects], "seed": int(seed)},
+        poses=poses,
+        directions=directions[None],
+        origins=origins[None],
+        ranges=merged.pop("range"),
+        hit=merged.pop("hit"),
+        times=times,
+        attributes=merged,
+        sensor={
+            "pattern": pattern.name,
+            "min_range": model.min_range,
+            "max_range": model.max_range,
+            "range_sigma": model.range_sigma,
+            "max_segments": model.max_segments,
+            "effects": [e.describe() for e in model.effects],
+            "seed": int(seed),
+        },
     )

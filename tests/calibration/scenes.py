@@ -3,10 +3,10 @@
 import numpy as np
 
 import mi_lidar
-from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, scene_dict
 from mi_lidar.core.effects import parse_effects
 from mi_lidar.core.patterns import get_pattern
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, scene_dict
 
 SENSOR_HEIGHT = 1.5  # m above the bowl's floor
 
@@ -24,8 +24,12 @@ def bowl(n: int = 25, half: float = 12.0, p_hit=1.0, label: int = 1) -> MeshElem
     i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij")
     a, b, c, d = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
     faces = np.r_[np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)]
-    return MeshElements(vertices=vertices, faces=faces, p_hit=np.broadcast_to(p_hit, len(faces)).copy(),
-                        label=np.full(len(faces), label))
+    return MeshElements(
+        vertices=vertices,
+        faces=faces,
+        p_hit=np.broadcast_to(p_hit, len(faces)).copy(),
+        label=np.full(len(faces), label),
+    )
 
 
 def shrubs(p_hit, radius: float = 5.0) -> EllipsoidElements:
@@ -33,9 +37,14 @@ def shrubs(p_hit, radius: float = 5.0) -> EllipsoidElements:
     n = len(p_hit)
     angle = np.linspace(0, 2 * np.pi, n, endpoint=False)
     centers = np.c_[radius * np.cos(angle), radius * np.sin(angle), np.full(n, SENSOR_HEIGHT + 0.2)]
-    return EllipsoidElements(centers=centers, scales=np.tile([0.5, 0.6, 0.8], (n, 1)),
-                             quaternions=np.tile([0, 0, 0, 1.0], (n, 1)), p_hit=np.asarray(p_hit, float),
-                             label=np.full(n, 5), extent=3.0)
+    return EllipsoidElements(
+        centers=centers,
+        scales=np.tile([0.5, 0.6, 0.8], (n, 1)),
+        quaternions=np.tile([0, 0, 0, 1.0], (n, 1)),
+        p_hit=np.asarray(p_hit, float),
+        label=np.full(n, 5),
+        extent=3.0,
+    )
 
 
 def sensor_pose(x: float = 0.0, y: float = 0.0, yaw: float = 0.0) -> np.ndarray:
@@ -59,11 +68,20 @@ WALL_HALF = 40.0  # m: it spans |y| <= WALL_HALF and 0 <= z <= WALL_HALF
 def floor_and_wall() -> dict:
     """Opaque element sets: a 1 km floor at z = 0 and a wall at x = WALL_X, two triangles each."""
     floor = np.array([[-500, -500, 0], [500, -500, 0], [500, 500, 0], [-500, 500, 0]], float)
-    wall = np.array([[WALL_X, -WALL_HALF, 0], [WALL_X, WALL_HALF, 0], [WALL_X, WALL_HALF, WALL_HALF],
-                     [WALL_X, -WALL_HALF, WALL_HALF]], float)
+    wall = np.array(
+        [
+            [WALL_X, -WALL_HALF, 0],
+            [WALL_X, WALL_HALF, 0],
+            [WALL_X, WALL_HALF, WALL_HALF],
+            [WALL_X, -WALL_HALF, WALL_HALF],
+        ],
+        float,
+    )
     quad = np.array([[0, 1, 2], [0, 2, 3]])
-    return {name: MeshElements(vertices=v, faces=quad, p_hit=np.ones(2), label=np.ones(2))
-            for name, v in (("floor", floor), ("wall", wall))}
+    return {
+        name: MeshElements(vertices=v, faces=quad, p_hit=np.ones(2), label=np.ones(2))
+        for name, v in (("floor", floor), ("wall", wall))
+    }
 
 
 def floor_and_wall_scan(effects: str, seed: int, range_sigma: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
@@ -75,8 +93,9 @@ def floor_and_wall_scan(effects: str, seed: int, range_sigma: float = 0.03) -> t
     pose = np.eye(4)
     pose[2, 3] = 2.0
     model = SensorModel(range_sigma=range_sigma, effects=parse_effects(effects))
-    log = mi_lidar.simulate(mi_lidar.load_scene(scene_dict(floor_and_wall())), pattern(300), poses=pose, seed=seed,
-                            model=model)
+    log = mi_lidar.simulate(
+        mi_lidar.load_scene(scene_dict(floor_and_wall())), pattern(300), poses=pose, seed=seed, model=model
+    )
     return log.ranges[0], log.hit[0]
 
 
@@ -102,6 +121,11 @@ def bushes(n: int = 24, seed: int = 0) -> EllipsoidElements:
     radius = rng.uniform(3.0, 6.0, n)
     yaw = rng.uniform(0, np.pi, n)
     centers = np.c_[radius * np.cos(angle), radius * np.sin(angle), SENSOR_HEIGHT + rng.uniform(-0.4, 0.4, n)]
-    return EllipsoidElements(centers=centers, scales=rng.uniform(0.3, 0.6, (n, 3)),
-                             quaternions=np.c_[np.zeros((n, 2)), np.sin(yaw / 2), np.cos(yaw / 2)],
-                             p_hit=rng.uniform(0.3, 0.7, n), label=np.full(n, 5), extent=3.0)
+    return EllipsoidElements(
+        centers=centers,
+        scales=rng.uniform(0.3, 0.6, (n, 3)),
+        quaternions=np.c_[np.zeros((n, 2)), np.sin(yaw / 2), np.cos(yaw / 2)],
+        p_hit=rng.uniform(0.3, 0.7, n),
+        label=np.full(n, 5),
+        extent=3.0,
+    )

@@ -8,12 +8,12 @@ import pytest
 from typer.testing import CliRunner
 
 import mi_lidar
-from mi_lidar.scene.dicts import save_scene, scene_dict
 from mi_lidar.calibration.commands import calibrate_command
-from mi_lidar.cli import app
 from mi_lidar.calibration.fit import Calibration, FitOptions
+from mi_lidar.cli import app
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import CalibrationError
+from mi_lidar.scene.dicts import save_scene, scene_dict
 
 from .scenes import SENSOR_HEIGHT, bowl, bowl_height, pattern, sensor_pose, shrubs
 
@@ -24,17 +24,22 @@ BIAS = 0.02  # m, on every beam
 def sensor_xml(effects: str = "") -> str:
     z = bowl_height(0.0, 0.0) + SENSOR_HEIGHT
     effects_xml = f'<string name="effects" value="{effects}"/>' if effects else ""
-    return (f'    <sensor type="lidar" id="lidar"><string name="pattern" value="vlp16"/>'
-            f'<integer name="firings" value="400"/><float name="range_sigma" value="0.02"/>'
-            f'<transform name="to_world"><translate z="{z}"/></transform></sensor>\n'
-            f'    <integrator type="lidar_integrator">{effects_xml}</integrator>')
+    return (
+        f'    <sensor type="lidar" id="lidar"><string name="pattern" value="vlp16"/>'
+        f'<integer name="firings" value="400"/><float name="range_sigma" value="0.02"/>'
+        f'<transform name="to_world"><translate z="{z}"/></transform></sensor>\n'
+        f'    <integrator type="lidar_integrator">{effects_xml}</integrator>'
+    )
 
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("calibrate")
-    truth = save_scene(tmp / "truth.xml", {"terrain": bowl(n=9), "shrubs": shrubs(P_SHRUBS)},
-                       extra_xml=sensor_xml(f"range_bias(bias={BIAS})"))
+    truth = save_scene(
+        tmp / "truth.xml",
+        {"terrain": bowl(n=9), "shrubs": shrubs(P_SHRUBS)},
+        extra_xml=sensor_xml(f"range_bias(bias={BIAS})"),
+    )
     start = save_scene(tmp / "start.xml", {"terrain": bowl(n=9), "shrubs": shrubs([0.5] * 4)}, extra_xml=sensor_xml())
     pose = mi_lidar.scene.scene_lidar_sensor(mi_lidar.load_scene(truth)).to_world_matrix
     poses = np.stack([pose] * 6)
@@ -46,8 +51,9 @@ def files(tmp_path_factory):
 def test_calibrate_recovers_truth_and_writes_report(files):
     tmp, log, start = files
     out = tmp / "out"
-    result, written = calibrate_command(log, start, ["elements.shrubs.p_hit", "sensor.range_bias"], out, steps=80,
-                                        batch_size=1 << 14, eval_every=5)
+    result, written = calibrate_command(
+        log, start, ["elements.shrubs.p_hit", "sensor.range_bias"], out, steps=80, batch_size=1 << 14, eval_every=5
+    )
     assert np.abs(result.fitted["sensor.range_bias"] - BIAS).max() < 0.005
     assert np.abs(result.fitted["elements.shrubs.p_hit"] - P_SHRUBS).max() < 0.05
     held = [h for _, _, h in result.history if np.isfinite(h)]
@@ -60,18 +66,38 @@ def test_calibrate_recovers_truth_and_writes_report(files):
     table = ElementTable.from_scene(scene)
     k = table.shape_ids.index("shrubs")
     first = sum(table.element_counts[:k])
-    np.testing.assert_allclose(np.asarray(table.p_hit)[first:first + 4], result.fitted["elements.shrubs.p_hit"], atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(table.p_hit)[first : first + 4], result.fitted["elements.shrubs.p_hit"], atol=1e-6
+    )
     params = mi.traverse(scene.integrator())
-    np.testing.assert_allclose(np.asarray(params["effects.range_bias.bias"]), result.fitted["sensor.range_bias"], atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(params["effects.range_bias.bias"]), result.fitted["sensor.range_bias"], atol=1e-6
+    )
 
 
 def test_cli_prints_table(files):
     tmp, log, start = files
-    run = CliRunner().invoke(app, ["calibrate", str(log), str(start), "--params", "sensor.range_bias", "--out", str(tmp / "cli"),
-                                   "--steps", "5", "--batch-size", "4096"])
+    run = CliRunner().invoke(
+        app,
+        [
+            "calibrate",
+            str(log),
+            str(start),
+            "--params",
+            "sensor.range_bias",
+            "--out",
+            str(tmp / "cli"),
+            "--steps",
+            "5",
+            "--batch-size",
+            "4096",
+        ],
+    )
     assert run.exit_code == 0, run.output
     assert "held-out NLL" in run.output and (tmp / "cli" / "scene.xml").is_file()
-    bad = CliRunner().invoke(app, ["calibrate", str(log), str(start), "--params", "elements.*.nothing", "--out", str(tmp / "bad")])
+    bad = CliRunner().invoke(
+        app, ["calibrate", str(log), str(start), "--params", "elements.*.nothing", "--out", str(tmp / "bad")]
+    )
     assert bad.exit_code == 2 and "matches no parameter" in bad.output
 
 
@@ -93,10 +119,13 @@ def test_log_from_another_sensor_is_rejected(files):
 def test_non_finite_loss_names_the_fix():
     # Without the robustness floor a return that no element explains has zero likelihood: here the
     # log's shrubs stand 5 m from the sensor and the model's 7 m, so the loss is infinite.
-    log = mi_lidar.simulate(mi_lidar.load_scene(scene_dict({"shrubs": shrubs(P_SHRUBS)})), pattern(100),
-                            poses=sensor_pose(), seed=1)
+    log = mi_lidar.simulate(
+        mi_lidar.load_scene(scene_dict({"shrubs": shrubs(P_SHRUBS)})), pattern(100), poses=sensor_pose(), seed=1
+    )
     model_scene = mi_lidar.load_scene(scene_dict({"shrubs": shrubs(P_SHRUBS, radius=7.0)}))
-    cal = Calibration(model_scene, log, ["sensor.range_bias"], options=FitOptions(steps=2, floor=0.0, counting_start=False))
+    cal = Calibration(
+        model_scene, log, ["sensor.range_bias"], options=FitOptions(steps=2, floor=0.0, counting_start=False)
+    )
     with pytest.raises(CalibrationError, match="keep the robustness floor > 0"):
         cal.fit()
     robust = Calibration(model_scene, log, ["sensor.range_bias"], options=FitOptions(steps=2, counting_start=False))

@@ -15,15 +15,17 @@ import numpy as np
 import pytest
 
 import mi_lidar
-from mi_lidar.scene.dicts import scene_dict
 from mi_lidar.calibration.fit import Calibration, FitOptions
 from mi_lidar.core.effects import RangeNoise, parse_effects
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.scene.dicts import scene_dict
 
 from .scenes import bowl, pattern, sensor_pose, shrubs
 
-EFFECTS = ("range_noise(sigma0=0.01), beam_offsets(elevation=[0.001 -0.002 0.0005], azimuth=[0.001 0 -0.001]), "
-           "extrinsics(rz=0.002, tx=0.01), range_scale(scale=1.001), range_bias(bias=[0.003 -0.002])")
+EFFECTS = (
+    "range_noise(sigma0=0.01), beam_offsets(elevation=[0.001 -0.002 0.0005], azimuth=[0.001 0 -0.001]), "
+    "extrinsics(rz=0.002, tx=0.01), range_scale(scale=1.001), range_bias(bias=[0.003 -0.002])"
+)
 
 # name, step h (natural units), starting values (None: the scene's), smoothing (sigmas; 0: exact)
 FAMILIES = [
@@ -76,8 +78,11 @@ def loss_and_gradient(problem, name, start, smoothing=0.0):
     return np.asarray(x0, np.float64), gradient, f
 
 
-@pytest.mark.parametrize("name,h,start,smoothing", FAMILIES,
-                         ids=[f"{n}{'@0' if s is not None else ''}{'~smoothed' if k else ''}" for n, _, s, k in FAMILIES])
+@pytest.mark.parametrize(
+    "name,h,start,smoothing",
+    FAMILIES,
+    ids=[f"{n}{'@0' if s is not None else ''}{'~smoothed' if k else ''}" for n, _, s, k in FAMILIES],
+)
 def test_gradient_matches_finite_differences(problem, name, h, start, smoothing):
     x0, gradient, f = loss_and_gradient(problem, name, start, smoothing)
     assert np.all(np.isfinite(gradient))
@@ -87,7 +92,10 @@ def test_gradient_matches_finite_differences(problem, name, h, start, smoothing)
     for v in (gradient / norm, random / np.linalg.norm(random)):
         numeric = (f(x0 + h * v) - f(x0 - h * v)) / (2 * h)
         analytic = float(gradient @ v)
-        assert abs(analytic - numeric) <= 0.03 * norm, f"{name}: autodiff {analytic:.6g} vs FD {numeric:.6g} (|g| {norm:.4g})"
+        assert abs(analytic - numeric) <= 0.03 * norm, (
+            f"{name}: autodiff {analytic:.6g} vs FD {numeric:.6g} (|g| {norm:.4g})"
+        )
+
 
 def test_range_noise_model_is_unchanged_by_sensor_effects_at_identity(problem):
     # Adding the sensor effects at identity (what selecting sensor.* does) leaves the likelihood unchanged.
@@ -95,7 +103,13 @@ def test_range_noise_model_is_unchanged_by_sensor_effects_at_identity(problem):
     base = SensorModel(range_sigma=0.02, effects=[RangeNoise(sigma0=0.01)])
     a = Calibration(scene, log, ["effects.range_noise.sigma0"], model=base, options=FitOptions(holdout=0.5))
     b = Calibration(scene, log, ["effects.range_noise.sigma0", "sensor.*"], model=base, options=FitOptions(holdout=0.5))
-    assert [e.name for e in b.model.effects] == ["range_noise", "beam_offsets", "extrinsics", "range_scale", "range_bias"]
+    assert [e.name for e in b.model.effects] == [
+        "range_noise",
+        "beam_offsets",
+        "extrinsics",
+        "range_scale",
+        "range_bias",
+    ]
     values = {n: mi.Float(p.initial.astype(np.float32)) for n, p in b.params.items()}
     la = a.held_out_loss({"effects.range_noise.sigma0": values["effects.range_noise.sigma0"]})
     lb = b.held_out_loss(values)

@@ -14,9 +14,9 @@ import drjit as dr
 import numpy as np
 
 import mi_lidar
-from mi_lidar.scene.dicts import scene_dict
 from mi_lidar.calibration.fit import Calibration, FitOptions
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.scene.dicts import scene_dict
 
 from .scenes import bowl, bushes, pattern, sensor_pose
 
@@ -33,13 +33,22 @@ def new_kernels_per_step(names: list[str], steps: int) -> list[int]:
     enlarged by 10 % and draws a new mini-batch of 4096 rays at every step.
     """
     truth = bushes()
-    log = mi_lidar.simulate(mi_lidar.load_scene(scene_dict({"terrain": bowl(n=9), "bushes": truth})), pattern(250),
-                            poses=np.stack([sensor_pose(), sensor_pose(0.4, 0.0, 1.0)]), seed=5, model=MODEL)
+    log = mi_lidar.simulate(
+        mi_lidar.load_scene(scene_dict({"terrain": bowl(n=9), "bushes": truth})),
+        pattern(250),
+        poses=np.stack([sensor_pose(), sensor_pose(0.4, 0.0, 1.0)]),
+        seed=5,
+        model=MODEL,
+    )
     start = bushes()
     start.scales = start.scales * 1.1
-    cal = Calibration(mi_lidar.load_scene(scene_dict({"terrain": bowl(n=9), "bushes": start})), log, names,
-                      model=MODEL, options=FitOptions(steps=steps, batch_size=1 << 12, eval_every=steps + 1,
-                                                      counting_start=False, seed=1))
+    cal = Calibration(
+        mi_lidar.load_scene(scene_dict({"terrain": bowl(n=9), "bushes": start})),
+        log,
+        names,
+        model=MODEL,
+        options=FitOptions(steps=steps, batch_size=1 << 12, eval_every=steps + 1, counting_start=False, seed=1),
+    )
     seen, counts = set(), []
 
     def progress(step, total, train_loss, held_out_loss):

@@ -14,18 +14,20 @@ import numpy as np
 import pytest
 
 import mi_lidar
-from mi_lidar.scene.dicts import scene_dict
 from mi_lidar.calibration.differentiable import DiffTable, LogRays
 from mi_lidar.calibration.likelihood import mixture_log_likelihood
 from mi_lidar.calibration.records import RayCache, cache_distributions, trace_rounds
 from mi_lidar.core.effects import parse_effects
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.scene.dicts import scene_dict
 
 from .scenes import bowl, pattern, sensor_pose, shrubs
 
-EFFECTS = ("outliers(p_near=0.02, p_uniform=0.01), range_noise(sigma0=0.01), beam_offsets(elevation=[0.002 -0.001]), "
-           "range_bias(bias=[0.004 -0.003]), range_scale(scale=1.002)")
+EFFECTS = (
+    "outliers(p_near=0.02, p_uniform=0.01), range_noise(sigma0=0.01), beam_offsets(elevation=[0.002 -0.001]), "
+    "range_bias(bias=[0.004 -0.003]), range_scale(scale=1.002)"
+)
 
 
 @pytest.fixture(scope="module")
@@ -36,8 +38,13 @@ def problem():
     log = mi_lidar.simulate(scene, pattern(200), poses=sensor_pose(0.2, 0.1, 0.3), seed=4, model=model)
     rays = LogRays.from_log(log)
     batch, z, hit = rays.batch(np.arange(rays.n))
-    reference = model.log_likelihood(ElementTable.from_scene(scene), batch,
-                                     model.trace_segments(scene, ElementTable.from_scene(scene), batch), z, hit)
+    reference = model.log_likelihood(
+        ElementTable.from_scene(scene),
+        batch,
+        model.trace_segments(scene, ElementTable.from_scene(scene), batch),
+        z,
+        hit,
+    )
     return scene, model, rays, np.asarray(reference, np.float64)
 
 
@@ -65,8 +72,9 @@ def test_cache_cuts_any_batch(problem):
     scene, model, rays, reference = problem
     table = DiffTable.from_scene(scene)
     everything, _, _ = rays.batch(np.arange(rays.n))
-    cache = RayCache.from_rounds(cache_distributions(trace_rounds(scene, table, model, everything), table, model,
-                                                     everything))
+    cache = RayCache.from_rounds(
+        cache_distributions(trace_rounds(scene, table, model, everything), table, model, everything)
+    )
     assert cache.n == rays.n and cache.count.max() > 1
     position = np.random.default_rng(0).integers(0, rays.n, 5000)  # with repeats
     batch, z, hit = rays.batch(position)

@@ -5,13 +5,12 @@ from the effect at identity) and checks the recovered values. Seeds are fixed.
 """
 
 import numpy as np
-import pytest
 
 import mi_lidar
-from mi_lidar.scene.dicts import scene_dict
 from mi_lidar.calibration.fit import Calibration, FitOptions
 from mi_lidar.core.effects import parse_effects
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.scene.dicts import scene_dict
 
 from .scenes import bowl, pattern, sensor_pose, shrubs
 
@@ -20,7 +19,9 @@ P_GROUND = 0.8
 
 
 def poses(n: int) -> np.ndarray:
-    return np.stack([sensor_pose(0.4 * np.cos(a), 0.4 * np.sin(a), a) for a in np.linspace(0, 2 * np.pi, n, endpoint=False)])
+    return np.stack(
+        [sensor_pose(0.4 * np.cos(a), 0.4 * np.sin(a), a) for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
+    )
 
 
 def test_hit_probabilities_recovered_and_autodiff_matches_counting():
@@ -31,11 +32,18 @@ def test_hit_probabilities_recovered_and_autodiff_matches_counting():
     log = mi_lidar.simulate(scene, pattern(800), poses=poses(8), seed=5, model=model)
     start = {"terrain": bowl(n=9, p_hit=0.5), "shrubs": shrubs([0.5] * 6)}
     fitted_scene = mi_lidar.load_scene(scene_dict(start))
-    cal = Calibration(fitted_scene, log, ["elements.*.p_hit"], model=model,
-                      options=FitOptions(steps=60, batch_size=1 << 15, eval_every=5, seed=1))
+    cal = Calibration(
+        fitted_scene,
+        log,
+        ["elements.*.p_hit"],
+        model=model,
+        options=FitOptions(steps=60, batch_size=1 << 15, eval_every=5, seed=1),
+    )
     result = cal.fit()
-    for name, true in (("elements.shrubs.p_hit", np.array(P_SHRUBS)),
-                       ("elements.terrain.p_hit", np.full(128, P_GROUND))):
+    for name, true in (
+        ("elements.shrubs.p_hit", np.array(P_SHRUBS)),
+        ("elements.terrain.p_hit", np.full(128, P_GROUND)),
+    ):
         seen = result.observations[name] >= 1000  # binomial std <= 0.016 at 1000 rays; most elements see far more
         assert seen.sum() >= (6 if "shrubs" in name else 12)
         error = np.abs(result.fitted[name] - true)[seen]
@@ -53,9 +61,20 @@ def test_beam_elevation_offsets_recovered():
     effect = " ".join(f"{v:.8f}" for v in truth_offsets)
     true_model = SensorModel(range_sigma=0.01, effects=parse_effects(f"beam_offsets(elevation=[{effect}])"))
     log = mi_lidar.simulate(scene, pattern(500), poses=poses(4), seed=7, model=true_model)
-    cal = Calibration(scene, log, ["sensor.elevation_offset"], model=SensorModel(range_sigma=0.01),
-                      options=FitOptions(steps=150, batch_size=1 << 14, eval_every=10, patience=4, seed=2,
-                                         learning_rates={"sensor.elevation_offset": 5e-4}))
+    cal = Calibration(
+        scene,
+        log,
+        ["sensor.elevation_offset"],
+        model=SensorModel(range_sigma=0.01),
+        options=FitOptions(
+            steps=150,
+            batch_size=1 << 14,
+            eval_every=10,
+            patience=4,
+            seed=2,
+            learning_rates={"sensor.elevation_offset": 5e-4},
+        ),
+    )
     result = cal.fit()
     error_deg = np.degrees(np.abs(result.fitted["sensor.elevation_offset"] - truth_offsets))
     assert error_deg.max() < 0.05, f"elevation errors (deg): {np.round(error_deg, 4)}"
@@ -66,10 +85,17 @@ def test_range_bias_and_scale_recovered():
     bias = np.random.default_rng(4).uniform(-0.03, 0.03, 16)
     scene = mi_lidar.load_scene(scene_dict({"terrain": bowl(n=17)}))
     text = " ".join(f"{b:.6f}" for b in bias)
-    true_model = SensorModel(range_sigma=0.01, effects=parse_effects(f"range_scale(scale=1.003), range_bias(bias=[{text}])"))
+    true_model = SensorModel(
+        range_sigma=0.01, effects=parse_effects(f"range_scale(scale=1.003), range_bias(bias=[{text}])")
+    )
     log = mi_lidar.simulate(scene, pattern(500), poses=poses(4), seed=9, model=true_model)
-    cal = Calibration(scene, log, ["sensor.range_bias", "sensor.range_scale"], model=SensorModel(range_sigma=0.01),
-                      options=FitOptions(steps=200, batch_size=1 << 14, eval_every=10, patience=4, seed=3))
+    cal = Calibration(
+        scene,
+        log,
+        ["sensor.range_bias", "sensor.range_scale"],
+        model=SensorModel(range_sigma=0.01),
+        options=FitOptions(steps=200, batch_size=1 << 14, eval_every=10, patience=4, seed=3),
+    )
     result = cal.fit()
     assert np.abs(result.fitted["sensor.range_bias"] - bias).max() < 0.005
     assert abs(result.fitted["sensor.range_scale"][0] - 1.003) < 5e-4

@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 import mi_lidar
-from mi_lidar.core.elements import ElementTable
-from mi_lidar.scene.dicts import EllipsoidElements, scene_dict
 from mi_lidar.calibration.fit import Calibration, FitOptions
+from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.scene.dicts import EllipsoidElements, scene_dict
 
 from .scenes import bowl, bushes, pattern, sensor_pose
 
@@ -30,15 +30,23 @@ SEEN = 100  # returns of the log an element needs to be scored
 
 
 def poses(n: int) -> np.ndarray:
-    return np.stack([sensor_pose(0.4 * np.cos(a), 0.4 * np.sin(a), a) for a in np.linspace(0, 2 * np.pi, n, endpoint=False)])
+    return np.stack(
+        [sensor_pose(0.4 * np.cos(a), 0.4 * np.sin(a), a) for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
+    )
 
 
 def perturbed(truth: EllipsoidElements, centers: float, scales: float) -> EllipsoidElements:
     """``truth`` with centers moved by N(0, (centers^2 / 3) I) m and scales times exp(U(-scales, scales)), seeded."""
     rng = np.random.default_rng(1)
     moved = truth.centers + rng.normal(size=truth.centers.shape) * centers / np.sqrt(3)
-    return EllipsoidElements(centers=moved, scales=truth.scales * np.exp(rng.uniform(-scales, scales, truth.scales.shape)),
-                             quaternions=truth.quaternions, p_hit=truth.p_hit, label=truth.label, extent=truth.extent)
+    return EllipsoidElements(
+        centers=moved,
+        scales=truth.scales * np.exp(rng.uniform(-scales, scales, truth.scales.shape)),
+        quaternions=truth.quaternions,
+        p_hit=truth.p_hit,
+        label=truth.label,
+        extent=truth.extent,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -56,9 +64,13 @@ def truth_and_log():
 
 
 def fit(truth, log, start: EllipsoidElements, names: list[str], steps: int):
-    cal = Calibration(mi_lidar.load_scene(scene_dict({"terrain": bowl(n=9), "bushes": start})), log, names, model=MODEL,
-                      options=FitOptions(steps=steps, batch_size=1 << 15, eval_every=5, patience=10, seed=1,
-                                         counting_start=False))
+    cal = Calibration(
+        mi_lidar.load_scene(scene_dict({"terrain": bowl(n=9), "bushes": start})),
+        log,
+        names,
+        model=MODEL,
+        options=FitOptions(steps=steps, batch_size=1 << 15, eval_every=5, patience=10, seed=1, counting_start=False),
+    )
     truth_values = {"elements.bushes.centers": truth.centers.ravel(), "elements.bushes.scales": truth.scales.ravel()}
     truth_nll = cal.held_out_loss({n: mi.Float(truth_values[n].astype(np.float32)) for n in names})
     return cal.fit(), truth_nll
@@ -71,9 +83,13 @@ def test_ellipsoid_scales_recovered(truth_and_log):
     before = np.abs(start.scales / truth.scales - 1)[seen]
     after = np.abs(result.fitted["elements.bushes.scales"].reshape(-1, 3) / truth.scales - 1)[seen]
     assert seen.sum() >= 18
-    assert np.median(after) <= 0.04 and np.median(before) > 0.08, f"median relative errors {np.median(before):.3f} -> {np.median(after):.3f}"
+    assert np.median(after) <= 0.04 and np.median(before) > 0.08, (
+        f"median relative errors {np.median(before):.3f} -> {np.median(after):.3f}"
+    )
     assert result.initial_nll > truth_nll + 0.3, "the perturbation must matter"
-    assert result.fitted_nll < truth_nll + 0.08, f"held-out NLL {result.initial_nll:.3f} -> {result.fitted_nll:.3f} (truth {truth_nll:.3f})"
+    assert result.fitted_nll < truth_nll + 0.08, (
+        f"held-out NLL {result.initial_nll:.3f} -> {result.fitted_nll:.3f} (truth {truth_nll:.3f})"
+    )
 
 
 @pytest.mark.slow
@@ -83,5 +99,9 @@ def test_ellipsoid_centers_recovered(truth_and_log):
     result, truth_nll = fit(truth, log, start, ["elements.bushes.centers"], steps=40)
     before = np.linalg.norm(start.centers - truth.centers, axis=1)[seen]
     after = np.linalg.norm(result.fitted["elements.bushes.centers"].reshape(-1, 3) - truth.centers, axis=1)[seen]
-    assert np.median(after) < 0.022 and np.median(before) > 0.025, f"median errors (m) {np.median(before):.4f} -> {np.median(after):.4f}"
-    assert result.fitted_nll < truth_nll + 0.06, f"held-out NLL {result.initial_nll:.3f} -> {result.fitted_nll:.3f} (truth {truth_nll:.3f})"
+    assert np.median(after) < 0.022 and np.median(before) > 0.025, (
+        f"median errors (m) {np.median(before):.4f} -> {np.median(after):.4f}"
+    )
+    assert result.fitted_nll < truth_nll + 0.06, (
+        f"held-out NLL {result.initial_nll:.3f} -> {result.fitted_nll:.3f} (truth {truth_nll:.3f})"
+    )

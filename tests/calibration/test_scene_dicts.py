@@ -3,8 +3,8 @@
 import numpy as np
 
 import mi_lidar
-from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, save_scene, scene_dict
 from mi_lidar.core.elements import ElementTable
+from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, save_scene, scene_dict
 
 
 def element_sets():
@@ -14,12 +14,22 @@ def element_sets():
     i, j = np.meshgrid(np.arange(4), np.arange(4), indexing="ij")
     a, b, c, d = i * 5 + j, (i + 1) * 5 + j, (i + 1) * 5 + j + 1, i * 5 + j + 1
     faces = np.r_[np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)]
-    ground = MeshElements(vertices=vertices, faces=faces, p_hit=rng.uniform(0.5, 1, len(faces)),
-                          label=np.ones(len(faces)), range_sigma=np.full(len(faces), 0.02))
+    ground = MeshElements(
+        vertices=vertices,
+        faces=faces,
+        p_hit=rng.uniform(0.5, 1, len(faces)),
+        label=np.ones(len(faces)),
+        range_sigma=np.full(len(faces), 0.02),
+    )
     n = 6
-    bushes = EllipsoidElements(centers=rng.uniform(-3, 3, (n, 3)) + [0, 0, 4], scales=rng.uniform(0.2, 0.5, (n, 3)),
-                               quaternions=np.tile([0, 0, 0.3826834, 0.9238795], (n, 1)),
-                               p_hit=rng.uniform(0.2, 0.6, n), label=np.full(n, 5), extent=2.5)
+    bushes = EllipsoidElements(
+        centers=rng.uniform(-3, 3, (n, 3)) + [0, 0, 4],
+        scales=rng.uniform(0.2, 0.5, (n, 3)),
+        quaternions=np.tile([0, 0, 0.3826834, 0.9238795], (n, 1)),
+        p_hit=rng.uniform(0.2, 0.6, n),
+        label=np.full(n, 5),
+        extent=2.5,
+    )
     return {"ground": ground, "bushes": bushes}
 
 

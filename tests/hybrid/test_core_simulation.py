@@ -4,6 +4,7 @@ import mitsuba as mi
 import numpy as np
 
 import mi_lidar
+from mi_lidar.core.log import Log
 from mi_lidar.hybrid.baselines import NeighborSimulator
 from mi_lidar.hybrid.blocks import SceneSensor, write_scene
 from mi_lidar.hybrid.counting import count_hits
@@ -11,12 +12,14 @@ from mi_lidar.hybrid.evaluate import observation_metrics, pcd_error
 from mi_lidar.hybrid.fit import FitParams, assign_hit_probabilities, hit_probability, world_rays
 from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
 from mi_lidar.hybrid.simulation import load_model, simulate_log
-from mi_lidar.core.log import Log
 
 
 def _two_walls(p_front):
     """Walls x = 5 (p_hit = p_front) and x = 10 (opaque), 20 m wide, sigma 0."""
-    quad = lambda x: (np.array([[x, -10, -10], [x, 10, -10], [x, 10, 10], [x, -10, 10]]), np.array([[0, 1, 2], [0, 2, 3]]))
+    quad = lambda x: (
+        np.array([[x, -10, -10], [x, 10, -10], [x, 10, 10], [x, -10, 10]]),
+        np.array([[0, 1, 2], [0, 2, 3]]),
+    )
     (v1, f1), (v2, f2) = quad(5.0), quad(10.0)
     g = GroundMesh(np.r_[v1, v2], np.r_[f1, f2 + 4], p_hit=[p_front, p_front, 1, 1], range_sigma=0.0)
     return HybridModel(g, EllipsoidSet(np.zeros((0, 3)), np.zeros((0, 3, 3))))
@@ -27,8 +30,14 @@ def _forward_log(rng, rows=100, cols=200, spread=0.3):
     d = np.concatenate([np.ones((rows, cols, 1)), rng.uniform(-spread, spread, (rows, cols, 2))], axis=-1)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     shape = (1, rows, cols)
-    return Log(poses=np.eye(4)[None], directions=d[None], ranges=np.full(shape, np.nan), hit=np.zeros(shape, bool),
-               times=np.zeros(shape), sensor={"min_range": 1.0, "max_range": 80.0})
+    return Log(
+        poses=np.eye(4)[None],
+        directions=d[None],
+        ranges=np.full(shape, np.nan),
+        hit=np.zeros(shape, bool),
+        times=np.zeros(shape),
+        sensor={"min_range": 1.0, "max_range": 80.0},
+    )
 
 
 def test_core_pass_through_fraction_matches_p_hit(rng):
@@ -54,7 +63,9 @@ def test_counts_recover_p_hit_from_core_simulation(rng):
 
 def test_grazing_crossing_is_neither_hit_nor_pass():
     """A ray crossing a plane at 1 deg returns 2 m behind it (3.5 cm along the normal): not a pass."""
-    plane = GroundMesh([[-50, -50, 0], [50, -50, 0], [50, 50, 0], [-50, 50, 0]], [[0, 1, 2], [0, 2, 3]], range_sigma=0.0)
+    plane = GroundMesh(
+        [[-50, -50, 0], [50, -50, 0], [50, 50, 0], [-50, 50, 0]], [[0, 1, 2], [0, 2, 3]], range_sigma=0.0
+    )
     model = HybridModel(plane, EllipsoidSet(np.zeros((0, 3)), np.zeros((0, 3, 3))))
     steep, grazing = np.deg2rad(30.0), np.deg2rad(1.0)
     d = np.array([[np.cos(steep), 0, -np.sin(steep)], [np.cos(grazing), 0, -np.sin(grazing)]])
@@ -141,7 +152,9 @@ def test_pooled_prior_keeps_p_hit_of_sparsely_crossed_triangles(rng):
     vertices = np.c_[np.full(len(grid), 5.0), grid]
     quads = [(i * 21 + j, (i + 1) * 21 + j, (i + 1) * 21 + j + 1, i * 21 + j + 1) for i in range(20) for j in range(20)]
     faces = np.array([f for a, b, c, d in quads for f in ((a, b, c), (a, c, d))])
-    truth = HybridModel(GroundMesh(vertices, faces, p_hit=0.8, range_sigma=0.0), EllipsoidSet(np.zeros((0, 3)), np.zeros((0, 3, 3))))
+    truth = HybridModel(
+        GroundMesh(vertices, faces, p_hit=0.8, range_sigma=0.0), EllipsoidSet(np.zeros((0, 3)), np.zeros((0, 3, 3)))
+    )
     log = _forward_log(rng, 100, 200, spread=1.9)
     log.ranges[:], _ = simulate_log(truth, log, seed=7)
     log.hit = np.isfinite(log.ranges)

@@ -1,7 +1,16 @@
 import numpy as np
 
 from mi_lidar.hybrid.classes import GROUND_CLASSES
-from mi_lidar.hybrid.ground import GroundParams, SurfaceParams, WendlandSurface, fit_ground_mesh, ground_features, smooth_variation, spherical_variation, tune_threshold
+from mi_lidar.hybrid.ground import (
+    GroundParams,
+    SurfaceParams,
+    WendlandSurface,
+    fit_ground_mesh,
+    ground_features,
+    smooth_variation,
+    spherical_variation,
+    tune_threshold,
+)
 
 
 def test_spherical_variation_plane_vs_volume(rng):

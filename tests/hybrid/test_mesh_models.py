@@ -24,8 +24,9 @@ def library():
 def annotation(small_log, small_fit):
     labels = small_log.attributes["label"].ravel()[small_fit.ray_index]
     inst = small_log.attributes["instance"].ravel()[small_fit.ray_index]
-    return annotation_from_segments(small_fit.points, segments_from_labels(small_fit.points, labels, inst),
-                                    small_log.poses)
+    return annotation_from_segments(
+        small_fit.points, segments_from_labels(small_fit.points, labels, inst), small_log.poses
+    )
 
 
 def _area_centroid_above(vertices, faces, base_z):

@@ -9,10 +9,10 @@ from mi_lidar.hybrid import commands
 from mi_lidar.hybrid.blocks import read_scene, write_scene
 from mi_lidar.hybrid.classes import OBJECT_CLASSES
 from mi_lidar.hybrid.compose import annotation_from_segments, compose_scene, load_annotation, save_annotation
+from mi_lidar.hybrid.fit import FitParams
 from mi_lidar.hybrid.primitives import PrimitiveLibrary, extract_primitives, object_pose
 from mi_lidar.hybrid.segments import SizeClassifier, euclidean_segments, segment_features, segments_from_labels
 from mi_lidar.hybrid.tune import apply_vector
-from mi_lidar.hybrid.fit import FitParams
 
 
 def _segments(small_log, small_fit):
@@ -77,8 +77,11 @@ def test_primitives_library_and_composition(small_log, small_fit, tmp_path):
     with pytest.raises(SceneError):
         PrimitiveLibrary([]).best_match("large_tree", [1, 1, 1])
     with pytest.raises(SceneError):
-        compose_scene([{"class": "large_tree", "center": [0, 0, 0], "yaw": 0, "extents": [1, 1, 1]}],
-                      PrimitiveLibrary([]), missing="error")
+        compose_scene(
+            [{"class": "large_tree", "center": [0, 0, 0], "yaw": 0, "extents": [1, 1, 1]}],
+            PrimitiveLibrary([]),
+            missing="error",
+        )
 
 
 def test_bad_annotation_names_the_problem(tmp_path):
@@ -121,7 +124,7 @@ def test_commands_end_to_end(small_log, tmp_path):
 
 def test_tuning_vector_is_clipped_into_valid_ranges():
     p = apply_vector(FitParams(), np.array([-1.0, 5.0, 100.0, -3.0, 9.0]))
-    assert p.ground.phi_thresh == 0.005 and p.clusters.clusters_per_point == 10 ** -0.5
+    assert p.ground.phi_thresh == 0.005 and p.clusters.clusters_per_point == 10**-0.5
     assert p.extent == 6.0 and p.surface.max_edge == 0.5 and p.max_residual == 3.0
 
 

@@ -1,10 +1,10 @@
 import numpy as np
 
+from mi_lidar.core.log import Log
 from mi_lidar.hybrid.classes import CLASS_ID, GROUND_CLASSES, PATCH_BASE
 from mi_lidar.hybrid.world import SensorSpec, WorldSpec, _echo, make_world, path_poses, render_log
-from mi_lidar.core.log import Log
 
-from .conftest import SMALL_SENSOR, SMALL_WORLD
+from .conftest import SMALL_WORLD
 
 
 def test_log_has_labels_for_every_return(small_log):

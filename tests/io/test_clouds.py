@@ -2,8 +2,18 @@ import numpy as np
 import pytest
 
 from mi_lidar.core.errors import LogFormatError
-from mi_lidar.io import cloud_from_log, log_from_points, read_any, read_bin_log, read_pcd, read_pcd_log, read_rosbag_log, write_any, write_pcd
 from mi_lidar.core.log import Log
+from mi_lidar.io import (
+    cloud_from_log,
+    log_from_points,
+    read_any,
+    read_bin_log,
+    read_pcd,
+    read_pcd_log,
+    read_rosbag_log,
+    write_any,
+    write_pcd,
+)
 
 from .conftest import data_file
 
@@ -15,14 +25,24 @@ def synthetic_log(height=8, width=64, scans=1, seed=0) -> Log:
     rng = np.random.default_rng(seed)
     elevation = np.radians(np.linspace(10, -20, height))[:, None]
     azimuth = np.linspace(np.pi, -np.pi, width, endpoint=False)[None, :]
-    directions = np.stack(np.broadcast_arrays(
-        np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)), axis=-1)
+    directions = np.stack(
+        np.broadcast_arrays(
+            np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)
+        ),
+        axis=-1,
+    )
     ranges = rng.uniform(2, 40, (scans, height, width))
     hit = rng.random(ranges.shape) > 0.2
-    times = 100.0 + np.arange(scans)[:, None, None] * 0.1 + np.broadcast_to(np.arange(width) * 0.1 / width, ranges.shape)
+    times = (
+        100.0 + np.arange(scans)[:, None, None] * 0.1 + np.broadcast_to(np.arange(width) * 0.1 / width, ranges.shape)
+    )
     return Log(
-        poses=np.tile(np.eye(4), (scans, 1, 1)), directions=directions[None], ranges=np.where(hit, ranges, np.nan),
-        hit=hit, times=times, attributes={"intensity": rng.uniform(0, 255, ranges.shape).astype(np.float32)},
+        poses=np.tile(np.eye(4), (scans, 1, 1)),
+        directions=directions[None],
+        ranges=np.where(hit, ranges, np.nan),
+        hit=hit,
+        times=times,
+        attributes={"intensity": rng.uniform(0, 255, ranges.shape).astype(np.float32)},
         sensor={"name": "synthetic"},
     )
 
@@ -148,18 +168,34 @@ def test_ros1_bag_with_unorganized_ring_cloud(tmp_path):
     elevation = np.radians(-10.0 + 5 * ring)
     azimuth = np.repeat(np.linspace(0, 1, 10), 4)
     distance = rng.uniform(2, 10, 40)
-    xyz = distance[:, None] * np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
-                                        np.sin(elevation)], axis=1)
-    record = np.dtype({"names": ["x", "y", "z", "ring"], "formats": ["<f4", "<f4", "<f4", "<u2"],
-                       "offsets": [0, 4, 8, 16], "itemsize": 20})
+    xyz = distance[:, None] * np.stack(
+        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=1
+    )
+    record = np.dtype(
+        {
+            "names": ["x", "y", "z", "ring"],
+            "formats": ["<f4", "<f4", "<f4", "<u2"],
+            "offsets": [0, 4, 8, 16],
+            "itemsize": 20,
+        }
+    )
     table = np.zeros(40, record)
     table["x"], table["y"], table["z"], table["ring"] = xyz[:, 0], xyz[:, 1], xyz[:, 2], ring
     msg = types["sensor_msgs/msg/PointCloud2"](
-        header=types["std_msgs/msg/Header"](seq=0, stamp=types["builtin_interfaces/msg/Time"](sec=5, nanosec=0),
-                                            frame_id="velodyne"),
-        height=1, width=40, fields=[field(name=n, offset=o, datatype=d, count=1)
-                                    for n, o, d in (("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("ring", 16, 4))],
-        is_bigendian=False, point_step=20, row_step=800, data=np.frombuffer(table.tobytes(), np.uint8), is_dense=True,
+        header=types["std_msgs/msg/Header"](
+            seq=0, stamp=types["builtin_interfaces/msg/Time"](sec=5, nanosec=0), frame_id="velodyne"
+        ),
+        height=1,
+        width=40,
+        fields=[
+            field(name=n, offset=o, datatype=d, count=1)
+            for n, o, d in (("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("ring", 16, 4))
+        ],
+        is_bigendian=False,
+        point_step=20,
+        row_step=800,
+        data=np.frombuffer(table.tobytes(), np.uint8),
+        is_dense=True,
     )
     with Writer(tmp_path / "v.bag") as writer:
         connection = writer.add_connection("/velodyne_points", msg.__msgtype__, typestore=store)

@@ -11,8 +11,20 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mi_lidar.core.errors import LogFormatError
-from mi_lidar.io import read_bin_log, read_carmen, read_exr_log, read_las_log, read_ouster, read_pcd_log, read_ply_log, read_rosbag_log, read_velodyne, write_any, write_pcd
 from mi_lidar.core.log import Log
+from mi_lidar.io import (
+    read_bin_log,
+    read_carmen,
+    read_exr_log,
+    read_las_log,
+    read_ouster,
+    read_pcd_log,
+    read_ply_log,
+    read_rosbag_log,
+    read_velodyne,
+    write_any,
+    write_pcd,
+)
 
 from .synth import carmen_text, pcap_bytes, velodyne_payloads, write_ouster
 from .test_clouds import synthetic_log
@@ -41,7 +53,7 @@ def corruptions(draw, size: int):
     if kind == "garbage":
         start = draw(st.integers(0, size - 1))
         junk = draw(st.binary(min_size=1, max_size=64))
-        return lambda data: data[:start] + junk + data[start + len(junk):]
+        return lambda data: data[:start] + junk + data[start + len(junk) :]
     junk = draw(st.binary(min_size=1, max_size=64))
     return lambda data: data + junk
 
@@ -58,8 +70,13 @@ def _seeds(folder: Path) -> dict:
     velodyne.write_bytes(pcap_bytes(velodyne_payloads(distances, azimuth), 2368, step=1327.104e-6))
     seeds["velodyne-pcap"] = (velodyne, read_velodyne)
     calibration = folder / "v.yaml"
-    calibration.write_text("lasers:\n" + "".join(
-        f"- {{laser_id: {i}, rot_correction: 0.0, vert_correction: {np.radians(2 * i - 15):.6f}}}\n" for i in range(16)))
+    calibration.write_text(
+        "lasers:\n"
+        + "".join(
+            f"- {{laser_id: {i}, rot_correction: 0.0, vert_correction: {np.radians(2 * i - 15):.6f}}}\n"
+            for i in range(16)
+        )
+    )
     seeds["velodyne-yaml"] = (calibration, lambda p: read_velodyne(velodyne, calibration=p))
     (folder / "c.log").write_text(carmen_text(3))
     seeds["carmen"] = (folder / "c.log", read_carmen)
@@ -69,7 +86,12 @@ def _seeds(folder: Path) -> dict:
     records = np.concatenate([np.random.default_rng(2).normal(size=(64, 4)), np.tile(np.arange(4), 16)[:, None]], 1)
     records.astype("<f4").tofile(folder / "n.pcd.bin")
     seeds["nuscenes-bin"] = (folder / "n.pcd.bin", read_bin_log)
-    for suffix, reader in ((".ply", read_ply_log), (".pcd", read_pcd_log), (".las", read_las_log), (".exr", read_exr_log)):
+    for suffix, reader in (
+        (".ply", read_ply_log),
+        (".pcd", read_pcd_log),
+        (".las", read_las_log),
+        (".exr", read_exr_log),
+    ):
         seeds[suffix[1:]] = (write_any(log, folder / f"s{suffix}"), reader)
     cloud = {c: np.arange(20, dtype=np.float32) + i for i, c in enumerate("xyz")}
     seeds["pcd-ascii"] = (write_pcd(folder / "a.pcd", cloud, binary=False), read_pcd_log)
@@ -83,8 +105,21 @@ def seeds(tmp_path_factory):
     return _seeds(tmp_path_factory.mktemp("seeds"))
 
 
-SEED_NAMES = ["ouster-pcap", "ouster-json", "velodyne-pcap", "velodyne-yaml", "carmen", "carmen-gz",
-              "nuscenes-bin", "ply", "pcd", "las", "exr", "pcd-ascii", "rosbag"]
+SEED_NAMES = [
+    "ouster-pcap",
+    "ouster-json",
+    "velodyne-pcap",
+    "velodyne-yaml",
+    "carmen",
+    "carmen-gz",
+    "nuscenes-bin",
+    "ply",
+    "pcd",
+    "las",
+    "exr",
+    "pcd-ascii",
+    "rosbag",
+]
 
 
 def test_seeds_read_cleanly(seeds):

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from mi_lidar.core.errors import LogFormatError
-from mi_lidar.io import convert, info, read_any, read_velodyne, write_any
-from mi_lidar.core.patterns.from_log import pattern_from_log
-from mi_lidar.io.dispatch import detect_format
 from mi_lidar.core.patterns import FiringPattern
+from mi_lidar.core.patterns.from_log import pattern_from_log
+from mi_lidar.io import convert, info, read_any, read_velodyne, write_any
+from mi_lidar.io.dispatch import detect_format
 
 from .conftest import data_file
 from .synth import carmen_text, write_ouster
@@ -16,9 +16,22 @@ from .test_clouds import synthetic_log
 
 @pytest.mark.parametrize(
     "name, fmt",
-    [("a.npz", "npz"), ("a.log", "carmen"), ("a.log.gz", "carmen"), ("a.clf", "carmen"), ("a.bin", "bin"),
-     ("a.pcd.bin", "bin"), ("a.PLY", "ply"), ("a.pcd", "pcd"), ("a.las", "las"), ("a.laz", "las"),
-     ("a.bag", "rosbag"), ("a.db3", "rosbag"), ("a.exr", "exr"), ("a.pcap", "pcap")],
+    [
+        ("a.npz", "npz"),
+        ("a.log", "carmen"),
+        ("a.log.gz", "carmen"),
+        ("a.clf", "carmen"),
+        ("a.bin", "bin"),
+        ("a.pcd.bin", "bin"),
+        ("a.PLY", "ply"),
+        ("a.pcd", "pcd"),
+        ("a.las", "las"),
+        ("a.laz", "las"),
+        ("a.bag", "rosbag"),
+        ("a.db3", "rosbag"),
+        ("a.exr", "exr"),
+        ("a.pcap", "pcap"),
+    ],
 )
 def test_extension_table(name, fmt):
     assert detect_format(name) == fmt

@@ -34,7 +34,9 @@ def test_real_frame_misses_ranges_and_geometry(real):
     assert real.attributes["valid"].all()
     assert abs((1 - real.hit.mean()) - 0.1666) < 1e-3
     assert np.all(np.isnan(real.ranges[~real.hit]))
-    np.testing.assert_array_equal(real.ranges[real.hit], (real.attributes["range_mm"][real.hit] / 1000.0).astype(np.float32))
+    np.testing.assert_array_equal(
+        real.ranges[real.hit], (real.attributes["range_mm"][real.hit] / 1000.0).astype(np.float32)
+    )
     assert 2.0 < np.nanmin(real.ranges) and np.nanmax(real.ranges) < 250.0
     np.testing.assert_allclose(np.linalg.norm(real.directions, axis=-1), 1.0, atol=1e-6)
     elevation = np.degrees(np.arcsin(real.directions[0, :, :, 2]))

@@ -27,7 +27,9 @@ def test_round_trip_preserves_values_and_dtypes(tmp_path, binary):
 
 def test_wide_and_bool_attributes_are_narrowed(tmp_path):
     points = np.zeros((3, 3))
-    _, back = read_ply(write_ply(tmp_path / "c.ply", points, {"id": np.array([1, 2, 3]), "hit": np.array([1, 0, 1], bool)}))
+    _, back = read_ply(
+        write_ply(tmp_path / "c.ply", points, {"id": np.array([1, 2, 3]), "hit": np.array([1, 0, 1], bool)})
+    )
     assert back["id"].dtype == np.int32 and back["hit"].dtype == np.uint8
     np.testing.assert_array_equal(back["id"], [1, 2, 3])
     with pytest.raises(ValueError, match="exceed"):

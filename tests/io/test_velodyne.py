@@ -36,11 +36,15 @@ def test_real_vlp16_capture():
     assert not log.hit[~valid].any()
     elevation = np.degrees(np.arcsin(log.directions[0, :, 0, 2]))
     np.testing.assert_allclose(elevation, np.arange(15, -16, -2), atol=1e-4)
-    np.testing.assert_array_equal(log.attributes["laser_id"][0, :, 0], [15, 13, 11, 9, 7, 5, 3, 1, 14, 12, 10, 8, 6, 4, 2, 0])
+    np.testing.assert_array_equal(
+        log.attributes["laser_id"][0, :, 0], [15, 13, 11, 9, 7, 5, 3, 1, 14, 12, 10, 8, 6, 4, 2, 0]
+    )
     assert 2.0 < np.nanmin(log.ranges) and np.nanmax(log.ranges) < 131.0
     assert np.all(np.diff(log.times[1, 0, :1464]) > 0)
     # Cutting at the first azimuth makes the first frame one complete revolution.
-    full = read_velodyne(data_file("velodyne/velodyne_vlp16.pcap"), data_file("velodyne/VLP16db.yaml"), cut_azimuth_deg=None)
+    full = read_velodyne(
+        data_file("velodyne/velodyne_vlp16.pcap"), data_file("velodyne/VLP16db.yaml"), cut_azimuth_deg=None
+    )
     assert full.sensor["columns_per_scan"][0] == 1811
     azimuth = np.degrees(np.unwrap(np.arctan2(full.directions[0, 7, :1811, 1], full.directions[0, 7, :1811, 0])))
     assert 359.0 < abs(azimuth[-1] - azimuth[0]) < 360.0
@@ -85,7 +89,7 @@ def test_frames_split_at_azimuth_wrap(tmp_path):
     counts = log.sensor["columns_per_scan"]
     assert len(counts) == 2 and sum(counts) == 20 * 24
     assert abs(counts[0] - 3000 / 20) <= 2
-    assert not log.attributes["valid"][0, :, counts[0]:].any()
+    assert not log.attributes["valid"][0, :, counts[0] :].any()
 
 
 def test_mismatched_model_or_calibration(tmp_path):

@@ -9,9 +9,9 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.effects import parse_effects
+from mi_lidar.core.rays import LogRays
 from mi_lidar.loop.catalog import candidate
 from mi_lidar.loop.fit import Problem, chunk_log_likelihood, fit_effects
-from mi_lidar.core.rays import LogRays
 from mi_lidar.scene.loading import load_scene, scene_sensor_model
 from mi_lidar.scene.simulation import simulate
 

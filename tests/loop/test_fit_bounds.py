@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 
 from mi_lidar.core.effects import make_effect
-from mi_lidar.loop.fit import Problem, fit_effects
 from mi_lidar.core.rays import LogRays
+from mi_lidar.loop.fit import Problem, fit_effects
 
 from .helpers import hidden_log, room
 

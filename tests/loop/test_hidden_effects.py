@@ -2,7 +2,8 @@
 
 Each log is simulated from the bundled scenes with one or two effects the candidate model does
 not have (per-beam range bias, incidence-angle dropout, range-proportional noise, beam elevation
-offsets, mixed pixels, and incidence dropout with outliers). ``diagnose`` fits every candidate on alternate scans and ranks them on the others; the
+offsets, mixed pixels, and incidence dropout with outliers). ``diagnose`` fits every candidate on alternate scans
+and ranks them on the others; the
 hidden effect must come first (both, in either order, for a combination), the augmented model's
 held-out NLL must be within 2 % of the true model's, and fitted parameters near the truth.
 Candidate lists hold the hidden effect among decoys that could mimic it.
@@ -11,10 +12,10 @@ Candidate lists hold the hidden effect among decoys that could mimic it.
 import numpy as np
 import pytest
 
+from mi_lidar.core.rays import LogRays
 from mi_lidar.loop import diagnose
 from mi_lidar.loop.diagnose import split_rays
 from mi_lidar.loop.fit import Problem
-from mi_lidar.core.rays import LogRays
 
 from .helpers import hidden_log, room, street
 
@@ -96,9 +97,18 @@ def test_mixed_pixels_are_found():
 @pytest.mark.slow
 def test_combination_of_two_is_found():
     scene, model, poses = room(30)
-    log, true = hidden_log(scene, model, poses, "incidence_dropout(gamma=2), outliers(p_near=0.05, near_scale=1, uniform_max=30)")
-    d = check(scene, model, log, true, ["incidence_dropout", "outliers"],
-              ["incidence_dropout", "outliers", "range_dropout", "range_noise"], rounds=2)
+    log, true = hidden_log(
+        scene, model, poses, "incidence_dropout(gamma=2), outliers(p_near=0.05, near_scale=1, uniform_max=30)"
+    )
+    d = check(
+        scene,
+        model,
+        log,
+        true,
+        ["incidence_dropout", "outliers"],
+        ["incidence_dropout", "outliers", "range_dropout", "range_noise"],
+        rounds=2,
+    )
     assert sorted(c.name for c in d.rounds[0][:1] + d.rounds[1][:1]) == ["incidence_dropout", "outliers"]
     assert abs(fitted(d, "incidence_dropout", "gamma")[0] - 2.0) < 0.25
     assert abs(fitted(d, "outliers", "p_near")[0] - 0.05) < 0.01

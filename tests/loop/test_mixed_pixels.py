@@ -11,8 +11,8 @@ import dataclasses
 import numpy as np
 
 from mi_lidar.core.effects import parse_effects
-from mi_lidar.loop.fit import Problem
 from mi_lidar.core.rays import LogRays
+from mi_lidar.loop.fit import Problem
 from mi_lidar.scene.simulation import simulate
 
 from .helpers import finite_difference_check, hidden_log, room

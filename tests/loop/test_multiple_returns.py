@@ -4,7 +4,8 @@ Where every sub-ray of a beam meets an opaque surface first (all rays of the roo
 through its glass pane), the ``first`` and ``last`` likelihoods of
 :class:`~mi_lidar.core.effects.multiple_returns.MultipleReturns` are exact. For 60 simulated scans
 (fixed seeds) the probability integral transform of every return under the likelihood (its CDF,
-integrated by the trapezoid rule on a 1 mm grid) must be uniform: Kolmogorov-Smirnov distance below 0.02 over about 20 000
+integrated by the trapezoid rule on a 1 mm grid) must be uniform: Kolmogorov-Smirnov distance below 0.02 over about
+20 000
 returns (the 1 % critical value is 0.012; the grid and float32 add a few thousandths).
 """
 
@@ -37,8 +38,14 @@ def pit(scene, model, logs) -> tuple[np.ndarray, np.ndarray]:
     opaque = np.all(p_first.reshape(-1, rays.n) == 1.0, axis=0)
     ranges = np.stack([log.ranges.ravel() for log in logs])
     grid = np.arange(ranges.min() - 0.2, ranges.max() + 0.2, 0.001)
-    density = np.stack([np.exp(np.asarray(model.log_likelihood(table, batch, records, mi.Float(np.full(rays.n, g, np.float32)),
-                                                               hit))) for g in grid])
+    density = np.stack(
+        [
+            np.exp(
+                np.asarray(model.log_likelihood(table, batch, records, mi.Float(np.full(rays.n, g, np.float32)), hit))
+            )
+            for g in grid
+        ]
+    )
     cdf = np.concatenate([np.zeros((1, rays.n)), np.cumsum(0.5 * (density[1:] + density[:-1]), axis=0)])
     cdf /= cdf[-1]  # trapezoid rule, then linear interpolation between grid points
     index = np.clip(np.searchsorted(grid, ranges), 1, grid.size - 1)

@@ -70,7 +70,8 @@ def test_calibrated_permeable_map_beats_the_ideal_ray_cast_on_ten_test_scans(int
 
 @pytest.mark.slow
 def test_calibrated_permeable_map_beats_the_histogram_reference_on_the_full_protocol(intel):
-    """All 182 test scans (about 10 min): the calibrated map beats the 3.63 nats/beam reference by > 0.1 (measured 0.136)."""
+    """All 182 test scans (about 10 min): the calibrated map beats the 3.63 nats/beam reference by > 0.1 (measured
+    0.136)."""
     rows = intel_development_path(intel)
     assert rows[-1].nll < 3.63 - 0.1
     assert rows[-1].nll < min(row.nll for row in rows[:4]) - 1.0  # and every baseline by more than a nat

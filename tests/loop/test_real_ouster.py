@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from mi_lidar.core.log import Log
 from mi_lidar.loop.real_ouster import column_log, ouster_development_path, range_image_mesh
@@ -18,13 +17,22 @@ def synthetic_frame() -> Log:
     """
     elevation = np.radians(np.linspace(-5, -25, 16))[:, None]
     azimuth = np.radians(np.arange(256) * 360 / 256)[None, :]
-    directions = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
-                                              np.sin(elevation)), -1)
+    directions = np.stack(
+        np.broadcast_arrays(
+            np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)
+        ),
+        -1,
+    )
     ranges = 1.5 / -directions[..., 2]
     wall = (np.arange(256) >= 80) & (np.arange(256) < 100)
     ranges[:, wall] = np.minimum(ranges[:, wall], 4.0 / np.cos(elevation))
-    return Log(poses=np.eye(4)[None], directions=directions, ranges=ranges[None], hit=np.ones((1, 16, 256), bool),
-               times=np.zeros((1, 16, 256)))
+    return Log(
+        poses=np.eye(4)[None],
+        directions=directions,
+        ranges=ranges[None],
+        hit=np.ones((1, 16, 256), bool),
+        times=np.zeros((1, 16, 256)),
+    )
 
 
 def test_mesh_joins_neighbouring_returns_in_the_world_frame_and_skips_quads_with_a_miss():

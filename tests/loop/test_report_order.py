@@ -11,10 +11,22 @@ from mi_lidar.loop.diagnose import relative_gain
 def table(azimuth: np.ndarray) -> RayTable:
     n = azimuth.size
     zeros, ones = np.zeros(n), np.ones(n, bool)
-    return RayTable(ll=-np.arange(n, dtype=float), measured=zeros + 5, hit=ones, sim_range=zeros + 5, sim_hit=ones,
-                    nominal=zeros + 5, cos_incidence=zeros + 1, kind=np.zeros(n, int), label=np.zeros(n, int),
-                    shape=np.zeros(n, int), beam=np.arange(n) % 12, column=np.arange(n), scan=np.zeros(n, int),
-                    azimuth=azimuth)
+    return RayTable(
+        ll=-np.arange(n, dtype=float),
+        measured=zeros + 5,
+        hit=ones,
+        sim_range=zeros + 5,
+        sim_hit=ones,
+        nominal=zeros + 5,
+        cos_incidence=zeros + 1,
+        kind=np.zeros(n, int),
+        label=np.zeros(n, int),
+        shape=np.zeros(n, int),
+        beam=np.arange(n) % 12,
+        column=np.arange(n),
+        scan=np.zeros(n, int),
+        azimuth=azimuth,
+    )
 
 
 def test_azimuth_and_beam_groups_sort_numerically():

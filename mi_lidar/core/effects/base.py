@@ -167,7 +167,9 @@ class Effect:
         parts = [f"{k}={v}" for k, v in self.choices.items()]
         for key, value in self.params.items():
             array = np.asarray(value)
-            parts.append(f"{key}={array[0]:.6g}" if array.size == 1 else f"{key}=[{' '.join(f'{x:.6g}' for x in array)}]")
+            parts.append(
+                f"{key}={array[0]:.6g}" if array.size == 1 else f"{key}=[{' '.join(f'{x:.6g}' for x in array)}]"
+            )
         return f"{self.name}({', '.join(parts)})"
 
 
@@ -201,8 +203,9 @@ class FootprintEffect(Effect, metaclass=abc.ABCMeta):
         """
 
     @abc.abstractmethod
-    def combine_log_likelihood(self, moments: "SubRayMoments", weight: mi.Float, z: mi.Float, hit: mi.Bool,
-                               n: int) -> mi.Float:
+    def combine_log_likelihood(
+        self, moments: SubRayMoments, weight: mi.Float, z: mi.Float, hit: mi.Bool, n: int
+    ) -> mi.Float:
         """Log-likelihood (nats) of each beam's measured return from its sub-rays' return moments.
 
         Args:

@@ -46,16 +46,24 @@ class BeamOffsets(Effect):
 
     name = "beam_offsets"
     specs = {
-        "elevation": ParamSpec(0.0, "rad", "elevation offset of each beam (positive up)", lower=-0.2, upper=0.2,
-                               per_beam=True),
-        "azimuth": ParamSpec(0.0, "rad", "azimuth offset of each beam (counter-clockwise)", lower=-0.2, upper=0.2,
-                             per_beam=True),
+        "elevation": ParamSpec(
+            0.0, "rad", "elevation offset of each beam (positive up)", lower=-0.2, upper=0.2, per_beam=True
+        ),
+        "azimuth": ParamSpec(
+            0.0, "rad", "azimuth offset of each beam (counter-clockwise)", lower=-0.2, upper=0.2, per_beam=True
+        ),
     }
 
     def perturb_rays(self, rays: RayBatch) -> RayBatch:
         rotation, _ = rays.sensor_frame()
         local = mi.Vector3f(rotation.T @ rays.direction)
         turned = offset_direction(local, self.per_beam("elevation", rays.beam), self.per_beam("azimuth", rays.beam))
-        return RayBatch(origin=rays.origin, direction=mi.Vector3f(rotation @ turned), beam=rays.beam, time=rays.time,
-                        ray_id=rays.ray_id, sensor_rotation=rays.sensor_rotation,
-                        sensor_position=rays.sensor_position)
+        return RayBatch(
+            origin=rays.origin,
+            direction=mi.Vector3f(rotation @ turned),
+            beam=rays.beam,
+            time=rays.time,
+            ray_id=rays.ray_id,
+            sensor_rotation=rays.sensor_rotation,
+            sensor_position=rays.sensor_position,
+        )

@@ -40,10 +40,16 @@ class Extrinsics(Effect):
 
     name = "extrinsics"
     specs = {
-        **{f"r{axis}": ParamSpec(0.0, "rad", f"rotation vector, {axis} component (sensor frame)", lower=-0.5, upper=0.5)
-           for axis in "xyz"},
-        **{f"t{axis}": ParamSpec(0.0, "m", f"translation, {axis} component (sensor frame)", lower=-10.0, upper=10.0)
-           for axis in "xyz"},
+        **{
+            f"r{axis}": ParamSpec(
+                0.0, "rad", f"rotation vector, {axis} component (sensor frame)", lower=-0.5, upper=0.5
+            )
+            for axis in "xyz"
+        },
+        **{
+            f"t{axis}": ParamSpec(0.0, "m", f"translation, {axis} component (sensor frame)", lower=-10.0, upper=10.0)
+            for axis in "xyz"
+        },
     }
 
     def perturb_rays(self, rays: RayBatch) -> RayBatch:
@@ -54,6 +60,12 @@ class Extrinsics(Effect):
         local_origin = mi.Vector3f(inverse @ (rays.origin - position))
         origin = mi.Point3f(position + rotation @ (rotate_vector(omega, local_origin) + translation))
         direction = mi.Vector3f(rotation @ rotate_vector(omega, mi.Vector3f(inverse @ rays.direction)))
-        return RayBatch(origin=origin, direction=direction, beam=rays.beam, time=rays.time,
-                        ray_id=rays.ray_id, sensor_rotation=rays.sensor_rotation,
-                        sensor_position=rays.sensor_position)
+        return RayBatch(
+            origin=origin,
+            direction=direction,
+            beam=rays.beam,
+            time=rays.time,
+            ray_id=rays.ray_id,
+            sensor_rotation=rays.sensor_rotation,
+            sensor_position=rays.sensor_position,
+        )

@@ -8,8 +8,8 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_lidar.core.effects.base import FootprintEffect, ParamSpec, SubRayMoments, register_effect
-from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.effects.beam_offsets import offset_direction
+from mi_lidar.core.rays import RayBatch
 
 # Sub-ray pattern of the footprint: (elevation, azimuth) offsets in units of ``divergence``.
 PATTERN = ((0.0, 0.0), (1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
@@ -47,7 +47,9 @@ class MixedPixels(FootprintEffect):
 
     name = "mixed_pixels"
     specs = {
-        "divergence": ParamSpec(0.0, "rad", "angle between the beam axis and its outer sub-rays", lower=0.0, upper=0.05),
+        "divergence": ParamSpec(
+            0.0, "rad", "angle between the beam axis and its outer sub-rays", lower=0.0, upper=0.05
+        ),
         "edge_weight": ParamSpec(0.15, "1", "energy share of each of the four outer sub-rays", lower=0.0, upper=0.25),
     }
     fit_scales = {"divergence": 0.001}
@@ -66,9 +68,15 @@ class MixedPixels(FootprintEffect):
         direction = mi.Vector3f(rotation @ offset_direction(local, d_elevation, d_azimuth))
         edge = self["edge_weight"]
         weight = dr.select(j == 0, 1.0 - (m - 1) * edge, edge)
-        return RayBatch(origin=sub.origin, direction=direction, beam=sub.beam, time=sub.time,
-                        ray_id=sub.ray_id * m + j, sensor_rotation=sub.sensor_rotation,
-                        sensor_position=sub.sensor_position), weight
+        return RayBatch(
+            origin=sub.origin,
+            direction=direction,
+            beam=sub.beam,
+            time=sub.time,
+            ray_id=sub.ray_id * m + j,
+            sensor_rotation=sub.sensor_rotation,
+            sensor_position=sub.sensor_position,
+        ), weight
 
     def combine(self, sub: dict, weight: mi.Float, n: int) -> dict:
         total, weighted = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
@@ -88,10 +96,15 @@ class MixedPixels(FootprintEffect):
         out["range"] = dr.select(out["hit"], weighted / dr.maximum(total, 1e-12), dr.nan)
         return out
 
-    def combine_log_likelihood(self, moments: SubRayMoments, weight: mi.Float, z: mi.Float, hit: mi.Bool,
-                               n: int) -> mi.Float:
-        log_miss, a_sum, mean_sum, var_sum = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), \
-            dr.zeros(mi.Float, n)
+    def combine_log_likelihood(
+        self, moments: SubRayMoments, weight: mi.Float, z: mi.Float, hit: mi.Bool, n: int
+    ) -> mi.Float:
+        log_miss, a_sum, mean_sum, var_sum = (
+            dr.zeros(mi.Float, n),
+            dr.zeros(mi.Float, n),
+            dr.zeros(mi.Float, n),
+            dr.zeros(mi.Float, n),
+        )
         for j in range(len(PATTERN)):
             index = dr.arange(mi.UInt32, n) + j * n
             r = dr.gather(mi.Float, moments.p_return, index)

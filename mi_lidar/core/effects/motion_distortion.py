@@ -35,8 +35,14 @@ class MotionDistortion(Effect):
 
     name = "motion_distortion"
     specs = {
-        **{f"v{a}": ParamSpec(0.0, "m/s", f"linear velocity along sensor {a}", lower=-100.0, upper=100.0) for a in "xyz"},
-        **{f"w{a}": ParamSpec(0.0, "rad/s", f"angular velocity about sensor {a}", lower=-20.0, upper=20.0) for a in "xyz"},
+        **{
+            f"v{a}": ParamSpec(0.0, "m/s", f"linear velocity along sensor {a}", lower=-100.0, upper=100.0)
+            for a in "xyz"
+        },
+        **{
+            f"w{a}": ParamSpec(0.0, "rad/s", f"angular velocity about sensor {a}", lower=-20.0, upper=20.0)
+            for a in "xyz"
+        },
         "period": ParamSpec(0.1, "s", "sweep period (sweeps start at its multiples)", lower=1e-6, upper=1e3),
     }
     fit_scales = {**{f"v{a}": 1.0 for a in "xyz"}, **{f"w{a}": 0.2 for a in "xyz"}}
@@ -49,8 +55,16 @@ class MotionDistortion(Effect):
         turn = mi.Vector3f(self["wx"], self["wy"], self["wz"]) * dt
         shift = mi.Vector3f(self["vx"], self["vy"], self["vz"]) * dt
         inverse = rotation.T
-        origin = position + mi.Vector3f(rotation @ (shift + rotate(turn, mi.Vector3f(inverse @ (rays.origin - position)))))
+        origin = position + mi.Vector3f(
+            rotation @ (shift + rotate(turn, mi.Vector3f(inverse @ (rays.origin - position))))
+        )
         direction = mi.Vector3f(rotation @ rotate(turn, mi.Vector3f(inverse @ rays.direction)))
-        return RayBatch(origin=mi.Point3f(origin), direction=dr.normalize(direction), beam=rays.beam,
-                        time=rays.time, ray_id=rays.ray_id, sensor_rotation=rays.sensor_rotation,
-                        sensor_position=rays.sensor_position)
+        return RayBatch(
+            origin=mi.Point3f(origin),
+            direction=dr.normalize(direction),
+            beam=rays.beam,
+            time=rays.time,
+            ray_id=rays.ray_id,
+            sensor_rotation=rays.sensor_rotation,
+            sensor_position=rays.sensor_position,
+        )

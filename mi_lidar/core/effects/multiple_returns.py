@@ -5,9 +5,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.segment import normal_cdf
 from mi_lidar.core.effects.base import ParamSpec, SubRayMoments, register_effect
 from mi_lidar.core.effects.mixed_pixels import LOG_SQRT_2PI, MIN_VARIANCE, PATTERN, MixedPixels
+from mi_lidar.core.segment import normal_cdf
 
 
 @register_effect
@@ -39,8 +39,10 @@ class MultipleReturns(MixedPixels):
 
     name = "multiple_returns"
     options = {"mode": ("first", "strongest", "last")}
-    specs = {**MixedPixels.specs,
-             "separation": ParamSpec(0.3, "m", "echoes closer than this merge (strongest mode)", lower=0.0, upper=10.0)}
+    specs = {
+        **MixedPixels.specs,
+        "separation": ParamSpec(0.3, "m", "echoes closer than this merge (strongest mode)", lower=0.0, upper=10.0),
+    }
     fit_exclude = ("edge_weight", "separation")
 
     def combine(self, sub: dict, weight: mi.Float, n: int) -> dict:
@@ -52,8 +54,10 @@ class MultipleReturns(MixedPixels):
         if mode == "strongest":
             scores = []
             for j in range(m):
-                energy = sum(dr.select(hits[i] & (dr.abs(ranges[i] - ranges[j]) <= self["separation"]), weights[i], 0.0)
-                             for i in range(m))
+                energy = sum(
+                    dr.select(hits[i] & (dr.abs(ranges[i] - ranges[j]) <= self["separation"]), weights[i], 0.0)
+                    for i in range(m)
+                )
                 scores.append(energy - 1e-6 * ranges[j])  # ties: the nearer echo
         else:
             scores = [-r if mode == "first" else r for r in ranges]
@@ -67,8 +71,9 @@ class MultipleReturns(MixedPixels):
         out["range"] = dr.select(out["hit"], out["range"], dr.nan)
         return out
 
-    def combine_log_likelihood(self, moments: SubRayMoments, weight: mi.Float, z: mi.Float, hit: mi.Bool,
-                               n: int) -> mi.Float:
+    def combine_log_likelihood(
+        self, moments: SubRayMoments, weight: mi.Float, z: mi.Float, hit: mi.Bool, n: int
+    ) -> mi.Float:
         m, mode = len(PATTERN), self.choices["mode"]
         r, log_phi, cdf, a, log_miss = [], [], [], [], dr.zeros(mi.Float, n)
         for j in range(m):

@@ -5,9 +5,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.segment import SURFACE, Segment
 from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
 from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.segment import SURFACE, Segment
 
 NO_ELEMENT = 0xFFFFFFFF
 
@@ -47,13 +47,20 @@ class Outliers(Effect):
         """The near-clutter and random-return elements, one lane per ray."""
         n = rays.width
         zero = dr.zeros(mi.Float, n)
-        common = dict(valid=dr.full(mi.Bool, True, n), nominal=zero, lo=zero, cos_incidence=zero + 1.0,
-                      element=dr.full(mi.UInt32, NO_ELEMENT, n), shape=dr.full(mi.UInt32, NO_ELEMENT, n),
-                      label=dr.zeros(mi.UInt32, n), kind=dr.full(mi.UInt32, SURFACE, n))
-        near = Segment(p=zero + self["p_near"], mean=zero, sigma=zero + self["near_scale"],
-                       hi=zero + dr.inf, **common)
+        common = dict(
+            valid=dr.full(mi.Bool, True, n),
+            nominal=zero,
+            lo=zero,
+            cos_incidence=zero + 1.0,
+            element=dr.full(mi.UInt32, NO_ELEMENT, n),
+            shape=dr.full(mi.UInt32, NO_ELEMENT, n),
+            label=dr.zeros(mi.UInt32, n),
+            kind=dr.full(mi.UInt32, SURFACE, n),
+        )
+        near = Segment(p=zero + self["p_near"], mean=zero, sigma=zero + self["near_scale"], hi=zero + dr.inf, **common)
         top = self["uniform_max"]
         # A Gaussian 100x wider than the interval is flat on it to 5e-5 relative.
-        uniform = Segment(p=zero + self["p_uniform"], mean=zero + 0.5 * top, sigma=zero + 100.0 * top,
-                          hi=zero + top, **common)
+        uniform = Segment(
+            p=zero + self["p_uniform"], mean=zero + 0.5 * top, sigma=zero + 100.0 * top, hi=zero + top, **common
+        )
         return [near, uniform]

@@ -5,9 +5,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.segment import Segment
 from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
 from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.segment import Segment
 
 
 @register_effect

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from mi_lidar.core.segment import Segment
 from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
 from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.segment import Segment
 
 
 @register_effect
@@ -19,8 +19,7 @@ class RandomDropout(Effect):
     """
 
     name = "random_dropout"
-    specs = {"p_drop": ParamSpec(0.0, "1", "probability that a surface does not return the beam", lower=0.0,
-                                 upper=1.0)}
+    specs = {"p_drop": ParamSpec(0.0, "1", "probability that a surface does not return the beam", lower=0.0, upper=1.0)}
     fit_scales = {"p_drop": 0.01}
     fit_start = {"p_drop": 0.01}
 

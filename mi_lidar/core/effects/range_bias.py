@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from mi_lidar.core.segment import Segment
 from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
 from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.segment import Segment
 
 
 @register_effect
@@ -19,8 +19,9 @@ class RangeBias(Effect):
     """
 
     name = "range_bias"
-    specs = {"bias": ParamSpec(0.0, "m", "offset added to every return of the beam", lower=-5.0, upper=5.0,
-                               per_beam=True)}
+    specs = {
+        "bias": ParamSpec(0.0, "m", "offset added to every return of the beam", lower=-5.0, upper=5.0, per_beam=True)
+    }
 
     def modify_segment(self, seg: Segment, rays: RayBatch) -> Segment:
         bias = self.per_beam("bias", rays.beam)

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import drjit as dr
 
-from mi_lidar.core.segment import Segment
 from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
 from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.segment import Segment
 
 REFERENCE_RANGE = 10.0  # m: range at which ``rate`` is the negative log keep probability
 

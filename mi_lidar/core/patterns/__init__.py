@@ -48,7 +48,15 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.errors import PatternError
-from mi_lidar.core.patterns.vendor import HDL32E, OS1_BEAM_ORIGIN_MM, OS1_GEN1_ALTITUDE_SPAN_DEG, OS1_GEN1_AZIMUTH_CYCLE_DEG, OS1_LIDAR_TO_SENSOR, SPINNING_TABLES, SpinningTable
+from mi_lidar.core.patterns.vendor import (
+    HDL32E,
+    OS1_BEAM_ORIGIN_MM,
+    OS1_GEN1_ALTITUDE_SPAN_DEG,
+    OS1_GEN1_AZIMUTH_CYCLE_DEG,
+    OS1_LIDAR_TO_SENSOR,
+    SPINNING_TABLES,
+    SpinningTable,
+)
 
 TWO_PI = 2.0 * math.pi
 GOLDEN_FRACTION = (math.sqrt(5.0) - 1.0) / 2.0  # 0.618..., the most irrational step
@@ -93,8 +101,7 @@ class FiringPattern:
         if np.any(np.abs(elevation) > math.pi / 2 + 1e-12):
             bad = float(elevation.flat[np.argmax(np.abs(elevation))])
             raise PatternError(
-                f"{where}: elevation {bad!r} rad is outside [-pi/2, pi/2]; "
-                "give elevations in radians, positive up"
+                f"{where}: elevation {bad!r} rad is outside [-pi/2, pi/2]; give elevations in radians, positive up"
             )
         if time.min() < 0.0 or time.max() >= period:
             bad = float(time.min() if time.min() < 0.0 else time.max())
@@ -279,9 +286,9 @@ def rosette(
     fov = _float_in(where, "fov_deg", fov_deg, 0.0, 180.0, "a cone in (0, 180) degrees", True)
     n_petals = _positive_int(where, "petals", petals)
     t = np.arange(n, dtype=np.float64) * (period / n)
-    f_sum = n_petals / period                                    # (w1 + w2) / 2 pi, Hz
-    f_diff = (1.0 + GOLDEN_FRACTION / n_petals) / period         # (w1 - w2) / 2 pi, Hz
-    f1, f2 = (f_sum + f_diff) / 2.0, (f_sum - f_diff) / 2.0     # prism frequencies, Hz
+    f_sum = n_petals / period  # (w1 + w2) / 2 pi, Hz
+    f_diff = (1.0 + GOLDEN_FRACTION / n_petals) / period  # (w1 - w2) / 2 pi, Hz
+    f1, f2 = (f_sum + f_diff) / 2.0, (f_sum - f_diff) / 2.0  # prism frequencies, Hz
     p = np.radians(fov) / 4.0 * (np.exp(1j * TWO_PI * f1 * t) + np.exp(-1j * TWO_PI * f2 * t))
     rho, beta = np.abs(p), np.angle(p)
     elevation = np.arcsin(np.sin(rho) * np.sin(beta))
@@ -324,9 +331,7 @@ def spinning(model: str, n_firings: int | None = None, rpm: float = 600.0) -> Fi
     where = "spinning"
     key = str(model).lower()
     if key not in SPINNING_TABLES:
-        raise PatternError(
-            f"{where}: unknown model {model!r}; choose one of {', '.join(SPINNING_TABLES)}"
-        )
+        raise PatternError(f"{where}: unknown model {model!r}; choose one of {', '.join(SPINNING_TABLES)}")
     table = SPINNING_TABLES[key]
     period = 60.0 / _positive_float(where, "rpm", rpm)
     tau = np.asarray(table.firing_offset_s)
@@ -510,8 +515,7 @@ def ouster(
         h, w = len(altitude_deg), meta["columns"]
         if beams is not None and beams != h:
             raise PatternError(
-                f"{where}: beams={beams!r} but {metadata} describes {h} beams; "
-                "leave beams=None to use the metadata"
+                f"{where}: beams={beams!r} but {metadata} describes {h} beams; leave beams=None to use the metadata"
             )
         if columns is not None and columns != w:
             raise PatternError(
@@ -531,13 +535,14 @@ def ouster(
     mid = (column - shifts[order][:, None]) % w if destaggered else np.broadcast_to(column, (h, w))
 
     # --------------------- Vendor geometry in the lidar frame (mm) ---------------------
-    enc = TWO_PI * (1.0 - mid / w)                                 # encoder angle, rad
-    heading = enc - np.radians(azimuth_deg[order])[:, None]        # beam azimuth, rad
-    alt = np.radians(altitude_deg[order])[:, None]                 # beam altitude, rad
-    d = np.stack(np.broadcast_arrays(np.cos(heading) * np.cos(alt), np.sin(heading) * np.cos(alt),
-                                     np.sin(alt)), axis=-1)
+    enc = TWO_PI * (1.0 - mid / w)  # encoder angle, rad
+    heading = enc - np.radians(azimuth_deg[order])[:, None]  # beam azimuth, rad
+    alt = np.radians(altitude_deg[order])[:, None]  # beam altitude, rad
+    d = np.stack(
+        np.broadcast_arrays(np.cos(heading) * np.cos(alt), np.sin(heading) * np.cos(alt), np.sin(alt)), axis=-1
+    )
     beam_origin = origin_mm * np.stack([np.cos(enc), np.sin(enc), np.zeros((h, w))], axis=-1)
-    ray_origin = beam_origin - origin_mm * d                       # where range 0 lies
+    ray_origin = beam_origin - origin_mm * d  # where range 0 lies
 
     # --------------------- Lidar frame -> sensor frame (m) ---------------------
     rotation, translation = lidar_to_sensor[:3, :3], lidar_to_sensor[:3, 3]
@@ -579,8 +584,7 @@ def _read_ouster_metadata(path: str | os.PathLike) -> dict:
         ) from exc
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise PatternError(
-            f"{where} is not valid JSON ({exc}); pass the metadata JSON written by the "
-            "sensor or the Ouster SDK"
+            f"{where} is not valid JSON ({exc}); pass the metadata JSON written by the sensor or the Ouster SDK"
         ) from exc
     if not isinstance(meta, dict):
         raise PatternError(f"{where}: expected a JSON object, got {type(meta).__name__}")
@@ -597,10 +601,7 @@ def _read_ouster_metadata(path: str | os.PathLike) -> dict:
         except (TypeError, ValueError) as exc:
             raise PatternError(f"{where}: {key!r} must be a list of degrees") from exc
         if values.ndim != 1 or values.size == 0 or not np.all(np.isfinite(values)):
-            raise PatternError(
-                f"{where}: {key!r} must be a non-empty list of finite degrees, got "
-                f"{intrinsics[key]!r}"
-            )
+            raise PatternError(f"{where}: {key!r} must be a non-empty list of finite degrees, got {intrinsics[key]!r}")
         return values
 
     altitude_deg = angles("beam_altitude_angles")
@@ -634,11 +635,11 @@ def _read_ouster_metadata(path: str | os.PathLike) -> dict:
         shifts = shifts.astype(np.int64)
     origin_mm = intrinsics.get("lidar_origin_to_beam_origin_mm", 0.0)
     if not isinstance(origin_mm, (int, float)) or not math.isfinite(origin_mm):
-        raise PatternError(
-            f"{where}: lidar_origin_to_beam_origin_mm must be a number of mm, got {origin_mm!r}"
-        )
-    lidar_to_sensor = _rigid_transform(where, meta.get(
-        "lidar_to_sensor_transform", intrinsics.get("lidar_to_sensor_transform", np.eye(4).ravel().tolist())))
+        raise PatternError(f"{where}: lidar_origin_to_beam_origin_mm must be a number of mm, got {origin_mm!r}")
+    lidar_to_sensor = _rigid_transform(
+        where,
+        meta.get("lidar_to_sensor_transform", intrinsics.get("lidar_to_sensor_transform", np.eye(4).ravel().tolist())),
+    )
     product = str(meta.get("prod_line", meta.get("sensor_info", {}).get("prod_line", "")))
     return {
         "altitude_deg": altitude_deg,
@@ -697,9 +698,7 @@ def from_table(path: str | os.PathLike, period: float | None = None) -> FiringPa
     elif suffix == ".npy":
         columns = _read_npy_columns(p)
     else:
-        raise PatternError(
-            f"from_table: unsupported table {os.fspath(path)!r}; give a .csv or .npy file"
-        )
+        raise PatternError(f"from_table: unsupported table {os.fspath(path)!r}; give a .csv or .npy file")
     where = f"table {os.fspath(path)}"
     for key in _CSV_ANGLES:
         bad = np.flatnonzero(~np.isfinite(columns[key]))
@@ -759,9 +758,7 @@ def to_table(pattern: FiringPattern, path: str | os.PathLike) -> Path:
         PatternError: The suffix is neither ``.csv`` nor ``.npy``.
     """
     p = Path(path)
-    stack = np.stack(
-        [np.degrees(pattern.elevation), np.degrees(pattern.azimuth), pattern.time], axis=-1
-    )
+    stack = np.stack([np.degrees(pattern.elevation), np.degrees(pattern.azimuth), pattern.time], axis=-1)
     suffix = p.suffix.lower()
     if suffix == ".npy":
         np.save(p, stack)
@@ -936,8 +933,7 @@ def get_pattern(name_or_path: str | os.PathLike, **kwargs) -> FiringPattern:
     unknown = sorted(set(kwargs) - set(accepted))
     if unknown:
         raise PatternError(
-            f"pattern {text!r} does not take {', '.join(unknown)}; its parameters are "
-            f"{', '.join(accepted)}"
+            f"pattern {text!r} does not take {', '.join(unknown)}; its parameters are {', '.join(accepted)}"
         )
     return factory(**{**preset, **kwargs})
 
@@ -981,12 +977,15 @@ def _rigid_transform(where: str, value) -> np.ndarray:
             f"{where}: lidar_to_sensor_transform must be 16 numbers (row-major 4 x 4), got {value!r}"
         ) from exc
     rotation = matrix[:3, :3]
-    rigid = (np.all(np.isfinite(matrix)) and np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6)
-             and np.linalg.det(rotation) > 0 and np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0]))
+    rigid = (
+        np.all(np.isfinite(matrix))
+        and np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6)
+        and np.linalg.det(rotation) > 0
+        and np.allclose(matrix[3], [0.0, 0.0, 0.0, 1.0])
+    )
     if not rigid:
         raise PatternError(
-            f"{where}: lidar_to_sensor_transform {value!r} is not a rigid transform; the "
-            "metadata is corrupt"
+            f"{where}: lidar_to_sensor_transform {value!r} is not a rigid transform; the metadata is corrupt"
         )
     return matrix
 
@@ -1010,9 +1009,7 @@ def _positive_float(where: str, name: str, value) -> float:
     return number
 
 
-def _float_in(
-    where: str, name: str, value, low: float, high: float, meaning: str, open_high: bool = False
-) -> float:
+def _float_in(where: str, name: str, value, low: float, high: float, meaning: str, open_high: bool = False) -> float:
     """``value`` as a float in (low, high] (or (low, high) if ``open_high``)."""
     number = _finite_float(where, name, value)
     if number <= low or number > high or (open_high and number == high):

@@ -46,6 +46,11 @@ def pattern_from_log(log: Log, scan: int = 0, name: str | None = None) -> Firing
     if laser is not None and np.all(laser[0] == laser[0][:, :1]):
         beam_id = laser[0][:, 0].astype(np.int64)
     return FiringPattern(
-        name=name or f"{one.sensor.get('name', 'log')}-scan{scan}", elevation=elevation, azimuth=azimuth,
-        time=time, period=period, origin=origin if np.any(origin != 0) else None, beam_id=beam_id,
+        name=name or f"{one.sensor.get('name', 'log')}-scan{scan}",
+        elevation=elevation,
+        azimuth=azimuth,
+        time=time,
+        period=period,
+        origin=origin if np.any(origin != 0) else None,
+        beam_id=beam_id,
     )
