@@ -70,9 +70,9 @@ def _child() -> dict:
     import drjit as dr
 
     import mi_lidar  # noqa: F401
-    from mi_lidar.calibration.differentiable import LogRays
     from mi_lidar.calibration.fit import Calibration, FitOptions
     from mi_lidar.core.elements import ElementTable
+    from mi_lidar.core.rays import LogRays
     from mi_lidar.scene.loading import scene_sensor_model
 
     scene, log = _scene_and_log()

@@ -1,15 +1,14 @@
 """Fitting scene and sensor parameters to a log: counting start, then Adam on the likelihood.
 
-The loss is the mean negative log-likelihood per ray (nats) of the pass-through mixture
-(:meth:`mi_lidar.core.sensor_model.SensorModel.log_likelihood`), made robust by a small floor: a
-return the model cannot explain (no element near the measured range) contributes
-``-log(floor / max_range)`` and an impossible miss ``-log(floor)``, so single outliers of a real
-log cannot make the loss infinite. The rays of the log are split once into a training part and a
+The loss is the mean negative scored log-likelihood per ray (nats): the one likelihood of
+:mod:`mi_lidar.core.likelihood` with its one floor, so the NLLs calibration prints are those of
+``compare`` and ``diagnose``. The rays of the log are split once into a training part and a
 held-out part; every step draws a mini-batch of training rays from a generator seeded by
-``(seed, step)``, and the held-out loss is evaluated every ``eval_every`` steps for early
-stopping (the best held-out parameters are kept).
+``(seed, step)``, and the held-out loss is evaluated every ``eval_every`` steps for early stopping
+(the best held-out parameters are kept). The steps are those of the one fitter,
+:func:`mi_lidar.core.fitting.adam_fit`.
 
-The likelihood is evaluated on compact trace records (:mod:`mi_lidar.calibration.records`):
+The likelihood is evaluated on compact trace records (:mod:`mi_lidar.core.trace`):
 only the (ray, element) pairs that exist, round by round. How much is computed once depends on
 what is fitted:
 
@@ -23,7 +22,7 @@ what is fitted:
   each mini-batch re-traced at every step.
 
 While ellipsoid centers or scales are fitted, the training loss is the smoothed surrogate of
-:mod:`~mi_lidar.calibration.smoothing` (annealed to the exact model, learning rates shrinking with
+:mod:`~mi_lidar.core.smoothing` (annealed to the exact model, learning rates shrinking with
 it); the held-out loss is always exact.
 """
 
@@ -37,16 +36,19 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.calibration.differentiable import LogRays
-from mi_lidar.calibration.likelihood import mixture_log_likelihood, returned_and_passed, round_segment
 from mi_lidar.calibration.parameters import P_EPS, ParameterSpace
-from mi_lidar.calibration.records import CachedBatch, RayCache, cache_distributions, trace_rounds
-from mi_lidar.calibration.smoothing import smoothing_at
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.effects.base import Effect
-from mi_lidar.core.errors import CalibrationError
+from mi_lidar.core.errors import CalibrationError, ParameterError
+from mi_lidar.core.fitting import adam_fit, constant_schedule
+from mi_lidar.core.likelihood import mixture_log_likelihood, round_segment, score
 from mi_lidar.core.log import Log
+from mi_lidar.core.problem import moves_rays
+from mi_lidar.core.rays import LogRays
+from mi_lidar.core.segment import ELLIPSOID, Segment
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.core.smoothing import smoothing_at
+from mi_lidar.core.trace import CachedBatch, RayCache, cache_distributions, trace_rounds
 from mi_lidar.scene.loading import scene_lidar_sensor, scene_sensor_model
 
 
@@ -66,11 +68,9 @@ class FitOptions:
         lr_scale: factor applied to every learning rate.
         counting_start: start hit probabilities from the counting estimate.
         gate: a return within ``gate`` range sigmas of a surface element counts as its hit.
-        floor: robustness floor of the likelihood (see the module docstring); 0 gives the pure
-            likelihood, which is infinite as soon as one return has no element near it.
         smoothing, smoothing_final: while ellipsoid centers or scales are fitted, the training
             loss smooths ellipsoids by this many sigmas of the element, annealed geometrically
-            over ``steps`` (:mod:`~mi_lidar.calibration.smoothing`); 0 trains on the exact
+            over ``steps`` (:mod:`~mi_lidar.core.smoothing`); 0 trains on the exact
             likelihood. The held-out loss is always exact.
     """
 
@@ -85,7 +85,6 @@ class FitOptions:
     lr_scale: float = 1.0
     counting_start: bool = True
     gate: float = 3.0
-    floor: float = 1e-6
     smoothing: float = 0.1
     smoothing_final: float = 0.01
 
@@ -140,10 +139,17 @@ def check_sensor(log: Log, scene) -> None:
         )
 
 
-def logaddexp(a: mi.Float, b: mi.Float) -> mi.Float:
-    """``log(exp(a) + exp(b))`` for ``b`` finite (``a`` may be -inf)."""
-    high = dr.maximum(a, b)
-    return high + dr.log(dr.exp(a - high) + dr.exp(b - high))
+def returned_and_passed(seg: Segment, z: mi.Float, hit: mi.Bool, gate: float) -> tuple[mi.Bool, mi.Bool]:
+    """Counting rule of one element: did it return the measured range, or let the ray pass?
+
+    A return counts as the element's when ``z`` lies in its chord (ellipsoids) or within ``gate``
+    sigmas of its mean (surfaces); the ray passed the element when it missed or returned beyond.
+    """
+    ellipsoid = seg.kind == ELLIPSOID
+    upper = dr.select(ellipsoid, seg.hi, seg.mean + gate * seg.sigma)
+    lower = dr.select(ellipsoid, seg.lo, seg.mean - gate * seg.sigma)
+    returned = hit & (z >= lower) & (z <= upper)
+    return returned, ~returned & (~hit | (z > upper))
 
 
 class Calibration:
@@ -183,14 +189,10 @@ class Calibration:
         self.smoothed = self.options.smoothing > 0 and any(
             p.family in ("centers", "scales") for p in self.params.values()
         )
-        effects = {e.name: e for e in self.model.effects}
-        moves_rays = any(
-            p.family == "effect" and type(effects[p.target[0]]).perturb_rays is not Effect.perturb_rays
-            for p in self.params.values()
-        )
-        self.static = not (self.geometric or moves_rays)  # segment distributions computed once
+        self.static = not (self.geometric or moves_rays(self.model))  # segment distributions computed once
         edits = any(
-            type(e).modify_segment is not Effect.modify_segment or hasattr(e, "likelihood_segment")
+            type(e).modify_segment is not Effect.modify_segment
+            or type(e).likelihood_segment is not Effect.likelihood_segment
             for e in self.model.effects
         )
         # only hit probabilities move: the densities of the measured ranges are computed once too
@@ -240,18 +242,14 @@ class Calibration:
         return rays, z, hit, cache.batch(position) if self.static else cache.select(position)
 
     def log_likelihood(self, values: dict, rays, z, hit, rounds, smoothing: float = 0.0) -> mi.Float:
-        """Per-ray robust log-likelihood (nats) under natural parameter ``values`` (keeps gradients).
+        """Per-ray scored log-likelihood (nats) under natural parameter ``values`` (keeps gradients).
 
         ``smoothing`` > 0 (sigmas) scores ellipsoids with the fitting-only surrogate of
-        :mod:`~mi_lidar.calibration.smoothing` (the records must be traced with the same smoothing).
+        :mod:`~mi_lidar.core.smoothing` (the records must be traced with the same smoothing).
         """
         table, model = self.space.build(values, self.model)
         table = table.replaced(smoothing=smoothing)
-        ll = mixture_log_likelihood(table, model, rays, rounds, z, hit)
-        if self.options.floor <= 0:
-            return ll
-        floor = dr.select(hit, math.log(self.options.floor / model.max_range), math.log(self.options.floor))
-        return logaddexp(ll, floor)
+        return score(mixture_log_likelihood(table, model, rays, rounds, z, hit), hit)
 
     def held_out_loss(self, values: dict) -> float:
         """Mean negative log-likelihood per held-out ray (nats) under natural ``values``."""
@@ -338,59 +336,50 @@ class Calibration:
         natural.update({n: mi.Float(v.astype(np.float32)) for n, v in counting.items()})
         counting_nll = self.held_out_loss(natural) if counting else initial_nll
 
-        opt = mi.ad.Adam(lr=1e-3)
-        for name, par in self.params.items():
-            opt[name] = par.to_raw(np.asarray(natural[name]))
-        opt.set_learning_rate({name: self.learning_rate(name) for name in self.params})
-        best = (counting_nll, {n: np.asarray(v).copy() for n, v in natural.items()})
-        history, stale, stopped, step = [(0, math.nan, counting_nll)], 0, False, 0
-        for step in range(1, opts.steps + 1):
+        variables = [
+            par.variable(np.asarray(natural[name]), self.learning_rate(name)) for name, par in self.params.items()
+        ]
+
+        def schedule(step: int, steps: int) -> float:
+            """Steps shrink with the smoothing, so the fit settles as the surrogate sharpens."""
+            if not self.smoothed:
+                return constant_schedule(step, steps)
+            return math.sqrt(smoothing_at(step, steps, opts.smoothing, opts.smoothing_final) / opts.smoothing)
+
+        def objective(values, step: int) -> float:
             # ---------------- Mini-batch of training rays, seeded by (seed, step) ----------------
             if opts.batch_size >= len(self.train):
                 position = np.arange(len(self.train))
             else:
                 position = np.random.default_rng((opts.seed, step)).integers(0, len(self.train), opts.batch_size)
-            values = {name: self.params[name].to_natural(opt[name]) for name in self.params}
             kappa = smoothing_at(step - 1, opts.steps, opts.smoothing, opts.smoothing_final) if self.smoothed else 0.0
-            if self.smoothed:  # steps shrink with the smoothing, so the fit settles as the surrogate sharpens
-                opt.set_learning_rate(
-                    {name: self.learning_rate(name) * math.sqrt(kappa / opts.smoothing) for name in self.params}
-                )
-            rays, z, hit, rounds = self._records("train", position, values, kappa)
-
-            # ---------------- Loss with gradients, Adam step, constraints -------------------------
-            loss = -dr.mean(self.log_likelihood(values, rays, z, hit, rounds, kappa))
+            current = values()
+            rays, z, hit, rounds = self._records("train", position, current, kappa)
+            loss = -dr.mean(self.log_likelihood(current, rays, z, hit, rounds, kappa))
             dr.backward(loss)
-            train_loss = float(loss[0])
-            bad = [n for n in self.params if not np.all(np.isfinite(np.asarray(dr.grad(opt[n]))))]
-            if not math.isfinite(train_loss) or bad:
-                raise CalibrationError(
-                    f"step {step}: the loss is {train_loss:g} and the gradients of {bad or 'no parameter'} are not "
-                    "finite; keep the robustness floor > 0 (FitOptions.floor, now "
-                    f"{opts.floor:g}), lower the learning rates (--lr-scale 0.1), and check that the log's ranges are "
-                    "in metres and the scene is the one the log was recorded in"
-                )
-            opt.step()
-            for name, par in self.params.items():
-                opt[name] = par.clip_raw(opt[name])
+            return float(loss[0])
 
-            # ---------------- Held-out loss and early stopping -----------------------------------
-            held = math.nan
-            if step % opts.eval_every == 0 or step == opts.steps:
-                current = {name: self.params[name].to_natural(opt[name]) for name in self.params}
-                held = self.held_out_loss(current)
-                if held < best[0] - 1e-6:
-                    best, stale = (held, {n: np.asarray(v).copy() for n, v in current.items()}), 0
-                else:
-                    stale += 1
-            history.append((step, train_loss, held))
+        def report(step: int, steps: int, train: float, held: float) -> None:
             if progress is not None:
-                progress(step, opts.steps, train_loss, held)
-            if stale >= opts.patience:
-                stopped = True
-                break
+                progress(step, steps, train, held)
 
-        fitted = best[1]
+        try:
+            result = adam_fit(
+                variables,
+                objective,
+                opts.steps,
+                lr=1.0,
+                schedule=schedule,
+                evaluate=self.held_out_loss,
+                eval_every=opts.eval_every,
+                patience=opts.patience,
+                progress=report,
+            )
+        except ParameterError as exc:
+            raise CalibrationError(
+                f"{exc}; lower the learning rates (--lr-scale 0.1) and check that the log's ranges are in metres"
+            ) from exc
+        fitted = result.values
         final = {n: mi.Float(v.astype(np.float32)) for n, v in fitted.items()}
         table, model = self.space.build(final, self.model)
         if self.geometric:
@@ -401,12 +390,12 @@ class Calibration:
             counting=counting,
             fitted=fitted,
             observations=dict(self.observations),
-            history=history,
+            history=result.history,
             initial_nll=initial_nll,
             counting_nll=counting_nll,
-            fitted_nll=best[0],
-            stopped_early=stopped,
-            steps_run=step,
+            fitted_nll=result.best_loss,
+            stopped_early=result.stopped_early,
+            steps_run=result.steps_run,
             table=table,
             model=model,
         )

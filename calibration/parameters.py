@@ -17,6 +17,7 @@ name                                  values                 unit               
 ``sensor.range_scale``                one                    1                       value
 ``sensor.extrinsics``                 rx ry rz tx ty tz      rad, m (sensor frame)   value
 ``effects.<effect>.<parameter>``      as the effect's        the effect's            value
+``density.<density>.<parameter>``     as the density's       the density's           value
 ====================================  =====================  ======================  ===========
 
 The ``sensor.*`` names are the effects ``beam_offsets``, ``range_bias``, ``range_scale`` and
@@ -27,22 +28,22 @@ clipped to their bounds after every optimizer step.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import fnmatch
-import math
 from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.calibration.differentiable import DiffTable
-from mi_lidar.calibration.smoothing import inflation
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.effects import make_effect
-from mi_lidar.core.elements import ELLIPSOID_STRIDE
+from mi_lidar.core.elements import ELLIPSOID_STRIDE, ElementTable
 from mi_lidar.core.errors import CalibrationError
+from mi_lidar.core.fitting import FitVariable
 from mi_lidar.core.segment import ELLIPSOID
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.core.smoothing import inflation
 
 P_EPS = 1e-4  # hit probabilities are kept in [P_EPS, 1 - P_EPS] so that their logits stay finite
 MIN_SCALE = 1e-3  # m: smallest ellipsoid scale and range sigma
@@ -65,7 +66,7 @@ class Parameter:
     Attributes:
         name: its name in the namespace.
         family: ``p_hit``, ``range_sigma``, ``class_sigma``, ``centers``, ``scales``, ``heights``,
-            ``sensor`` or ``effect``.
+            ``sensor``, ``effect`` or ``density``.
         initial: (n,) initial natural values.
         transform: ``"value"``, ``"log"`` or ``"logit"``: the optimized variable is the natural
             value, its log or its logit.
@@ -87,31 +88,9 @@ class Parameter:
     geometric: bool
     target: tuple = field(default=())
 
-    def to_raw(self, natural: np.ndarray) -> mi.Float:
-        """The optimized variable of natural values (numpy), as a Dr.Jit array."""
-        x = np.clip(np.asarray(natural, np.float64), self.lower, self.upper)
-        if self.transform == "log":
-            x = np.log(x)
-        elif self.transform == "logit":
-            x = np.log(x) - np.log1p(-x)
-        return mi.Float(x.astype(np.float32))
-
-    def to_natural(self, raw: mi.Float) -> mi.Float:
-        """Natural values of the optimized variable (keeps gradients)."""
-        if self.transform == "log":
-            return dr.exp(raw)
-        if self.transform == "logit":
-            return 1.0 / (1.0 + dr.exp(-raw))
-        return raw
-
-    def clip_raw(self, raw: mi.Float) -> mi.Float:
-        """The optimized variable clipped to the bounds."""
-        lo, hi = self.lower, self.upper
-        if self.transform == "log":
-            lo, hi = math.log(lo), math.log(hi) if math.isfinite(hi) else math.inf
-        elif self.transform == "logit":
-            lo, hi = math.log(lo / (1 - lo)), math.log(hi / (1 - hi))
-        return dr.clip(raw, lo, hi)
+    def variable(self, initial: np.ndarray, lr: float) -> FitVariable:
+        """The fitter's view of this parameter, starting at natural values ``initial`` with step ``lr``."""
+        return FitVariable(self.name, initial, lower=self.lower, upper=self.upper, scale=lr, transform=self.transform)
 
 
 class ParameterSpace:
@@ -125,7 +104,7 @@ class ParameterSpace:
 
     def __init__(self, scene, model: SensorModel, n_beams: int):
         self.scene = scene
-        self.table = DiffTable.from_scene(scene)
+        self.table = ElementTable.from_scene(scene)
         self.model = model
         self.n_beams = int(n_beams)
         self.params: dict[str, Parameter] = {}
@@ -260,22 +239,22 @@ class ParameterSpace:
                 )
             )
         sensor_effects = {v[0] for v in SENSOR_EFFECTS.values()}
-        for effect in self.model.effects:
-            if effect.name in sensor_effects:
-                continue
-            for key, spec in effect.specs.items():
+        parts = [("effects", "effect", e) for e in self.model.effects if e.name not in sensor_effects]
+        for prefix, family, part in parts + [("density", "density", self.model.density)]:
+            for key in part.fitted_names():
+                spec = part.specs[key]
                 self._add(
                     Parameter(
-                        f"effects.{effect.name}.{key}",
-                        "effect",
-                        np.asarray(effect.params[key], np.float64),
+                        f"{prefix}.{part.name}.{key}",
+                        family,
+                        np.asarray(part.params[key], np.float64),
                         "value",
                         spec.fit_bound,
                         spec.upper,
-                        1e-3,
+                        part.fit_scale(key) * 0.1,
                         spec.unit,
                         False,
-                        (effect.name, (key,)),
+                        (part.name, (key,)),
                     )
                 )
 
@@ -301,15 +280,9 @@ class ParameterSpace:
         needed = {self.params[n].target[0] for n in names if n in SENSOR_EFFECTS}
         present = {e.name for e in self.model.effects}
         extra = [make_effect(e) for e in EFFECT_ORDER if e in needed and e not in present]
-        return SensorModel(
-            range_sigma=self.model.range_sigma,
-            min_range=self.model.min_range,
-            max_range=self.model.max_range,
-            max_segments=self.model.max_segments,
-            effects=list(self.model.effects) + extra,
-        )
+        return dataclasses.replace(self.model, effects=list(self.model.effects) + extra)
 
-    def build(self, values: dict[str, mi.Float], model: SensorModel) -> tuple[DiffTable, SensorModel]:
+    def build(self, values: dict[str, mi.Float], model: SensorModel) -> tuple[ElementTable, SensorModel]:
         """The table and model with natural ``values`` (name -> array, may carry gradients) applied.
 
         Args:
@@ -318,10 +291,14 @@ class ParameterSpace:
         """
         arrays = {}
         effects = {e.name: copy.copy(e) for e in model.effects}
-        for e in effects.values():
-            e.params = dict(e.params)
+        density = copy.copy(model.density)
+        for part in [*effects.values(), density]:
+            part.params = dict(part.params)
         for name, value in values.items():
             par = self.params[name]
+            if par.family == "density":
+                density.params[par.target[1][0]] = value
+                continue
             if par.family in ("sensor", "effect"):
                 effect, keys = par.target
                 if len(keys) == 1:
@@ -338,20 +315,15 @@ class ParameterSpace:
                 array = mi.Float(array)
                 dr.scatter(array, value, index)
             arrays[array_name] = array
-        new_model = SensorModel(
-            range_sigma=model.range_sigma,
-            min_range=model.min_range,
-            max_range=model.max_range,
-            max_segments=model.max_segments,
-            effects=[effects[e.name] for e in model.effects],
+        return self.table.replaced(**arrays), dataclasses.replace(
+            model, effects=[effects[e.name] for e in model.effects], density=density
         )
-        return self.table.replaced(**arrays), new_model
 
-    def push_geometry(self, table: DiffTable) -> None:
+    def push_geometry(self, table: ElementTable) -> None:
         """Write ``table``'s vertex positions and ellipsoid data into the Mitsuba scene (for tracing).
 
         A smoothed table (``table.smoothing > 0``) is written with its ellipsoids inflated by the
-        traced margin of :func:`~mi_lidar.calibration.smoothing.inflation`. The arrays are handed over
+        traced margin of :func:`~mi_lidar.core.smoothing.inflation`. The arrays are handed over
         in aligned memory: unaligned numpy slices compile other variants of the trace kernels.
         """
         params = mi.traverse(self.scene)

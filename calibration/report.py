@@ -22,7 +22,7 @@ from mi_lidar.scene.loading import scene_lidar_sensor  # noqa: E402
 
 
 def element_sets(table, scene) -> dict:
-    """``{shape id: MeshElements | EllipsoidElements}`` of a (fitted) :class:`DiffTable`.
+    """``{shape id: MeshElements | EllipsoidElements}`` of a (fitted) :class:`~mi_lidar.core.elements.ElementTable`.
 
     Raises:
         CalibrationError: a shape is neither a triangle mesh nor an ellipsoid set.

@@ -6,7 +6,8 @@ registered, found by diagnose and fitted, and the script prints the NLL curve ov
 """
 
 import mi_lidar  # noqa: F401
-from mi_lidar.core.effects import Effect, ParamSpec, register_effect
+from mi_lidar.core.effects import Effect, register_effect
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.loop import diagnose
 from mi_lidar.loop.demo import make_hidden_log
 

@@ -31,6 +31,12 @@ class LidarIntegrator(mi.SamplingIntegrator):
        - Physical effects applied on top of the elements, e.g.
          ``range_noise(law=proportional, sigma0=0.005, k=0.001)`` (see :mod:`mi_lidar.core.effects`).
          Their parameters are traversed as ``effects.<name>.<parameter>``. Default: none.
+     * - density
+       - |string|
+       - The return density of every element (see :mod:`mi_lidar.core.densities`), e.g. ``gaussian``
+         (default: each element's Gaussian), ``beam(...)``, or a learned model saved by
+         ``mi-lidar fit-sensor``: ``np_reg(file=sensor.npz)`` (paths relative to the scene file).
+         Its parameters are traversed as ``density.<name>.<parameter>``.
 
     ``mi.render`` returns a tensor of shape (beams, firings, 8) whose channels are, in order,
     :data:`CHANNELS`: ``range`` (m, NaN for a miss), ``hit`` (0/1), ``element_id``, ``shape_id``
@@ -52,6 +58,7 @@ class LidarIntegrator(mi.SamplingIntegrator):
     """
 
     def __init__(self, props: mi.Properties):
+        from mi_lidar.core.densities import parse_density
         from mi_lidar.core.effects import parse_effects
 
         super().__init__(props)
@@ -59,6 +66,9 @@ class LidarIntegrator(mi.SamplingIntegrator):
         if not 1 <= self.max_segments <= 256:
             raise ParameterError(f"lidar integrator: max_segments={self.max_segments} must be in [1, 256]")
         self.effects = parse_effects(str(props.get("effects", "")))
+        self.density = parse_density(
+            str(props.get("density", "gaussian")), resolve=lambda name: str(mi.file_resolver().resolve(name))
+        )
 
     def sensor_model(self, sensor):
         """The :class:`~mi_lidar.core.sensor_model.SensorModel` of ``sensor`` with this integrator's settings."""
@@ -70,6 +80,7 @@ class LidarIntegrator(mi.SamplingIntegrator):
             max_range=sensor.max_range,
             max_segments=self.max_segments,
             effects=self.effects,
+            density=self.density,
         )
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -98,6 +109,8 @@ class LidarIntegrator(mi.SamplingIntegrator):
         for effect in self.effects:
             for key, value in effect.parameters().items():
                 callback.put(f"effects.{effect.name}.{key}", value, mi.ParamFlags.Differentiable)
+        for key, value in self.density.parameters().items():
+            callback.put(f"density.{self.density.name}.{key}", value, mi.ParamFlags.Differentiable)
 
     def aov_names(self):
         from mi_lidar.core.sensor_model import CHANNELS

@@ -23,7 +23,8 @@ def _poses(n: int, step: float, height: float) -> np.ndarray:
     return poses
 
 
-# name -> (scene file, pattern name, pattern options, poses, effects spec, seed)
+# name -> (scene file, pattern name, pattern options, poses, effects spec, seed). Dropouts stop the beam by
+# default since wave 2; `mode=pass` asks for the behaviour the reference was taken with.
 CASES = {
     "indoor_planar": ("indoor_planar.xml", "planar-360", {}, None, "", 3),
     "permeable_layers": ("permeable_layers.xml", None, {}, None, "", 1),
@@ -34,7 +35,7 @@ CASES = {
         {"n_firings": 60},
         _poses(2, 2.0, 1.8),
         "range_noise(law=physics, sigma0=0.01, k=1e-4), outliers(p_near=0.02, p_uniform=0.01), "
-        "incidence_dropout(gamma=1.5), range_bias(bias=0.02)",
+        "incidence_dropout(gamma=1.5, mode=pass), range_bias(bias=0.02)",
         5,
     ),
     "urban_footprint": (

@@ -8,7 +8,9 @@ import pytest
 import mi_lidar
 from mi_lidar.core.effects import RangeNoise, parse_effects
 from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.likelihood import mixture_log_likelihood
 from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.trace import trace_rounds
 
 from .conftest import SCENES
 
@@ -17,7 +19,7 @@ def test_parse_effects_round_trip():
     effects = parse_effects("range_noise(law=proportional, sigma0=0.005, k=0.001), range_noise(sigma0=0.02)")
     assert [e.describe() for e in effects] == [
         "range_noise(law=proportional, sigma0=0.005, k=0.001)",
-        "range_noise(law=constant, sigma0=0.02, k=0)",
+        "range_noise(law=constant, sigma0=0.02)",  # k does not exist under the constant law
     ]
     assert parse_effects("") == []
 
@@ -75,10 +77,10 @@ def test_likelihood_matches_pass_through_mixture():
         time=dr.zeros(mi.Float, n),
         ray_id=dr.arange(mi.UInt32, n),
     )
-    records = model.trace_segments(scene, table, rays)
+    rounds = trace_rounds(scene, table, model, rays)
     z = mi.Float([4.001, 8.0, 0.0, 5.0])
     hit = mi.Bool([True, True, False, True])
-    ll = np.asarray(model.log_likelihood(table, rays, records, z, hit))
+    ll = np.asarray(mixture_log_likelihood(table, model, rays, rounds, z, hit))
     s = 0.005
     gauss = lambda x: -0.5 * (x / s) ** 2 - np.log(s * np.sqrt(2 * np.pi))  # noqa: E731
     assert abs(ll[0] - (np.log(0.7 * 0.5) + gauss(0.001))) < 1e-3

@@ -1,28 +1,44 @@
-"""The element table: per-element Lidar properties of a loaded Mitsuba scene, in flat arrays.
+"""The element table: per-element Lidar properties and geometry of a loaded Mitsuba scene, in flat arrays.
 
-Every triangle and every ellipsoid of the scene is an *element* with a global index. For each
-shape of ``scene.shapes()`` the table records where its elements start; an intersection
-``(si.shape, si.prim_index)`` maps to the global index
-``element_offset[registry_id(si.shape)] + si.prim_index``, and per-element values are single
-gathers from flat arrays. Calibration replaces those arrays (for example ``p_hit`` by the sigmoid
-of a differentiable logit array) and gradients flow through the same gathers.
+Every triangle and every ellipsoid of the scene is an *element* with a global index. Shapes are
+taken in :func:`ordered_shapes` order; for each shape the table records where its elements start,
+so an intersection ``(si.shape, si.prim_index)`` maps to the global index
+``element_offset[registry_id(si.shape)] + si.prim_index`` and per-element values are single gathers
+from flat arrays. Calibration replaces those arrays (for example ``p_hit`` by the sigmoid of a
+differentiable logit array, or ``vertex_positions`` by fitted heights) and gradients flow through
+the same gathers.
 
 Values come, in order of precedence, from per-element attributes (mesh PLY face properties
 ``p_hit_0``, ``range_sigma_0``, ``label_0``; ellipsoid PLY extras or ``(N, 1)`` tensors ``p_hit``,
 ``range_sigma``, ``label``), from the shape's nested ``lidar_material``, and from defaults (opaque,
 the sensor's ``range_sigma``, label 0).
+
+Two ways to build the :class:`~mi_lidar.core.segment.Segment` of an element met by a ray:
+
+* :meth:`ElementTable.traced_segment` from a Mitsuba intersection (the sampler: no gradients);
+* :meth:`ElementTable.segment` from the table's own geometry along any ray (the likelihood):
+  triangles from their vertices, ellipsoids from their parameters, other shapes (analytic spheres,
+  cylinders, rectangles) from the tangent plane at the traced point. It is differentiable in the
+  geometry arrays and in the ray, so fitting heights, ellipsoids, beam angles or extrinsics works.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.errors import SceneError
-from mi_lidar.core.segment import ELLIPSOID, SURFACE, Segment, ray_restricted_gaussian
+from mi_lidar.core.segment import (
+    ELLIPSOID,
+    SURFACE,
+    Segment,
+    ray_quadratic,
+    ray_restricted_gaussian,
+    rotate_inverse,
+)
 
 ELLIPSOID_STRIDE = 10  # floats per ellipsoid in Mitsuba's `data`: center, scale, quaternion
 
@@ -37,8 +53,8 @@ def shape_order(shape) -> tuple:
 
     ``scene.shapes()`` lists shapes in the order Mitsuba's parallel loader finished them, which
     changes from run to run under load; sorting by what the scene declares makes element and shape
-    indices the same on every load. Unnamed shapes (empty id) are told apart by their primitive
-    count and bounding box (m, rounded to 1 um).
+    indices the same on every load. Unnamed shapes (empty id, e.g. meshes Mitsuba merged) are told
+    apart by their primitive count and bounding box (m, rounded to 1 um).
     """
     box = shape.bbox()
     return (shape.id(), shape.primitive_count(), tuple(round(float(v), 6) for v in (*box.min, *box.max)))
@@ -55,15 +71,13 @@ def lidar_material(shape):
     return bsdf if all(hasattr(bsdf, name) for name in ("p_hit", "range_sigma", "label")) else None
 
 
-def _is_ellipsoids(shape) -> bool:
-    keys = set(mi.traverse(shape).keys())
-    return "data" in keys and "extent" in keys
+def _is_ellipsoids(params) -> bool:
+    return "data" in params and "extent" in params
 
 
-def _per_element(shape, name: str, count: int, ellipsoids: bool) -> np.ndarray | None:
+def _per_element(shape, params, name: str, count: int, ellipsoids: bool) -> np.ndarray | None:
     """Per-element attribute ``name`` of ``shape`` as a numpy array, or None when absent."""
     if ellipsoids:
-        params = mi.traverse(shape)
         if name not in params:
             return None
         values = np.asarray(params[name], dtype=np.float64).ravel()
@@ -85,16 +99,25 @@ class ElementTable:
 
     Attributes:
         shape_ids: Mitsuba ids of the shapes, in table order.
-        shape_kinds: ``"surface"`` or ``"ellipsoids"`` per shape.
+        shape_kinds: ``"mesh"`` (triangles with editable vertices), ``"ellipsoids"`` or ``"surface"``
+            (an analytic shape) per shape.
+        element_counts: elements per shape.
         element_offset: per registry id, index of the shape's first element.
         shape_index: per registry id, index of the shape in ``shape_ids``.
-        ellipsoid_offset: per registry id, index of the shape's first ellipsoid in ``ellipsoid_data``.
         p_hit, range_sigma: per-element hit probability and range sigma (m); NaN sigma = sensor default.
         label: per-element class label.
         kind: per-element ``SURFACE`` or ``ELLIPSOID``.
+        element_shape: per element, index of its shape in ``shape_ids``.
         ellipsoid_data: all ellipsoids' (center, scale, quaternion), 10 floats each.
         ellipsoid_extent: per ellipsoid, extent in sigmas.
         ellipsoid_index: per element, index into the ellipsoid arrays (0 for surfaces).
+        vertex_positions: all meshes' vertices, flat (3 V) floats, m.
+        face_vertices: per element, 3 global vertex indices, flat (3 n_elements) (0 for non-triangles).
+        is_triangle: per element, True for triangles of meshes with editable vertices.
+        vertex_offset: per shape, index of its first vertex in ``vertex_positions`` (-1 if not a mesh).
+        vertex_counts: per shape, vertex count (0 if not a mesh).
+        smoothing: > 0 while fitting ellipsoid geometry: ellipsoids return with the soft silhouette
+            of :mod:`~mi_lidar.core.smoothing` (sigmas of the element); 0 is the exact model.
     """
 
     shape_ids: list
@@ -106,9 +129,16 @@ class ElementTable:
     range_sigma: mi.Float
     label: mi.UInt32
     kind: mi.UInt32
+    element_shape: mi.UInt32
     ellipsoid_data: mi.Float
     ellipsoid_extent: mi.Float
     ellipsoid_index: mi.UInt32
+    vertex_positions: mi.Float
+    face_vertices: mi.UInt32
+    is_triangle: mi.Bool
+    vertex_offset: list
+    vertex_counts: list
+    smoothing: float = 0.0
 
     @property
     def n_elements(self) -> int:
@@ -123,23 +153,40 @@ class ElementTable:
         n_registry = max(registry_id(s) for s in shapes) + 1
         element_offset = np.zeros(n_registry, np.uint32)
         shape_index = np.zeros(n_registry, np.uint32)
-        columns = {"p_hit": [], "range_sigma": [], "label": [], "kind": [], "ellipsoid_index": []}
-        ellipsoid_data, ellipsoid_extent = [], []
-        ids, kinds, counts = [], [], []
-        offset = 0
+        columns: dict[str, list] = {k: [] for k in ("p_hit", "range_sigma", "label", "kind", "ellipsoid_index")}
+        ellipsoid_data: list[np.ndarray] = []
+        ellipsoid_extent: list[np.ndarray] = []
+        vertices: list[np.ndarray] = []
+        faces: list[np.ndarray] = []
+        triangle: list[np.ndarray] = []
+        ids, kinds, counts, shape_of, vertex_offset, vertex_counts = [], [], [], [], [], []
+        offset = n_vertices = n_ellipsoids = 0
         for index, shape in enumerate(shapes):
-            ellipsoids = _is_ellipsoids(shape)
+            params = mi.traverse(shape)
+            ellipsoids = _is_ellipsoids(params)
+            mesh = not ellipsoids and isinstance(shape, mi.Mesh) and "vertex_positions" in params
+            count = shape.primitive_count()
             if ellipsoids:
-                params = mi.traverse(shape)
                 data = np.asarray(params["data"], dtype=np.float32)
                 count = data.size // ELLIPSOID_STRIDE
-                base = sum(len(e) for e in ellipsoid_extent)
                 ellipsoid_data.append(data)
                 ellipsoid_extent.append(np.full(count, float(params["extent"]), np.float32))
-                columns["ellipsoid_index"].append(base + np.arange(count, dtype=np.uint32))
+                columns["ellipsoid_index"].append(n_ellipsoids + np.arange(count, dtype=np.uint32))
+                n_ellipsoids += count
             else:
-                count = shape.face_count() if isinstance(shape, mi.Mesh) else 1
                 columns["ellipsoid_index"].append(np.zeros(count, np.uint32))
+            if mesh:
+                v = np.asarray(params["vertex_positions"], np.float32)
+                vertices.append(v)
+                faces.append(np.asarray(params["faces"], np.uint32) + n_vertices)
+                vertex_offset.append(n_vertices)
+                vertex_counts.append(v.size // 3)
+                n_vertices += v.size // 3
+            else:
+                faces.append(np.zeros(3 * count, np.uint32))
+                vertex_offset.append(-1)
+                vertex_counts.append(0)
+            triangle.append(np.full(count, mesh))
             material = lidar_material(shape)
             defaults = {
                 "p_hit": material.p_hit if material else 1.0,
@@ -147,17 +194,18 @@ class ElementTable:
                 "label": material.label if material else 0,
             }
             for name, default in defaults.items():
-                values = _per_element(shape, name, count, ellipsoids)
+                values = _per_element(shape, params, name, count, ellipsoids)
                 values = np.full(count, default, np.float64) if values is None else values
                 _check_values(shape.id(), name, values)
                 columns[name].append(values)
             columns["kind"].append(np.full(count, ELLIPSOID if ellipsoids else SURFACE, np.uint32))
+            shape_of.append(np.full(count, index, np.uint32))
             rid = registry_id(shape)
             element_offset[rid] = offset
             shape_index[rid] = index
             offset += count
             ids.append(shape.id())
-            kinds.append("ellipsoids" if ellipsoids else "surface")
+            kinds.append("ellipsoids" if ellipsoids else "mesh" if mesh else "surface")
             counts.append(count)
         cat = {k: np.concatenate(v) for k, v in columns.items()}
         return cls(
@@ -170,49 +218,69 @@ class ElementTable:
             range_sigma=mi.Float(cat["range_sigma"].astype(np.float32)),
             label=mi.UInt32(cat["label"].astype(np.uint32)),
             kind=mi.UInt32(cat["kind"]),
+            element_shape=mi.UInt32(np.concatenate(shape_of)),
             ellipsoid_data=mi.Float(
                 np.concatenate(ellipsoid_data) if ellipsoid_data else np.zeros(ELLIPSOID_STRIDE, np.float32)
             ),
             ellipsoid_extent=mi.Float(np.concatenate(ellipsoid_extent) if ellipsoid_extent else np.ones(1, np.float32)),
             ellipsoid_index=mi.UInt32(cat["ellipsoid_index"]),
+            vertex_positions=mi.Float(np.concatenate(vertices) if vertices else np.zeros(3, np.float32)),
+            face_vertices=mi.UInt32(np.concatenate(faces)),
+            is_triangle=mi.Bool(np.concatenate(triangle)),
+            vertex_offset=vertex_offset,
+            vertex_counts=vertex_counts,
         )
+
+    def replaced(self, **arrays) -> ElementTable:
+        """A shallow copy with some arrays replaced (for example by differentiable ones)."""
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        values.update(arrays)
+        return ElementTable(**values)
 
     def element_of(self, si) -> mi.UInt32:
         """Global element index of each intersection."""
         rid = dr.reinterpret_array(mi.UInt32, si.shape)
         return dr.gather(mi.UInt32, self.element_offset, rid, si.is_valid()) + si.prim_index
 
-    def segment(self, si, valid, element, origin, direction, default_sigma: float) -> Segment:
-        """The :class:`Segment` of intersections ``si`` of rays ``(origin, direction)``.
+    # ------------------------------------------------------------------ shared per-element values
+    def _properties(self, element: mi.UInt32, valid: mi.Bool, default_sigma: float):
+        """Hit probability, range sigma (m, the sensor's where unset), kind, shape and label of ``element``."""
+        sigma = dr.gather(mi.Float, self.range_sigma, element, valid)
+        return (
+            dr.gather(mi.Float, self.p_hit, element, valid),
+            dr.select(dr.isnan(sigma), default_sigma, sigma),
+            dr.gather(mi.UInt32, self.kind, element, valid),
+            dr.gather(mi.UInt32, self.element_shape, element, valid),
+            dr.gather(mi.UInt32, self.label, element, valid),
+        )
+
+    def _ellipsoid(self, element: mi.UInt32, active: mi.Bool):
+        """Center, scale, quaternion and extent of the ellipsoid elements ``element`` (identity elsewhere)."""
+        e = dr.gather(mi.UInt32, self.ellipsoid_index, element, active)
+        data = [
+            dr.gather(mi.Float, self.ellipsoid_data, e * ELLIPSOID_STRIDE + i, active) for i in range(ELLIPSOID_STRIDE)
+        ]
+        center = mi.Point3f(*data[0:3])
+        scale = dr.select(active, mi.Vector3f(*data[3:6]), 1.0)
+        quat = dr.select(active, mi.Vector4f(*data[6:10]), mi.Vector4f(0, 0, 0, 1))
+        return center, scale, quat, dr.gather(mi.Float, self.ellipsoid_extent, e, active)
+
+    # ------------------------------------------------------------------ segments
+    def traced_segment(self, si, valid, element, origin, direction, default_sigma: float) -> Segment:
+        """The :class:`Segment` of Mitsuba intersections ``si`` of rays ``(origin, direction)`` (sampler).
 
         Args:
             si: surface interactions of this round (``mi.RayFlags.Minimal`` suffices).
             valid: lanes whose ray met an element within range.
             element: global element indices (``element_of(si)``).
-            origin, direction: the *original* ray origin and unit direction (the range is
-                measured from the origin, not from where the ray restarted).
+            origin, direction: the *original* ray origin and unit direction (the range is measured
+                from the origin, not from where the ray restarted).
             default_sigma: the sensor's range sigma (m), used where an element has none.
         """
         nominal = dr.dot(si.p - origin, direction)
-        p = dr.gather(mi.Float, self.p_hit, element, valid)
-        sigma = dr.gather(mi.Float, self.range_sigma, element, valid)
-        sigma = dr.select(dr.isnan(sigma), default_sigma, sigma)
-        kind = dr.gather(mi.UInt32, self.kind, element, valid)
+        p, sigma, kind, shape, label = self._properties(element, valid, default_sigma)
         is_ellipsoid = valid & (kind == ELLIPSOID)
-        e = dr.gather(mi.UInt32, self.ellipsoid_index, element, is_ellipsoid)
-
-        def fetch(first: int, n: int):
-            return [
-                dr.gather(mi.Float, self.ellipsoid_data, e * ELLIPSOID_STRIDE + first + i, is_ellipsoid)
-                for i in range(n)
-            ]
-
-        center = mi.Point3f(*fetch(0, 3))
-        scale = mi.Vector3f(*fetch(3, 3))
-        quat = mi.Vector4f(*fetch(6, 4))
-        extent = dr.gather(mi.Float, self.ellipsoid_extent, e, is_ellipsoid)
-        scale = dr.select(is_ellipsoid, scale, 1.0)
-        quat = dr.select(is_ellipsoid, quat, mi.Vector4f(0, 0, 0, 1))
+        center, scale, quat, extent = self._ellipsoid(element, is_ellipsoid)
         e_mean, e_sigma, e_lo, e_hi = ray_restricted_gaussian(center, scale, quat, extent, origin, direction)
         return Segment(
             valid=valid,
@@ -224,8 +292,100 @@ class ElementTable:
             hi=dr.select(is_ellipsoid, e_hi, dr.inf),
             cos_incidence=dr.abs(dr.dot(si.n, direction)),
             element=element,
-            shape=dr.gather(mi.UInt32, self.shape_index, dr.reinterpret_array(mi.UInt32, si.shape), valid),
-            label=dr.gather(mi.UInt32, self.label, element, valid),
+            shape=shape,
+            label=label,
+            kind=kind,
+        )
+
+    def _vertex(self, element: mi.UInt32, corner: int, active: mi.Bool) -> mi.Point3f:
+        index = dr.gather(mi.UInt32, self.face_vertices, 3 * element + corner, active)
+        return mi.Point3f(*[dr.gather(mi.Float, self.vertex_positions, 3 * index + i, active) for i in range(3)])
+
+    def segment(self, entry, valid, element, origin, direction, default_sigma: float) -> Segment:
+        """The :class:`Segment` of ``element`` along rays ``(origin, direction)``, from the table's geometry.
+
+        Differentiable in ``vertex_positions``, ``ellipsoid_data``, ``p_hit``, ``range_sigma`` and in
+        the rays. The range of a triangle is the distance to its plane; of an ellipsoid, the entry
+        into its chord (the Gaussian restricted to the ray gives the return distribution); of any
+        other shape, the distance to the tangent plane at the traced point ``entry.point`` (normal
+        ``entry.normal``), exact for planes and to first order elsewhere.
+
+        Args:
+            entry: the traced values of the same lanes (``point``, ``normal``: a
+                :class:`~mi_lidar.core.trace.Round` or anything with those fields).
+            valid: lanes whose ray met an element.
+            element: global element indices.
+            origin, direction: the ray origins (m) and unit directions the range is measured from.
+            default_sigma: the sensor's range sigma (m), used where an element has none.
+        """
+        from mi_lidar.core.smoothing import presence
+
+        p, sigma, kind, shape, label = self._properties(element, valid, default_sigma)
+        triangle = valid & dr.gather(mi.Bool, self.is_triangle, element, valid)
+
+        # ---------------- Triangles: plane of the face; other surfaces: traced tangent plane ----
+        v0, v1, v2 = (self._vertex(element, c, triangle) for c in range(3))
+        normal = dr.select(triangle, dr.normalize(dr.cross(v1 - v0, v2 - v0)), dr.detach(entry.normal))
+        anchor = dr.select(triangle, v0, dr.detach(entry.point))
+        d_n = dr.dot(direction, normal)
+        safe_d_n = dr.select(dr.abs(d_n) > 1e-12, d_n, 1e-12)
+        t_plane = dr.dot(anchor - origin, normal) / safe_d_n
+
+        # ---------------- Ellipsoids: Gaussian restricted to the ray, entry at the chord --------
+        is_ellipsoid = valid & (kind == ELLIPSOID)
+        center, scale, quat, extent = self._ellipsoid(element, is_ellipsoid)
+        e_mean, e_sigma, e_lo, e_hi = ray_restricted_gaussian(center, scale, quat, extent, origin, direction)
+        point = origin + e_lo * direction
+        local_gradient = rotate_inverse(quat, point - center) / (scale * scale)
+        e_normal = rotate_inverse(mi.Vector4f(-quat.x, -quat.y, -quat.z, quat.w), local_gradient)
+        e_cos = dr.abs(dr.dot(dr.normalize(e_normal), direction))
+        if self.smoothing > 0:
+            soft = presence(*ray_quadratic(center, scale, quat, origin, direction), extent, self.smoothing)
+            p = dr.select(is_ellipsoid, p * soft, p)
+
+        nominal = dr.select(is_ellipsoid, e_lo, t_plane)
+        return Segment(
+            valid=valid,
+            nominal=nominal,
+            p=p,
+            mean=dr.select(is_ellipsoid, e_mean, nominal),
+            sigma=dr.select(is_ellipsoid, e_sigma, sigma),
+            lo=dr.select(is_ellipsoid, e_lo, -dr.inf),
+            hi=dr.select(is_ellipsoid, e_hi, dr.inf),
+            cos_incidence=dr.select(is_ellipsoid, e_cos, dr.abs(d_n)),
+            element=element,
+            shape=shape,
+            label=label,
+            kind=kind,
+        )
+
+    def cached_segment(self, entry, valid: mi.Bool, default_sigma: float) -> Segment:
+        """The :class:`Segment` of a traced entry whose geometry was computed once (rays and geometry fixed).
+
+        Only the per-element values that can be fitted without moving anything are read from the
+        table (hit probability, and range sigma of surfaces), so gradients reach them.
+
+        Args:
+            entry: a :class:`~mi_lidar.core.trace.Round` (or a gathered view of one) holding
+                ``element``, ``nominal``, ``cos_incidence`` and ``cached`` = ``(mean, sigma, lo, hi)``
+                of the return distribution before effects (m; ``sigma`` is used for ellipsoids only).
+            valid: lanes that hold an entry (the others read nothing).
+            default_sigma: the sensor's range sigma (m), used where an element has none.
+        """
+        mean, e_sigma, lo, hi = entry.cached
+        p, sigma, kind, shape, label = self._properties(entry.element, valid, default_sigma)
+        return Segment(
+            valid=valid,
+            nominal=entry.nominal,
+            p=p,
+            mean=mean,
+            sigma=dr.select(kind == ELLIPSOID, e_sigma, sigma),
+            lo=lo,
+            hi=hi,
+            cos_incidence=entry.cos_incidence,
+            element=entry.element,
+            shape=shape,
+            label=label,
             kind=kind,
         )
 

@@ -1,7 +1,16 @@
-"""One element met by a ray: its hit probability and the distribution of the range it returns.
+"""One element met by a ray: what happens to the beam there, and the distribution of the range it returns.
 
 Every element a ray meets becomes a :class:`Segment`, a struct of Dr.Jit arrays (one lane per
-ray). Its return range follows a Gaussian ``N(mean, sigma^2)`` truncated to ``[lo, hi]``:
+ray). The beam reaching it is *intercepted* with probability ``p`` (a permeable element lets it pass
+otherwise, to the next element); an intercepted beam is *lost* (no return, nothing behind revealed:
+a dark, specular or too distant surface) with probability ``drop``, and otherwise returns. Along a
+ray the elements ``k = 1..K`` are met in order, so with ``pi_k = prod_{j<k} (1 - p_j)`` the beam
+returns from element ``k`` with probability ``pi_k p_k (1 - drop_k)``, is lost there with
+``pi_k p_k drop_k`` and passes them all with ``pi_{K+1}``.
+
+The return distribution is given by the sensor model's return density
+(:mod:`mi_lidar.core.densities`); the default, the element Gaussian, is ``N(mean, sigma^2)``
+truncated to ``[lo, hi]``:
 
 * a triangle returns its nominal range plus noise: ``mean = r``, ``sigma = range_sigma``,
   ``[lo, hi] = (-inf, inf)``;
@@ -12,9 +21,9 @@ ray). Its return range follows a Gaussian ``N(mean, sigma^2)`` truncated to ``[l
   ``mean = -b / a``, ``sigma = 1 / sqrt(a)`` and the chord is ``mean +- sqrt((E^2 - m^2) / a)``
   with ``m^2 = c - b^2 / a`` the closest approach and ``E`` the extent.
 
-Effects (``mi_lidar.core.effects``) edit ``p``, ``mean`` and ``sigma``; sampling
-(:func:`sample_range`) and the likelihood (:func:`log_density`) read the edited values, so the
-two stay consistent by construction.
+Effects (``mi_lidar.core.effects``) edit ``p``, ``drop``, ``mean`` and ``sigma``; sampling and the
+likelihood read the edited values through the same density, so the two stay consistent by
+construction.
 """
 
 from __future__ import annotations
@@ -38,14 +47,15 @@ class Segment:
     Attributes:
         valid: the ray met an element in this round.
         nominal: nominal range: distance from the ray origin to the entry point (m).
-        p: probability that the element returns the beam (pass-through otherwise).
-        mean, sigma: Gaussian of the returned range (m).
+        p: probability that the element intercepts the beam (pass-through otherwise).
+        mean, sigma: location and Gaussian scale of the returned range (m).
         lo, hi: truncation bounds of that Gaussian (m; +-inf for surfaces).
         cos_incidence: |cos| of the angle between the beam and the surface normal.
         element: global element index (see :class:`mi_lidar.core.elements.ElementTable`).
         shape: shape index in the element table.
         label: class label of the element.
         kind: ``SURFACE`` or ``ELLIPSOID``.
+        drop: probability that an intercepted beam gives no return (the beam stops); 0 by default.
     """
 
     valid: mi.Bool
@@ -60,6 +70,7 @@ class Segment:
     shape: mi.UInt32
     label: mi.UInt32
     kind: mi.UInt32
+    drop: mi.Float | float = 0.0
 
     def with_(self, **changes) -> Segment:
         """A copy with some fields replaced (effects use this)."""

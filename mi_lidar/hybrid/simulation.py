@@ -5,8 +5,8 @@ The model becomes a Mitsuba scene through the calibration layer
 ``p_hit``, ``range_sigma`` and ``label``, and one ``ellipsoids`` shape with per-ellipsoid
 ``p_hit`` and ``label``. Simulation is :func:`mi_lidar.simulate` with the log's own firing
 pattern and poses, so every number of this package comes from the same core as ``mi.render``.
-:func:`trace_elements` lists the elements met along logged rays with the core's intersection
-and element table (used to count hits and pass-throughs when fitting).
+:func:`trace_elements` lists the elements met along logged rays with the core's one tracer and
+element table (used to count hits and pass-throughs when fitting).
 """
 
 from __future__ import annotations
@@ -17,10 +17,13 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_lidar.core.arrays import aligned
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.log import Log
 from mi_lidar.core.patterns.from_log import pattern_from_log
-from mi_lidar.core.sensor_model import RESTART_OFFSET, SensorModel
+from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.core.trace import trace_rounds
 from mi_lidar.hybrid.model import HybridModel
 from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, scene_dict
 from mi_lidar.scene.loading import load_scene
@@ -106,12 +109,7 @@ def trace_elements(
     limit: np.ndarray | float,
     max_elements: int = 16,
 ) -> Traversal:
-    """All elements met along rays up to a per-ray range, with the core's intersection rules.
-
-    Each round intersects the live rays (``coherent=True``), maps hits to elements with
-    ``table.element_of`` and restarts rays ``RESTART_OFFSET`` past the element met, exactly as
-    :meth:`mi_lidar.core.sensor_model.SensorModel.simulate_rays`; rays that meet nothing or pass
-    ``limit`` drop out.
+    """All elements met along rays up to a per-ray range: the core's tracer (:func:`~mi_lidar.core.trace.trace_rounds`).
 
     Args:
         scene: loaded scene. table: its element table.
@@ -121,35 +119,27 @@ def trace_elements(
     """
     n = len(origins)
     limit = np.broadcast_to(np.asarray(limit, np.float64), (n,))
+    rays = RayBatch(
+        origin=mi.Point3f(*(aligned(c) for c in np.asarray(origins, np.float32).T)),
+        direction=dr.normalize(mi.Vector3f(*(aligned(c) for c in np.asarray(directions, np.float32).T))),
+        beam=dr.zeros(mi.UInt32, n),
+        time=dr.zeros(mi.Float, n),
+        ray_id=dr.arange(mi.UInt32, n),
+    )
+    model = SensorModel(max_range=max(float(limit.max(initial=0.0)), 1e-3), max_segments=max_elements)
+    rounds = trace_rounds(scene, table, model, rays)
     offsets = np.cumsum([0] + list(table.element_counts))
     shape = np.full((n, max_elements), -1, np.int8)
     index = np.full((n, max_elements), -1, np.int64)
     t = np.full((n, max_elements), np.inf)
     cos = np.zeros((n, max_elements))
-    alive = np.arange(n)
-    o = mi.Point3f(*np.ascontiguousarray(origins.T, dtype=np.float32))
-    d = dr.normalize(mi.Vector3f(*np.ascontiguousarray(directions.T, dtype=np.float32)))
-    start = mi.Point3f(o)
-    for k in range(max_elements):
-        si = scene.ray_intersect(mi.Ray3f(start, d), mi.RayFlags.Minimal, True)
-        element = table.element_of(si)
-        nominal = dr.dot(si.p - o, d)
-        c = dr.abs(dr.dot(si.n, d))
-        dr.eval(element, nominal, c, si.p)
-        valid = np.array(si.is_valid(), bool)
-        r = np.array(nominal, np.float64)
-        found = valid & (r <= limit[alive])
-        elem = np.array(element, np.int64)[found]
-        rows = alive[found]
+    for k, r in enumerate(rounds.rounds):
+        rows, r_k = np.asarray(r.ray, np.int64), np.asarray(r.nominal, np.float64)
+        found = r_k <= limit[rows]
+        rows, elem = rows[found], np.asarray(r.element, np.int64)[found]
         which = np.searchsorted(offsets, elem, side="right") - 1
         shape[rows, k] = which
         index[rows, k] = elem - offsets[which]
-        t[rows, k] = r[found]
-        cos[rows, k] = np.array(c, np.float64)[found]
-        if not found.any() or k == max_elements - 1:
-            break
-        keep = mi.UInt32(np.flatnonzero(found).astype(np.uint32))
-        alive = rows
-        o, d = dr.gather(mi.Point3f, o, keep), dr.gather(mi.Vector3f, d, keep)
-        start = dr.gather(mi.Point3f, si.p, keep) + RESTART_OFFSET * d
+        t[rows, k] = r_k[found]
+        cos[rows, k] = np.asarray(r.cos_incidence, np.float64)[found]
     return Traversal(shape, index, t, cos, list(table.shape_ids))

@@ -1,16 +1,15 @@
 """Ray casting with Mitsuba on plain shapes built from numpy arrays (no mi-lidar plugins).
 
-Two scene kinds are used: a triangle mesh and an analytic ``ellipsoids`` set. Multi-element
-traversal restarts each ray just past the element it met (``1e-4`` m), which for ellipsoids
-skips the exit surface of the one entered (GUIDE section 5), so each step yields the next entry.
+Two scene kinds are used: a triangle mesh and an analytic ``ellipsoids`` set, by the synthetic
+world's own sensor (:mod:`.world`) and the baselines (:mod:`.baselines`), which are independent of
+the product's simulation core on purpose. Elements of product scenes are traced by the core's one
+tracer (:func:`mi_lidar.core.trace.trace_rounds`).
 """
 
 from __future__ import annotations
 
 import mitsuba as mi
 import numpy as np
-
-RESTART_EPS = 1e-4  # m, offset of a restarted ray past the element it met
 
 
 def mesh_scene(vertices: np.ndarray, faces: np.ndarray):
@@ -67,39 +66,3 @@ def intersect(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.nd
     t = np.where(valid, np.array(si.t, np.float64), np.inf)
     prim = np.where(valid, np.array(si.prim_index, np.int64), -1)
     return t, prim
-
-
-def trace_elements(
-    scene, origins: np.ndarray, directions: np.ndarray, max_range: np.ndarray | float, max_elements: int = 16
-) -> tuple[np.ndarray, np.ndarray]:
-    """All elements met along each ray up to ``max_range``, in order.
-
-    Args:
-        scene: mesh or ellipsoid scene.
-        origins, directions: (N, 3) rays, m.
-        max_range: (N,) or scalar, m; elements entered beyond it are not reported.
-        max_elements: K, the most elements reported per ray.
-
-    Returns:
-        ``ids`` (N, K) int64 element indices (-1 = none) and ``t`` (N, K) entry ranges, m (inf = none).
-    """
-    n = len(origins)
-    origins = np.asarray(origins, np.float64)
-    directions = np.asarray(directions, np.float64)
-    limit = np.broadcast_to(np.asarray(max_range, np.float64), (n,))
-    ids = np.full((n, max_elements), -1, np.int64)
-    ts = np.full((n, max_elements), np.inf)
-    alive = np.arange(n)
-    offset = np.zeros(n)
-    for k in range(max_elements):
-        if len(alive) == 0:
-            break
-        start = origins[alive] + directions[alive] * offset[alive, None]
-        t, prim = intersect(scene, start, directions[alive])
-        total = offset[alive] + t
-        found = np.isfinite(t) & (total <= limit[alive])
-        ids[alive[found], k] = prim[found]
-        ts[alive[found], k] = total[found]
-        offset[alive] = total + RESTART_EPS
-        alive = alive[found]
-    return ids, ts

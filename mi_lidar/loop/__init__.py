@@ -3,12 +3,10 @@
 * :func:`compare`: ray-by-ray comparison and report (``mi-lidar compare``);
 * :func:`diagnose`: fit every candidate effect on a training split and rank them on held-out
   rays (``mi-lidar diagnose``);
-* :func:`fit_effects`: the small maximum-likelihood fitter both use.
 """
 
 from mi_lidar.core.rays import LogRays
 from mi_lidar.loop.compare import Comparison, compare
 from mi_lidar.loop.diagnose import Diagnosis, diagnose
-from mi_lidar.loop.fit import FitResult, Problem, fit_effects
 
-__all__ = ["Comparison", "Diagnosis", "FitResult", "LogRays", "Problem", "compare", "diagnose", "fit_effects"]
+__all__ = ["Comparison", "Diagnosis", "LogRays", "compare", "diagnose"]

@@ -2,7 +2,8 @@
 
 For every ray of the log the model is scored and simulated:
 
-* NLL: ``-log p(z | model)`` of the measured return (density x ``resolution``) or miss, nats;
+* NLL: the scored ``-log p(z | model)`` of the measured return (its 1 cm bin) or miss, nats, with the
+  one floor of :func:`mi_lidar.core.likelihood.score`;
 * range error: ``|z_measured - z_simulated|`` where both returned, m;
 * hit/miss confusion: precision, recall and F1 of simulated returns against measured ones;
 * histogram match: L1 distance between the CDFs of measured and simulated ranges, m.
@@ -23,10 +24,10 @@ import numpy as np
 
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.log import Log
+from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import LogRays
 from mi_lidar.core.segment import ELLIPSOID
 from mi_lidar.core.sensor_model import SensorModel
-from mi_lidar.loop.fit import Problem
 
 BREAKDOWNS = ("range", "incidence", "beam", "azimuth", "time", "element_type", "label", "shape")
 NO_ELEMENT_GROUP = "none"
@@ -72,7 +73,7 @@ def first_elements(scene, table: ElementTable, problem: Problem, model: SensorMo
             nominal = dr.dot(si.p - batch.origin, batch.direction)
             valid = si.is_valid() & (nominal <= model.max_range)
             element = dr.select(valid, table.element_of(si), 0)
-            seg = table.segment(si, valid, element, batch.origin, batch.direction, model.range_sigma)
+            seg = table.traced_segment(si, valid, element, batch.origin, batch.direction, model.range_sigma)
         ok = np.asarray(valid)
         out["nominal"].append(np.where(ok, np.asarray(seg.nominal), np.nan))
         out["cos_incidence"].append(np.where(ok, np.asarray(seg.cos_incidence), 0.0))
@@ -92,10 +93,10 @@ def simulate_log_rays(scene, table: ElementTable, rays: LogRays, model: SensorMo
     return np.concatenate(ranges), np.concatenate(hits)
 
 
-def ray_table(log: Log, scene, model: SensorModel, seed: int = 0, resolution: float = 0.01) -> RayTable:
+def ray_table(log: Log, scene, model: SensorModel, seed: int = 0) -> RayTable:
     """Score, simulate and describe every ray of ``log`` under ``model``."""
     rays = LogRays.from_log(log)
-    problem = Problem.build(scene, rays, np.arange(rays.n), resolution)
+    problem = Problem.build(scene, rays)
     ll = problem.log_likelihood(model)
     sim_range, sim_hit = simulate_log_rays(scene, problem.table, rays, model, seed)
     first = first_elements(scene, problem.table, problem, model)
@@ -235,7 +236,6 @@ def compare(
     model: SensorModel | None = None,
     out: str | Path | None = None,
     seed: int = 0,
-    resolution: float = 0.01,
     title: str = "Model vs measurements",
 ) -> Comparison:
     """Compare ``model`` with ``log`` in ``scene`` ray by ray and optionally write a report.
@@ -247,7 +247,6 @@ def compare(
         out: report folder (PNG plots, residual range image, residual PLY, report.md/.html,
             comparison.json); nothing is written when None.
         seed: simulation seed.
-        resolution: range bin (m) of the NLL (density x resolution; 0.01 is the thesis protocol).
         title: report title.
 
     Returns:
@@ -258,7 +257,7 @@ def compare(
     if not hasattr(scene, "shapes"):
         scene = load_scene(scene)
     model = model or scene_sensor_model(scene)[0]
-    t = ray_table(log, scene, model, seed, resolution)
+    t = ray_table(log, scene, model, seed)
     result = Comparison(headline=metrics(t), breakdowns={b: breakdown(t, b) for b in BREAKDOWNS}, worst=[], table=t)
     groups = [
         dict(row, breakdown=b) for b, rows in result.breakdowns.items() if b != "beam" or len(rows) > 1 for row in rows

@@ -2,7 +2,7 @@
 
 For each catalog effect (and every user-registered effect) not yet in the model, and for each
 choice of its first option, :func:`diagnose` adds the effect to the model, fits its parameters
-on a training split (:func:`~mi_lidar.loop.fit.fit_effects`) and scores held-out rays. A
+on a training split (:func:`~mi_lidar.core.problem.fit_parts`) and scores held-out rays. A
 candidate is **significant** when
 
 * its training log-likelihood gain passes the likelihood-ratio test against the number ``k`` of
@@ -14,7 +14,7 @@ Candidates are ranked by held-out NLL gain per ray. Selection is greedy: the bes
 effect joins the model, every effect of the augmented model is refitted jointly (an effect found
 earlier may have absorbed part of the new one), and the remaining candidates are tried again
 (``rounds`` times), so two hidden effects come out first and second. Scores are floored per ray
-at :data:`~mi_lidar.loop.fit.LL_FLOOR`, so one return the model cannot produce does not make a
+with the one floor of :func:`~mi_lidar.core.likelihood.score`, so one return the model cannot produce does not make a
 held-out NLL infinite.
 """
 
@@ -30,12 +30,13 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.log import Log
+from mi_lidar.core.problem import Problem, fit_parts, n_parameters
 from mi_lidar.core.rays import LogRays
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop.catalog import candidate, candidate_names, variants
 from mi_lidar.loop.compare import BREAKDOWNS, RayTable, first_elements, group_keys
-from mi_lidar.loop.fit import Problem, fit_effects, n_parameters
 
 P_VALUE = 1e-3
 MIN_NLL_FOR_PERCENT = 1.0  # nats/ray: below this a gain relative to the NLL is not meaningful
@@ -182,7 +183,6 @@ def diagnose(
     rounds: int = 2,
     max_train: int = 200_000,
     max_test: int = 200_000,
-    resolution: float = 0.0,
     seed: int = 0,
     progress=None,
 ) -> Diagnosis:
@@ -197,8 +197,6 @@ def diagnose(
         steps: Adam steps per fit.
         rounds: greedy selection rounds (effects added at most).
         max_train, max_test: rays per split (random subsample beyond).
-        resolution: range bin (m) of the score; 0 scores densities (NLL differences do not
-            depend on it).
         seed: subsampling seed.
         progress: optional callable ``progress(done, total, label)``.
 
@@ -212,11 +210,12 @@ def diagnose(
     base = copy.deepcopy(model or scene_sensor_model(scene)[0])
     rays = LogRays.from_log(log)
     train_index, test_index = split_rays(log, max_train, max_test, seed)
-    train = Problem.build(scene, rays, train_index, resolution)
-    test = Problem.build(scene, rays, test_index, resolution)
+    table = ElementTable.from_scene(scene)
+    train = Problem.build(scene, rays, train_index, table)
+    test = Problem.build(scene, rays, test_index, table)
     n_beams, n_labels = log.shape[1], int(np.asarray(train.table.label).max()) + 1
     if base.effects:
-        fit_effects(base, train, steps=steps)
+        fit_parts(base, train, steps=steps)
     first = first_elements(scene, test.table, test, base)
     azimuth = np.degrees(
         np.arctan2(
@@ -261,7 +260,7 @@ def diagnose(
             effect = candidate(name, n_beams, n_labels, **variant)
             trial = dataclasses.replace(base, effects=base.effects + [effect])
             train.trace(trial)
-            fit = fit_effects(trial, train, [effect], steps=steps)
+            fit = fit_parts(trial, train, [effect], steps=steps)
             lltr, llte = score(trial)
             k = n_parameters([effect])
             gain_tr = lltr - base_train
@@ -295,7 +294,7 @@ def diagnose(
         if best is None or not best.significant:
             break
         augmented = dataclasses.replace(base, effects=base.effects + [best.effect])
-        fit_effects(augmented, train, steps=steps)  # joint refit: earlier effects adapt to the new one
+        fit_parts(augmented, train, steps=steps)  # joint refit: earlier effects adapt to the new one
         evidence.append({"effect": best.name, "groups": _evidence(test, base, augmented, table)})
         base = augmented
         selected.append(best.name)

@@ -7,7 +7,7 @@ Protocol (fixed so that the numbers compare with reference models measured on th
   ``window`` s of it (:func:`exclusion`); calibration scans (``2, 7, 12, ...``) also leave every
   test scan out of their maps, so no test beam reaches a fitted number;
 * each beam is scored by its log-likelihood (nats) with ranges in 1 cm bins
-  (:meth:`SensorModel.log_likelihood` with ``resolution=0.01``); SICK max-range readings are misses.
+  (:func:`mi_lidar.core.likelihood.score`); SICK max-range readings are misses.
 
 Maps are counts on a 5 cm grid (:mod:`mi_lidar.loop.occupancy`); the leave-out map of a scan is
 the total minus the contributions of its excluded scans, exact and cheap. Each scored scan gets
@@ -28,16 +28,15 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass, field
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.effects.base import Effect
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.log import Log
+from mi_lidar.core.problem import Problem, fit_parts
 from mi_lidar.core.rays import LogRays
 from mi_lidar.core.sensor_model import SensorModel
-from mi_lidar.loop.fit import Problem, fit_effects
 from mi_lidar.loop.occupancy import CountMap, Grid, count_scans, planar_rays, ray_cells
 from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, scene_dict
 
@@ -257,7 +256,7 @@ class Scored:
     table: ElementTable
     rays: LogRays
     n_elements: int
-    _records: dict = field(default_factory=dict, repr=False)
+    _problem: Problem | None = field(default=None, repr=False)
 
     @classmethod
     def build(cls, log: Log, layers: Layers, elements) -> Scored:
@@ -271,28 +270,24 @@ class Scored:
             n_elements=n,
         )
 
+    @property
+    def problem(self) -> Problem:
+        """Every ray of the layers, traced once (:class:`~mi_lidar.core.problem.Problem`)."""
+        if self._problem is None:
+            self._problem = Problem.build(self.scene, self.rays, table=self.table)
+        return self._problem
+
     def per_beam(self, model: SensorModel) -> np.ndarray:
-        """(N,) log-likelihood per beam (nats, 1 cm range bins) under ``model``; not floored."""
-        out = []
-        for first in range(0, self.rays.n, BATCH):
-            index = np.arange(first, min(first + BATCH, self.rays.n))
-            batch, measured, hit = self.rays.batch(index)
-            key = (first, model.max_segments, model.max_range)
-            if key not in self._records:
-                self._records[key] = model.trace_segments(self.scene, self.table, batch)
-            with dr.suspend_grad():
-                ll = model.log_likelihood(self.table, batch, self._records[key], measured, hit, resolution=RESOLUTION)
-            out.append(np.asarray(ll, dtype=np.float64))
-        return np.concatenate(out)
+        """(N,) scored log-likelihood per beam (nats, 1 cm range bins, the one floor) under ``model``."""
+        return self.problem.log_likelihood(model)
 
     def nll(self, model: SensorModel) -> float:
         """Mean negative log-likelihood per beam (nats) under ``model``."""
-        return float(-np.mean(self.per_beam(model)))
+        return self.problem.nll(model)
 
     def fit(self, model: SensorModel, effects: list[Effect], steps: int = 150) -> None:
-        """Fit ``effects`` (members of ``model.effects``) on these rays by maximum likelihood (:func:`fit_effects`)."""
-        problem = Problem.build(self.scene, self.rays, np.arange(self.rays.n), resolution=RESOLUTION)
-        fit_effects(model, problem, effects, steps=steps)
+        """Fit ``effects`` (members of ``model.effects``) on these rays by maximum likelihood (:func:`fit_parts`)."""
+        fit_parts(model, self.problem, effects, steps=steps)
 
 
 @dataclass

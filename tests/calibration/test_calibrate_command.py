@@ -13,6 +13,8 @@ from mi_lidar.calibration.fit import Calibration, FitOptions
 from mi_lidar.cli import app
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import CalibrationError
+from mi_lidar.core.problem import Problem
+from mi_lidar.core.rays import LogRays
 from mi_lidar.scene.dicts import save_scene, scene_dict
 
 from .scenes import SENSOR_HEIGHT, bowl, bowl_height, pattern, sensor_pose, shrubs
@@ -116,17 +118,17 @@ def test_log_from_another_sensor_is_rejected(files):
         Calibration(mi_lidar.load_scene(other), mi_lidar.Log.load(log), ["elements.*.p_hit"])
 
 
-def test_non_finite_loss_names_the_fix():
-    # Without the robustness floor a return that no element explains has zero likelihood: here the
-    # log's shrubs stand 5 m from the sensor and the model's 7 m, so the loss is infinite.
+def test_returns_no_element_explains_cost_the_floor_and_still_fit():
+    # The log's shrubs stand 5 m from the sensor and the model's 7 m: no element can produce the
+    # returns, so each costs the one floor of the score (log 1e-9 = -20.7 nats) instead of making
+    # the loss infinite, and the fit runs to a finite held-out NLL.
     log = mi_lidar.simulate(
         mi_lidar.load_scene(scene_dict({"shrubs": shrubs(P_SHRUBS)})), pattern(100), poses=sensor_pose(), seed=1
     )
     model_scene = mi_lidar.load_scene(scene_dict({"shrubs": shrubs(P_SHRUBS, radius=7.0)}))
-    cal = Calibration(
-        model_scene, log, ["sensor.range_bias"], options=FitOptions(steps=2, floor=0.0, counting_start=False)
-    )
-    with pytest.raises(CalibrationError, match="keep the robustness floor > 0"):
-        cal.fit()
     robust = Calibration(model_scene, log, ["sensor.range_bias"], options=FitOptions(steps=2, counting_start=False))
     assert np.isfinite(robust.fit().fitted_nll)
+    scored = Problem.build(model_scene, LogRays.from_log(log)).log_likelihood(robust.model)
+    floor = np.log(1e-9)
+    assert scored.min() >= floor - 1e-3  # nothing costs more than the floor
+    assert np.sum(scored < floor + 0.1) > 100  # the unexplained returns cost about the floor

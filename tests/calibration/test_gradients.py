@@ -6,7 +6,7 @@ For each family the gradient ``g`` is projected on two unit directions ``v`` (``
 seeded random one) and compared with ``(L(x + h v) - L(x - h v)) / 2h``: the difference must
 stay below 3% of ``|g|`` (float32 evaluation noise of the loss is below 0.5% of ``|g|`` at the
 chosen steps ``h``). The smoothed ellipsoid loss used while fitting their geometry
-(:mod:`mi_lidar.calibration.smoothing`) is checked the same way, on records traced with its margin.
+(:mod:`mi_lidar.core.smoothing`) is checked the same way, on records traced with its margin.
 """
 
 import drjit as dr

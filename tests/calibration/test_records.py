@@ -1,7 +1,8 @@
-"""Compact trace records give the core's likelihood, ray for ray, on every evaluation path.
+"""Compact trace records give the pass-through mixture, ray for ray, on every evaluation path.
 
-The reference is :meth:`SensorModel.log_likelihood` on the core's full-width trace
-(:meth:`SensorModel.trace_segments`, one lane per ray and round). The compact path must agree
+The reference is the mixture evaluated the plain way, in this file: one lane per ray and round at
+full width, each element's segment taken from Mitsuba's intersection, the sums folded in numpy
+(:func:`full_width_log_likelihood`). The compact path must agree
 within float32 rounding whether the segments come from geometry
 computed once (``cached``) or are rebuilt along the rays, and whether the rounds come straight from
 the trace or are cut from a :class:`RayCache` for a random batch with repeated rays. The tolerance,
@@ -10,16 +11,19 @@ the trace or are cut from a :class:`RayCache` for a random batch with repeated r
 in float32, which moves a log density by ``|z - r| 1e-5 / sigma^2`` (< 5e-4 nats at sigma = 2 cm).
 """
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 import pytest
 
 import mi_lidar
-from mi_lidar.calibration.differentiable import DiffTable, LogRays
-from mi_lidar.calibration.likelihood import mixture_log_likelihood
-from mi_lidar.calibration.records import RayCache, cache_distributions, trace_rounds
 from mi_lidar.core.effects import parse_effects
 from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.likelihood import mixture_log_likelihood
+from mi_lidar.core.rays import LogRays
+from mi_lidar.core.segment import log_density
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.core.trace import RESTART_OFFSET, RayCache, cache_distributions, next_intersection, trace_rounds
 from mi_lidar.scene.dicts import scene_dict
 
 from .scenes import bowl, pattern, sensor_pose, shrubs
@@ -30,6 +34,34 @@ EFFECTS = (
 )
 
 
+def full_width_log_likelihood(scene, table, model, rays, z, hit) -> np.ndarray:
+    """The mixture the plain way: every ray in every round, sums folded in numpy (float64)."""
+    rays = model.prepare_rays(rays)
+    hit_np = np.asarray(hit)
+    log_mix = np.full(rays.width, -np.inf)
+    log_pass = np.zeros(rays.width)
+
+    def fold(valid, p, log_f):
+        nonlocal log_mix, log_pass
+        valid, p, log_f = np.asarray(valid), np.asarray(p, np.float64), np.asarray(log_f, np.float64)
+        term = np.where(valid, log_pass + np.log(np.clip(p, 1e-12, 1)) + log_f, -np.inf)
+        log_mix = np.logaddexp(log_mix, term)
+        log_pass = log_pass + np.where(valid, np.log(np.clip(1 - p, 1e-12, 1)), 0.0)
+
+    for seg in model.virtual_segments(rays):
+        seg = model.segment_law(seg, rays, virtual=True)
+        fold(seg.valid, seg.p, log_density(seg, z))
+    start = mi.Point3f(rays.origin)
+    for _ in range(model.max_segments):
+        si, valid, element = next_intersection(scene, table, start, rays.origin, rays.direction, model.max_range)
+        seg = model.segment_law(
+            table.traced_segment(si, valid, element, rays.origin, rays.direction, model.range_sigma), rays
+        )
+        fold(seg.valid, seg.p, model.density.log_prob(seg, z, rays))
+        start = dr.select(valid, si.p + RESTART_OFFSET * rays.direction, start)
+    return np.where(hit_np, log_mix, log_pass)
+
+
 @pytest.fixture(scope="module")
 def problem():
     sets = {"terrain": bowl(p_hit=0.7), "shrubs": shrubs([0.3, 0.5, 0.4, 0.6, 0.2, 0.45])}
@@ -38,14 +70,8 @@ def problem():
     log = mi_lidar.simulate(scene, pattern(200), poses=sensor_pose(0.2, 0.1, 0.3), seed=4, model=model)
     rays = LogRays.from_log(log)
     batch, z, hit = rays.batch(np.arange(rays.n))
-    reference = model.log_likelihood(
-        ElementTable.from_scene(scene),
-        batch,
-        model.trace_segments(scene, ElementTable.from_scene(scene), batch),
-        z,
-        hit,
-    )
-    return scene, model, rays, np.asarray(reference, np.float64)
+    reference = full_width_log_likelihood(scene, ElementTable.from_scene(scene), model, batch, z, hit)
+    return scene, model, rays, reference
 
 
 def assert_close(actual, expected):
@@ -58,7 +84,7 @@ def assert_close(actual, expected):
 @pytest.mark.parametrize("cached", [False, True], ids=["rebuilt", "cached"])
 def test_compact_rounds_match_full_width_likelihood(problem, cached):
     scene, model, rays, reference = problem
-    table = DiffTable.from_scene(scene)
+    table = ElementTable.from_scene(scene)
     batch, z, hit = rays.batch(np.arange(rays.n))
     rounds = trace_rounds(scene, table, model, batch)
     assert 1 < len(rounds.rounds) <= model.max_segments
@@ -70,7 +96,7 @@ def test_compact_rounds_match_full_width_likelihood(problem, cached):
 
 def test_cache_cuts_any_batch(problem):
     scene, model, rays, reference = problem
-    table = DiffTable.from_scene(scene)
+    table = ElementTable.from_scene(scene)
     everything, _, _ = rays.batch(np.arange(rays.n))
     cache = RayCache.from_rounds(
         cache_distributions(trace_rounds(scene, table, model, everything), table, model, everything)

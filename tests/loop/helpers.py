@@ -9,9 +9,9 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.effects import parse_effects
+from mi_lidar.core.problem import Problem, fit_parts
 from mi_lidar.core.rays import LogRays
 from mi_lidar.loop.catalog import candidate
-from mi_lidar.loop.fit import Problem, chunk_log_likelihood, fit_effects
 from mi_lidar.scene.loading import load_scene, scene_sensor_model
 from mi_lidar.scene.simulation import simulate
 
@@ -49,14 +49,14 @@ def recover(scene, model, log, name: str, steps: int = 120, **start):
     effect = candidate(name, log.shape[1], 8, **start)
     fitted = dataclasses.replace(model, effects=model.effects + [effect])
     rays = LogRays.from_log(log)
-    fit_effects(fitted, Problem.build(scene, rays, np.arange(rays.n)), [effect], steps=steps)
+    fit_parts(fitted, Problem.build(scene, rays), [effect], steps=steps)
     return effect, fitted
 
 
 def mean_ll(scene, model, log) -> float:
     """Mean log-likelihood per ray (nats) of ``log`` under ``model``."""
     rays = LogRays.from_log(log)
-    return float(Problem.build(scene, rays, np.arange(rays.n)).log_likelihood(model).mean())
+    return float(Problem.build(scene, rays).log_likelihood(model).mean())
 
 
 def finite_difference_check(scene, model, log, effect, key: str, h: float, n_rays: int = 2000):
@@ -70,7 +70,7 @@ def finite_difference_check(scene, model, log, effect, key: str, h: float, n_ray
         effect.params[key] = mi.Float(v)
         if grad:
             dr.enable_grad(effect.params[key])
-        ll = dr.sum(chunk_log_likelihood(model, problem.table, problem.chunks[0]))
+        ll = dr.sum(problem.chunk_log_likelihood(model, problem.chunks[0]))
         if grad:
             dr.backward(ll)
             return float(dr.grad(effect.params[key])[0])

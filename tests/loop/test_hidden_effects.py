@@ -12,10 +12,10 @@ Candidate lists hold the hidden effect among decoys that could mimic it.
 import numpy as np
 import pytest
 
+from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import LogRays
 from mi_lidar.loop import diagnose
 from mi_lidar.loop.diagnose import split_rays
-from mi_lidar.loop.fit import Problem
 
 from .helpers import hidden_log, room, street
 

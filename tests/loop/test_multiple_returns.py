@@ -18,7 +18,9 @@ import pytest
 
 from mi_lidar.core.effects import parse_effects
 from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.likelihood import mixture_log_likelihood
 from mi_lidar.core.rays import LogRays
+from mi_lidar.core.trace import trace_rounds
 from mi_lidar.scene.simulation import simulate
 
 from .helpers import room
@@ -32,16 +34,19 @@ def pit(scene, model, logs) -> tuple[np.ndarray, np.ndarray]:
     rays = LogRays.from_log(logs[0])
     batch, _, hit = rays.batch()
     table = ElementTable.from_scene(scene)
-    records = model.trace_segments(scene, table, batch)
-    first = records[0]
-    p_first = np.asarray(dr.gather(mi.Float, table.p_hit, first["element"])) * np.asarray(first["valid"])
+    rounds = trace_rounds(scene, table, model, batch)
+    first = rounds.rounds[0]  # sub-rays: lane j n + i is sub-ray j of beam i
+    p_first = np.zeros(rounds.width)
+    p_first[np.asarray(first.ray)] = np.asarray(dr.gather(mi.Float, table.p_hit, first.element))
     opaque = np.all(p_first.reshape(-1, rays.n) == 1.0, axis=0)
     ranges = np.stack([log.ranges.ravel() for log in logs])
     grid = np.arange(ranges.min() - 0.2, ranges.max() + 0.2, 0.001)
     density = np.stack(
         [
             np.exp(
-                np.asarray(model.log_likelihood(table, batch, records, mi.Float(np.full(rays.n, g, np.float32)), hit))
+                np.asarray(
+                    mixture_log_likelihood(table, model, batch, rounds, mi.Float(np.full(rays.n, g, np.float32)), hit)
+                )
             )
             for g in grid
         ]

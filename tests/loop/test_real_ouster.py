@@ -61,16 +61,17 @@ def test_column_log_keeps_the_rays_of_its_columns():
 def test_development_path_on_the_real_frame_falls_and_ends_finite(shared_data):
     """The path of docs/loop_results.md (default 1,500 Adam steps per fit; 300 leave a refit short of its optimum).
 
-    Measured: test NLL inf, 6.614, 6.060, 5.574, 5.517, 5.514 nats/ray; every finite row may rise
-    by at most 0.005 nats on the calibration and the test columns.
+    The bare mesh cannot produce the returns that have no face on their ray: under the one floor
+    each costs 20.7 nats, so the first row is the worst; every later row may rise by at most 0.005
+    nats on the calibration and the test columns.
     """
     from mi_lidar.io import read_any
 
     log = read_any(shared_data / "ouster" / "OS-1-32-G_v2.1.1_1024x10.pcap")
     path = ouster_development_path(log)
     nll, train = [row.nll for row in path.rows], [row.train_nll for row in path.rows]
-    assert not np.isfinite(nll[0]) and path.rows[0].fitted["test returns with no face on their ray"] > 1000
-    assert all(np.isfinite(nll[1:]))
+    assert path.rows[0].fitted["test returns at the floor (no face near their range)"] > 1000 and nll[0] > nll[1]
+    assert all(np.isfinite(nll))
     for values in (nll, train):
         assert all(b <= a + 0.005 for a, b in zip(values[1:], values[2:]))
     assert nll[-1] < nll[1] - 0.5  # proportional noise and per-face hit probabilities

@@ -3,15 +3,7 @@
 Importing this package registers every catalog effect (each module ends with ``@register_effect``).
 """
 
-from mi_lidar.core.effects.base import (
-    EFFECTS,
-    Effect,
-    FootprintEffect,
-    ParamSpec,
-    make_effect,
-    parse_effects,
-    register_effect,
-)
+from mi_lidar.core.effects.base import EFFECTS, Effect, FootprintEffect, make_effect, parse_effects, register_effect
 from mi_lidar.core.effects.beam_offsets import BeamOffsets
 from mi_lidar.core.effects.extrinsics import Extrinsics
 from mi_lidar.core.effects.incidence_dropout import IncidenceDropout
@@ -26,6 +18,7 @@ from mi_lidar.core.effects.range_bias import RangeBias
 from mi_lidar.core.effects.range_dropout import RangeDropout
 from mi_lidar.core.effects.range_noise import RangeNoise
 from mi_lidar.core.effects.range_scale import RangeScale
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 
 __all__ = [

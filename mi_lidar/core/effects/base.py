@@ -4,8 +4,9 @@ An effect has named parameters and acts through up to three hooks of the one sim
 (:mod:`mi_lidar.core.sensor_model`):
 
 * :meth:`Effect.perturb_rays` edits the rays before tracing (angle offsets, extrinsics);
-* :meth:`Effect.modify_segment` edits each element a ray meets: its hit probability ``p`` and
-  the Gaussian ``N(mean, sigma^2)`` of the range it returns (noise laws, dropout, bias, scale);
+* :meth:`Effect.modify_segment` edits each element a ray meets: its interception probability
+  ``p``, the probability ``drop`` that an intercepted beam is lost, and the location ``mean`` and
+  Gaussian scale ``sigma`` of the range it returns (noise laws, dropout, bias, scale);
 * :meth:`Effect.finalize_range` post-processes a sampled range (quantization), with
   :meth:`Effect.likelihood_segment` as its continuous stand-in in the likelihood;
 * :meth:`Effect.virtual_segments` adds elements met before the scene (outliers, clutter);
@@ -14,16 +15,21 @@ An effect has named parameters and acts through up to three hooks of the one sim
   and :meth:`Effect.combine_log_likelihood` its likelihood from their return moments.
 
 The **sampler** of an effect is the core's sampling loop run with these hooks; its
-**log-likelihood** is the core's pass-through mixture ``-log sum_k P_k N(z; mean_k, sigma_k)``
-evaluated on the same modified segments, so simulation and calibration always agree. Parameters
-are Dr.Jit arrays: enable gradients on them (``dr.enable_grad``) to fit them.
+**log-likelihood** is the core's pass-through mixture (:mod:`mi_lidar.core.likelihood`) evaluated on
+the same modified segments, so simulation and calibration always agree. Parameters are declared
+with :class:`~mi_lidar.core.params.ParamSpec` (bounds, per-beam or per-label values, fitting hints)
+and held as Dr.Jit arrays: enable gradients on them (``dr.enable_grad``) to fit them.
+
+Dropouts stop the beam by default (``mode=stop``: an intercepted beam is lost, nothing behind it is
+revealed, as real sensors do); ``mode=pass`` lets a dropped beam pass on to what lies behind, the
+behaviour of a permeable element.
 
 Writing a new effect::
 
     class RangeOffset(Effect):
         '''Constant range offset (m).'''
         name = "range_offset"
-        specs = {"offset": ParamSpec(0.0, "m", "added to every return")}
+        specs = {"offset": ParamSpec(0.0, "m", "added to every return", lower=-5, upper=5, fit_scale=0.01)}
 
         def modify_segment(self, seg, rays):
             return seg.with_(mean=seg.mean + self["offset"])
@@ -35,44 +41,13 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass
-from typing import ClassVar
 
-import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.params import Parametrized, parse_calls
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
-
-
-@dataclass(frozen=True)
-class ParamSpec:
-    """Declaration of one effect parameter.
-
-    Attributes:
-        default: default value (scalar) or None when the parameter is required.
-        unit: physical unit, for documentation and reports.
-        doc: one-line meaning.
-        lower, upper: allowed closed range (checked on construction).
-        per_beam: the parameter holds one value per beam (a list in XML).
-        fit_lower: lower bound kept while fitting, when above ``lower``: a scale whose variance is
-            quadratic in it (a noise sigma) has zero gradient at 0, so an optimizer that reaches
-            0 would stay there whatever the data say.
-    """
-
-    default: float | None
-    unit: str
-    doc: str
-    lower: float = -np.inf
-    upper: float = np.inf
-    per_beam: bool = False
-    fit_lower: float | None = None
-
-    @property
-    def fit_bound(self) -> float:
-        """The lower bound of fitted values: ``fit_lower`` if set, else ``lower``."""
-        return self.lower if self.fit_lower is None else max(self.lower, self.fit_lower)
 
 
 @dataclass
@@ -94,49 +69,10 @@ class SubRayMoments:
     m2: mi.Float
 
 
-class Effect:
+class Effect(Parametrized):
     """Base class of physical effects; see the module docstring for the contract."""
 
-    name: ClassVar[str] = ""
-    specs: ClassVar[dict[str, ParamSpec]] = {}
-    options: ClassVar[dict[str, tuple[str, ...]]] = {}
-
-    def __init__(self, **values):
-        unknown = sorted(set(values) - set(self.specs) - set(self.options))
-        if unknown:
-            allowed = sorted(set(self.specs) | set(self.options))
-            raise ParameterError(f"effect {self.name!r}: unknown parameter(s) {unknown}; allowed: {allowed}")
-        self.choices = {}
-        for key, allowed in self.options.items():
-            choice = str(values.get(key, allowed[0]))
-            if choice not in allowed:
-                raise ParameterError(f"effect {self.name!r}: {key}={choice!r}; choose one of {list(allowed)}")
-            self.choices[key] = choice
-        self.params: dict[str, mi.Float] = {}
-        for key, spec in self.specs.items():
-            raw = values.get(key, spec.default)
-            if raw is None:
-                raise ParameterError(f"effect {self.name!r}: parameter {key!r} ({spec.doc}, {spec.unit}) is required")
-            array = np.atleast_1d(np.asarray(raw, dtype=np.float64))
-            bad = ~np.isfinite(array) | (array < spec.lower) | (array > spec.upper)
-            if np.any(bad):
-                raise ParameterError(
-                    f"effect {self.name!r}: {key}={array[bad][0]:g} {spec.unit} is outside "
-                    f"[{spec.lower:g}, {spec.upper:g}] ({spec.doc})"
-                )
-            self.params[key] = mi.Float(array.astype(np.float32))
-
-    def __getitem__(self, key: str) -> mi.Float:
-        return self.params[key]
-
-    def per_beam(self, key: str, beam: mi.UInt32) -> mi.Float:
-        """Value of per-beam parameter ``key`` for each lane's beam (the last value repeats)."""
-        values = self.params[key]
-        return dr.gather(mi.Float, values, dr.minimum(beam, dr.width(values) - 1))
-
-    def parameters(self) -> dict[str, mi.Float]:
-        """Named parameters (Dr.Jit arrays) for traversal and fitting."""
-        return self.params
+    kind = "effect"
 
     def perturb_rays(self, rays: RayBatch) -> RayBatch:
         """Edit rays before tracing (default: unchanged)."""
@@ -162,15 +98,29 @@ class Effect:
         """Fan each beam out into sub-rays (default: None, one ray per beam; see :class:`FootprintEffect`)."""
         return None
 
-    def describe(self) -> str:
-        """``name(key=value, ...)``: the effect as written in XML or on the command line."""
-        parts = [f"{k}={v}" for k, v in self.choices.items()]
-        for key, value in self.params.items():
-            array = np.asarray(value)
-            parts.append(
-                f"{key}={array[0]:.6g}" if array.size == 1 else f"{key}=[{' '.join(f'{x:.6g}' for x in array)}]"
-            )
-        return f"{self.name}({', '.join(parts)})"
+
+class DropoutEffect(Effect):
+    """An effect that keeps each intercepted beam with a probability ``keep`` and loses it otherwise.
+
+    Subclasses implement :meth:`keep`. Option ``mode`` says what a dropped beam does:
+
+    * ``stop`` (default): the beam is lost at the element: no return, and nothing behind it is
+      revealed (``drop = 1 - (1 - drop) keep``), as with a dark, specular or grazing surface;
+    * ``pass``: the element lets the beam pass to what lies behind (``p = p keep``), as a
+      permeable element does.
+    """
+
+    options = {"mode": ("stop", "pass")}
+
+    @abc.abstractmethod
+    def keep(self, seg: Segment, rays: RayBatch) -> mi.Float:
+        """Probability that an intercepted beam survives this effect, per lane."""
+
+    def modify_segment(self, seg: Segment, rays: RayBatch) -> Segment:
+        keep = self.keep(seg, rays)
+        if self.choices["mode"] == "pass":
+            return seg.with_(p=seg.p * keep)
+        return seg.with_(drop=1.0 - (1.0 - seg.drop) * keep)
 
 
 class FootprintEffect(Effect, metaclass=abc.ABCMeta):
@@ -235,45 +185,10 @@ def make_effect(name: str, **values) -> Effect:
     return EFFECTS[name](**values)
 
 
-def _parse_value(text: str):
-    text = text.strip()
-    if text.startswith("[") and text.endswith("]"):
-        return [float(x) for x in text[1:-1].replace(",", " ").split()]
-    try:
-        return float(text)
-    except ValueError:
-        return text
-
-
 def parse_effects(spec: str) -> list[Effect]:
     """Parse ``"name(key=value, key=[v1 v2]), other(...)"`` into effect instances.
 
-    This is the syntax of the integrator's ``effects`` property in XML and of ``--effect`` on
-    the command line. An empty string gives no effects.
+    This is the syntax of the integrator's ``effects`` property in XML and of ``--effect`` on the
+    command line. An empty string gives no effects.
     """
-    effects, rest = [], spec.strip()
-    while rest:
-        name, sep, tail = rest.partition("(")
-        name = name.strip().strip(",;").strip()
-        if not sep:
-            effects.append(make_effect(name))
-            break
-        body, closing, rest = tail.partition(")")
-        if not closing:
-            raise ParameterError(f"effects {spec!r}: missing ')' after {name}(")
-        values, depth, current = {}, 0, ""
-        for char in body + ",":
-            depth += char == "["
-            depth -= char == "]"
-            if char == "," and depth == 0:
-                if current.strip():
-                    key, eq, value = current.partition("=")
-                    if not eq:
-                        raise ParameterError(f"effects {spec!r}: expected key=value in {current.strip()!r}")
-                    values[key.strip()] = _parse_value(value)
-                current = ""
-            else:
-                current += char
-        effects.append(make_effect(name, **values))
-        rest = rest.strip().lstrip(",;").strip()
-    return effects
+    return parse_calls(spec, make_effect, "effects")

@@ -5,7 +5,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
+from mi_lidar.core.effects.base import Effect, register_effect
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 
 
@@ -47,10 +48,22 @@ class BeamOffsets(Effect):
     name = "beam_offsets"
     specs = {
         "elevation": ParamSpec(
-            0.0, "rad", "elevation offset of each beam (positive up)", lower=-0.2, upper=0.2, per_beam=True
+            0.0,
+            "rad",
+            "elevation offset of each beam (positive up)",
+            lower=-0.2,
+            upper=0.2,
+            per_beam=True,
+            fit_scale=0.002,
         ),
         "azimuth": ParamSpec(
-            0.0, "rad", "azimuth offset of each beam (counter-clockwise)", lower=-0.2, upper=0.2, per_beam=True
+            0.0,
+            "rad",
+            "azimuth offset of each beam (counter-clockwise)",
+            lower=-0.2,
+            upper=0.2,
+            per_beam=True,
+            fit_scale=0.002,
         ),
     }
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
+from mi_lidar.core.effects.base import Effect, register_effect
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 
 
@@ -42,12 +43,19 @@ class Extrinsics(Effect):
     specs = {
         **{
             f"r{axis}": ParamSpec(
-                0.0, "rad", f"rotation vector, {axis} component (sensor frame)", lower=-0.5, upper=0.5
+                0.0,
+                "rad",
+                f"rotation vector, {axis} component (sensor frame)",
+                lower=-0.5,
+                upper=0.5,
+                fit_scale=0.005,  # about 0.3 deg: a mounting error converges from zero in tenths of a degree
             )
             for axis in "xyz"
         },
         **{
-            f"t{axis}": ParamSpec(0.0, "m", f"translation, {axis} component (sensor frame)", lower=-10.0, upper=10.0)
+            f"t{axis}": ParamSpec(
+                0.0, "m", f"translation, {axis} component (sensor frame)", lower=-10.0, upper=10.0, fit_scale=0.02
+            )
             for axis in "xyz"
         },
     }

@@ -2,30 +2,76 @@
 
 from __future__ import annotations
 
-import drjit as dr
+import math
 
-from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
+import drjit as dr
+import mitsuba as mi
+
+from mi_lidar.core.effects.base import DropoutEffect, register_effect
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
 
 @register_effect
-class IncidenceDropout(Effect):
-    """Scale each element's hit probability by ``cos(delta)^gamma``.
+class IncidenceDropout(DropoutEffect):
+    """Beams lost at grazing incidence: keep probability a function of the incidence angle.
 
-    ``delta`` is the angle between the beam and the surface normal (``seg.cos_incidence``). A
-    Lambertian target returns power proportional to ``cos(delta)``; a detector whose threshold
-    sits in the tail of the returned power drops beams faster, which ``gamma > 1`` models.
-    ``gamma = 0`` disables the effect. Differentiable in ``gamma``.
+    ``delta`` is the angle between the beam and the surface normal (``seg.cos_incidence``). Two laws:
 
-    Example: ``incidence_dropout(gamma=2)``: a beam at 60 deg keeps 25 % of its hits.
+    * ``law=cos`` (default): keep ``cos(delta)^gamma``. A Lambertian target returns power
+      proportional to ``cos(delta)``; a detector whose threshold sits in the tail of the returned
+      power drops beams faster, which ``gamma > 1`` models. ``gamma = 0`` disables it.
+    * ``law=logistic``: drop ``1 / (1 + exp(-(delta - angle50) / width))`` with ``delta``, ``angle50``
+      and ``width`` in degrees: a sensor that loses beams beyond a sharp angle (half of them at
+      ``angle50``, from 12 % to 88 % over ``4 width``).
+
+    Dropped beams stop (``mode=stop``, default) or pass on (``mode=pass``), see
+    :class:`~mi_lidar.core.effects.base.DropoutEffect`. Differentiable in every parameter.
+
+    Examples: ``incidence_dropout(gamma=2)``: a beam at 60 deg keeps 25 %;
+    ``incidence_dropout(law=logistic, angle50=70, width=3)``.
     """
 
     name = "incidence_dropout"
-    specs = {"gamma": ParamSpec(0.0, "1", "exponent of cos(incidence) in the keep probability", lower=0.0, upper=50.0)}
-    fit_scales = {"gamma": 1.0}
-    fit_start = {"gamma": 0.3}
+    options = {"law": ("cos", "logistic"), "mode": ("stop", "pass")}
+    variant_options = ("law",)
+    specs = {
+        "gamma": ParamSpec(
+            0.0,
+            "1",
+            "exponent of cos(incidence) in the keep probability",
+            lower=0.0,
+            upper=50.0,
+            fit_start=0.3,
+            fit_scale=1.0,
+            only={"law": ("cos",)},
+        ),
+        "angle50": ParamSpec(
+            75.0,
+            "deg",
+            "incidence angle at which half the beams are lost",
+            lower=0.0,
+            upper=90.0,
+            fit_start=75.0,
+            fit_scale=5.0,
+            only={"law": ("logistic",)},
+        ),
+        "width": ParamSpec(
+            5.0,
+            "deg",
+            "width of the logistic transition",
+            lower=0.1,
+            upper=45.0,
+            fit_start=5.0,
+            fit_scale=1.0,
+            only={"law": ("logistic",)},
+        ),
+    }
 
-    def modify_segment(self, seg: Segment, rays: RayBatch) -> Segment:
+    def keep(self, seg: Segment, rays: RayBatch) -> mi.Float:
         cos = dr.clip(seg.cos_incidence, 1e-4, 1.0)
-        return seg.with_(p=seg.p * dr.exp(self["gamma"] * dr.log(cos)))
+        if self.choices["law"] == "cos":
+            return dr.exp(self["gamma"] * dr.log(cos))
+        delta = dr.acos(cos) * (180.0 / math.pi)
+        return 1.0 - 1.0 / (1.0 + dr.exp(-(delta - self["angle50"]) / self["width"]))

@@ -7,8 +7,9 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.effects.base import FootprintEffect, ParamSpec, SubRayMoments, register_effect
+from mi_lidar.core.effects.base import FootprintEffect, SubRayMoments, register_effect
 from mi_lidar.core.effects.beam_offsets import offset_direction
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 
 # Sub-ray pattern of the footprint: (elevation, azimuth) offsets in units of ``divergence``.
@@ -48,13 +49,18 @@ class MixedPixels(FootprintEffect):
     name = "mixed_pixels"
     specs = {
         "divergence": ParamSpec(
-            0.0, "rad", "angle between the beam axis and its outer sub-rays", lower=0.0, upper=0.05
+            0.0,
+            "rad",
+            "angle between the beam axis and its outer sub-rays",
+            lower=0.0,
+            upper=0.05,
+            fit_start=0.001,
+            fit_scale=0.001,
         ),
-        "edge_weight": ParamSpec(0.15, "1", "energy share of each of the four outer sub-rays", lower=0.0, upper=0.25),
+        "edge_weight": ParamSpec(
+            0.15, "1", "energy share of each of the four outer sub-rays", lower=0.0, upper=0.25, fit=False
+        ),
     }
-    fit_scales = {"divergence": 0.001}
-    fit_start = {"divergence": 0.001}
-    fit_exclude = ("edge_weight",)
 
     def footprint(self, rays: RayBatch) -> tuple[RayBatch, mi.Float]:
         n, m = rays.width, len(PATTERN)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
+from mi_lidar.core.effects.base import Effect, register_effect
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 
 
@@ -36,17 +37,19 @@ class MotionDistortion(Effect):
     name = "motion_distortion"
     specs = {
         **{
-            f"v{a}": ParamSpec(0.0, "m/s", f"linear velocity along sensor {a}", lower=-100.0, upper=100.0)
+            f"v{a}": ParamSpec(
+                0.0, "m/s", f"linear velocity along sensor {a}", lower=-100.0, upper=100.0, fit_scale=1.0
+            )
             for a in "xyz"
         },
         **{
-            f"w{a}": ParamSpec(0.0, "rad/s", f"angular velocity about sensor {a}", lower=-20.0, upper=20.0)
+            f"w{a}": ParamSpec(
+                0.0, "rad/s", f"angular velocity about sensor {a}", lower=-20.0, upper=20.0, fit_scale=0.2
+            )
             for a in "xyz"
         },
-        "period": ParamSpec(0.1, "s", "sweep period (sweeps start at its multiples)", lower=1e-6, upper=1e3),
+        "period": ParamSpec(0.1, "s", "sweep period (sweeps start at its multiples)", lower=1e-6, upper=1e3, fit=False),
     }
-    fit_scales = {**{f"v{a}": 1.0 for a in "xyz"}, **{f"w{a}": 0.2 for a in "xyz"}}
-    fit_exclude = ("period",)
 
     def perturb_rays(self, rays: RayBatch) -> RayBatch:
         period = self["period"]

@@ -5,8 +5,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.effects.base import ParamSpec, SubRayMoments, register_effect
+from mi_lidar.core.effects.base import SubRayMoments, register_effect
 from mi_lidar.core.effects.mixed_pixels import LOG_SQRT_2PI, MIN_VARIANCE, PATTERN, MixedPixels
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.segment import normal_cdf
 
 
@@ -39,11 +40,13 @@ class MultipleReturns(MixedPixels):
 
     name = "multiple_returns"
     options = {"mode": ("first", "strongest", "last")}
+    variant_options = ("mode",)
     specs = {
         **MixedPixels.specs,
-        "separation": ParamSpec(0.3, "m", "echoes closer than this merge (strongest mode)", lower=0.0, upper=10.0),
+        "separation": ParamSpec(
+            0.3, "m", "echoes closer than this merge (strongest mode)", lower=0.0, upper=10.0, fit=False
+        ),
     }
-    fit_exclude = ("edge_weight", "separation")
 
     def combine(self, sub: dict, weight: mi.Float, n: int) -> dict:
         m, mode = len(PATTERN), self.choices["mode"]

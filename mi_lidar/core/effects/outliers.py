@@ -5,7 +5,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
+from mi_lidar.core.effects.base import Effect, register_effect
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import SURFACE, Segment
 
@@ -34,14 +35,17 @@ class Outliers(Effect):
 
     name = "outliers"
     specs = {
-        "p_near": ParamSpec(0.0, "1", "probability of a near-clutter return", lower=0.0, upper=1.0),
-        "near_scale": ParamSpec(2.0, "m", "scale of the half-normal near-clutter range", lower=1e-3, upper=1e3),
-        "p_uniform": ParamSpec(0.0, "1", "probability of a uniform random return", lower=0.0, upper=1.0),
-        "uniform_max": ParamSpec(80.0, "m", "upper end of the uniform random range", lower=1e-3, upper=1e4),
+        "p_near": ParamSpec(
+            0.0, "1", "probability of a near-clutter return", lower=0.0, upper=1.0, fit_start=0.01, fit_scale=0.02
+        ),
+        "near_scale": ParamSpec(
+            2.0, "m", "scale of the half-normal near-clutter range", lower=1e-3, upper=1e3, fit_scale=0.5
+        ),
+        "p_uniform": ParamSpec(
+            0.0, "1", "probability of a uniform random return", lower=0.0, upper=1.0, fit_start=0.005, fit_scale=0.01
+        ),
+        "uniform_max": ParamSpec(80.0, "m", "upper end of the uniform random range", lower=1e-3, upper=1e4, fit=False),
     }
-    fit_scales = {"p_near": 0.02, "near_scale": 0.5, "p_uniform": 0.01}
-    fit_start = {"p_near": 0.01, "p_uniform": 0.005}
-    fit_exclude = ("uniform_max",)
 
     def virtual_segments(self, rays: RayBatch) -> list[Segment]:
         """The near-clutter and random-return elements, one lane per ray."""

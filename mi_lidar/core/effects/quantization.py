@@ -5,7 +5,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
+from mi_lidar.core.effects.base import Effect, register_effect
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
@@ -27,9 +28,11 @@ class Quantization(Effect):
     """
 
     name = "quantization"
-    specs = {"step": ParamSpec(0.01, "m", "range resolution of the sensor", lower=0.0, upper=1.0)}
-    fit_scales = {"step": 0.01}
-    fit_start = {"step": 0.005}
+    specs = {
+        "step": ParamSpec(
+            0.01, "m", "range resolution of the sensor", lower=0.0, upper=1.0, fit_start=0.005, fit_scale=0.01
+        )
+    }
 
     def finalize_range(self, z: mi.Float, rays: RayBatch) -> mi.Float:
         step = self["step"]

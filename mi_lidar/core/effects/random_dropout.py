@@ -2,26 +2,38 @@
 
 from __future__ import annotations
 
-from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
+import mitsuba as mi
+
+from mi_lidar.core.effects.base import DropoutEffect, register_effect
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
 
 @register_effect
-class RandomDropout(Effect):
-    """Scale each element's hit probability by ``1 - p_drop``.
+class RandomDropout(DropoutEffect):
+    """Lose a fraction ``p_drop`` of the intercepted beams, whatever the range or incidence.
 
     The classic beam model's max-range component (thesis ch. 2): with probability ``p_drop`` a
     beam that meets a surface reports no return (specular or dark targets, glass, electronics),
-    whatever the range or incidence. ``p_drop = 0`` disables the effect. Differentiable.
+    whatever the range or incidence. ``p_drop = 0`` disables the effect. Differentiable. Dropped
+    beams stop (``mode=stop``, default) or pass on (``mode=pass``).
 
     Example: ``random_dropout(p_drop=0.02)``: 2 % of the beams that meet an opaque wall are misses.
     """
 
     name = "random_dropout"
-    specs = {"p_drop": ParamSpec(0.0, "1", "probability that a surface does not return the beam", lower=0.0, upper=1.0)}
-    fit_scales = {"p_drop": 0.01}
-    fit_start = {"p_drop": 0.01}
+    specs = {
+        "p_drop": ParamSpec(
+            0.0,
+            "1",
+            "probability that a surface does not return the beam",
+            lower=0.0,
+            upper=1.0,
+            fit_start=0.01,
+            fit_scale=0.01,
+        )
+    }
 
-    def modify_segment(self, seg: Segment, rays: RayBatch) -> Segment:
-        return seg.with_(p=seg.p * (1.0 - self["p_drop"]))
+    def keep(self, seg: Segment, rays: RayBatch) -> mi.Float:
+        return 1.0 - self["p_drop"] + 0.0 * seg.nominal

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
+from mi_lidar.core.effects.base import Effect, register_effect
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
@@ -20,7 +21,9 @@ class RangeBias(Effect):
 
     name = "range_bias"
     specs = {
-        "bias": ParamSpec(0.0, "m", "offset added to every return of the beam", lower=-5.0, upper=5.0, per_beam=True)
+        "bias": ParamSpec(
+            0.0, "m", "offset added to every return of the beam", lower=-5.0, upper=5.0, per_beam=True, fit_scale=0.01
+        )
     }
 
     def modify_segment(self, seg: Segment, rays: RayBatch) -> Segment:

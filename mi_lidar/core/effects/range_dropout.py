@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import drjit as dr
+import mitsuba as mi
 
-from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
+from mi_lidar.core.effects.base import DropoutEffect, register_effect
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
@@ -12,25 +14,26 @@ REFERENCE_RANGE = 10.0  # m: range at which ``rate`` is the negative log keep pr
 
 
 @register_effect
-class RangeDropout(Effect):
-    """Scale each element's hit probability by ``exp(-rate * (r / 10 m)^power)``.
+class RangeDropout(DropoutEffect):
+    """Keep each intercepted beam with probability ``exp(-rate * (r / 10 m)^power)``.
 
     ``r`` is the element's nominal range (m). ``rate`` is the negative log keep probability at
     10 m (``rate = 0.1``: 90.5 % kept at 10 m); ``power`` sets how fast dropout grows with range
     (2 for a return power falling as ``1 / r^2`` against a noisy threshold). ``rate = 0``
-    disables the effect. Both parameters are differentiable.
+    disables the effect. Both parameters are differentiable. Dropped beams stop (``mode=stop``,
+    default) or pass on (``mode=pass``).
 
     Example: ``range_dropout(rate=0.2, power=2)``: keeps 82 % at 10 m and 45 % at 20 m.
     """
 
     name = "range_dropout"
     specs = {
-        "rate": ParamSpec(0.0, "1", "negative log keep probability at 10 m", lower=0.0, upper=100.0),
-        "power": ParamSpec(2.0, "1", "growth exponent of the dropout with range", lower=0.25, upper=8.0),
+        "rate": ParamSpec(
+            0.0, "1", "negative log keep probability at 10 m", lower=0.0, upper=100.0, fit_start=0.05, fit_scale=0.1
+        ),
+        "power": ParamSpec(2.0, "1", "growth exponent of the dropout with range", lower=0.25, upper=8.0, fit_scale=0.5),
     }
-    fit_scales = {"rate": 0.1, "power": 0.5}
-    fit_start = {"rate": 0.05}
 
-    def modify_segment(self, seg: Segment, rays: RayBatch) -> Segment:
+    def keep(self, seg: Segment, rays: RayBatch) -> mi.Float:
         x = dr.maximum(seg.nominal, 1e-6) / REFERENCE_RANGE
-        return seg.with_(p=seg.p * dr.exp(-self["rate"] * dr.exp(self["power"] * dr.log(x))))
+        return dr.exp(-self["rate"] * dr.exp(self["power"] * dr.log(x)))

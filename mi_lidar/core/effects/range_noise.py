@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import drjit as dr
 
-from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
+from mi_lidar.core.effects.base import Effect, register_effect
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
@@ -22,19 +23,23 @@ class RangeNoise(Effect):
 
     name = "range_noise"
     options = {"law": ("constant", "proportional", "physics")}
+    variant_options = ("law",)
     specs = {
-        "sigma0": ParamSpec(0.0, "m", "constant part of the noise", lower=0.0, fit_lower=1e-4),
-        "k": ParamSpec(0.0, "m/m (proportional) or 1 (physics K)", "range-dependent coefficient", lower=0.0),
+        "sigma0": ParamSpec(
+            0.0, "m", "constant part of the noise", lower=0.0, fit_lower=1e-4, fit_start=0.002, fit_scale=0.01
+        ),
+        # k differs by orders of magnitude between laws: 0.01 (1 cm per m) for the proportional law,
+        # 1e-4 for the physics law's K (sigma 1 cm at 1 m, normal incidence).
+        "k": ParamSpec(
+            0.0,
+            "m/m (proportional) or 1 (physics K)",
+            "range-dependent coefficient",
+            lower=0.0,
+            fit_start=1e-4,
+            fit_scale=lambda effect: 1e-4 if effect.choices["law"] == "physics" else 0.01,
+            only={"law": ("proportional", "physics")},
+        ),
     }
-
-    @property
-    def fit_scales(self) -> dict:
-        """Typical sizes of the parameters (the loop's fitting steps are measured in them).
-
-        ``k`` differs by orders of magnitude between laws: 0.01 (1 cm per m) for the
-        proportional law, 1e-4 for the physics law's K (sigma 1 cm at 1 m, normal incidence).
-        """
-        return {"sigma0": 0.01, "k": 1e-4 if self.choices["law"] == "physics" else 0.01}
 
     def extra_variance(self, seg: Segment):
         """Variance (m^2) this law adds to each segment."""

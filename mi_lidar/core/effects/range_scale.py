@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from mi_lidar.core.effects.base import Effect, ParamSpec, register_effect
+from mi_lidar.core.effects.base import Effect, register_effect
+from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
@@ -18,7 +19,9 @@ class RangeScale(Effect):
     """
 
     name = "range_scale"
-    specs = {"scale": ParamSpec(1.0, "1", "factor applied to every returned range", lower=0.5, upper=2.0)}
+    specs = {
+        "scale": ParamSpec(1.0, "1", "factor applied to every returned range", lower=0.5, upper=2.0, fit_scale=0.002)
+    }
 
     def modify_segment(self, seg: Segment, rays: RayBatch) -> Segment:
         s = self["scale"]

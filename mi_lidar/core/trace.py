@@ -1,25 +1,29 @@
-"""Compact trace records: the elements met along each ray, stored only where a ray met one.
+"""The one tracer: the elements met along each ray, stored compactly, only where a ray met one.
 
-Calibration traces rays once without gradients and rebuilds the segments with gradients at every
-step. A full-width record (one lane per ray and round, ``max_segments`` rounds) spends most of its
-lanes on rays that met nothing in that round; here every round keeps only its *entries*, the rays
-that met an element in it:
+The likelihood traces rays once without gradients and rebuilds the segments with gradients as
+often as it needs (every step of a fit). A full-width record (one lane per ray and round,
+``max_segments`` rounds) would spend most of its lanes on rays that met nothing in that round; here
+every round keeps only its *entries*, the rays that met an element in it:
 
 * :class:`Round` holds, per entry, the ray's lane in the batch (``ray``), where the same ray sits in
   the previous round (``prev``; in round 0 its batch lane), whether the ray meets no further
-  element (``last``), the element and the traced nominal range and incidence; optionally the
-  element's return distribution before effects (``cached``: mean, sigma, lo, hi), when nothing
+  element (``last``), the element, the traced nominal range, incidence, point and normal; optionally
+  the element's return distribution before effects (``cached``: mean, sigma, lo, hi), when nothing
   fitted moves rays or geometry so that it can be computed once;
-* :func:`trace_rounds` traces a batch of rays round by round, compacting the live rays after every
-  round and stopping when none is left;
-* :class:`RayCache` stores the rounds of a whole part of a log ray by ray (the entries of ray
-  ``i`` are ``start[i] .. start[i] + count[i] - 1``, in round order) and cuts the :class:`Rounds`
-  of any batch of its rays out of them with a few numpy operations.
+* :func:`trace_rounds` traces a batch of rays round by round with Mitsuba, compacting the live rays
+  after every round and stopping when none is left (the sampler,
+  :meth:`~mi_lidar.core.sensor_model.SensorModel.simulate_rays`, walks the same rounds with
+  :func:`next_intersection` and draws as it goes);
+* :func:`rounds_from_segments` builds the same structure from segments traced by another tracer
+  (the grid ray march of planar logs, :mod:`mi_lidar.planar`);
+* :class:`RayCache` stores the rounds of a whole part of a log ray by ray (the entries of ray ``i``
+  are ``start[i] .. start[i] + count[i] - 1``, in round order) and cuts the :class:`Rounds` of any
+  batch of its rays out of them with a few numpy operations.
 
 The pass-through mixture is then a chain through the rounds
-(:func:`mi_lidar.calibration.likelihood.mixture_log_likelihood`): entry ``j`` of round ``k``
-reads the running log pass probability and log mixture of its ray from the previous round's
-arrays at ``prev[j]``, so every array stays as short as the round.
+(:func:`mi_lidar.core.likelihood.mixture_log_likelihood`): entry ``j`` of round ``k`` reads the
+running sums of its ray from the previous round's arrays at ``prev[j]``, so every array stays as
+short as the round.
 """
 
 from __future__ import annotations
@@ -32,10 +36,21 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import log_density
-from mi_lidar.core.sensor_model import RESTART_OFFSET, SensorModel
 
+RESTART_OFFSET = 1e-4  # m: a ray continues this far past the element it passed through
 CACHED_FIELDS = ("mean", "sigma", "lo", "hi")  # return distribution before effects, m
+
+
+def next_intersection(scene, table, start: mi.Point3f, origin: mi.Point3f, direction: mi.Vector3f, max_range: float):
+    """The next element along each ray from ``start``: ``(si, valid, element)``.
+
+    ``valid`` is False where the ray meets nothing within ``max_range`` (m, measured from
+    ``origin``). Rays are Lidar-ordered, so the intersection query is flagged coherent.
+    """
+    si = scene.ray_intersect(mi.Ray3f(start, direction), mi.RayFlags.Minimal, True)
+    nominal = dr.dot(si.p - origin, direction)
+    valid = si.is_valid() & (nominal <= max_range)
+    return si, valid, dr.select(valid, table.element_of(si), 0)
 
 
 @dataclass
@@ -49,12 +64,15 @@ class Round:
         element: global element index.
         nominal: traced nominal range, m.
         cos_incidence: traced |cos| of the incidence angle.
+        point, normal: traced intersection point (m) and shading normal (the tangent plane of
+            shapes whose geometry the element table does not hold).
         cached: optional ``(mean, sigma, lo, hi)`` (m) of the element's return distribution before
             effects, computed once without gradients (``sigma`` is used for ellipsoids only; surfaces
             read theirs from the table so that it can be fitted).
         log_density: optional log density (1/m) of the ray's measured range under the element's
             return distribution after effects, computed once (valid while only hit probabilities
             are fitted and no effect edits segments).
+        drop: with ``log_density``, the probability that the element loses the beam (computed once too).
     """
 
     ray: mi.UInt32
@@ -63,8 +81,11 @@ class Round:
     element: mi.UInt32
     nominal: mi.Float
     cos_incidence: mi.Float
+    point: mi.Point3f
+    normal: mi.Vector3f
     cached: tuple | None = None
     log_density: mi.Float | None = None
+    drop: mi.Float | None = None
 
     @property
     def width(self) -> int:
@@ -77,7 +98,7 @@ class Rounds:
     """The traced elements of a batch of rays, round by round.
 
     Attributes:
-        width: rays in the batch.
+        width: rays in the batch (sub-rays when the model fans beams out, see :func:`trace_rounds`).
         none: (width,) True for rays that met no element.
         rounds: the non-empty rounds, in order along the rays.
     """
@@ -92,35 +113,42 @@ class Rounds:
         return sum(r.width for r in self.rounds)
 
 
-def trace_rounds(scene, table, model: SensorModel, rays: RayBatch) -> Rounds:
+def traced_rays(model, rays: RayBatch) -> RayBatch:
+    """The rays ``model`` traces for ``rays``: after its ray perturbations, fanned out into sub-rays
+    when an effect spreads the beam (:meth:`~mi_lidar.core.sensor_model.SensorModel.fan_out`)."""
+    rays = model.prepare_rays(rays)
+    fan = model.fan_out(rays)
+    return rays if fan is None else fan[1]
+
+
+def trace_rounds(scene, table, model, rays: RayBatch) -> Rounds:
     """Trace up to ``model.max_segments`` elements along every ray, without gradients.
 
     Follows the sampler's rules (restart ``RESTART_OFFSET`` m past each element, nothing beyond
     ``max_range``). After every round only the rays that met an element are traced on; the trace
-    stops when none is left.
+    stops when none is left. The rays traced are :func:`traced_rays` of the batch: with a
+    footprint effect the rounds hold the ``m n`` sub-rays of the ``n`` beams.
 
     Args:
         scene: the loaded Mitsuba scene.
         table: its element table.
-        model: the sensor model (its effects' ray perturbations are applied first).
+        model: the sensor model.
         rays: the batch (world frame).
     """
-    n = rays.width
-    rounds = []
+    rounds: list[Round] = []
     with dr.suspend_grad():
-        rays = model.prepare_rays(rays)
+        rays = traced_rays(model, rays)
+        n = rays.width
         origin, direction = mi.Point3f(dr.detach(rays.origin)), mi.Vector3f(dr.detach(rays.direction))
         start = mi.Point3f(origin)
         lanes = dr.arange(mi.UInt32, n)  # batch lane of each live ray
         none = dr.full(mi.Bool, True, n)
         for k in range(model.max_segments):
             # ---------------- Next element along every live ray ----------------
-            si = scene.ray_intersect(mi.Ray3f(start, direction), mi.RayFlags.Minimal, True)
+            si, valid, element = next_intersection(scene, table, start, origin, direction, model.max_range)
             nominal = dr.dot(si.p - origin, direction)
-            valid = si.is_valid() & (nominal <= model.max_range)
-            element = table.element_of(si)
             cos_incidence = dr.abs(dr.dot(si.n, direction))
-            dr.eval(valid, element, nominal, cos_incidence, si.p)
+            dr.eval(valid, element, nominal, cos_incidence, si.p, si.n)
             if k == 0:
                 none = ~valid
             else:
@@ -138,18 +166,44 @@ def trace_rounds(scene, table, model: SensorModel, rays: RayBatch) -> Rounds:
                     element=dr.gather(mi.UInt32, element, keep),
                     nominal=dr.gather(mi.Float, nominal, keep),
                     cos_incidence=dr.gather(mi.Float, cos_incidence, keep),
+                    point=dr.gather(mi.Point3f, si.p, keep),
+                    normal=dr.gather(mi.Vector3f, mi.Vector3f(si.n), keep),
                 )
             )
             origin = dr.gather(mi.Point3f, origin, keep)
             direction = dr.gather(mi.Vector3f, direction, keep)
-            start = dr.gather(mi.Point3f, si.p, keep) + RESTART_OFFSET * direction
+            start = rounds[-1].point + RESTART_OFFSET * direction
             dr.eval(rounds[-1], origin, direction, start)
     return Rounds(width=n, none=none, rounds=rounds)
 
 
-def cache_distributions(
-    rounds: Rounds, table, model: SensorModel, rays: RayBatch, measured: mi.Float | None = None
+def rounds_from_segments(
+    start: np.ndarray, element: np.ndarray, nominal: np.ndarray, cos_incidence: np.ndarray
 ) -> Rounds:
+    """The :class:`Rounds` of rays whose elements another tracer found (CSR layout, numpy).
+
+    Args:
+        start: (N + 1,) offsets: the entries of ray ``i`` are ``start[i] .. start[i + 1] - 1``, in
+            order along the ray.
+        element: (E,) element index of every entry (into the table the segments are built from).
+        nominal: (E,) nominal range of every entry, m.
+        cos_incidence: (E,) |cos| of the incidence of every entry (NaN where unknown).
+    """
+    count = np.diff(np.asarray(start, np.int64))
+    cache = RayCache(
+        start=np.asarray(start[:-1], np.int64),
+        count=count,
+        element=mi.UInt32(aligned(np.asarray(element, np.uint32))),
+        nominal=mi.Float(aligned(np.asarray(nominal, np.float32))),
+        cos_incidence=mi.Float(aligned(np.asarray(cos_incidence, np.float32))),
+        point=None,
+        normal=None,
+        cached=None,
+    )
+    return cache.select(np.arange(len(count)))
+
+
+def cache_distributions(rounds: Rounds, table, model, rays: RayBatch, measured: mi.Float | None = None) -> Rounds:
     """``rounds`` with each entry's return distribution computed once (:attr:`Round.cached`).
 
     Valid while nothing fitted moves rays or geometry: the cached values are those of the current
@@ -158,7 +212,7 @@ def cache_distributions(
     Args:
         rounds, table, model, rays: the trace, the element table, the sensor model and the batch.
         measured: (B,) measured ranges (m); when given, the log density of each entry's measured
-            range after effects is cached too (:attr:`Round.log_density`).
+            range under the model's density after effects is cached too (:attr:`Round.log_density`).
     """
     out = []
     with dr.suspend_grad():
@@ -169,12 +223,13 @@ def cache_distributions(
                 r, dr.full(mi.Bool, True, r.width), r.element, sub.origin, sub.direction, model.range_sigma
             )
             cached = tuple(getattr(seg, f) for f in CACHED_FIELDS)
-            density = None
+            density = drop = None
             if measured is not None:
-                seg = model.likelihood_segment(model.apply_effects(seg, sub), sub)
-                density = log_density(seg, dr.gather(mi.Float, measured, r.ray))
-            dr.eval(cached, density)
-            out.append(replace(r, cached=cached, log_density=density))
+                seg = model.segment_law(seg, sub)
+                density = model.density.log_prob(seg, dr.gather(mi.Float, measured, r.ray), sub)
+                drop = seg.drop + dr.zeros(mi.Float, r.width)
+            dr.eval(cached, density, drop)
+            out.append(replace(r, cached=cached, log_density=density, drop=drop))
     return replace(rounds, rounds=out)
 
 
@@ -187,8 +242,9 @@ class RayCache:
         count: (N,) entries of each ray (elements it met).
         element: (E,) global element index of every entry.
         nominal, cos_incidence: (E,) traced nominal range (m) and |cos| of the incidence.
+        point, normal: (E,) traced points and normals (None for segments of another tracer).
         cached: optional ``(mean, sigma, lo, hi)`` arrays (E,) of :attr:`Round.cached`.
-        log_density: optional (E,) :attr:`Round.log_density`.
+        log_density, drop: optional (E,) :attr:`Round.log_density` and :attr:`Round.drop`.
     """
 
     start: np.ndarray
@@ -196,8 +252,11 @@ class RayCache:
     element: mi.UInt32
     nominal: mi.Float
     cos_incidence: mi.Float
+    point: mi.Point3f | None
+    normal: mi.Vector3f | None
     cached: tuple | None
     log_density: mi.Float | None = None
+    drop: mi.Float | None = None
 
     @classmethod
     def from_rounds(cls, rounds: Rounds) -> RayCache:
@@ -207,31 +266,42 @@ class RayCache:
         for lanes in rays:
             count[lanes] += 1  # a ray has at most one entry per round
         start = np.concatenate([[0], np.cumsum(count)[:-1]])
-        total = int(count.sum())
-        with_cache = bool(rounds.rounds) and rounds.rounds[0].cached is not None
-        element = dr.zeros(mi.UInt32, max(total, 1))
-        nominal, cos_incidence = dr.zeros(mi.Float, max(total, 1)), dr.zeros(mi.Float, max(total, 1))
-        cached = tuple(dr.zeros(mi.Float, max(total, 1)) for _ in CACHED_FIELDS) if with_cache else None
-        with_density = bool(rounds.rounds) and rounds.rounds[0].log_density is not None
-        density = dr.zeros(mi.Float, max(total, 1)) if with_density else None
+        size = max(int(count.sum()), 1)
+        first = rounds.rounds[0] if rounds.rounds else None
+        element = dr.zeros(mi.UInt32, size)
+        nominal, cos_incidence = dr.zeros(mi.Float, size), dr.zeros(mi.Float, size)
+        point, normal = dr.zeros(mi.Point3f, size), dr.zeros(mi.Vector3f, size)
+        cached = tuple(dr.zeros(mi.Float, size) for _ in CACHED_FIELDS) if first and first.cached else None
+        with_density = first is not None and first.log_density is not None
+        density = dr.zeros(mi.Float, size) if with_density else None
+        drop = dr.zeros(mi.Float, size) if with_density else None
         for k, (r, lanes) in enumerate(zip(rounds.rounds, rays)):
             slot = mi.UInt32(aligned((start[lanes] + k).astype(np.uint32)))
-            dr.scatter(element, r.element, slot)
-            dr.scatter(nominal, r.nominal, slot)
-            dr.scatter(cos_incidence, r.cos_incidence, slot)
+            for target, value in (
+                (element, r.element),
+                (nominal, r.nominal),
+                (cos_incidence, r.cos_incidence),
+                (point, r.point),
+                (normal, r.normal),
+            ):
+                dr.scatter(target, value, slot)
             for target, value in zip(cached or (), r.cached or ()):
                 dr.scatter(target, value, slot)
             if with_density:
                 dr.scatter(density, r.log_density, slot)
-            dr.eval(element, nominal, cos_incidence, cached, density)
+                dr.scatter(drop, r.drop, slot)
+            dr.eval(element, nominal, cos_incidence, point, normal, cached, density, drop)
         return cls(
             start=start,
             count=count,
             element=element,
             nominal=nominal,
             cos_incidence=cos_incidence,
+            point=point,
+            normal=normal,
             cached=cached,
             log_density=density,
+            drop=drop,
         )
 
     @property
@@ -265,13 +335,14 @@ class RayCache:
         lanes = np.arange(len(position))
         rounds = []
         for k in range(int(count.max(initial=0))):
-            if k == 0:
-                prev = np.flatnonzero(count > 0)
-            else:
-                prev = np.flatnonzero(count[lanes] > k)  # positions among the previous round's entries
+            # positions among the previous round's entries (round 0: the batch lanes)
+            prev = np.flatnonzero(count > 0) if k == 0 else np.flatnonzero(count[lanes] > k)
             lanes = lanes[prev]
             entry = mi.UInt32(aligned((start[lanes] + k).astype(np.uint32)))
-            gather = lambda array, entry=entry: dr.gather(type(array), array, entry)
+
+            def gather(array, entry=entry):
+                return None if array is None else dr.gather(type(array), array, entry)
+
             rounds.append(
                 Round(
                     ray=mi.UInt32(aligned(lanes.astype(np.uint32))),
@@ -280,8 +351,11 @@ class RayCache:
                     element=gather(self.element),
                     nominal=gather(self.nominal),
                     cos_incidence=gather(self.cos_incidence),
+                    point=gather(self.point),
+                    normal=gather(self.normal),
                     cached=None if self.cached is None else tuple(gather(a) for a in self.cached),
-                    log_density=None if self.log_density is None else gather(self.log_density),
+                    log_density=gather(self.log_density),
+                    drop=gather(self.drop),
                 )
             )
         return Rounds(width=len(position), none=mi.Bool(aligned(count == 0)), rounds=rounds)
@@ -292,9 +366,9 @@ class CachedBatch:
     """A batch of a :class:`RayCache`'s rays, read ray by ray (one lane per ray).
 
     Entry ``k`` of lane ``i`` is ``start[i] + k`` for ``k < count[i]``. With the return
-    distributions cached, the whole mixture of a batch is one kernel of ``cache.max_count``
-    unrolled rounds (:func:`mi_lidar.calibration.likelihood.mixture_log_likelihood`), whose code
-    is the same for every batch.
+    distributions cached, the whole mixture of a batch is one kernel of ``cache.max_count`` unrolled
+    rounds (:func:`mi_lidar.core.likelihood.mixture_log_likelihood`), whose code is the same for
+    every batch.
 
     Attributes:
         cache: the cache.

@@ -1,0 +1,104 @@
+"""The return-density interface: what the sensor reports for a beam that meets an element.
+
+A :class:`ReturnDensity` maps a segment's traced state (nominal range ``seg.nominal``, incidence
+``seg.cos_incidence``, label, element kind, and the ray's beam) and its own parameters to the law of
+the reported range given a return, plus the probability that the element loses the beam
+(``seg.drop``). It never traces; it reads features. The same object is used three ways:
+
+* :meth:`ReturnDensity.sample`: the sampler draws a range (``mi.render``, ``mi_lidar.simulate``);
+* :meth:`ReturnDensity.log_prob`: the likelihood scores a measured range (Dr.Jit, differentiable in
+  the density's parameters where the family is);
+* :meth:`ReturnDensity.fit`: learned families estimate their tables from traced training rays in
+  closed form (P-Reg, NP-Reg); parametric ones are fitted by the one Adam fitter
+  (:mod:`mi_lidar.core.fitting`) like any effect.
+
+The order in which a segment's law is built: the element (geometry, ``p``, ``sigma`` of the
+element) -> :meth:`ReturnDensity.prepare` (the family sets ``drop``, ``mean``, ``sigma`` from the
+state; it never changes ``p``, the element's permeability) -> the effects' ``modify_segment``
+(noise laws, bias, scale, dropouts) -> :meth:`log_prob` / :meth:`sample`. Effects that move the
+location (``seg.mean``) or add Gaussian spread (``seg.sigma``) compose with every family.
+
+A beam that meets no further element *escapes*; :meth:`ReturnDensity.escape` may give it a last,
+virtual segment (``kind = ESCAPE``) with its own return law (spurious returns of the classic beam
+model at a nominal miss). The default is no escape segment: an escaped beam is a miss.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import ClassVar
+
+import mitsuba as mi
+
+from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.params import Parametrized, parse_calls
+from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.segment import Segment
+
+ESCAPE = 2  # Segment.kind of the virtual segment of a beam that met nothing more
+
+
+class ReturnDensity(Parametrized, metaclass=abc.ABCMeta):
+    """Base class of return densities; see the module docstring for the contract."""
+
+    kind = "density"
+    learned: ClassVar[bool] = False  # fitted in closed form from traced rays (see fit())
+
+    def prepare(self, seg: Segment, rays: RayBatch) -> Segment:
+        """Set the family's law of each segment from its state (default: the element's own)."""
+        return seg
+
+    @abc.abstractmethod
+    def log_prob(self, seg: Segment, z: mi.Float, rays: RayBatch) -> mi.Float:
+        """Log density (1/m) of range ``z`` given a return from ``seg`` (-inf where impossible)."""
+
+    @abc.abstractmethod
+    def sample(self, seg: Segment, u: mi.Float, rays: RayBatch) -> mi.Float:
+        """A returned range (m) per lane from uniform numbers ``u`` in [0, 1)."""
+
+    def escape(self, rays: RayBatch) -> Segment | None:
+        """The virtual last segment of beams that met nothing more, or None (an escaped beam is a miss)."""
+        return None
+
+
+DENSITIES: dict[str, type[ReturnDensity]] = {}
+
+
+def register_density(cls: type[ReturnDensity]) -> type[ReturnDensity]:
+    """Add a density class to the catalog under ``cls.name`` (usable as a decorator)."""
+    if not cls.name:
+        raise ParameterError(f"density class {cls.__name__} needs a non-empty `name`")
+    DENSITIES[cls.name] = cls
+    return cls
+
+
+def make_density(name: str, resolve=None, **values) -> ReturnDensity:
+    """Instantiate catalog density ``name`` with parameter ``values``.
+
+    A learned density is loaded from ``file=`` (a ``.npz`` written by its ``save``); ``resolve``
+    maps that file name to a path (the scene folder's, in XML).
+    """
+    if name not in DENSITIES:
+        raise ParameterError(
+            f"unknown return density {name!r}; the catalog has: {', '.join(sorted(DENSITIES)) or 'none'}"
+        )
+    cls = DENSITIES[name]
+    if "file" in values:
+        from mi_lidar.core.densities.tables import load_density
+
+        path = values.pop("file")
+        return load_density(resolve(path) if resolve else path, expected=name, **values)
+    return cls(**values)
+
+
+def parse_density(spec: str, resolve=None) -> ReturnDensity:
+    """Parse ``"name(key=value, ...)"`` (the integrator's ``density`` property) into one density.
+
+    ``resolve`` maps a ``file=`` name to a path (see :func:`make_density`).
+    """
+    items = parse_calls(spec, lambda name, **values: make_density(name, resolve=resolve, **values), "density")
+    if len(items) != 1:
+        raise ParameterError(
+            f"density {spec!r}: give exactly one return density, e.g. 'gaussian' or 'np_reg(file=m.npz)'"
+        )
+    return items[0]

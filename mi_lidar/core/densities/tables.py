@@ -1,0 +1,162 @@
+"""Learned densities on disk: one ``.npz`` per fitted sensor model, and the state grids they are tabulated on.
+
+A learned density (P-Reg, NP-Reg, the binned beam and histogram baselines) is a set of numpy tables
+indexed by a *state*: nominal range bin, incidence bin, beam and label. :class:`StateGrid` turns a
+segment's features into a flat state index (Dr.Jit, per lane); :func:`save_density` writes the
+tables with a JSON header (format ``mi-lidar-density``, version 1, the density's catalog name, its
+scalar parameters and the grid) and :func:`load_density` reads them back into the right class.
+Files are written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_lidar.core.arrays import aligned
+from mi_lidar.core.atomic import atomic_write
+from mi_lidar.core.errors import LogFormatError, ParameterError
+
+FORMAT_NAME = "mi-lidar-density"
+FORMAT_VERSION = 1
+
+
+@dataclass
+class StateGrid:
+    """Bins of the state a learned density conditions on.
+
+    Attributes:
+        range_edges: (R + 1,) nominal range bin edges, m (ranges beyond the last edge use the last bin).
+        incidence_edges: (I + 1,) incidence angle bin edges, deg; an extra last bin holds segments
+            whose incidence is unknown (NaN ``cos_incidence``). An empty list conditions on nothing.
+        n_beams: beams conditioned on (1: beams pooled).
+        n_labels: labels conditioned on (1: labels pooled).
+    """
+
+    range_edges: list = field(default_factory=lambda: [0.0, 1.0e9])
+    incidence_edges: list = field(default_factory=list)
+    n_beams: int = 1
+    n_labels: int = 1
+
+    @property
+    def n_range(self) -> int:
+        return len(self.range_edges) - 1
+
+    @property
+    def n_incidence(self) -> int:
+        """Incidence bins, the unknown bin included (1 when the grid ignores incidence)."""
+        return len(self.incidence_edges) if self.incidence_edges else 1
+
+    @property
+    def size(self) -> int:
+        """Number of states."""
+        return self.n_range * self.n_incidence * self.n_beams * self.n_labels
+
+    def index_np(
+        self,
+        nominal: np.ndarray,
+        incidence_deg: np.ndarray,
+        beam: np.ndarray | None = None,
+        label: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Flat state index of each sample (numpy; ``incidence_deg`` NaN = unknown)."""
+        r = np.clip(np.searchsorted(self.range_edges, nominal, side="right") - 1, 0, self.n_range - 1)
+        if self.incidence_edges:
+            i = np.clip(
+                np.searchsorted(self.incidence_edges, incidence_deg, side="right") - 1, 0, len(self.incidence_edges) - 2
+            )
+            i = np.where(np.isnan(incidence_deg), self.n_incidence - 1, i)
+        else:
+            i = np.zeros_like(r)
+        b = np.zeros_like(r) if beam is None or self.n_beams == 1 else np.minimum(beam, self.n_beams - 1)
+        lab = np.zeros_like(r) if label is None or self.n_labels == 1 else np.minimum(label, self.n_labels - 1)
+        return ((lab * self.n_beams + b) * self.n_incidence + i) * self.n_range + r
+
+    def index(self, nominal: mi.Float, cos_incidence: mi.Float, beam: mi.UInt32, label: mi.UInt32) -> mi.UInt32:
+        """Flat state index of each lane (Dr.Jit); NaN ``cos_incidence`` is the unknown incidence bin."""
+        edges = mi.Float(aligned(np.asarray(self.range_edges, np.float32)))
+        n_r = self.n_range
+        r = dr.binary_search(0, n_r, lambda k: dr.gather(mi.Float, edges, k + 1) <= nominal)
+        r = dr.minimum(r, n_r - 1)
+        if self.incidence_edges:
+            delta = dr.acos(dr.clip(cos_incidence, 0.0, 1.0)) * (180.0 / math.pi)
+            i_edges = mi.Float(aligned(np.asarray(self.incidence_edges, np.float32)))
+            n_i = len(self.incidence_edges) - 1
+            i = dr.minimum(dr.binary_search(0, n_i, lambda k: dr.gather(mi.Float, i_edges, k + 1) <= delta), n_i - 1)
+            i = dr.select(dr.isnan(cos_incidence), self.n_incidence - 1, i)
+        else:
+            i = dr.zeros(mi.UInt32, dr.width(nominal))
+        b = dr.minimum(beam, self.n_beams - 1) if self.n_beams > 1 else 0
+        lab = dr.minimum(label, self.n_labels - 1) if self.n_labels > 1 else 0
+        return mi.UInt32(((lab * self.n_beams + b) * self.n_incidence + i) * n_r + r)
+
+
+def save_density(
+    path: str | os.PathLike,
+    name: str,
+    params: dict,
+    grid: StateGrid | None,
+    arrays: dict[str, np.ndarray],
+    notes: dict | None = None,
+) -> Path:
+    """Write a learned density (atomically).
+
+    Args:
+        path: destination ``.npz``.
+        name: the density's catalog name.
+        params: its scalar parameters and options (JSON-able).
+        grid: its state grid (None when it has none).
+        arrays: its tables.
+        notes: free-form facts to keep (training log, bandwidths chosen, held-out NLL).
+    """
+    meta = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "name": name,
+        "params": params,
+        "grid": None if grid is None else asdict(grid),
+        "notes": notes or {},
+    }
+    payload = {f"table/{k}": np.asarray(v) for k, v in arrays.items()}
+    payload["meta"] = np.frombuffer(json.dumps(meta, default=float).encode(), dtype=np.uint8)
+    return atomic_write(path, lambda stream: np.savez_compressed(stream, **payload))
+
+
+def read_density(path: str | os.PathLike) -> tuple[dict, dict[str, np.ndarray]]:
+    """``(meta, tables)`` of a density file; :class:`LogFormatError` naming the file when it is not one."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            meta = json.loads(bytes(data["meta"]).decode())
+            tables = {k.split("/", 1)[1]: np.asarray(data[k]) for k in data.files if k.startswith("table/")}
+    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
+        raise LogFormatError(
+            f"{path}: not a mi-lidar density file ({exc}); write one with `mi-lidar fit-sensor`"
+        ) from exc
+    if meta.get("format") != FORMAT_NAME or meta.get("version") != FORMAT_VERSION:
+        raise LogFormatError(
+            f"{path}: format {meta.get('format')!r} version {meta.get('version')!r}; expected "
+            f"{FORMAT_NAME!r} version {FORMAT_VERSION}"
+        )
+    return meta, tables
+
+
+def load_density(path: str | os.PathLike, expected: str | None = None, **overrides):
+    """The density saved in ``path`` (its class's ``from_tables``), optionally checking its name."""
+    from mi_lidar.core.densities.base import DENSITIES
+
+    meta, tables = read_density(path)
+    name = meta["name"]
+    if expected is not None and name != expected:
+        raise ParameterError(f"{path}: holds a {name!r} density, not {expected!r}; write {name}(file=...) instead")
+    if name not in DENSITIES:
+        raise ParameterError(f"{path}: density {name!r} is not in the catalog ({', '.join(sorted(DENSITIES))})")
+    grid = None if meta["grid"] is None else StateGrid(**meta["grid"])
+    return DENSITIES[name].from_tables({**meta["params"], **overrides}, grid, tables)

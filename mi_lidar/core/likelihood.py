@@ -1,0 +1,274 @@
+"""The one likelihood: the pass-through mixture of return densities along each ray, and its one floor.
+
+Along a ray the elements ``k = 1..K`` are met in order (virtual elements of effects first, then the
+traced ones, then the density's *escape* law for a beam that met nothing more). With
+``pi_k = prod_{j<k} (1 - p_j)`` the probability of reaching element ``k``, it returns the beam with
+probability ``pi_k p_k (1 - drop_k)`` at a range drawn from its return density ``f_k``, loses it
+with ``pi_k p_k drop_k``, and lets it pass otherwise. So
+
+* a measured return at ``z`` has density ``sum_k pi_k p_k (1 - drop_k) f_k(z)`` (1/m);
+* a miss has probability ``sum_k pi_k p_k drop_k + pi_{K+1}``.
+
+:func:`mixture_log_likelihood` evaluates this with gradients on compact trace records
+(:mod:`mi_lidar.core.trace`): each round works only on the rays that met an element in it and reads
+the running sums of its rays from the previous round (``prev``); a ray's sums are written when its
+last element has been folded in. Beams fanned out into sub-rays by a footprint effect are scored
+from the sub-rays' return moments by that effect (:meth:`FootprintEffect.combine_log_likelihood`).
+
+**One scoring rule, one floor** (:func:`score`): a return counts as the probability of its
+``RESOLUTION`` = 1 cm range bin (density x 0.01 m, the sensor's resolution and the thesis's
+discretised evaluation), a miss as its probability, and every ray's probability is floored softly
+at ``FLOOR`` = 1e-9: ``log(p + FLOOR)``. A return no element can explain then costs 20.7 nats
+instead of making a mean infinite, and still has a gradient. Every NLL mi-lidar prints (compare,
+diagnose, calibrate, the planar benchmark) and every fit uses this score, so they are comparable.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from mi_lidar.core.effects.base import SubRayMoments
+from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.segment import Segment, log_density
+from mi_lidar.core.trace import CachedBatch, Round, Rounds
+
+RESOLUTION = 0.01  # m: a return scores the probability of its 1 cm range bin
+FLOOR = 1e-9  # probability floor of every scored ray
+LOG_RESOLUTION = math.log(RESOLUTION)
+LOG_FLOOR = math.log(FLOOR)
+TINY = 1e-12  # probabilities are clamped here before logs
+
+
+def logaddexp(a: mi.Float, b: mi.Float) -> mi.Float:
+    """``log(exp(a) + exp(b))`` per lane, exact where either is -inf."""
+    high = dr.maximum(a, b)
+    safe = dr.select(dr.isinf(high), 0.0, high)
+    return dr.select(dr.isinf(high), high, safe + dr.log(dr.exp(a - safe) + dr.exp(b - safe)))
+
+
+def score(ll: mi.Float, hit: mi.Bool) -> mi.Float:
+    """Scored log-likelihood (nats) from the raw mixture ``ll`` (log density for returns, log P for misses).
+
+    Returns ``log(P + FLOOR)`` with ``P = density * RESOLUTION`` for returns and ``P(miss)`` for
+    misses (see the module docstring).
+    """
+    return logaddexp(dr.select(hit, ll + LOG_RESOLUTION, ll), dr.opaque(mi.Float, LOG_FLOOR))
+
+
+@dataclass
+class Sums:
+    """Running sums of the mixture along each ray (nats).
+
+    Attributes:
+        log_mix: ``log sum_k pi_k p_k (1 - drop_k) f_k(z)`` over the elements so far (-inf: none).
+        log_pass: ``log pi``: the probability of reaching the next element.
+        log_lost: ``log sum_k pi_k p_k drop_k``: the beams lost so far (-inf: none).
+    """
+
+    log_mix: mi.Float
+    log_pass: mi.Float
+    log_lost: mi.Float
+
+    @classmethod
+    def start(cls, n: int) -> Sums:
+        return cls(dr.full(mi.Float, -dr.inf, n), dr.zeros(mi.Float, n), dr.full(mi.Float, -dr.inf, n))
+
+    def fold(self, valid: mi.Bool, p: mi.Float, drop: mi.Float, log_f: mi.Float) -> Sums:
+        """Add the next element (probabilities ``p``, ``drop``; log density ``log_f`` of the measured range)."""
+        drop = dr.zeros(mi.Float, dr.width(p)) + drop
+        log_p = dr.log(dr.clip(p, TINY, 1.0))
+        term = self.log_pass + log_p + dr.log(dr.clip(1.0 - drop, TINY, 1.0)) + log_f
+        lost = self.log_pass + log_p + dr.log(dr.clip(drop, TINY, 1.0))
+        return Sums(
+            log_mix=dr.select(valid, logaddexp(self.log_mix, term), self.log_mix),
+            log_pass=self.log_pass + dr.select(valid, dr.log(dr.clip(1.0 - p, TINY, 1.0)), 0.0),
+            log_lost=dr.select(valid & (drop > 0), logaddexp(self.log_lost, lost), self.log_lost),
+        )
+
+    def gather(self, index: mi.UInt32) -> Sums:
+        """The sums at ``index`` (distinct indices: see :func:`_previous`)."""
+        return Sums(*(_previous(v, index) for v in (self.log_mix, self.log_pass, self.log_lost)))
+
+    def value(self, hit: mi.Bool) -> mi.Float:
+        """Raw log-likelihood: log density of the return where ``hit``, else log P(miss)."""
+        return dr.select(hit, self.log_mix, logaddexp(self.log_lost, self.log_pass))
+
+
+def _previous(running: mi.Float, prev: mi.UInt32) -> mi.Float:
+    """The previous round's running sums read at ``prev``, with gradients.
+
+    The indices of a round are distinct, so the gather's derivative (a scatter-add into an array as
+    long as the previous round) is compiled without conflict handling. Dr.Jit's default mode on the
+    LLVM backend would expand the target per thread and write its length into the kernel as a
+    constant; that length changes with every batch of rays, so the backward kernel of every round
+    would be compiled anew at every step of a geometry fit.
+    """
+    return dr.gather(mi.Float, running, prev, mode=dr.ReduceMode.NoConflicts)
+
+
+def _add_at(target: mi.Float, value: mi.Float, index: mi.UInt32, active: mi.Bool) -> mi.Float:
+    """``target`` plus ``value`` scattered (added) to lanes ``index`` where ``active`` (keeps gradients)."""
+    out = mi.Float(target)
+    dr.scatter_reduce(dr.ReduceOp.Add, out, value, index, active)
+    return out
+
+
+def round_segment(table, model, rays: RayBatch, r: Round) -> tuple[Segment, RayBatch]:
+    """The segments of round ``r`` before the density and effects, and the rays of its entries.
+
+    Args:
+        table: the :class:`~mi_lidar.core.elements.ElementTable` (may carry gradients).
+        model: the sensor model.
+        rays: the batch after :meth:`SensorModel.prepare_rays` (and fan-out).
+        r: the round.
+    """
+    sub = rays.take(r.ray)
+    valid = dr.full(mi.Bool, True, r.width)
+    if r.cached is None:
+        return table.segment(r, valid, r.element, sub.origin, sub.direction, model.range_sigma), sub
+    return table.cached_segment(r, valid, model.range_sigma), sub
+
+
+def _entry_log_density(model, table, seg: Segment, z: mi.Float, rays: RayBatch) -> mi.Float:
+    """Log density (1/m) of ``z`` under each lane's return law (the smoothed surrogate while fitting ellipsoids)."""
+    if table.smoothing > 0:
+        from mi_lidar.core.smoothing import smoothed_log_density
+
+        return smoothed_log_density(seg, z, table.smoothing)
+    return model.density.log_prob(seg, z, rays)
+
+
+def mixture_log_likelihood(table, model, rays: RayBatch, rounds, measured: mi.Float, hit: mi.Bool) -> mi.Float:
+    """Per-ray raw log-likelihood (nats) of measured returns under the pass-through mixture.
+
+    Args:
+        table: the element table (its arrays may carry gradients).
+        model: the sensor model (its density, effects and their parameters may carry gradients).
+        rays: the batch the rounds were traced for (world frame, before ray perturbations).
+        rounds: its trace: compact :class:`Rounds` (from :func:`~mi_lidar.core.trace.trace_rounds`)
+            or a :class:`CachedBatch` of cached rays.
+        measured: (B,) measured ranges, m (ignored where ``hit`` is False).
+        hit: (B,) True where the sensor reported a return.
+
+    Returns:
+        (B,) log density (1/m) of the measured range for returns and log P(miss) for misses; use
+        :func:`score` for the floored, discretised value every report prints.
+    """
+    rays = model.prepare_rays(rays)
+    fan = model.fan_out(rays)
+    if fan is not None:
+        return _footprint_log_likelihood(table, model, fan, rounds, measured, hit)
+    n = rays.width
+    z = dr.select(hit, measured, 0.0)
+    sums = Sums.start(n)
+    for seg in model.virtual_segments(rays):  # outliers and clutter keep their own Gaussian law
+        seg = model.segment_law(seg, rays, virtual=True)
+        sums = sums.fold(seg.valid, seg.p, seg.drop, log_density(seg, z))
+    if isinstance(rounds, CachedBatch):
+        sums = _fold_cached(table, model, rays, rounds, z, sums)
+    else:
+        sums = _fold_rounds(table, model, rays, rounds, z, sums)
+    escape = model.density.escape(rays)
+    if escape is not None:
+        escape = model.segment_law(escape, rays, virtual=True)
+        sums = sums.fold(escape.valid, escape.p, escape.drop, model.density.log_prob(escape, z, rays))
+    return sums.value(hit)
+
+
+def _fold_rounds(table, model, rays: RayBatch, rounds: Rounds, z: mi.Float, sums: Sums) -> Sums:
+    """Fold the traced elements round by round; each ray's sums end at its last element."""
+    out = [dr.select(rounds.none, v, 0.0) for v in (sums.log_mix, sums.log_pass, sums.log_lost)]
+    running = sums
+    for r in rounds.rounds:
+        seg, sub = round_segment(table, model, rays, r)
+        seg = model.segment_law(seg, sub)
+        z_entry = dr.gather(mi.Float, z, r.ray)
+        if r.log_density is not None:
+            log_f, drop = r.log_density, r.drop
+        else:
+            log_f, drop = _entry_log_density(model, table, seg, z_entry, sub), seg.drop
+        running = running.gather(r.prev).fold(seg.valid, seg.p, drop, log_f)
+        values = (running.log_mix, running.log_pass, running.log_lost)
+        out = [_add_at(o, v, r.ray, r.last) for o, v in zip(out, values)]
+    return Sums(*out)
+
+
+def _fold_cached(table, model, rays: RayBatch, batch: CachedBatch, z: mi.Float, sums: Sums) -> Sums:
+    """Fold the cached entries ray by ray: one unrolled kernel, entries read from the cache."""
+    cache = batch.cache
+    for k in range(cache.max_count):
+        active = batch.count > k
+        entry = batch.start + k
+
+        def read(array, entry=entry, active=active):
+            return dr.gather(type(array), array, entry, active)
+
+        element = read(cache.element)
+        if cache.log_density is not None:  # only the hit probabilities move
+            p, drop, log_f = (
+                dr.gather(mi.Float, table.p_hit, element, active),
+                read(cache.drop),
+                read(cache.log_density),
+            )
+        else:
+            view = Round(
+                ray=None,
+                prev=None,
+                last=None,
+                element=element,
+                nominal=read(cache.nominal),
+                cos_incidence=read(cache.cos_incidence),
+                point=None,
+                normal=None,
+                cached=tuple(read(a) for a in cache.cached),
+            )
+            seg = model.segment_law(table.cached_segment(view, active, model.range_sigma), rays)
+            p, drop, log_f = seg.p, seg.drop, model.density.log_prob(seg, z, rays)
+        sums = sums.fold(active, p, drop, log_f)
+    return sums
+
+
+def _footprint_log_likelihood(table, model, fan, rounds: Rounds, measured: mi.Float, hit: mi.Bool) -> mi.Float:
+    """Log-likelihood of beams fanned out into sub-rays, from the sub-rays' return moments."""
+    effect, sub, weight = fan
+    n = dr.width(hit)
+    m = sub.width
+    moments = SubRayMoments(
+        log_miss=dr.zeros(mi.Float, m),
+        p_return=dr.zeros(mi.Float, m),
+        m1=dr.zeros(mi.Float, m),
+        m2=dr.zeros(mi.Float, m),
+    )
+    log_pass = dr.zeros(mi.Float, m)
+    for seg in model.virtual_segments(sub):
+        moments, log_pass = _moment_step(moments, log_pass, model.segment_law(seg, sub, virtual=True), None, None)
+    for r in rounds.rounds:
+        seg, entry_rays = round_segment(table, model, sub, r)
+        moments, log_pass = _moment_step(moments, log_pass, model.segment_law(seg, entry_rays), r.ray, r.prev)
+    moments.log_miss = dr.log(dr.clip(1.0 - moments.p_return, TINY, 1.0))
+    return effect.combine_log_likelihood(moments, weight, measured, hit, n)
+
+
+def _moment_step(moments: SubRayMoments, log_pass: mi.Float, seg: Segment, lanes, prev):
+    """Add one element to each sub-ray's return probability and range moments (untruncated Gaussians).
+
+    ``lanes`` are the sub-rays of a compact round (None: full width); ``log_pass`` is kept per
+    sub-ray at full width, so ``prev`` is not needed.
+    """
+    reach = log_pass if lanes is None else dr.gather(mi.Float, log_pass, lanes)
+    weight = dr.select(seg.valid, dr.exp(reach) * seg.p * (1.0 - seg.drop), 0.0)
+    passed = reach + dr.select(seg.valid, dr.log(dr.clip(1.0 - seg.p, TINY, 1.0)), 0.0)
+    values = (weight, weight * seg.mean, weight * (dr.square(seg.sigma) + dr.square(seg.mean)))
+    if lanes is None:
+        return SubRayMoments(
+            moments.log_miss, moments.p_return + values[0], moments.m1 + values[1], moments.m2 + values[2]
+        ), passed
+    every = dr.full(mi.Bool, True, dr.width(lanes))
+    new = [_add_at(a, v, lanes, every) for a, v in zip((moments.p_return, moments.m1, moments.m2), values)]
+    log_pass = mi.Float(log_pass)
+    dr.scatter(log_pass, passed, lanes)
+    return SubRayMoments(moments.log_miss, *new), log_pass

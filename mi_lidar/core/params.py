@@ -1,0 +1,225 @@
+"""Named, validated, fittable parameters: the one declaration shared by effects and return densities.
+
+A :class:`ParamSpec` says everything about one parameter: default, unit, meaning, bounds, whether
+it holds one value per beam or per class label, and how the fitter treats it (kept fixed or fitted,
+starting value, step unit, transform, lower bound while fitting). A :class:`Parametrized` object
+(an :class:`~mi_lidar.core.effects.base.Effect` or a
+:class:`~mi_lidar.core.densities.base.ReturnDensity`) declares its specs and string options as class
+attributes and holds its values as Dr.Jit arrays in :attr:`Parametrized.params`, so that
+``dr.enable_grad`` on them makes the model differentiable in them.
+
+Example::
+
+    class RangeOffset(Effect):
+        name = "range_offset"
+        specs = {"offset": ParamSpec(0.0, "m", "added to every return", lower=-5, upper=5, fit_scale=0.01)}
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_lidar.core.arrays import aligned
+from mi_lidar.core.errors import ParameterError
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """Declaration of one parameter.
+
+    Attributes:
+        default: default value (scalar) or None when the parameter is required.
+        unit: physical unit, for documentation and reports.
+        doc: one-line meaning.
+        lower, upper: allowed closed range (checked on construction, kept while fitting).
+        per_beam: the parameter holds one value per beam (a list in XML).
+        per_label: the parameter holds one value per class label.
+        fit: False for a parameter that fitting keeps fixed (a sweep period, an interval end).
+        fit_start: value fitting starts from when the default sits where the likelihood has no
+            gradient (a dropout probability of exactly 0, say); None: start from the current value.
+        fit_scale: the parameter's typical size, the fitter's step unit (a number, or a function of
+            the owning object for sizes that depend on an option).
+        fit_lower: lower bound kept while fitting, when above ``lower``: a scale whose variance is
+            quadratic in it (a noise sigma) has zero gradient at 0, so an optimizer that reaches 0
+            would stay there whatever the data say.
+        only: ``{option: (choices...)}``: the parameter exists only under these option choices
+            (e.g. the logistic law's angle); otherwise it is ignored, not fitted and not printed.
+    """
+
+    default: float | None
+    unit: str
+    doc: str
+    lower: float = -np.inf
+    upper: float = np.inf
+    per_beam: bool = False
+    per_label: bool = False
+    fit: bool = True
+    fit_start: float | None = None
+    fit_scale: float | Callable[[Any], float] = 0.1
+    fit_lower: float | None = None
+    only: dict = field(default_factory=dict)
+
+    @property
+    def fit_bound(self) -> float:
+        """The lower bound of fitted values: ``fit_lower`` if set, else ``lower``."""
+        return self.lower if self.fit_lower is None else max(self.lower, self.fit_lower)
+
+
+class Parametrized:
+    """Base of objects with named parameters (:class:`ParamSpec`) and string options.
+
+    Class attributes:
+        name: catalog name (used in XML, on the command line and in reports).
+        specs: parameter declarations.
+        options: ``{option: (choice, ...)}``; the first choice is the default.
+        variant_options: options whose choices ``diagnose`` tries as separate candidates.
+    """
+
+    name: ClassVar[str] = ""
+    kind: ClassVar[str] = "object"
+    specs: ClassVar[dict[str, ParamSpec]] = {}
+    options: ClassVar[dict[str, tuple[str, ...]]] = {}
+    variant_options: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(self, **values):
+        unknown = sorted(set(values) - set(self.specs) - set(self.options))
+        if unknown:
+            allowed = sorted(set(self.specs) | set(self.options))
+            raise ParameterError(f"{self.kind} {self.name!r}: unknown parameter(s) {unknown}; allowed: {allowed}")
+        self.choices: dict[str, str] = {}
+        for key, allowed_choices in self.options.items():
+            choice = str(values.get(key, allowed_choices[0]))
+            if choice not in allowed_choices:
+                raise ParameterError(
+                    f"{self.kind} {self.name!r}: {key}={choice!r}; choose one of {list(allowed_choices)}"
+                )
+            self.choices[key] = choice
+        self.params: dict[str, mi.Float] = {}
+        for key, spec in self.specs.items():
+            raw = values.get(key, spec.default)
+            if raw is None:
+                raise ParameterError(
+                    f"{self.kind} {self.name!r}: parameter {key!r} ({spec.doc}, {spec.unit}) is required"
+                )
+            array = np.atleast_1d(np.asarray(raw, dtype=np.float64))
+            bad = ~np.isfinite(array) | (array < spec.lower) | (array > spec.upper)
+            if np.any(bad):
+                raise ParameterError(
+                    f"{self.kind} {self.name!r}: {key}={array[bad][0]:g} {spec.unit} is outside "
+                    f"[{spec.lower:g}, {spec.upper:g}] ({spec.doc})"
+                )
+            self.params[key] = mi.Float(array.astype(np.float32))
+
+    def __getitem__(self, key: str) -> mi.Float:
+        return self.params[key]
+
+    def active(self, key: str) -> bool:
+        """True when parameter ``key`` exists under the current option choices (:attr:`ParamSpec.only`)."""
+        return all(self.choices.get(option) in allowed for option, allowed in self.specs[key].only.items())
+
+    def fitted_names(self) -> list[str]:
+        """Names of the parameters that fitting changes (active and not fixed)."""
+        return [k for k, spec in self.specs.items() if spec.fit and self.active(k)]
+
+    def fit_scale(self, key: str) -> float:
+        """The step unit of parameter ``key`` (:attr:`ParamSpec.fit_scale`)."""
+        scale = self.specs[key].fit_scale
+        return float(scale(self) if callable(scale) else scale)
+
+    def per_beam(self, key: str, beam: mi.UInt32) -> mi.Float:
+        """Value of per-beam parameter ``key`` for each lane's beam (the last value repeats)."""
+        values = self.params[key]
+        return dr.gather(mi.Float, values, dr.minimum(beam, dr.width(values) - 1))
+
+    def per_label(self, key: str, label: mi.UInt32) -> mi.Float:
+        """Value of per-label parameter ``key`` for each lane's label (the last value repeats)."""
+        values = self.params[key]
+        return dr.gather(mi.Float, values, dr.minimum(label, dr.width(values) - 1))
+
+    def parameters(self) -> dict[str, mi.Float]:
+        """Named parameters (Dr.Jit arrays) for traversal and fitting."""
+        return self.params
+
+    def widen(self, n_beams: int, n_labels: int) -> Parametrized:
+        """Give per-beam parameters ``n_beams`` values and per-label ones ``n_labels`` (in place)."""
+        for key, spec in self.specs.items():
+            size = n_beams if spec.per_beam else n_labels if spec.per_label else 1
+            values = np.asarray(self.params[key])
+            if values.size == 1 and size > 1:
+                self.params[key] = mi.Float(aligned(np.full(size, values[0], np.float32)))
+        return self
+
+    def at_fit_start(self) -> Parametrized:
+        """Move parameters that declare a ``fit_start`` there (in place), so that fitting has a gradient."""
+        for key, spec in self.specs.items():
+            if spec.fit_start is not None and self.active(key):
+                size = dr.width(self.params[key])
+                self.params[key] = mi.Float(aligned(np.full(size, spec.fit_start, np.float32)))
+        return self
+
+    def describe(self) -> str:
+        """``name(key=value, ...)``: the object as written in XML or on the command line."""
+        parts = [f"{k}={v}" for k, v in self.choices.items()]
+        for key, value in self.params.items():
+            if not self.active(key):
+                continue
+            array = np.asarray(value)
+            parts.append(
+                f"{key}={array[0]:.6g}" if array.size == 1 else f"{key}=[{' '.join(f'{x:.6g}' for x in array)}]"
+            )
+        return f"{self.name}({', '.join(parts)})"
+
+
+def parse_calls(spec: str, make: Callable[..., Any], what: str) -> list:
+    """Parse ``"name(key=value, key=[v1 v2]), other(...)"`` into objects built by ``make(name, **values)``.
+
+    This is the syntax of the integrator's ``effects`` and ``density`` properties in XML and of the
+    command line. An empty string gives an empty list.
+
+    Args:
+        spec: the text.
+        make: factory ``make(name, **values)``.
+        what: what is parsed, for error messages (``"effects"``, ``"density"``).
+    """
+    items, rest = [], spec.strip()
+    while rest:
+        name, sep, tail = rest.partition("(")
+        name = name.strip().strip(",;").strip()
+        if not sep:
+            items.extend(make(n.strip()) for n in name.split(",") if n.strip())
+            break
+        body, closing, rest = tail.partition(")")
+        if not closing:
+            raise ParameterError(f"{what} {spec!r}: missing ')' after {name}(")
+        values, depth, current = {}, 0, ""
+        for char in body + ",":
+            depth += char == "["
+            depth -= char == "]"
+            if char == "," and depth == 0:
+                if current.strip():
+                    key, eq, value = current.partition("=")
+                    if not eq:
+                        raise ParameterError(f"{what} {spec!r}: expected key=value in {current.strip()!r}")
+                    values[key.strip()] = _parse_value(value)
+                current = ""
+            else:
+                current += char
+        items.append(make(name, **values))
+        rest = rest.strip().lstrip(",;").strip()
+    return items
+
+
+def _parse_value(text: str):
+    text = text.strip()
+    if text.startswith("[") and text.endswith("]"):
+        return [float(x) for x in text[1:-1].replace(",", " ").split()]
+    try:
+        return float(text)
+    except ValueError:
+        return text

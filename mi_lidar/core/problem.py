@@ -1,0 +1,246 @@
+"""Measured rays of a log, traced once, scored and fitted with the one likelihood and the one fitter.
+
+A :class:`Problem` holds the rays of one split of a log (``index``) in a scene. :meth:`Problem.trace`
+traces them once per distinct set of ray-moving parameters into compact rounds
+(:mod:`mi_lidar.core.trace`), in chunks of :data:`BATCH` rays; when nothing moves rays, each entry's
+return distribution is computed once too. :meth:`Problem.log_likelihood` scores every ray with
+:func:`~mi_lidar.core.likelihood.score`, and :func:`fit_parts` fits the parameters of a model's
+density and effects by :func:`~mi_lidar.core.fitting.adam_fit`, with each parameter's bounds, step
+unit and starting value taken from its :class:`~mi_lidar.core.params.ParamSpec`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_lidar.core.arrays import aligned
+from mi_lidar.core.effects.base import Effect
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.fitting import FitVariable, adam_fit
+from mi_lidar.core.likelihood import mixture_log_likelihood, score
+from mi_lidar.core.params import Parametrized
+from mi_lidar.core.rays import LogRays
+from mi_lidar.core.trace import cache_distributions, trace_rounds
+
+BATCH = 1 << 18  # rays scored at once
+LEARNING_RATE = 0.3  # Adam step in units of each parameter's scale (cosine decay to a tenth)
+
+
+def moves_rays(model) -> bool:
+    """True when an effect of ``model`` edits rays before tracing (angle offsets, extrinsics, motion, footprint)."""
+    return any(
+        type(e).perturb_rays is not Effect.perturb_rays or type(e).footprint is not Effect.footprint
+        for e in model.effects
+    )
+
+
+def _ray_key(model) -> tuple:
+    """Identity of the rays ``model`` traces: its ray-moving effects and their parameter values."""
+    return tuple(
+        (e.name, tuple(np.asarray(dr.detach(v)).tobytes() for v in e.params.values()))
+        for e in model.effects
+        if type(e).perturb_rays is not Effect.perturb_rays or type(e).footprint is not Effect.footprint
+    )
+
+
+def make_opaque(parts: list[Parametrized]) -> None:
+    """Turn the parts' parameters into opaque kernel inputs (in place).
+
+    A width-1 array built from a Python or numpy value is a literal that Dr.Jit bakes into the
+    kernel, so every new value would compile a new kernel; opaque values are read from memory.
+    """
+    for part in parts:
+        for key, value in part.params.items():
+            array = mi.Float(aligned(np.asarray(dr.detach(value), dtype=np.float32)))
+            dr.make_opaque(array)
+            part.params[key] = array
+
+
+def n_parameters(parts: list[Parametrized]) -> int:
+    """Number of scalar fitted parameters of ``parts``."""
+    return int(sum(dr.width(p.params[k]) for p in parts for k in p.fitted_names()))
+
+
+@dataclass
+class Chunk:
+    """Up to :data:`BATCH` rays of a split, traced into compact rounds.
+
+    Attributes:
+        rays: the measured rays (before the model's ray perturbations).
+        z: (N,) measured range, m (0 for a miss).
+        hit: (N,) True where the sensor reported a return.
+        rounds: the trace (:class:`~mi_lidar.core.trace.Rounds`).
+    """
+
+    rays: object
+    z: mi.Float
+    hit: mi.Bool
+    rounds: object
+
+
+@dataclass
+class Problem:
+    """Measured rays of one split, traced once, ready to score and fit.
+
+    Attributes:
+        scene: loaded Mitsuba scene.
+        table: its element table.
+        rays: the log's rays.
+        index: (N,) indices (into ``rays``) of the rays of this split.
+        chunks: the traced chunks (see :meth:`trace`).
+    """
+
+    scene: object
+    table: ElementTable
+    rays: LogRays
+    index: np.ndarray
+    chunks: list = field(default_factory=list, repr=False)
+    _traced: tuple | None = field(default=None, repr=False)
+
+    @classmethod
+    def build(cls, scene, rays: LogRays, index: np.ndarray | None = None, table: ElementTable | None = None) -> Problem:
+        """The problem of rays ``index`` of ``rays`` (all when None) in ``scene``."""
+        index = np.arange(rays.n) if index is None else np.asarray(index)
+        return cls(scene=scene, table=table or ElementTable.from_scene(scene), rays=rays, index=index)
+
+    @property
+    def n(self) -> int:
+        return int(self.index.size)
+
+    def trace(self, model) -> None:
+        """Trace every chunk of the split under ``model`` (its ray perturbations included).
+
+        Tracing is skipped when the rays ``model`` traces are those of the last trace (the same
+        ray-moving effects with the same values, range limits and density), as they are for every
+        effect that only edits segments. When nothing moves rays, each entry's return distribution
+        before effects is computed once as well.
+        """
+        key = (_ray_key(model), model.max_range, model.max_segments, model.range_sigma)
+        if self._traced == key and self.chunks:
+            return
+        self.chunks = []
+        moving = moves_rays(model)
+        for first in range(0, self.n, BATCH):
+            batch, measured, hit = self.rays.batch(self.index[first : first + BATCH])
+            rounds = trace_rounds(self.scene, self.table, model, batch)
+            if not moving:
+                rounds = cache_distributions(rounds, self.table, model, batch)
+            self.chunks.append(Chunk(rays=batch, z=dr.select(hit, measured, 0.0), hit=hit, rounds=rounds))
+        self._traced = key
+
+    def chunk_log_likelihood(self, model, chunk: Chunk) -> mi.Float:
+        """Scored per-ray log-likelihood (nats) of one chunk under ``model`` (keeps gradients)."""
+        return score(mixture_log_likelihood(self.table, model, chunk.rays, chunk.rounds, chunk.z, chunk.hit), chunk.hit)
+
+    def log_likelihood(self, model) -> np.ndarray:
+        """(N,) scored per-ray log-likelihood (nats) under ``model`` (:func:`~mi_lidar.core.likelihood.score`)."""
+        self.trace(model)
+        with dr.suspend_grad():
+            out = [np.asarray(self.chunk_log_likelihood(model, c), np.float64) for c in self.chunks]
+        return np.concatenate(out) if out else np.zeros(0)
+
+    def nll(self, model) -> float:
+        """Mean negative scored log-likelihood per ray (nats)."""
+        return float(-np.mean(self.log_likelihood(model)))
+
+
+@dataclass
+class PartsFit:
+    """Outcome of :func:`fit_parts`.
+
+    Attributes:
+        history: mean scored log-likelihood per ray (nats) at each step.
+        parameters: fitted values, ``{"part.param": np.ndarray}``.
+    """
+
+    history: list[float]
+    parameters: dict[str, np.ndarray]
+
+
+def fit_parts(
+    model,
+    problem: Problem,
+    parts: list[Parametrized] | None = None,
+    steps: int = 150,
+    lr: float = LEARNING_RATE,
+    retrace_every: int = 10,
+    progress=None,
+) -> PartsFit:
+    """Maximise the mean scored log-likelihood of ``problem``'s rays over the parameters of ``parts``.
+
+    Args:
+        model: the sensor model holding the parts (changed in place: the best values are written
+            into the parts' ``params``, as opaque arrays).
+        problem: the measured rays (traced on demand).
+        parts: the density and/or effects of ``model`` to fit (default: every effect).
+        steps: Adam steps.
+        lr: learning rate in units of each parameter's ``fit_scale`` (cosine decay to lr / 10).
+        retrace_every: steps between re-traces when a fitted effect moves rays.
+        progress: optional callable ``progress(step, steps)``.
+
+    Returns:
+        The loss history and the fitted parameters: those of the lowest loss seen (the loss is over
+        every ray, so a refit never ends worse than its start).
+    """
+    parts = model.effects if parts is None else parts
+    make_opaque(model.parts)
+    slots = [(part, key) for part in parts for key in part.fitted_names()]
+    if not slots:
+        return PartsFit(history=[], parameters={})
+    names = [f"{part.name}.{key}#{i}" for i, (part, key) in enumerate(slots)]
+    variables = [
+        FitVariable(
+            name,
+            np.asarray(part.params[key], np.float64),
+            lower=max(part.specs[key].fit_bound, -1e30),
+            upper=min(part.specs[key].upper, 1e30),
+            scale=part.fit_scale(key),
+        )
+        for name, (part, key) in zip(names, slots)
+    ]
+    moving = moves_rays(model)
+    n = max(problem.n, 1)
+
+    def assign(values: dict) -> None:
+        for name, (part, key) in zip(names, slots):
+            part.params[key] = values[name]
+
+    def objective(values, step: int) -> float:
+        if step == 1 or (moving and (step - 1) % retrace_every == 0):
+            with dr.suspend_grad():
+                assign(values())
+            problem.trace(model)
+        total = 0.0
+        for chunk in problem.chunks:
+            assign(values())  # a fresh graph per chunk: backward releases the previous one
+            loss = -dr.sum(problem.chunk_log_likelihood(model, chunk)) / n
+            dr.backward(loss)
+            total += float(loss[0])
+        if progress is not None:
+            progress(step, steps)
+        return total
+
+    result = adam_fit(variables, objective, steps, lr=lr)
+    assign({name: mi.Float(aligned(result.values[name].astype(np.float32))) for name in names})
+    make_opaque(parts)
+    if moving:
+        problem.trace(model)
+    history = [-loss for _, loss, _ in result.history]
+    return PartsFit(
+        history=history, parameters={f"{part.name}.{key}": np.asarray(part.params[key]) for part, key in slots}
+    )
+
+
+def score_log(scene, model, rays: LogRays, index: np.ndarray | None = None) -> np.ndarray:
+    """(N,) scored per-ray log-likelihood of rays ``index`` of a log under ``model`` (a one-off score)."""
+    return Problem.build(scene, rays, index).log_likelihood(model)
+
+
+def mean_nll(values: np.ndarray) -> float:
+    """Mean negative log-likelihood (nats per ray) of scored values; NaN when empty."""
+    return float(-np.mean(values)) if len(values) else math.nan
