@@ -174,7 +174,7 @@ def mixture_log_likelihood(table, model, rays: RayBatch, rounds, measured: mi.Fl
         sums = _fold_rounds(table, model, rays, rounds, z, sums)
     escape = model.density.escape(rays)
     if escape is not None:
-        escape = model.segment_law(escape, rays, virtual=True)
+        escape = model.segment_law(escape, rays, escape=True)
         sums = sums.fold(escape.valid, escape.p, escape.drop, model.density.log_prob(escape, z, rays))
     return sums.value(hit)
 

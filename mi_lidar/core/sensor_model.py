@@ -43,6 +43,11 @@ def uniform(seed: int, ray_id: mi.UInt32, segment: int, stream: int) -> mi.Float
     return mi.sample_tea_float32(ray_id, dr.opaque(mi.UInt32, key), 8)
 
 
+def uniforms(seed: int, ray_id: mi.UInt32, segment: int) -> mi.Point2f:
+    """The two uniform numbers a return density draws a range from (streams 1 and 2 of :func:`uniform`)."""
+    return mi.Point2f(uniform(seed, ray_id, segment, 1), uniform(seed, ray_id, segment, 2))
+
+
 @dataclass
 class SensorModel:
     """Sensor defaults, the return density, and the effects applied on top of the scene's elements.
@@ -104,14 +109,16 @@ class SensorModel:
             seg = effect.modify_segment(seg, rays)
         return seg
 
-    def segment_law(self, seg: Segment, rays: RayBatch, virtual: bool = False) -> Segment:
+    def segment_law(self, seg: Segment, rays: RayBatch, virtual: bool = False, escape: bool = False) -> Segment:
         """The law of an element as the likelihood scores it.
 
-        Scene elements get :meth:`apply_effects`; virtual elements (outliers) and the escape segment
-        keep their own law. Both then get the effects' likelihood-only edits (the continuous
-        stand-ins of post-processing such as quantization).
+        Scene elements get :meth:`apply_effects`; the escape segment gets the density's law only;
+        virtual elements (outliers) keep their own. All then get the effects' likelihood-only edits
+        (the continuous stand-ins of post-processing such as quantization).
         """
-        if not virtual:
+        if escape:
+            seg = self.density.prepare(seg, rays)
+        elif not virtual:
             seg = self.apply_effects(seg, rays)
         for effect in self.effects:
             seg = effect.likelihood_segment(seg, rays)
@@ -192,7 +199,7 @@ class SensorModel:
             # ---------------- One draw: return, lose the beam, or pass through ---------
             u = uniform(seed, rays.ray_id, k, 0)
             returned = seg.valid & (u < seg.p * (1.0 - seg.drop))
-            self._report(out, index, rays, returned, self.density.sample(seg, uniform(seed, rays.ray_id, k, 1), rays))
+            self._report(out, index, rays, returned, self.density.sample(seg, uniforms(seed, rays.ray_id, k), rays))
             for name, value in (
                 ("element_id", seg.element),
                 ("shape_id", seg.shape),
@@ -221,8 +228,9 @@ class SensorModel:
         escape = self.density.escape(rays)
         if escape is None or not dr.any(escaped):
             return
+        escape = self.density.prepare(escape, rays)
         u = uniform(seed, rays.ray_id, ESCAPE_SEGMENT, 0)
         returned = escaped & escape.valid & (u < escape.p * (1.0 - escape.drop))
-        z = self.density.sample(escape, uniform(seed, rays.ray_id, ESCAPE_SEGMENT, 1), rays)
+        z = self.density.sample(escape, uniforms(seed, rays.ray_id, ESCAPE_SEGMENT), rays)
         self._report(out, index, rays, returned, z)
         dr.eval(out)

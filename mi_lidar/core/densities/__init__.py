@@ -7,6 +7,10 @@ registers them):
 name               family
 =================  ==========================================================================
 ``gaussian``       each element's truncated Gaussian (the default)
+``physics``        Gaussian with sigma^2 = sigma0^2 + K r^2 / cos(incidence), constant no-return rate
+``beam``           the classic beam model (hit, short, max, random) per state (M1, M2)
+``p_reg``          P-Reg: P_null, mean and sigma regressed on range and incidence (thesis 3.3)
+``np_reg``         NP-Reg: per-state residual histograms smoothed across states (thesis 3.4; M3)
 =================  ==========================================================================
 """
 
@@ -18,12 +22,20 @@ from mi_lidar.core.densities.base import (
     parse_density,
     register_density,
 )
+from mi_lidar.core.densities.beam import BeamDensity
 from mi_lidar.core.densities.gaussian import ElementGaussian
+from mi_lidar.core.densities.histogram import NPRegDensity
+from mi_lidar.core.densities.physics import PhysicsDensity
+from mi_lidar.core.densities.preg import PRegDensity
 
 __all__ = [
     "DENSITIES",
     "ESCAPE",
+    "BeamDensity",
     "ElementGaussian",
+    "NPRegDensity",
+    "PRegDensity",
+    "PhysicsDensity",
     "ReturnDensity",
     "make_density",
     "parse_density",

@@ -19,8 +19,9 @@ state; it never changes ``p``, the element's permeability) -> the effects' ``mod
 location (``seg.mean``) or add Gaussian spread (``seg.sigma``) compose with every family.
 
 A beam that meets no further element *escapes*; :meth:`ReturnDensity.escape` may give it a last,
-virtual segment (``kind = ESCAPE``) with its own return law (spurious returns of the classic beam
-model at a nominal miss). The default is no escape segment: an escaped beam is a miss.
+virtual segment (``kind = ESCAPE``) whose law :meth:`ReturnDensity.prepare` sets from the escape
+state (spurious returns of the classic beam model at a nominal miss). The default is no escape
+segment: an escaped beam is a miss.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from __future__ import annotations
 import abc
 from typing import ClassVar
 
+import drjit as dr
 import mitsuba as mi
 
 from mi_lidar.core.errors import ParameterError
@@ -53,12 +55,38 @@ class ReturnDensity(Parametrized, metaclass=abc.ABCMeta):
         """Log density (1/m) of range ``z`` given a return from ``seg`` (-inf where impossible)."""
 
     @abc.abstractmethod
-    def sample(self, seg: Segment, u: mi.Float, rays: RayBatch) -> mi.Float:
-        """A returned range (m) per lane from uniform numbers ``u`` in [0, 1)."""
+    def sample(self, seg: Segment, u: mi.Point2f, rays: RayBatch) -> mi.Float:
+        """A returned range (m) per lane from two independent uniform numbers ``u.x``, ``u.y`` in [0, 1)."""
 
     def escape(self, rays: RayBatch) -> Segment | None:
         """The virtual last segment of beams that met nothing more, or None (an escaped beam is a miss)."""
         return None
+
+
+def escape_segment(rays: RayBatch, drop=0.0, sigma=0.0) -> Segment:
+    """The virtual segment of beams that met nothing more (``kind = ESCAPE``, nominal and mean 0).
+
+    It goes through the density's :meth:`ReturnDensity.prepare` like a scene element (but not
+    through the effects), which sets its law from the escape state.
+    """
+    n = rays.width
+    zero = dr.zeros(mi.Float, n)
+    none = dr.full(mi.UInt32, 0xFFFFFFFF, n)
+    return Segment(
+        valid=dr.full(mi.Bool, True, n),
+        nominal=zero,
+        p=zero + 1.0,
+        mean=zero,
+        sigma=zero + sigma,
+        lo=zero - dr.inf,
+        hi=zero + dr.inf,
+        cos_incidence=zero + dr.nan,
+        element=none,
+        shape=none,
+        label=dr.zeros(mi.UInt32, n),
+        kind=dr.full(mi.UInt32, ESCAPE, n),
+        drop=zero + drop,
+    )
 
 
 DENSITIES: dict[str, type[ReturnDensity]] = {}

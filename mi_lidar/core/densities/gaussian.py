@@ -25,5 +25,5 @@ class ElementGaussian(ReturnDensity):
     def log_prob(self, seg: Segment, z: mi.Float, rays: RayBatch) -> mi.Float:
         return log_density(seg, z)
 
-    def sample(self, seg: Segment, u: mi.Float, rays: RayBatch) -> mi.Float:
-        return sample_range(seg, u)
+    def sample(self, seg: Segment, u: mi.Point2f, rays: RayBatch) -> mi.Float:
+        return sample_range(seg, u.x)

@@ -31,9 +31,11 @@ class MultipleReturns(MixedPixels):
     sub-rays independent. ``first`` then has the density
     ``sum_j r_j phi_j(z) prod_{i != j} (1 - r_i Phi_i(z))`` and ``last`` the same with
     ``1 - r_i (1 - Phi_i(z))``; both are exact when each sub-ray meets one opaque surface.
-    ``strongest`` is approximated by the energy mixture
-    ``(1 - prod_j (1 - r_j)) sum_j a_j phi_j(z) / sum_j a_j`` with ``a_j = w_j r_j``: exact when
-    all echoes merge; at an edge it gives the weaker side its share of the energy.
+    ``strongest`` takes the density of ``first``: echoes closer than ``separation`` merge, and the
+    sampler reports the nearest echo of the winning group, so on one surface (all echoes merged)
+    the two coincide exactly; at an edge, or behind a permeable crown, where the farther group
+    carries more energy the approximation gives the nearer surface the return (measured on the
+    bundled street: total-variation distance 0.19 between sampled and scored ranges).
 
     Example: ``multiple_returns(mode=last, divergence=0.003)``.
     """
@@ -78,7 +80,7 @@ class MultipleReturns(MixedPixels):
         self, moments: SubRayMoments, weight: mi.Float, z: mi.Float, hit: mi.Bool, n: int
     ) -> mi.Float:
         m, mode = len(PATTERN), self.choices["mode"]
-        r, log_phi, cdf, a, log_miss = [], [], [], [], dr.zeros(mi.Float, n)
+        r, log_phi, cdf, log_miss = [], [], [], dr.zeros(mi.Float, n)
         for j in range(m):
             index = dr.arange(mi.UInt32, n) + j * n
             rj = dr.gather(mi.Float, moments.p_return, index)
@@ -88,20 +90,13 @@ class MultipleReturns(MixedPixels):
             r.append(rj)
             log_phi.append(-0.5 * dr.square(z - mu) / var - 0.5 * dr.log(var) - LOG_SQRT_2PI)
             cdf.append(normal_cdf((z - mu) / dr.sqrt(var)))
-            a.append(dr.gather(mi.Float, weight, index) * rj)
             log_miss += dr.gather(mi.Float, moments.log_miss, index)
         density = dr.zeros(mi.Float, n)
-        if mode == "strongest":
-            total = dr.maximum(sum(a), 1e-12)
-            p_hit = dr.maximum(1.0 - dr.exp(log_miss), 1e-12)
-            for j in range(m):
-                density += p_hit * a[j] / total * dr.exp(log_phi[j])
-        else:
-            for j in range(m):
-                term = r[j] * dr.exp(log_phi[j])
-                for i in range(m):
-                    if i != j:
-                        beyond = cdf[i] if mode == "first" else 1.0 - cdf[i]
-                        term *= 1.0 - r[i] * beyond
-                density += term
+        for j in range(m):
+            term = r[j] * dr.exp(log_phi[j])
+            for i in range(m):
+                if i != j:
+                    beyond = 1.0 - cdf[i] if mode == "last" else cdf[i]
+                    term *= 1.0 - r[i] * beyond
+            density += term
         return dr.select(hit, dr.log(dr.maximum(density, 1e-30)), log_miss)

@@ -1,0 +1,111 @@
+"""What learned densities are fitted from: the state of the first element each ray met, and what was measured.
+
+Learned densities (P-Reg, NP-Reg, the binned baselines) condition on the state of the element a
+beam meets. :class:`StateSamples` holds, per ray (numpy), the nominal range and incidence of the
+*first* element on the ray (NaN nominal where the ray met nothing: the escape state), its beam and
+label, and the measured return. For scenes of opaque surfaces this is exact; with permeable elements
+it attributes every return to the first element (an approximation the densities document).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from mi_lidar.core.errors import ParameterError
+
+
+@dataclass
+class StateSamples:
+    """Per-ray states and measurements (all arrays (N,), numpy).
+
+    Attributes:
+        nominal: nominal range of the first element, m (NaN: the ray met nothing).
+        incidence: incidence angle at it, deg (NaN: unknown).
+        beam: beam index.
+        label: class label of the element (0 where none).
+        z: measured range, m (NaN for a miss).
+        hit: True where the sensor reported a return.
+    """
+
+    nominal: np.ndarray
+    incidence: np.ndarray
+    beam: np.ndarray
+    label: np.ndarray
+    z: np.ndarray
+    hit: np.ndarray
+
+    def __post_init__(self):
+        sizes = {f.name: np.shape(getattr(self, f.name)) for f in fields(self)}
+        if len(set(sizes.values())) != 1:
+            raise ParameterError(f"state samples: arrays of different shapes {sizes}; give one value per ray")
+
+    @property
+    def n(self) -> int:
+        return int(self.hit.size)
+
+    @property
+    def met(self) -> np.ndarray:
+        """True where the ray met an element."""
+        return np.isfinite(self.nominal)
+
+    @property
+    def residual(self) -> np.ndarray:
+        """``z - nominal`` (m; NaN for misses and escaped rays)."""
+        return self.z - self.nominal
+
+    def take(self, mask: np.ndarray) -> StateSamples:
+        """The samples where ``mask`` (bool or index array)."""
+        return StateSamples(*(getattr(self, f.name)[mask] for f in fields(self)))
+
+    @classmethod
+    def from_rounds(
+        cls, rounds, beam: np.ndarray, label_of_element: np.ndarray, z: np.ndarray, hit: np.ndarray
+    ) -> StateSamples:
+        """The first element of each ray of a trace (:class:`~mi_lidar.core.trace.Rounds`).
+
+        Args:
+            rounds: the trace of N rays (one lane per ray, no fan-out).
+            beam: (N,) beam index of each ray.
+            label_of_element: (E_total,) label of every element of the table.
+            z: (N,) measured ranges, m (ignored where not ``hit``).
+            hit: (N,) return flags.
+        """
+        n = rounds.width
+        nominal = np.full(n, np.nan)
+        incidence = np.full(n, np.nan)
+        label = np.zeros(n, np.int64)
+        if rounds.rounds:
+            first = rounds.rounds[0]
+            lanes = np.asarray(first.ray, np.int64)
+            nominal[lanes] = np.asarray(first.nominal, np.float64)
+            cos = np.clip(np.asarray(first.cos_incidence, np.float64), 0.0, 1.0)
+            incidence[lanes] = np.degrees(np.arccos(cos))
+            label[lanes] = np.asarray(label_of_element)[np.asarray(first.element, np.int64)]
+        hit = np.asarray(hit, bool)
+        return cls(
+            nominal=nominal,
+            incidence=incidence,
+            beam=np.asarray(beam, np.int64),
+            label=label,
+            z=np.where(hit, np.asarray(z, np.float64), np.nan),
+            hit=hit,
+        )
+
+
+def protocol_residual_edges(reach: float = 82.0) -> np.ndarray:
+    """Residual bin edges (m) of the real-planar protocol: 1 cm within 0.3 m, 2 cm to 1 m, 10 cm to 5 m, 1 m beyond.
+
+    Symmetric about 0 and out to ``reach`` m on both sides (the sensor's maximum range, so that any
+    return of a nominal-miss ray, whose residual is its range, falls in a bin).
+    """
+    pieces = [
+        np.arange(0.0, 0.3, 0.01),
+        np.arange(0.3, 1.0, 0.02),
+        np.arange(1.0, 5.0, 0.1),
+        np.arange(5.0, math.ceil(reach) + 1.0, 1.0),
+    ]
+    positive = np.unique(np.round(np.concatenate(pieces), 6))
+    return np.concatenate([-positive[:0:-1], positive])
