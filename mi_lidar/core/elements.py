@@ -340,7 +340,8 @@ class ElementTable:
         e_normal = rotate_inverse(mi.Vector4f(-quat.x, -quat.y, -quat.z, quat.w), local_gradient)
         e_cos = dr.abs(dr.dot(dr.normalize(e_normal), direction))
         if self.smoothing > 0:
-            soft = presence(*ray_quadratic(center, scale, quat, origin, direction), extent, self.smoothing)
+            a, b, c = ray_quadratic(center, scale, quat, origin, direction)
+            soft = presence(a, b, c, extent, self.smoothing)
             p = dr.select(is_ellipsoid, p * soft, p)
 
         nominal = dr.select(is_ellipsoid, e_lo, t_plane)

@@ -191,7 +191,7 @@ def adam_fit(
     stale, step = 0, 0
     for step in range(1, steps + 1):
         opt.set_learning_rate(lr * schedule(step - 1, steps))
-        current = snapshot() if evaluate is None else None
+        current = snapshot() if evaluate is None else {}
         total = float(objective(values, step))
         bad = [v.name for v in variables if not np.all(np.isfinite(np.asarray(dr.grad(opt[v.name]))))]
         if not math.isfinite(total) or bad:

@@ -224,7 +224,7 @@ def _fold_cached(table, model, rays: RayBatch, batch: CachedBatch, z: mi.Float, 
                 cos_incidence=read(cache.cos_incidence),
                 point=None,
                 normal=None,
-                cached=tuple(read(a) for a in cache.cached),
+                cached=tuple(read(a) for a in cache.cached or ()),
             )
             seg = model.segment_law(table.cached_segment(view, active, model.range_sigma), rays)
             p, drop, log_f = seg.p, seg.drop, model.density.log_prob(seg, z, rays)

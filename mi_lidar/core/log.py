@@ -33,6 +33,7 @@ import os
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -139,7 +140,7 @@ class Log:
     def save(self, path: str | os.PathLike) -> Path:
         """Write the log to ``path`` (``.npz``) atomically and return the path."""
         path = Path(path)
-        arrays = {
+        arrays: dict[str, Any] = {
             "poses": self.poses,
             "directions": self.directions,
             "origins": self.origins,

@@ -187,7 +187,8 @@ def parse_calls(spec: str, make: Callable[..., Any], what: str) -> list:
         make: factory ``make(name, **values)``.
         what: what is parsed, for error messages (``"effects"``, ``"density"``).
     """
-    items, rest = [], spec.strip()
+    items: list = []
+    rest = spec.strip()
     while rest:
         name, sep, tail = rest.partition("(")
         name = name.strip().strip(",;").strip()

@@ -24,7 +24,7 @@ from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.fitting import FitVariable, adam_fit
 from mi_lidar.core.likelihood import mixture_log_likelihood, score
 from mi_lidar.core.params import Parametrized
-from mi_lidar.core.rays import LogRays
+from mi_lidar.core.rays import LogRays, RayBatch
 from mi_lidar.core.trace import cache_distributions, trace_rounds
 
 BATCH = 1 << 18  # rays scored at once
@@ -77,7 +77,7 @@ class Chunk:
         rounds: the trace (:class:`~mi_lidar.core.trace.Rounds`).
     """
 
-    rays: object
+    rays: RayBatch
     z: mi.Float
     hit: mi.Bool
     rounds: object

@@ -23,7 +23,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_lidar.core.densities import ElementGaussian, ReturnDensity
-from mi_lidar.core.effects.base import Effect
+from mi_lidar.core.effects.base import Effect, FootprintEffect
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.rays import RayBatch
@@ -91,12 +91,12 @@ class SensorModel:
             rays = effect.perturb_rays(rays)
         return rays
 
-    def fan_out(self, rays: RayBatch) -> tuple[Effect, RayBatch, mi.Float] | None:
+    def fan_out(self, rays: RayBatch) -> tuple[FootprintEffect, RayBatch, mi.Float] | None:
         """The effect that fans beams out into sub-rays (:meth:`Effect.footprint`), its sub-rays and weights.
 
         Returns None when no effect does (one ray per beam, the common case).
         """
-        fans = [(e, fan) for e in self.effects if (fan := e.footprint(rays)) is not None]
+        fans = [(e, fan) for e in self.effects if isinstance(e, FootprintEffect) and (fan := e.footprint(rays))]
         if len(fans) > 1:
             raise ParameterError(f"sensor model: effects {[e.name for e, _ in fans]} all fan beams out; keep one")
         return (fans[0][0], *fans[0][1]) if fans else None

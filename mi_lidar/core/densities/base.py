@@ -44,7 +44,12 @@ class ReturnDensity(Parametrized, metaclass=abc.ABCMeta):
     """Base class of return densities; see the module docstring for the contract."""
 
     kind = "density"
-    learned: ClassVar[bool] = False  # fitted in closed form from traced rays (see fit())
+    learned: ClassVar[bool] = False  # estimated from traced rays and saved as tables (see from_tables)
+
+    @classmethod
+    def from_tables(cls, params: dict, grid, tables: dict) -> ReturnDensity:
+        """A learned density from the tables of its file (:mod:`mi_lidar.core.densities.tables`)."""
+        raise ParameterError(f"density {cls.name!r} has no tables: write it inline, e.g. {cls.name}(...)")
 
     def prepare(self, seg: Segment, rays: RayBatch) -> Segment:
         """Set the family's law of each segment from its state (default: the element's own)."""

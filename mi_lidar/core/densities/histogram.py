@@ -329,7 +329,8 @@ def fit_np_reg(
     edges = protocol_residual_edges(z_max) if edges is None else np.asarray(edges)
     counts = count_states(samples, grid, edges)
     candidates = list(itertools.product(h_ranges, h_incidences if grid.incidence_edges else (1.0,), uniforms))
-    table, best = [], None
+    table: list = []
+    best: tuple | None = None
     for i, (h_r, h_i, u) in enumerate(candidates):
         smoothed = np.concatenate([kernel_weights(grid, h_r, h_i) @ counts[:-1], counts[-1:]])
         mass, p_null = _finish(smoothed, e_kernel=True)
@@ -342,4 +343,5 @@ def fit_np_reg(
             best = (nll, density)
         if progress is not None:
             progress(i + 1, len(candidates))
+    assert best is not None  # at least one candidate
     return best[1], table

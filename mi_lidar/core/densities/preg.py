@@ -207,7 +207,8 @@ def fit_p_reg(
     inl = hit & (np.abs(np.nan_to_num(e, nan=np.inf)) <= inlier)
     escape_null = float(np.mean(~samples.hit[~met])) if np.any(~met) else 0.99
     candidates = list(itertools.product(h_ranges, h_incidences))
-    table, best = [], None
+    table: list = []
+    best: tuple | None = None
     for c, (h_r, h_d) in enumerate(candidates):
         shape = (d_nodes.size + 1, r_nodes.size)
         tables = {k: np.zeros(shape) for k in ("p_null", "mu", "sigma")}
@@ -240,6 +241,7 @@ def fit_p_reg(
             best = (nll, density)
         if progress is not None:
             progress(c + 1, len(candidates))
+    assert best is not None  # at least one candidate
     return best[1], table
 
 

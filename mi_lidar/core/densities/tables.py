@@ -15,6 +15,7 @@ import math
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import drjit as dr
 import mitsuba as mi
@@ -124,7 +125,7 @@ def save_density(
         "grid": None if grid is None else asdict(grid),
         "notes": notes or {},
     }
-    payload = {f"table/{k}": np.asarray(v) for k, v in arrays.items()}
+    payload: dict[str, Any] = {f"table/{k}": np.asarray(v) for k, v in arrays.items()}
     payload["meta"] = np.frombuffer(json.dumps(meta, default=float).encode(), dtype=np.uint8)
     return atomic_write(path, lambda stream: np.savez_compressed(stream, **payload))
 
