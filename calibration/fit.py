@@ -123,19 +123,22 @@ class FitResult:
 
 
 def check_sensor(log: Log, scene) -> None:
-    """Raise :class:`CalibrationError` when the log was not taken with the scene's sensor pattern."""
+    """Raise :class:`CalibrationError` when the log's beams are not the scene sensor's.
+
+    The rays themselves come from the log (its own firing pattern, however many firings it holds);
+    per-beam parameters need the beams to be the scene sensor's, so their count must agree.
+    """
     sensor = scene_lidar_sensor(scene)
     if sensor is None:
         return
     pattern = sensor.pattern
-    _, h, w = log.shape
-    name = log.sensor.get("pattern")
-    if (h, w) != tuple(pattern.shape) or (name is not None and name != pattern.name):
+    h = log.shape[1]
+    if h != pattern.shape[0]:
+        name = log.sensor.get("pattern")
         raise CalibrationError(
-            f"the log's sensor ({name or 'unnamed pattern'}, {h} beams x {w} firings) does not match the scene's "
-            f"`lidar` sensor ({pattern.name}, {pattern.shape[0]} x {pattern.shape[1]}); set the scene sensor's "
-            f'pattern to the log\'s (<string name="pattern" value="{name or "..."}"/>) or pick the scene the log '
-            "was recorded in"
+            f"the log's sensor ({name or 'unnamed pattern'}, {h} beams) does not match the scene's `lidar` sensor "
+            f"({pattern.name}, {pattern.shape[0]} beams); set the scene sensor's pattern to the log's "
+            f'(<string name="pattern" value="{name or "..."}"/>) or pick the scene the log was recorded in'
         )
 
 

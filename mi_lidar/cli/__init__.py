@@ -8,10 +8,11 @@ module                 verbs
 :mod:`.hybrid`         ``synth-world``, ``fit-scene``, ``primitives ...``, ``annotate``, ``compose``
 :mod:`.loop`           ``compare``, ``diagnose``
 :mod:`.calibrate`      ``calibrate``
+:mod:`.sensor`         ``fit-sensor``
 =====================  ==========================================================================
 """
 
-from mi_lidar.cli import calibrate, convert, hybrid, loop, render  # noqa: F401  (register the commands)
+from mi_lidar.cli import calibrate, convert, hybrid, loop, render, sensor  # noqa: F401  (register the commands)
 from mi_lidar.cli.app import app
 
 __all__ = ["app"]

@@ -82,11 +82,14 @@ def first_elements(scene, table: ElementTable, problem: Problem, model: SensorMo
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
-def simulate_log_rays(scene, table: ElementTable, rays: LogRays, model: SensorModel, seed: int) -> tuple:
-    """One simulated (range, hit) per ray of the log, same ray ids as the log."""
+def simulate_log_rays(
+    scene, table: ElementTable, rays: LogRays, model: SensorModel, seed: int, index: np.ndarray | None = None
+) -> tuple:
+    """One simulated (range, hit) per ray ``index`` of the log (all when None), same ray ids as the log."""
+    index = np.arange(rays.n) if index is None else np.asarray(index)
     ranges, hits = [], []
-    for first in range(0, rays.n, 1 << 21):
-        batch, _, _ = rays.batch(np.arange(first, min(first + (1 << 21), rays.n)))
+    for first in range(0, index.size, 1 << 21):
+        batch, _, _ = rays.batch(index[first : first + (1 << 21)])
         out = model.simulate_rays(scene, table, batch, seed)
         ranges.append(np.asarray(out["range"]))
         hits.append(np.asarray(out["hit"]))
@@ -128,27 +131,42 @@ def cdf_l1(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def metrics(t: RayTable, mask: np.ndarray | None = None) -> dict:
-    """Observation losses of the rays ``mask`` (all when None)."""
+    """Observation losses of the rays ``mask`` (all when None): :func:`metrics_of` on the table's columns."""
     m = np.ones(t.ll.size, bool) if mask is None else mask
-    ll, hit, sim = t.ll[m], t.hit[m], t.sim_hit[m]
-    both = hit & sim
-    err = np.abs(t.measured[m][both] - t.sim_range[m][both])
-    tp, fp, fn = int(np.sum(hit & sim)), int(np.sum(~hit & sim)), int(np.sum(hit & ~sim))
+    return metrics_of(t.ll[m], t.measured[m], t.hit[m], t.sim_range[m], t.sim_hit[m])
+
+
+def metrics_of(
+    ll: np.ndarray, measured: np.ndarray, hit: np.ndarray, sim_range: np.ndarray, sim_hit: np.ndarray
+) -> dict:
+    """NLL beside the realism of one sampled scan, per ray (numpy arrays of equal length).
+
+    Returns:
+        ``rays``; ``nll`` and ``nll_median`` (nats per ray, the one score); the measured and simulated
+        return rates; ``range_error_mean``/``_median``/``_p90``: |measured - sampled| range where both
+        returned (m); hit/miss ``precision``, ``recall`` and ``f1`` of sampled returns against measured
+        ones; ``histogram_l1``: L1 distance between the CDFs of measured and sampled ranges (m).
+    """
+    both = hit & sim_hit
+    err = np.abs(measured[both] - sim_range[both])
+    tp, fp, fn = int(np.sum(hit & sim_hit)), int(np.sum(~hit & sim_hit)), int(np.sum(hit & ~sim_hit))
     precision = tp / (tp + fp) if tp + fp else float("nan")
     recall = tp / (tp + fn) if tp + fn else float("nan")
     f1 = 2 * precision * recall / (precision + recall) if tp else float("nan")
+    nan = float("nan")
     return {
-        "rays": int(m.sum()),
-        "nll": float(-np.mean(ll)) if ll.size else float("nan"),
-        "nll_median": float(-np.median(ll)) if ll.size else float("nan"),
-        "hit_rate_measured": float(hit.mean()) if hit.size else float("nan"),
-        "hit_rate_simulated": float(sim.mean()) if sim.size else float("nan"),
-        "range_error_mean": float(err.mean()) if err.size else float("nan"),
-        "range_error_median": float(np.median(err)) if err.size else float("nan"),
+        "rays": int(ll.size),
+        "nll": float(-np.mean(ll)) if ll.size else nan,
+        "nll_median": float(-np.median(ll)) if ll.size else nan,
+        "hit_rate_measured": float(hit.mean()) if hit.size else nan,
+        "hit_rate_simulated": float(sim_hit.mean()) if sim_hit.size else nan,
+        "range_error_mean": float(err.mean()) if err.size else nan,
+        "range_error_median": float(np.median(err)) if err.size else nan,
+        "range_error_p90": float(np.quantile(err, 0.9)) if err.size else nan,
         "precision": precision,
         "recall": recall,
         "f1": f1,
-        "histogram_l1": cdf_l1(t.measured[m][hit], t.sim_range[m][sim]),
+        "histogram_l1": cdf_l1(measured[hit], sim_range[sim_hit]),
     }
 
 
