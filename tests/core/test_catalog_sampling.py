@@ -1,18 +1,16 @@
 """Every catalog effect (each variant) and every density samples what it scores.
 
 For one scan of the street (a VLP-16 pattern of 12 firings, 192 rays) the sampler draws 200 scans
-from the same pose (independent: every scan has its own ray ids) under the case's truth; the likelihood's density of each ray is integrated on a
-5 mm grid over 0-40 m into 5 cm bins, plus its miss probability. Pooled over the rays, the
-expected bin counts are compared with the sampled ones by the total-variation distance. Sampling
-noise alone gives about 0.01-0.02 here; the tolerance is 0.04, and 0.08 for the effects whose
-likelihood is a documented approximation (the footprint effects' moment matching, quantization's
-continuous stand-in); ``multiple_returns(mode=strongest)`` is held to 0.25 only (see LOOSE). The miss
-fraction must agree to 0.02.
+from the same pose (independent: every scan has its own ray ids) under the case's truth; the
+likelihood's density of each ray is integrated on a 5 mm grid over 0-40 m into 5 cm bins, plus its
+miss probability. Pooled over the rays, the expected bin counts are compared with the sampled ones
+by the total-variation distance. Sampling noise alone gives about 0.01-0.02 here; the tolerance is
+0.04, and 0.08 for the effects whose likelihood is a documented approximation (the footprint
+effects' moment matching, quantization's continuous stand-in); ``multiple_returns(mode=strongest)``
+is held to 0.25 only (see LOOSE). The miss fraction must agree to 0.02.
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 import mitsuba as mi
 import numpy as np
@@ -47,8 +45,18 @@ def expected_distribution(scene, model, log) -> tuple[np.ndarray, float]:
     density = np.exp(np.asarray(mixture_log_likelihood(table, model, batch, rounds, z, mi.Bool(True) | (z < 0))))
     per_bin = density.reshape(n, -1, int(round(BIN / STEP))).sum(axis=2) * STEP
     single, _, _ = rays.batch(np.arange(n))
-    miss = np.exp(np.asarray(mixture_log_likelihood(table, model, single, trace_rounds(scene, table, model, single),
-                                                    mi.Float(np.zeros(n, np.float32)), mi.Bool(np.zeros(n, bool)))))
+    miss = np.exp(
+        np.asarray(
+            mixture_log_likelihood(
+                table,
+                model,
+                single,
+                trace_rounds(scene, table, model, single),
+                mi.Float(np.zeros(n, np.float32)),
+                mi.Bool(np.zeros(n, bool)),
+            )
+        )
+    )
     return per_bin.mean(axis=0), float(miss.mean())
 
 
