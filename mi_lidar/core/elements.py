@@ -281,20 +281,19 @@ class ElementTable:
         p, sigma, kind, shape, label = self._properties(element, valid, default_sigma)
         is_ellipsoid = valid & (kind == ELLIPSOID)
         center, scale, quat, extent = self._ellipsoid(element, is_ellipsoid)
-        e_mean, e_sigma, e_lo, e_hi = ray_restricted_gaussian(center, scale, quat, extent, origin, direction)
-        return Segment(
-            valid=valid,
-            nominal=nominal,
-            p=p,
-            mean=dr.select(is_ellipsoid, e_mean, nominal),
-            sigma=dr.select(is_ellipsoid, e_sigma, sigma),
-            lo=dr.select(is_ellipsoid, e_lo, -dr.inf),
-            hi=dr.select(is_ellipsoid, e_hi, dr.inf),
-            cos_incidence=dr.abs(dr.dot(si.n, direction)),
-            element=element,
-            shape=shape,
-            label=label,
-            kind=kind,
+        restricted = ray_restricted_gaussian(center, scale, quat, extent, origin, direction)
+        return _segment(
+            valid,
+            element,
+            p,
+            sigma,
+            kind,
+            shape,
+            label,
+            is_ellipsoid,
+            nominal,
+            restricted,
+            dr.abs(dr.dot(si.n, direction)),
         )
 
     def _vertex(self, element: mi.UInt32, corner: int, active: mi.Bool) -> mi.Point3f:
@@ -344,20 +343,18 @@ class ElementTable:
             soft = presence(a, b, c, extent, self.smoothing)
             p = dr.select(is_ellipsoid, p * soft, p)
 
-        nominal = dr.select(is_ellipsoid, e_lo, t_plane)
-        return Segment(
-            valid=valid,
-            nominal=nominal,
-            p=p,
-            mean=dr.select(is_ellipsoid, e_mean, nominal),
-            sigma=dr.select(is_ellipsoid, e_sigma, sigma),
-            lo=dr.select(is_ellipsoid, e_lo, -dr.inf),
-            hi=dr.select(is_ellipsoid, e_hi, dr.inf),
-            cos_incidence=dr.select(is_ellipsoid, e_cos, dr.abs(d_n)),
-            element=element,
-            shape=shape,
-            label=label,
-            kind=kind,
+        return _segment(
+            valid,
+            element,
+            p,
+            sigma,
+            kind,
+            shape,
+            label,
+            is_ellipsoid,
+            dr.select(is_ellipsoid, e_lo, t_plane),
+            (e_mean, e_sigma, e_lo, e_hi),
+            dr.select(is_ellipsoid, e_cos, dr.abs(d_n)),
         )
 
     def cached_segment(self, entry, valid: mi.Bool, default_sigma: float) -> Segment:
@@ -389,6 +386,29 @@ class ElementTable:
             label=label,
             kind=kind,
         )
+
+
+def _segment(valid, element, p, sigma, kind, shape, label, is_ellipsoid, nominal, restricted, cos_incidence) -> Segment:
+    """A :class:`Segment`: a surface returns around its nominal range; an ellipsoid its restricted Gaussian.
+
+    Args:
+        restricted: ``(mean, sigma, lo, hi)`` of the ellipsoid Gaussian restricted to the ray (m).
+    """
+    e_mean, e_sigma, e_lo, e_hi = restricted
+    return Segment(
+        valid=valid,
+        nominal=nominal,
+        p=p,
+        mean=dr.select(is_ellipsoid, e_mean, nominal),
+        sigma=dr.select(is_ellipsoid, e_sigma, sigma),
+        lo=dr.select(is_ellipsoid, e_lo, -dr.inf),
+        hi=dr.select(is_ellipsoid, e_hi, dr.inf),
+        cos_incidence=cos_incidence,
+        element=element,
+        shape=shape,
+        label=label,
+        kind=kind,
+    )
 
 
 def _check_values(shape_id: str, name: str, values: np.ndarray) -> None:

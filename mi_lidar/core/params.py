@@ -176,6 +176,31 @@ class Parametrized:
         return f"{self.name}({', '.join(parts)})"
 
 
+class Catalog(dict):
+    """Registered classes of one kind by name (the effect catalog, the density catalog).
+
+    Args:
+        what: what the catalog holds, for messages (``"effect"``, ``"return density"``).
+    """
+
+    def __init__(self, what: str):
+        super().__init__()
+        self.what = what
+
+    def register(self, cls):
+        """Add ``cls`` under ``cls.name`` (usable as a decorator)."""
+        if not cls.name:
+            raise ParameterError(f"{self.what} class {cls.__name__} needs a non-empty `name`")
+        self[cls.name] = cls
+        return cls
+
+    def cls(self, name: str):
+        """The class registered as ``name``; a ParameterError listing the catalog otherwise."""
+        if name not in self:
+            raise ParameterError(f"unknown {self.what} {name!r}; the catalog has: {', '.join(sorted(self)) or 'none'}")
+        return self[name]
+
+
 def parse_calls(spec: str, make: Callable[..., Any], what: str) -> list:
     """Parse ``"name(key=value, key=[v1 v2]), other(...)"`` into objects built by ``make(name, **values)``.
 

@@ -33,7 +33,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_lidar.core.errors import ParameterError
-from mi_lidar.core.params import Parametrized, parse_calls
+from mi_lidar.core.params import Catalog, Parametrized, parse_calls
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
@@ -94,15 +94,8 @@ def escape_segment(rays: RayBatch, drop=0.0, sigma=0.0) -> Segment:
     )
 
 
-DENSITIES: dict[str, type[ReturnDensity]] = {}
-
-
-def register_density(cls: type[ReturnDensity]) -> type[ReturnDensity]:
-    """Add a density class to the catalog under ``cls.name`` (usable as a decorator)."""
-    if not cls.name:
-        raise ParameterError(f"density class {cls.__name__} needs a non-empty `name`")
-    DENSITIES[cls.name] = cls
-    return cls
+DENSITIES = Catalog("return density")
+register_density = DENSITIES.register
 
 
 def make_density(name: str, resolve=None, **values) -> ReturnDensity:
@@ -111,11 +104,7 @@ def make_density(name: str, resolve=None, **values) -> ReturnDensity:
     A learned density is loaded from ``file=`` (a ``.npz`` written by its ``save``); ``resolve``
     maps that file name to a path (the scene folder's, in XML).
     """
-    if name not in DENSITIES:
-        raise ParameterError(
-            f"unknown return density {name!r}; the catalog has: {', '.join(sorted(DENSITIES)) or 'none'}"
-        )
-    cls = DENSITIES[name]
+    cls = DENSITIES.cls(name)
     if "file" in values:
         from mi_lidar.core.densities.tables import load_density
 

@@ -31,7 +31,7 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.densities.base import ESCAPE, ReturnDensity, escape_segment, register_density
-from mi_lidar.core.densities.samples import StateSamples, protocol_residual_edges
+from mi_lidar.core.densities.samples import StateSamples, choose_by_held_out, protocol_residual_edges
 from mi_lidar.core.densities.tables import StateGrid
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
@@ -329,19 +329,10 @@ def fit_np_reg(
     edges = protocol_residual_edges(z_max) if edges is None else np.asarray(edges)
     counts = count_states(samples, grid, edges)
     candidates = list(itertools.product(h_ranges, h_incidences if grid.incidence_edges else (1.0,), uniforms))
-    table: list = []
-    best: tuple | None = None
-    for i, (h_r, h_i, u) in enumerate(candidates):
+
+    def build(h_r: float, h_i: float, u: float) -> NPRegDensity:
         smoothed = np.concatenate([kernel_weights(grid, h_r, h_i) @ counts[:-1], counts[-1:]])
         mass, p_null = _finish(smoothed, e_kernel=True)
-        density = NPRegDensity(
-            grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=z_max
-        )
-        nll = float(held_out_score(density))
-        table.append((h_r, h_i, u, nll))
-        if best is None or nll < best[0]:
-            best = (nll, density)
-        if progress is not None:
-            progress(i + 1, len(candidates))
-    assert best is not None  # at least one candidate
-    return best[1], table
+        return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=z_max)
+
+    return choose_by_held_out(candidates, build, held_out_score, progress)

@@ -27,7 +27,7 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.densities.base import ESCAPE, ReturnDensity, escape_segment, register_density
-from mi_lidar.core.densities.samples import StateSamples
+from mi_lidar.core.densities.samples import StateSamples, choose_by_held_out
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
@@ -207,26 +207,22 @@ def fit_p_reg(
     inl = hit & (np.abs(np.nan_to_num(e, nan=np.inf)) <= inlier)
     escape_null = float(np.mean(~samples.hit[~met])) if np.any(~met) else 0.99
     candidates = list(itertools.product(h_ranges, h_incidences))
-    table: list = []
-    best: tuple | None = None
-    for c, (h_r, h_d) in enumerate(candidates):
+
+    def build(h_r: float, h_d: float) -> PRegDensity:
         shape = (d_nodes.size + 1, r_nodes.size)
         tables = {k: np.zeros(shape) for k in ("p_null", "mu", "sigma")}
         for row, mask, x, nodes, bws in (
             ("known", known, np.stack([d, r], 1), [d_nodes, r_nodes], [h_d, h_r]),
             ("unknown", ~known, r[:, None], [r_nodes], [h_r]),
         ):
-            xb, null_y, w = _binned(x[mask], (~hit[mask]).astype(float), nodes)
-            p_null = _local_linear(xb, null_y, w, nodes, bws)
-            xi, mu_y, wi = _binned(x[mask & inl], e[mask & inl], nodes)
-            mu = _local_linear(xi, mu_y, wi, nodes, bws)
-            xs, sq_y, ws = _binned(x[mask & inl], e[mask & inl] ** 2, nodes)
-            second = _local_linear(xs, sq_y, ws, nodes, bws)
+            p_null = _local_linear(*_binned(x[mask], (~hit[mask]).astype(float), nodes), nodes, bws)
+            mu = _local_linear(*_binned(x[mask & inl], e[mask & inl], nodes), nodes, bws)
+            second = _local_linear(*_binned(x[mask & inl], e[mask & inl] ** 2, nodes), nodes, bws)
             sigma = np.sqrt(np.maximum(second - mu * mu, MIN_SIGMA**2))
             target = slice(0, d_nodes.size) if row == "known" else slice(d_nodes.size, d_nodes.size + 1)
             for name, values in (("p_null", p_null), ("mu", mu), ("sigma", sigma)):
                 tables[name][target] = values.reshape(-1, r_nodes.size)
-        density = PRegDensity(
+        return PRegDensity(
             range_nodes=r_nodes,
             incidence_nodes=d_nodes,
             p_null=np.clip(tables["p_null"], 0, 1),
@@ -235,14 +231,8 @@ def fit_p_reg(
             z_max=z_max,
             escape_null=escape_null,
         )
-        nll = float(held_out_score(density))
-        table.append((h_r, h_d, nll))
-        if best is None or nll < best[0]:
-            best = (nll, density)
-        if progress is not None:
-            progress(c + 1, len(candidates))
-    assert best is not None  # at least one candidate
-    return best[1], table
+
+    return choose_by_held_out(candidates, build, held_out_score, progress)
 
 
 def _binned(x: np.ndarray, y: np.ndarray, nodes: list[np.ndarray]):

@@ -109,3 +109,30 @@ def protocol_residual_edges(reach: float = 82.0) -> np.ndarray:
     ]
     positive = np.unique(np.round(np.concatenate(pieces), 6))
     return np.concatenate([-positive[:0:-1], positive])
+
+
+def choose_by_held_out(candidates: list, build, held_out_score, progress=None) -> tuple:
+    """The candidate settings whose density scores best held out.
+
+    Args:
+        candidates: settings (tuples).
+        build: ``build(*setting) -> density``.
+        held_out_score: mean held-out NLL (nats per ray) of a density (the one likelihood).
+        progress: optional ``progress(done, total)``.
+
+    Returns:
+        ``(best density, [(*setting, NLL), ...])``.
+    """
+    table: list = []
+    best: tuple | None = None
+    for i, setting in enumerate(candidates):
+        density = build(*setting)
+        nll = float(held_out_score(density))
+        table.append((*setting, nll))
+        if best is None or nll < best[0]:
+            best = (nll, density)
+        if progress is not None:
+            progress(i + 1, len(candidates))
+    if best is None:
+        raise ParameterError("no candidate settings to choose from")
+    return best[1], table

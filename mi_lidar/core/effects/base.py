@@ -44,8 +44,7 @@ from dataclasses import dataclass
 
 import mitsuba as mi
 
-from mi_lidar.core.errors import ParameterError
-from mi_lidar.core.params import Parametrized, parse_calls
+from mi_lidar.core.params import Catalog, Parametrized, parse_calls
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
@@ -167,22 +166,13 @@ class FootprintEffect(Effect, metaclass=abc.ABCMeta):
         """
 
 
-EFFECTS: dict[str, type[Effect]] = {}
-
-
-def register_effect(cls: type[Effect]) -> type[Effect]:
-    """Add an effect class to the catalog under ``cls.name`` (usable as a decorator)."""
-    if not cls.name:
-        raise ParameterError(f"effect class {cls.__name__} needs a non-empty `name`")
-    EFFECTS[cls.name] = cls
-    return cls
+EFFECTS = Catalog("effect")
+register_effect = EFFECTS.register
 
 
 def make_effect(name: str, **values) -> Effect:
     """Instantiate catalog effect ``name`` with parameter ``values``."""
-    if name not in EFFECTS:
-        raise ParameterError(f"unknown effect {name!r}; the catalog has: {', '.join(sorted(EFFECTS)) or 'none'}")
-    return EFFECTS[name](**values)
+    return EFFECTS.cls(name)(**values)
 
 
 def parse_effects(spec: str) -> list[Effect]:
