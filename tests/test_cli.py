@@ -29,13 +29,13 @@ def test_render_writes_every_output(tmp_path):
     assert {"range", "hit", "element_id", "shape_id", "label", "cos_incidence", "nominal_range", "segments"} <= set(
         channels
     )
-    assert channels["range"].shape == (1, 360) and channels["range"].dtype == np.float32
+    assert channels["range"].shape == (360, 1) and channels["range"].dtype == np.float32
     points, attributes = read_ply(tmp_path / "points.ply")
     assert len(points) == int(channels["hit"].sum())
     np.testing.assert_allclose(np.linalg.norm(points - [0, 0, 0.5], axis=1), attributes["range"], rtol=1e-5)
     for name in ("range.png", "birds_eye.png", "scan.bin"):
         assert (tmp_path / name).stat().st_size > 1000
-    assert Log.load(tmp_path / "scan.npz").shape == (1, 1, 360)
+    assert Log.load(tmp_path / "scan.npz").shape == (1, 360, 1)
 
 
 def test_render_pattern_override(tmp_path):
@@ -57,10 +57,10 @@ def test_simulate_writes_a_log_per_pose(tmp_path):
     )
     assert result.exit_code == 0, result.stdout
     log = Log.load(out)
-    assert log.shape == (3, 1, 360)
-    forward = int(np.argmax(log.directions[0, 0, :, 0]))
+    assert log.shape == (3, 360, 1)
+    forward = int(np.argmax(log.directions[0, :, 0, 0]))
     # Walking towards the east wall (x = 5 m): 5, 4, 3 m within the 1 cm noise.
-    np.testing.assert_allclose(log.ranges[:, 0, forward], [5.0, 4.0, 3.0], atol=0.05)
+    np.testing.assert_allclose(log.ranges[:, forward, 0], [5.0, 4.0, 3.0], atol=0.05)
 
 
 def test_simulate_rejects_non_rigid_pose_file(tmp_path):
@@ -97,7 +97,7 @@ def test_info_and_convert_on_a_simulated_log(tmp_path):
     (tmp_path / "scan.npz").rename(log_path)
     result = runner.invoke(app, ["info", str(log_path)])
     assert result.exit_code == 0, result.stdout
-    assert "1 x 1 x 360" in result.stdout
+    assert "1 x 360 x 1" in result.stdout
     result = runner.invoke(app, ["convert", str(log_path), str(tmp_path / "room.pcd")])
     assert result.exit_code == 0, result.stdout
     assert (tmp_path / "room.pcd").stat().st_size > 1000

@@ -211,14 +211,14 @@ def test_packet_is_32_yaws_by_32_pitches_over_1_8_degrees():
 
 def test_planar_180_by_1_degree():
     p = get_pattern("planar-180")
-    assert p.shape == (1, 180)
+    assert p.shape == (180, 1)  # each bearing is a beam, as CARMEN logs are read
     np.testing.assert_allclose(
-        np.degrees(p.azimuth[0]), np.arange(-90, 90), atol=1e-9
+        np.degrees(p.azimuth[:, 0]), np.arange(-90, 90), atol=1e-9
     )  # CARMEN: theta - pi/2 + i pi/180
-    assert np.all(p.elevation == 0) and np.all(np.diff(p.time[0]) > 0)
+    assert np.all(p.elevation == 0) and np.all(np.diff(p.time[:, 0]) > 0)
     q = planar(360)
-    np.testing.assert_allclose(np.diff(np.degrees(np.unwrap(q.azimuth[0]))), 1.0)
-    np.testing.assert_allclose(np.degrees(planar(4, 90.0, start_deg=10.0).azimuth[0]), [10, 32.5, 55, 77.5])
+    np.testing.assert_allclose(np.diff(np.degrees(np.unwrap(q.azimuth[:, 0]))), 1.0)
+    np.testing.assert_allclose(np.degrees(planar(4, 90.0, start_deg=10.0).azimuth[:, 0]), [10, 32.5, 55, 77.5])
 
 
 def test_raster_scans_row_by_row():

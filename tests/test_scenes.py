@@ -32,8 +32,8 @@ def test_indoor_wall_range_within_noise():
     # The sensor is at the origin; the east wall's inner face is at x = 5 m; sigma = 0.01 m.
     scene = mi_lidar.load_scene(SCENES / "indoor_planar.xml")
     pattern = scene.sensors()[0].pattern
-    forward = int(np.argmax(pattern.directions()[0, :, 0]))
-    ranges = np.array([mi_lidar.simulate(scene, pattern, seed=s).ranges[0, 0, forward] for s in range(40)])
+    forward = int(np.argmax(pattern.directions()[:, 0, 0]))
+    ranges = np.array([mi_lidar.simulate(scene, pattern, seed=s).ranges[0, forward, 0] for s in range(40)])
     # Mean of 40 draws: standard error 0.0016 m; allow 4 standard errors plus float32 rounding.
     assert abs(ranges.mean() - 5.0) < 0.007
     assert 0.006 < ranges.std() < 0.014
@@ -150,7 +150,7 @@ def test_pattern_table_is_found_next_to_the_scene(tmp_path, monkeypatch):
     (tmp_path / "room.xml").write_text(text)
     monkeypatch.chdir(SCENES)  # somewhere else than the scene folder
     scene = mi_lidar.load_scene(tmp_path / "room.xml")
-    assert tensor_to_numpy(mi.render(scene))["range"].shape == (1, 180)
+    assert tensor_to_numpy(mi.render(scene))["range"].shape == (180, 1)
 
 
 def test_simulated_ouster_fires_the_real_frame_rays(shared_data):

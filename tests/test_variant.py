@@ -64,6 +64,6 @@ def test_plugins_are_registered_again_after_a_variant_change():
             }
         )
         image = mi.render(scene)
-        assert image.shape == (1, 180, 8)
+        assert image.shape == (180, 1, 8)
     finally:
         mi.set_variant("llvm_ad_rgb")

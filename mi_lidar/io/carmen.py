@@ -2,12 +2,15 @@
 
 A message line is ``FLASER n r_0 .. r_{n-1} x y theta odom_x odom_y odom_theta ipc_timestamp host
 logger_timestamp``; ``x y theta`` is the (in corrected logs, SLAM-corrected) laser pose in the
-map frame (m, rad). Each message becomes one scan with ``H = 1`` and ``W = n``:
+map frame (m, rad). Each message becomes one scan of ``H = n`` beams by ``W = 1`` firing, so that
+per-beam quantities (bias, angle offsets) are per row, as for every other sensor:
 
 - beam ``i`` points at ``-pi/2 + i * pi / n`` in the laser frame (``pi / (n - 1)`` when ``n`` is
   odd, e.g. 181 or 361 beams covering 180 deg inclusive), in the horizontal plane;
 - the pose is the planar transform (rotation ``theta`` about z, translation ``(x, y, 0)``);
-- a reading at or above ``max_range`` (the SICK maximum, 81.83 m in the Intel log) is a miss;
+- a reading within 1.5 cm of the sensor's no-return value is a miss. That value is detected from
+  the log (:func:`detect_max_range`: the largest reading, when enough readings sit on it: the SICK
+  maximum 81.83 m in the Intel log, 50 m in logs that clip there) or given as ``max_range``;
 - beam ``i`` is timed ``ipc_timestamp + i * sweep_s / n`` (SICK LMS 2xx: 180 deg of a 75 Hz
   mirror revolution, ``sweep_s = 1 / 150`` s).
 
@@ -26,8 +29,9 @@ import numpy as np
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
 
-SICK_MAX_RANGE = 81.83
 SICK_SWEEP_S = 1.0 / 150.0
+MISS_MARGIN = 0.015  # m: readings this close to the no-return value are misses (the real-planar protocol)
+MIN_SHARE_AT_MAX = 1e-3  # share of readings on the largest value that makes it the no-return value
 
 
 def _lines(path: Path) -> list[str]:
@@ -47,10 +51,26 @@ def beam_angles(n: int) -> np.ndarray:
     return -np.pi / 2 + np.arange(n) * step
 
 
+def detect_max_range(readings: np.ndarray) -> float:
+    """The sensor's no-return value in a planar log's readings (m), or ``inf`` when it has none.
+
+    A scanner reports "no return" as its maximum range, so that value is the largest reading and a
+    good share of all readings sit on it. Rule: the largest reading ``m`` is the no-return value
+    when at least ``MIN_SHARE_AT_MAX`` of the readings (and at least 3) lie within ``MISS_MARGIN`` of
+    it; otherwise the log has no clipping value and every positive reading is a return.
+    """
+    values = readings[np.isfinite(readings) & (readings > 0)]
+    if values.size == 0:
+        return float("inf")
+    top = float(values.max())
+    at_top = int(np.sum(values >= top - MISS_MARGIN))
+    return top if at_top >= max(3, MIN_SHARE_AT_MAX * values.size) else float("inf")
+
+
 def read_carmen(
     path: str | os.PathLike,
     message: str = "FLASER",
-    max_range: float = SICK_MAX_RANGE,
+    max_range: float | None = None,
     sweep_s: float = SICK_SWEEP_S,
 ) -> Log:
     """Read every ``message`` line of a CARMEN log.
@@ -58,11 +78,13 @@ def read_carmen(
     Args:
         path: ``.log`` or ``.log.gz`` file.
         message: ``"FLASER"`` (front laser) or ``"RLASER"`` (rear laser).
-        max_range: Readings ``>= max_range - 5 mm`` are misses (m).
+        max_range: the sensor's no-return value (m); readings ``>= max_range - 1.5 cm`` are misses.
+            None detects it from the log (:func:`detect_max_range`).
         sweep_s: Time for the mirror to sweep the 180-degree field (s).
 
     Returns:
-        A log of S scans, ``H = 1``, ``W = n`` beams, world poses from the corrected pose fields.
+        A log of S scans of ``H = n`` beams x ``W = 1`` firing, world poses from the corrected pose
+        fields; ``sensor["max_range_m"]`` holds the no-return value used (``inf``: none).
 
     Raises:
         LogFormatError: Missing/corrupt file, no ``message`` lines, a line with the wrong number
@@ -100,24 +122,28 @@ def read_carmen(
         bad = int(np.argmax(~np.isfinite(table).all(axis=1)))
         raise LogFormatError(f"{path}: line {numbers[bad]}: non-finite value in a {message} message")
     readings, pose, odometry, stamp = table[:, :n], table[:, n : n + 3], table[:, n + 3 : n + 6], table[:, n + 6]
-    hit = (readings < max_range - 0.005) & (readings > 0)
+    if max_range is None:
+        max_range = detect_max_range(readings)
+    elif not max_range > 0:
+        raise LogFormatError(f"{path}: max_range={max_range} m must be > 0 (the sensor's no-return value)")
+    hit = (readings < max_range - MISS_MARGIN) & (readings > 0)
     angles = beam_angles(n)
-    directions = np.stack([np.cos(angles), np.sin(angles), np.zeros(n)], axis=-1)[None, None]
+    directions = np.stack([np.cos(angles), np.sin(angles), np.zeros(n)], axis=-1)[None, :, None]
     poses = np.tile(np.eye(4), (len(table), 1, 1))
     c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
     poses[:, 0, 0], poses[:, 0, 1], poses[:, 1, 0], poses[:, 1, 1] = c, -s, s, c
     poses[:, :2, 3] = pose[:, :2]
-    times = stamp[:, None, None] + (np.arange(n) * sweep_s / n)[None, None, :]
+    times = stamp[:, None, None] + (np.arange(n) * sweep_s / n)[None, :, None]
     return Log(
         poses=poses,
         directions=directions,
-        ranges=np.where(hit, readings, np.nan)[:, None, :],
-        hit=hit[:, None, :],
+        ranges=np.where(hit, readings, np.nan)[:, :, None],
+        hit=hit[:, :, None],
         times=times,
         sensor={
             "name": f"carmen:{message}",
             "source": str(path),
-            "max_range_m": max_range,
+            "max_range_m": float(max_range),
             "beam_angles_rad": angles.tolist(),
             "odometry": odometry.tolist(),
             "range_unit": "m",

@@ -46,6 +46,8 @@ def range_image_png(
     Rows are beams (top row = first beam), columns are firings. Rows are stretched so that thin
     images stay readable: a 16 x 1800 or 32 x 1024 image is drawn 12 inches wide, and each
     beam is about 11 pixels tall (0.1 inch per row, image height clipped to 1.5..8 inches).
+    A planar scan (H beams x 1 firing) is drawn as a range profile over the beams instead, with
+    misses as magenta ticks on the beam axis.
 
     Args:
         path: Destination ``.png``.
@@ -67,6 +69,8 @@ def range_image_png(
     empty = np.zeros_like(miss) if valid is None else ~np.asarray(valid, dtype=bool)
     miss &= ~empty
     rows, cols = ranges.shape
+    if cols == 1:
+        return _profile_png(path, ranges[:, 0], miss[:, 0], empty[:, 0], title)
     image_height_in = float(np.clip(rows * ROW_HEIGHT_IN, 1.5, 8.0))
     figure = Figure(figsize=(FIGURE_WIDTH_IN, image_height_in + 1.4))
     axes = figure.add_subplot()
@@ -91,6 +95,34 @@ def range_image_png(
     if empty.any():
         handles.append(Patch(color=EMPTY_COLOUR, label="not fired (partial frame)"))
     axes.legend(handles=handles, loc="upper right", fontsize=8)
+    figure.tight_layout()
+    return _save(figure, path)
+
+
+def _profile_png(path, ranges: np.ndarray, miss: np.ndarray, empty: np.ndarray, title: str) -> Path:
+    """Range over beam index for a planar scan (one firing per beam); misses ticked in magenta."""
+    figure = Figure(figsize=(FIGURE_WIDTH_IN, 4.0))
+    axes = figure.add_subplot()
+    beam = np.arange(len(ranges))
+    shown = np.where(miss | empty, np.nan, ranges)
+    axes.plot(beam, shown, ".", markersize=3, color=colormaps["viridis"](0.35), label="return")
+    if miss.any():
+        axes.plot(
+            beam[miss],
+            np.zeros(int(miss.sum())),
+            "|",
+            color=MISS_COLOUR,
+            markersize=14,
+            markeredgewidth=3,
+            label="miss (no return)",
+        )
+    axes.set_xlabel("beam (bearing index)")
+    axes.set_ylabel("range (m)")
+    axes.set_ylim(bottom=0.0)
+    axes.grid(alpha=0.3)
+    fired = len(ranges) - int(empty.sum())
+    axes.set_title(f"{title}  ({len(ranges)} beams x 1 firing, {miss.sum() / max(fired, 1):.1%} misses)")
+    axes.legend(loc="upper right", fontsize=8)
     figure.tight_layout()
     return _save(figure, path)
 

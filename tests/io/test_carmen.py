@@ -5,7 +5,7 @@ import pytest
 
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.io import read_any, read_carmen
-from mi_lidar.io.carmen import beam_angles
+from mi_lidar.io.carmen import beam_angles, detect_max_range
 
 from .conftest import data_file
 from .synth import carmen_text
@@ -13,7 +13,8 @@ from .synth import carmen_text
 
 def test_real_intel_log():
     log = read_carmen(data_file("carmen/intel-corrected.log.gz"))
-    assert log.shape == (910, 1, 180)
+    assert log.shape == (910, 180, 1)
+    assert log.sensor["max_range_m"] == pytest.approx(81.83)
     assert (~log.hit).sum() == 4172
     assert np.all(np.isnan(log.ranges[~log.hit]))
     assert 0.2 < np.nanmin(log.ranges) and np.nanmax(log.ranges) < 26.0
@@ -33,12 +34,12 @@ def test_synthetic_plain_and_gzip(tmp_path):
     (tmp_path / "a.log.gz").write_bytes(gzip.compress(text.encode()))
     plain, packed = read_carmen(tmp_path / "a.log"), read_any(tmp_path / "a.log.gz")
     np.testing.assert_array_equal(plain.ranges, packed.ranges)
-    assert plain.shape == (3, 1, 180)
-    assert not plain.hit[:, 0, 5].any() and plain.hit.sum() == 3 * 179
-    np.testing.assert_allclose(plain.ranges[0, 0, 10], 1.10)
+    assert plain.shape == (3, 180, 1)
+    assert not plain.hit[:, 5, 0].any() and plain.hit.sum() == 3 * 179
+    np.testing.assert_allclose(plain.ranges[0, 10, 0], 1.10)
     np.testing.assert_allclose(plain.poses[2, :2, 3], [2.0, 2.0])
     np.testing.assert_allclose(plain.times[1, 0, 0], 11.0)
-    np.testing.assert_allclose(plain.times[1, 0, 179] - plain.times[1, 0, 0], 179 / 180 / 150)
+    np.testing.assert_allclose(plain.times[1, 179, 0] - plain.times[1, 0, 0], 179 / 180 / 150)
 
 
 def test_beam_layout():
@@ -70,3 +71,19 @@ def test_empty_and_mixed_logs(tmp_path):
     (tmp_path / "t.log.gz").write_bytes(gzip.compress(carmen_text().encode())[:-20])
     with pytest.raises(LogFormatError, match="corrupt or truncated gzip"):
         read_carmen(tmp_path / "t.log.gz")
+
+
+def test_max_range_detected_or_given(tmp_path):
+    rng = np.random.default_rng(0)
+    readings = rng.uniform(0.5, 30.0, 5000)
+    assert detect_max_range(readings) == np.inf  # no value that many readings sit on: no clipping
+    readings[:40] = 50.0  # a scanner that clips at 50 m
+    assert detect_max_range(readings) == 50.0
+    text = carmen_text(scans=3, max_range=50.0)
+    (tmp_path / "c.log").write_text(text)
+    log = read_carmen(tmp_path / "c.log")
+    assert log.sensor["max_range_m"] == 50.0 and not log.hit[:, 5, 0].any()
+    given = read_carmen(tmp_path / "c.log", max_range=100.0)  # the user says the sensor reaches 100 m
+    assert given.hit[:, 5, 0].all() and np.allclose(given.ranges[:, 5, 0], 50.0)
+    with pytest.raises(LogFormatError, match="max_range=-1.0 m must be > 0"):
+        read_carmen(tmp_path / "c.log", max_range=-1.0)

@@ -58,7 +58,7 @@ def test_write_formats_and_errors(tmp_path):
 def test_convert_and_info(tmp_path):
     (tmp_path / "lab.log").write_text(carmen_text(scans=4))
     summary = info(tmp_path / "lab.log")
-    assert summary["format"] == "carmen" and summary["shape"] == [4, 1, 180]
+    assert summary["format"] == "carmen" and summary["shape"] == [4, 180, 1]
     assert summary["miss_fraction"] == pytest.approx(1 / 180)
     assert summary["range_m"][0] == pytest.approx(1.0) and summary["range_m"][2] == pytest.approx(2.79)
     assert summary["scan_period_s"] == pytest.approx(1.0)

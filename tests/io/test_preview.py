@@ -5,7 +5,7 @@ from matplotlib.image import imread
 from mi_lidar.io import birds_eye_png, range_image_png
 
 
-@pytest.mark.parametrize("shape", [(16, 1800), (32, 1024), (1, 180)])
+@pytest.mark.parametrize("shape", [(16, 1800), (32, 1024), (1, 180), (180, 1)])
 def test_range_image_png(tmp_path, shape):
     rng = np.random.default_rng(3)
     ranges = rng.uniform(1, 50, shape).astype(np.float32)

@@ -185,13 +185,15 @@ def planar(
     at constant speed, so bearing ``i`` fires at ``(bearing_i - start) / 360 deg * period``.
 
     Args:
-        n_bearings: Number of bearings W (> 0).
+        n_bearings: Number of bearings H (> 0).
         fov_deg: Angular span of the fan, degrees, in (0, 360].
         period: Duration of one mirror revolution, s (> 0).
         start_deg: Bearing of the first beam, degrees; None centres the fan on +x.
 
     Returns:
-        A (1, n_bearings) pattern named ``"planar-<n_bearings>"``.
+        An (n_bearings, 1) pattern named ``"planar-<n_bearings>"``: each bearing is one beam (row)
+        fired once per scan, as planar logs are read (:func:`mi_lidar.io.carmen.read_carmen`), so
+        per-beam effects (bias, angle offsets) are per bearing.
 
     Raises:
         PatternError: A parameter is out of range.
@@ -205,9 +207,9 @@ def planar(
     offset_deg = step * np.arange(n)
     return FiringPattern(
         name=f"planar-{n}",
-        elevation=np.zeros((1, n)),
-        azimuth=_wrap(np.radians(start + offset_deg))[None, :],
-        time=(offset_deg / 360.0 * period)[None, :],
+        elevation=np.zeros((n, 1)),
+        azimuth=_wrap(np.radians(start + offset_deg))[:, None],
+        time=(offset_deg / 360.0 * period)[:, None],
         period=period,
     )
 
