@@ -9,10 +9,11 @@ module                 verbs
 :mod:`.loop`           ``compare``, ``diagnose``
 :mod:`.calibrate`      ``calibrate``
 :mod:`.sensor`         ``fit-sensor``
+:mod:`.benchmark`      ``benchmark-planar``
 =====================  ==========================================================================
 """
 
-from mi_lidar.cli import calibrate, convert, hybrid, loop, render, sensor  # noqa: F401  (register the commands)
+from mi_lidar.cli import benchmark, calibrate, convert, hybrid, loop, render, sensor  # noqa: F401  (register)
 from mi_lidar.cli.app import app
 
 __all__ = ["app"]

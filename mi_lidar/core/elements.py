@@ -231,6 +231,41 @@ class ElementTable:
             vertex_counts=vertex_counts,
         )
 
+    @classmethod
+    def from_elements(
+        cls, p_hit: np.ndarray, label: np.ndarray | None = None, range_sigma: np.ndarray | None = None
+    ) -> ElementTable:
+        """A table of surface elements without scene geometry (segments traced by another tracer).
+
+        Their segments come from cached distributions only (:meth:`cached_segment`), e.g. the cells
+        a planar log's ray march met (:func:`mi_lidar.core.trace.rounds_from_segments`).
+        """
+        n = int(np.size(p_hit))
+        _check_values("elements", "p_hit", np.asarray(p_hit, np.float64))
+        zeros = np.zeros(n, np.uint32)
+        return cls(
+            shape_ids=["elements"],
+            shape_kinds=["surface"],
+            element_counts=[n],
+            element_offset=mi.UInt32([0]),
+            shape_index=mi.UInt32([0]),
+            p_hit=mi.Float(np.asarray(p_hit, np.float32)),
+            range_sigma=mi.Float(
+                np.full(n, np.nan, np.float32) if range_sigma is None else np.asarray(range_sigma, np.float32)
+            ),
+            label=mi.UInt32(zeros if label is None else np.asarray(label, np.uint32)),
+            kind=mi.UInt32(np.full(n, SURFACE, np.uint32)),
+            element_shape=mi.UInt32(zeros),
+            ellipsoid_data=mi.Float(np.zeros(ELLIPSOID_STRIDE, np.float32)),
+            ellipsoid_extent=mi.Float([1.0]),
+            ellipsoid_index=mi.UInt32(zeros),
+            vertex_positions=mi.Float(np.zeros(3, np.float32)),
+            face_vertices=mi.UInt32(np.zeros(3 * n, np.uint32)),
+            is_triangle=mi.Bool(np.zeros(n, bool)),
+            vertex_offset=[-1],
+            vertex_counts=[0],
+        )
+
     def replaced(self, **arrays) -> ElementTable:
         """A shallow copy with some arrays replaced (for example by differentiable ones)."""
         values = {f.name: getattr(self, f.name) for f in fields(self)}

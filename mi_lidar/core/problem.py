@@ -21,6 +21,7 @@ import numpy as np
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.effects.base import Effect
 from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.fitting import FitVariable, adam_fit
 from mi_lidar.core.likelihood import mixture_log_likelihood, score
 from mi_lidar.core.params import Parametrized
@@ -101,12 +102,22 @@ class Problem:
     index: np.ndarray
     chunks: list = field(default_factory=list, repr=False)
     _traced: tuple | None = field(default=None, repr=False)
+    fixed: bool = False  # the chunks were traced by another tracer: never re-trace
 
     @classmethod
     def build(cls, scene, rays: LogRays, index: np.ndarray | None = None, table: ElementTable | None = None) -> Problem:
         """The problem of rays ``index`` of ``rays`` (all when None) in ``scene``."""
         index = np.arange(rays.n) if index is None else np.asarray(index)
         return cls(scene=scene, table=table or ElementTable.from_scene(scene), rays=rays, index=index)
+
+    @classmethod
+    def from_rounds(cls, table: ElementTable, rays: RayBatch, rounds, z: mi.Float, hit: mi.Bool) -> Problem:
+        """A problem whose rays another tracer traced (e.g. a planar log's ray march): one fixed chunk.
+
+        Models fitted on it must not move rays (their segments cannot be traced again).
+        """
+        chunk = Chunk(rays=rays, z=dr.select(hit, z, 0.0), hit=hit, rounds=rounds)
+        return cls(scene=None, table=table, rays=None, index=np.arange(rays.width), chunks=[chunk], fixed=True)
 
     @property
     def n(self) -> int:
@@ -121,6 +132,10 @@ class Problem:
         before effects is computed once as well.
         """
         key = (_ray_key(model), model.max_range, model.max_segments, model.range_sigma)
+        if self.fixed:
+            if moves_rays(model):
+                raise ParameterError("this problem's rays were traced by another tracer: effects cannot move them")
+            return
         if self._traced == key and self.chunks:
             return
         self.chunks = []

@@ -223,6 +223,45 @@ class SensorModel:
             start = dr.gather(mi.Point3f, point, live) + RESTART_OFFSET * rays.direction
         return out
 
+    def sample_trace(self, table: ElementTable, rays: RayBatch, rounds, seed: int = 0) -> tuple[mi.Float, mi.Bool]:
+        """One draw of every ray's reported range from an existing trace, with the sampler's rules.
+
+        For segments another tracer found (:func:`~mi_lidar.core.trace.rounds_from_segments`, e.g. a
+        planar log's ray march) or a Mitsuba trace (:func:`~mi_lidar.core.trace.trace_rounds`): element
+        ``k`` of a ray draws from the same random streams as in :meth:`simulate_rays`, so both give
+        the same range for the same seed. Footprint effects are not supported here.
+
+        Returns:
+            ``(range, hit)`` per ray (m, NaN for a miss).
+        """
+        rays = self.prepare_rays(rays)
+        n = rays.width
+        out = {"range": dr.full(mi.Float, dr.nan, n), "hit": dr.full(mi.Bool, False, n)}
+        everyone = dr.arange(mi.UInt32, n)
+        alive = dr.full(mi.Bool, True, n)
+        for v, seg in enumerate(self.virtual_segments(rays)):
+            u = uniform(seed, rays.ray_id, VIRTUAL_SEGMENT + v, 0)
+            returned = alive & seg.valid & (u < seg.p * (1.0 - seg.drop))
+            z = sample_range(seg, uniform(seed, rays.ray_id, VIRTUAL_SEGMENT + v, 1))
+            self._report(out, everyone, rays, returned, z)
+            alive = alive & ~(seg.valid & (u < seg.p))
+        for k, r in enumerate(rounds.rounds):
+            sub = rays.take(r.ray)
+            base = (
+                table.segment(r, True, r.element, sub.origin, sub.direction, self.range_sigma)
+                if r.cached is None
+                else table.cached_segment(r, dr.full(mi.Bool, True, r.width), self.range_sigma)
+            )
+            seg = self.apply_effects(base, sub)
+            live = dr.gather(mi.Bool, alive, r.ray)
+            u = uniform(seed, sub.ray_id, k, 0)
+            returned = live & (u < seg.p * (1.0 - seg.drop))
+            self._report(out, r.ray, sub, returned, self.density.sample(seg, uniforms(seed, sub.ray_id, k), sub))
+            dr.scatter(alive, False, r.ray, live & (u < seg.p))
+            dr.eval(out, alive)
+        self._escape(out, everyone, rays, alive, seed)
+        return out["range"], out["hit"]
+
     def _escape(self, out: dict, index: mi.UInt32, rays: RayBatch, escaped: mi.Bool, seed: int) -> None:
         """Draw the escape law's return (if the density has one) for the lanes that met nothing more."""
         escape = self.density.escape(rays)

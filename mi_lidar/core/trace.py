@@ -182,6 +182,10 @@ def rounds_from_segments(
 ) -> Rounds:
     """The :class:`Rounds` of rays whose elements another tracer found (CSR layout, numpy).
 
+    Each entry's return distribution is cached as that of a surface at its nominal range (the
+    element's own range sigma), so the likelihood needs no geometry: build the table with
+    :meth:`~mi_lidar.core.elements.ElementTable.from_elements`.
+
     Args:
         start: (N + 1,) offsets: the entries of ray ``i`` are ``start[i] .. start[i + 1] - 1``, in
             order along the ray.
@@ -190,15 +194,17 @@ def rounds_from_segments(
         cos_incidence: (E,) |cos| of the incidence of every entry (NaN where unknown).
     """
     count = np.diff(np.asarray(start, np.int64))
+    r = mi.Float(aligned(np.asarray(nominal, np.float32)))
+    size = dr.width(r)
     cache = RayCache(
         start=np.asarray(start[:-1], np.int64),
         count=count,
         element=mi.UInt32(aligned(np.asarray(element, np.uint32))),
-        nominal=mi.Float(aligned(np.asarray(nominal, np.float32))),
+        nominal=r,
         cos_incidence=mi.Float(aligned(np.asarray(cos_incidence, np.float32))),
         point=None,
         normal=None,
-        cached=None,
+        cached=(r, dr.full(mi.Float, dr.nan, size), dr.full(mi.Float, -dr.inf, size), dr.full(mi.Float, dr.inf, size)),
     )
     return cache.select(np.arange(len(count)))
 
@@ -219,9 +225,11 @@ def cache_distributions(rounds: Rounds, table, model, rays: RayBatch, measured: 
         rays = model.prepare_rays(rays)
         for r in rounds.rounds:
             sub = rays.take(r.ray)
-            seg = table.segment(
-                r, dr.full(mi.Bool, True, r.width), r.element, sub.origin, sub.direction, model.range_sigma
-            )
+            valid = dr.full(mi.Bool, True, r.width)
+            if r.cached is None:
+                seg = table.segment(r, valid, r.element, sub.origin, sub.direction, model.range_sigma)
+            else:  # segments of another tracer come with their distributions
+                seg = table.cached_segment(r, valid, model.range_sigma)
             cached = tuple(getattr(seg, f) for f in CACHED_FIELDS)
             density = drop = None
             if measured is not None:
@@ -284,7 +292,8 @@ class RayCache:
                 (point, r.point),
                 (normal, r.normal),
             ):
-                dr.scatter(target, value, slot)
+                if value is not None:  # segments of another tracer have no traced points
+                    dr.scatter(target, value, slot)
             for target, value in zip(cached or (), r.cached or ()):
                 dr.scatter(target, value, slot)
             if with_density:

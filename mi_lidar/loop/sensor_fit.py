@@ -32,10 +32,11 @@ from mi_lidar.core.densities.tables import StateGrid
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.log import Log
+from mi_lidar.core.metrics import metrics_of
 from mi_lidar.core.problem import Problem, fit_parts
 from mi_lidar.core.rays import LogRays
 from mi_lidar.core.sensor_model import SensorModel
-from mi_lidar.loop.compare import metrics_of, simulate_log_rays
+from mi_lidar.loop.compare import simulate_log_rays
 from mi_lidar.loop.diagnose import split_rays
 
 FAMILIES = ("np-reg", "p-reg", "beam", "physics")

@@ -10,9 +10,11 @@ reports, with weights ``w = softmax(logits)`` of the beam's state:
 
 A beam that met nothing (the escape state) reports no return with ``w_hit + w_max`` (the hit mass
 goes to the no-return point, as in Probabilistic Robotics) and otherwise a short reading truncated
-at ``short_reach`` or a random one. With one state this is the protocol's M1; on a
-range x incidence :class:`~mi_lidar.core.densities.tables.StateGrid` it is M2. Every parameter is
-differentiable and fitted by the one Adam fitter. Ellipsoid elements keep their own Gaussian.
+at ``short_reach`` or a random one. With ``escape=own`` (default) the escape state has weights of its
+own; with ``escape=shared`` it uses those of state 0. With one state and a shared escape this is the
+protocol's M1 (6 parameters); on a range x incidence
+:class:`~mi_lidar.core.densities.tables.StateGrid` it is M2. Every parameter is differentiable and
+fitted by the one Adam fitter. Ellipsoid elements keep their own Gaussian.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ class BeamDensity(ReturnDensity):
 
     name = "beam"
     learned = True
+    options = {"escape": ("own", "shared")}
     specs = {
         "logits": ParamSpec(
             0.0, "1", "log weights of hit, short, max, random (4 per state)", lower=-20.0, upper=20.0, fit_scale=0.5
@@ -106,13 +109,14 @@ class BeamDensity(ReturnDensity):
         """Write this density to ``path`` (``.npz``; reference it as ``beam(file=...)``)."""
         from mi_lidar.core.densities.tables import save_density
 
-        params = {k: float(np.asarray(self.params[k])[0]) for k in ("z_max", "short_reach")}
+        params = {**self.choices, **{k: float(np.asarray(self.params[k])[0]) for k in ("z_max", "short_reach")}}
         return save_density(path, self.name, params, self.grid, self.tables(), notes)
 
     # ------------------------------------------------------------------ per-state values
     def state(self, seg: Segment, rays: RayBatch) -> mi.UInt32:
         inner = self.grid.index(seg.nominal, seg.cos_incidence, rays.beam, seg.label)
-        return dr.select(seg.kind == ESCAPE, self.grid.size, inner)
+        escape = 0 if self.choices["escape"] == "shared" else self.grid.size
+        return dr.select(seg.kind == ESCAPE, escape, inner)
 
     def weights(self, state: mi.UInt32) -> list[mi.Float]:
         """Softmax weights (hit, short, max, random) of each lane's state."""

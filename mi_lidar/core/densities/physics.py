@@ -5,10 +5,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.densities.base import ReturnDensity, register_density
+from mi_lidar.core.densities.base import ESCAPE, ReturnDensity, escape_segment, register_density
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import ELLIPSOID, Segment, log_density, sample_range
+from mi_lidar.core.segment import SURFACE, Segment, log_density, sample_range
 
 
 @register_density
@@ -16,9 +16,10 @@ class PhysicsDensity(ReturnDensity):
     """Gaussian returns whose variance grows with range and incidence, and a constant no-return rate.
 
     ``sigma^2 = sigma0^2 + K r^2 / cos(delta)`` with ``r`` the nominal range (m) and ``delta`` the
-    incidence angle; an intercepted beam gives no return with probability ``p_null``. Every
-    parameter is differentiable and fitted by the one Adam fitter. Ellipsoid elements keep their own
-    Gaussian; a beam that met nothing is a miss.
+    incidence angle (unknown incidence counts as normal); an intercepted beam gives no return with
+    probability ``p_null``; a beam that met nothing returns with probability ``escape_return``,
+    uniformly on ``[0, z_max]`` (0 by default: it is a miss). ``sigma0``, ``k`` and ``p_null`` are
+    differentiable and fitted by the one Adam fitter. Ellipsoid elements keep their own Gaussian.
 
     Example (XML): ``<string name="density" value="physics(sigma0=0.01, k=1e-5, p_null=0.02)"/>``.
     """
@@ -30,10 +31,14 @@ class PhysicsDensity(ReturnDensity):
         "p_null": ParamSpec(
             0.01, "1", "probability that an intercepted beam gives no return", lower=0.0, upper=0.999, fit_scale=0.01
         ),
+        "escape_return": ParamSpec(
+            0.0, "1", "probability that a beam that met nothing returns", lower=0.0, upper=1.0, fit=False
+        ),
+        "z_max": ParamSpec(80.0, "m", "largest range the sensor reports", lower=1e-3, upper=1e4, fit=False),
     }
 
     def prepare(self, seg: Segment, rays: RayBatch) -> Segment:
-        surface = seg.kind != ELLIPSOID
+        surface = seg.kind == SURFACE
         cos = dr.maximum(dr.select(dr.isnan(seg.cos_incidence), 1.0, seg.cos_incidence), 1e-3)
         r = dr.maximum(seg.nominal, 0.0)
         sigma = dr.sqrt(dr.square(self["sigma0"]) + self["k"] * r * r / cos)
@@ -42,8 +47,13 @@ class PhysicsDensity(ReturnDensity):
             drop=dr.select(surface, 1.0 - (1.0 - seg.drop) * (1.0 - self["p_null"]), seg.drop),
         )
 
+    def escape(self, rays: RayBatch) -> Segment:
+        return escape_segment(rays, drop=1.0 - self["escape_return"], sigma=1.0)
+
     def log_prob(self, seg: Segment, z: mi.Float, rays: RayBatch) -> mi.Float:
-        return log_density(seg, z)
+        z_max = self["z_max"]
+        uniform = dr.select((z >= 0) & (z <= z_max), -dr.log(z_max), -dr.inf)
+        return dr.select(seg.kind == ESCAPE, uniform, log_density(seg, z))
 
     def sample(self, seg: Segment, u: mi.Point2f, rays: RayBatch) -> mi.Float:
-        return sample_range(seg, u.x)
+        return dr.select(seg.kind == ESCAPE, u.x * self["z_max"], sample_range(seg, u.x))

@@ -1,0 +1,174 @@
+"""Traced planar beams as the likelihood engine sees them: elements, rounds, rays, and their scores.
+
+A :class:`~mi_lidar.planar.raymarch.PlanarTrace` is turned into the engine's inputs (an element table
+without geometry, compact rounds, rays) so that every model of the planar benchmark is scored by the
+one likelihood and sampled by the one sampler:
+
+* :func:`nominal_beams`: each beam meets one opaque element at its nominal range (the first occupied
+  cell), or nothing (a nominal miss): the view of the protocol's models M0-M3, P-Reg and NP-Reg;
+* :func:`segment_beams`: each beam meets every cell with leave-out hits along it, in order, each an
+  element of its own with its counts; its interception probability is the counting estimate with a
+  fitted Beta prior (mi-lidar's permeable map, :func:`permeability`, :func:`fit_permeability`).
+
+Element labels carry the cell's occupancy (1: ``occ3`` occupied, 0: stray hits), so densities can
+condition on it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_lidar.core.arrays import aligned
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.fitting import FitVariable, adam_fit
+from mi_lidar.core.likelihood import mixture_log_likelihood, score
+from mi_lidar.core.problem import Problem
+from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segments
+from mi_lidar.planar.raymarch import PlanarTrace
+
+
+def _f(values) -> mi.Float:
+    return mi.Float(aligned(np.asarray(values, np.float32)))
+
+
+def _cos(incidence_deg: np.ndarray) -> np.ndarray:
+    """|cos| of incidence angles (deg); NaN (unknown) stays NaN."""
+    return np.cos(np.radians(incidence_deg))
+
+
+@dataclass
+class EngineBeams:
+    """Beams of a planar trace in the engine's terms.
+
+    Attributes:
+        table: one element per traced segment (no geometry).
+        rays: one ray per beam (beam index and ray id; no geometry needed).
+        rounds: the segments of each beam, in order.
+        z, hit: measured range (m; 0 for a miss) and return flag per beam.
+        hits, passes: leave-out counts of every element (for :class:`CountPermeability`).
+    """
+
+    table: ElementTable
+    rays: RayBatch
+    rounds: object
+    z: mi.Float
+    hit: mi.Bool
+    hits: np.ndarray
+    passes: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return self.rays.width
+
+    def problem(self) -> Problem:
+        """These beams as a fixed :class:`~mi_lidar.core.problem.Problem` (for the one fitter)."""
+        return Problem.from_rounds(self.table, self.rays, self.rounds, self.z, self.hit)
+
+    def log_likelihood(self, model) -> np.ndarray:
+        """(B,) scored log-likelihood per beam (nats)."""
+        with dr.suspend_grad():
+            raw = mixture_log_likelihood(self.table, model, self.rays, self.rounds, self.z, self.hit)
+            return np.asarray(score(raw, self.hit), np.float64)
+
+    def p_miss(self, model) -> np.ndarray:
+        """(B,) probability of no return per beam."""
+        with dr.suspend_grad():
+            miss = dr.full(mi.Bool, False, self.n)
+            raw = mixture_log_likelihood(self.table, model, self.rays, self.rounds, dr.zeros(mi.Float, self.n), miss)
+            return np.exp(np.asarray(raw, np.float64))
+
+    def with_permeability(self, a: float, b: float) -> EngineBeams:
+        """These beams with every element's interception probability from its counts (:func:`permeability`)."""
+        p = permeability(self.hits, self.passes, a, b) if self.hits.size else np.ones(1)
+        return dataclasses.replace(self, table=self.table.replaced(p_hit=_f(p)))
+
+    def sample(self, model, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """One sampled (range, hit) per beam."""
+        with dr.suspend_grad():
+            z, hit = model.sample_trace(self.table, self.rays, self.rounds, seed)
+            return np.asarray(z, np.float64), np.asarray(hit)
+
+
+def _rays(trace: PlanarTrace) -> RayBatch:
+    n = trace.n
+    return RayBatch(
+        origin=mi.Point3f(0.0),
+        direction=mi.Vector3f(1.0, 0.0, 0.0),
+        beam=mi.UInt32(aligned(trace.beam.astype(np.uint32))),
+        time=dr.zeros(mi.Float, n),
+        ray_id=dr.arange(mi.UInt32, n),
+    )
+
+
+def nominal_beams(trace: PlanarTrace) -> EngineBeams:
+    """Each beam meets one opaque element at its nominal range, or nothing (see the module docstring)."""
+    met = np.isfinite(trace.nominal)
+    start = np.concatenate([[0], np.cumsum(met)])
+    n_elements = int(met.sum())
+    table = ElementTable.from_elements(np.ones(max(n_elements, 1)), label=np.ones(max(n_elements, 1)))
+    rounds = rounds_from_segments(start, np.arange(n_elements), trace.nominal[met], _cos(trace.incidence[met]))
+    hit = trace.hit
+    return EngineBeams(
+        table=table,
+        rays=_rays(trace),
+        rounds=rounds,
+        z=_f(np.nan_to_num(trace.z)),
+        hit=mi.Bool(aligned(hit)),
+        hits=np.ones(n_elements),
+        passes=np.zeros(n_elements),
+    )
+
+
+def segment_beams(trace: PlanarTrace) -> EngineBeams:
+    """Each beam meets every cell with leave-out hits along it; elements carry counts and occupancy labels."""
+    n_elements = trace.seg_range.size
+    table = ElementTable.from_elements(
+        np.ones(max(n_elements, 1)), label=trace.seg_occupied.astype(np.uint32) if n_elements else None
+    )
+    rounds = rounds_from_segments(trace.seg_start, np.arange(n_elements), trace.seg_range, _cos(trace.seg_incidence))
+    return EngineBeams(
+        table=table,
+        rays=_rays(trace),
+        rounds=rounds,
+        z=_f(np.nan_to_num(trace.z)),
+        hit=mi.Bool(aligned(trace.hit)),
+        hits=trace.seg_hits.astype(np.float64),
+        passes=trace.seg_passes.astype(np.float64),
+    )
+
+
+def permeability(hits: np.ndarray, passes: np.ndarray, a, b):
+    """The counting estimate with a Beta(a, b) prior: ``(hits + a) / (hits + passes + a + b)`` (numpy or Dr.Jit)."""
+    return (hits + a) / (hits + passes + a + b)
+
+
+def fit_permeability(beams: EngineBeams, model, steps: int = 120) -> tuple[float, float]:
+    """The Beta prior ``(a, b)`` of the cells' interception probabilities, by the one fitter.
+
+    Only the interception probabilities move, so each segment's return density at the measured range
+    is computed once (:func:`~mi_lidar.core.trace.cache_distributions`) and a step is a few gathers.
+    """
+    cache = RayCache.from_rounds(cache_distributions(beams.rounds, beams.table, model, beams.rays, beams.z))
+    batch = cache.batch(np.arange(beams.n))
+    hits, passes = _f(beams.hits), _f(beams.passes)
+    variables = [
+        FitVariable("a", [0.5], lower=1e-3, upper=100.0, scale=0.5, transform="log"),
+        FitVariable("b", [0.5], lower=1e-3, upper=100.0, scale=0.5, transform="log"),
+    ]
+
+    def objective(values, step: int) -> float:
+        v = values()
+        table = beams.table.replaced(p_hit=permeability(hits, passes, v["a"], v["b"]))
+        raw = mixture_log_likelihood(table, model, beams.rays, batch, beams.z, beams.hit)
+        loss = -dr.mean(score(raw, beams.hit))
+        dr.backward(loss)
+        return float(loss[0])
+
+    result = adam_fit(variables, objective, steps, lr=0.3)
+    return float(result.values["a"][0]), float(result.values["b"][0])

@@ -1,0 +1,246 @@
+"""The real-log benchmark for any planar CARMEN log (``mi-lidar benchmark-planar``).
+
+It runs ``../shared/protocols/real_planar.md``: the log is split (every ``test_every``-th scan is a test
+scan), every beam is traced through its own leave-out map (:mod:`mi_lidar.planar.protocol`), the
+models of :mod:`mi_lidar.planar.models` are fitted on training beams only, and every model is scored
+on the test beams by the one likelihood (1 cm bins, the one floor) and sampled by the one sampler.
+Per model it reports the test and training NLL per beam (and its split over hits and misses), the
+miss precision, recall and F1 (threshold 0.5, and a threshold tuned on training beams), and the
+realism of one sampled scan: median and p90 |sampled - measured| range where both returned, hit/miss
+F1 of the samples, and the histogram match (L1 distance between the CDFs of measured and sampled
+ranges). Nothing is tuned to a particular log: the sensor's no-return value is detected from the log
+(or given), and bandwidths are chosen on held-out training scans.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.log import Log
+from mi_lidar.core.metrics import metrics_of
+from mi_lidar.planar import models as m
+from mi_lidar.planar.beams import EngineBeams, nominal_beams
+from mi_lidar.planar.protocol import PlanarData, PlanarProtocol, prepare
+
+MODELS = ("M0", "M1", "M2a", "M2b", "M3a", "M3b", "P-Reg", "NP-Reg", "mi-lidar")
+
+
+def miss_scores(p_miss: np.ndarray, miss: np.ndarray, threshold: float) -> dict:
+    """Precision, recall and F1 of predicting a miss where ``p_miss > threshold``."""
+    predicted = p_miss > threshold
+    tp, fp, fn = int(np.sum(predicted & miss)), int(np.sum(predicted & ~miss)), int(np.sum(~predicted & miss))
+    precision = tp / (tp + fp) if tp + fp else 0.0
+    recall = tp / (tp + fn) if tp + fn else 0.0
+    return {
+        "precision": precision,
+        "recall": recall,
+        "f1": 2 * precision * recall / (precision + recall) if precision + recall else 0.0,
+    }
+
+
+def tuned_threshold(p_miss: np.ndarray, miss: np.ndarray) -> float:
+    """The miss threshold that maximises the miss F1 on (training) beams."""
+    grid = np.unique(np.concatenate([[0.0], np.quantile(p_miss, np.linspace(0, 1, 201))]))
+    f1 = [miss_scores(p_miss, miss, t)["f1"] for t in grid]
+    return float(grid[int(np.argmax(f1))])
+
+
+@dataclass
+class ModelRow:
+    """The benchmark's figures of one model (see the module docstring)."""
+
+    name: str
+    test_nll: float
+    train_nll: float
+    nll_hits: float
+    nll_misses: float
+    miss_at_half: dict
+    miss_tuned: dict
+    threshold: float
+    samples: dict
+    seconds: float
+    ll: np.ndarray = field(repr=False, default=None)
+    sampled: tuple = field(repr=False, default=None)
+
+    def to_json(self) -> dict:
+        keep = ("range_error_median", "range_error_p90", "f1", "histogram_l1", "hit_rate_simulated")
+        return {
+            "model": self.name,
+            "test_nll": self.test_nll,
+            "train_nll": self.train_nll,
+            "test_nll_hits": self.nll_hits,
+            "test_nll_misses": self.nll_misses,
+            "miss_at_0.5": self.miss_at_half,
+            "miss_tuned": self.miss_tuned,
+            "miss_threshold": self.threshold,
+            "samples": {k: self.samples[k] for k in keep},
+            "fit_seconds": self.seconds,
+        }
+
+
+@dataclass
+class PlanarBenchmark:
+    """Result of :func:`run_planar_benchmark`."""
+
+    source: str
+    data: PlanarData
+    rows: list[ModelRow]
+    nominal: dict
+    seconds: dict
+
+    def to_json(self) -> dict:
+        log = self.data.log
+        return {
+            "log": self.source,
+            "scans": int(log.shape[0]),
+            "beams": int(log.shape[1]),
+            "max_range_m": float(log.sensor.get("max_range_m", float("inf"))),
+            "protocol": self.data.protocol.__dict__,
+            "test_beams": self.data.test.n,
+            "train_beams": self.data.train.n,
+            "nominal": self.nominal,
+            "seconds": self.seconds,
+            "models": [r.to_json() for r in self.rows],
+        }
+
+
+def _row(
+    name: str, train: EngineBeams, test: EngineBeams, model, data: PlanarData, seconds: float, seed: int
+) -> ModelRow:
+    ll_test, ll_train = test.log_likelihood(model), train.log_likelihood(model)
+    p_test, p_train = test.p_miss(model), train.p_miss(model)
+    miss_test, miss_train = ~data.test.hit, ~data.train.hit
+    threshold = tuned_threshold(p_train, miss_train)
+    z, hit = test.sample(model, seed)
+    return ModelRow(
+        name=name,
+        test_nll=float(-ll_test.mean()),
+        train_nll=float(-ll_train.mean()),
+        nll_hits=float(-ll_test[~miss_test].mean()) if (~miss_test).any() else float("nan"),
+        nll_misses=float(-ll_test[miss_test].mean()) if miss_test.any() else float("nan"),
+        miss_at_half=miss_scores(p_test, miss_test, 0.5),
+        miss_tuned=miss_scores(p_test, miss_test, threshold),
+        threshold=threshold,
+        samples=metrics_of(ll_test, data.test.z, data.test.hit, z, hit),
+        seconds=seconds,
+        ll=ll_test,
+        sampled=(z, hit),
+    )
+
+
+def run_planar_benchmark(
+    log: Log,
+    source: str = "",
+    protocol: PlanarProtocol | None = None,
+    models: tuple[str, ...] = MODELS,
+    seed: int = 0,
+    progress=None,
+) -> PlanarBenchmark:
+    """Run the protocol on ``log`` (see the module docstring).
+
+    Args:
+        log: a planar log of N beams x 1 firing (:func:`mi_lidar.io.carmen.read_carmen`).
+        source: its file, for the report.
+        protocol: the protocol's settings (default: the protocol's).
+        models: the models to fit and score (names of :data:`MODELS`).
+        seed: seed of the sampled scan.
+        progress: optional ``progress(done, total, label)``.
+    """
+    say = progress or (lambda done, total, label: None)
+    unknown = sorted(set(models) - set(MODELS))
+    if unknown:
+        raise ParameterError(f"benchmark-planar: unknown models {unknown}; choose from {', '.join(MODELS)}")
+    start = time.perf_counter()
+    data = prepare(log, protocol, progress=say)
+    seconds = dict(data.seconds)
+    z_max = float(log.sensor.get("max_range_m", float("inf")))
+    if not np.isfinite(z_max):
+        z_max = float(np.nanmax(log.ranges)) + 1.0
+    train, test = nominal_beams(data.train), nominal_beams(data.test)
+    samples = m.samples_of(data.train)
+    fitted, timing = {}, {}
+
+    def fit(name: str, build):
+        if name in models or (name == "NP-Reg" and "mi-lidar" in models):
+            t0 = time.perf_counter()
+            fitted[name] = build()
+            timing[name] = time.perf_counter() - t0
+            say(len(fitted), len(models), f"fitted {name}")
+
+    fit("M0", lambda: m.fit_m0(train, samples, z_max))
+    if {"M1", "M2a", "M2b"} & set(models):
+        t0 = time.perf_counter()
+        family = m.fit_beam_family(train, samples, z_max)
+        for name in ("M1", "M2a", "M2b"):
+            if name in models:
+                fitted[name], timing[name] = family[name], (time.perf_counter() - t0) / 3
+    if {"M3a", "M3b"} & set(models):
+        for name, model in m.fit_histograms(samples, z_max).items():
+            if name in models:
+                fitted[name], timing[name] = model, 0.0
+    fit("P-Reg", lambda: m.fit_learned(data.train, z_max, "p_reg")[0])
+    settings = {}
+
+    def np_reg():
+        model, settings["np_reg"] = m.fit_learned(data.train, z_max, "np_reg")
+        return model
+
+    fit("NP-Reg", np_reg)
+    rows = []
+    for name in [n for n in MODELS if n in fitted and n in models]:
+        rows.append(_row(name, train, test, fitted[name], data, timing[name], seed))
+    if "mi-lidar" in models:
+        t0 = time.perf_counter()
+        permeable = m.fit_milidar(data.train, z_max, settings["np_reg"])
+        elapsed = time.perf_counter() - t0
+        say(len(models), len(models), "fitted mi-lidar")
+        rows.append(
+            _row(
+                "mi-lidar",
+                permeable.beams(data.train),
+                permeable.beams(data.test),
+                permeable.model,
+                data,
+                elapsed,
+                seed,
+            )
+        )
+    both = data.test.hit & np.isfinite(data.test.nominal)
+    err = np.abs(data.test.z - data.test.nominal)[both]
+    nominal = {
+        "median_abs_err": float(np.median(err)) if err.size else float("nan"),
+        "p90_abs_err": float(np.quantile(err, 0.9)) if err.size else float("nan"),
+        "short": float(np.mean(both & (data.test.z < data.test.nominal - 0.5))),
+        "long": float(np.mean(both & (data.test.z > data.test.nominal + 0.5))),
+        "measured_miss": float(np.mean(~data.test.hit)),
+        "nominal_miss": float(np.mean(~np.isfinite(data.test.nominal))),
+        "incidence_known": float(np.mean(np.isfinite(data.test.incidence[np.isfinite(data.test.nominal)]))),
+    }
+    seconds["fit_and_score"] = time.perf_counter() - start - sum(data.seconds.values())
+    seconds["total"] = time.perf_counter() - start
+    return PlanarBenchmark(source=source, data=data, rows=rows, nominal=nominal, seconds=seconds)
+
+
+def benchmark_file(
+    path: str | Path,
+    out: str | Path | None = None,
+    max_range: float | None = None,
+    protocol: PlanarProtocol | None = None,
+    models: tuple[str, ...] = MODELS,
+    progress=None,
+) -> PlanarBenchmark:
+    """Read a CARMEN log, run the benchmark, and write ``benchmark.json``, ``benchmark.html`` and PNGs to ``out``."""
+    from mi_lidar.io.carmen import read_carmen
+
+    log = read_carmen(path, max_range=max_range)
+    result = run_planar_benchmark(log, str(path), protocol, models, progress=progress)
+    if out is not None:
+        from mi_lidar.planar.report import write_benchmark
+
+        write_benchmark(result, Path(out))
+    return result

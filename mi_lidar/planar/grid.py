@@ -1,0 +1,226 @@
+"""Count maps of planar logs on a regular 2D grid, with exact leave-out maps per query scan.
+
+Following the real-planar protocol (``../shared/protocols/real_planar.md``): every scan contributes
+to the cells it touches. A return closer than ``reach`` (40 m) adds an endpoint *hit* to its cell;
+every return adds a *pass-through* to each cell its beam crosses from the sensor to one cell short of
+the return (sampled every quarter cell); beams without a return clear nothing. Contributions are
+additive, so the map of a query scan that leaves some scans out is the total minus their
+contributions: :class:`CountMap` keeps the totals and, per query scan, the sparse corrections of its
+excluded scans (only for cells that hold a hit somewhere, the only cells that can be occupied).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.log import Log
+
+REACH = 40.0  # m: returns beyond this add no endpoint hit (the protocol's march limit)
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A regular 2D grid in the world plane.
+
+    Attributes:
+        origin: (2,) world position (m) of the lower corner of cell (0, 0).
+        cell: cell size, m.
+        shape: (nx, ny) number of cells along x and y.
+    """
+
+    origin: tuple[float, float]
+    cell: float
+    shape: tuple[int, int]
+
+    @classmethod
+    def around(cls, points: np.ndarray, cell: float, margin: float = 1.0) -> Grid:
+        """The grid covering (N, 2) ``points`` (m) plus ``margin`` (m) on every side."""
+        if not cell > 0:
+            raise ParameterError(f"grid: cell={cell} m must be > 0, e.g. 0.05")
+        lo = points.min(axis=0) - margin
+        hi = points.max(axis=0) + margin
+        return cls(
+            origin=(float(lo[0]), float(lo[1])),
+            cell=float(cell),
+            shape=tuple(int(v) for v in np.ceil((hi - lo) / cell)),
+        )
+
+    @property
+    def size(self) -> int:
+        """Number of cells."""
+        return self.shape[0] * self.shape[1]
+
+    def ij(self, xy: np.ndarray) -> np.ndarray:
+        """(..., 2) integer cell coordinates of world points (m)."""
+        return np.floor((xy - np.asarray(self.origin)) / self.cell).astype(np.int64)
+
+    def index(self, ij: np.ndarray) -> np.ndarray:
+        """Flat indices of (..., 2) integer cell coordinates; -1 outside the grid."""
+        inside = (ij[..., 0] >= 0) & (ij[..., 0] < self.shape[0]) & (ij[..., 1] >= 0) & (ij[..., 1] < self.shape[1])
+        return np.where(inside, ij[..., 0] * self.shape[1] + ij[..., 1], -1)
+
+    def cell_of(self, xy: np.ndarray) -> np.ndarray:
+        """Flat cell index of (..., 2) world points (m); -1 outside the grid."""
+        return self.index(self.ij(xy))
+
+    def center(self, flat: np.ndarray) -> np.ndarray:
+        """(N, 2) world centres (m) of flat cell indices."""
+        ij = np.stack([flat // self.shape[1], flat % self.shape[1]], axis=-1)
+        return np.asarray(self.origin) + (ij + 0.5) * self.cell
+
+
+def planar_beams(log: Log, scans: np.ndarray | None = None):
+    """World-plane origins (S, N, 2), unit directions (S, N, 2), readings (S, N; NaN = miss) of a planar log.
+
+    The log is (S, N, 1): N beams by one firing, all scans sharing one beam pattern.
+    """
+    if log.shape[2] != 1 or log.directions.shape[0] != 1:
+        raise ParameterError(
+            f"planar maps need a planar log of N beams x 1 firing sharing one pattern (directions (1, N, 1, 3)); "
+            f"got shape {log.shape} with directions {log.directions.shape}; read CARMEN logs with "
+            "mi_lidar.io.carmen.read_carmen"
+        )
+    scans = np.arange(log.shape[0]) if scans is None else np.asarray(scans)
+    poses = log.poses[scans]
+    local = log.directions[0, :, 0, :2].astype(np.float64)
+    world = np.einsum("sij,nj->sni", poses[:, :2, :2], local)
+    origin = np.repeat(poses[:, None, :2, 3], local.shape[0], axis=1)
+    z = np.where(log.hit[scans, :, 0], log.ranges[scans, :, 0], np.nan).astype(np.float64)
+    return origin, world, z
+
+
+def march_cells(
+    grid: Grid, origin: np.ndarray, direction: np.ndarray, length: np.ndarray, step: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Cells each ray crosses on ``[0, length)``, sampled every ``step`` m: unique (ray, cell) pairs, sorted."""
+    count = np.maximum(np.ceil(length / step).astype(np.int64), 0)
+    ray = np.repeat(np.arange(len(count)), count)
+    first = np.repeat(np.cumsum(count) - count, count)
+    t = (np.arange(ray.size) - first) * step
+    flat = grid.cell_of(origin[ray] + t[:, None] * direction[ray])
+    keep = flat >= 0
+    key = np.unique(ray[keep] * grid.size + flat[keep])
+    return key // grid.size, key % grid.size
+
+
+@dataclass
+class ScanCounts:
+    """Per-scan contributions to the map (CSR over scans).
+
+    Attributes:
+        grid: the grid.
+        hit_start, hit_cell: offsets (S + 1,) and cells of each scan's endpoint hits.
+        pass_start, pass_cell: offsets (S + 1,) and cells of each scan's pass-throughs (one per beam and cell).
+    """
+
+    grid: Grid
+    hit_start: np.ndarray
+    hit_cell: np.ndarray
+    pass_start: np.ndarray
+    pass_cell: np.ndarray
+
+    @property
+    def n_scans(self) -> int:
+        return len(self.hit_start) - 1
+
+    def cells(self, scans: np.ndarray, kind: str) -> np.ndarray:
+        """All contributed cells (with repeats) of ``scans`` of ``kind`` (``"hit"`` or ``"pass"``)."""
+        start, cell = (self.hit_start, self.hit_cell) if kind == "hit" else (self.pass_start, self.pass_cell)
+        parts = [cell[start[s] : start[s + 1]] for s in np.asarray(scans, np.int64)]
+        return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+
+
+def count_scans(log: Log, grid: Grid, reach: float = REACH, chunk: int = 64, progress=None) -> ScanCounts:
+    """Each scan's endpoint hits and pass-throughs on ``grid`` (see the module docstring)."""
+    step = grid.cell / 4
+    hit_start, pass_start, hit_cells, pass_cells = [0], [0], [], []
+    for first in range(0, log.shape[0], chunk):
+        scans = np.arange(first, min(first + chunk, log.shape[0]))
+        origin, direction, z = planar_beams(log, scans)
+        n_beams = origin.shape[1]
+        o, d, r = origin.reshape(-1, 2), direction.reshape(-1, 2), z.ravel()
+        hit = np.isfinite(r)
+        end = np.where(hit & (r < reach), grid.cell_of(o + np.nan_to_num(r)[:, None] * d), -1)
+        ray, cell = march_cells(grid, o, d, np.where(hit, np.nan_to_num(r) - grid.cell, 0.0), step)
+        keep = cell != end[ray]
+        ray, cell = ray[keep], cell[keep]
+        bounds = np.searchsorted(ray // n_beams, np.arange(len(scans) + 1))
+        for local in range(len(scans)):
+            rows = slice(local * n_beams, (local + 1) * n_beams)
+            mine = end[rows][end[rows] >= 0]
+            hit_cells.append(mine)
+            hit_start.append(hit_start[-1] + mine.size)
+            pass_cells.append(cell[bounds[local] : bounds[local + 1]])
+            pass_start.append(pass_start[-1] + int(bounds[local + 1] - bounds[local]))
+        if progress is not None:
+            progress(scans[-1] + 1, log.shape[0])
+    return ScanCounts(
+        grid, np.asarray(hit_start), np.concatenate(hit_cells), np.asarray(pass_start), np.concatenate(pass_cells)
+    )
+
+
+class CountMap:
+    """Whole-log hit and pass-through totals, and the exact leave-out corrections of query scans.
+
+    Args:
+        counts: the per-scan contributions.
+    """
+
+    def __init__(self, counts: ScanCounts):
+        self.counts = counts
+        size = counts.grid.size
+        self.hits = np.bincount(counts.hit_cell, minlength=size).astype(np.int32)
+        self.passes = np.bincount(counts.pass_cell, minlength=size).astype(np.int32)
+
+    def leave_out(self, excluded: list[np.ndarray]) -> LeaveOut:
+        """The sparse corrections of a batch of query scans; ``excluded[q]`` are the scans query ``q`` leaves out.
+
+        Only cells with a hit in the whole log are kept (no other cell can be occupied).
+        """
+        size = self.counts.grid.size
+        parts: dict[str, tuple[list, list]] = {"hit": ([], []), "pass": ([], [])}
+        for q, scans in enumerate(excluded):
+            for kind, (keys, counts) in parts.items():
+                cells = self.counts.cells(scans, kind)
+                unique, n = np.unique(cells[self.hits[cells] > 0], return_counts=True)
+                keys.append(q * size + unique)
+                counts.append(n)
+        hit_keys, hit_n = (np.concatenate(v) for v in parts["hit"])
+        pass_keys, pass_n = (np.concatenate(v) for v in parts["pass"])
+        keys = np.union1d(hit_keys, pass_keys)
+        dh, dp = np.zeros(keys.size, np.int32), np.zeros(keys.size, np.int32)
+        dh[np.searchsorted(keys, hit_keys)] = hit_n
+        dp[np.searchsorted(keys, pass_keys)] = pass_n
+        return LeaveOut(self, keys, dh, dp)
+
+
+@dataclass
+class LeaveOut:
+    """Leave-out counts of a batch of query scans (see :meth:`CountMap.leave_out`).
+
+    Attributes:
+        totals: the whole-log map.
+        keys: sorted ``q * size + cell`` of the corrected cells.
+        dh, dp: hits and pass-throughs the query's excluded scans put in those cells.
+    """
+
+    totals: CountMap
+    keys: np.ndarray
+    dh: np.ndarray
+    dp: np.ndarray
+
+    def counts(self, query: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(hits, pass-throughs) of ``cell`` in the leave-out map of query ``query`` (arrays of equal shape)."""
+        size = self.totals.counts.grid.size
+        hits = self.totals.hits[cell].astype(np.int64)
+        passes = self.totals.passes[cell].astype(np.int64)
+        if self.keys.size:
+            key = query * size + cell
+            i = np.minimum(np.searchsorted(self.keys, key), self.keys.size - 1)
+            found = self.keys[i] == key
+            hits = hits - np.where(found, self.dh[i], 0)
+            passes = passes - np.where(found, self.dp[i], 0)
+        return hits, passes

@@ -1,0 +1,117 @@
+"""The real-planar protocol: splits, leave-out neighbourhoods, the map, and the traced beams of a log.
+
+``PlanarProtocol`` holds the protocol's settings (``../shared/protocols/real_planar.md``): every
+``test_every``-th scan is a test scan, the rest training; the map of query scan ``q`` leaves out the
+scans within ``radius`` m *and* ``window`` s of it (and ``q`` itself); 5 cm ``occ3`` map; march to
+40 m. :func:`prepare` builds the whole-log count map once and traces the test and training beams
+through their own leave-out maps (:mod:`mi_lidar.planar.raymarch`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.log import Log
+from mi_lidar.planar.grid import CountMap, Grid, count_scans, planar_beams
+from mi_lidar.planar.raymarch import PlanarTrace, trace_scans
+
+
+@dataclass(frozen=True)
+class PlanarProtocol:
+    """Settings of the protocol (defaults: the protocol's).
+
+    Attributes:
+        cell: grid cell, m.
+        test_every: every ``test_every``-th scan (0, k, 2k, ...) is a test scan.
+        radius, window: a query's map leaves out the scans within ``radius`` m and ``window`` s.
+        reach: march limit and endpoint-hit limit, m.
+        resolution: range bin of the score, m.
+        max_segments, beyond: segments kept per beam for pass-through models, and how far past the
+            nominal hit (m) they are collected.
+        batch: query scans traced at once (memory).
+    """
+
+    cell: float = 0.05
+    test_every: int = 5
+    radius: float = 1.0
+    window: float = 30.0
+    reach: float = 40.0
+    resolution: float = 0.01
+    max_segments: int = 12
+    beyond: float = 10.0
+    batch: int = 96
+
+    def __post_init__(self):
+        if self.test_every < 2:
+            raise ParameterError(f"test_every={self.test_every} must be >= 2 (training scans are the others)")
+        if not 0.005 <= self.cell <= 1.0:
+            raise ParameterError(f"cell={self.cell} m must lie in [0.005, 1], e.g. 0.05")
+
+    def split(self, n_scans: int) -> tuple[np.ndarray, np.ndarray]:
+        """(test scans, training scans)."""
+        scans = np.arange(n_scans)
+        return scans[scans % self.test_every == 0], scans[scans % self.test_every != 0]
+
+    def excluded(self, log: Log, scan: int) -> np.ndarray:
+        """The scans the map of ``scan`` leaves out (within ``radius`` m and ``window`` s; itself included)."""
+        xy = log.poses[:, :2, 3]
+        t = log.times[:, 0, 0]
+        near = np.hypot(*(xy - xy[scan]).T) <= self.radius
+        recent = np.abs(t - t[scan]) <= self.window
+        out = np.flatnonzero(near & recent)
+        return out if scan in out else np.union1d(out, [scan])
+
+
+@dataclass
+class PlanarData:
+    """A planar log prepared for the benchmark: the map and the traced test and training beams.
+
+    Attributes:
+        log: the log.
+        protocol: its settings.
+        grid: the map grid.
+        test, train: the traced beams of the test and training scans.
+        seconds: time spent per stage.
+    """
+
+    log: Log
+    protocol: PlanarProtocol
+    grid: Grid
+    test: PlanarTrace
+    train: PlanarTrace
+    seconds: dict
+
+
+def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None) -> PlanarData:
+    """Count the whole-log map and trace every test and training beam through its leave-out map."""
+    protocol = protocol or PlanarProtocol()
+    say = progress or (lambda done, total, label: None)
+    seconds, start = {}, time.perf_counter()
+    origin, direction, z = planar_beams(log)
+    ends = (origin + np.nan_to_num(z)[..., None] * direction)[np.isfinite(z) & (z < protocol.reach)]
+    lo, hi = np.percentile(ends, [0.05, 99.95], axis=0)
+    inside = np.all((ends >= lo) & (ends <= hi), axis=1)
+    grid = Grid.around(np.concatenate([ends[inside], log.poses[:, :2, 3]]), protocol.cell)
+    cmap = CountMap(count_scans(log, grid, protocol.reach, progress=lambda d, n: say(d, n, "counting the map")))
+    seconds["map"] = time.perf_counter() - start
+    test_scans, train_scans = protocol.split(log.shape[0])
+    traces = {}
+    for name, scans in (("test", test_scans), ("train", train_scans)):
+        start = time.perf_counter()
+        parts = []
+        for first in range(0, scans.size, protocol.batch):
+            batch = scans[first : first + protocol.batch]
+            excluded = [protocol.excluded(log, int(q)) for q in batch]
+            parts.append(
+                trace_scans(log, grid, cmap, batch, excluded, protocol.reach, protocol.max_segments, protocol.beyond)
+            )
+            say(first + batch.size, scans.size, f"tracing {name} beams")
+        traces[name] = PlanarTrace.concatenate(parts)
+        seconds[name] = time.perf_counter() - start
+    return PlanarData(
+        log=log, protocol=protocol, grid=grid, test=traces["test"], train=traces["train"], seconds=seconds
+    )

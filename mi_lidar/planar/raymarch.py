@@ -1,0 +1,259 @@
+"""The protocol's ray march through leave-out maps: nominal range, incidence, and every cell a beam meets.
+
+For each beam of a query scan (``../shared/protocols/real_planar.md``): march from the pose in steps of
+a quarter cell from 0.02 m to ``reach`` (40 m); the first *occupied* cell of the query's leave-out map
+(``occ3``: at least one hit, and hits >= passes / 3) is the nominal hit, its range the exact entry
+distance into that cell; a step that crosses a corner (both cell coordinates change) is blocked when
+either side cell is occupied (supercover: 8-connected diagonal walls are closed). No occupied cell
+within reach, or leaving the grid, is a *nominal miss*. The incidence is the angle between the beam
+and the normal of the line fitted (PCA) to the occupied leave-out cells within 15 cm of the hit cell,
+accepted when there are at least 4 such cells and the smaller eigenvalue is at most 0.1 times the
+larger; otherwise it is unknown.
+
+For pass-through models the march also lists every cell with at least one leave-out hit that the
+beam enters, in order (its segments: entry range, hits, passes, occupancy, incidence), up to
+``max_segments`` per beam and ``beyond`` metres past the nominal hit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mi_lidar.planar.grid import CountMap, Grid, LeaveOut, planar_beams
+
+START = 0.02  # m: the march starts here
+NEIGHBOURS = np.array([(dx, dy) for dx in range(-3, 4) for dy in range(-3, 4) if dx * dx + dy * dy <= 9])
+
+
+@dataclass
+class PlanarTrace:
+    """Traced beams of a set of scans (per-beam arrays (B,), segments in CSR form).
+
+    Attributes:
+        scan, beam: indices of each beam.
+        z: measured range, m (NaN for a miss).
+        nominal: nominal range, m (NaN: nominal miss).
+        incidence: incidence angle at the nominal hit, deg (NaN: unknown).
+        seg_start: (B + 1,) offsets of each beam's segments.
+        seg_range, seg_hits, seg_passes, seg_occupied, seg_incidence: per segment (E,).
+    """
+
+    scan: np.ndarray
+    beam: np.ndarray
+    z: np.ndarray
+    nominal: np.ndarray
+    incidence: np.ndarray
+    seg_start: np.ndarray
+    seg_range: np.ndarray
+    seg_hits: np.ndarray
+    seg_passes: np.ndarray
+    seg_occupied: np.ndarray
+    seg_incidence: np.ndarray
+
+    @property
+    def hit(self) -> np.ndarray:
+        return np.isfinite(self.z)
+
+    @property
+    def n(self) -> int:
+        return int(self.z.size)
+
+    @classmethod
+    def concatenate(cls, parts: list[PlanarTrace]) -> PlanarTrace:
+        """One trace of several (beams in order)."""
+        offsets = np.cumsum([0] + [p.seg_range.size for p in parts])
+        start = np.concatenate([p.seg_start[:-1] + o for p, o in zip(parts, offsets)] + [[offsets[-1]]])
+        fields = (
+            "scan",
+            "beam",
+            "z",
+            "nominal",
+            "incidence",
+            "seg_range",
+            "seg_hits",
+            "seg_passes",
+            "seg_occupied",
+            "seg_incidence",
+        )
+        values = {f: np.concatenate([getattr(p, f) for p in parts]) for f in fields}
+        return cls(seg_start=start, **values)
+
+    def take(self, mask: np.ndarray) -> PlanarTrace:
+        """The beams where ``mask`` (bool), with their segments."""
+        index = np.flatnonzero(mask)
+        counts = np.diff(self.seg_start)[index]
+        rows = (
+            np.concatenate([np.arange(self.seg_start[i], self.seg_start[i + 1]) for i in index])
+            if index.size
+            else np.zeros(0, np.int64)
+        )
+        seg = {
+            f: getattr(self, f)[rows] for f in ("seg_range", "seg_hits", "seg_passes", "seg_occupied", "seg_incidence")
+        }
+        return PlanarTrace(
+            scan=self.scan[index],
+            beam=self.beam[index],
+            z=self.z[index],
+            nominal=self.nominal[index],
+            incidence=self.incidence[index],
+            seg_start=np.concatenate([[0], np.cumsum(counts)]),
+            **seg,
+        )
+
+
+def occupied(hits: np.ndarray, passes: np.ndarray) -> np.ndarray:
+    """The ``occ3`` rule: at least one hit, and hits >= passes / 3 (a hit in at least 25 % of visits)."""
+    return (hits >= 1) & (3 * hits >= passes)
+
+
+def entry_distance(grid: Grid, origin: np.ndarray, direction: np.ndarray, cell: np.ndarray) -> np.ndarray:
+    """Exact distance (m) along unit rays from ``origin`` to where they enter ``cell`` (slab method)."""
+    ij = np.stack([cell // grid.shape[1], cell % grid.shape[1]], -1)
+    lo = np.asarray(grid.origin) + ij * grid.cell
+    hi = lo + grid.cell
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (lo - origin) / direction
+        t2 = (hi - origin) / direction
+    near = np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2))
+    return np.max(near, axis=1)
+
+
+def incidence_at(
+    leave: LeaveOut,
+    grid: Grid,
+    query: np.ndarray,
+    cell: np.ndarray,
+    direction: np.ndarray,
+    min_cells: int = 4,
+    ratio: float = 0.1,
+) -> np.ndarray:
+    """Incidence angle (deg) at ``cell`` by PCA of the occupied leave-out cells within 15 cm; NaN when not line-like."""
+    if cell.size == 0:
+        return np.zeros(0)
+    ij = np.stack([cell // grid.shape[1], cell % grid.shape[1]], -1)
+    around = ij[:, None, :] + NEIGHBOURS[None]
+    flat = grid.index(around)
+    valid = flat >= 0
+    safe = np.where(valid, flat, 0)
+    hits, passes = leave.counts(np.broadcast_to(query[:, None], safe.shape), safe)
+    occ = valid & occupied(hits, passes)
+    n = occ.sum(axis=1)
+    xy = NEIGHBOURS[None].astype(np.float64) * occ[..., None]
+    mean = xy.sum(axis=1) / np.maximum(n, 1)[:, None]
+    centred = (NEIGHBOURS[None] - mean[:, None, :]) * occ[..., None]
+    cxx = (centred[..., 0] ** 2).sum(1)
+    cyy = (centred[..., 1] ** 2).sum(1)
+    cxy = (centred[..., 0] * centred[..., 1]).sum(1)
+    half, diff = 0.5 * (cxx + cyy), 0.5 * (cxx - cyy)
+    root = np.sqrt(diff * diff + cxy * cxy)
+    big, small = half + root, half - root
+    angle = 0.5 * np.arctan2(2 * cxy, cxx - cyy)  # direction of the line (major axis)
+    normal = np.stack([-np.sin(angle), np.cos(angle)], -1)
+    cos = np.abs(np.sum(normal * direction, axis=1))
+    good = (n >= min_cells) & (small <= ratio * big) & (big > 0)
+    return np.where(good, np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))), np.nan)
+
+
+def trace_scans(
+    log,
+    grid: Grid,
+    cmap: CountMap,
+    scans: np.ndarray,
+    excluded: list[np.ndarray],
+    reach: float = 40.0,
+    max_segments: int = 8,
+    beyond: float = 10.0,
+) -> PlanarTrace:
+    """March every beam of ``scans`` through its scan's leave-out map (see the module docstring).
+
+    Args:
+        log: the planar log.
+        grid, cmap: the grid and the whole-log counts.
+        scans: (Q,) query scans.
+        excluded: per query, the scans its map leaves out.
+        reach: march limit, m.
+        max_segments: segments kept per beam.
+        beyond: metres past the nominal hit the segments are collected.
+    """
+    leave = cmap.leave_out(excluded)
+    origin, direction, z = planar_beams(log, scans)
+    q_count, n_beams = z.shape
+    o, d = origin.reshape(-1, 2), direction.reshape(-1, 2)
+    query = np.repeat(np.arange(q_count), n_beams)
+    b = o.shape[0]
+    step = grid.cell / 4
+    nominal = np.full(b, np.nan)
+    first_cell = np.full(b, -1, np.int64)
+    seg_cell = np.full((b, max_segments), -1, np.int64)
+    seg_count = np.zeros(b, np.int64)
+    stop_at = np.full(b, reach)
+    alive = np.arange(b)
+    prev_ij = grid.ij(o + START * d)
+    t = START
+    while alive.size and t <= reach:
+        ij = grid.ij(o[alive] + t * d[alive])
+        flat = grid.index(ij)
+        outside = flat < 0
+        cand = np.where(outside, 0, flat)
+        diagonal = np.all(ij != prev_ij[alive], axis=1) & ~outside
+        # ---------------- the cell of this step, and the side cells of a corner crossing ----------
+        blocked_cell = np.full(alive.size, -1, np.int64)
+        if np.any(diagonal):
+            rows = np.flatnonzero(diagonal)
+            p = prev_ij[alive][rows]
+            for side in (np.stack([ij[rows, 0], p[:, 1]], -1), np.stack([p[:, 0], ij[rows, 1]], -1)):
+                side_flat = grid.index(side)
+                ok = side_flat >= 0
+                h, n = leave.counts(query[alive][rows], np.where(ok, side_flat, 0))
+                occ = ok & occupied(h, n)
+                take = occ & (blocked_cell[rows] < 0)
+                blocked_cell[rows[take]] = side_flat[take]
+        h, n = leave.counts(query[alive], cand)
+        with_hits = ~outside & (h >= 1)
+        occ_here = with_hits & occupied(h, n)
+        hit_cell = np.where(blocked_cell >= 0, blocked_cell, np.where(occ_here, cand, -1))
+        # ---------------- segments: cells with leave-out hits, in order, once each ------------------
+        new = np.where(blocked_cell >= 0, blocked_cell, np.where(with_hits, cand, -1))
+        count = seg_count[alive]
+        last = np.where(count > 0, seg_cell[alive, np.maximum(count - 1, 0)], -1)
+        first = (hit_cell >= 0) & (first_cell[alive] < 0)
+        # a full list still takes the nominal hit, in its last slot
+        record = (new >= 0) & (new != last) & ((count < max_segments) | first)
+        rows = alive[record]
+        slot = np.minimum(seg_count[rows], max_segments - 1)
+        seg_cell[rows, slot] = new[record]
+        seg_count[rows] = slot + 1
+        # ---------------- the nominal hit: the first occupied cell ------------------------------
+        rows = alive[first]
+        first_cell[rows] = hit_cell[first]
+        stop_at[rows] = np.minimum(reach, t + beyond)
+        prev_ij[alive] = ij
+        full = (seg_count[alive] >= max_segments) & (first_cell[alive] >= 0)
+        done = outside | full | (t + step > stop_at[alive])
+        alive = alive[~done]
+        t += step
+    has = first_cell >= 0
+    nominal[has] = entry_distance(grid, o[has], d[has], first_cell[has])
+    incidence = np.full(b, np.nan)
+    incidence[has] = incidence_at(leave, grid, query[has], first_cell[has], d[has])
+    # ---------------- segment arrays (CSR) ------------------------------------------------------
+    rows = np.repeat(np.arange(b), seg_count)
+    cells = seg_cell[np.arange(max_segments)[None, :] < seg_count[:, None]]  # row-major: each beam's in order
+    hits, passes = leave.counts(query[rows], cells)
+    seg_range = entry_distance(grid, o[rows], d[rows], cells)
+    seg_inc = incidence_at(leave, grid, query[rows], cells, d[rows])
+    return PlanarTrace(
+        scan=np.repeat(np.asarray(scans), n_beams),
+        beam=np.tile(np.arange(n_beams), q_count),
+        z=z.ravel(),
+        nominal=nominal,
+        incidence=incidence,
+        seg_start=np.concatenate([[0], np.cumsum(seg_count)]),
+        seg_range=seg_range,
+        seg_hits=hits,
+        seg_passes=passes,
+        seg_occupied=occupied(hits, passes),
+        seg_incidence=seg_inc,
+    )

@@ -1,0 +1,171 @@
+"""Outputs of the planar benchmark: ``benchmark.json``, PNG figures and one self-contained ``benchmark.html``.
+
+Figures: the test NLL of every model; the residual ``z - r`` (measured range minus nominal range) of
+the test beams beside that of each model's sampled scan; the test NLL by nominal-range bin. Files are
+written atomically.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from mi_lidar.core.atomic import atomic_path, atomic_write  # noqa: E402
+
+BINS = np.linspace(-1.5, 1.5, 121)
+
+
+def _save(figure, path: Path) -> Path:
+    with atomic_path(path) as tmp:
+        figure.savefig(tmp, dpi=110, bbox_inches="tight")
+    plt.close(figure)
+    return path
+
+
+def nll_figure(result, path: Path) -> Path:
+    """Bar chart: test NLL per model (nats per beam)."""
+    names = [r.name for r in result.rows]
+    values = [r.test_nll for r in result.rows]
+    figure, axis = plt.subplots(figsize=(7.5, 3.2))
+    colors = ["tab:red" if n == "mi-lidar" else "tab:gray" for n in names]
+    axis.bar(names, values, color=colors)
+    for i, v in enumerate(values):
+        axis.text(i, v, f"{v:.3f}", ha="center", va="bottom", fontsize=8)
+    axis.set_ylabel("test NLL (nats/beam)")
+    axis.set_title(f"{Path(result.source).name}: test NLL per model (lower is better)")
+    axis.set_ylim(min(values) * 0.9, max(values) * 1.05)
+    return _save(figure, path)
+
+
+def residual_figure(result, path: Path) -> Path:
+    """Histograms of ``z - r`` on the test beams: measured, and each model's sampled scan."""
+    test = result.data.test
+    both = test.hit & np.isfinite(test.nominal)
+    measured = (test.z - test.nominal)[both]
+    shown = [r for r in result.rows if r.name in ("M0", "M1", "M3b", "NP-Reg", "mi-lidar")]
+    figure, axes = plt.subplots(1, len(shown), figsize=(3.0 * len(shown), 2.8), sharey=True, squeeze=False)
+    for axis, row in zip(axes[0], shown):
+        z, hit = row.sampled
+        sampled = (z - test.nominal)[hit & np.isfinite(test.nominal)]
+        axis.hist(
+            np.clip(measured, BINS[0], BINS[-1]),
+            bins=BINS,
+            density=True,
+            histtype="stepfilled",
+            alpha=0.4,
+            color="black",
+            label="measured",
+        )
+        axis.hist(
+            np.clip(sampled, BINS[0], BINS[-1]),
+            bins=BINS,
+            density=True,
+            histtype="step",
+            color="tab:red",
+            label="sampled",
+        )
+        axis.set_yscale("log")
+        axis.set_title(f"{row.name}: median |err| {row.samples['range_error_median']:.3f} m", fontsize=9)
+        axis.set_xlabel("z - r (m)")
+    axes[0][0].legend(fontsize=8)
+    axes[0][0].set_ylabel("density (1/m)")
+    return _save(figure, path)
+
+
+def range_figure(result, path: Path) -> Path:
+    """Test NLL per nominal-range bin, one line per model."""
+    test = result.data.test
+    edges = np.array([0, 1, 2, 3, 5, 8, 12, 20, 40, np.inf])
+    r = np.where(np.isfinite(test.nominal), test.nominal, np.inf)
+    which = np.clip(np.searchsorted(edges, r, side="right") - 1, 0, len(edges) - 2)
+    labels = [f"{edges[i]:g}-{edges[i + 1]:g}" if np.isfinite(edges[i + 1]) else "miss" for i in range(len(edges) - 1)]
+    figure, axis = plt.subplots(figsize=(7.5, 3.2))
+    for row in result.rows:
+        values = [float(-row.ll[which == i].mean()) if np.any(which == i) else np.nan for i in range(len(labels))]
+        axis.plot(labels, values, marker="o", label=row.name, linewidth=2.0 if row.name == "mi-lidar" else 1.0)
+    axis.set_xlabel("nominal range bin (m)")
+    axis.set_ylabel("test NLL (nats/beam)")
+    axis.legend(fontsize=7, ncol=3)
+    return _save(figure, path)
+
+
+def _table(rows: list) -> str:
+    head = (
+        "model",
+        "test NLL",
+        "train NLL",
+        "NLL hits / misses",
+        "miss F1 @0.5",
+        "miss F1 (tuned thr.)",
+        "sample median |err| (m)",
+        "sample p90 |err| (m)",
+        "sample hit/miss F1",
+        "histogram L1 (m)",
+    )
+    lines = ["<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head) + "</tr>"]
+    for r in rows:
+        s = r.samples
+        cells = (
+            r.name,
+            f"{r.test_nll:.3f}",
+            f"{r.train_nll:.3f}",
+            f"{r.nll_hits:.2f} / {r.nll_misses:.2f}",
+            f"{r.miss_at_half['f1']:.3f}",
+            f"{r.miss_tuned['f1']:.3f} (thr {r.threshold:.2f})",
+            f"{s['range_error_median']:.3f}",
+            f"{s['range_error_p90']:.3f}",
+            f"{s['f1']:.3f}",
+            f"{s['histogram_l1']:.3f}",
+        )
+        lines.append("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in cells) + "</tr>")
+    return "\n".join(lines + ["</table>"])
+
+
+def write_benchmark(result, out: Path) -> dict[str, Path]:
+    """Write the JSON, the figures and the HTML page of ``result`` into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    files = {
+        "json": atomic_write(
+            out / "benchmark.json", lambda f: f.write(json.dumps(result.to_json(), indent=1, default=float).encode())
+        ),
+        "nll": nll_figure(result, out / "nll.png"),
+        "residuals": residual_figure(result, out / "residuals.png"),
+        "ranges": range_figure(result, out / "nll_by_range.png"),
+    }
+    images = "".join(
+        f'<p><img alt="{k}" src="data:image/png;base64,{base64.b64encode(files[k].read_bytes()).decode()}"/></p>'
+        for k in ("nll", "residuals", "ranges")
+    )
+    info = result.to_json()
+    nominal = info["nominal"]
+    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>planar benchmark</title>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}table{{border-collapse:collapse}}
+td,th{{border:1px solid #ccc;padding:3px 6px;font-size:13px;text-align:right}}th{{background:#eee}}</style></head><body>
+<h1>Planar benchmark: {html.escape(Path(result.source).name or "log")}</h1>
+<p>{info["scans"]} scans x {info["beams"]} beams; sensor no-return value {info["max_range_m"]:g} m;
+{info["test_beams"]:,} test beams, {info["train_beams"]:,} training beams; protocol
+<code>../shared/protocols/real_planar.md</code> (cell {result.data.protocol.cell} m, occ3 map, leave-out
+{result.data.protocol.radius} m / {result.data.protocol.window} s, scores in 1 cm bins with the 1e-9 floor).</p>
+<p>Nominal ray cast on test beams: median |z - r| {nominal["median_abs_err"]:.3f} m,
+p90 {nominal["p90_abs_err"]:.3f} m; short (z &lt; r - 0.5 m) {nominal["short"]:.3f},
+long {nominal["long"]:.3f}, measured misses {nominal["measured_miss"]:.3f},
+nominal misses {nominal["nominal_miss"]:.3f}, incidence known for {nominal["incidence_known"]:.2f} of
+nominal hits.</p>
+{_table(result.rows)}
+<p>Sample metrics compare one scan sampled from each model with the measured scan, beam by beam: a model
+that reproduces the log's share of short and long returns (people, glass, doors) draws them at other
+beams than the measurement, which raises the p90 error and lowers the hit/miss F1 even as its range
+distribution (histogram L1) gets closer to the sensor's.</p>
+{images}
+<p>Seconds: {html.escape(json.dumps({k: round(v, 1) for k, v in result.seconds.items()}))}</p>
+</body></html>"""
+    files["html"] = atomic_write(out / "benchmark.html", lambda f: f.write(page.encode()))
+    return files
