@@ -27,7 +27,7 @@ from mi_lidar.core.likelihood import LOG_FLOOR
 from mi_lidar.core.log import Log
 from mi_lidar.core.rays import LogRays
 from mi_lidar.core.sensor_model import SensorModel
-from mi_lidar.loop.real_data import Scored, Step, effect_step, ray_subset
+from mi_lidar.loop.development import Scored, Step, effect_step, ray_subset
 from mi_lidar.scene.dicts import MeshElements, scene_dict
 
 MESH_EVERY = 4  # mesh columns: 0 mod MESH_EVERY; calibration columns: MESH_EVERY / 2 mod MESH_EVERY
@@ -112,7 +112,7 @@ class OusterPath:
     """The development path on the Ouster frame and the final model.
 
     Attributes:
-        rows: one :class:`~mi_lidar.loop.real_data.Step` per added effect.
+        rows: one :class:`~mi_lidar.loop.development.Step` per added effect.
         mesh: the final scene elements (faces with their fitted hit probabilities).
         model: the final sensor model (every effect fitted).
     """

@@ -1,0 +1,150 @@
+"""A development path on measured rays: effects added one by one, each fitted on calibration rays, scored on test rays.
+
+:class:`Scored` holds a scene traced once with its rays; :func:`effect_step` refits a model's effects
+and scores it, giving one :class:`Step` (a row of :func:`development_table`). Used by the real
+Ouster loop (:mod:`mi_lidar.loop.real_ouster`); the planar real-log benchmark lives in
+:mod:`mi_lidar.planar`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import mitsuba as mi
+import numpy as np
+
+from mi_lidar.core.effects.base import Effect
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.problem import Problem, fit_parts
+from mi_lidar.core.rays import LogRays
+from mi_lidar.core.sensor_model import SensorModel
+
+
+@dataclass
+class Scored:
+    """A stacked scene with its scored rays: traced once, scored with :meth:`SensorModel.log_likelihood`.
+
+    Attributes:
+        scene: the loaded scene of every layer's elements.
+        table: its element table.
+        rays: the layers' scans as rays (layer ``j`` is scan ``j`` of the stacked log).
+        n_elements: elements in the scene.
+    """
+
+    scene: object
+    table: ElementTable
+    rays: LogRays
+    n_elements: int
+    _problem: Problem | None = field(default=None, repr=False)
+
+    @property
+    def problem(self) -> Problem:
+        """Every ray of the layers, traced once (:class:`~mi_lidar.core.problem.Problem`)."""
+        if self._problem is None:
+            self._problem = Problem.build(self.scene, self.rays, table=self.table)
+        return self._problem
+
+    def per_beam(self, model: SensorModel) -> np.ndarray:
+        """(N,) scored log-likelihood per beam (nats, 1 cm range bins, the one floor) under ``model``."""
+        return self.problem.log_likelihood(model)
+
+    def nll(self, model: SensorModel) -> float:
+        """Mean negative log-likelihood per beam (nats) under ``model``."""
+        return self.problem.nll(model)
+
+    def fit(self, model: SensorModel, effects: list[Effect], steps: int = 150) -> None:
+        """Fit ``effects`` (members of ``model.effects``) on these rays by maximum likelihood (:func:`fit_parts`)."""
+        fit_parts(model, self.problem, effects, steps=steps)
+
+
+@dataclass
+class Step:
+    """One row of a development path.
+
+    Attributes:
+        model: what was scored.
+        added: the effect or change this step adds.
+        nll: mean negative log-likelihood per test beam, nats.
+        train_nll: the same on the calibration beams, nats.
+        fitted: fitted parameters, ``{"effect.param": value}``.
+    """
+
+    model: str
+    added: str
+    nll: float
+    train_nll: float
+    fitted: dict
+
+
+def development_table(rows: list[Step], title: str):
+    """A rich table of a development path; each row lists the parameters new since the previous row of its model."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    for column in ("model", "added", "test NLL", "calibration NLL", "new parameters"):
+        table.add_column(column)
+    previous, model = {}, None
+    for row in rows:
+        previous = previous if row.model == model else {}
+        fitted = ", ".join(f"{k}={v:.4g}" for k, v in row.fitted.items() if k not in previous)
+        table.add_row(row.model, row.added, f"{row.nll:.3f}", f"{row.train_nll:.3f}", fitted)
+        previous, model = row.fitted, row.model
+    return table
+
+
+def describe_effects(effects: list[Effect]) -> dict:
+    """``{"effect.param": first value}`` of every parameter of ``effects``."""
+    return {f"{e.name}.{k}": float(np.asarray(v)[0]) for e in effects for k, v in e.params.items()}
+
+
+def fit_and_score(
+    train: Scored, test: Scored, model: SensorModel, fit: list[Effect], steps: int
+) -> tuple[float, float]:
+    """Fit ``fit`` (effects of ``model``) on ``train``, then return the test and training NLL (nats/beam)."""
+    if fit:
+        train.fit(model, fit, steps=steps)
+    return test.nll(model), train.nll(model)
+
+
+def effect_step(model_name: str, label: str, train: Scored, test: Scored, model: SensorModel, steps: int, say) -> Step:
+    """Refit every effect of ``model`` on ``train``, score it on ``test``: the development-path row ``+ label``."""
+    nll, train_nll = fit_and_score(train, test, model, model.effects, steps)
+    say(f"+ {label}: {nll:.3f}")
+    return Step(model_name, f"+ {label}", nll, train_nll, describe_effects(model.effects))
+
+
+def ray_subset(rays: LogRays, keep: np.ndarray) -> LogRays:
+    """The rays of ``rays`` where ``keep`` holds (ray ids stay the log's flat indices)."""
+    index = np.flatnonzero(keep)
+    return _IndexedRays(
+        log=rays.log,
+        scan=rays.scan[index],
+        beam=rays.beam[index],
+        column=rays.column[index],
+        time=rays.time[index],
+        measured=rays.measured[index],
+        hit=rays.hit[index],
+        ids=index,
+    )
+
+
+@dataclass
+class _IndexedRays(LogRays):
+    """A subset of a log's rays that keeps the log's flat ray ids."""
+
+    ids: np.ndarray = None
+
+    def batch(self, index: np.ndarray | None = None):
+        index = np.arange(self.n) if index is None else np.asarray(index)
+        full = LogRays(
+            log=self.log,
+            scan=self.scan,
+            beam=self.beam,
+            column=self.column,
+            time=self.time,
+            measured=self.measured,
+            hit=self.hit,
+        )
+        rays, measured, hit = full.batch(index)
+        rays.ray_id = mi.UInt32(self.ids[index].astype(np.uint32))
+        return rays, measured, hit
