@@ -7,8 +7,9 @@ one likelihood and sampled by the one sampler:
 * :func:`nominal_beams`: each beam meets one opaque element at its nominal range (the first occupied
   cell), or nothing (a nominal miss): the view of the protocol's models M0-M3, P-Reg and NP-Reg;
 * :func:`segment_beams`: each beam meets every cell with leave-out hits along it, in order, each an
-  element of its own with its counts; its interception probability is the counting estimate with a
-  fitted Beta prior (mi-lidar's permeable map, :func:`permeability`, :func:`fit_permeability`).
+  element of its own with its counts, at the range of the cell's mean endpoint hit; its interception
+  probability is the counting estimate with a fitted Beta prior (mi-lidar's permeable map,
+  :func:`permeability`, :func:`fit_permeability`).
 
 Element labels carry the cell's occupancy (1: ``occ3`` occupied, 0: stray hits), so densities can
 condition on it.
@@ -51,7 +52,8 @@ class EngineBeams:
         rays: one ray per beam (beam index and ray id; no geometry needed).
         rounds: the segments of each beam, in order.
         z, hit: measured range (m; 0 for a miss) and return flag per beam.
-        hits, passes: leave-out counts of every element (for :class:`CountPermeability`).
+        hits, passes: leave-out counts of every element (for :func:`permeability`).
+        occupied: (E,) 1 where the element is an ``occ3`` occupied cell, 0 for stray hits.
     """
 
     table: ElementTable
@@ -61,6 +63,7 @@ class EngineBeams:
     hit: mi.Bool
     hits: np.ndarray
     passes: np.ndarray
+    occupied: np.ndarray
 
     @property
     def n(self) -> int:
@@ -83,9 +86,13 @@ class EngineBeams:
             raw = mixture_log_likelihood(self.table, model, self.rays, self.rounds, dr.zeros(mi.Float, self.n), miss)
             return np.exp(np.asarray(raw, np.float64))
 
-    def with_permeability(self, a: float, b: float) -> EngineBeams:
-        """These beams with every element's interception probability from its counts (:func:`permeability`)."""
-        p = permeability(self.hits, self.passes, a, b) if self.hits.size else np.ones(1)
+    def with_permeability(self, a: np.ndarray, b: np.ndarray) -> EngineBeams:
+        """These beams with every element's interception probability from its counts (:func:`permeability`).
+
+        ``a`` and ``b`` hold one Beta prior per occupancy class (index 0: stray hits, 1: occupied).
+        """
+        k = self.occupied
+        p = permeability(self.hits, self.passes, np.asarray(a)[k], np.asarray(b)[k]) if self.hits.size else np.ones(1)
         return dataclasses.replace(self, table=self.table.replaced(p_hit=_f(p)))
 
     def sample(self, model, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -122,6 +129,7 @@ def nominal_beams(trace: PlanarTrace) -> EngineBeams:
         hit=mi.Bool(aligned(hit)),
         hits=np.ones(n_elements),
         passes=np.zeros(n_elements),
+        occupied=np.ones(n_elements, np.int64),
     )
 
 
@@ -131,7 +139,7 @@ def segment_beams(trace: PlanarTrace) -> EngineBeams:
     table = ElementTable.from_elements(
         np.ones(max(n_elements, 1)), label=trace.seg_occupied.astype(np.uint32) if n_elements else None
     )
-    rounds = rounds_from_segments(trace.seg_start, np.arange(n_elements), trace.seg_range, _cos(trace.seg_incidence))
+    rounds = rounds_from_segments(trace.seg_start, np.arange(n_elements), trace.seg_at, _cos(trace.seg_incidence))
     return EngineBeams(
         table=table,
         rays=_rays(trace),
@@ -140,6 +148,7 @@ def segment_beams(trace: PlanarTrace) -> EngineBeams:
         hit=mi.Bool(aligned(trace.hit)),
         hits=trace.seg_hits.astype(np.float64),
         passes=trace.seg_passes.astype(np.float64),
+        occupied=trace.seg_occupied.astype(np.int64),
     )
 
 
@@ -148,8 +157,12 @@ def permeability(hits: np.ndarray, passes: np.ndarray, a, b):
     return (hits + a) / (hits + passes + a + b)
 
 
-def fit_permeability(beams: EngineBeams, model, steps: int = 120) -> tuple[float, float]:
-    """The Beta prior ``(a, b)`` of the cells' interception probabilities, by the one fitter.
+def fit_permeability(beams: EngineBeams, model, steps: int = 120) -> tuple[np.ndarray, np.ndarray]:
+    """The Beta priors ``(a, b)`` of the cells' interception probabilities, one per occupancy class, by the one fitter.
+
+    Stray-hit cells (hits in fewer than a quarter of visits: people, clutter, grazing wall edges) and
+    ``occ3`` occupied cells get their own prior: the same counts mean a different interception
+    probability in the two classes.
 
     Only the interception probabilities move, so each segment's return density at the measured range
     is computed once (:func:`~mi_lidar.core.trace.cache_distributions`) and a step is a few gathers.
@@ -157,18 +170,20 @@ def fit_permeability(beams: EngineBeams, model, steps: int = 120) -> tuple[float
     cache = RayCache.from_rounds(cache_distributions(beams.rounds, beams.table, model, beams.rays, beams.z))
     batch = cache.batch(np.arange(beams.n))
     hits, passes = _f(beams.hits), _f(beams.passes)
+    occupied = mi.UInt32(aligned(beams.occupied.astype(np.uint32)))
     variables = [
-        FitVariable("a", [0.5], lower=1e-3, upper=100.0, scale=0.5, transform="log"),
-        FitVariable("b", [0.5], lower=1e-3, upper=100.0, scale=0.5, transform="log"),
+        FitVariable("a", [0.5, 0.5], lower=1e-3, upper=100.0, scale=0.5, transform="log"),
+        FitVariable("b", [0.5, 0.5], lower=1e-3, upper=100.0, scale=0.5, transform="log"),
     ]
 
     def objective(values, step: int) -> float:
         v = values()
-        table = beams.table.replaced(p_hit=permeability(hits, passes, v["a"], v["b"]))
+        a, b = dr.gather(mi.Float, v["a"], occupied), dr.gather(mi.Float, v["b"], occupied)
+        table = beams.table.replaced(p_hit=permeability(hits, passes, a, b))
         raw = mixture_log_likelihood(table, model, beams.rays, batch, beams.z, beams.hit)
         loss = -dr.mean(score(raw, beams.hit))
         dr.backward(loss)
         return float(loss[0])
 
     result = adam_fit(variables, objective, steps, lr=0.3)
-    return float(result.values["a"][0]), float(result.values["b"][0])
+    return np.asarray(result.values["a"], np.float64), np.asarray(result.values["b"], np.float64)

@@ -7,6 +7,8 @@ the return (sampled every quarter cell); beams without a return clear nothing. C
 additive, so the map of a query scan that leaves some scans out is the total minus their
 contributions: :class:`CountMap` keeps the totals and, per query scan, the sparse corrections of its
 excluded scans (only for cells that hold a hit somewhere, the only cells that can be occupied).
+The endpoints' coordinates are summed the same way, so every cell also has the exact leave-out mean
+of its endpoint hits (where inside the cell the surface is).
 """
 
 from __future__ import annotations
@@ -113,12 +115,14 @@ class ScanCounts:
     Attributes:
         grid: the grid.
         hit_start, hit_cell: offsets (S + 1,) and cells of each scan's endpoint hits.
+        hit_xy: (H, 2) world position (m) of each endpoint hit.
         pass_start, pass_cell: offsets (S + 1,) and cells of each scan's pass-throughs (one per beam and cell).
     """
 
     grid: Grid
     hit_start: np.ndarray
     hit_cell: np.ndarray
+    hit_xy: np.ndarray
     pass_start: np.ndarray
     pass_cell: np.ndarray
 
@@ -132,33 +136,46 @@ class ScanCounts:
         parts = [cell[start[s] : start[s + 1]] for s in np.asarray(scans, np.int64)]
         return np.concatenate(parts) if parts else np.zeros(0, np.int64)
 
+    def hit_points(self, scans: np.ndarray) -> np.ndarray:
+        """(H, 2) endpoint positions of ``scans``' hits, in the order of :meth:`cells` ``(scans, "hit")``."""
+        parts = [self.hit_xy[self.hit_start[s] : self.hit_start[s + 1]] for s in np.asarray(scans, np.int64)]
+        return np.concatenate(parts) if parts else np.zeros((0, 2))
+
 
 def count_scans(log: Log, grid: Grid, reach: float = REACH, chunk: int = 64, progress=None) -> ScanCounts:
     """Each scan's endpoint hits and pass-throughs on ``grid`` (see the module docstring)."""
     step = grid.cell / 4
-    hit_start, pass_start, hit_cells, pass_cells = [0], [0], [], []
+    hit_start, pass_start, hit_cells, hit_points, pass_cells = [0], [0], [], [], []
     for first in range(0, log.shape[0], chunk):
         scans = np.arange(first, min(first + chunk, log.shape[0]))
         origin, direction, z = planar_beams(log, scans)
         n_beams = origin.shape[1]
         o, d, r = origin.reshape(-1, 2), direction.reshape(-1, 2), z.ravel()
         hit = np.isfinite(r)
-        end = np.where(hit & (r < reach), grid.cell_of(o + np.nan_to_num(r)[:, None] * d), -1)
+        point = o + np.nan_to_num(r)[:, None] * d
+        end = np.where(hit & (r < reach), grid.cell_of(point), -1)
         ray, cell = march_cells(grid, o, d, np.where(hit, np.nan_to_num(r) - grid.cell, 0.0), step)
         keep = cell != end[ray]
         ray, cell = ray[keep], cell[keep]
         bounds = np.searchsorted(ray // n_beams, np.arange(len(scans) + 1))
         for local in range(len(scans)):
             rows = slice(local * n_beams, (local + 1) * n_beams)
-            mine = end[rows][end[rows] >= 0]
+            landed = end[rows] >= 0
+            mine = end[rows][landed]
             hit_cells.append(mine)
+            hit_points.append(point[rows][landed])
             hit_start.append(hit_start[-1] + mine.size)
             pass_cells.append(cell[bounds[local] : bounds[local + 1]])
             pass_start.append(pass_start[-1] + int(bounds[local + 1] - bounds[local]))
         if progress is not None:
             progress(scans[-1] + 1, log.shape[0])
     return ScanCounts(
-        grid, np.asarray(hit_start), np.concatenate(hit_cells), np.asarray(pass_start), np.concatenate(pass_cells)
+        grid,
+        np.asarray(hit_start),
+        np.concatenate(hit_cells),
+        np.concatenate(hit_points),
+        np.asarray(pass_start),
+        np.concatenate(pass_cells),
     )
 
 
@@ -174,6 +191,9 @@ class CountMap:
         size = counts.grid.size
         self.hits = np.bincount(counts.hit_cell, minlength=size).astype(np.int32)
         self.passes = np.bincount(counts.pass_cell, minlength=size).astype(np.int32)
+        self.hit_sum = np.stack(
+            [np.bincount(counts.hit_cell, weights=counts.hit_xy[:, k], minlength=size) for k in range(2)], axis=1
+        )
 
     def leave_out(self, excluded: list[np.ndarray]) -> LeaveOut:
         """The sparse corrections of a batch of query scans; ``excluded[q]`` are the scans query ``q`` leaves out.
@@ -182,19 +202,29 @@ class CountMap:
         """
         size = self.counts.grid.size
         parts: dict[str, tuple[list, list]] = {"hit": ([], []), "pass": ([], [])}
+        sums = []
         for q, scans in enumerate(excluded):
             for kind, (keys, counts) in parts.items():
                 cells = self.counts.cells(scans, kind)
-                unique, n = np.unique(cells[self.hits[cells] > 0], return_counts=True)
+                kept = self.hits[cells] > 0
+                unique, inverse, n = np.unique(cells[kept], return_inverse=True, return_counts=True)
                 keys.append(q * size + unique)
                 counts.append(n)
+                if kind == "hit":
+                    xy = self.counts.hit_points(scans)[kept]
+                    sums.append(
+                        np.stack([np.bincount(inverse, weights=xy[:, k], minlength=unique.size) for k in range(2)], 1)
+                    )
         hit_keys, hit_n = (np.concatenate(v) for v in parts["hit"])
         pass_keys, pass_n = (np.concatenate(v) for v in parts["pass"])
         keys = np.union1d(hit_keys, pass_keys)
         dh, dp = np.zeros(keys.size, np.int32), np.zeros(keys.size, np.int32)
-        dh[np.searchsorted(keys, hit_keys)] = hit_n
+        ds = np.zeros((keys.size, 2))
+        at = np.searchsorted(keys, hit_keys)
+        dh[at] = hit_n
+        ds[at] = np.concatenate(sums) if sums else np.zeros((0, 2))
         dp[np.searchsorted(keys, pass_keys)] = pass_n
-        return LeaveOut(self, keys, dh, dp)
+        return LeaveOut(self, keys, dh, dp, ds)
 
 
 @dataclass
@@ -205,22 +235,34 @@ class LeaveOut:
         totals: the whole-log map.
         keys: sorted ``q * size + cell`` of the corrected cells.
         dh, dp: hits and pass-throughs the query's excluded scans put in those cells.
+        ds: (K, 2) sum of the positions (m) of those hits.
     """
 
     totals: CountMap
     keys: np.ndarray
     dh: np.ndarray
     dp: np.ndarray
+    ds: np.ndarray
+
+    def _found(self, query: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Index into the corrections of each (query, cell), and whether it has one."""
+        if not self.keys.size:
+            return np.zeros(np.shape(cell), np.int64), np.zeros(np.shape(cell), bool)
+        key = query * self.totals.counts.grid.size + cell
+        i = np.minimum(np.searchsorted(self.keys, key), self.keys.size - 1)
+        return i, self.keys[i] == key
+
+    def mean_hit(self, query: np.ndarray, cell: np.ndarray) -> np.ndarray:
+        """(..., 2) leave-out mean position (m) of the endpoint hits in ``cell`` (NaN where it has none)."""
+        i, found = self._found(query, cell)
+        hits = self.totals.hits[cell] - np.where(found, self.dh[i], 0)
+        total = self.totals.hit_sum[cell] - np.where(found[..., None], self.ds[i], 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(hits[..., None] > 0, total / hits[..., None], np.nan)
 
     def counts(self, query: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(hits, pass-throughs) of ``cell`` in the leave-out map of query ``query`` (arrays of equal shape)."""
-        size = self.totals.counts.grid.size
-        hits = self.totals.hits[cell].astype(np.int64)
-        passes = self.totals.passes[cell].astype(np.int64)
-        if self.keys.size:
-            key = query * size + cell
-            i = np.minimum(np.searchsorted(self.keys, key), self.keys.size - 1)
-            found = self.keys[i] == key
-            hits = hits - np.where(found, self.dh[i], 0)
-            passes = passes - np.where(found, self.dp[i], 0)
+        i, found = self._found(query, cell)
+        hits = self.totals.hits[cell].astype(np.int64) - np.where(found, self.dh[i], 0)
+        passes = self.totals.passes[cell].astype(np.int64) - np.where(found, self.dp[i], 0)
         return hits, passes

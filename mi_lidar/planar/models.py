@@ -12,9 +12,10 @@ M2a, M2b   the same per nominal-range bin / per range x incidence bin; bins with
 M3a, M3b   residual histograms per bin with the protocol's smoothing (the binned NP baseline)
 P-Reg      thesis 3.3: P_null, mean, sigma by local linear kernel regression on range and incidence
 NP-Reg     thesis 3.4: per-state histograms smoothed across states by a kernel (frequency polygon)
-mi-lidar   the permeable map: every cell with leave-out hits is an element that intercepts the beam
-           with its counting estimate (Beta prior fitted), returns by an NP-Reg density conditioned
-           on the cell's occupancy, range and incidence (refined by EM over the segments)
+mi-lidar   the permeable map: every cell with leave-out hits is an element at its mean endpoint hit
+           that intercepts the beam with its counting estimate (a Beta prior per occupancy class,
+           fitted), returns by an NP-Reg density conditioned on the cell's occupancy, range and
+           incidence (refined by EM over the segments)
 =========  ===================================================================================
 
 Bandwidths and priors are chosen on the training scans only: the learned models hold out every other
@@ -194,16 +195,20 @@ def fit_learned(train: PlanarTrace, z_max: float, family: str) -> tuple[SensorMo
     return base_model(z_max, density), setting
 
 
-def _responsibilities(trace: PlanarTrace, density: NPRegDensity, a: float, b: float) -> np.ndarray:
-    """For every hit beam, the index (into the segments) of the segment most likely to have returned it (-1: none)."""
-    p = permeability(trace.seg_hits, trace.seg_passes, a, b)
+def _responsibilities(trace: PlanarTrace, density: NPRegDensity, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """For every hit beam, the index (into the segments) of the segment most likely to have returned it (-1: none).
+
+    ``a``, ``b``: (2,) Beta priors per occupancy class (:func:`~mi_lidar.planar.beams.fit_permeability`).
+    """
+    k = trace.seg_occupied.astype(np.int64)
+    p = permeability(trace.seg_hits, trace.seg_passes, a[k], b[k])
     counts = np.diff(trace.seg_start)
     beam_of = np.repeat(np.arange(trace.n), counts)
     log_pass = np.log(np.clip(1.0 - p, 1e-12, 1.0))
     cumulative = np.cumsum(log_pass)
     before = cumulative - log_pass - np.repeat(np.concatenate([[0.0], cumulative])[trace.seg_start[:-1]], counts)
-    state = density.grid.index_np(trace.seg_range, trace.seg_incidence, None, trace.seg_occupied.astype(np.int64))
-    e = trace.z[beam_of] - trace.seg_range
+    state = density.grid.index_np(trace.seg_at, trace.seg_incidence, None, trace.seg_occupied.astype(np.int64))
+    e = trace.z[beam_of] - trace.seg_at
     k = np.clip(np.searchsorted(density.edges, e, side="right") - 1, 0, density.edges.size - 2)
     inside = (e >= density.edges[0]) & (e < density.edges[-1])
     mass = density.mass / np.maximum(density.mass.sum(axis=1, keepdims=True), 1e-300)
@@ -225,12 +230,12 @@ class PermeableMap:
 
     Attributes:
         model: the sensor model (its density conditions on range, incidence and cell occupancy).
-        a, b: the Beta prior of the cells' interception probabilities.
+        a, b: (2,) the Beta priors of the cells' interception probabilities (stray-hit cells, occupied cells).
     """
 
     model: SensorModel
-    a: float
-    b: float
+    a: np.ndarray
+    b: np.ndarray
 
     def beams(self, trace: PlanarTrace) -> EngineBeams:
         """The engine's view of ``trace`` under this map (every segment, interception from its counts)."""
@@ -260,14 +265,13 @@ def fit_milidar(
 
     density = tables(samples)
     beams = segment_beams(train)
-    a = b = 0.5
     for _ in range(rounds):
         a, b = fit_permeability(beams, base_model(z_max, density), steps)
         chosen = _responsibilities(train, density, a, b)
         seg = np.where(chosen >= 0, chosen, 0)
         density = tables(
             StateSamples(
-                nominal=np.where(chosen >= 0, train.seg_range[seg], train.nominal),
+                nominal=np.where(chosen >= 0, train.seg_at[seg], train.nominal),
                 incidence=np.where(chosen >= 0, train.seg_incidence[seg], train.incidence),
                 beam=train.beam,
                 label=np.where(chosen >= 0, train.seg_occupied[seg], 1).astype(np.int64),

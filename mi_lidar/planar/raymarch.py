@@ -24,6 +24,7 @@ import numpy as np
 from mi_lidar.planar.grid import CountMap, Grid, LeaveOut, planar_beams
 
 START = 0.02  # m: the march starts here
+SEGMENT_FIELDS = ("seg_range", "seg_hits", "seg_passes", "seg_occupied", "seg_incidence", "seg_surface")
 NEIGHBOURS = np.array([(dx, dy) for dx in range(-3, 4) for dy in range(-3, 4) if dx * dx + dy * dy <= 9])
 
 
@@ -38,6 +39,8 @@ class PlanarTrace:
         incidence: incidence angle at the nominal hit, deg (NaN: unknown).
         seg_start: (B + 1,) offsets of each beam's segments.
         seg_range, seg_hits, seg_passes, seg_occupied, seg_incidence: per segment (E,).
+        seg_surface: per segment (E,), the range (m) of the cell's leave-out mean endpoint hit projected
+            on the beam: where inside the cell the surface is.
     """
 
     scan: np.ndarray
@@ -51,6 +54,7 @@ class PlanarTrace:
     seg_passes: np.ndarray
     seg_occupied: np.ndarray
     seg_incidence: np.ndarray
+    seg_surface: np.ndarray
 
     @property
     def hit(self) -> np.ndarray:
@@ -60,23 +64,17 @@ class PlanarTrace:
     def n(self) -> int:
         return int(self.z.size)
 
+    @property
+    def seg_at(self) -> np.ndarray:
+        """(E,) range (m) of each segment's surface: its mean endpoint hit where known, else the cell entry."""
+        return np.where(np.isfinite(self.seg_surface), self.seg_surface, self.seg_range)
+
     @classmethod
     def concatenate(cls, parts: list[PlanarTrace]) -> PlanarTrace:
         """One trace of several (beams in order)."""
         offsets = np.cumsum([0] + [p.seg_range.size for p in parts])
         start = np.concatenate([p.seg_start[:-1] + o for p, o in zip(parts, offsets)] + [[offsets[-1]]])
-        fields = (
-            "scan",
-            "beam",
-            "z",
-            "nominal",
-            "incidence",
-            "seg_range",
-            "seg_hits",
-            "seg_passes",
-            "seg_occupied",
-            "seg_incidence",
-        )
+        fields = ("scan", "beam", "z", "nominal", "incidence") + SEGMENT_FIELDS
         values = {f: np.concatenate([getattr(p, f) for p in parts]) for f in fields}
         return cls(seg_start=start, **values)
 
@@ -90,7 +88,8 @@ class PlanarTrace:
             else np.zeros(0, np.int64)
         )
         seg = {
-            f: getattr(self, f)[rows] for f in ("seg_range", "seg_hits", "seg_passes", "seg_occupied", "seg_incidence")
+            f: getattr(self, f)[rows]
+            for f in ("seg_range", "seg_hits", "seg_passes", "seg_occupied", "seg_incidence", "seg_surface")
         }
         return PlanarTrace(
             scan=self.scan[index],
@@ -244,6 +243,7 @@ def trace_scans(
     hits, passes = leave.counts(query[rows], cells)
     seg_range = entry_distance(grid, o[rows], d[rows], cells)
     seg_inc = incidence_at(leave, grid, query[rows], cells, d[rows])
+    surface = np.einsum("ek,ek->e", leave.mean_hit(query[rows], cells) - o[rows], d[rows])
     return PlanarTrace(
         scan=np.repeat(np.asarray(scans), n_beams),
         beam=np.tile(np.arange(n_beams), q_count),
@@ -256,4 +256,5 @@ def trace_scans(
         seg_passes=passes,
         seg_occupied=occupied(hits, passes),
         seg_incidence=seg_inc,
+        seg_surface=surface,
     )

@@ -231,13 +231,19 @@ def count_states(samples: StateSamples, grid: StateGrid, edges: np.ndarray) -> n
 
 
 def _finish(counts: np.ndarray, e_kernel: bool) -> tuple[np.ndarray, np.ndarray]:
-    """(mass, p_null) from smoothed counts; ``e_kernel`` applies [1/4 1/2 1/4] along the residual bins."""
+    """(mass, p_null) from smoothed counts (escape state last); ``e_kernel``: [1/4 1/2 1/4] along the residual.
+
+    A state without data gets P(null) 0.5, except the escape state: a beam that met nothing, in a log
+    where no such beam was seen, reports nothing (P(null) = 1 - 1e-6).
+    """
     hist, null = counts[:, :-1], counts[:, -1]
     if e_kernel:
         padded = np.pad(hist, ((0, 0), (1, 1)), mode="edge")
         hist = 0.25 * padded[:, :-2] + 0.5 * padded[:, 1:-1] + 0.25 * padded[:, 2:]
     total = hist.sum(axis=1) + null
     p_null = np.where(total > 0, null / np.maximum(total, 1e-300), 0.5)
+    if total[-1] <= 0:
+        p_null[-1] = 1.0
     return hist, np.clip(p_null, 0.0, 1.0 - 1e-6)
 
 
