@@ -10,7 +10,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from . import bench_calibrate, bench_core, bench_diagnose, bench_fit_scene, bench_io
+from . import bench_calibrate, bench_core, bench_dataset, bench_diagnose, bench_fit_scene, bench_io
 
 
 def _rows(run):
@@ -25,6 +25,7 @@ BENCHMARKS = {
     "fit_scene": _rows(bench_fit_scene.run),
     "io": _rows(bench_io.run),
     "diagnose": _rows(bench_diagnose.run),
+    "dataset": _rows(bench_dataset.run),
 }
 RESULTS = Path(__file__).resolve().parent / "results"
 COLUMNS = ("benchmark", "Mrays/s", "vs raw ray_intersect", "vs Open3D", "target", "pass/fail")

@@ -36,3 +36,7 @@ class LogFormatError(MiLidarError):
 class CalibrationError(MiLidarError, ValueError):
     """A calibration request cannot be fitted: no parameter matches, the log and scene disagree, or the loss
     diverges."""
+
+
+class SpecError(MiLidarError, ValueError):
+    """A run specification (e.g. a dataset spec file) is missing, malformed or inconsistent."""

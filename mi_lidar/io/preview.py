@@ -174,13 +174,13 @@ def _srgb(image: np.ndarray) -> np.ndarray:
 
 
 def rgb_png(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Write a linear (H, W, 3) RGB image as an sRGB PNG at its own resolution."""
-    height, width = image.shape[:2]
-    figure = Figure(figsize=(width / DPI, height / DPI))
-    axes = figure.add_axes((0, 0, 1, 1))
-    axes.imshow(_srgb(image), interpolation="nearest")
-    axes.set_axis_off()
-    return _save(figure, path)
+    """Write a linear (H, W, 3) RGB image as an 8-bit sRGB PNG (RGB, no alpha) at its own resolution, atomically."""
+    from PIL import Image
+
+    pixels = np.round(_srgb(image) * 255.0).astype(np.uint8)
+    with atomic_path(path) as tmp:
+        Image.fromarray(pixels).save(tmp, format="PNG")
+    return Path(path)
 
 
 def overlay_png(

@@ -73,6 +73,7 @@ class PinholeCamera:
                     "width": int(self.width),
                     "height": int(self.height),
                     "pixel_format": "rgb",
+                    "rfilter": {"type": "box"},
                 },
                 "sampler": {"type": "independent", "sample_count": int(spp)},
             }
@@ -96,11 +97,20 @@ class PinholeCamera:
 
 
 def render_camera(scene, camera: PinholeCamera, spp: int = 64, seed: int = 0) -> np.ndarray:
-    """Path-trace the camera's (height, width, 3) linear RGB image of ``scene``."""
-    image = mi.render(
-        scene, sensor=camera.sensor(spp), integrator=mi.load_dict({"type": "path", "max_depth": 6}), seed=seed
-    )
-    return np.asarray(image, dtype=np.float32)
+    """Path-trace the camera's (height, width, 3) linear RGB image of ``scene``.
+
+    The image is the mean of ``spp`` passes of one sample per pixel (their seeds drawn from
+    ``SeedSequence(seed)``), summed in pass order: with the box filter each pass writes every pixel once, so
+    the image is bit-identical whatever the thread count or scheduling (samples of one pixel
+    accumulated by concurrent threads are not).
+    """
+    sensor = camera.sensor(1)
+    integrator = mi.load_dict({"type": "path", "max_depth": 6})
+    seeds = np.random.SeedSequence(seed).generate_state(spp) & 0x7FFFFFFF
+    image = np.zeros((camera.height, camera.width, 3), dtype=np.float64)
+    for pass_seed in seeds:
+        image += np.asarray(mi.render(scene, sensor=sensor, integrator=integrator, seed=int(pass_seed)))
+    return (image / spp).astype(np.float32)
 
 
 def camera_lidar_frame(scene, camera: PinholeCamera, seed: int = 0, spp: int = 64) -> dict:

@@ -12,11 +12,13 @@ from mi_lidar.core.errors import MiLidarError, SceneError
 from mi_lidar.core.sensor_model import SensorModel
 
 
-def load_scene(source, **parameters):
+def load_scene(source, optimize: bool = True, **parameters):
     """Load a Mitsuba scene from an XML path or a scene dict.
 
     Args:
         source: path of a scene XML, or a dict for ``mi.load_dict``.
+        optimize: let Mitsuba merge meshes that share a material (faster); False keeps every
+            shape with its own id (needed to tell objects apart by shape).
         parameters: values for the XML's ``<default>`` parameters (``$name``).
 
     Raises:
@@ -29,7 +31,7 @@ def load_scene(source, **parameters):
         path = Path(source)
         if not path.is_file():
             raise SceneError(f"{path}: no such scene file")
-        return mi.load_file(os.fspath(path), **{k: str(v) for k, v in parameters.items()})
+        return mi.load_file(os.fspath(path), optimize=optimize, **{k: str(v) for k, v in parameters.items()})
     except MiLidarError:
         raise
     except Exception as exc:

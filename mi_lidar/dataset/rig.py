@@ -1,0 +1,139 @@
+"""The sensor rig of a dataset: Lidars and pinhole cameras mounted on the ego vehicle.
+
+Frames: ego x forward, y left, z up (m). A Lidar's mount is its sensor-to-ego transform; a camera's
+is its OpenCV optical frame (x right, y down, z forward) to ego. KITTI's calibration is written with
+the first camera as the reference camera (``image_2``) and the first Lidar as ``velo``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from mi_lidar.core.errors import SpecError
+from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.dataset.spec import CameraSpec, DatasetSpec, LidarSpec
+from mi_lidar.io.nuscenes import read_nuscenes_calibration
+from mi_lidar.scene.camera import PinholeCamera
+
+# OpenCV optical axes (x right, y down, z forward) expressed in a forward-looking body frame (x forward, y left, z up).
+OPTICAL_TO_BODY = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1.0]])
+# Mitsuba's camera frame (x left, y up, z forward) from OpenCV's: both x and y flip.
+MITSUBA_FROM_OPENCV = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+@dataclass(frozen=True)
+class RigCamera:
+    """A mounted pinhole camera.
+
+    Attributes:
+        name: camera name. width, height: image size, pixels. fov_deg: horizontal field of view, deg.
+        optical_to_ego: (4, 4) OpenCV optical frame to ego.
+    """
+
+    name: str
+    width: int
+    height: int
+    fov_deg: float
+    optical_to_ego: np.ndarray
+
+    def at(self, ego_to_world: np.ndarray) -> PinholeCamera:
+        """The camera placed by the ego pose (4, 4)."""
+        to_world = ego_to_world @ self.optical_to_ego @ MITSUBA_FROM_OPENCV
+        return PinholeCamera(to_world=to_world, width=self.width, height=self.height, fov_deg=self.fov_deg)
+
+    @property
+    def intrinsics(self) -> np.ndarray:
+        """(3, 3) pixel intrinsics K (principal point at the image centre)."""
+        return PinholeCamera(np.eye(4), self.width, self.height, self.fov_deg).intrinsics
+
+
+@dataclass(frozen=True)
+class RigLidar:
+    """A mounted Lidar: its spec, (4, 4) sensor-to-ego transform and sensor model."""
+
+    spec: LidarSpec
+    to_ego: np.ndarray
+    model: SensorModel
+
+
+@dataclass(frozen=True)
+class Rig:
+    """All sensors of a dataset's vehicle."""
+
+    lidars: list[RigLidar]
+    cameras: list[RigCamera]
+
+    def calibration(self) -> dict:
+        """KITTI calibration matrices: reference camera = ``cameras[0]``, velo = ``lidars[0]``.
+
+        Returns:
+            ``{"P2": (3, 4), "P3": ..., "R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4), "Tr_imu_to_velo": (3, 4)}``
+            with one ``P{i + 2}`` per camera (``K_i [R | t]`` from the reference camera's frame to
+            camera i's pixels), ``P0 = P1 = P2`` (no grey cameras; present for loaders that expect
+            them), and ``Tr_imu_to_velo`` the ego-to-Lidar transform (the ego frame plays KITTI's IMU).
+        """
+        reference = self.cameras[0]
+        ego_to_reference = np.linalg.inv(reference.optical_to_ego)
+        matrices = {}
+        for i, camera in enumerate(self.cameras):
+            reference_to_camera = np.linalg.inv(camera.optical_to_ego) @ reference.optical_to_ego
+            matrices[f"P{i + 2}"] = camera.intrinsics @ reference_to_camera[:3, :]
+        matrices = {"P0": matrices["P2"], "P1": matrices["P2"], **matrices}
+        matrices["R0_rect"] = np.eye(3)
+        matrices["Tr_velo_to_cam"] = (ego_to_reference @ self.lidars[0].to_ego)[:3, :]
+        matrices["Tr_imu_to_velo"] = np.linalg.inv(self.lidars[0].to_ego)[:3, :]
+        return matrices
+
+
+def sensor_model(spec: LidarSpec, resolve) -> SensorModel:
+    """The sensor model of a rig Lidar (density files resolved by ``resolve(name) -> path``)."""
+    from mi_lidar.core.densities import parse_density
+    from mi_lidar.core.effects import parse_effects
+
+    return SensorModel(
+        range_sigma=spec.range_sigma,
+        min_range=spec.min_range,
+        max_range=spec.max_range,
+        max_segments=spec.max_segments,
+        effects=parse_effects(spec.effects),
+        density=parse_density(spec.density, resolve=resolve),
+    )
+
+
+def camera_from_spec(spec: CameraSpec) -> RigCamera:
+    """A rig camera from its spec (``xyz``/``rpy_deg`` mounts look along the mount's x axis)."""
+    optical = spec.mount.to_matrix() if spec.mount.matrix is not None else spec.mount.to_matrix() @ OPTICAL_TO_BODY
+    return RigCamera(spec.name, spec.width, spec.height, spec.fov_deg, optical)
+
+
+def build_rig(spec: DatasetSpec) -> Rig:
+    """The rig of a dataset spec; nuScenes cameras follow the explicit ones and give the Lidars their mount.
+
+    A Lidar whose mount is left at the default takes nuScenes' ``lidar2ego`` when a nuScenes file is given.
+    """
+    resolve = lambda name: str(spec.resolve(name))  # noqa: E731
+    cameras = [camera_from_spec(c) for c in spec.rig.cameras]
+    lidar_mounts = [s.mount.to_matrix() for s in spec.rig.lidars]
+    nuscenes = spec.rig.nuscenes
+    if nuscenes is not None:
+        calibration = read_nuscenes_calibration(spec.resolve(nuscenes.file))
+        default_mount = LidarSpec().mount
+        lidar_mounts = [
+            calibration["lidar2ego"] if s.mount == default_mount else m for s, m in zip(spec.rig.lidars, lidar_mounts)
+        ]
+        for name in nuscenes.cameras:
+            if name not in calibration["cameras"]:
+                raise SpecError(
+                    f"rig.nuscenes.cameras: {name!r} is not in {nuscenes.file}; "
+                    f"choose from {', '.join(sorted(calibration['cameras']))}"
+                )
+            camera = calibration["cameras"][name]
+            fov = math.degrees(2 * math.atan(camera["width"] / (2 * camera["K"][0, 0])))
+            width = round(camera["width"] * nuscenes.image_scale)
+            height = round(camera["height"] * nuscenes.image_scale)
+            cameras.append(RigCamera(name, width, height, fov, camera["cam2ego"]))
+    lidars = [RigLidar(s, m, sensor_model(s, resolve)) for s, m in zip(spec.rig.lidars, lidar_mounts)]
+    return Rig(lidars, cameras)

@@ -1,0 +1,294 @@
+"""Running a dataset: one Dask task per frame, a manifest that makes every run resumable.
+
+The manifest (``manifest.json``) holds the spec as written, the software versions and, per finished
+frame, the SHA-256 of every file it wrote. A new run with the same spec verifies the recorded
+frames' digests, keeps the intact ones and renders only the rest; leftover temporary files of a
+killed run are removed first. Frames run on a ``distributed.LocalCluster`` (one single-threaded
+process per core by default) or on an existing Dask scheduler; each worker imports Mitsuba once
+and keeps the current scene between frames. Dr.Jit's on-disk kernel cache is shared safely by the
+workers: it writes each kernel to an exclusive temporary file, then links it into place.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mi_lidar.core.atomic import atomic_write
+from mi_lidar.core.errors import SpecError
+from mi_lidar.dataset.spec import DatasetSpec
+
+MANIFEST = "manifest.json"
+FORMAT = "mi-lidar-dataset"
+_WORKER_STATE: dict = {}
+
+
+def software_versions() -> dict[str, str]:
+    """Versions of the packages a frame's bytes depend on."""
+    from importlib.metadata import version
+
+    versions = {"python": platform.python_version()}
+    for package in ("mi-lidar", "mitsuba", "drjit", "numpy", "scipy", "pillow", "matplotlib", "dask", "distributed"):
+        try:
+            versions[package] = version(package)
+        except Exception:
+            versions[package] = "absent"
+    return versions
+
+
+def frame_task(spec: DatasetSpec, out: str, index: int) -> dict:
+    """Render and write frame ``index`` in this process; returns its manifest record.
+
+    The rig and the current scene are kept in a per-process cache, so a worker loads a scene once for
+    all the frames of that scene variant it runs.
+    """
+    from mi_lidar.dataset.frame import render_frame, write_frame
+    from mi_lidar.dataset.rig import build_rig
+
+    if _WORKER_STATE.get("digest") != spec.digest:
+        _WORKER_STATE.clear()
+        _WORKER_STATE.update(digest=spec.digest, rig=build_rig(spec), scenes={})
+    rig = _WORKER_STATE["rig"]
+    frame = render_frame(spec, rig, index, _WORKER_STATE["scenes"])
+    return write_frame(Path(out), frame, rig, spec.output.overlays)
+
+
+def verify_frame(out: Path, record: dict) -> bool:
+    """True when every file of a manifest record exists with its recorded SHA-256."""
+    from mi_lidar.dataset.frame import file_digest
+
+    return all((out / name).is_file() and file_digest(out / name) == digest for name, digest in record["files"].items())
+
+
+def remove_partial_files(out: Path) -> int:
+    """Delete temporary files left by an interrupted atomic write (``.<stem>.*.tmp<suffix>``); return their count."""
+    stale = [p for p in out.rglob(".*") if p.is_file() and ".tmp" in p.name]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return len(stale)
+
+
+class Manifest:
+    """The run's record on disk: spec, versions, semantic classes and finished frames with digests."""
+
+    def __init__(self, out: Path, data: dict):
+        self.out, self.data = out, data
+
+    @classmethod
+    def open(cls, out: Path, spec: DatasetSpec, semantic_classes: dict[str, int], notes: list[str]) -> Manifest:
+        """The manifest of ``out``: read (same spec required) or started afresh.
+
+        Raises:
+            SpecError: ``out`` holds a manifest of a different spec.
+        """
+        path = out / MANIFEST
+        if path.is_file():
+            data = json.loads(path.read_text())
+            if data.get("format") != FORMAT or data.get("spec_digest") != spec.digest:
+                raise SpecError(
+                    f"{out} holds a dataset made from a different spec (manifest spec digest "
+                    f"{str(data.get('spec_digest'))[:12]}, this spec {spec.digest[:12]}); "
+                    "write to a new --out folder, or delete that folder to start over"
+                )
+            data["versions"] = software_versions()
+            return cls(out, data)
+        return cls(
+            out,
+            {
+                "format": FORMAT,
+                "version": 1,
+                "spec": spec.source,
+                "spec_digest": spec.digest,
+                "frames_total": spec.frames,
+                "versions": software_versions(),
+                "semantic_classes": {str(i): n for n, i in sorted(semantic_classes.items(), key=lambda kv: kv[1])},
+                "notes": notes,
+                "frames": {},
+                "failed": {},
+            },
+        )
+
+    @property
+    def frames(self) -> dict[str, dict]:
+        return self.data["frames"]
+
+    def add(self, record: dict) -> None:
+        """Record a finished frame (and forget an earlier failure of it)."""
+        self.frames[str(record["frame"])] = record
+        self.data["failed"].pop(str(record["frame"]), None)
+
+    def fail(self, index: int, error: str) -> None:
+        """Record a frame that failed after its retries."""
+        self.data["failed"][str(index)] = error
+
+    def save(self) -> Path:
+        """Write the manifest atomically."""
+        text = json.dumps(self.data, indent=1, sort_keys=True)
+        return atomic_write(self.out / MANIFEST, lambda stream: stream.write(text.encode()))
+
+
+@dataclass
+class RunReport:
+    """What a run did: frames in the spec, skipped (already done), rendered now, failed (index -> error)."""
+
+    total: int
+    skipped: int
+    rendered: int = 0
+    failed: dict[int, str] = field(default_factory=dict)
+    removed_partial: int = 0
+    seconds: float = 0.0
+    dashboard: str | None = None
+    worker_peak_mib: dict[str, float] = field(default_factory=dict)
+
+
+def write_poses(out: Path, manifest: Manifest, total: int) -> Path | None:
+    """``poses.txt`` (reference camera to world, KITTI 3x4 rows, one per frame) once every frame is done."""
+    import numpy as np
+
+    from mi_lidar.io.poses import write_kitti_poses
+
+    if len(manifest.frames) != total:
+        return None
+    poses = np.array([manifest.frames[str(k)]["reference_camera_to_world"] for k in range(total)])
+    return write_kitti_poses(out / "poses.txt", poses)
+
+
+def run_dataset(
+    spec: DatasetSpec,
+    out: str | os.PathLike,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    serial: bool = False,
+    retries: int = 2,
+    dashboard_address: str | None = ":8787",
+    progress: Callable[[int, int], None] | None = None,
+    announce: Callable[[str], None] = lambda message: None,
+) -> RunReport:
+    """Render every frame of ``spec`` not already in ``out``'s manifest.
+
+    Raises:
+        SpecError: the spec does not fit ``out``'s manifest, or a frame found the spec inconsistent
+            (unknown shape, class or label); other frame errors are retried, then reported.
+
+    Args:
+        spec: the dataset spec. out: output folder (on a file system every worker can write).
+        scheduler: address of an existing Dask scheduler (``tcp://host:8786``); None starts a LocalCluster.
+        workers: LocalCluster processes (default: one per core); each runs Dr.Jit on
+            ``cores // workers`` threads (at least 1).
+        serial: render in this process, in frame order, without Dask.
+        retries: extra attempts of a failing frame before it is reported.
+        dashboard_address: the LocalCluster dashboard's address (None: no dashboard).
+        progress: ``progress(done, total)`` after each frame (done counts skipped frames).
+        announce: receives one-line messages (dashboard link, cluster size, resume summary).
+
+    Returns:
+        The run's report; failed frames are also listed in the manifest.
+    """
+    from mi_lidar.dataset.frame import INTENSITY_NOTE, semantic_table
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    report = RunReport(total=spec.frames, skipped=0, removed_partial=remove_partial_files(out))
+    manifest = Manifest.open(out, spec, semantic_table(spec), [INTENSITY_NOTE])
+    intact = {k: r for k, r in manifest.frames.items() if verify_frame(out, r)}
+    manifest.data["frames"] = intact
+    todo = [k for k in range(spec.frames) if str(k) not in intact]
+    report.skipped = spec.frames - len(todo)
+    if report.skipped or report.removed_partial:
+        announce(
+            f"resuming: {report.skipped} of {spec.frames} frames verified by digest and kept, "
+            f"{report.removed_partial} partial files removed"
+        )
+    manifest.save()
+
+    def finished(index: int, record: dict | None, error: str | None) -> None:
+        if record is not None:
+            manifest.add(record)
+            report.rendered += 1
+        else:
+            manifest.fail(index, error)
+            report.failed[index] = error
+        manifest.save()
+        if progress is not None:
+            progress(report.skipped + report.rendered + len(report.failed), spec.frames)
+
+    if progress is not None:
+        progress(report.skipped, spec.frames)
+    if serial:
+        for index in todo:
+            finished(index, *_attempt(spec, out, index, retries))
+    elif todo:
+        _run_on_dask(spec, out, todo, scheduler, workers, retries, dashboard_address, finished, announce, report)
+    write_poses(out, manifest, spec.frames)
+    report.seconds = time.perf_counter() - start
+    return report
+
+
+def _attempt(spec: DatasetSpec, out: Path, index: int, retries: int) -> tuple[dict | None, str | None]:
+    error = None
+    for _ in range(retries + 1):
+        try:
+            return frame_task(spec, str(out), index), None
+        except SpecError:
+            raise
+        except Exception as exc:
+            error = f"{type(exc).__name__}: {exc}"
+    return None, error
+
+
+def peak_memory_mib() -> float:
+    """Peak resident memory of this process, MiB (Linux ``ru_maxrss``)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _run_on_dask(spec, out, todo, scheduler, workers, retries, dashboard_address, finished, announce, report) -> None:
+    from distributed import Client, LocalCluster, as_completed
+
+    from mi_lidar.dataset.workers import MitsubaWorker, worker_threads
+
+    if scheduler is not None:
+        client, cluster = Client(scheduler), None
+    else:
+        workers = workers or os.cpu_count() or 1
+        cluster = LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=dashboard_address
+        )
+        client = Client(cluster)
+    try:
+        n_workers = len(client.scheduler_info()["workers"])
+        client.register_plugin(MitsubaWorker(worker_threads(n_workers)))
+        report.dashboard = client.dashboard_link if dashboard_address or scheduler else None
+        announce(
+            f"Dask: {n_workers} workers ({'scheduler ' + scheduler if scheduler else 'LocalCluster'})"
+            + (f", dashboard {report.dashboard}" if report.dashboard else "")
+        )
+        futures = {
+            client.submit(
+                frame_task, spec, str(out), index, key=f"frame-{index}-{spec.digest[:8]}", retries=retries
+            ): index
+            for index in todo
+        }
+        for future in as_completed(futures):
+            index = futures[future]
+            try:
+                record = future.result()
+            except SpecError:
+                client.cancel(list(futures))
+                raise
+            except Exception as exc:
+                finished(index, None, f"{type(exc).__name__}: {exc}")
+            else:
+                finished(index, record, None)
+        report.worker_peak_mib = client.run(peak_memory_mib)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()

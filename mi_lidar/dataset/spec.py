@@ -1,0 +1,346 @@
+"""The dataset spec: scenes, trajectories, the sensor rig, frame count and seed, validated by pydantic.
+
+A spec is a YAML (``.yaml``/``.yml``) or TOML (``.toml``) file; relative paths in it are relative to
+the spec's folder. See ``docs/datasets.md`` for every field and ``examples/datasets/`` for worked
+specs. :func:`load_spec` raises :class:`~mi_lidar.core.errors.SpecError` naming every bad field.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from mi_lidar.core.errors import SpecError
+
+
+class Strict(BaseModel):
+    """A spec section: unknown keys are errors (a typo never passes silently)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def rotation_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """(3, 3) rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (angles in rad)."""
+    cr, sr, cp, sp, cy, sy = (
+        math.cos(roll),
+        math.sin(roll),
+        math.cos(pitch),
+        math.sin(pitch),
+        math.cos(yaw),
+        math.sin(yaw),
+    )
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1.0]])
+    ry = np.array([[cp, 0, sp], [0, 1.0, 0], [-sp, 0, cp]])
+    rx = np.array([[1.0, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    return rz @ ry @ rx
+
+
+class Mount(Strict):
+    """Where a sensor sits on the vehicle: sensor-to-ego transform (ego: x forward, y left, z up, m).
+
+    Either ``xyz`` (m) and ``rpy_deg`` (roll, pitch, yaw about x, y, z; degrees), or a 4x4 row-major
+    ``matrix`` (then ``xyz`` and ``rpy_deg`` must stay unset).
+    """
+
+    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    matrix: tuple[tuple[float, float, float, float], ...] | None = None
+
+    @model_validator(mode="after")
+    def _one_form(self):
+        if self.matrix is not None:
+            if len(self.matrix) != 4:
+                raise ValueError(f"matrix has {len(self.matrix)} rows; give 4 rows of 4 numbers (row-major 4x4)")
+            if self.xyz != (0.0, 0.0, 0.0) or self.rpy_deg != (0.0, 0.0, 0.0):
+                raise ValueError("give either matrix or xyz/rpy_deg, not both")
+            m = np.asarray(self.matrix)
+            if not (np.allclose(m[3], [0, 0, 0, 1]) and np.allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-4)):
+                raise ValueError("matrix is not a rigid transform (orthonormal rotation, last row 0 0 0 1)")
+        return self
+
+    def to_matrix(self) -> np.ndarray:
+        """(4, 4) sensor-to-ego transform."""
+        if self.matrix is not None:
+            return np.asarray(self.matrix, dtype=np.float64)
+        m = np.eye(4)
+        m[:3, :3] = rotation_rpy(*np.radians(self.rpy_deg))
+        m[:3, 3] = self.xyz
+        return m
+
+
+class LidarSpec(Strict):
+    """One Lidar of the rig: firing pattern, mount and sensor model (the integrator's syntax)."""
+
+    name: str = "lidar"
+    pattern: str = "vlp16"
+    mount: Mount = Mount(xyz=(0.0, 0.0, 1.8))
+    density: str = Field("gaussian", description="return density, e.g. 'np_reg(file=sensor.npz)'")
+    effects: str = Field("", description="effects, e.g. 'range_noise(sigma0=0.01)'")
+    range_sigma: float = Field(0.02, ge=0)
+    min_range: float = Field(0.5, ge=0)
+    max_range: float = Field(100.0, gt=0)
+    max_segments: int = Field(16, ge=1, le=256)
+
+
+class CameraSpec(Strict):
+    """One pinhole camera: image size (pixels), horizontal field of view (deg) and mount.
+
+    With ``xyz``/``rpy_deg`` the camera looks along the mount's x axis (image right = mount -y,
+    image down = mount -z); a ``matrix`` mount is the OpenCV optical frame (x right, y down, z forward)
+    to ego, as nuScenes' ``cam2ego``.
+    """
+
+    name: str
+    width: int = Field(640, ge=8)
+    height: int = Field(360, ge=8)
+    fov_deg: float = Field(70.0, gt=1, lt=179)
+    mount: Mount = Mount(xyz=(0.0, 0.0, 1.6))
+
+
+class NuScenesRig(Strict):
+    """Cameras (and the Lidar mount) from a nuScenes calibration pickle (``cam2img``, ``cam2ego``, ``lidar2ego``).
+
+    ``image_scale`` shrinks the 1600x900 images (0.25 gives 400x225); the field of view comes from the
+    focal length, the principal point is taken at the image centre (nuScenes' is 8-27 px off).
+    """
+
+    file: Path
+    cameras: list[str] = ["CAM_FRONT"]
+    image_scale: float = Field(0.25, gt=0, le=1)
+
+
+class RigSpec(Strict):
+    """The sensor rig: Lidars (points of all are merged in the first Lidar's frame) and cameras."""
+
+    lidars: list[LidarSpec] = Field(min_length=1)
+    cameras: list[CameraSpec] = []
+    nuscenes: NuScenesRig | None = None
+
+    @model_validator(mode="after")
+    def _names(self):
+        names = [s.name for s in self.lidars] + [c.name for c in self.cameras]
+        if len(set(names)) != len(names):
+            raise ValueError(f"sensor names must be unique; got {names}")
+        if not self.cameras and self.nuscenes is None:
+            raise ValueError("the rig has no camera: add cameras: [...] or nuscenes: {file: ..., cameras: [...]}")
+        return self
+
+
+class Trajectory(Strict):
+    """The ego path: a polyline of waypoints (m); frames are spread evenly along it, heading = tangent.
+
+    ``follow_ground`` sets the ego height on the scene's ground mesh (hybrid scenes); otherwise the
+    waypoint's z (default 0) is the ego height.
+    """
+
+    waypoints: list[tuple[float, float] | tuple[float, float, float]] = Field(min_length=2)
+    follow_ground: bool = True
+
+    @field_validator("waypoints")
+    @classmethod
+    def _distinct(cls, value):
+        xy = np.asarray([w[:2] for w in value], float)
+        if np.any(np.linalg.norm(np.diff(xy, axis=0), axis=1) < 1e-6):
+            raise ValueError("consecutive waypoints must differ in x or y")
+        return value
+
+
+class XmlObject(Strict):
+    """A labelled object of an XML scene: its class and the shape ids it is made of (one 3D box)."""
+
+    class_name: str = Field(alias="class")
+    shapes: list[str] = Field(min_length=1)
+
+
+class RandomObjects(Strict):
+    """Objects drawn from the primitive library's classes along the trajectory (thesis ch. 4.3)."""
+
+    classes: list[str] = Field(min_length=1)
+    count: int = Field(30, ge=1)
+    lateral: tuple[float, float] = Field((4.0, 15.0), description="distance from the path, min and max (m)")
+
+    @field_validator("classes")
+    @classmethod
+    def _known(cls, value):
+        from mi_lidar.hybrid.classes import class_id
+
+        for name in value:
+            class_id(name)
+        return value
+
+    @field_validator("lateral")
+    @classmethod
+    def _range(cls, value):
+        if not 0 <= value[0] < value[1]:
+            raise ValueError(f"lateral must be (min, max) with 0 <= min < max (m); got {value}")
+        return value
+
+
+class SceneSpec(Strict):
+    """One scene of the dataset: an XML file, an annotation filled from a library, or random objects."""
+
+    name: str
+    frames: int = Field(ge=1)
+    trajectory: Trajectory
+    xml: Path | None = None
+    parameters: dict[str, str] = {}
+    objects: list[XmlObject] = []
+    labels: dict[int, str] = {}
+    annotation: Path | None = None
+    library: Path | None = None
+    random: RandomObjects | None = None
+    ground: Path | None = None
+    variants: int = Field(1, ge=1)
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        sources = [k for k in ("xml", "annotation", "random") if getattr(self, k) is not None]
+        if len(sources) != 1:
+            raise ValueError(f"give exactly one of xml, annotation or random; got {sources or 'none'}")
+        if self.xml is None and self.library is None:
+            raise ValueError(f"{sources[0]} scenes need library: (a primitive library folder)")
+        if self.xml is not None and (self.library is not None or self.ground is not None):
+            raise ValueError("library and ground belong to annotation or random scenes, not xml")
+        if self.variants > self.frames:
+            raise ValueError(f"variants ({self.variants}) exceeds frames ({self.frames})")
+        if self.variants > 1 and self.random is None:
+            raise ValueError("variants > 1 needs random: objects (other scenes are fixed)")
+        return self
+
+
+class OutputSpec(Strict):
+    """What is written per frame besides the KITTI files."""
+
+    spp: int = Field(16, ge=1, description="camera samples per pixel")
+    overlays: bool = False
+    semantic_ids: dict[str, int] = Field({}, description="class name -> SemanticKITTI label id, over the defaults")
+
+
+class DatasetSpec(Strict):
+    """A whole dataset: ``frames`` is the sum of the scenes' frames; frame ``k`` depends on ``seed`` and ``k`` only."""
+
+    name: str = "dataset"
+    seed: int = Field(0, ge=0)
+    rig: RigSpec
+    scenes: list[SceneSpec] = Field(min_length=1)
+    output: OutputSpec = OutputSpec()
+    base_dir: Path = Path(".")
+    source: dict = {}
+
+    @model_validator(mode="after")
+    def _unique_scenes(self):
+        names = [s.name for s in self.scenes]
+        if len(set(names)) != len(names):
+            raise ValueError(f"scene names must be unique; got {names}")
+        return self
+
+    @property
+    def frames(self) -> int:
+        """Total number of frames."""
+        return sum(s.frames for s in self.scenes)
+
+    @property
+    def digest(self) -> str:
+        """SHA-256 of the spec as written (what resume compares)."""
+        return hashlib.sha256(json.dumps(self.source, sort_keys=True).encode()).hexdigest()
+
+    def resolve(self, path: Path | str) -> Path:
+        """A spec path made absolute against the spec's folder."""
+        return (self.base_dir / Path(path)).resolve()
+
+    def locate(self, frame: int) -> tuple[int, int, int, int]:
+        """``(scene index, variant, index within the variant, frames of the variant)`` of frame ``frame``.
+
+        A scene's frames are split into ``variants`` contiguous runs, each covering the whole path.
+        """
+        if not 0 <= frame < self.frames:
+            raise SpecError(f"frame {frame} out of range 0..{self.frames - 1}")
+        first = 0
+        for index, scene in enumerate(self.scenes):
+            if frame < first + scene.frames:
+                local = frame - first
+                bounds = np.linspace(0, scene.frames, scene.variants + 1).round().astype(int)
+                variant = int(np.searchsorted(bounds, local, side="right") - 1)
+                return index, variant, local - int(bounds[variant]), int(bounds[variant + 1] - bounds[variant])
+            first += scene.frames
+        raise AssertionError("unreachable")
+
+
+def _describe(error: ValidationError, path: Path) -> str:
+    lines = []
+    for item in error.errors():
+        where = ".".join(str(p) for p in item["loc"]) or "(top level)"
+        got = item.get("input")
+        shown = "" if isinstance(got, (dict, list)) else f" (got {got!r})"
+        lines.append(f"  {where}: {item['msg']}{shown}")
+    return f"{path}: invalid dataset spec:\n" + "\n".join(lines) + "\nSee docs/datasets.md for every field."
+
+
+def read_spec_file(path: Path) -> dict:
+    """The raw mapping of a YAML or TOML spec file."""
+    if not path.is_file():
+        raise SpecError(f"{path}: no such spec file")
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".yaml", ".yml"):
+            from ruamel.yaml import YAML
+
+            data = YAML(typ="safe").load(path.read_text())
+        elif suffix == ".toml":
+            try:
+                import tomllib
+            except ModuleNotFoundError:  # Python 3.10
+                import tomli as tomllib
+            data = tomllib.loads(path.read_text())
+        else:
+            raise SpecError(f"{path}: unknown spec format {suffix!r}; write the spec as .yaml, .yml or .toml")
+    except SpecError:
+        raise
+    except Exception as exc:
+        raise SpecError(f"{path}: cannot parse the spec: {exc}") from exc
+    if not isinstance(data, dict):
+        raise SpecError(f"{path}: the spec must be a mapping of fields (name, seed, rig, scenes, output)")
+    return data
+
+
+def load_spec(path: str | Path, source: dict | None = None) -> DatasetSpec:
+    """Read and validate a dataset spec.
+
+    Args:
+        path: the spec file (``.yaml``, ``.yml`` or ``.toml``); relative paths inside it are taken
+            from its folder.
+        source: the already-read mapping (skips reading ``path``; used to rebuild a spec from a manifest).
+
+    Raises:
+        SpecError: missing or unparsable file, unknown or invalid fields (every one is listed), or a
+            referenced file that does not exist.
+    """
+    path = Path(path)
+    data = read_spec_file(path) if source is None else source
+    try:
+        spec = DatasetSpec.model_validate({**data, "base_dir": path.resolve().parent, "source": data})
+    except ValidationError as exc:
+        raise SpecError(_describe(exc, path)) from None
+    missing = [f"{where}: {file}" for where, file in _referenced_files(spec) if not spec.resolve(file).exists()]
+    if missing:
+        raise SpecError(
+            f"{path}: referenced files do not exist (paths are relative to the spec):\n  " + "\n  ".join(missing)
+        )
+    return spec
+
+
+def _referenced_files(spec: DatasetSpec) -> list[tuple[str, Path]]:
+    files = []
+    for i, scene in enumerate(spec.scenes):
+        for key in ("xml", "annotation", "library", "ground"):
+            value = getattr(scene, key)
+            if value is not None:
+                files.append((f"scenes.{i}.{key}", value))
+    if spec.rig.nuscenes is not None:
+        files.append(("rig.nuscenes.file", spec.rig.nuscenes.file))
+    return files

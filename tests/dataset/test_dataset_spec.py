@@ -1,0 +1,119 @@
+"""Dataset specs: YAML and TOML read the same, bad fields are named, frames map to scenes; nuScenes rigs."""
+
+import numpy as np
+import pytest
+
+from mi_lidar.core.errors import SpecError
+from mi_lidar.dataset.spec import load_spec
+from tests.conftest import SCENES
+
+YAML = f"""
+seed: 1
+rig:
+  lidars: [{{pattern: vlp16}}]
+  cameras: [{{name: front, mount: {{xyz: [1, 0, 1.5], rpy_deg: [0, 10, 0]}}}}]
+scenes:
+  - {{name: a, xml: {SCENES / "urban_street.xml"}, frames: 3, trajectory: {{waypoints: [[0, 0], [10, 0]]}}}}
+  - name: b
+    random: {{classes: [rock]}}
+    library: lib
+    variants: 3
+    frames: 7
+    trajectory: {{waypoints: [[0, 0], [10, 0]]}}
+"""
+TOML = f"""
+seed = 1
+[rig]
+lidars = [{{pattern = "vlp16"}}]
+cameras = [{{name = "front", mount = {{xyz = [1, 0, 1.5], rpy_deg = [0, 10, 0]}}}}]
+[[scenes]]
+name = "a"
+xml = "{SCENES / "urban_street.xml"}"
+frames = 3
+trajectory = {{waypoints = [[0, 0], [10, 0]]}}
+[[scenes]]
+name = "b"
+random = {{classes = ["rock"]}}
+library = "lib"
+variants = 3
+frames = 7
+trajectory = {{waypoints = [[0, 0], [10, 0]]}}
+"""
+
+
+@pytest.fixture
+def folder(tmp_path):
+    (tmp_path / "lib").mkdir()
+    return tmp_path
+
+
+def test_yaml_and_toml_agree_and_frames_split_into_variants(folder):
+    (folder / "s.yaml").write_text(YAML)
+    (folder / "s.toml").write_text(TOML)
+    spec, same = load_spec(folder / "s.yaml"), load_spec(folder / "s.toml")
+    assert spec.model_dump(exclude={"source"}) == same.model_dump(exclude={"source"})
+    assert spec.frames == 10
+    assert [spec.locate(k) for k in (0, 2, 3, 4, 5, 9)] == [
+        (0, 0, 0, 3),
+        (0, 0, 2, 3),
+        (1, 0, 0, 2),
+        (1, 0, 1, 2),
+        (1, 1, 0, 3),
+        (1, 2, 1, 2),
+    ]  # the 7 frames of b split 2 + 3 + 2
+    with pytest.raises(SpecError, match="frame 10 out of range"):
+        spec.locate(10)
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (("frames: 3", "frames: 0"), r"scenes\.0\.frames: Input should be greater than or equal to 1"),
+        (("seed: 1", "seed: 1\nsed: 2"), r"sed: Extra inputs are not permitted"),
+        (("library: lib", "library: nowhere"), r"scenes\.1\.library: nowhere"),
+        (("variants: 3", "variants: 9"), r"variants \(9\) exceeds frames \(7\)"),
+        (("classes: [rock]", "classes: [oak]"), r"unknown class 'oak'"),
+        (("    library: lib\n", ""), r"random scenes need library"),
+        (("rpy_deg: [0, 10, 0]", "matrix: [[1, 0, 0, 0]]"), r"matrix has 1 rows"),
+    ],
+)
+def test_bad_specs_name_the_field(folder, change, message):
+    (folder / "s.yaml").write_text(YAML.replace(*change))
+    with pytest.raises(SpecError, match=message):
+        load_spec(folder / "s.yaml")
+
+
+def test_unreadable_specs(folder):
+    with pytest.raises(SpecError, match="no such spec file"):
+        load_spec(folder / "missing.yaml")
+    (folder / "s.json").write_text("{}")
+    with pytest.raises(SpecError, match="write the spec as .yaml"):
+        load_spec(folder / "s.json")
+    (folder / "s.yaml").write_text("- a list")
+    with pytest.raises(SpecError, match="must be a mapping"):
+        load_spec(folder / "s.yaml")
+
+
+def test_nuscenes_rig_reproduces_the_recorded_lidar_to_camera_transform(folder, shared_data):
+    """Reference camera CAM_FRONT and nuScenes' lidar2ego: Tr_velo_to_cam matches the file's lidar2cam.
+
+    The recorded lidar2cam goes through the global frame at the two sensors' timestamps (35 ms apart, the
+    car at about 9 m/s), so it differs from the rig's static transform by the ego motion: rotations to
+    2e-3, translations to 0.35 m (0.33 m along the optical axis).
+    """
+    from mi_lidar.dataset.rig import build_rig
+    from mi_lidar.io.nuscenes import _NumpyOnly
+
+    info = next((shared_data / "nuscenes").glob("*.pkl"))
+    text = YAML.replace("  cameras: [{name: front, mount: {xyz: [1, 0, 1.5], rpy_deg: [0, 10, 0]}}]\n", "")
+    rig = f"rig:\n  nuscenes: {{file: {info}, cameras: [CAM_FRONT, CAM_BACK], image_scale: 0.25}}\n"
+    text = text.replace("rig:\n", rig)
+    (folder / "s.yaml").write_text(text)
+    rig = build_rig(load_spec(folder / "s.yaml"))
+    assert [(c.name, c.width, c.height) for c in rig.cameras] == [("CAM_FRONT", 400, 225), ("CAM_BACK", 400, 225)]
+    assert rig.cameras[0].fov_deg == pytest.approx(64.56, abs=0.01)  # 2 atan(800 / 1266.4)
+    with open(info, "rb") as stream:
+        recorded = np.asarray(_NumpyOnly(stream).load()["data_list"][0]["images"]["CAM_FRONT"]["lidar2cam"])
+    transform = rig.calibration()["Tr_velo_to_cam"]
+    np.testing.assert_allclose(transform[:, :3], recorded[:3, :3], atol=2e-3)
+    assert np.linalg.norm(transform[:, 3] - recorded[:3, 3]) < 0.35
