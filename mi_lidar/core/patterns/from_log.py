@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from mi_lidar.core.log import Log
-from mi_lidar.core.patterns import FiringPattern
+from mi_lidar.core.patterns.firing import FiringPattern
 
 
 def pattern_from_log(log: Log, scan: int = 0, name: str | None = None) -> FiringPattern:
