@@ -235,7 +235,7 @@ def fit_p_reg(
     return choose_by_held_out(candidates, build, held_out_score, progress)
 
 
-def _binned(x: np.ndarray, y: np.ndarray, nodes: list[np.ndarray]):
+def _binned(x: np.ndarray, y: np.ndarray, nodes: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Aggregate samples into cells of half the node spacing: (cell means of x, cell means of y, counts)."""
     if len(x) == 0:
         return np.zeros((0, len(nodes))), np.zeros(0), np.zeros(0)
