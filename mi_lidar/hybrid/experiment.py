@@ -47,8 +47,9 @@ from mi_lidar.hybrid.segments import (
     segments_from_labels,
 )
 from mi_lidar.hybrid.simulation import simulate_log
+from mi_lidar.hybrid.true_sensor import SensorSpec, path_poses, render_log
 from mi_lidar.hybrid.tune import tune_parameters
-from mi_lidar.hybrid.world import SensorSpec, WorldSpec, make_world, path_poses, render_log
+from mi_lidar.hybrid.world import WorldSpec, make_world
 
 SCENES = {
     "train": (11, WorldSpec(length=100, width=50)),
