@@ -14,7 +14,8 @@ Every measurement traces the same ~1M rays (one sweep of a dense 128 x 8192 spin
 ellipsoids: on the vegetation scene it traces each ellipsoid as an icosahedron (20 triangles
 at the ellipsoid's extent) and runs the same pass-through loop in numpy, where exit faces of
 an icosahedron are crossed without a draw. Peak memory of a 4M-ray :func:`mi_lidar.simulate`
-is read from ``VmHWM`` of a child process.
+is read from ``VmHWM`` of a child process. The time of ``import mi_lidar`` in a fresh process is
+set beside that of Mitsuba with its variant alone (the floor the package cannot go below).
 """
 
 from __future__ import annotations
@@ -45,6 +46,8 @@ REPEATS = 3
 SEED = 7
 MEMORY_POSES = 4  # 4 sweeps of 1M rays: the 4M-ray scan
 MEMORY_LIMIT_GB = 2.0
+IMPORT_LIMIT_S = 0.8  # import mi_lidar in a fresh process
+IMPORT_REPEATS = 5
 TERRAIN_SHARE_OF_RAW = 0.5  # direct path >= 50% of raw ray_intersect on the terrain
 VEGETATION_MRAYS = 10.0  # direct path >= 10 Mrays/s on the vegetation scene
 OPEN3D_FACTOR = 2.0  # direct path >= 2x Open3D on both scenes
@@ -397,6 +400,16 @@ def measure_scene(name: str, xml: Path) -> dict[str, float]:
     return seconds
 
 
+def import_seconds(statement: str) -> float:
+    """Fastest of :data:`IMPORT_REPEATS` fresh processes timing ``statement``, s."""
+    code = f"import time; t = time.perf_counter(); {statement}; print(time.perf_counter() - t)"
+    runs = [
+        subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+        for _ in range(IMPORT_REPEATS)
+    ]
+    return min(float(out) for out in runs)
+
+
 def peak_memory_gb(xml: Path) -> tuple[float, float, int]:
     """Peak resident memory (GB) of a child process simulating a 4M-ray scan of ``xml``.
 
@@ -505,6 +518,19 @@ def run() -> list[Row]:
                 value=f"{peak:.2f} GB ({baseline:.2f} GB after load)",
             )
         )
+    package = import_seconds("import mi_lidar")
+    import mitsuba as mi
+
+    floor = import_seconds(f"import mitsuba as mi; mi.set_variant({mi.variant()!r})")
+    rows.append(
+        Row(
+            "import mi_lidar (fresh process, fastest of 5)",
+            target=f"< {IMPORT_LIMIT_S:g} s",
+            passed=package < IMPORT_LIMIT_S,
+            failed="" if package < IMPORT_LIMIT_S else f"{package:.2f} s",
+            value=f"{package:.2f} s (Mitsuba and its variant alone {floor:.2f} s)",
+        )
+    )
     return rows
 
 

@@ -17,7 +17,8 @@ import time
 
 import mi_lidar  # noqa: F401  (selects the Mitsuba variant)
 from mi_lidar.hybrid.fit import FitParams, fit_model
-from mi_lidar.hybrid.world import SensorSpec, WorldSpec, make_world, path_poses, render_log
+from mi_lidar.hybrid.true_sensor import SensorSpec, path_poses, render_log
+from mi_lidar.hybrid.world import WorldSpec, make_world
 
 TARGET_S = 120.0
 

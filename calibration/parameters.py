@@ -93,6 +93,14 @@ class Parameter:
         return FitVariable(self.name, initial, lower=self.lower, upper=self.upper, scale=lr, transform=self.transform)
 
 
+def _range_sigma(name: str, family: str, start, elements) -> Parameter:
+    """A range-sigma parameter: fitted through its log within [MIN_SCALE, 10] m, started at ``start`` (m, raised
+    to MIN_SCALE), written to the table's ``range_sigma`` at ``elements`` (indices or a mask)."""
+    return Parameter(
+        name, family, np.maximum(start, MIN_SCALE), "log", MIN_SCALE, 10.0, 0.02, "m", False, ("range_sigma", elements)
+    )
+
+
 class ParameterSpace:
     """All parameters of a scene and sensor model, and the differentiable model built from their values.
 
@@ -162,20 +170,7 @@ class ParameterSpace:
                     )
                 continue
             values = np.where(np.isnan(sigma[elements]), self.model.range_sigma, sigma[elements])
-            self._add(
-                Parameter(
-                    f"elements.{shape_id}.range_sigma",
-                    "range_sigma",
-                    np.maximum(values, MIN_SCALE),
-                    "log",
-                    MIN_SCALE,
-                    10.0,
-                    0.02,
-                    "m",
-                    False,
-                    ("range_sigma", mi.UInt32(elements)),
-                )
-            )
+            self._add(_range_sigma(f"elements.{shape_id}.range_sigma", "range_sigma", values, mi.UInt32(elements)))
             if t.vertex_offset[k] >= 0:
                 v = np.arange(t.vertex_offset[k], t.vertex_offset[k] + t.vertex_counts[k], dtype=np.uint32)
                 self._add(
@@ -197,20 +192,7 @@ class ParameterSpace:
             members = surfaces & (label == value)
             current = sigma[members]
             start = float(np.nanmean(current)) if np.any(~np.isnan(current)) else self.model.range_sigma
-            self._add(
-                Parameter(
-                    f"classes.{int(value)}.range_sigma",
-                    "class_sigma",
-                    np.array([max(start, MIN_SCALE)]),
-                    "log",
-                    MIN_SCALE,
-                    10.0,
-                    0.02,
-                    "m",
-                    False,
-                    ("range_sigma", mi.Bool(members)),
-                )
-            )
+            self._add(_range_sigma(f"classes.{int(value)}.range_sigma", "class_sigma", [start], mi.Bool(members)))
 
     def _effect(self, name: str):
         return next((e for e in self.model.effects if e.name == name), None)

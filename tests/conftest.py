@@ -20,16 +20,18 @@ def shared_data() -> Path:
 _FD_CHECKED: list[str] = []
 
 
-@pytest.fixture
-def fd_counter() -> list[str]:
-    """Collects the parameters a finite-difference check covered (reported at the end of the run)."""
-    return _FD_CHECKED
+def pytest_runtest_logreport(report):
+    """Collect the parameters that passing finite-difference checks verified (``fd_checked`` properties; under
+    xdist the workers' reports reach the controller with their properties)."""
+    if report.when == "call" and report.passed:
+        _FD_CHECKED.extend(value for name, value in report.user_properties if name == "fd_checked")
 
 
 def pytest_terminal_summary(terminalreporter):
-    """Print how many catalog parameters the finite-difference checks covered in this process."""
+    """Print how many catalog parameters the finite-difference checks verified."""
     if _FD_CHECKED:
-        names = sorted({name.split(".")[0] for name in _FD_CHECKED})
+        cases = {name.split(".")[0] for name in _FD_CHECKED}
         terminalreporter.write_line(
-            f"finite-difference gradient checks: {len(_FD_CHECKED)} parameters of {len(names)} effects and densities"
+            f"finite-difference gradient checks: {len(_FD_CHECKED)} parameters of {len(cases)} catalog cases "
+            "(effect variants and densities)"
         )

@@ -80,3 +80,14 @@ def test_three_dimensional_directions_get_default_origins():
     log = small_log(1)
     plain = Log(poses=log.poses, directions=log.directions[0], ranges=log.ranges, hit=log.hit, times=log.times)
     assert plain.origins.shape == (1, 3, 5, 3) and not plain.origins.any()
+
+
+def test_select_keeps_the_chosen_scans_in_order():
+    log = small_log(scans=4)
+    for scans, expected in ((slice(1, None, 2), [1, 3]), ([2, 0], [2, 0])):
+        part = log.select(scans)
+        assert part.n_scans == len(expected)
+        np.testing.assert_array_equal(part.ranges, log.ranges[expected])
+        np.testing.assert_array_equal(part.attributes["label"], log.attributes["label"][expected])
+        assert part.directions.shape[0] == 1 and part.sensor == log.sensor
+    np.testing.assert_array_equal(log.scan(2).hit, log.hit[2:3])

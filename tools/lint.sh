@@ -14,3 +14,4 @@ cp -r mi_lidar "$stage/mi_lidar"
 cp -r plugins "$stage/mi_lidar/plugins"
 cp -r calibration "$stage/mi_lidar/calibration"
 (cd "$stage" && PYTHONPATH="$stage" "$OLDPWD/$BIN/lint-imports" --config "$OLDPWD/pyproject.toml")
+"$BIN/mypy"

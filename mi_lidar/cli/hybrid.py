@@ -31,7 +31,8 @@ def synth_world(
 
         mi-lidar synth-world --out test.npz --seed 22 --length 120
     """
-    from mi_lidar.hybrid.world import WorldSpec, make_world, path_poses, render_log
+    from mi_lidar.hybrid.true_sensor import path_poses, render_log
+    from mi_lidar.hybrid.world import WorldSpec, make_world
 
     with console.status("building the world and logging the drive"):
         world = make_world(seed, WorldSpec(length=length, width=width))

@@ -112,16 +112,23 @@ class Log:
     # --------------------------------------------------------------- helpers
     def scan(self, index: int) -> Log:
         """The ``index``-th scan as a one-scan log (arrays are views where possible)."""
-        sl = slice(index, index + 1)
-        pick = lambda a: a[sl] if a.shape[0] > 1 else a
+        return self.select(slice(index, index + 1))
+
+    def select(self, scans: slice | np.ndarray | list[int]) -> Log:
+        """The scans ``scans`` as a log: a slice gives views where possible, indices give copies.
+
+        Args:
+            scans: A slice of scans, or (K,) scan indices.
+        """
+        pick = lambda a: a[scans] if a.shape[0] > 1 else a
         return Log(
-            poses=self.poses[sl],
+            poses=self.poses[scans],
             directions=pick(self.directions),
             origins=pick(self.origins),
-            ranges=self.ranges[sl],
-            hit=self.hit[sl],
-            times=self.times[sl],
-            attributes={k: v[sl] for k, v in self.attributes.items()},
+            ranges=self.ranges[scans],
+            hit=self.hit[scans],
+            times=self.times[scans],
+            attributes={k: v[scans] for k, v in self.attributes.items()},
             sensor=dict(self.sensor),
         )
 

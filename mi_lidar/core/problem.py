@@ -91,14 +91,14 @@ class Problem:
     Attributes:
         scene: loaded Mitsuba scene.
         table: its element table.
-        rays: the log's rays.
+        rays: the log's rays; None when another tracer traced them (``fixed``, see :meth:`from_rounds`).
         index: (N,) indices (into ``rays``) of the rays of this split.
         chunks: the traced chunks (see :meth:`trace`).
     """
 
     scene: object
     table: ElementTable
-    rays: LogRays
+    rays: LogRays | None
     index: np.ndarray
     chunks: list = field(default_factory=list, repr=False)
     _traced: tuple | None = field(default=None, repr=False)
@@ -132,7 +132,7 @@ class Problem:
         before effects is computed once as well.
         """
         key = (_ray_key(model), model.max_range, model.max_segments, model.range_sigma)
-        if self.fixed:
+        if self.fixed or self.rays is None:
             if moves_rays(model):
                 raise ParameterError("this problem's rays were traced by another tracer: effects cannot move them")
             return

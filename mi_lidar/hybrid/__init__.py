@@ -2,7 +2,7 @@
 
 Pipeline, as a list of verbs::
 
-    log = world.render_log(world.make_world(seed), path_poses(...))   # a labeled "real" log
+    log = true_sensor.render_log(world.make_world(seed), path_poses(...))  # a labeled "real" log
     ground_mask = ground.segment_ground(points, params)               # eqs. 4.1-4.2
     model = fit.fit_model(log, params)                                # triangles + ellipsoids in blocks
     library = primitives.extract_primitives(model, log)               # objects at identity pose

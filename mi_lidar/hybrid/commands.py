@@ -72,7 +72,7 @@ def _require_labels(log: Log, path) -> None:
     if missing:
         raise LogFormatError(
             f"{path}: the log has no {missing} attributes; primitives and annotations need a "
-            "labelled log (e.g. a synthetic log from mi_lidar.hybrid.world.render_log)"
+            "labelled log (e.g. a synthetic log from mi_lidar.hybrid.true_sensor.render_log)"
         )
 
 

@@ -35,7 +35,7 @@ from mi_lidar.hybrid.classes import GROUND_CLASSES, OBJECT_CLASSES
 from mi_lidar.hybrid.commands import render_previews
 from mi_lidar.hybrid.compose import annotation_from_segments, compose_scene, save_annotation
 from mi_lidar.hybrid.evaluate import observation_metrics
-from mi_lidar.hybrid.fit import FitParams, fit_model, select_scans, world_rays
+from mi_lidar.hybrid.fit import FitParams, fit_model, world_rays
 from mi_lidar.hybrid.ground import ground_features, tune_threshold
 from mi_lidar.hybrid.mesh_models import MeshModelLibrary
 from mi_lidar.hybrid.primitives import PrimitiveLibrary, extract_primitives
@@ -47,8 +47,9 @@ from mi_lidar.hybrid.segments import (
     segments_from_labels,
 )
 from mi_lidar.hybrid.simulation import simulate_log
+from mi_lidar.hybrid.true_sensor import SensorSpec, path_poses, render_log
 from mi_lidar.hybrid.tune import tune_parameters
-from mi_lidar.hybrid.world import SensorSpec, WorldSpec, make_world, path_poses, render_log
+from mi_lidar.hybrid.world import WorldSpec, make_world
 
 SCENES = {
     "train": (11, WorldSpec(length=100, width=50)),
@@ -108,7 +109,7 @@ def run(
     if tune_scans > 0:
         say("tuning")
         t0 = time.perf_counter()
-        tuned = tune_parameters(select_scans(train_log, slice(0, tune_scans)), params, max_evals)
+        tuned = tune_parameters(train_log.select(slice(0, tune_scans)), params, max_evals)
         params = tuned.params
         results["timings"]["tuning"] = time.perf_counter() - t0
         results["tuning"] = {
@@ -122,7 +123,7 @@ def run(
             "max_residual": params.max_residual,
         }
     say("training scene")
-    even, odd = select_scans(train_log, slice(0, None, 2)), select_scans(train_log, slice(1, None, 2))
+    even, odd = train_log.select(slice(0, None, 2)), train_log.select(slice(1, None, 2))
     t0 = time.perf_counter()
     fit = fit_model(even, params)
     results["timings"]["fit_train_even"] = time.perf_counter() - t0

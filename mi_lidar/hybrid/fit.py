@@ -196,22 +196,6 @@ def assign_hit_probabilities(
     }
 
 
-def select_scans(log: Log, scans) -> Log:
-    """A log of the scans ``scans`` (indices or slice) of ``log``."""
-    idx = np.arange(log.n_scans)[scans]
-    pick = lambda a: a[idx] if a.shape[0] > 1 else a
-    return Log(
-        poses=log.poses[idx],
-        directions=pick(log.directions),
-        origins=pick(log.origins),
-        ranges=log.ranges[idx],
-        hit=log.hit[idx],
-        times=log.times[idx],
-        attributes={k: v[idx] for k, v in log.attributes.items()},
-        sensor=dict(log.sensor),
-    )
-
-
 def fit_model(
     log: Log,
     params: FitParams | None = None,

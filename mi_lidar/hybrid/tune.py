@@ -17,7 +17,7 @@ from scipy.optimize import minimize
 
 from mi_lidar.core.log import Log
 from mi_lidar.hybrid.evaluate import objective, observation_metrics
-from mi_lidar.hybrid.fit import FitParams, fit_model, select_scans, world_rays
+from mi_lidar.hybrid.fit import FitParams, fit_model, world_rays
 from mi_lidar.hybrid.simulation import simulate_log
 
 
@@ -44,7 +44,7 @@ def apply_vector(base: FitParams, x: np.ndarray) -> FitParams:
 
 def split_objective(log: Log, params: FitParams, seed: int = 0) -> float:
     """Fit to the even scans of ``log``, simulate the odd scans, return packet error + 2 (1 - F1)."""
-    train, test = select_scans(log, slice(0, None, 2)), select_scans(log, slice(1, None, 2))
+    train, test = log.select(slice(0, None, 2)), log.select(slice(1, None, 2))
     model = fit_model(train, params).model
     o, d = world_rays(test)
     sim, _ = simulate_log(model, test, seed)

@@ -3,7 +3,9 @@
 Supported UDP lidar profiles: ``LEGACY`` (firmware <= 2.1), ``RNG19_RFL8_SIG16_NIR16``,
 ``RNG19_RFL8_SIG16_NIR16_DUAL`` and ``RNG15_RFL8_NIR8``. Metadata may be the legacy flat JSON
 (``beam_altitude_angles`` at top level, ``data_format``) or the newer nested one
-(``beam_intrinsics``, ``lidar_intrinsics``, ``lidar_data_format``, ``config_params``).
+(``beam_intrinsics``, ``lidar_intrinsics``, ``lidar_data_format``, ``config_params``); it is read, and
+the rays are placed, by the same core functions the Ouster firing pattern uses
+(:mod:`mi_lidar.core.patterns.ouster_sensor`).
 
 The log is **destaggered**: row ``u`` is beam ``u`` (top row = highest beam), column ``v`` is an
 azimuth bin, and pixel ``(u, v)`` holds the measurement of column
@@ -28,15 +30,15 @@ array, whose MD5 is the vendor digest.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, PatternError
 from mi_lidar.core.log import Log
+from mi_lidar.core.patterns.ouster_sensor import OusterMetadata, beam_rays, destagger, read_ouster_metadata, restagger
 from mi_lidar.io._pcap import read_udp
 
 
@@ -118,132 +120,28 @@ PROFILES = {
         },
     ),
 }
-MAX_COLUMNS = 8192
-MAX_BEAMS = 512
 _WIDE = {"u1": "<u2", "<u2": "<u2", "<u4": "<u4"}
 
 
-@dataclass
-class OusterMetadata:
-    """The parts of an Ouster metadata JSON the decoder needs.
-
-    Attributes:
-        altitude_deg: (H,) beam altitude angles (deg).
-        azimuth_deg: (H,) beam azimuth offsets (deg).
-        beam_origin_mm: Lidar origin to beam origin distance ``n`` (mm).
-        lidar_to_sensor: (4, 4) transform, translation in mm.
-        pixel_shift_by_row: (H,) destaggering shifts (columns).
-        columns_per_frame: ``W``.
-        columns_per_packet: Columns per UDP packet.
-        profile: UDP lidar profile name.
-        frequency_hz: Rotation rate (from ``lidar_mode``, e.g. ``1024x10``).
-        product: Product line, e.g. ``OS-1-32-G``.
-    """
-
-    altitude_deg: np.ndarray
-    azimuth_deg: np.ndarray
-    beam_origin_mm: float
-    lidar_to_sensor: np.ndarray
-    pixel_shift_by_row: np.ndarray
-    columns_per_frame: int
-    columns_per_packet: int
-    profile: str
-    frequency_hz: float
-    product: str
-
-    @property
-    def pixels_per_column(self) -> int:
-        return len(self.altitude_deg)
-
-
-def read_ouster_metadata(path: str | os.PathLike) -> OusterMetadata:
-    """Parse an Ouster sensor metadata JSON (legacy flat or nested format).
+def _decoder_metadata(path: Path) -> OusterMetadata:
+    """The sensor's metadata (:func:`~mi_lidar.core.patterns.ouster_sensor.read_ouster_metadata`), with
+    what decoding packets needs besides: the destaggering shifts and a supported UDP profile.
 
     Raises:
-        LogFormatError: Unreadable JSON, a missing field (named), inconsistent beam counts, or
-            an unsupported profile.
+        LogFormatError: Unreadable or inconsistent metadata (the field named), no
+            ``pixel_shift_by_row``, or an unsupported profile.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise LogFormatError(f"{path}: no such Ouster metadata file")
     try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise LogFormatError(f"{path}: not valid JSON ({exc}); expected Ouster sensor metadata") from exc
-    if not isinstance(meta, dict):
-        raise LogFormatError(f"{path}: top level is {type(meta).__name__}; expected an Ouster metadata object")
-
-    def find(*keys, default=None):
-        for section in (
-            meta,
-            meta.get("beam_intrinsics"),
-            meta.get("lidar_intrinsics"),
-            meta.get("lidar_data_format"),
-            meta.get("data_format"),
-            meta.get("config_params"),
-            meta.get("sensor_info"),
-        ):
-            if isinstance(section, dict):
-                for key in keys:
-                    if key in section:
-                        return section[key]
-        if default is None:
-            raise LogFormatError(f"{path}: missing field {keys[0]!r}; is this an Ouster metadata JSON?")
-        return default
-
-    try:
-        altitude = np.asarray(find("beam_altitude_angles"), dtype=np.float64)
-        azimuth = np.asarray(find("beam_azimuth_angles"), dtype=np.float64)
-        shift = np.asarray(find("pixel_shift_by_row"), dtype=np.int64)
-        transform = np.asarray(find("lidar_to_sensor_transform", default=list(np.eye(4).ravel())), dtype=np.float64)
-        mode = str(find("lidar_mode", default="1024x10"))
-        width = int(find("columns_per_frame", default=int(mode.split("x")[0])))
-        per_packet = int(find("columns_per_packet", default=16))
-        origin = float(find("lidar_origin_to_beam_origin_mm", default=0.0))
-        frequency = float(mode.split("x")[1])
-        profile = str(find("udp_profile_lidar", default="LEGACY"))
-    except (TypeError, ValueError, IndexError) as exc:
-        raise LogFormatError(f"{path}: malformed metadata value ({exc})") from exc
-    height = len(altitude)
-    if height == 0 or azimuth.shape != (height,) or shift.shape != (height,):
+        meta = read_ouster_metadata(path)
+    except PatternError as exc:
+        raise LogFormatError(str(exc)) from exc
+    if meta.pixel_shift_by_row is None:
         raise LogFormatError(
-            f"{path}: beam_altitude_angles ({altitude.shape}), beam_azimuth_angles ({azimuth.shape}) and "
-            f"pixel_shift_by_row ({shift.shape}) must all have one entry per beam"
+            f"{path}: missing field 'pixel_shift_by_row'; the capture cannot be destaggered without it"
         )
-    if transform.size != 16 or not 0 < width <= MAX_COLUMNS or not 0 < per_packet <= width or not frequency > 0:
-        raise LogFormatError(
-            f"{path}: invalid lidar_to_sensor_transform (16 numbers), columns_per_frame (1..{MAX_COLUMNS}), "
-            "columns_per_packet (1..columns_per_frame) or lidar_mode (e.g. 1024x10)"
-        )
-    if height > MAX_BEAMS or not np.all(np.isfinite(altitude)) or not np.all(np.isfinite(azimuth)):
-        raise LogFormatError(f"{path}: beam angle tables must hold at most {MAX_BEAMS} finite angles (deg)")
-    if profile not in PROFILES:
-        raise LogFormatError(f"{path}: udp_profile_lidar {profile!r}; supported: {', '.join(PROFILES)}")
-    return OusterMetadata(
-        altitude_deg=altitude,
-        azimuth_deg=azimuth,
-        beam_origin_mm=origin,
-        lidar_to_sensor=transform.reshape(4, 4),
-        pixel_shift_by_row=shift,
-        columns_per_frame=width,
-        columns_per_packet=per_packet,
-        profile=profile,
-        frequency_hz=frequency,
-        product=str(meta.get("prod_line", find("prod_line", default="ouster"))),
-    )
-
-
-def destagger(image: np.ndarray, pixel_shift_by_row) -> np.ndarray:
-    """Staggered (..., H, W) image (columns = measurement ids) -> destaggered (azimuth-aligned)."""
-    shift = np.asarray(pixel_shift_by_row)
-    width = image.shape[-1]
-    columns = (np.arange(width)[None, :] - shift[:, None]) % width
-    return np.take_along_axis(image, np.broadcast_to(columns, image.shape), axis=-1)
-
-
-def restagger(image: np.ndarray, pixel_shift_by_row) -> np.ndarray:
-    """Inverse of :func:`destagger`: back to the packet (measurement id) column order."""
-    return destagger(image, -np.asarray(pixel_shift_by_row))
+    if meta.profile not in PROFILES:
+        raise LogFormatError(f"{path}: udp_profile_lidar {meta.profile!r}; supported: {', '.join(PROFILES)}")
+    return meta
 
 
 def range_digest(log: Log, scan: int = 0) -> str:
@@ -268,39 +166,6 @@ def _take(block: np.ndarray, spec: _Field) -> np.ndarray:
     return values
 
 
-def _geometry(meta: OusterMetadata) -> tuple[np.ndarray, np.ndarray]:
-    """Destaggered (H, W, 3) unit directions and origins (m) in the sensor frame.
-
-    Pixel (u, v) holds measurement id ``m = (v - pixel_shift_by_row[u]) mod W`` at encoder angle
-    ``enc = 2 pi (1 - m / W)``; ``cos(enc + az)`` and ``sin(enc + az)`` come from per-column and
-    per-beam tables by the angle-sum identities, so no trigonometry runs per pixel.
-    """
-    height, width = len(meta.altitude_deg), meta.columns_per_frame
-    encoder = 2 * np.pi * (1 - np.arange(width) / width)
-    m = (np.arange(width)[None, :] - np.asarray(meta.pixel_shift_by_row)[:, None]) % width
-    cos_e, sin_e = np.cos(encoder)[m], np.sin(encoder)[m]
-    azimuth = -np.radians(meta.azimuth_deg)[:, None]
-    altitude = np.radians(meta.altitude_deg)[:, None]
-    cos_alt, sin_alt = np.cos(altitude), np.sin(altitude)
-    cos_ea = cos_e * np.cos(azimuth) - sin_e * np.sin(azimuth)
-    sin_ea = sin_e * np.cos(azimuth) + cos_e * np.sin(azimuth)
-    n = meta.beam_origin_mm
-    rotation, translation = meta.lidar_to_sensor[:3, :3], meta.lidar_to_sensor[:3, 3]
-    # Beam origin n (cos enc, sin enc, 0) minus n * direction, then the lidar-to-sensor transform;
-    # rotations are written out elementwise (BLAS threads would compete with Dr.Jit's).
-    d = (cos_ea * cos_alt, sin_ea * cos_alt, np.broadcast_to(sin_alt, (height, width)))
-    o = (n * (cos_e - d[0]), n * (sin_e - d[1]), -n * d[2])
-    direction = np.stack([rotation[i, 0] * d[0] + rotation[i, 1] * d[1] + rotation[i, 2] * d[2] for i in range(3)], -1)
-    origin = np.stack(
-        [
-            (rotation[i, 0] * o[0] + rotation[i, 1] * o[1] + rotation[i, 2] * o[2] + translation[i]) / 1000.0
-            for i in range(3)
-        ],
-        -1,
-    )
-    return direction, origin
-
-
 def read_ouster(
     path: str | os.PathLike,
     metadata: str | os.PathLike | None = None,
@@ -323,7 +188,7 @@ def read_ouster(
     """
     path = Path(path)
     metadata = Path(metadata) if metadata is not None else path.with_suffix(".json")
-    meta = read_ouster_metadata(metadata)
+    meta = _decoder_metadata(metadata)
     profile = PROFILES[meta.profile]
     height, width, per_packet = meta.pixels_per_column, meta.columns_per_frame, meta.columns_per_packet
     column_size = profile.column_header + height * profile.pixel + profile.column_footer
@@ -384,11 +249,11 @@ def read_ouster(
     times = destagger(np.broadcast_to(times, (n_scans, height, width)), shift)
     times[cells] = seconds[:, None]
 
-    direction, origin = _geometry(meta)
+    direction, origin = beam_rays(meta, destagger(np.broadcast_to(np.arange(width), (height, width)), shift))
     hit = valid & (fields["range_mm"] > 0)
     ranges = np.where(hit, fields["range_mm"] / 1000.0, np.nan)
     sensor = {
-        "name": f"ouster:{meta.product}",
+        "name": f"ouster:{meta.product or 'ouster'}",
         "source": str(path),
         "metadata": str(metadata),
         "profile": meta.profile,

@@ -49,10 +49,12 @@ def label(case) -> str:
     return name + "".join(f"-{v}" for v in options.values())
 
 
-def values_at(part: Parametrized, shift: float) -> dict[str, np.ndarray]:
-    """Fitted parameters at their test truth plus ``shift`` step units (inside the bounds)."""
+def values_at(part: Parametrized, shift: float, also: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """Fitted parameters, and the fixed ones named in ``also``, at their test truth plus ``shift`` step units
+    (inside the bounds)."""
     out = {}
-    for key in part.fitted_names():
+    fitted = part.fitted_names()
+    for key in fitted + [k for k in also if k not in fitted]:
         spec = part.specs[key]
         base = np.asarray(part.params[key], np.float64)
         scale = part.fit_scale(key)
@@ -65,11 +67,12 @@ def values_at(part: Parametrized, shift: float) -> dict[str, np.ndarray]:
     return out
 
 
-def make_part(case, shift: float, n_beams: int, n_labels: int) -> Parametrized:
-    """The effect or density of ``case`` with its parameters at truth + ``shift`` step units."""
+def make_part(case, shift: float, n_beams: int, n_labels: int, also: tuple[str, ...] = ()) -> Parametrized:
+    """The effect or density of ``case`` with its parameters (see :func:`values_at`) at truth + ``shift`` step
+    units."""
     kind, name, options = case
     part = (EFFECTS if kind == "effect" else DENSITIES)[name](**options).widen(n_beams, n_labels)
-    for key, value in values_at(part, shift).items():
+    for key, value in values_at(part, shift, also).items():
         part.params[key] = type(part.params[key])(value.astype(np.float32))
     return part
 

@@ -1,6 +1,7 @@
 """Finite-difference checks of every differentiable parameter of every catalog effect and density.
 
-For each case of :mod:`tests.core.catalog` and each of its fitted parameters, the autodiff
+For each case of :mod:`tests.core.catalog` and each of its parameters (those fitting changes and those it
+keeps fixed, each moved half a step unit from its test truth), the autodiff
 derivative of the summed scored log-likelihood of a simulated street log (1440 rays) is compared with
 a central finite difference (step 0.002 step units; float64 sums of float32 per-ray values) of the same function: the
 likelihood on the trace taken at the trial values. For parameters that move rays (beam angles,
@@ -8,7 +9,9 @@ extrinsics, motion, footprint) that function follows each surface's traced tange
 function the fitter differentiates between re-traces; re-tracing at each finite-difference point
 would add the jumps of rays that change surface, which no gradient describes. Tolerance: 5 % of the larger
 of the two, plus 0.5 nats per step unit of the parameter (the finite difference's own
-float32 noise). The number of checked parameters is printed at the end of the run.
+float32 noise). A parameter the likelihood does not read (a footprint's edge weight, an echo separation: they
+shape samples only) must have a zero finite difference too. The number of checked parameters is printed at the
+end of the run.
 """
 
 from __future__ import annotations
@@ -22,17 +25,25 @@ from mi_lidar.core.problem import Problem
 
 from .catalog import case_ids, label, make_part, model_with, simulated, street
 
+# Parameters whose derivative is not defined where the finite difference looks (strict: a change shows up).
+DISAGREE = {
+    "motion_distortion.period": "dt = time mod period jumps for rays whose sweep changes; autodiff 1.28e5 vs "
+    "finite difference 1.19e5 nats/s (the effect documents period as fixed)",
+}
 PARAMETERS = []
 for _case in case_ids():
     _part = make_part(_case, 0.0, 16, 8)
-    PARAMETERS += [(_case, key) for key in _part.fitted_names()]
+    for _key in (k for k in _part.specs if _part.active(k)):
+        _id = f"{label(_case)}.{_key}"
+        _marks = [pytest.mark.xfail(reason=DISAGREE[_id], strict=True)] if _id in DISAGREE else []
+        PARAMETERS.append(pytest.param(_case, _key, id=_id, marks=_marks))
 
 
-@pytest.mark.parametrize("case,key", PARAMETERS, ids=[f"{label(c)}.{k}" for c, k in PARAMETERS])
-def test_gradient_matches_finite_difference(case, key, fd_counter):
+@pytest.mark.parametrize("case,key", PARAMETERS)
+def test_gradient_matches_finite_difference(case, key, record_property):
     scene, model, pattern, _ = street()
     log, rays = simulated(case)
-    trial = make_part(case, 0.5, pattern.shape[0], 8)
+    trial = make_part(case, 0.5, pattern.shape[0], 8, also=(key,))
     trial_model = model_with(model, case, trial)
     problem = Problem.build(scene, rays)
     problem.trace(trial_model)
@@ -47,7 +58,7 @@ def test_gradient_matches_finite_difference(case, key, fd_counter):
         trial.params[key] = param
         if grad:
             ll = dr.sum(problem.chunk_log_likelihood(trial_model, problem.chunks[0]))
-            dr.backward(ll)
+            dr.backward(ll, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)  # fixed ones may not enter it
             return float(dr.grad(param)[0])
         return float(np.sum(np.asarray(problem.chunk_log_likelihood(trial_model, problem.chunks[0]), np.float64)))
 
@@ -56,5 +67,5 @@ def test_gradient_matches_finite_difference(case, key, fd_counter):
     plus[0] += h
     minus[0] -= h
     numeric = (total(plus) - total(minus)) / (2 * h)
-    fd_counter.append(f"{label(case)}.{key}")
     assert abs(auto - numeric) <= 0.05 * max(abs(auto), abs(numeric)) + 0.5 / scale, (auto, numeric)
+    record_property("fd_checked", f"{label(case)}.{key}")

@@ -5,7 +5,8 @@ import pytest
 
 import mi_lidar  # noqa: F401  (selects the Mitsuba variant)
 from mi_lidar.hybrid.fit import FitParams, fit_model
-from mi_lidar.hybrid.world import SensorSpec, WorldSpec, make_world, path_poses, render_log
+from mi_lidar.hybrid.true_sensor import SensorSpec, path_poses, render_log
+from mi_lidar.hybrid.world import WorldSpec, make_world
 
 SMALL_WORLD = WorldSpec(length=36, width=24, object_density=2.0, n_patches=1, n_grass=1)
 SMALL_SENSOR = SensorSpec(n_firings=360)

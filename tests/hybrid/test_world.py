@@ -2,7 +2,8 @@ import numpy as np
 
 from mi_lidar.core.log import Log
 from mi_lidar.hybrid.classes import CLASS_ID, GROUND_CLASSES, PATCH_BASE
-from mi_lidar.hybrid.world import SensorSpec, WorldSpec, _echo, make_world, path_poses, render_log
+from mi_lidar.hybrid.true_sensor import SensorSpec, _echo, path_poses, render_log
+from mi_lidar.hybrid.world import WorldSpec, make_world
 
 from .conftest import SMALL_WORLD
 

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.patterns import ouster
 from mi_lidar.io import range_digest, read_any, read_ouster
 from mi_lidar.io.ouster import destagger, restagger
 
@@ -127,6 +128,22 @@ def test_wrong_profile_or_metadata_is_reported(tmp_path):
     (tmp_path / "fusa.json").write_text(json.dumps(meta))
     with pytest.raises(LogFormatError, match="udp_profile_lidar 'FUSA_RNG15'"):
         read_ouster(path, metadata=tmp_path / "fusa.json")
+    del meta["data_format"]["pixel_shift_by_row"]
+    (tmp_path / "unshifted.json").write_text(json.dumps(meta))
+    with pytest.raises(LogFormatError, match="missing field 'pixel_shift_by_row'"):
+        read_ouster(path, metadata=tmp_path / "unshifted.json")
+
+
+@pytest.mark.parametrize("nested", [False, True])
+def test_decoder_and_pattern_read_one_geometry(tmp_path, nested):
+    # One metadata parser and one beam geometry: the decoded log's rays are the firing pattern's (the times
+    # come from the packets' own stamps).
+    path = write_ouster(tmp_path, np.full((8, 64), 3000, np.uint32), nested=nested)
+    log = read_ouster(path)
+    pattern = ouster(path.with_suffix(".json"))
+    assert pattern.name == "os-1-synth"
+    np.testing.assert_allclose(log.directions[0], pattern.directions(), atol=1e-7)
+    np.testing.assert_allclose(log.origins[0], pattern.origins(), atol=1e-7)
 
 
 def test_dispatch_picks_ouster_from_sidecar_json(tmp_path):

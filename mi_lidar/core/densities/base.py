@@ -35,7 +35,7 @@ import mitsuba as mi
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import Catalog, Parametrized, parse_calls
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import Segment
+from mi_lidar.core.segment import Segment, log_density, sample_range
 
 ESCAPE = 2  # Segment.kind of the virtual segment of a beam that met nothing more
 
@@ -66,6 +66,19 @@ class ReturnDensity(Parametrized, metaclass=abc.ABCMeta):
     def escape(self, rays: RayBatch) -> Segment | None:
         """The virtual last segment of beams that met nothing more, or None (an escaped beam is a miss)."""
         return None
+
+
+class UniformEscapeDensity(ReturnDensity):
+    """A density whose segments keep their own law and whose escape segment reports a range uniform on
+    [0, ``z_max``] m (the spurious readings of a beam that met nothing); subclasses declare ``z_max``."""
+
+    def log_prob(self, seg: Segment, z: mi.Float, rays: RayBatch) -> mi.Float:
+        z_max = self["z_max"]
+        uniform = dr.select((z >= 0) & (z <= z_max), -dr.log(z_max), -dr.inf)
+        return dr.select(seg.kind == ESCAPE, uniform, log_density(seg, z))
+
+    def sample(self, seg: Segment, u: mi.Point2f, rays: RayBatch) -> mi.Float:
+        return dr.select(seg.kind == ESCAPE, u.x * self["z_max"], sample_range(seg, u.x))
 
 
 def escape_segment(rays: RayBatch, drop=0.0, sigma=0.0) -> Segment:

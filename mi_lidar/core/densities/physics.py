@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 import drjit as dr
-import mitsuba as mi
 
-from mi_lidar.core.densities.base import ESCAPE, ReturnDensity, escape_segment, register_density
+from mi_lidar.core.densities.base import UniformEscapeDensity, escape_segment, register_density
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import SURFACE, Segment, log_density, sample_range
+from mi_lidar.core.segment import SURFACE, Segment
 
 
 @register_density
-class PhysicsDensity(ReturnDensity):
+class PhysicsDensity(UniformEscapeDensity):
     """Gaussian returns whose variance grows with range and incidence, and a constant no-return rate.
 
     ``sigma^2 = sigma0^2 + K r^2 / cos(delta)`` with ``r`` the nominal range (m) and ``delta`` the
@@ -49,11 +48,3 @@ class PhysicsDensity(ReturnDensity):
 
     def escape(self, rays: RayBatch) -> Segment:
         return escape_segment(rays, drop=1.0 - self["escape_return"], sigma=1.0)
-
-    def log_prob(self, seg: Segment, z: mi.Float, rays: RayBatch) -> mi.Float:
-        z_max = self["z_max"]
-        uniform = dr.select((z >= 0) & (z <= z_max), -dr.log(z_max), -dr.inf)
-        return dr.select(seg.kind == ESCAPE, uniform, log_density(seg, z))
-
-    def sample(self, seg: Segment, u: mi.Point2f, rays: RayBatch) -> mi.Float:
-        return dr.select(seg.kind == ESCAPE, u.x * self["z_max"], sample_range(seg, u.x))

@@ -26,12 +26,12 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.arrays import aligned
-from mi_lidar.core.densities.base import ESCAPE, ReturnDensity, escape_segment, register_density
+from mi_lidar.core.densities.base import ESCAPE, UniformEscapeDensity, escape_segment, register_density
 from mi_lidar.core.densities.samples import StateSamples, choose_by_held_out
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import ELLIPSOID, Segment, log_density, sample_range
+from mi_lidar.core.segment import ELLIPSOID, Segment
 
 MIN_SIGMA = 1e-3  # m
 
@@ -41,7 +41,7 @@ def _f(values) -> mi.Float:
 
 
 @register_density
-class PRegDensity(ReturnDensity):
+class PRegDensity(UniformEscapeDensity):
     """Parametric regression density (see the module docstring); build it with :func:`fit_p_reg`."""
 
     name = "p_reg"
@@ -132,14 +132,6 @@ class PRegDensity(ReturnDensity):
 
     def escape(self, rays: RayBatch) -> Segment:
         return escape_segment(rays, sigma=1.0)
-
-    def log_prob(self, seg: Segment, z: mi.Float, rays: RayBatch) -> mi.Float:
-        z_max = self["z_max"]
-        uniform = dr.select((z >= 0) & (z <= z_max), -dr.log(z_max), -dr.inf)
-        return dr.select(seg.kind == ESCAPE, uniform, log_density(seg, z))
-
-    def sample(self, seg: Segment, u: mi.Point2f, rays: RayBatch) -> mi.Float:
-        return dr.select(seg.kind == ESCAPE, u.x * self["z_max"], sample_range(seg, u.x))
 
 
 # ---------------------------------------------------------------------- fitting
@@ -235,7 +227,7 @@ def fit_p_reg(
     return choose_by_held_out(candidates, build, held_out_score, progress)
 
 
-def _binned(x: np.ndarray, y: np.ndarray, nodes: list[np.ndarray]):
+def _binned(x: np.ndarray, y: np.ndarray, nodes: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Aggregate samples into cells of half the node spacing: (cell means of x, cell means of y, counts)."""
     if len(x) == 0:
         return np.zeros((0, len(nodes))), np.zeros(0), np.zeros(0)

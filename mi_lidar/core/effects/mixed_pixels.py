@@ -87,7 +87,7 @@ class MixedPixels(FootprintEffect):
     def combine(self, sub: dict, weight: mi.Float, n: int) -> dict:
         total, weighted = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
         taken = dr.full(mi.Bool, False, n)
-        out = {}
+        out: dict = {}
         for j in range(len(PATTERN)):  # the axis first: it carries the largest weight
             index = dr.arange(mi.UInt32, n) + j * n
             hit = dr.gather(mi.Bool, sub["hit"], index)

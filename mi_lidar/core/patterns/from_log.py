@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from mi_lidar.core.log import Log
-from mi_lidar.core.patterns import FiringPattern
+from mi_lidar.core.patterns.firing import FiringPattern
 
 
 def pattern_from_log(log: Log, scan: int = 0, name: str | None = None) -> FiringPattern:
@@ -40,6 +40,7 @@ def pattern_from_log(log: Log, scan: int = 0, name: str | None = None) -> Firing
     steps = np.diff(np.sort(np.unique(time)))
     step = float(np.median(steps)) if len(steps) else 1e-6
     period = max(1.0 / float(one.sensor.get("frequency_hz", np.inf)), float(time.max()) + step)
+    assert one.origins is not None  # a Log fills absent origins with zeros
     origin = one.origins[0].astype(np.float64)
     laser = one.attributes.get("laser_id")
     beam_id = None
