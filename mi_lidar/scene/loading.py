@@ -19,17 +19,20 @@ def load_scene(source, **parameters):
         source: path of a scene XML, or a dict for ``mi.load_dict``.
         parameters: values for the XML's ``<default>`` parameters (``$name``).
 
+    Shapes keep their declared ids: Mitsuba's optimisation that merges meshes sharing a material
+    into one unnamed mesh is off, so ``elements.<id>.*`` names every shape of the file.
+
     Raises:
         SceneError: the file is missing, malformed, or names an unknown plugin or property;
             the message keeps Mitsuba's explanation and names the file.
     """
     try:
         if isinstance(source, dict):
-            return mi.load_dict(source)
+            return mi.load_dict(source, optimize=False)
         path = Path(source)
         if not path.is_file():
             raise SceneError(f"{path}: no such scene file")
-        return mi.load_file(os.fspath(path), **{k: str(v) for k, v in parameters.items()})
+        return mi.load_file(os.fspath(path), optimize=False, **{k: str(v) for k, v in parameters.items()})
     except MiLidarError:
         raise
     except Exception as exc:
