@@ -37,7 +37,7 @@ def result_table(result: FitResult) -> Table:
 
 @app.command(rich_help_panel="The loop")
 def calibrate(
-    log: Path = typer.Argument(..., help="Measured log (`.npz`).", exists=True, dir_okay=False),
+    log: Path = typer.Argument(..., help="Measured log (any format `convert` reads).", exists=True),
     scene: Path = typer.Argument(
         ..., help="Scene XML whose `lidar` sensor recorded the log.", exists=True, dir_okay=False
     ),
@@ -55,6 +55,12 @@ def calibrate(
     counting_start: bool = typer.Option(
         True, help="Start hit probabilities from the counting estimate hits/(hits+pass-throughs)."
     ),
+    pattern: str | None = typer.Option(
+        None,
+        help="Firing pattern of the log's sensor when it is not the scene sensor's: `log` (the log's own rays, "
+        "e.g. a planar CARMEN log), a pattern name or a .csv/.npy table. The calibrated scene fires it.",
+    ),
+    force: bool = typer.Option(False, help="Calibrate even when the log's sensor does not match the scene's."),
 ):
     """Fit scene and sensor parameters to a log by Dr.Jit autodiff; write the calibrated scene and a report.
 
@@ -67,6 +73,8 @@ def calibrate(
         mi-lidar calibrate drive.npz scenes_xml/offroad.xml --params 'elements.*.p_hit' --out out/cal
 
         mi-lidar calibrate drive.npz scene.xml -p 'sensor.elevation_offset' -p 'sensor.range_bias' --out out/intrinsics
+
+        mi-lidar calibrate building.log.gz building.xml -p 'elements.*.p_hit' --pattern log --out out/building
     """
     with Progress(
         TextColumn("calibrating [bold]{task.description}"),
@@ -97,6 +105,8 @@ def calibrate(
             patience=patience,
             progress=progress,
             counting_start=counting_start,
+            pattern=pattern,
+            force=force,
         )
     console.print(result_table(result))
     for path in files.values():

@@ -22,6 +22,7 @@ def compare_command(
         ..., "--out", "-o", help="Report folder: report.md/.html, PNG plots, residual image, residuals.ply."
     ),
     seed: int = typer.Option(0, min=0, help="Seed of the simulated scan."),
+    force: bool = typer.Option(False, help="Compare even when the log's sensor does not match the scene's."),
 ):
     """Compare the model with a measured log ray by ray: NLL, range error, hit/miss F1, histogram match, and where it
     fails worst.
@@ -35,7 +36,7 @@ def compare_command(
     from mi_lidar.scene import load_scene
 
     with console.status("simulating the log's rays and comparing"):
-        result = run(read_any(log), load_scene(scene), out=out, seed=seed)
+        result = run(read_any(log), load_scene(scene), out=out, seed=seed, force=force)
     head = result.headline
     console.print(
         f"NLL {head['nll']:.3f} nats/ray, hit/miss F1 {head['f1']:.3f}; worst: "
@@ -54,6 +55,7 @@ def diagnose_command(
         None, "--candidate", help="Only try these effects (repeatable); default: the whole catalog."
     ),
     steps: int = typer.Option(120, min=1, help="Adam steps per candidate fit."),
+    force: bool = typer.Option(False, help="Diagnose even when the log's sensor does not match the scene's."),
 ):
     """Find the physical effect the model lacks: fit every candidate on a training split, rank by held-out gain with a
     likelihood-ratio / BIC test.
@@ -82,6 +84,7 @@ def diagnose_command(
             candidates=candidate or None,
             steps=steps,
             progress=lambda i, n, label: bar.update(task, completed=i, total=n, description=label),
+            force=force,
         )
     if as_json:
         typer.echo(json.dumps(result.ranking(), indent=1, default=float))

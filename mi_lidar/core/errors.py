@@ -36,3 +36,7 @@ class LogFormatError(MiLidarError):
 class CalibrationError(MiLidarError, ValueError):
     """A calibration request cannot be fitted: no parameter matches, the log and scene disagree, or the loss
     diverges."""
+
+
+class SensorMismatchError(MiLidarError, ValueError):
+    """A log was recorded by another sensor than the scene's (beam count, field of view or range scale)."""
