@@ -18,8 +18,8 @@ def synth_world(
         ..., "--out", "-o", help="Output log (`.npz`) with ground-truth `label` and `instance` per ray."
     ),
     seed: int = typer.Option(11, min=0, help="World seed (layout, objects, noise)."),
-    length: float = typer.Option(100.0, min=10.0, max=10_000.0, help="World length along the vehicle path (m)."),
-    width: float = typer.Option(50.0, min=10.0, max=10_000.0, help="World width (m)."),
+    length: float = typer.Option(100.0, min=20.0, max=10_000.0, help="World length along the vehicle path (m)."),
+    width: float = typer.Option(50.0, min=20.0, max=10_000.0, help="World width (m; trees need 20 m at least)."),
     spacing: float = typer.Option(1.5, min=0.1, help="Distance between scans along the path (m)."),
 ):
     """Generate a synthetic off-road world (terrain, trees and shrubs of leaf triangles, grass, rocks) and log a drive
