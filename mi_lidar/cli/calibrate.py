@@ -5,12 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from mi_lidar.calibration.commands import calibrate_command
 from mi_lidar.calibration.fit import FitResult
 from mi_lidar.cli.app import app, console
+from mi_lidar.cli.progress import progress
 
 
 def result_table(result: FitResult) -> Table:
@@ -76,20 +76,13 @@ def calibrate(
 
         mi-lidar calibrate building.log.gz building.xml -p 'elements.*.p_hit' --pattern log --out out/building
     """
-    with Progress(
-        TextColumn("calibrating [bold]{task.description}"),
-        BarColumn(),
-        TimeElapsedColumn(),
-        console=console,
-        transient=True,
-    ) as bar:
-        task = bar.add_task("counting start", total=steps)
+    with progress("calibrating", total=steps) as update:
         held = {"value": float("nan")}
 
-        def progress(step, total, train, held_out):
+        def report(step, total, train, held_out):
             if held_out == held_out:
                 held["value"] = held_out
-            bar.update(task, completed=step, description=f"loss {train:.4f} | held-out {held['value']:.4f} nats/ray")
+            update(step, total, f"calibrating: loss {train:.4f} | held-out {held['value']:.4f} nats/ray")
 
         result, files = calibrate_command(
             log,
@@ -103,7 +96,7 @@ def calibrate(
             lr=lr,
             lr_scale=lr_scale,
             patience=patience,
-            progress=progress,
+            progress=report,
             counting_start=counting_start,
             pattern=pattern,
             force=force,

@@ -9,6 +9,7 @@ import typer
 from rich.table import Table
 
 from mi_lidar.cli.app import FriendlyGroup, app, console
+from mi_lidar.cli.progress import progress
 from mi_lidar.cli.render import scan_summary
 
 
@@ -33,7 +34,7 @@ def synth_world(
     """
     from mi_lidar.hybrid.world import WorldSpec, make_world, path_poses, render_log
 
-    with console.status("building the world and logging the drive"):
+    with progress("building the world and logging the drive"):
         world = make_world(seed, WorldSpec(length=length, width=width))
         log = render_log(world, path_poses(world, spacing), seed=seed)
         path = log.save(out)

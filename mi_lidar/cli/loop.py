@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from mi_lidar.cli.app import app, console
+from mi_lidar.cli.progress import progress
 
 
 @app.command("compare", rich_help_panel="The loop")
@@ -35,7 +36,7 @@ def compare_command(
     from mi_lidar.loop import compare as run
     from mi_lidar.scene import load_scene
 
-    with console.status("simulating the log's rays and comparing"):
+    with progress("simulating the log's rays and comparing"):
         result = run(read_any(log), load_scene(scene), out=out, seed=seed, force=force)
     head = result.headline
     console.print(
@@ -69,21 +70,18 @@ def diagnose_command(
     """
     import json
 
-    from rich.progress import Progress
-
     from mi_lidar.io import read_any
     from mi_lidar.loop import diagnose as run
     from mi_lidar.scene import load_scene
 
-    with Progress(console=console, transient=True) as bar:
-        task = bar.add_task("diagnose", total=None)
+    with progress("diagnose") as update:
         result = run(
             read_any(log),
             load_scene(scene),
             out=out,
             candidates=candidate or None,
             steps=steps,
-            progress=lambda i, n, label: bar.update(task, completed=i, total=n, description=label),
+            progress=lambda i, n, label: update(i, n, label),
             force=force,
         )
     if as_json:
