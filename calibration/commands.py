@@ -7,7 +7,9 @@ from pathlib import Path
 from mi_lidar.calibration.fit import Calibration, FitOptions, FitResult
 from mi_lidar.calibration.report import write_report
 from mi_lidar.core.errors import MiLidarError
-from mi_lidar.core.log import Log
+from mi_lidar.core.patterns import get_pattern
+from mi_lidar.core.patterns.from_log import pattern_from_log
+from mi_lidar.io import read_any
 from mi_lidar.scene.loading import load_scene
 
 
@@ -40,12 +42,15 @@ def calibrate_command(
     eval_every: int = 10,
     counting_start: bool = True,
     progress=None,
+    pattern: str | None = None,
+    force: bool = False,
 ) -> tuple[FitResult, dict[str, Path]]:
     """Fit the parameters ``params`` (globs) of ``scene`` to ``log`` and write the outputs to ``out``.
 
     Args:
-        log: path of a log (``.npz``, see :mod:`mi_lidar.core.log`).
-        scene: path of the scene XML (its ``lidar`` sensor must be the log's).
+        log: path of a log in any format ``convert`` reads (``.npz``, CARMEN ``.log[.gz]``, ...).
+        scene: path of the scene XML (its ``lidar`` sensor must be the log's unless ``pattern``
+            says which sensor recorded the log).
         params: parameter globs, e.g. ``["elements.*.p_hit", "sensor.range_bias"]``.
         out: output folder: ``scene.xml`` (+ ``scene_assets/``), ``loss.png``, ``changes.csv``,
             ``history.csv``, ``parameters.npz``, ``report.json``.
@@ -54,6 +59,10 @@ def calibrate_command(
         lr: learning-rate overrides ``GLOB=RATE``.
         lr_scale: factor on every learning rate.
         progress: optional ``progress(step, steps, train_loss, held_out_loss)`` callback.
+        pattern: the log's firing pattern when it is not the scene sensor's: ``"log"`` (the log's
+            own rays, e.g. a planar CARMEN log), a pattern name or a ``.csv``/``.npy`` table; the
+            calibrated scene's sensor fires it.
+        force: fit even when the log's sensor does not match the scene's.
 
     Returns:
         The fit result and the written files by kind.
@@ -62,8 +71,13 @@ def calibrate_command(
         MiLidarError: unreadable inputs, a glob matching nothing, a log from another sensor, or a
             diverging loss (each message says what to change).
     """
-    measured = Log.load(log)
+    measured = read_any(log)
     loaded = load_scene(scene)
+    firing = None
+    if pattern is not None:
+        firing = (
+            pattern_from_log(measured, name=f"{Path(log).stem}-pattern") if pattern == "log" else get_pattern(pattern)
+        )
     options = FitOptions(
         steps=steps,
         batch_size=batch_size,
@@ -75,8 +89,9 @@ def calibrate_command(
         lr_scale=lr_scale,
         counting_start=counting_start,
     )
-    calibration = Calibration(loaded, measured, list(params), options=options)
+    calibration = Calibration(loaded, measured, list(params), options=options, pattern=firing, force=force)
     result = calibration.fit(progress)
     units = {n: calibration.params[n].unit for n in result.names}
-    files = write_report(out, result, loaded, units, title=f"calibrate {Path(log).name} in {Path(scene).name}")
+    title = f"calibrate {Path(log).name} in {Path(scene).name}"
+    files = write_report(out, result, loaded, units, title=title, pattern=firing)
     return result, files

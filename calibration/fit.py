@@ -49,7 +49,8 @@ from mi_lidar.core.segment import ELLIPSOID, Segment
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.smoothing import smoothing_at
 from mi_lidar.core.trace import CachedBatch, RayCache, cache_distributions, trace_rounds
-from mi_lidar.scene.loading import scene_lidar_sensor, scene_sensor_model
+from mi_lidar.scene.loading import scene_sensor_model
+from mi_lidar.scene.sensor_check import check_log_sensor
 
 
 @dataclass
@@ -122,26 +123,6 @@ class FitResult:
     model: SensorModel
 
 
-def check_sensor(log: Log, scene) -> None:
-    """Raise :class:`CalibrationError` when the log's beams are not the scene sensor's.
-
-    The rays themselves come from the log (its own firing pattern, however many firings it holds);
-    per-beam parameters need the beams to be the scene sensor's, so their count must agree.
-    """
-    sensor = scene_lidar_sensor(scene)
-    if sensor is None:
-        return
-    pattern = sensor.pattern
-    h = log.shape[1]
-    if h != pattern.shape[0]:
-        name = log.sensor.get("pattern")
-        raise CalibrationError(
-            f"the log's sensor ({name or 'unnamed pattern'}, {h} beams) does not match the scene's `lidar` sensor "
-            f"({pattern.name}, {pattern.shape[0]} beams); set the scene sensor's pattern to the log's "
-            f'(<string name="pattern" value="{name or "..."}"/>) or pick the scene the log was recorded in'
-        )
-
-
 def returned_and_passed(seg: Segment, z: mi.Float, hit: mi.Bool, gate: float) -> tuple[mi.Bool, mi.Bool]:
     """Counting rule of one element: did it return the measured range, or let the ray pass?
 
@@ -164,15 +145,28 @@ class Calibration:
         globs: parameter globs (see :mod:`mi_lidar.calibration.parameters`).
         model: the sensor model to start from (default: the scene's).
         options: fitting settings.
+        pattern: the firing pattern of the log's sensor when it is not the scene sensor's (e.g.
+            :func:`~mi_lidar.core.patterns.from_log.pattern_from_log` of a planar log); the log
+            is checked against it, and per-beam parameters follow its beams.
+        force: fit even when the log's sensor does not match (see
+            :func:`~mi_lidar.scene.sensor_check.check_log_sensor`).
 
     Raises:
-        CalibrationError: a glob matches nothing, or the log's sensor is not the scene's.
+        CalibrationError: a glob matches nothing.
+        SensorMismatchError: the log's sensor is not the scene's (or ``pattern``).
     """
 
     def __init__(
-        self, scene, log: Log, globs: list[str], model: SensorModel | None = None, options: FitOptions | None = None
+        self,
+        scene,
+        log: Log,
+        globs: list[str],
+        model: SensorModel | None = None,
+        options: FitOptions | None = None,
+        pattern=None,
+        force: bool = False,
     ):
-        check_sensor(log, scene)
+        check_log_sensor(log, scene, pattern, force)
         self.options = options or FitOptions()
         if not 0 < self.options.holdout < 1:
             raise CalibrationError(f"holdout={self.options.holdout} must lie in (0, 1), e.g. 0.2")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
@@ -11,13 +12,16 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mi_lidar.calibration.fit import FitResult  # noqa: E402
+from mi_lidar.core.atomic import atomic_path, atomic_write  # noqa: E402
 from mi_lidar.core.elements import ELLIPSOID_STRIDE, ordered_shapes  # noqa: E402
-from mi_lidar.core.errors import CalibrationError  # noqa: E402
-from mi_lidar.core.patterns import get_pattern  # noqa: E402
-from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, save_scene  # noqa: E402
+from mi_lidar.core.errors import CalibrationError, PatternError  # noqa: E402
+from mi_lidar.core.patterns import get_pattern, to_table  # noqa: E402
+from mi_lidar.scene.dicts import AnalyticElements, EllipsoidElements, MeshElements, save_scene  # noqa: E402
+from mi_lidar.scene.files import ANALYTIC_SHAPES  # noqa: E402
 from mi_lidar.scene.loading import scene_lidar_sensor  # noqa: E402
 
 
@@ -25,7 +29,7 @@ def element_sets(table, scene) -> dict:
     """``{shape id: MeshElements | EllipsoidElements}`` of a (fitted) :class:`~mi_lidar.core.elements.ElementTable`.
 
     Raises:
-        CalibrationError: a shape is neither a triangle mesh nor an ellipsoid set.
+        CalibrationError: a shape cannot be written (see :func:`surface_elements`).
     """
     p_hit, sigma, label = (np.asarray(getattr(table, f)) for f in ("p_hit", "range_sigma", "label"))
     vertices = np.asarray(table.vertex_positions).reshape(-1, 3)
@@ -33,6 +37,7 @@ def element_sets(table, scene) -> dict:
     data = np.asarray(table.ellipsoid_data).reshape(-1, ELLIPSOID_STRIDE)
     extent = np.asarray(table.ellipsoid_extent)
     e_index = np.asarray(table.ellipsoid_index)
+    shapes = ordered_shapes(scene)
     sets, offset = {}, 0
     for k, (shape_id, count) in enumerate(zip(table.shape_ids, table.element_counts)):
         sl = slice(offset, offset + count)
@@ -58,26 +63,82 @@ def element_sets(table, scene) -> dict:
                 range_sigma=None if np.all(np.isnan(mesh_sigma)) else np.nan_to_num(mesh_sigma, nan=0.0),
             )
         else:
-            raise CalibrationError(
-                f"shape {shape_id!r} is an analytic {type(ordered_shapes(scene)[k]).__name__}; calibrated scenes are "
-                "written as meshes and ellipsoid sets: convert it to a triangle mesh (e.g. a PLY) first"
-            )
+            sets[shape_id] = surface_elements(shapes[k], p_hit[sl], sigma[sl], label[sl])
     return sets
 
 
-def sensor_xml(scene, model) -> str:
-    """The ``lidar`` sensor (from ``scene``) and ``lidar_integrator`` (with ``model``'s effects) as XML."""
+def surface_elements(shape, p_hit: np.ndarray, sigma: np.ndarray, label: np.ndarray):
+    """The element set of an analytic shape: its own triangles (rectangles) or the shape itself (one element).
+
+    Args:
+        shape: the Mitsuba shape.
+        p_hit, sigma, label: (count,) per-element values of the shape; sigma NaN = sensor default.
+
+    Raises:
+        CalibrationError: a shape that is neither a triangle mesh nor one of
+            :data:`~mi_lidar.scene.files.ANALYTIC_SHAPES` (e.g. a curve).
+    """
+    if isinstance(shape, mi.Mesh):  # a rectangle: two triangles Mitsuba keeps in world space
+        return MeshElements(
+            vertices=np.asarray(shape.vertex_positions_buffer()).reshape(-1, 3),
+            faces=np.asarray(shape.faces_buffer()).reshape(-1, 3),
+            p_hit=p_hit,
+            label=label,
+            range_sigma=None if np.all(np.isnan(sigma)) else np.nan_to_num(sigma, nan=0.0),
+        )
+    plugin = shape.class_name().lower()
+    if plugin not in ANALYTIC_SHAPES or p_hit.size != 1:
+        raise CalibrationError(
+            f"shape {shape.id()!r} is a {shape.class_name()} with {p_hit.size} elements; calibrated scenes hold "
+            f"meshes, ellipsoid sets and the one-element shapes {', '.join(ANALYTIC_SHAPES)}: convert it to a "
+            "triangle mesh (e.g. a PLY) first"
+        )
+    return AnalyticElements(
+        plugin=plugin,
+        to_world=np.asarray(mi.traverse(shape)["to_world"].matrix, np.float64).reshape(4, 4),
+        p_hit=float(p_hit[0]),
+        label=int(label[0]),
+        range_sigma=None if np.isnan(sigma[0]) else float(sigma[0]),
+    )
+
+
+def pattern_xml(pattern, assets: Path) -> list[str]:
+    """The ``pattern`` (and ``firings``) properties of a sensor firing ``pattern``.
+
+    A pattern of the catalog is written by name; any other (a user's table, a log's own rays) is
+    written as a table ``<assets>/pattern.npy`` next to the scene (its period is inferred when it
+    is read back, see :func:`~mi_lidar.core.patterns.from_table`).
+    """
+    try:
+        preset = get_pattern(pattern.name)
+    except PatternError:
+        preset = None
+    if preset is None or preset.shape[0] != pattern.shape[0]:
+        with atomic_path(assets / "pattern.npy") as tmp:
+            to_table(pattern, tmp)
+        return [f'        <string name="pattern" value={quoteattr(f"{assets.name}/pattern.npy")}/>']
+    lines = [f'        <string name="pattern" value={quoteattr(pattern.name)}/>']
+    if preset.shape != pattern.shape:
+        lines.append(f'        <integer name="firings" value="{pattern.shape[1]}"/>')
+    return lines
+
+
+def sensor_xml(scene, model, assets: Path, pattern=None) -> str:
+    """The ``lidar`` sensor and ``lidar_integrator`` (with ``model``'s effects) as XML.
+
+    Args:
+        scene: the loaded scene (its sensor's pose and pattern).
+        model: the fitted sensor model.
+        assets: folder of the scene's assets (a pattern table is written there when needed).
+        pattern: the log's firing pattern, when it replaces the scene sensor's.
+    """
     lines = []
     sensor = scene_lidar_sensor(scene)
-    if sensor is not None:
-        pattern = sensor.pattern
-        matrix = " ".join(f"{v:.9g}" for v in np.asarray(sensor.to_world_matrix).ravel())
-        lines += [
-            '    <sensor type="lidar" id="lidar">',
-            f'        <string name="pattern" value={quoteattr(pattern.name)}/>',
-        ]
-        if get_pattern(pattern.name).shape != pattern.shape:
-            lines.append(f'        <integer name="firings" value="{pattern.shape[1]}"/>')
+    if sensor is not None or pattern is not None:
+        pose = np.eye(4) if sensor is None else sensor.to_world_matrix
+        matrix = " ".join(f"{v:.9g}" for v in np.asarray(pose).ravel())
+        lines.append('    <sensor type="lidar" id="lidar">')
+        lines += pattern_xml(pattern or sensor.pattern, assets)
         lines += [
             f'        <float name="{k}" value="{getattr(model, k):.9g}"/>'
             for k in ("min_range", "max_range", "range_sigma")
@@ -94,9 +155,16 @@ def sensor_xml(scene, model) -> str:
     return "\n".join(lines)
 
 
-def save_calibrated_scene(path, result: FitResult, scene) -> Path:
-    """Write the fitted scene as XML plus PLY assets (``<stem>_assets/``), with sensor and effects."""
-    return save_scene(path, element_sets(result.table, scene), extra_xml=sensor_xml(scene, result.model))
+def save_calibrated_scene(path, result: FitResult, scene, pattern=None) -> Path:
+    """Write the fitted scene as XML plus PLY assets (``<stem>_assets/``), with sensor and effects.
+
+    ``pattern`` (the log's firing pattern) replaces the scene sensor's when given.
+    """
+    path = Path(path)
+    sets = element_sets(result.table, scene)
+    return save_scene(
+        path, sets, extra_xml=sensor_xml(scene, result.model, path.parent / f"{path.stem}_assets", pattern)
+    )
 
 
 def loss_png(path, result: FitResult, title: str = "calibration") -> Path:
@@ -121,10 +189,10 @@ def loss_png(path, result: FitResult, title: str = "calibration") -> Path:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
     plt.close(fig)
-    return path
+    return Path(path)
 
 
 def change_rows(result: FitResult, units: dict) -> list[dict]:
@@ -147,32 +215,22 @@ def change_rows(result: FitResult, units: dict) -> list[dict]:
     return rows
 
 
-def write_report(out, result: FitResult, scene, units: dict, title: str) -> dict[str, Path]:
+def write_report(out, result: FitResult, scene, units: dict, title: str, pattern=None) -> dict[str, Path]:
     """Write ``scene.xml`` (+ assets), ``loss.png``, ``changes.csv``, ``history.csv``, ``parameters.npz`` and
-    ``report.json``."""
+    ``report.json``, each atomically; ``pattern`` (the log's) replaces the scene sensor's in ``scene.xml``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = {
-        "scene": save_calibrated_scene(out / "scene.xml", result, scene),
+        "scene": save_calibrated_scene(out / "scene.xml", result, scene, pattern),
         "loss": loss_png(out / "loss.png", result, title),
     }
     rows = change_rows(result, units)
-    with open(out / "changes.csv", "w", newline="") as stream:
-        writer = csv.DictWriter(stream, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    files["changes"] = out / "changes.csv"
-    with open(out / "history.csv", "w", newline="") as stream:
-        writer = csv.writer(stream)
-        writer.writerow(["step", "train_nll", "held_out_nll"])
-        writer.writerows(result.history)
-    files["history"] = out / "history.csv"
-    np.savez(
-        out / "parameters.npz",
-        **{f"initial/{k}": v for k, v in result.initial.items()},
-        **{f"fitted/{k}": v for k, v in result.fitted.items()},
-    )
-    files["parameters"] = out / "parameters.npz"
+    files["changes"] = _write_csv(out / "changes.csv", list(rows[0]), [list(row.values()) for row in rows])
+    files["history"] = _write_csv(out / "history.csv", ["step", "train_nll", "held_out_nll"], result.history)
+    arrays = {f"initial/{k}": v for k, v in result.initial.items()} | {
+        f"fitted/{k}": v for k, v in result.fitted.items()
+    }
+    files["parameters"] = atomic_write(out / "parameters.npz", lambda stream: np.savez(stream, **arrays))
     summary = {
         "parameters": result.names,
         "steps_run": result.steps_run,
@@ -180,6 +238,16 @@ def write_report(out, result: FitResult, scene, units: dict, title: str) -> dict
         "held_out_nll": {"initial": result.initial_nll, "counting": result.counting_nll, "fitted": result.fitted_nll},
         "effects": [e.describe() for e in result.model.effects],
     }
-    (out / "report.json").write_text(json.dumps(summary, indent=1))
-    files["report"] = out / "report.json"
+    files["report"] = atomic_write(
+        out / "report.json", lambda stream: stream.write(json.dumps(summary, indent=1).encode())
+    )
     return files
+
+
+def _write_csv(path: Path, header: list, rows) -> Path:
+    """A CSV file with ``header`` and ``rows``, written atomically."""
+    text = io.StringIO()
+    writer = csv.writer(text)
+    writer.writerow(header)
+    writer.writerows(rows)
+    return atomic_write(path, lambda stream: stream.write(text.getvalue().encode()))

@@ -11,10 +11,15 @@ configure_llvm()
 
 import mitsuba as mi  # noqa: E402  (LLVM must be configured before Dr.Jit loads)
 
-from mi_lidar._variant import select_variant  # noqa: E402
+from mi_lidar._variant import exit_if_command_line, select_variant  # noqa: E402
+from mi_lidar.core.errors import SetupError  # noqa: E402
 
 __version__ = "0.1.0"
-VARIANT = select_variant(mi)
+try:
+    VARIANT = select_variant(mi)
+except SetupError as error:
+    exit_if_command_line(error)
+    raise
 
 from mi_lidar import plugins  # noqa: E402,F401  (registers the plugins)
 from mi_lidar.core.log import Log  # noqa: E402

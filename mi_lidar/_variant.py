@@ -10,6 +10,7 @@ from __future__ import annotations
 import glob
 import os
 import re
+import sys
 
 from mi_lidar.core.errors import SetupError
 
@@ -70,14 +71,32 @@ def select_variant(mi) -> str:
         )
     try:
         mi.set_variant(wanted)
-    except Exception as exc:  # Dr.Jit raises plain exceptions when LLVM is missing.
-        raise SetupError(
-            f"could not start Mitsuba variant {wanted!r}: {exc}\n"
-            "Dr.Jit's llvm backend needs LLVM >= 16. Run `make demo` (it installs Debian's "
-            "libllvm19) or `apt-get install -y libllvm19`, or set DRJIT_LIBLLVM_PATH to a "
-            "libLLVM.so of version 16 or newer."
-        ) from exc
+    except Exception as exc:  # Dr.Jit raises plain exceptions when LLVM or CUDA is missing.
+        if wanted.startswith("cuda"):
+            fix = (
+                "The cuda variants need an NVIDIA GPU and its driver (libcuda.so), and none could be used here. "
+                f"Unset MI_LIDAR_VARIANT or set it to {DEFAULT_VARIANT!r} to run on the CPU."
+            )
+        else:
+            fix = (
+                "Dr.Jit's llvm backend needs LLVM >= 16. Run `make demo` (it installs Debian's "
+                "libllvm19) or `apt-get install -y libllvm19`, or set DRJIT_LIBLLVM_PATH to a "
+                "libLLVM.so of version 16 or newer."
+            )
+        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise SetupError(f"could not start Mitsuba variant {wanted!r} ({first_line}). {fix}") from exc
     return wanted
+
+
+def exit_if_command_line(error: SetupError) -> None:
+    """When the ``mi-lidar`` command is starting, print ``error`` on one line and exit with code 2.
+
+    The command imports :mod:`mi_lidar` (which selects the variant) before its own error handler
+    exists, so a setup error would otherwise end in a traceback. Library users get the exception.
+    """
+    if os.path.basename(sys.argv[0]) == "mi-lidar":
+        print(f"error: {error}", file=sys.stderr)
+        raise SystemExit(2)
 
 
 def require_jit_variant(mi) -> None:

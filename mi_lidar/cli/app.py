@@ -10,6 +10,7 @@ code of click's own usage errors. Messages say what was wrong and what to do.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 
 import typer
@@ -22,15 +23,71 @@ console = Console()
 USER_ERRORS = (MiLidarError, ValueError, OSError)
 
 
+def given_value(args: list[str], param) -> str | None:
+    """The text given for option ``param`` in the command line ``args`` (``--seed -1`` or ``--seed=-1``), or None."""
+    for i, token in enumerate(args):
+        for opt in getattr(param, "opts", ()):
+            if token == opt and i + 1 < len(args):
+                return args[i + 1]
+            if token.startswith(opt + "="):
+                return token[len(opt) + 1 :]
+    return None
+
+
+def usage_error_line(exc, args: list[str]) -> str:
+    """One line for a usage error (click's, vendored by Typer): the value given, what is wrong, where to look."""
+    message = exc.format_message().rstrip(".")
+    param = getattr(exc, "param", None)
+    value = None if param is None else given_value(args, param)
+    if value is not None:
+        message = f"{message} (got {value!r})"
+    command = exc.ctx.command_path if exc.ctx is not None else "mi-lidar"
+    return f"{message}; see `{command} --help`"
+
+
 class FriendlyGroup(TyperGroup):
-    """A command group that turns user errors raised by any of its commands into one-line messages."""
+    """A command group that turns user errors raised by any of its commands into one-line messages.
+
+    Bad command-line values (click's usage errors: a value out of range, a missing option) and the
+    errors a command raises (:data:`USER_ERRORS`) both print ``error: <message>`` and exit with 2.
+    """
 
     def invoke(self, ctx):
+        args = list(ctx.args)
         try:
             return super().invoke(ctx)
+        except typer.TyperException as exc:
+            if getattr(exc, "exit_code", None) != 2 or not hasattr(exc, "format_message"):
+                raise  # typer.Exit, typer.Abort: not errors of the user's input
+            fail(usage_error_line(exc, args))
+        except OSError as exc:
+            fail(os_error_line(exc))
         except USER_ERRORS as exc:
-            console.print(f"[bold red]error:[/] {exc}", soft_wrap=True, highlight=False)
-            raise typer.Exit(code=2) from None
+            fail(str(exc))
+
+
+OS_ERROR_FIXES = {
+    errno.EACCES: "choose a folder you may write to, or change its permissions",
+    errno.EPERM: "choose a folder you may write to, or change its permissions",
+    errno.EROFS: "the file system is read-only: choose a folder on a writable disk",
+    errno.ENOTDIR: "a part of the path is a file, not a folder: choose another path",
+    errno.EISDIR: "the path is a folder: give a file name",
+    errno.ENOENT: "check the path",
+    errno.ENOSPC: "the disk is full: free space or choose another disk",
+}
+
+
+def os_error_line(exc: OSError) -> str:
+    """One line for a failed file operation: the path, what the system said, and what to do."""
+    if exc.errno not in OS_ERROR_FIXES or not exc.filename:
+        return str(exc)
+    return f"{exc.filename}: {exc.strerror.lower()}; {OS_ERROR_FIXES[exc.errno]}"
+
+
+def fail(message: str) -> None:
+    """Print ``error: <message>`` on one line and exit with code 2."""
+    console.print(f"[bold red]error:[/] {message}", soft_wrap=True, highlight=False, markup=True)
+    raise typer.Exit(code=2) from None
 
 
 app = typer.Typer(

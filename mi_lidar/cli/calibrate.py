@@ -5,12 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from mi_lidar.calibration.commands import calibrate_command
 from mi_lidar.calibration.fit import FitResult
 from mi_lidar.cli.app import app, console
+from mi_lidar.cli.progress import progress
 
 
 def result_table(result: FitResult) -> Table:
@@ -37,7 +37,7 @@ def result_table(result: FitResult) -> Table:
 
 @app.command(rich_help_panel="The loop")
 def calibrate(
-    log: Path = typer.Argument(..., help="Measured log (`.npz`).", exists=True, dir_okay=False),
+    log: Path = typer.Argument(..., help="Measured log (any format `convert` reads).", exists=True),
     scene: Path = typer.Argument(
         ..., help="Scene XML whose `lidar` sensor recorded the log.", exists=True, dir_okay=False
     ),
@@ -55,6 +55,12 @@ def calibrate(
     counting_start: bool = typer.Option(
         True, help="Start hit probabilities from the counting estimate hits/(hits+pass-throughs)."
     ),
+    pattern: str | None = typer.Option(
+        None,
+        help="Firing pattern of the log's sensor when it is not the scene sensor's: `log` (the log's own rays, "
+        "e.g. a planar CARMEN log), a pattern name or a .csv/.npy table. The calibrated scene fires it.",
+    ),
+    force: bool = typer.Option(False, help="Calibrate even when the log's sensor does not match the scene's."),
 ):
     """Fit scene and sensor parameters to a log by Dr.Jit autodiff; write the calibrated scene and a report.
 
@@ -67,21 +73,16 @@ def calibrate(
         mi-lidar calibrate drive.npz scenes_xml/offroad.xml --params 'elements.*.p_hit' --out out/cal
 
         mi-lidar calibrate drive.npz scene.xml -p 'sensor.elevation_offset' -p 'sensor.range_bias' --out out/intrinsics
+
+        mi-lidar calibrate building.log.gz building.xml -p 'elements.*.p_hit' --pattern log --out out/building
     """
-    with Progress(
-        TextColumn("calibrating [bold]{task.description}"),
-        BarColumn(),
-        TimeElapsedColumn(),
-        console=console,
-        transient=True,
-    ) as bar:
-        task = bar.add_task("counting start", total=steps)
+    with progress("calibrating", total=steps) as update:
         held = {"value": float("nan")}
 
-        def progress(step, total, train, held_out):
+        def report(step, total, train, held_out):
             if held_out == held_out:
                 held["value"] = held_out
-            bar.update(task, completed=step, description=f"loss {train:.4f} | held-out {held['value']:.4f} nats/ray")
+            update(step, total, f"calibrating: loss {train:.4f} | held-out {held['value']:.4f} nats/ray")
 
         result, files = calibrate_command(
             log,
@@ -95,8 +96,10 @@ def calibrate(
             lr=lr,
             lr_scale=lr_scale,
             patience=patience,
-            progress=progress,
+            progress=report,
             counting_start=counting_start,
+            pattern=pattern,
+            force=force,
         )
     console.print(result_table(result))
     for path in files.values():

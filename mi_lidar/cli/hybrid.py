@@ -9,6 +9,7 @@ import typer
 from rich.table import Table
 
 from mi_lidar.cli.app import FriendlyGroup, app, console
+from mi_lidar.cli.progress import progress
 from mi_lidar.cli.render import scan_summary
 
 
@@ -18,8 +19,8 @@ def synth_world(
         ..., "--out", "-o", help="Output log (`.npz`) with ground-truth `label` and `instance` per ray."
     ),
     seed: int = typer.Option(11, min=0, help="World seed (layout, objects, noise)."),
-    length: float = typer.Option(100.0, min=10.0, max=10_000.0, help="World length along the vehicle path (m)."),
-    width: float = typer.Option(50.0, min=10.0, max=10_000.0, help="World width (m)."),
+    length: float = typer.Option(100.0, min=20.0, max=10_000.0, help="World length along the vehicle path (m)."),
+    width: float = typer.Option(50.0, min=20.0, max=10_000.0, help="World width (m; trees need 20 m at least)."),
     spacing: float = typer.Option(1.5, min=0.1, help="Distance between scans along the path (m)."),
 ):
     """Generate a synthetic off-road world (terrain, trees and shrubs of leaf triangles, grass, rocks) and log a drive
@@ -34,7 +35,7 @@ def synth_world(
     from mi_lidar.hybrid.true_sensor import path_poses, render_log
     from mi_lidar.hybrid.world import WorldSpec, make_world
 
-    with console.status("building the world and logging the drive"):
+    with progress("building the world and logging the drive"):
         world = make_world(seed, WorldSpec(length=length, width=width))
         log = render_log(world, path_poses(world, spacing), seed=seed)
         path = log.save(out)

@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from mi_lidar.cli.app import app, console
+from mi_lidar.cli.progress import progress
 
 
 @app.command("compare", rich_help_panel="The loop")
@@ -22,6 +23,7 @@ def compare_command(
         ..., "--out", "-o", help="Report folder: report.md/.html, PNG plots, residual image, residuals.ply."
     ),
     seed: int = typer.Option(0, min=0, help="Seed of the simulated scan."),
+    force: bool = typer.Option(False, help="Compare even when the log's sensor does not match the scene's."),
 ):
     """Compare the model with a measured log ray by ray: NLL, range error, hit/miss F1, histogram match, and where it
     fails worst.
@@ -34,8 +36,8 @@ def compare_command(
     from mi_lidar.loop import compare as run
     from mi_lidar.scene import load_scene
 
-    with console.status("simulating the log's rays and comparing"):
-        result = run(read_any(log), load_scene(scene), out=out, seed=seed)
+    with progress("simulating the log's rays and comparing"):
+        result = run(read_any(log), load_scene(scene), out=out, seed=seed, force=force)
     head = result.headline
     console.print(
         f"NLL {head['nll']:.3f} nats/ray, hit/miss F1 {head['f1']:.3f}; worst: "
@@ -54,6 +56,7 @@ def diagnose_command(
         None, "--candidate", help="Only try these effects (repeatable); default: the whole catalog."
     ),
     steps: int = typer.Option(120, min=1, help="Adam steps per candidate fit."),
+    force: bool = typer.Option(False, help="Diagnose even when the log's sensor does not match the scene's."),
 ):
     """Find the physical effect the model lacks: fit every candidate on a training split, rank by held-out gain with a
     likelihood-ratio / BIC test.
@@ -67,21 +70,19 @@ def diagnose_command(
     """
     import json
 
-    from rich.progress import Progress
-
     from mi_lidar.io import read_any
     from mi_lidar.loop import diagnose as run
     from mi_lidar.scene import load_scene
 
-    with Progress(console=console, transient=True) as bar:
-        task = bar.add_task("diagnose", total=None)
+    with progress("diagnose") as update:
         result = run(
             read_any(log),
             load_scene(scene),
             out=out,
             candidates=candidate or None,
             steps=steps,
-            progress=lambda i, n, label: bar.update(task, completed=i, total=n, description=label),
+            progress=lambda i, n, label: update(i, n, label),
+            force=force,
         )
     if as_json:
         typer.echo(json.dumps(result.ranking(), indent=1, default=float))

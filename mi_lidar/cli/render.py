@@ -10,6 +10,7 @@ import typer
 from rich.table import Table
 
 from mi_lidar.cli.app import app, console
+from mi_lidar.cli.progress import progress
 from mi_lidar.core.errors import MiLidarError, ParameterError
 
 DEFAULT_SCENE = Path(__file__).resolve().parents[2] / "scenes_xml" / "offroad.xml"
@@ -148,22 +149,19 @@ def simulate(
 
         mi-lidar simulate scenes_xml/indoor_planar.xml --poses kitti_poses.txt --out room.npz --pattern planar-180
     """
-    from rich.progress import Progress
-
     from mi_lidar.scene import load_scene
     from mi_lidar.scene.simulation import simulate as run
 
     loaded = load_scene(scene)
     pose_array = read_poses(poses)
     start = time.perf_counter()
-    with Progress(console=console, transient=True) as progress:
-        task = progress.add_task("simulating scans", total=len(pose_array))
+    with progress("simulating scans", total=len(pose_array)) as update:
         log = run(
             loaded,
             pattern,
             poses=pose_array,
             seed=seed,
-            progress=lambda done, total: progress.update(task, completed=done),
+            progress=lambda done, total: update(done, total),
         )
     elapsed = time.perf_counter() - start
     path = log.save(out)
@@ -217,7 +215,7 @@ def camera_lidar(
     camera = PinholeCamera.look_at(
         parse_vector(camera_from, "--from"), parse_vector(camera_to, "--to"), width=width, height=height, fov_deg=fov
     )
-    with console.status("rendering the camera image and the Lidar scan"):
+    with progress("rendering the camera image and the Lidar scan"):
         frame = camera_lidar_frame(loaded, camera, seed=seed, spp=spp)
     out.mkdir(parents=True, exist_ok=True)
     files = [

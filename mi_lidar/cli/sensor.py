@@ -8,6 +8,7 @@ import typer
 from rich.table import Table
 
 from mi_lidar.cli.app import app, console
+from mi_lidar.cli.progress import progress
 
 
 @app.command("fit-sensor", rich_help_panel="The loop")
@@ -33,7 +34,7 @@ def fit_sensor_command(
     from mi_lidar.io import read_any
     from mi_lidar.loop.sensor_fit import fit_sensor, save_sensor
 
-    with console.status(f"fitting {model}"):
+    with progress(f"fitting {model}"):
         result = fit_sensor(read_any(log), scene, model, steps=steps, seed=seed, progress=console.log)
         path = save_sensor(result, out)
     table = Table(title=f"{log.name}: held-out rays ({result.test_rays:,})", header_style="bold")

@@ -53,8 +53,10 @@ def shape_order(shape) -> tuple:
 
     ``scene.shapes()`` lists shapes in the order Mitsuba's parallel loader finished them, which
     changes from run to run under load; sorting by what the scene declares makes element and shape
-    indices the same on every load. Unnamed shapes (empty id, e.g. meshes Mitsuba merged) are told
-    apart by their primitive count and bounding box (m, rounded to 1 um).
+    indices the same on every load (:func:`mi_lidar.scene.load_scene` also keeps Mitsuba from merging
+    meshes that share a material into one unnamed mesh, so every declared id stays addressable).
+    Unnamed shapes (empty id) are told apart by their primitive count and bounding box (m, rounded
+    to 1 um).
     """
     box = shape.bbox()
     return (shape.id(), shape.primitive_count(), tuple(round(float(v), 6) for v in (*box.min, *box.max)))

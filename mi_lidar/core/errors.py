@@ -40,3 +40,7 @@ class CalibrationError(MiLidarError, ValueError):
 
 class SpecError(MiLidarError, ValueError):
     """A run specification (e.g. a dataset spec file) is missing, malformed or inconsistent."""
+
+
+class SensorMismatchError(MiLidarError, ValueError):
+    """A log was recorded by another sensor than the scene's (beam count, field of view or range scale)."""

@@ -93,7 +93,7 @@ def shape_bounds(scene) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 
 def xml_scene(spec: DatasetSpec, scene_spec: SceneSpec) -> SceneInstance:
     """An XML scene with the boxes of its listed objects (axis-aligned around their shapes)."""
-    scene = load_scene(spec.resolve(scene_spec.xml), optimize=False, **scene_spec.parameters)
+    scene = load_scene(spec.resolve(scene_spec.xml), **scene_spec.parameters)
     bounds = shape_bounds(scene)
     boxes, shape_instance = [], {}
     for i, obj in enumerate(scene_spec.objects):

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.log import Log
 from mi_lidar.hybrid.world import World
 
@@ -81,9 +82,18 @@ def path_poses(world: World, spacing: float = 1.5, sensor: SensorSpec | None = N
     """(S, 4, 4) sensor-to-world poses every ``spacing`` m (in x) along the world's vehicle path.
 
     The sensor sits ``mount_height`` above the terrain, yawed along the path tangent.
+
+    Raises:
+        ParameterError: ``spacing`` leaves no scan on the path.
     """
     sensor = sensor or SensorSpec()
     xs = np.arange(margin, world.spec.length - margin, spacing)
+    if xs.size == 0 or not spacing > 0:
+        raise ParameterError(
+            f"spacing={spacing} m leaves no scan on the {world.spec.length:g} m world's path (x = {margin:g} to "
+            f"{world.spec.length - margin:g} m); choose a spacing below {max(world.spec.length - 2 * margin, 0):g} m "
+            "or a longer world"
+        )
     ys = world.path_y(xs)
     dy = (world.path_y(xs + 0.1) - world.path_y(xs - 0.1)) / 0.2
     yaw = np.arctan2(dy, 1.0)

@@ -38,7 +38,11 @@ def variants(name: str) -> list[dict]:
 
 
 def candidate_names(present: list[Effect], include: list[str] | None = None) -> list[str]:
-    """Registered effects not yet in the model (``include`` restricts and orders them)."""
+    """Registered effects not yet in the model (``include`` restricts and orders them).
+
+    Raises:
+        ParameterError: a name of ``include`` is not in the catalog (the message lists it).
+    """
     have = {e.name for e in present}
-    names = include if include is not None else sorted(EFFECTS)
+    names = [EFFECTS.cls(n).name for n in include] if include is not None else sorted(EFFECTS)
     return [n for n in names if n not in have]

@@ -212,6 +212,7 @@ def compare(
     out: str | Path | None = None,
     seed: int = 0,
     title: str = "Model vs measurements",
+    force: bool = False,
 ) -> Comparison:
     """Compare ``model`` with ``log`` in ``scene`` ray by ray and optionally write a report.
 
@@ -223,14 +224,21 @@ def compare(
             comparison.json); nothing is written when None.
         seed: simulation seed.
         title: report title.
+        force: compare even when the log's sensor does not match the scene's.
 
     Returns:
         The :class:`Comparison`.
+
+    Raises:
+        SensorMismatchError: the log was recorded by another sensor than the scene's
+            (:func:`~mi_lidar.scene.sensor_check.check_log_sensor`).
     """
     from mi_lidar.scene.loading import load_scene, scene_sensor_model
+    from mi_lidar.scene.sensor_check import check_log_sensor
 
     if not hasattr(scene, "shapes"):
         scene = load_scene(scene)
+    check_log_sensor(log, scene, force=force)
     model = model or scene_sensor_model(scene)[0]
     t = ray_table(log, scene, model, seed)
     result = Comparison(headline=metrics(t), breakdowns={b: breakdown(t, b) for b in BREAKDOWNS}, worst=[], table=t)

@@ -31,6 +31,7 @@ import numpy as np
 from scipy import stats
 
 from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
 from mi_lidar.core.problem import Problem, fit_parts, n_parameters
 from mi_lidar.core.rays import LogRays
@@ -52,13 +53,22 @@ def relative_gain(gain: float, nll: float) -> float:
 
 
 def split_rays(log: Log, max_train: int, max_test: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Training and held-out ray indices: alternate scans, or alternate 64-column blocks of one scan.
+    """Training and held-out ray indices: alternate scans, or alternate blocks of 64 columns of one scan
+    (64 beams when the scan has more beams than columns, e.g. a planar scan of N beams x 1 firing).
 
     Each split is subsampled (without replacement, fixed ``seed``) to at most its maximum.
+
+    Raises:
+        LogFormatError: one scan too small to hold out a block (65 columns or beams at least).
     """
     s, h, w = log.shape
-    scan, _, column = np.meshgrid(np.arange(s), np.arange(h), np.arange(w), indexing="ij")
-    train = (scan.ravel() % 2 == 0) if s > 1 else ((column.ravel() // 64) % 2 == 0)
+    scan, beam, column = np.meshgrid(np.arange(s), np.arange(h), np.arange(w), indexing="ij")
+    train = (scan.ravel() % 2 == 0) if s > 1 else (((column if w >= h else beam).ravel() // 64) % 2 == 0)
+    if train.all():
+        raise LogFormatError(
+            f"the log holds one scan of {h} beams x {w} firings: too few to hold out a block of 64 rays; "
+            "give a log of two scans or more"
+        )
     rng = np.random.default_rng(seed)
 
     def cap(index, size):
@@ -185,6 +195,7 @@ def diagnose(
     max_test: int = 200_000,
     seed: int = 0,
     progress=None,
+    force: bool = False,
 ) -> Diagnosis:
     """Rank the effects missing from ``model`` by their held-out gain on ``log``.
 
@@ -199,14 +210,21 @@ def diagnose(
         max_train, max_test: rays per split (random subsample beyond).
         seed: subsampling seed.
         progress: optional callable ``progress(done, total, label)``.
+        force: diagnose even when the log's sensor does not match the scene's.
 
     Returns:
         The :class:`Diagnosis`.
+
+    Raises:
+        SensorMismatchError: the log was recorded by another sensor than the scene's
+            (:func:`~mi_lidar.scene.sensor_check.check_log_sensor`).
     """
     from mi_lidar.scene.loading import load_scene, scene_sensor_model
+    from mi_lidar.scene.sensor_check import check_log_sensor
 
     if not hasattr(scene, "shapes"):
         scene = load_scene(scene)
+    check_log_sensor(log, scene, force=force)
     base = copy.deepcopy(model or scene_sensor_model(scene)[0])
     rays = LogRays.from_log(log)
     train_index, test_index = split_rays(log, max_train, max_test, seed)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import html
 import json
+import re
 from pathlib import Path
 
 import matplotlib
@@ -52,11 +53,19 @@ def fmt(key: str, value) -> str:
     return FMT.get(key, "{}").format(value)
 
 
+CELL_SEPARATOR = re.compile(r"(?<!\\)\|")  # a `|` that is not escaped as `\|`
+
+
+def table_cell(text: str) -> str:
+    """``text`` as a Markdown table cell: ``|`` escaped (``mean |range error|`` would split the row)."""
+    return str(text).replace("|", "\\|")
+
+
 def markdown_table(rows: list[dict], keys: list[str]) -> str:
-    """Rows of dicts as a Markdown table over ``keys``."""
-    head = "| " + " | ".join(NAMES.get(k, k) for k in keys) + " |"
+    """Rows of dicts as a Markdown table over ``keys`` (cells escaped by :func:`table_cell`)."""
+    head = "| " + " | ".join(table_cell(NAMES.get(k, k)) for k in keys) + " |"
     rule = "|" + "---|" * len(keys)
-    body = ["| " + " | ".join(fmt(k, r[k]) for k in keys) + " |" for r in rows]
+    body = ["| " + " | ".join(table_cell(fmt(k, r[k])) for k in keys) + " |" for r in rows]
     return "\n".join([head, rule, *body])
 
 
@@ -240,7 +249,10 @@ def markdown_to_html(md: str, title: str) -> str:
     def flush():
         if table:
             rows = [r for r in table if not set(r.replace("|", "").strip()) <= {"-"}]
-            cells = [[html.escape(c.strip()) for c in r.strip().strip("|").split("|")] for r in rows]
+            cells = [
+                [html.escape(c.strip().replace("\\|", "|")) for c in CELL_SEPARATOR.split(r.strip()[1:-1])]
+                for r in rows
+            ]
             body.append(
                 "<table><tr>"
                 + "".join(f"<th>{c}</th>" for c in cells[0])

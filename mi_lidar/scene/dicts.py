@@ -1,8 +1,9 @@
 """Mitsuba scene dicts from element sets, and saving them as XML plus PLY assets.
 
 An element set is what the hybrid-scene pipeline fits and what calibration adjusts: a triangle
-mesh with per-face Lidar values (:class:`MeshElements`) or a set of Gaussian ellipsoids
-(:class:`EllipsoidElements`). :func:`scene_dict` turns a mapping ``id -> element set`` into a
+mesh with per-face Lidar values (:class:`MeshElements`), a set of Gaussian ellipsoids
+(:class:`EllipsoidElements`) or one analytic shape such as a cylinder (:class:`AnalyticElements`).
+:func:`scene_dict` turns a mapping ``id -> element set`` into a
 dict for ``mi.load_dict``; :func:`save_scene` writes the same scene as XML plus PLY assets that
 load back unchanged.
 """
@@ -59,6 +60,32 @@ class EllipsoidElements:
     extent: float = 3.0
 
 
+@dataclass
+class AnalyticElements:
+    """A Mitsuba analytic shape (sphere, cylinder, disk: one element) with its Lidar values.
+
+    Attributes:
+        plugin: Mitsuba shape plugin, one of :data:`~mi_lidar.scene.files.ANALYTIC_SHAPES`.
+        to_world: (4, 4) object-to-world matrix (m) placing Mitsuba's unit shape.
+        p_hit: hit probability in [0, 1].
+        label: class label.
+        range_sigma: range standard deviation (m), or None for the sensor default.
+    """
+
+    plugin: str
+    to_world: np.ndarray
+    p_hit: float
+    label: int
+    range_sigma: float | None = None
+
+    def material(self) -> dict:
+        """The nested ``lidar_material`` as a dict for ``mi.load_dict``."""
+        material = {"type": "lidar_material", "p_hit": float(self.p_hit), "label": int(self.label)}
+        if self.range_sigma is not None:
+            material["range_sigma"] = float(self.range_sigma)
+        return material
+
+
 def _column(values, n: int, name: str) -> np.ndarray:
     array = np.asarray(values, dtype=np.float32).reshape(-1)
     if array.size != n:
@@ -106,9 +133,16 @@ def scene_dict(element_sets: dict, sensor: dict | None = None, integrator: dict 
             scene[key] = mesh_object(key, elements)
         elif isinstance(elements, EllipsoidElements):
             scene[key] = ellipsoids_dict(elements)
+        elif isinstance(elements, AnalyticElements):
+            scene[key] = {
+                "type": elements.plugin,
+                "to_world": mi.ScalarTransform4f(np.asarray(elements.to_world, np.float64)),
+                "bsdf": elements.material(),
+            }
         else:
             raise ParameterError(
-                f"element set {key!r} is a {type(elements).__name__}; expected MeshElements or EllipsoidElements"
+                f"element set {key!r} is a {type(elements).__name__}; "
+                "expected MeshElements, EllipsoidElements or AnalyticElements"
             )
     if sensor is not None:
         scene["sensor"] = sensor
@@ -134,6 +168,17 @@ def save_scene(path, element_sets: dict, extra_xml: str = "") -> Path:
                 label=elements.label,
             )
             entries.append(ShapeEntry(id=key, kind="mesh", filename=f"{assets.name}/{key}.ply"))
+        elif isinstance(elements, AnalyticElements):
+            entries.append(
+                ShapeEntry(
+                    id=key,
+                    kind=elements.plugin,
+                    to_world=elements.to_world,
+                    p_hit=float(elements.p_hit),
+                    range_sigma=elements.range_sigma,
+                    label=int(elements.label),
+                )
+            )
         else:
             write_ellipsoids_ply(
                 filename,

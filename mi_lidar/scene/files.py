@@ -12,7 +12,8 @@ Two element kinds make a scene (thesis ch. 4.3):
   ``extent`` (in sigmas, default 3) is the Mahalanobis radius of the drawn surface.
 
 Per-shape values (used where a per-element value is absent) go in a nested
-``<bsdf type="lidar_material">`` with ``p_hit``, ``range_sigma`` and ``label``.
+``<bsdf type="lidar_material">`` with ``p_hit``, ``range_sigma`` and ``label``; analytic shapes
+(spheres, cylinders, disks: one element each) carry their values there alone.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from mi_lidar.core.atomic import atomic_write
 from mi_lidar.core.errors import ParameterError
 
 ELEMENT_ATTRIBUTES = ("p_hit", "range_sigma", "label")
+ANALYTIC_SHAPES = ("sphere", "cylinder", "disk")  # one element each, placed by their to_world alone
 
 
 def _element_columns(n: int, p_hit, range_sigma, label) -> list[tuple[str, np.ndarray]]:
@@ -113,31 +115,38 @@ class ShapeEntry:
 
     Attributes:
         id: unique shape id.
-        kind: ``"mesh"`` (a PLY triangle mesh) or ``"ellipsoids"``.
-        filename: PLY path, relative to the XML file.
+        kind: ``"mesh"`` (a PLY triangle mesh), ``"ellipsoids"``, or one of :data:`ANALYTIC_SHAPES`
+            (a Mitsuba analytic shape placed by ``to_world``).
+        filename: PLY path, relative to the XML file (None for analytic shapes).
         p_hit, range_sigma, label: per-shape defaults written to a nested ``lidar_material``
             (None leaves Mitsuba's/sensor's default).
         extent: ellipsoid extent in sigmas (ellipsoids only).
+        to_world: (4, 4) object-to-world matrix, m (analytic shapes only).
     """
 
     id: str
     kind: str
-    filename: str
+    filename: str | None = None
     p_hit: float | None = None
     range_sigma: float | None = None
     label: int | None = None
     extent: float | None = None
+    to_world: np.ndarray | None = None
 
 
 def shape_xml(entry: ShapeEntry, indent: str = "    ") -> str:
     """The ``<shape>`` element of ``entry`` as an XML string."""
     mitsuba_type = {"mesh": "ply", "ellipsoids": "ellipsoids"}.get(entry.kind)
+    if mitsuba_type is None and entry.kind not in ANALYTIC_SHAPES:
+        raise ParameterError(
+            f"shape {entry.id!r}: kind {entry.kind!r} is not 'mesh', 'ellipsoids' or one of {ANALYTIC_SHAPES}"
+        )
+    lines = [f'{indent}<shape type="{mitsuba_type or entry.kind}" id={quoteattr(entry.id)}>']
     if mitsuba_type is None:
-        raise ParameterError(f"shape {entry.id!r}: kind {entry.kind!r} is not 'mesh' or 'ellipsoids'")
-    lines = [
-        f'{indent}<shape type="{mitsuba_type}" id={quoteattr(entry.id)}>',
-        f'{indent}    <string name="filename" value={quoteattr(entry.filename)}/>',
-    ]
+        matrix = " ".join(f"{v:.9g}" for v in np.asarray(entry.to_world, np.float64).ravel())
+        lines.append(f'{indent}    <transform name="to_world"><matrix value="{matrix}"/></transform>')
+    else:
+        lines.append(f'{indent}    <string name="filename" value={quoteattr(entry.filename)}/>')
     if entry.extent is not None:
         lines.append(f'{indent}    <float name="extent" value="{entry.extent:g}"/>')
     material = []

@@ -12,13 +12,14 @@ from mi_lidar.core.errors import MiLidarError, SceneError
 from mi_lidar.core.sensor_model import SensorModel
 
 
-def load_scene(source, optimize: bool = True, **parameters):
+def load_scene(source, optimize: bool = False, **parameters):
     """Load a Mitsuba scene from an XML path or a scene dict.
 
     Args:
         source: path of a scene XML, or a dict for ``mi.load_dict``.
-        optimize: let Mitsuba merge meshes that share a material (faster); False keeps every
-            shape with its own id (needed to tell objects apart by shape).
+        optimize: let Mitsuba merge meshes that share a material into one unnamed mesh (faster to
+            build). Off by default, so every shape keeps its declared id: ``elements.<id>.*`` names
+            every shape of the file and shape ids tell objects apart.
         parameters: values for the XML's ``<default>`` parameters (``$name``).
 
     Raises:
@@ -27,7 +28,7 @@ def load_scene(source, optimize: bool = True, **parameters):
     """
     try:
         if isinstance(source, dict):
-            return mi.load_dict(source)
+            return mi.load_dict(source, optimize=False)
         path = Path(source)
         if not path.is_file():
             raise SceneError(f"{path}: no such scene file")

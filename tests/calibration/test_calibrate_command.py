@@ -12,7 +12,7 @@ from mi_lidar.calibration.commands import calibrate_command
 from mi_lidar.calibration.fit import Calibration, FitOptions
 from mi_lidar.cli import app
 from mi_lidar.core.elements import ElementTable
-from mi_lidar.core.errors import CalibrationError
+from mi_lidar.core.errors import CalibrationError, SensorMismatchError
 from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import LogRays
 from mi_lidar.scene.dicts import save_scene, scene_dict
@@ -114,7 +114,7 @@ def test_log_from_another_sensor_is_rejected(files):
     text = start.read_text().replace('value="vlp16"', 'value="hdl32e"')
     other = tmp / "other.xml"
     other.write_text(text)
-    with pytest.raises(CalibrationError, match="does not match the scene's `lidar` sensor"):
+    with pytest.raises(SensorMismatchError, match=r"does not match the scene's `lidar` sensor.*16 beams vs 32"):
         Calibration(mi_lidar.load_scene(other), mi_lidar.Log.load(log), ["elements.*.p_hit"])
 
 

@@ -1,0 +1,57 @@
+"""The one progress helper of the command line: rich bars on a terminal, plain lines in logs.
+
+On a terminal a transient rich bar shows the task; when stdout is not a terminal (CI logs, files,
+pipes) the same updates print plain lines ``label: done/total (elapsed s)`` at most every
+:data:`PLAIN_EVERY_S` seconds, plus the first and the last, and ``label: done (elapsed s)`` at the
+end, so a log shows that work goes on and how long it took.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterator
+
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+from mi_lidar.cli.app import console
+
+PLAIN_EVERY_S = 10.0
+
+
+@contextlib.contextmanager
+def progress(label: str, total: int | None = None) -> Iterator[Callable[..., None]]:
+    """Yield ``update(done, total=None, label=None)`` that reports progress of a long verb.
+
+    Args:
+        label: what is being done (the bar's text, the plain lines' prefix).
+        total: number of steps, or None when unknown (a spinner; plain lines show elapsed time).
+    """
+    start = time.perf_counter()
+    if console.is_terminal:
+        columns = (TextColumn("[bold]{task.description}"), BarColumn(), TimeElapsedColumn())
+        with Progress(*columns, console=console, transient=True) as bar:
+            task = bar.add_task(label, total=total)
+
+            def update(done: int, total: int | None = None, label: str | None = None) -> None:
+                bar.update(
+                    task,
+                    completed=done,
+                    **({"total": total} if total else {}),
+                    **({"description": label} if label else {}),
+                )
+
+            yield update
+        return
+    state = {"last": -float("inf"), "label": label, "total": total}
+
+    def plain(done: int, total: int | None = None, label: str | None = None) -> None:
+        state["label"], state["total"] = label or state["label"], total or state["total"]
+        now = time.perf_counter()
+        if now - state["last"] >= PLAIN_EVERY_S or (state["total"] and done >= state["total"]):
+            count = f"{done}/{state['total']}" if state["total"] else f"{done}"
+            console.print(f"{state['label']}: {count} ({now - start:.0f} s)", highlight=False)
+            state["last"] = now
+
+    yield plain
+    console.print(f"{label}: done ({time.perf_counter() - start:.0f} s)", highlight=False)
