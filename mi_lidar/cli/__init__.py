@@ -10,10 +10,11 @@ module                 verbs
 :mod:`.calibrate`      ``calibrate``
 :mod:`.sensor`         ``fit-sensor``
 :mod:`.benchmark`      ``benchmark-planar``
+:mod:`.apps`           ``evaluate-apps``
 =====================  ==========================================================================
 """
 
-from mi_lidar.cli import benchmark, calibrate, convert, hybrid, loop, render, sensor  # noqa: F401  (register)
+from mi_lidar.cli import apps, benchmark, calibrate, convert, hybrid, loop, render, sensor  # noqa: F401  (register)
 from mi_lidar.cli.app import app
 
 __all__ = ["app"]

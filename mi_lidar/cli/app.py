@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import time
 
 import typer
 from rich.console import Console
@@ -42,6 +43,19 @@ app = typer.Typer(
     add_completion=False,
     rich_markup_mode="markdown",
 )
+
+
+def throttled_progress(every: float = 5.0):
+    """A ``progress(done, total, label)`` callback that logs at most every ``every`` seconds (and at the end)."""
+    last = [0.0]
+
+    def progress(done: int, total: int, label: str) -> None:
+        now = time.perf_counter()
+        if now - last[0] > every or done == total:
+            console.log(f"{label}: {done}/{total}")
+            last[0] = now
+
+    return progress
 
 
 def versions() -> dict[str, str]:

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import typer
 from rich.table import Table
 
-from mi_lidar.cli.app import app, console
+from mi_lidar.cli.app import app, console, throttled_progress
 
 
 @app.command("benchmark-planar", rich_help_panel="The loop")
@@ -44,21 +43,13 @@ def benchmark_planar(
     from mi_lidar.planar.benchmark import MODELS, benchmark_file
     from mi_lidar.planar.protocol import PlanarProtocol
 
-    last = [0.0]
-
-    def progress(done: int, total: int, label: str) -> None:
-        now = time.perf_counter()
-        if now - last[0] > 5.0 or done == total:
-            console.log(f"{label}: {done}/{total}")
-            last[0] = now
-
     result = benchmark_file(
         log,
         out,
         max_range,
         PlanarProtocol(cell=cell, test_every=test_every, radius=radius, window=window),
         tuple(model) if model else MODELS,
-        progress=progress,
+        progress=throttled_progress(),
     )
     table = Table(
         title=f"{log.name}: {result.data.test.n:,} test beams (nats per beam)",
