@@ -6,15 +6,18 @@ gathers the states, the measured and the sampled scans; every application is run
 at the prior draws and along the development paths (:func:`~mi_lidar.apps.risk.evaluate_application`).
 
 Caches (in ``OUT/cache``): ``datasets.npz`` (states and scans; keyed by the log's SHA-256, the
-protocol, the simulators and the seed) and ``objectives.json`` (every evaluated ``J``, keyed by the
-same and the applications' settings), so a rerun, or a run stopped half-way, resumes where it was.
+protocol, the simulators and the seed) and ``objectives-<application>.json`` (every evaluated ``J``,
+keyed by the same and the application's settings), so a rerun, or a run stopped half-way, resumes
+where it was.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -119,6 +122,18 @@ def _load_datasets(file: Path, key: str):
         return states, ranges, json.loads(str(z["benchmark"]))
 
 
+def app_settings(app, draws: int, seed: int) -> str:
+    """What an application's cached objectives depend on besides the datasets."""
+    return json.dumps([app.name, repr(app), draws, seed, CACHE_VERSION])
+
+
+def _run_one(app, states, ranges, file: Path, key: str, draws: int, seed: int, progress=None):
+    """One application's :class:`AppResult` (cached in ``file``) and the seconds it took."""
+    t0 = time.perf_counter()
+    result = evaluate_application(app, Objectives(states, ranges, file, key, progress), m=draws, seed=seed)
+    return result, time.perf_counter() - t0
+
+
 def evaluate_datasets(
     states: PlanarStates,
     ranges: dict[str, np.ndarray],
@@ -129,6 +144,7 @@ def evaluate_datasets(
     draws: int = 16,
     runs: int = 3,
     seed: int = 0,
+    workers: int = 1,
     progress=None,
 ) -> AppsEvaluation:
     """Evaluate every planar application on datasets of the same states and write the report to ``out``.
@@ -143,6 +159,8 @@ def evaluate_datasets(
         draws: prior draws of the risk.
         runs: runs of each stochastic application per evaluation.
         seed: seed of the draws.
+        workers: processes running the applications side by side (each caches its own objectives;
+            progress is then reported per finished application).
         progress: optional ``progress(done, total, label)``.
     """
     from mi_lidar.apps.report import write_report
@@ -150,21 +168,31 @@ def evaluate_datasets(
     say = progress or (lambda done, total, label: None)
     (out / "cache").mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    apps = applications(runs)
-    settings = json.dumps([[a.name, repr(a.parameters), getattr(a, "runs", 1)] for a in apps] + [draws, seed])
-    done = [0]
-    total_hint = len(apps) * (draws + 30) * len(ranges)
-
-    def tick(label: str) -> None:
-        done[0] += 1
-        say(min(done[0], total_hint), total_hint, f"evaluating {label}")
-
-    objectives = Objectives(states, ranges, out / "cache" / "objectives.json", key + settings, tick)
+    jobs = [
+        (app, out / "cache" / f"objectives-{app.name}.json", f"{key}|{app_settings(app, draws, seed)}")
+        for app in applications(runs)
+    ]
     results, seconds = [], {}
-    for app in apps:
-        t0 = time.perf_counter()
-        results.append(evaluate_application(app, objectives, m=draws, seed=seed))
-        seconds[app.name] = time.perf_counter() - t0
+    if workers > 1:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("fork")) as pool:
+            futures = [
+                pool.submit(_run_one, app, states, ranges, file, app_key, draws, seed) for app, file, app_key in jobs
+            ]
+            for k, future in enumerate(futures):
+                result, seconds[jobs[k][0].name] = future.result()
+                results.append(result)
+                say(k + 1, len(jobs), f"evaluated {result.name}")
+    else:
+        for app, file, app_key in jobs:
+            done = [0]
+            hint = (draws + 40) * len(ranges)
+
+            def tick(label: str, done=done, hint=hint) -> None:
+                done[0] += 1
+                say(min(done[0], hint), hint, f"evaluating {label}")
+
+            result, seconds[app.name] = _run_one(app, states, ranges, file, app_key, draws, seed, tick)
+            results.append(result)
     seconds["applications"] = time.perf_counter() - start
     simulators = tuple(name for name in ranges if name != "real")
     evaluation = AppsEvaluation(source, states, simulators, results, benchmark or [], seconds)
@@ -181,6 +209,7 @@ def evaluate_log(
     draws: int = 16,
     runs: int = 3,
     seed: int = 0,
+    workers: int = 1,
     progress=None,
 ) -> AppsEvaluation:
     """Simulate the test states of a CARMEN log with each simulator, then :func:`evaluate_datasets`.
@@ -194,6 +223,7 @@ def evaluate_log(
         draws: prior draws of the risk.
         runs: runs of each stochastic application per evaluation.
         seed: seed of the sampled scans and of the draws.
+        workers: processes running the applications side by side.
         progress: optional ``progress(done, total, label)``.
     """
     from mi_lidar.io.carmen import read_carmen
@@ -217,6 +247,6 @@ def evaluate_log(
     else:
         states, ranges, benchmark = loaded
     seconds = time.perf_counter() - start
-    evaluation = evaluate_datasets(states, ranges, out, str(path), benchmark, key, draws, runs, seed, progress)
+    evaluation = evaluate_datasets(states, ranges, out, str(path), benchmark, key, draws, runs, seed, workers, progress)
     evaluation.seconds = {"datasets": seconds, **evaluation.seconds, "total": time.perf_counter() - start}
     return evaluation

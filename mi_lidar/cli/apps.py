@@ -24,6 +24,7 @@ def evaluate_apps(
     ),
     draws: int = typer.Option(16, min=2, help="Prior draws of each application's parameters for the risk."),
     runs: int = typer.Option(3, min=1, help="Runs of the stochastic applications (EKF, particle filter) per setting."),
+    workers: int = typer.Option(1, min=1, help="Processes running the applications side by side (up to 3)."),
     test_every: int = typer.Option(5, min=2, help="Every k-th scan is a test state (the planar protocol)."),
     window: float = typer.Option(30.0, min=0.0, help="A state's map leaves out the scans within 1 m and this many s."),
 ):
@@ -51,6 +52,7 @@ def evaluate_apps(
         tuple(simulator) if simulator else SIMULATORS,
         draws=draws,
         runs=runs,
+        workers=workers,
         progress=throttled_progress(),
     )
     table = Table(
