@@ -62,16 +62,16 @@ def evaluate_apps(
         header_style="bold",
     )
     table.add_column("application", no_wrap=True)
-    table.add_column("J", justify="left")
     for name in result.simulators:
-        table.add_column(name, justify="right")
+        table.add_column(name, justify="right", no_wrap=True)
     for r in result.results:
         best = min(r.risk.values())
         cells = []
         for name in result.simulators:
-            mark = "ok" if r.picks[name]["within"] else "off"
-            value = f"{r.risk[name]:.4g} ({mark})"
+            value = f"{r.risk[name]:.4g} ({'ok' if r.picks[name]['within'] else 'off'})"
             cells.append(f"[bold]{value}[/bold]" if r.risk[name] == best else value)
-        table.add_row(r.name, r.objective, *cells)
+        table.add_row(r.name, *cells)
     console.print(table)
+    for r in result.results:
+        console.print(f"{r.name}: J = {r.objective}; best real J found {r.best_real[0]:.4g}")
     console.print(f"{result.states.n} test states; {result.seconds['total']:.0f} s; report: {out / 'apps.html'}")
