@@ -11,10 +11,11 @@ module                 verbs
 :mod:`.sensor`         ``fit-sensor``
 :mod:`.benchmark`      ``benchmark-planar``
 :mod:`.dataset`        ``dataset``
+:mod:`.apps`           ``evaluate-apps``
 =====================  ==========================================================================
 """
 
-from mi_lidar.cli import benchmark, calibrate, convert, dataset, hybrid, loop, render, sensor  # noqa: F401  (register)
+from mi_lidar.cli import apps, benchmark, calibrate, convert, dataset, hybrid, loop, render, sensor  # noqa: F401  (register)
 from mi_lidar.cli.app import app
 
 __all__ = ["app"]

@@ -74,6 +74,7 @@ class PlanarData:
         log: the log.
         protocol: its settings.
         grid: the map grid.
+        counts: the whole-log counts (leave-out maps of any query scan: :meth:`CountMap.leave_out`).
         test, train: the traced beams of the test and training scans.
         seconds: time spent per stage.
     """
@@ -81,6 +82,7 @@ class PlanarData:
     log: Log
     protocol: PlanarProtocol
     grid: Grid
+    counts: CountMap
     test: PlanarTrace
     train: PlanarTrace
     seconds: dict
@@ -113,5 +115,5 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None) -> 
         traces[name] = PlanarTrace.concatenate(parts)
         seconds[name] = time.perf_counter() - start
     return PlanarData(
-        log=log, protocol=protocol, grid=grid, test=traces["test"], train=traces["train"], seconds=seconds
+        log=log, protocol=protocol, grid=grid, counts=cmap, test=traces["test"], train=traces["train"], seconds=seconds
     )

@@ -1,0 +1,252 @@
+"""``mi-lidar evaluate-apps``: the planar applications on real and simulated scans of a CARMEN log.
+
+The flow: the real-planar benchmark (:func:`~mi_lidar.planar.benchmark.run_planar_benchmark`) fits
+each simulator on the training scans and samples one scan per test state; :func:`planar_datasets`
+gathers the states, the measured and the sampled scans; every application is run on every dataset
+at the prior draws and along the development paths (:func:`~mi_lidar.apps.risk.evaluate_application`).
+
+Caches (in ``OUT/cache``): ``datasets.npz`` (states and scans; keyed by the log's SHA-256, the
+protocol, the simulators and the seed) and ``objectives-<application>.json`` (every evaluated ``J``,
+keyed by the same and the application's settings), so a rerun, or a run stopped half-way, resumes
+where it was.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import multiprocessing
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mi_lidar.apps.lines import LineDetection
+from mi_lidar.apps.localization import ParticleFilter
+from mi_lidar.apps.registration import ScanToMapEKF
+from mi_lidar.apps.risk import AppResult, Objectives, evaluate_application
+from mi_lidar.apps.scans import PlanarStates, ScanMaps, planar_datasets
+from mi_lidar.core.atomic import atomic_path
+from mi_lidar.core.errors import ParameterError
+from mi_lidar.planar.benchmark import MODELS
+from mi_lidar.planar.grid import Grid
+from mi_lidar.planar.protocol import PlanarProtocol
+
+SIMULATORS = ("M0", "M1", "P-Reg", "NP-Reg", "mi-lidar")
+CACHE_VERSION = 1
+
+
+def applications(runs: int = 3) -> list:
+    """The planar applications, each run ``runs`` times per evaluation where it is stochastic."""
+    return [ScanToMapEKF(runs=runs), ParticleFilter(runs=runs), LineDetection()]
+
+
+@dataclass
+class AppsEvaluation:
+    """Result of :func:`evaluate_log`.
+
+    Attributes:
+        source: the log file.
+        states: the test states.
+        simulators: the simulators' names.
+        results: one :class:`AppResult` per application.
+        benchmark: the benchmark's rows of the simulators (NLL and sample realism).
+        seconds: time per stage.
+    """
+
+    source: str
+    states: PlanarStates
+    simulators: tuple[str, ...]
+    results: list[AppResult]
+    benchmark: list[dict]
+    seconds: dict
+
+    def to_json(self) -> dict:
+        return {
+            "log": self.source,
+            "states": self.states.n,
+            "beams": int(self.states.angles.size),
+            "simulators": list(self.simulators),
+            "benchmark": self.benchmark,
+            "applications": [r.to_json() for r in self.results],
+            "seconds": self.seconds,
+        }
+
+
+def _key(path: Path, protocol: PlanarProtocol, simulators: tuple[str, ...], seed: int, max_range) -> str:
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    settings = {"v": CACHE_VERSION, "protocol": protocol.__dict__, "sim": simulators, "seed": seed, "max": max_range}
+    return digest + "|" + json.dumps(settings, sort_keys=True)
+
+
+def _save_datasets(file: Path, key: str, states: PlanarStates, ranges: dict, benchmark: list[dict]) -> None:
+    grid = states.maps.grid
+    arrays = {
+        "key": np.array(key),
+        "benchmark": np.array(json.dumps(benchmark, default=float)),
+        "scans": states.scans,
+        "angles": states.angles,
+        "poses": states.poses,
+        "odometry": states.odometry,
+        "nominal": states.nominal,
+        "map_start": states.maps.start,
+        "map_cells": states.maps.cells,
+        "grid": np.array([*grid.origin, grid.cell, *grid.shape], np.float64),
+        "sources": np.array(list(ranges)),
+        **{f"ranges/{name}": value for name, value in ranges.items()},
+    }
+    with atomic_path(file) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)
+
+
+def _load_datasets(file: Path, key: str):
+    if not file.exists():
+        return None
+    with np.load(file) as z:
+        if str(z["key"]) != key:
+            return None
+        g = z["grid"]
+        grid = Grid(origin=(float(g[0]), float(g[1])), cell=float(g[2]), shape=(int(g[3]), int(g[4])))
+        states = PlanarStates(
+            scans=z["scans"],
+            angles=z["angles"],
+            poses=z["poses"],
+            odometry=z["odometry"],
+            nominal=z["nominal"],
+            maps=ScanMaps(grid=grid, start=z["map_start"], cells=z["map_cells"]),
+        )
+        ranges = {str(name): z[f"ranges/{name}"] for name in z["sources"]}
+        return states, ranges, json.loads(str(z["benchmark"]))
+
+
+def app_settings(app, draws: int, seed: int) -> str:
+    """What an application's cached objectives depend on besides the datasets."""
+    return json.dumps([app.name, repr(app), draws, seed, CACHE_VERSION])
+
+
+def _run_one(app, states, ranges, file: Path, key: str, draws: int, seed: int, progress=None):
+    """One application's :class:`AppResult` (cached in ``file``) and the seconds it took."""
+    t0 = time.perf_counter()
+    result = evaluate_application(app, Objectives(states, ranges, file, key, progress), m=draws, seed=seed)
+    return result, time.perf_counter() - t0
+
+
+def evaluate_datasets(
+    states: PlanarStates,
+    ranges: dict[str, np.ndarray],
+    out: Path,
+    source: str = "",
+    benchmark: list[dict] | None = None,
+    key: str = "",
+    draws: int = 16,
+    runs: int = 3,
+    seed: int = 0,
+    workers: int = 1,
+    progress=None,
+) -> AppsEvaluation:
+    """Evaluate every planar application on datasets of the same states and write the report to ``out``.
+
+    Args:
+        states: the states.
+        ranges: ``{"real": (T, N), <simulator>: (T, N), ...}`` ranges (m, NaN: no return).
+        out: report folder (``apps.json``, ``apps.html``, PNGs, ``cache/objectives.json``).
+        source: the log file, for the report.
+        benchmark: the simulators' benchmark rows (NLL and sample realism), for the report.
+        key: what the datasets are (the objectives cache is reused only for the same key).
+        draws: prior draws of the risk.
+        runs: runs of each stochastic application per evaluation.
+        seed: seed of the draws.
+        workers: processes running the applications side by side (each caches its own objectives;
+            progress is then reported per finished application).
+        progress: optional ``progress(done, total, label)``.
+    """
+    from mi_lidar.apps.report import write_report
+
+    say = progress or (lambda done, total, label: None)
+    (out / "cache").mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    jobs = [
+        (app, out / "cache" / f"objectives-{app.name}.json", f"{key}|{app_settings(app, draws, seed)}")
+        for app in applications(runs)
+    ]
+    results, seconds = [], {}
+    if workers > 1:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("fork")) as pool:
+            futures = [
+                pool.submit(_run_one, app, states, ranges, file, app_key, draws, seed) for app, file, app_key in jobs
+            ]
+            for k, future in enumerate(futures):
+                result, seconds[jobs[k][0].name] = future.result()
+                results.append(result)
+                say(k + 1, len(jobs), f"evaluated {result.name}")
+    else:
+        for app, file, app_key in jobs:
+            done = [0]
+            hint = (draws + 40) * len(ranges)
+
+            def tick(label: str, done=done, hint=hint) -> None:
+                done[0] += 1
+                say(min(done[0], hint), hint, f"evaluating {label}")
+
+            result, seconds[app.name] = _run_one(app, states, ranges, file, app_key, draws, seed, tick)
+            results.append(result)
+    seconds["applications"] = time.perf_counter() - start
+    simulators = tuple(name for name in ranges if name != "real")
+    evaluation = AppsEvaluation(source, states, simulators, results, benchmark or [], seconds)
+    write_report(evaluation, out)
+    return evaluation
+
+
+def evaluate_log(
+    path: str | Path,
+    out: str | Path,
+    max_range: float | None = None,
+    protocol: PlanarProtocol | None = None,
+    simulators: tuple[str, ...] = SIMULATORS,
+    draws: int = 16,
+    runs: int = 3,
+    seed: int = 0,
+    workers: int = 1,
+    progress=None,
+) -> AppsEvaluation:
+    """Simulate the test states of a CARMEN log with each simulator, then :func:`evaluate_datasets`.
+
+    Args:
+        path: a SLAM-corrected CARMEN log.
+        out: report folder (``apps.json``, ``apps.html``, PNGs, ``cache/``).
+        max_range: the sensor's no-return value (m); default: detected from the log.
+        protocol: the real-planar protocol's settings.
+        simulators: models of the planar benchmark to simulate with.
+        draws: prior draws of the risk.
+        runs: runs of each stochastic application per evaluation.
+        seed: seed of the sampled scans and of the draws.
+        workers: processes running the applications side by side.
+        progress: optional ``progress(done, total, label)``.
+    """
+    from mi_lidar.io.carmen import read_carmen
+    from mi_lidar.planar.benchmark import run_planar_benchmark
+
+    unknown = sorted(set(simulators) - set(MODELS))
+    if unknown or not simulators:
+        raise ParameterError(f"evaluate-apps: unknown simulators {unknown}; choose from {', '.join(MODELS)}")
+    path, out = Path(path), Path(out)
+    protocol = protocol or PlanarProtocol()
+    (out / "cache").mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    key = _key(path, protocol, tuple(simulators), seed, max_range)
+    loaded = _load_datasets(out / "cache" / "datasets.npz", key)
+    if loaded is None:
+        log = read_carmen(path, max_range=max_range)
+        result = run_planar_benchmark(log, str(path), protocol, tuple(simulators), seed=seed, progress=progress)
+        states, ranges = planar_datasets(result)
+        benchmark = [r.to_json() for r in result.rows]
+        _save_datasets(out / "cache" / "datasets.npz", key, states, ranges, benchmark)
+    else:
+        states, ranges, benchmark = loaded
+    seconds = time.perf_counter() - start
+    evaluation = evaluate_datasets(states, ranges, out, str(path), benchmark, key, draws, runs, seed, workers, progress)
+    evaluation.seconds = {"datasets": seconds, **evaluation.seconds, "total": time.perf_counter() - start}
+    return evaluation

@@ -1,0 +1,88 @@
+"""The planar applications on the test room, where the answer is known (tests/apps/room.py)."""
+
+import numpy as np
+import pytest
+
+from mi_lidar.apps.lines import REFERENCE, LineDetection, match_segments, split_and_merge
+from mi_lidar.apps.localization import ParticleFilter, distance_field, low_variance_resample
+from mi_lidar.apps.registration import MapIndex, ScanToMapEKF, icp
+from mi_lidar.apps.scans import compose, relative, scan_points, to_world, wrap
+from tests.apps.room import cast_scans, room_ranges, room_states
+from tests.planar.world import WALLS
+
+
+@pytest.fixture(scope="module")
+def room():
+    return room_states(scans=30)
+
+
+def test_poses_compose_and_invert():
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
+    assert np.allclose(compose(a, relative(a, b)), b)
+    points = rng.normal(size=(4, 2))
+    # A point of frame b seen from the world equals the same point seen through a then a^-1 b.
+    inner = to_world(relative(a[0], b[0]), points)
+    assert np.allclose(to_world(b[0], points), to_world(a[0], inner))
+
+
+def test_icp_registers_a_room_scan_to_the_true_pose(room):
+    ranges = room_ranges(room, sigma=0.02)
+    index = MapIndex.build(room.maps.points(0))
+    for t in (0, 7, 19):
+        start = room.poses[t] + np.array([0.3, -0.25, np.radians(6.0)])
+        result = icp(scan_points(ranges[t], room.angles), index, start, 1.0, 30)
+        pose = result.pose
+        # 2 cm noise on ~180 points: the pose is found to well under a centimetre and a tenth of a degree.
+        assert np.hypot(*(pose[:2] - room.poses[t, :2])) < 0.01, (t, pose, room.poses[t])
+        assert abs(wrap(pose[2] - room.poses[t, 2])) < np.radians(0.1)
+        assert result.share > 0.95 and result.iterations < 30
+
+
+def test_ekf_tracks_the_room_and_unmapped_clutter_needs_a_tight_inlier_distance(room):
+    app = ScanToMapEKF(runs=2, chained=True)
+    tight = {"max_distance": 0.5, "iterations": 12.0, "min_inliers": 0.4}
+    loose = {"max_distance": 1.2, "iterations": 1.0, "min_inliers": 0.0}
+    clean = app.evaluate(tight, room, room_ranges(room, sigma=0.02))
+    assert clean["J"] < 0.03 and clean["rejected"] == 0.0, clean
+    clutter = room_ranges(room, sigma=0.02, short=0.25)
+    # A quarter of the returns short of the walls: one ICP step with far pairs is pulled off (measured 0.12 vs 0.024 m).
+    assert app.evaluate(loose, room, clutter)["J"] > 3 * app.evaluate(tight, room, clutter)["J"]
+
+
+def test_particle_filter_localizes_in_the_room(room):
+    app = ParticleFilter(runs=2)
+    ranges = room_ranges(room, sigma=0.02)
+    good = app.evaluate({"particles": 400.0, "sigma_hit": 0.1, "z_rand": 0.05}, room, ranges)
+    assert good["J"] < 0.08 and good["divergence"] == 0.0, good
+    # 50 particles with a 1 cm likelihood field lose track (measured J 0.36 m on 40 states).
+    poor = app.evaluate({"particles": 50.0, "sigma_hit": 0.01, "z_rand": 0.001}, room, ranges)
+    assert poor["J"] > 3 * good["J"], (poor, good)
+
+
+def test_distance_field_and_resampling():
+    occupancy = np.zeros((5, 5), bool)
+    occupancy[2, 2] = True
+    field = distance_field(occupancy, 0.1)
+    assert field[2, 2] == 0 and field[2, 4] == 20 and field[0, 0] == round(100 * np.hypot(0.2, 0.2))
+    picks = low_variance_resample(np.array([0.0, 0.75, 0.25, 0.0]), np.random.default_rng(1))
+    assert np.array_equal(np.bincount(picks, minlength=4), [0, 3, 1, 0])
+
+
+def test_split_and_merge_finds_the_visible_walls_of_the_room(room):
+    pose = room.poses[5:6]
+    per_wall = np.stack([cast_scans(pose, room.angles, WALLS[k : k + 1])[0] for k in range(len(WALLS))])  # (W, N)
+    ranges = per_wall.min(axis=0) + np.random.default_rng(3).normal(0.0, 0.01, room.angles.size)
+    found = split_and_merge(scan_points(ranges, room.angles), REFERENCE["split"], 8, REFERENCE["gap"])
+    # The walls that at least 8 beams see, in the laser frame.
+    visible = np.flatnonzero(np.bincount(np.argmin(per_wall, axis=0), minlength=len(WALLS)) >= 8)
+    ends = [relative(pose[0], np.c_[WALLS[visible, k : k + 2], np.zeros(visible.size)])[:, :2] for k in (0, 2)]
+    assert len(visible) >= 3 and len(found) == len(visible), (found, visible)
+    assert match_segments(found, np.concatenate(ends, axis=1)) == len(visible)
+
+
+def test_line_detection_is_perfect_on_the_maps_own_walls(room):
+    app = LineDetection()
+    assert app.evaluate(REFERENCE, room, room.nominal)["J"] == 0.0
+    noisy = room_ranges(room, sigma=0.02, short=0.2)
+    assert app.evaluate({"split": 0.01, "min_points": 3.0, "gap": 2.0}, room, noisy)["J"] > 0.5
