@@ -110,7 +110,7 @@ def test_samples_follow_the_scored_density():
     and 3 %, and are integers clipped to [0, max_value]."""
     n = 20000
     seg = segment(np.full(n, 8.0), np.full(n, 0.8), np.full(n, 0.5))
-    model = IntensityModel(gain=100.0, noise_floor=2.0, noise_relative=0.1, max_value=255.0)
+    model = IntensityModel(gain=100.0, noise_floor=2.0, noise_relative=0.1, max_value=255.0, p_outlier=0.0)
     u = mi.Float(np.random.default_rng(0).uniform(size=n).astype(np.float32))
     draws = np.asarray(model.sample(seg, u, rays_of(np.zeros(n, np.uint32))))
     mean = float(np.asarray(model.expected(seg, rays_of([0])))[0])

@@ -13,7 +13,8 @@ per-beam gain. Sensors report it in one of two scales (option ``law``):
   target, above 100 for retroreflectors).
 
 The reported value is Gaussian about ``I`` with ``sigma^2 = noise_floor^2 + (noise_relative I)^2``,
-rounded to the sensor's integer units and clipped to ``[0, max_value]`` when sampled. The
+except for a fraction ``p_outlier`` of returns whose value is uniform on ``[0, max_value]`` (edges
+mixing two surfaces, glints), rounded to the sensor's integer units and clipped to ``[0, max_value]`` when sampled. The
 likelihood scores a measured intensity by that Gaussian's density per unit (the probability of its
 one-unit bin), inside the pass-through mixture: the return from element ``k`` has the joint density
 ``f_k(z) g_k(I)`` (:func:`mi_lidar.core.likelihood.mixture_log_likelihood`), so the element that
@@ -34,7 +35,7 @@ import numpy as np
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import Parametrized, ParamSpec, parse_calls
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import LOG_SQRT_2PI, Segment
+from mi_lidar.core.segment import Segment
 
 REFERENCE_RANGE = 10.0  # m: the range at which `gain` is the raw signal of a white target (law=signal)
 
@@ -87,6 +88,15 @@ class IntensityModel(Parametrized):
         "noise_relative": ParamSpec(
             0.1, "1", "standard deviation proportional to the intensity", lower=0.0, upper=10.0, fit_lower=1e-3
         ),
+        "p_outlier": ParamSpec(
+            0.01,
+            "1",
+            "fraction of returns with a value uniform on [0, max_value]",
+            lower=0.0,
+            upper=0.5,
+            fit_scale=0.01,
+            fit_lower=1e-4,
+        ),
         "max_value": ParamSpec(255.0, "units", "largest value the sensor reports", lower=1.0, fit=False),
     }
 
@@ -110,13 +120,18 @@ class IntensityModel(Parametrized):
         mean = self.expected(seg, rays)
         sigma = self.sigma(mean)
         x = (intensity - mean) / sigma
-        return -0.5 * x * x - dr.log(sigma) - LOG_SQRT_2PI
+        gaussian = dr.exp(-0.5 * x * x) / (sigma * math.sqrt(2.0 * math.pi))
+        outlier = self["p_outlier"]
+        return dr.log((1.0 - outlier) * gaussian + outlier / self["max_value"] + 1e-30)
 
     def sample(self, seg: Segment, u: mi.Float, rays: RayBatch) -> mi.Float:
         """A reported intensity per lane from one uniform number ``u`` in [0, 1) (integer units, clipped)."""
         mean = self.expected(seg, rays)
-        normal = math.sqrt(2.0) * dr.erfinv(2.0 * dr.clip(u, 1e-7, 1.0 - 1e-7) - 1.0)
-        return dr.clip(dr.round(mean + self.sigma(mean) * normal), 0.0, self["max_value"])
+        outlier = self["p_outlier"]
+        v = dr.clip((u - outlier) / (1.0 - outlier), 1e-7, 1.0 - 1e-7)  # uniform again above p_outlier
+        value = mean + self.sigma(mean) * math.sqrt(2.0) * dr.erfinv(2.0 * v - 1.0)
+        value = dr.select(u < outlier, u / dr.maximum(outlier, 1e-12) * self["max_value"], value)
+        return dr.clip(dr.round(value), 0.0, self["max_value"])
 
 
 def parse_intensity(spec: str) -> IntensityModel:
