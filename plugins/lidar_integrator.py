@@ -37,10 +37,18 @@ class LidarIntegrator(mi.SamplingIntegrator):
          (default: each element's Gaussian), ``beam(...)``, or a learned model saved by
          ``mi-lidar fit-sensor``: ``np_reg(file=sensor.npz)`` (paths relative to the scene file).
          Its parameters are traversed as ``density.<name>.<parameter>``.
+     * - intensity
+       - |string|
+       - The returned intensity in the sensor's scale, from the elements' ``reflectivity``, range,
+         incidence and a per-beam gain (see :mod:`mi_lidar.core.intensity`), e.g.
+         ``intensity(law=signal, gain=1000, near_range=1.5)``. Its parameters are traversed as
+         ``intensity.<parameter>``. Default: ``intensity(law=reflectivity, gain=100)`` (about 100 per
+         unit of reflectivity head-on, the Ouster / Velodyne calibrated scale).
 
-    ``mi.render`` returns a tensor of shape (beams, firings, 8) whose channels are, in order,
+    ``mi.render`` returns a tensor of shape (beams, firings, 9) whose channels are, in order,
     :data:`CHANNELS`: ``range`` (m, NaN for a miss), ``hit`` (0/1), ``element_id``, ``shape_id``
-    (-1 for a miss), ``label``, ``cos_incidence``, ``nominal_range`` (m), ``segments``. The same
+    (-1 for a miss), ``label``, ``cos_incidence``, ``nominal_range`` (m), ``segments``,
+    ``intensity`` (sensor units, 0 for a miss). The same
     core serves :func:`mi_lidar.simulate`, so both paths agree ray for ray for the same seed.
 
     .. tabs::
@@ -50,6 +58,7 @@ class LidarIntegrator(mi.SamplingIntegrator):
             <integrator type="lidar_integrator">
                 <integer name="max_segments" value="8"/>
                 <string name="effects" value="range_noise(law=constant, sigma0=0.02)"/>
+                <string name="intensity" value="intensity(law=reflectivity, gain=100)"/>
             </integrator>
 
         .. code-tab:: python
@@ -60,6 +69,7 @@ class LidarIntegrator(mi.SamplingIntegrator):
     def __init__(self, props: mi.Properties):
         from mi_lidar.core.densities import parse_density
         from mi_lidar.core.effects import parse_effects
+        from mi_lidar.core.intensity import parse_intensity
 
         super().__init__(props)
         self.max_segments = int(props.get("max_segments", 16))
@@ -69,6 +79,7 @@ class LidarIntegrator(mi.SamplingIntegrator):
         self.density = parse_density(
             str(props.get("density", "gaussian")), resolve=lambda name: str(mi.file_resolver().resolve(name))
         )
+        self.intensity = parse_intensity(str(props.get("intensity", "")))
 
     def sensor_model(self, sensor):
         """The :class:`~mi_lidar.core.sensor_model.SensorModel` of ``sensor`` with this integrator's settings."""
@@ -81,6 +92,7 @@ class LidarIntegrator(mi.SamplingIntegrator):
             max_segments=self.max_segments,
             effects=self.effects,
             density=self.density,
+            intensity=self.intensity,
         )
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -111,6 +123,8 @@ class LidarIntegrator(mi.SamplingIntegrator):
                 callback.put(f"effects.{effect.name}.{key}", value, mi.ParamFlags.Differentiable)
         for key, value in self.density.parameters().items():
             callback.put(f"density.{self.density.name}.{key}", value, mi.ParamFlags.Differentiable)
+        for key, value in self.intensity.parameters().items():
+            callback.put(f"intensity.{key}", value, mi.ParamFlags.Differentiable)
 
     def aov_names(self):
         from mi_lidar.core.sensor_model import CHANNELS

@@ -32,9 +32,16 @@ class LidarMaterial(mi.BSDF):
      * - reflectance
        - |float|
        - Diffuse albedo (0 to 1) seen by cameras, so one scene serves camera and Lidar. Default: 0.5.
+     * - reflectivity
+       - |float|
+       - Lambertian reflectivity at the Lidar's wavelength (0 black, 1 white diffuse target, above 1
+         for retroreflectors, at most 100). It sets the returned intensity and weak-return dropout
+         (:mod:`mi_lidar.core.intensity`, ``reflectivity_dropout``). Default: ``reflectance`` (a
+         camera albedo seeds it when no Lidar data exist). Fitted per element by
+         ``mi_lidar.calibration.intensity``.
 
-    Per-element values stored in the shape's PLY (``p_hit_0``, ``range_sigma_0``, ``label_0``)
-    take precedence over these per-shape values.
+    Per-element values stored in the shape's PLY (``p_hit_0``, ``range_sigma_0``, ``label_0``,
+    ``reflectivity_0``) take precedence over these per-shape values.
 
     .. tabs::
 
@@ -45,12 +52,13 @@ class LidarMaterial(mi.BSDF):
                 <bsdf type="lidar_material">
                     <float name="p_hit" value="0.3"/>
                     <integer name="label" value="4"/>
+                    <float name="reflectivity" value="0.12"/>
                 </bsdf>
             </shape>
 
         .. code-tab:: python
 
-            {'type': 'lidar_material', 'p_hit': 0.3, 'label': 4}
+            {'type': 'lidar_material', 'p_hit': 0.3, 'label': 4, 'reflectivity': 0.12}
     """
 
     def __init__(self, props: mi.Properties):
@@ -59,11 +67,13 @@ class LidarMaterial(mi.BSDF):
         self.range_sigma = float(props.get("range_sigma", math.nan))
         self.label = int(props.get("label", 0))
         self.reflectance = float(props.get("reflectance", 0.5))
+        self.reflectivity = float(props.get("reflectivity", self.reflectance))
         checks = [
             ("p_hit", self.p_hit, 0.0 <= self.p_hit <= 1.0, "[0, 1]"),
             ("range_sigma", self.range_sigma, math.isnan(self.range_sigma) or self.range_sigma >= 0, ">= 0 m"),
             ("label", self.label, self.label >= 0, ">= 0"),
             ("reflectance", self.reflectance, 0.0 <= self.reflectance <= 1.0, "[0, 1]"),
+            ("reflectivity", self.reflectivity, 0.0 <= self.reflectivity <= 100.0, "[0, 100]"),
         ]
         for name, value, ok, allowed in checks:
             if not ok:
@@ -94,13 +104,21 @@ class LidarMaterial(mi.BSDF):
         return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
 
     def eval_attribute_1(self, name, si, active=True):
-        values = {"p_hit": self.p_hit, "range_sigma": self.range_sigma, "label": float(self.label)}
+        values = {
+            "p_hit": self.p_hit,
+            "range_sigma": self.range_sigma,
+            "label": float(self.label),
+            "reflectivity": self.reflectivity,
+        }
         if name not in values:
             raise ParameterError(f"lidar_material has no attribute {name!r}; use one of {sorted(values)}")
         return mi.Float(values[name])
 
     def to_string(self):
-        return f"LidarMaterial[p_hit={self.p_hit}, range_sigma={self.range_sigma}, label={self.label}]"
+        return (
+            f"LidarMaterial[p_hit={self.p_hit}, range_sigma={self.range_sigma}, label={self.label}, "
+            f"reflectivity={self.reflectivity}]"
+        )
 
 
 mi.register_bsdf("lidar_material", lambda props: LidarMaterial(props))

@@ -4,6 +4,7 @@ import pytest
 
 from mi_lidar._variant import find_llvm, require_jit_variant, select_variant
 from mi_lidar.core.errors import SetupError
+from mi_lidar.core.sensor_model import CHANNELS
 
 
 class FakeMitsuba:
@@ -64,6 +65,6 @@ def test_plugins_are_registered_again_after_a_variant_change():
             }
         )
         image = mi.render(scene)
-        assert image.shape == (180, 1, 8)
+        assert image.shape == (180, 1, len(CHANNELS))
     finally:
         mi.set_variant("llvm_ad_rgb")

@@ -9,9 +9,10 @@ differentiable logit array, or ``vertex_positions`` by fitted heights) and gradi
 the same gathers.
 
 Values come, in order of precedence, from per-element attributes (mesh PLY face properties
-``p_hit_0``, ``range_sigma_0``, ``label_0``; ellipsoid PLY extras or ``(N, 1)`` tensors ``p_hit``,
-``range_sigma``, ``label``), from the shape's nested ``lidar_material``, and from defaults (opaque,
-the sensor's ``range_sigma``, label 0).
+``p_hit_0``, ``range_sigma_0``, ``label_0``, ``reflectivity_0``; ellipsoid PLY extras or ``(N, 1)``
+tensors ``p_hit``, ``range_sigma``, ``label``, ``reflectivity``), from the shape's nested
+``lidar_material``, and from defaults (opaque, the sensor's ``range_sigma``, label 0, reflectivity
+:data:`DEFAULT_REFLECTIVITY`).
 
 Two ways to build the :class:`~mi_lidar.core.segment.Segment` of an element met by a ray:
 
@@ -32,6 +33,7 @@ import numpy as np
 
 from mi_lidar.core.errors import SceneError
 from mi_lidar.core.segment import (
+    DEFAULT_REFLECTIVITY,
     ELLIPSOID,
     SURFACE,
     Segment,
@@ -68,9 +70,10 @@ def ordered_shapes(scene) -> list:
 
 
 def lidar_material(shape):
-    """The shape's ``lidar_material`` BSDF (anything holding ``p_hit``, ``range_sigma`` and ``label``), or None."""
+    """The shape's ``lidar_material`` BSDF (anything holding ``p_hit``, ``range_sigma``, ``label`` and
+    ``reflectivity``), or None."""
     bsdf = shape.bsdf()
-    return bsdf if all(hasattr(bsdf, name) for name in ("p_hit", "range_sigma", "label")) else None
+    return bsdf if all(hasattr(bsdf, name) for name in ("p_hit", "range_sigma", "label", "reflectivity")) else None
 
 
 def _is_ellipsoids(params) -> bool:
@@ -108,6 +111,8 @@ class ElementTable:
         shape_index: per registry id, index of the shape in ``shape_ids``.
         p_hit, range_sigma: per-element hit probability and range sigma (m); NaN sigma = sensor default.
         label: per-element class label.
+        reflectivity: per-element Lambertian reflectivity at the sensor's wavelength (1 = white
+            diffuse target, above 1 for retroreflectors).
         kind: per-element ``SURFACE`` or ``ELLIPSOID``.
         element_shape: per element, index of its shape in ``shape_ids``.
         ellipsoid_data: all ellipsoids' (center, scale, quaternion), 10 floats each.
@@ -130,6 +135,7 @@ class ElementTable:
     p_hit: mi.Float
     range_sigma: mi.Float
     label: mi.UInt32
+    reflectivity: mi.Float
     kind: mi.UInt32
     element_shape: mi.UInt32
     ellipsoid_data: mi.Float
@@ -155,7 +161,9 @@ class ElementTable:
         n_registry = max(registry_id(s) for s in shapes) + 1
         element_offset = np.zeros(n_registry, np.uint32)
         shape_index = np.zeros(n_registry, np.uint32)
-        columns: dict[str, list] = {k: [] for k in ("p_hit", "range_sigma", "label", "kind", "ellipsoid_index")}
+        columns: dict[str, list] = {
+            k: [] for k in ("p_hit", "range_sigma", "label", "reflectivity", "kind", "ellipsoid_index")
+        }
         ellipsoid_data: list[np.ndarray] = []
         ellipsoid_extent: list[np.ndarray] = []
         vertices: list[np.ndarray] = []
@@ -194,6 +202,7 @@ class ElementTable:
                 "p_hit": material.p_hit if material else 1.0,
                 "range_sigma": material.range_sigma if material else np.nan,
                 "label": material.label if material else 0,
+                "reflectivity": material.reflectivity if material else DEFAULT_REFLECTIVITY,
             }
             for name, default in defaults.items():
                 values = _per_element(shape, params, name, count, ellipsoids)
@@ -219,6 +228,7 @@ class ElementTable:
             p_hit=mi.Float(cat["p_hit"].astype(np.float32)),
             range_sigma=mi.Float(cat["range_sigma"].astype(np.float32)),
             label=mi.UInt32(cat["label"].astype(np.uint32)),
+            reflectivity=mi.Float(cat["reflectivity"].astype(np.float32)),
             kind=mi.UInt32(cat["kind"]),
             element_shape=mi.UInt32(np.concatenate(shape_of)),
             ellipsoid_data=mi.Float(
@@ -235,7 +245,11 @@ class ElementTable:
 
     @classmethod
     def from_elements(
-        cls, p_hit: np.ndarray, label: np.ndarray | None = None, range_sigma: np.ndarray | None = None
+        cls,
+        p_hit: np.ndarray,
+        label: np.ndarray | None = None,
+        range_sigma: np.ndarray | None = None,
+        reflectivity: np.ndarray | None = None,
     ) -> ElementTable:
         """A table of surface elements without scene geometry (segments traced by another tracer).
 
@@ -256,6 +270,11 @@ class ElementTable:
                 np.full(n, np.nan, np.float32) if range_sigma is None else np.asarray(range_sigma, np.float32)
             ),
             label=mi.UInt32(zeros if label is None else np.asarray(label, np.uint32)),
+            reflectivity=mi.Float(
+                np.full(n, DEFAULT_REFLECTIVITY, np.float32)
+                if reflectivity is None
+                else np.asarray(reflectivity, np.float32)
+            ),
             kind=mi.UInt32(np.full(n, SURFACE, np.uint32)),
             element_shape=mi.UInt32(zeros),
             ellipsoid_data=mi.Float(np.zeros(ELLIPSOID_STRIDE, np.float32)),
@@ -281,7 +300,8 @@ class ElementTable:
 
     # ------------------------------------------------------------------ shared per-element values
     def _properties(self, element: mi.UInt32, valid: mi.Bool, default_sigma: float):
-        """Hit probability, range sigma (m, the sensor's where unset), kind, shape and label of ``element``."""
+        """Hit probability, range sigma (m, the sensor's where unset), kind, shape, label and reflectivity of
+        ``element``."""
         sigma = dr.gather(mi.Float, self.range_sigma, element, valid)
         return (
             dr.gather(mi.Float, self.p_hit, element, valid),
@@ -289,6 +309,7 @@ class ElementTable:
             dr.gather(mi.UInt32, self.kind, element, valid),
             dr.gather(mi.UInt32, self.element_shape, element, valid),
             dr.gather(mi.UInt32, self.label, element, valid),
+            dr.gather(mi.Float, self.reflectivity, element, valid),
         )
 
     def _ellipsoid(self, element: mi.UInt32, active: mi.Bool):
@@ -315,7 +336,7 @@ class ElementTable:
             default_sigma: the sensor's range sigma (m), used where an element has none.
         """
         nominal = dr.dot(si.p - origin, direction)
-        p, sigma, kind, shape, label = self._properties(element, valid, default_sigma)
+        p, sigma, kind, shape, label, rho = self._properties(element, valid, default_sigma)
         is_ellipsoid = valid & (kind == ELLIPSOID)
         center, scale, quat, extent = self._ellipsoid(element, is_ellipsoid)
         restricted = ray_restricted_gaussian(center, scale, quat, extent, origin, direction)
@@ -327,6 +348,7 @@ class ElementTable:
             kind,
             shape,
             label,
+            rho,
             is_ellipsoid,
             nominal,
             restricted,
@@ -356,7 +378,7 @@ class ElementTable:
         """
         from mi_lidar.core.smoothing import presence
 
-        p, sigma, kind, shape, label = self._properties(element, valid, default_sigma)
+        p, sigma, kind, shape, label, rho = self._properties(element, valid, default_sigma)
         triangle = valid & dr.gather(mi.Bool, self.is_triangle, element, valid)
 
         # ---------------- Triangles: plane of the face; other surfaces: traced tangent plane ----
@@ -388,6 +410,7 @@ class ElementTable:
             kind,
             shape,
             label,
+            rho,
             is_ellipsoid,
             dr.select(is_ellipsoid, e_lo, t_plane),
             (e_mean, e_sigma, e_lo, e_hi),
@@ -408,7 +431,7 @@ class ElementTable:
             default_sigma: the sensor's range sigma (m), used where an element has none.
         """
         mean, e_sigma, lo, hi = entry.cached
-        p, sigma, kind, shape, label = self._properties(entry.element, valid, default_sigma)
+        p, sigma, kind, shape, label, rho = self._properties(entry.element, valid, default_sigma)
         return Segment(
             valid=valid,
             nominal=entry.nominal,
@@ -422,10 +445,13 @@ class ElementTable:
             shape=shape,
             label=label,
             kind=kind,
+            reflectivity=rho,
         )
 
 
-def _segment(valid, element, p, sigma, kind, shape, label, is_ellipsoid, nominal, restricted, cos_incidence) -> Segment:
+def _segment(
+    valid, element, p, sigma, kind, shape, label, reflectivity, is_ellipsoid, nominal, restricted, cos_incidence
+) -> Segment:
     """A :class:`Segment`: a surface returns around its nominal range; an ellipsoid its restricted Gaussian.
 
     Args:
@@ -445,6 +471,7 @@ def _segment(valid, element, p, sigma, kind, shape, label, is_ellipsoid, nominal
         shape=shape,
         label=label,
         kind=kind,
+        reflectivity=reflectivity,
     )
 
 
@@ -454,6 +481,11 @@ def _check_values(shape_id: str, name: str, values: np.ndarray) -> None:
         raise SceneError(
             f"shape {shape_id!r}: p_hit must lie in [0, 1]; got values in [{np.nanmin(values):.3g}, "
             f"{np.nanmax(values):.3g}]. Clip the hit probabilities to [0, 1]."
+        )
+    if name == "reflectivity" and (not np.all(np.isfinite(values)) or np.any(values < 0)):
+        raise SceneError(
+            f"shape {shape_id!r}: reflectivity must be finite and >= 0 (1 = white diffuse target); got "
+            f"{values[~(np.isfinite(values) & (values >= 0))][0]:.3g}. Fix the material or the PLY face property."
         )
     if name == "range_sigma" and np.nanmin(values, initial=0.0) < 0:
         raise SceneError(f"shape {shape_id!r}: range_sigma must be >= 0 m; got {np.nanmin(values):.3g}")

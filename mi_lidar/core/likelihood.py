@@ -9,6 +9,11 @@ with ``pi_k p_k drop_k``, and lets it pass otherwise. So
 * a measured return at ``z`` has density ``sum_k pi_k p_k (1 - drop_k) f_k(z)`` (1/m);
 * a miss has probability ``sum_k pi_k p_k drop_k + pi_{K+1}``.
 
+When the log's intensities are scored too, a return at ``z`` with intensity ``I`` has the joint
+density ``sum_k pi_k p_k (1 - drop_k) f_k(z) g_k(I)``, with ``g_k`` the density per sensor unit of the
+model's :class:`~mi_lidar.core.intensity.IntensityModel` for element ``k``: the element that explains
+the range must explain the intensity as well.
+
 :func:`mixture_log_likelihood` evaluates this with gradients on compact trace records
 (:mod:`mi_lidar.core.trace`): each round works only on the rays that met an element in it and reads
 the running sums of its rays from the previous round (``prev``); a ray's sums are written when its
@@ -21,6 +26,7 @@ discretised evaluation), a miss as its probability, and every ray's probability 
 at ``FLOOR`` = 1e-9: ``log(p + FLOOR)``. A return no element can explain then costs 20.7 nats
 instead of making a mean infinite, and still has a gradient. Every NLL mi-lidar prints (compare,
 diagnose, calibrate, the planar benchmark) and every fit uses this score, so they are comparable.
+With intensities, a return counts as the probability of its 1 cm x 1 unit (range, intensity) bin.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_lidar.core.effects.base import SubRayMoments
+from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment, log_density
 from mi_lidar.core.trace import CachedBatch, Round, Rounds
@@ -142,7 +149,9 @@ def _entry_log_density(model, table, seg: Segment, z: mi.Float, rays: RayBatch) 
     return model.density.log_prob(seg, z, rays)
 
 
-def mixture_log_likelihood(table, model, rays: RayBatch, rounds, measured: mi.Float, hit: mi.Bool) -> mi.Float:
+def mixture_log_likelihood(
+    table, model, rays: RayBatch, rounds, measured: mi.Float, hit: mi.Bool, intensity: mi.Float | None = None
+) -> mi.Float:
     """Per-ray raw log-likelihood (nats) of measured returns under the pass-through mixture.
 
     Args:
@@ -153,13 +162,22 @@ def mixture_log_likelihood(table, model, rays: RayBatch, rounds, measured: mi.Fl
             or a :class:`CachedBatch` of cached rays.
         measured: (B,) measured ranges, m (ignored where ``hit`` is False).
         hit: (B,) True where the sensor reported a return.
+        intensity: optional (B,) measured intensities (sensor units; NaN where unknown), scored
+            jointly with the range by the model's intensity model. Not supported with footprint
+            effects or cached batches.
 
     Returns:
-        (B,) log density (1/m) of the measured range for returns and log P(miss) for misses; use
+        (B,) log density (1/m, times 1/unit with intensities) of the measured return and log P(miss)
+        for misses; use
         :func:`score` for the floored, discretised value every report prints.
     """
     rays = model.prepare_rays(rays)
     fan = model.fan_out(rays)
+    if intensity is not None and (fan is not None or isinstance(rounds, CachedBatch)):
+        raise ParameterError(
+            "intensities are scored on traced rounds of single beams only: drop the footprint effect "
+            "(mixed_pixels, multiple_returns) or score ranges alone"
+        )
     if fan is not None:
         return _footprint_log_likelihood(table, model, fan, rounds, measured, hit)
     n = rays.width
@@ -171,7 +189,7 @@ def mixture_log_likelihood(table, model, rays: RayBatch, rounds, measured: mi.Fl
     if isinstance(rounds, CachedBatch):
         sums = _fold_cached(table, model, rays, rounds, z, sums)
     else:
-        sums = _fold_rounds(table, model, rays, rounds, z, sums)
+        sums = _fold_rounds(table, model, rays, rounds, z, sums, intensity)
     escape = model.density.escape(rays)
     if escape is not None:
         escape = model.segment_law(escape, rays, escape=True)
@@ -179,8 +197,13 @@ def mixture_log_likelihood(table, model, rays: RayBatch, rounds, measured: mi.Fl
     return sums.value(hit)
 
 
-def _fold_rounds(table, model, rays: RayBatch, rounds: Rounds, z: mi.Float, sums: Sums) -> Sums:
-    """Fold the traced elements round by round; each ray's sums end at its last element."""
+def _fold_rounds(
+    table, model, rays: RayBatch, rounds: Rounds, z: mi.Float, sums: Sums, intensity: mi.Float | None = None
+) -> Sums:
+    """Fold the traced elements round by round; each ray's sums end at its last element.
+
+    With measured ``intensity``, each element's range density is multiplied by its intensity density.
+    """
     out = [dr.select(rounds.none, v, 0.0) for v in (sums.log_mix, sums.log_pass, sums.log_lost)]
     running = sums
     for r in rounds.rounds:
@@ -191,6 +214,10 @@ def _fold_rounds(table, model, rays: RayBatch, rounds: Rounds, z: mi.Float, sums
             log_f, drop = r.log_density, r.drop
         else:
             log_f, drop = _entry_log_density(model, table, seg, z_entry, sub), seg.drop
+        if intensity is not None:
+            measured = dr.gather(mi.Float, intensity, r.ray)
+            known = dr.isfinite(measured)
+            log_f = log_f + dr.select(known, model.intensity.log_prob(seg, dr.select(known, measured, 0.0), sub), 0.0)
         running = running.gather(r.prev).fold(seg.valid, seg.p, drop, log_f)
         values = (running.log_mix, running.log_pass, running.log_lost)
         out = [_add_at(o, v, r.ray, r.last) for o, v in zip(out, values)]

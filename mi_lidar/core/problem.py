@@ -76,12 +76,14 @@ class Chunk:
         z: (N,) measured range, m (0 for a miss).
         hit: (N,) True where the sensor reported a return.
         rounds: the trace (:class:`~mi_lidar.core.trace.Rounds`).
+        intensity: (N,) measured intensities scored with the ranges (NaN for a miss), or None.
     """
 
     rays: RayBatch
     z: mi.Float
     hit: mi.Bool
     rounds: object
+    intensity: mi.Float | None = None
 
 
 @dataclass
@@ -145,12 +147,21 @@ class Problem:
             rounds = trace_rounds(self.scene, self.table, model, batch)
             if not moving:
                 rounds = cache_distributions(rounds, self.table, model, batch)
-            self.chunks.append(Chunk(rays=batch, z=dr.select(hit, measured, 0.0), hit=hit, rounds=rounds))
+            self.chunks.append(
+                Chunk(
+                    rays=batch,
+                    z=dr.select(hit, measured, 0.0),
+                    hit=hit,
+                    rounds=rounds,
+                    intensity=self.rays.measured_intensity(self.index[first : first + BATCH]),
+                )
+            )
         self._traced = key
 
     def chunk_log_likelihood(self, model, chunk: Chunk) -> mi.Float:
         """Scored per-ray log-likelihood (nats) of one chunk under ``model`` (keeps gradients)."""
-        return score(mixture_log_likelihood(self.table, model, chunk.rays, chunk.rounds, chunk.z, chunk.hit), chunk.hit)
+        ll = mixture_log_likelihood(self.table, model, chunk.rays, chunk.rounds, chunk.z, chunk.hit, chunk.intensity)
+        return score(ll, chunk.hit)
 
     def log_likelihood(self, model) -> np.ndarray:
         """(N,) scored per-ray log-likelihood (nats) under ``model`` (:func:`~mi_lidar.core.likelihood.score`)."""

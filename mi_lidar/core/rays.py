@@ -17,6 +17,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.arrays import aligned
+from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
 
 
@@ -99,6 +100,8 @@ class LogRays:
         time: (N,) ray timestamps, s (relative to the first ray of the log, or absolute).
         measured: (N,) measured range, m (NaN for a miss).
         hit: (N,) True where the sensor reported a return.
+        intensity: optional (N,) measured intensities (sensor units, NaN for a miss) that the
+            likelihood scores with the range (None: ranges only).
     """
 
     log: Log
@@ -108,16 +111,24 @@ class LogRays:
     time: np.ndarray
     measured: np.ndarray
     hit: np.ndarray
+    intensity: np.ndarray | None = None
 
     @classmethod
-    def from_log(cls, log: Log, relative_time: bool = True) -> LogRays:
+    def from_log(cls, log: Log, relative_time: bool = True, intensity: str | None = None) -> LogRays:
         """Flatten a log.
 
         Args:
             log: the log.
             relative_time: give times relative to the log's first ray (float32 then keeps
                 microseconds); False keeps the log's absolute timestamps.
+            intensity: name of the per-ray attribute holding the measured intensity to score
+                (``intensity``, or an Ouster log's ``reflectivity`` or ``signal``); None scores ranges only.
         """
+        if intensity is not None and intensity not in log.attributes:
+            raise LogFormatError(
+                f"the log has no intensity attribute {intensity!r}; it has {sorted(log.attributes)}: "
+                "pick one of those or score ranges only"
+            )
         s, h, w = log.shape
         scan, beam, column = (a.ravel() for a in np.meshgrid(np.arange(s), np.arange(h), np.arange(w), indexing="ij"))
         times = log.times - log.times.reshape(-1)[0] if relative_time else log.times
@@ -129,6 +140,9 @@ class LogRays:
             time=times.ravel(),
             measured=log.ranges.ravel().astype(np.float32),
             hit=log.hit.ravel(),
+            intensity=None
+            if intensity is None
+            else np.where(log.hit, log.attributes[intensity], np.nan).ravel().astype(np.float32),
         )
 
     @property
@@ -167,3 +181,10 @@ class LogRays:
         )
         measured = np.where(self.hit[index], self.measured[index], 0.0).astype(np.float32)
         return rays, mi.Float(aligned(measured)), mi.Bool(aligned(self.hit[index]))
+
+    def measured_intensity(self, index: np.ndarray | None = None) -> mi.Float | None:
+        """(M,) measured intensities of rays ``index`` (all when None; NaN for misses), or None when not scored."""
+        if self.intensity is None:
+            return None
+        index = np.arange(self.n) if index is None else np.asarray(index)
+        return mi.Float(aligned(self.intensity[index]))

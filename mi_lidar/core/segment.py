@@ -38,6 +38,7 @@ SURFACE = 0
 ELLIPSOID = 1
 INV_SQRT2 = 1.0 / math.sqrt(2.0)
 LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+DEFAULT_REFLECTIVITY = 0.5  # Lambertian reflectivity of elements that set none (lidar_material's default)
 
 
 @dataclass
@@ -56,6 +57,8 @@ class Segment:
         label: class label of the element.
         kind: ``SURFACE`` or ``ELLIPSOID``.
         drop: probability that an intercepted beam gives no return (the beam stops); 0 by default.
+        reflectivity: Lambertian reflectivity of the element at the sensor's wavelength (1 = white
+            diffuse target); sets the returned power (intensity, weak-return dropout).
     """
 
     valid: mi.Bool
@@ -71,6 +74,7 @@ class Segment:
     label: mi.UInt32
     kind: mi.UInt32
     drop: mi.Float | float = 0.0
+    reflectivity: mi.Float | float = DEFAULT_REFLECTIVITY
 
     def with_(self, **changes) -> Segment:
         """A copy with some fields replaced (effects use this)."""

@@ -12,7 +12,9 @@ construction.
 Randomness is counter-based (a TEA hash of seed, ray id, segment and stream), so a ray's draws do
 not depend on which other rays are traced with it: the same seed gives the same scan on both paths,
 and different seeds give independent scans. One uniform number decides an element's outcome:
-``u < p (1 - drop)`` returns, ``u < p`` loses the beam, otherwise it passes.
+``u < p (1 - drop)`` returns, ``u < p`` loses the beam, otherwise it passes. A return from a scene
+element reports an intensity drawn from the model's :class:`~mi_lidar.core.intensity.IntensityModel`
+(stream 3 of the element's draw); stray returns (virtual elements, the escape law) report 0.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from mi_lidar.core.densities import ElementGaussian, ReturnDensity
 from mi_lidar.core.effects.base import Effect, FootprintEffect
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.intensity import IntensityModel
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment, sample_range
 from mi_lidar.core.trace import RESTART_OFFSET, next_intersection
@@ -33,7 +36,18 @@ from mi_lidar.core.trace import RESTART_OFFSET, next_intersection
 NO_ELEMENT = 0xFFFFFFFF
 VIRTUAL_SEGMENT = 1000  # random-stream segment index of the first virtual element
 ESCAPE_SEGMENT = 2000  # random-stream segment index of the escape law
-CHANNELS = ("range", "hit", "element_id", "shape_id", "label", "cos_incidence", "nominal_range", "segments")
+CHANNELS = (
+    "range",
+    "hit",
+    "element_id",
+    "shape_id",
+    "label",
+    "cos_incidence",
+    "nominal_range",
+    "segments",
+    "intensity",
+)
+INTENSITY_STREAM = 3  # random stream of a return's intensity
 
 
 def uniform(seed: int, ray_id: mi.UInt32, segment: int, stream: int) -> mi.Float:
@@ -59,6 +73,7 @@ class SensorModel:
         max_segments: elements a ray may pass before it is declared a miss.
         effects: effects in application order.
         density: the return density of every element (default: each element's Gaussian).
+        intensity: the returned intensity (sensor units) of every element.
     """
 
     range_sigma: float = 0.01
@@ -67,6 +82,7 @@ class SensorModel:
     max_segments: int = 16
     effects: list[Effect] = field(default_factory=list)
     density: ReturnDensity = field(default_factory=ElementGaussian)
+    intensity: IntensityModel = field(default_factory=IntensityModel)
 
     def __post_init__(self):
         checks = [
@@ -81,8 +97,8 @@ class SensorModel:
 
     @property
     def parts(self) -> list:
-        """The density and the effects: every object holding parameters of this model."""
-        return [self.density, *self.effects]
+        """The density, the intensity model and the effects: every object holding parameters of this model."""
+        return [self.density, self.intensity, *self.effects]
 
     # ------------------------------------------------------------------ rays
     def prepare_rays(self, rays: RayBatch) -> RayBatch:
@@ -141,8 +157,9 @@ class SensorModel:
         Returns:
             Dict of per-ray arrays named as :data:`CHANNELS`: ``range`` (m, NaN for a miss),
             ``hit`` (Bool), ``element_id``/``shape_id`` (``NO_ELEMENT`` for a miss), ``label``,
-            ``cos_incidence``, ``nominal_range`` (m, NaN for a miss) and ``segments`` (elements
-            traversed, including the one that returned). With a beam-divergence effect each beam's
+            ``cos_incidence``, ``nominal_range`` (m, NaN for a miss), ``segments`` (elements
+            traversed, including the one that returned) and ``intensity`` (sensor units, 0 for a
+            miss or a stray return). With a beam-divergence effect each beam's
             sub-rays are simulated and the effect combines their returns (:meth:`Effect.combine`).
         """
         rays = self.prepare_rays(rays)
@@ -152,13 +169,17 @@ class SensorModel:
         effect, sub, weight = fan
         return effect.combine(self._first_returns(scene, table, sub, seed), weight, rays.width)
 
-    def _report(self, out: dict, index: mi.UInt32, rays: RayBatch, returned: mi.Bool, z: mi.Float) -> None:
-        """Write the reported ranges of the lanes that returned (post-processed, blind zone applied)."""
+    def _report(
+        self, out: dict, index: mi.UInt32, rays: RayBatch, returned: mi.Bool, z: mi.Float, intensity=0.0
+    ) -> None:
+        """Write the reported ranges (post-processed, blind zone applied) and intensities of the lanes that returned."""
         for effect in self.effects:
             z = effect.finalize_range(z, rays)
         reported = returned & (z >= self.min_range)
         dr.scatter(out["range"], z, index, reported)
         dr.scatter(out["hit"], mi.Bool(True), index, reported)
+        if "intensity" in out:  # sample_trace draws ranges only
+            dr.scatter(out["intensity"], mi.Float(intensity), index, reported)
 
     def _first_returns(self, scene, table: ElementTable, rays: RayBatch, seed: int) -> dict:
         """The sampling loop of :meth:`simulate_rays` on prepared rays (one lane per ray)."""
@@ -172,6 +193,7 @@ class SensorModel:
             "cos_incidence": dr.zeros(mi.Float, n),
             "nominal_range": dr.full(mi.Float, dr.nan, n),
             "segments": dr.zeros(mi.UInt32, n),
+            "intensity": dr.zeros(mi.Float, n),
         }
         index = dr.arange(mi.UInt32, n)  # ray index (into `out`) of each live lane
 
@@ -199,7 +221,9 @@ class SensorModel:
             # ---------------- One draw: return, lose the beam, or pass through ---------
             u = uniform(seed, rays.ray_id, k, 0)
             returned = seg.valid & (u < seg.p * (1.0 - seg.drop))
-            self._report(out, index, rays, returned, self.density.sample(seg, uniforms(seed, rays.ray_id, k), rays))
+            z = self.density.sample(seg, uniforms(seed, rays.ray_id, k), rays)
+            intensity = self.intensity.sample(seg, uniform(seed, rays.ray_id, k, INTENSITY_STREAM), rays)
+            self._report(out, index, rays, returned, z, intensity)
             for name, value in (
                 ("element_id", seg.element),
                 ("shape_id", seg.shape),

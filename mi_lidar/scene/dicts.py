@@ -30,6 +30,7 @@ class MeshElements:
         p_hit: (F,) hit probabilities in [0, 1].
         range_sigma: (F,) range standard deviations (m), or None for the sensor default.
         label: (F,) class labels.
+        reflectivity: (F,) Lambertian reflectivities, or None for the default.
     """
 
     vertices: np.ndarray
@@ -37,6 +38,7 @@ class MeshElements:
     p_hit: np.ndarray
     label: np.ndarray
     range_sigma: np.ndarray | None = None
+    reflectivity: np.ndarray | None = None
 
 
 @dataclass
@@ -50,6 +52,7 @@ class EllipsoidElements:
         p_hit: (N,) hit probabilities in [0, 1].
         label: (N,) class labels.
         extent: Mahalanobis radius of the element surfaces, in sigmas.
+        reflectivity: (N,) Lambertian reflectivities, or None for the default.
     """
 
     centers: np.ndarray
@@ -58,6 +61,7 @@ class EllipsoidElements:
     p_hit: np.ndarray
     label: np.ndarray
     extent: float = 3.0
+    reflectivity: np.ndarray | None = None
 
 
 @dataclass
@@ -94,7 +98,8 @@ def _column(values, n: int, name: str) -> np.ndarray:
 
 
 def mesh_object(name: str, elements: MeshElements):
-    """A ``mi.Mesh`` holding the triangles and face attributes ``face_p_hit``/``face_label``/``face_range_sigma``."""
+    """A ``mi.Mesh`` holding the triangles and face attributes ``face_p_hit``, ``face_label``,
+    ``face_range_sigma`` and ``face_reflectivity``."""
     vertices = np.asarray(elements.vertices, dtype=np.float32)
     faces = np.asarray(elements.faces, dtype=np.uint32)
     mesh = mi.Mesh(name, len(vertices), len(faces), has_vertex_normals=False)
@@ -103,8 +108,9 @@ def mesh_object(name: str, elements: MeshElements):
     params["faces"] = mi.UInt32(faces.ravel())
     params.update()
     columns = {"p_hit": elements.p_hit, "label": elements.label}
-    if elements.range_sigma is not None:
-        columns["range_sigma"] = elements.range_sigma
+    for key in ("range_sigma", "reflectivity"):
+        if getattr(elements, key) is not None:
+            columns[key] = getattr(elements, key)
     for key, values in columns.items():
         mesh.add_attribute(f"face_{key}", 1, mi.Float(_column(values, len(faces), key)))
     return mesh
@@ -114,7 +120,13 @@ def ellipsoids_dict(elements: EllipsoidElements) -> dict:
     """The ``ellipsoids`` shape dict of an ellipsoid set (attributes as (N, 1) tensors)."""
     n = len(elements.centers)
     tensor = lambda a, w: mi.TensorXf(np.asarray(a, dtype=np.float32).reshape(n, w))  # noqa: E731
+    extras = (
+        {}
+        if elements.reflectivity is None
+        else {"reflectivity": tensor(_column(elements.reflectivity, n, "reflectivity"), 1)}
+    )
     return {
+        **extras,
         "type": "ellipsoids",
         "extent": float(elements.extent),
         "centers": tensor(elements.centers, 3),
@@ -166,6 +178,7 @@ def save_scene(path, element_sets: dict, extra_xml: str = "") -> Path:
                 p_hit=elements.p_hit,
                 range_sigma=elements.range_sigma,
                 label=elements.label,
+                reflectivity=elements.reflectivity,
             )
             entries.append(ShapeEntry(id=key, kind="mesh", filename=f"{assets.name}/{key}.ply"))
         elif isinstance(elements, AnalyticElements):
@@ -187,6 +200,7 @@ def save_scene(path, element_sets: dict, extra_xml: str = "") -> Path:
                 elements.quaternions,
                 p_hit=elements.p_hit,
                 label=elements.label,
+                reflectivity=elements.reflectivity,
             )
             entries.append(
                 ShapeEntry(id=key, kind="ellipsoids", filename=f"{assets.name}/{key}.ply", extent=elements.extent)

@@ -28,14 +28,14 @@ from plyfile import PlyData, PlyElement
 from mi_lidar.core.atomic import atomic_write
 from mi_lidar.core.errors import ParameterError
 
-ELEMENT_ATTRIBUTES = ("p_hit", "range_sigma", "label")
+ELEMENT_ATTRIBUTES = ("p_hit", "range_sigma", "label", "reflectivity")
 ANALYTIC_SHAPES = ("sphere", "cylinder", "disk")  # one element each, placed by their to_world alone
 
 
-def _element_columns(n: int, p_hit, range_sigma, label) -> list[tuple[str, np.ndarray]]:
+def _element_columns(n: int, p_hit, range_sigma, label, reflectivity=None) -> list[tuple[str, np.ndarray]]:
     """Validated per-element attribute columns, in the fixed order of ELEMENT_ATTRIBUTES."""
     columns = []
-    for name, values in zip(ELEMENT_ATTRIBUTES, (p_hit, range_sigma, label)):
+    for name, values in zip(ELEMENT_ATTRIBUTES, (p_hit, range_sigma, label, reflectivity)):
         if values is None:
             continue
         values = np.broadcast_to(np.asarray(values, dtype=np.float32), (n,))
@@ -43,20 +43,21 @@ def _element_columns(n: int, p_hit, range_sigma, label) -> list[tuple[str, np.nd
             raise ParameterError(f"{name} has non-finite values; give finite numbers per element")
         if name == "p_hit" and (values.min() < 0 or values.max() > 1):
             raise ParameterError(f"p_hit must lie in [0, 1]; got values in [{values.min():.3g}, {values.max():.3g}]")
-        if name == "range_sigma" and values.min() < 0:
-            raise ParameterError(f"range_sigma must be >= 0 m; got minimum {values.min():.3g}")
+        if name in ("range_sigma", "reflectivity") and values.min() < 0:
+            raise ParameterError(f"{name} must be >= 0; got minimum {values.min():.3g}")
         columns.append((f"{name}_0", values))
     return columns
 
 
-def write_mesh_ply(path, vertices, faces, p_hit=None, range_sigma=None, label=None) -> Path:
+def write_mesh_ply(path, vertices, faces, p_hit=None, range_sigma=None, label=None, reflectivity=None) -> Path:
     """Write a triangle mesh with optional per-face element attributes as binary PLY.
 
     Args:
         path: output ``.ply``.
         vertices: (V, 3) positions, m.
         faces: (F, 3) vertex indices.
-        p_hit, range_sigma, label: (F,) or scalar per-face values, or None to leave to the material.
+        p_hit, range_sigma, label, reflectivity: (F,) or scalar per-face values, or None to leave to
+            the material.
     """
     vertices = np.asarray(vertices, dtype=np.float32)
     faces = np.asarray(faces, dtype=np.int32)
@@ -64,7 +65,7 @@ def write_mesh_ply(path, vertices, faces, p_hit=None, range_sigma=None, label=No
         raise ParameterError(f"mesh needs (V, 3) vertices and (F, 3) faces; got {vertices.shape}, {faces.shape}")
     vert = np.empty(len(vertices), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
     vert["x"], vert["y"], vert["z"] = vertices.T
-    columns = _element_columns(len(faces), p_hit, range_sigma, label)
+    columns = _element_columns(len(faces), p_hit, range_sigma, label, reflectivity)
     face = np.empty(len(faces), dtype=[("vertex_indices", "i4", (3,))] + [(n, "f4") for n, _ in columns])
     face["vertex_indices"] = faces
     for name, values in columns:
@@ -73,7 +74,9 @@ def write_mesh_ply(path, vertices, faces, p_hit=None, range_sigma=None, label=No
     return atomic_write(path, ply.write)
 
 
-def write_ellipsoids_ply(path, centers, scales, quaternions, p_hit=None, range_sigma=None, label=None) -> Path:
+def write_ellipsoids_ply(
+    path, centers, scales, quaternions, p_hit=None, range_sigma=None, label=None, reflectivity=None
+) -> Path:
     """Write an ellipsoid set in Mitsuba's ``ellipsoids`` PLY layout.
 
     Args:
@@ -81,7 +84,7 @@ def write_ellipsoids_ply(path, centers, scales, quaternions, p_hit=None, range_s
         centers: (N, 3) Gaussian means, m.
         scales: (N, 3) standard deviations along the principal axes, m (> 0).
         quaternions: (N, 4) rotations to world in (x, y, z, w) order (real part last).
-        p_hit, range_sigma, label: (N,) or scalar per-ellipsoid values, or None.
+        p_hit, range_sigma, label, reflectivity: (N,) or scalar per-ellipsoid values, or None.
     """
     centers = np.asarray(centers, dtype=np.float32).reshape(-1, 3)
     scales = np.asarray(scales, dtype=np.float32).reshape(-1, 3)
@@ -93,7 +96,7 @@ def write_ellipsoids_ply(path, centers, scales, quaternions, p_hit=None, range_s
         )
     if n and scales.min() <= 0:
         raise ParameterError(f"ellipsoid scales must be > 0 m; got minimum {scales.min():.3g}")
-    columns = _element_columns(n, p_hit, range_sigma, label)
+    columns = _element_columns(n, p_hit, range_sigma, label, reflectivity)
     names = ["x", "y", "z", "nx", "ny", "nz"] + [c for c, _ in columns]
     names += ["scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     rows = np.zeros(n, dtype=[(name, "f4") for name in names])

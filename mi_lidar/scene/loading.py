@@ -66,5 +66,10 @@ def scene_sensor_model(scene) -> tuple[SensorModel, np.ndarray]:
         model = SensorModel(range_sigma=sensor.range_sigma, min_range=sensor.min_range, max_range=sensor.max_range)
         return model, sensor.to_world_matrix
     if isinstance(integrator, LidarIntegrator):
-        model = SensorModel(max_segments=integrator.max_segments, effects=integrator.effects)
+        model = SensorModel(
+            max_segments=integrator.max_segments,
+            effects=integrator.effects,
+            density=integrator.density,
+            intensity=integrator.intensity,
+        )
     return model, np.eye(4)

@@ -5,6 +5,7 @@ import numpy as np
 
 import mi_lidar
 from mi_lidar.core.log import Log
+from mi_lidar.core.sensor_model import CHANNELS
 from mi_lidar.hybrid.baselines import NeighborSimulator
 from mi_lidar.hybrid.blocks import SceneSensor, write_scene
 from mi_lidar.hybrid.counting import count_hits
@@ -103,7 +104,7 @@ def test_written_scene_loads_renders_and_matches_log(small_log, small_fit, tmp_p
     xml = write_scene(small_fit.model, tmp_path, "s", sensor)
     scene = mi_lidar.load_scene(xml)
     image = np.array(mi.render(scene, seed=3))
-    assert image.shape == small_log.shape[1:] + (8,)
+    assert image.shape == small_log.shape[1:] + (len(CHANNELS),)
     rendered = np.where(image[..., 1] > 0, image[..., 0], np.nan)
     sim = mi_lidar.simulate(scene, seed=3)
     same = np.isclose(np.nan_to_num(sim.ranges[0], nan=-1), np.nan_to_num(rendered, nan=-1), atol=1e-3)

@@ -18,6 +18,7 @@ from mi_lidar.core.effects.range_bias import RangeBias
 from mi_lidar.core.effects.range_dropout import RangeDropout
 from mi_lidar.core.effects.range_noise import RangeNoise
 from mi_lidar.core.effects.range_scale import RangeScale
+from mi_lidar.core.effects.reflectivity_dropout import ReflectivityDropout
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 
@@ -41,6 +42,7 @@ __all__ = [
     "RangeNoise",
     "RangeScale",
     "RayBatch",
+    "ReflectivityDropout",
     "make_effect",
     "parse_effects",
     "register_effect",

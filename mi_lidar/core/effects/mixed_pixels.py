@@ -85,7 +85,7 @@ class MixedPixels(FootprintEffect):
         ), weight
 
     def combine(self, sub: dict, weight: mi.Float, n: int) -> dict:
-        total, weighted = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
+        total, weighted, energy = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
         taken = dr.full(mi.Bool, False, n)
         out: dict = {}
         for j in range(len(PATTERN)):  # the axis first: it carries the largest weight
@@ -94,12 +94,14 @@ class MixedPixels(FootprintEffect):
             w = dr.gather(mi.Float, weight, index)
             total += dr.select(hit, w, 0.0)
             weighted += dr.select(hit, w * dr.gather(mi.Float, sub["range"], index), 0.0)
+            energy += dr.select(hit, w * dr.gather(mi.Float, sub["intensity"], index), 0.0)
             for name, value in sub.items():
                 mine = dr.gather(type(value), value, index)
                 out[name] = mine if j == 0 else dr.select(~taken & hit, mine, out[name])
             taken |= hit
         out["hit"] = total > 0
         out["range"] = dr.select(out["hit"], weighted / dr.maximum(total, 1e-12), dr.nan)
+        out["intensity"] = dr.round(energy)  # the returned power of every sub-ray that returned
         return out
 
     def combine_log_likelihood(
