@@ -209,7 +209,6 @@ class SensorModel:
         }
         alive = self._virtual_returns(out, rays, seed)  # virtual elements (outliers, clutter) come first
         end = _BeamEnds.empty(n)
-        dr.make_opaque(end)  # scattered into below
         index = dr.compress(alive)  # lanes still passing through elements
         start = dr.gather(mi.Point3f, rays.origin, index)
         for first in range(0, self.max_segments, ELEMENTS_PER_PHASE):
@@ -219,7 +218,10 @@ class SensorModel:
             last = min(first + ELEMENTS_PER_PHASE, self.max_segments)
             phase = self._pass_through(scene, table, live, start, dr.gather(_BeamEnds, end, index), first, last, seed)
             dr.eval(phase)  # the loop's outputs in one kernel
-            dr.scatter(end, phase.end, index)
+            if dr.width(index) == n:  # every ray took part (the first phase, without virtual elements)
+                end = phase.end
+            else:
+                dr.scatter(end, phase.end, index)
             going = dr.compress(phase.going)
             index = dr.gather(mi.UInt32, index, going)
             start = dr.gather(mi.Point3f, phase.start, going)
