@@ -33,8 +33,8 @@ MEMORY_LIMIT_GB = 4.0
 def _scene_and_log():
     """The benchmark scene and its simulated log."""
     import mi_lidar
-    from mi_lidar.calibration import EllipsoidElements, MeshElements, scene_dict
     from mi_lidar.core.patterns import FiringPattern
+    from mi_lidar.scene.dicts import EllipsoidElements, MeshElements, scene_dict
 
     rng = np.random.default_rng(0)
     n = 101
