@@ -136,9 +136,9 @@ def main() -> None:
     _write(
         PERFORMANCE_PAGE,
         _markdown(everything, "Performance (`make bench`)")
-        + "\n"
-        + "\n\n".join(["Machines and load of this run:", *(f"- {h}" for h in headers), summary])
-        + "\n",
+        + "\nMachines and load of this run:\n\n"
+        + "".join(f"- {h}\n" for h in headers)
+        + f"\n{summary}\n",
     )
     console.print(f"{summary} Written to {RESULTS}/ and {PERFORMANCE_PAGE}")
 
