@@ -23,6 +23,7 @@ A peer whose package is absent is skipped (its cell says "not installed").
 
 from __future__ import annotations
 
+import gc
 import importlib
 import statistics
 import tempfile
@@ -52,16 +53,23 @@ def _median_s(read) -> float:
 def _interleaved_median_s(reads: dict) -> dict[str, float]:
     """Median wall time (s) of each callable over :data:`REPEATS` rounds after one warm-up each.
 
-    One run of each per round, so that every reader sees the same load and file cache.
+    One run of each per round, so that every reader sees the same load and file cache; Python's
+    garbage collector is paused while timing (as ``timeit`` does), so that a collection of objects
+    left by earlier benchmarks is not charged to whichever reader triggers it.
     """
     for read in reads.values():
         read()
     times = {name: [] for name in reads}
-    for _ in range(REPEATS):
-        for name, read in reads.items():
-            start = time.perf_counter()
-            read()
-            times[name].append(time.perf_counter() - start)
+    gc.collect()
+    gc.disable()
+    try:
+        for _ in range(REPEATS):
+            for name, read in reads.items():
+                start = time.perf_counter()
+                read()
+                times[name].append(time.perf_counter() - start)
+    finally:
+        gc.enable()
     return {name: statistics.median(values) for name, values in times.items()}
 
 
