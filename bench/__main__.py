@@ -1,16 +1,29 @@
-"""``python -m bench``: run every benchmark, print one table and write ``bench/results/*.md``."""
+"""``python -m bench``: run every benchmark, print one table and write it as JSON and Markdown.
+
+Every row states its target and PASS/FAIL; speeds are given as ratios against the peers measured
+in the same run on the same rays (Mitsuba's raw coherent ``ray_intersect``, Open3D, embreex). The
+results go to ``bench/results/*.md`` (one file per benchmark), ``bench/results/bench.json`` and
+``docs/performance.md``. The core benchmarks run again on the ``cuda_ad_rgb`` variant when a GPU is
+present; the table says so when none is.
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import os
 import platform
+import subprocess
+import sys
 import time
 from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table
 
-from . import bench_calibrate, bench_core, bench_dataset, bench_diagnose, bench_fit_scene, bench_io
+from mi_lidar.core.atomic import atomic_write
+
+from . import bench_calibrate, bench_core, bench_dataset, bench_diagnose, bench_fit_scene, bench_io, bench_planar
 
 
 def _rows(run):
@@ -25,10 +38,13 @@ BENCHMARKS = {
     "fit_scene": _rows(bench_fit_scene.run),
     "io": _rows(bench_io.run),
     "diagnose": _rows(bench_diagnose.run),
+    "planar": _rows(bench_planar.run),
     "dataset": _rows(bench_dataset.run),
 }
 RESULTS = Path(__file__).resolve().parent / "results"
-COLUMNS = ("benchmark", "Mrays/s", "vs raw ray_intersect", "vs Open3D", "target", "pass/fail")
+PERFORMANCE_PAGE = Path(__file__).resolve().parents[1] / "docs" / "performance.md"
+COLUMNS = ("benchmark", "Mrays/s", "vs raw ray_intersect", "vs Open3D", "vs embreex", "target", "pass/fail")
+CUDA_VARIANT = "cuda_ad_rgb"
 
 
 def _cells(row: bench_core.Row) -> list[str]:
@@ -39,7 +55,7 @@ def _cells(row: bench_core.Row) -> list[str]:
 
     verdict = {True: "PASS", False: f"FAIL ({row.failed})", None: ""}[row.passed]
     rate = row.value if row.mrays is None else f"{row.mrays:.1f}"
-    return [row.benchmark, rate, ratio(row.vs_raw), ratio(row.vs_open3d), row.target, verdict]
+    return [row.benchmark, rate, ratio(row.vs_raw), ratio(row.vs_open3d), ratio(row.vs_embreex), row.target, verdict]
 
 
 def _machine(start_load: float) -> str:
@@ -62,9 +78,35 @@ def _markdown(rows: list[bench_core.Row], header: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _cuda_rows() -> list[bench_core.Row]:
+    """The core benchmarks on the cuda variant (in a child process), or one row saying why not."""
+    import drjit as dr
+    import mitsuba as mi
+
+    if not dr.has_backend(dr.JitBackend.CUDA) or CUDA_VARIANT not in mi.variants():
+        reason = "no GPU found (Dr.Jit has no CUDA backend)" if not dr.has_backend(dr.JitBackend.CUDA) else ""
+        reason = reason or f"this Mitsuba build has no {CUDA_VARIANT} variant"
+        return [bench_core.Row(f"cuda: not run, {reason}")]
+    done = subprocess.run(
+        [sys.executable, "-m", "bench.bench_core", "rows"],
+        env=dict(os.environ, MI_LIDAR_VARIANT=CUDA_VARIANT),
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=Path(__file__).resolve().parents[1],
+    )
+    rows = [bench_core.Row(**row) for row in json.loads(done.stdout.strip().splitlines()[-1])]
+    return [dataclasses.replace(row, benchmark=f"cuda {row.benchmark}") for row in rows]
+
+
+def _write(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically."""
+    atomic_write(path, lambda stream: stream.write(text.encode()))
+
+
 def main() -> None:
-    """Run the benchmarks, print the table and write one Markdown file per benchmark."""
-    console = Console(width=200)
+    """Run the benchmarks, print the table and write the results (see the module docstring)."""
+    console = Console(width=220)
     table = Table(
         title="mi-lidar benchmarks (rays per second: median of "
         f"{bench_core.REPEATS} runs after a warm-up, ~1M rays each)"
@@ -72,17 +114,34 @@ def main() -> None:
     for column in COLUMNS:
         table.add_column(column, justify="left" if column in ("benchmark", "target") else "right")
     RESULTS.mkdir(exist_ok=True)
-    for stem, run in BENCHMARKS.items():
+    everything, headers = [], []
+    for stem, run in {**BENCHMARKS, "cuda": _cuda_rows}.items():
         start_load = os.getloadavg()[0]
         with console.status(f"running the {stem} benchmarks"):
             rows = run()
         header = f"{stem} benchmarks: {_machine(start_load)}"
-        (RESULTS / f"{stem}.md").write_text(_markdown(rows, header))
+        _write(RESULTS / f"{stem}.md", _markdown(rows, header))
         for row in rows:
             table.add_row(*_cells(row), style={True: "green", False: "red", None: None}[row.passed])
         console.print(header)
+        everything += rows
+        headers.append(header)
     console.print(table)
-    console.print(f"written to {RESULTS}/")
+    passed = sum(row.passed is True for row in everything)
+    failed = sum(row.passed is False for row in everything)
+    _write(
+        RESULTS / "bench.json",
+        json.dumps({"machines": headers, "rows": [dataclasses.asdict(row) for row in everything]}, indent=1),
+    )
+    summary = f"{passed} targets met, {failed} missed."
+    _write(
+        PERFORMANCE_PAGE,
+        _markdown(everything, "Performance (`make bench`)")
+        + "\nMachines and load of this run:\n\n"
+        + "".join(f"- {h}\n" for h in headers)
+        + f"\n{summary}\n",
+    )
+    console.print(f"{summary} Written to {RESULTS}/ and {PERFORMANCE_PAGE}")
 
 
 if __name__ == "__main__":

@@ -63,6 +63,28 @@ def test_first_return_frequencies_match_pass_through_law(probabilities):
     assert chi2.pvalue > 1e-3, (counts / counts.sum(), expected)
 
 
+@pytest.mark.parametrize("max_segments", [1, 2, 3, 4, 5])
+def test_beams_stop_after_max_segments_elements(max_segments):
+    """Transparent layers (p = 0) at 2, 4 and 6 m before the wall at 8 m: a beam that meets them
+    all returns from the wall as its 4th element, or is a miss after ``max_segments`` < 4."""
+    import dataclasses
+
+    from mi_lidar.scene.loading import scene_sensor_model
+
+    scene = mi_lidar.load_scene(SCENES / "permeable_layers.xml", p1=0.0, p2=0.0, p3=0.0)
+    model = dataclasses.replace(scene_sensor_model(scene)[0], max_segments=max_segments)
+    log = mi_lidar.simulate(scene, seed=0, model=model)
+    through = log.attributes["segments"] > 0  # beams that meet the layers
+    assert through.mean() > 0.9
+    assert np.all(log.attributes["segments"][through] == min(max_segments, 4))
+    assert np.all(log.hit[through] == (max_segments >= 4))
+    if max_segments >= 4:
+        assert np.all(log.attributes["label"][through] == 4)
+        np.testing.assert_allclose(
+            log.attributes["nominal_range"][through], 8.0 / log.directions[0, ..., 0][through[0]], rtol=1e-4
+        )
+
+
 def test_offroad_beams_pass_through_vegetation():
     scene = mi_lidar.load_scene(SCENES / "offroad.xml")
     log = mi_lidar.simulate(scene, seed=0)

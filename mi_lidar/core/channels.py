@@ -27,13 +27,8 @@ def _as_float(name: str, value) -> mi.Float:
 
 def channels_to_tensor(out: dict, height: int, width: int) -> mi.TensorXf:
     """Stack the core's per-ray arrays into a (height, width, len(CHANNELS)) float32 tensor."""
-    columns = [_as_float(name, out[name]) for name in CHANNELS]
-    n = height * width
-    flat = dr.zeros(mi.Float, n * len(CHANNELS))
-    index = dr.arange(mi.UInt32, n) * len(CHANNELS)
-    for c, column in enumerate(columns):
-        dr.scatter(flat, column, index + c)
-    return mi.TensorXf(flat, shape=(height, width, len(CHANNELS)))
+    columns = mi.ArrayXf([_as_float(name, out[name]) for name in CHANNELS])
+    return mi.TensorXf(dr.ravel(columns), shape=(height, width, len(CHANNELS)))  # channels interleaved per ray
 
 
 def tensor_to_numpy(image) -> dict[str, np.ndarray]:

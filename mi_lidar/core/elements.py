@@ -206,9 +206,13 @@ class ElementTable:
             }
             for name, default in defaults.items():
                 values = _per_element(shape, params, name, count, ellipsoids)
-                values = np.full(count, default, np.float64) if values is None else values
-                _check_values(shape.id(), name, values)
-                columns[name].append(values)
+                dtype = np.uint32 if name == "label" else np.float32
+                if values is None:  # one value for the whole shape: check it once
+                    _check_values(shape.id(), name, np.array([default], np.float64))
+                    values = np.full(count, default, dtype)
+                else:
+                    _check_values(shape.id(), name, values)
+                columns[name].append(values.astype(dtype, copy=False))
             columns["kind"].append(np.full(count, ELLIPSOID if ellipsoids else SURFACE, np.uint32))
             shape_of.append(np.full(count, index, np.uint32))
             rid = registry_id(shape)
@@ -218,17 +222,17 @@ class ElementTable:
             ids.append(shape.id())
             kinds.append("ellipsoids" if ellipsoids else "mesh" if mesh else "surface")
             counts.append(count)
-        cat = {k: np.concatenate(v) for k, v in columns.items()}
+        cat = {k: v[0] if len(v) == 1 else np.concatenate(v) for k, v in columns.items()}
         return cls(
             shape_ids=ids,
             shape_kinds=kinds,
             element_counts=counts,
             element_offset=mi.UInt32(element_offset),
             shape_index=mi.UInt32(shape_index),
-            p_hit=mi.Float(cat["p_hit"].astype(np.float32)),
-            range_sigma=mi.Float(cat["range_sigma"].astype(np.float32)),
-            label=mi.UInt32(cat["label"].astype(np.uint32)),
-            reflectivity=mi.Float(cat["reflectivity"].astype(np.float32)),
+            p_hit=mi.Float(cat["p_hit"]),
+            range_sigma=mi.Float(cat["range_sigma"]),
+            label=mi.UInt32(cat["label"]),
+            reflectivity=mi.Float(cat["reflectivity"]),
             kind=mi.UInt32(cat["kind"]),
             element_shape=mi.UInt32(np.concatenate(shape_of)),
             ellipsoid_data=mi.Float(

@@ -50,14 +50,20 @@ CHANNELS = (
 INTENSITY_STREAM = 3  # random stream of a return's intensity
 
 
-def uniform(seed: int, ray_id: mi.UInt32, segment: int, stream: int) -> mi.Float:
-    """Counter-based uniform numbers in [0, 1): one per lane, keyed by (seed, ray, segment, stream)."""
-    key = (int(seed) * 0x9E3779B1 + segment * 0x85EBCA77 + stream * 0xC2B2AE3D) & 0xFFFFFFFF
-    # An opaque key is a kernel input, not a constant: new seeds and rounds reuse compiled kernels.
-    return mi.sample_tea_float32(ray_id, dr.opaque(mi.UInt32, key), 8)
+def uniform(seed: int, ray_id: mi.UInt32, segment, stream: int) -> mi.Float:
+    """Counter-based uniform numbers in [0, 1): one per lane, keyed by (seed, ray, segment, stream).
+
+    ``segment`` is a Python int or a per-lane ``mi.UInt32`` (the counter of a symbolic loop); both
+    give the same numbers, as the key is formed modulo 2^32 either way.
+    """
+    base = (int(seed) * 0x9E3779B1 + stream * 0xC2B2AE3D) & 0xFFFFFFFF
+    if isinstance(segment, int):
+        # An opaque key is a kernel input, not a constant: new seeds and rounds reuse compiled kernels.
+        return mi.sample_tea_float32(ray_id, dr.opaque(mi.UInt32, (base + segment * 0x85EBCA77) & 0xFFFFFFFF), 8)
+    return mi.sample_tea_float32(ray_id, dr.opaque(mi.UInt32, base) + segment * 0x85EBCA77, 8)
 
 
-def uniforms(seed: int, ray_id: mi.UInt32, segment: int) -> mi.Point2f:
+def uniforms(seed: int, ray_id: mi.UInt32, segment) -> mi.Point2f:
     """The two uniform numbers a return density draws a range from (streams 1 and 2 of :func:`uniform`)."""
     return mi.Point2f(uniform(seed, ray_id, segment, 1), uniform(seed, ray_id, segment, 2))
 
@@ -169,20 +175,48 @@ class SensorModel:
         effect, sub, weight = fan
         return effect.combine(self._first_returns(scene, table, sub, seed), weight, rays.width)
 
+    def _reported(self, z: mi.Float, rays: RayBatch, returned: mi.Bool) -> tuple[mi.Float, mi.Bool]:
+        """Post-processed ranges (m) and the lanes that report them (returned, beyond the blind zone)."""
+        for effect in self.effects:
+            z = effect.finalize_range(z, rays)
+        return z, returned & (z >= self.min_range)
+
     def _report(
         self, out: dict, index: mi.UInt32, rays: RayBatch, returned: mi.Bool, z: mi.Float, intensity=0.0
     ) -> None:
         """Write the reported ranges (post-processed, blind zone applied) and intensities of the lanes that returned."""
-        for effect in self.effects:
-            z = effect.finalize_range(z, rays)
-        reported = returned & (z >= self.min_range)
+        z, reported = self._reported(z, rays, returned)
         dr.scatter(out["range"], z, index, reported)
         dr.scatter(out["hit"], mi.Bool(True), index, reported)
         if "intensity" in out:  # sample_trace draws ranges only
             dr.scatter(out["intensity"], mi.Float(intensity), index, reported)
 
+    def _virtual_returns(self, out: dict, rays: RayBatch, seed: int) -> mi.Bool:
+        """Draw the effects' virtual elements (outliers, clutter) of every lane, in order.
+
+        Returns:
+            The lanes whose beam passed them all and goes on into the scene.
+        """
+        everyone = dr.arange(mi.UInt32, rays.width)
+        alive = dr.full(mi.Bool, True, rays.width)
+        for v, seg in enumerate(self.virtual_segments(rays)):
+            u = uniform(seed, rays.ray_id, VIRTUAL_SEGMENT + v, 0)
+            returned = alive & seg.valid & (u < seg.p * (1.0 - seg.drop))
+            self._report(
+                out, everyone, rays, returned, sample_range(seg, uniform(seed, rays.ray_id, VIRTUAL_SEGMENT + v, 1))
+            )
+            alive = alive & ~(seg.valid & (u < seg.p))
+        return alive
+
     def _first_returns(self, scene, table: ElementTable, rays: RayBatch, seed: int) -> dict:
-        """The sampling loop of :meth:`simulate_rays` on prepared rays (one lane per ray)."""
+        """The sampling loop of :meth:`simulate_rays` on prepared rays (one lane per ray).
+
+        The rays walk through their elements in a symbolic Dr.Jit loop that only decides where each
+        beam ends (returned, lost, met nothing more, or passed ``max_segments`` elements); the
+        range is then drawn once per ray, at the element that returned it. The loop runs in
+        phases of :data:`ELEMENTS_PER_PHASE` elements, between which the rays still passing
+        through are compacted, so that a SIMD packet waits for few long rays.
+        """
         n = rays.width
         out = {
             "range": dr.full(mi.Float, dr.nan, n),
@@ -195,57 +229,97 @@ class SensorModel:
             "segments": dr.zeros(mi.UInt32, n),
             "intensity": dr.zeros(mi.Float, n),
         }
-        index = dr.arange(mi.UInt32, n)  # ray index (into `out`) of each live lane
+        alive = self._virtual_returns(out, rays, seed)  # virtual elements (outliers, clutter) come first
+        end = _BeamEnds.empty(n)
+        index = dr.compress(alive)  # lanes still passing through elements
+        start = dr.gather(mi.Point3f, rays.origin, index)
+        for first in range(0, self.max_segments, ELEMENTS_PER_PHASE):
+            if dr.width(index) == 0:
+                break
+            live = rays.take(index)
+            last = min(first + ELEMENTS_PER_PHASE, self.max_segments)
+            phase = self._pass_through(scene, table, live, start, dr.gather(_BeamEnds, end, index), first, last, seed)
+            dr.eval(phase)  # the loop's outputs in one kernel
+            if dr.width(index) == n:  # every ray took part (the first phase, without virtual elements)
+                end = phase.end
+            else:
+                dr.scatter(end, phase.end, index)
+            going = dr.compress(phase.going)
+            index = dr.gather(mi.UInt32, index, going)
+            start = dr.gather(mi.Point3f, phase.start, going)
+            dr.eval(end, index, start)
 
-        def keep(alive: mi.Bool):
-            live = dr.compress(alive)
-            return dr.gather(mi.UInt32, index, live), rays.take(live), live
+        # ---------------- Draw the range at the element that returned the beam ----------------
+        si = dr.zeros(mi.SurfaceInteraction3f, n)
+        si.p, si.n = end.point, end.normal
+        seg = table.traced_segment(si, end.returned, end.element, rays.origin, rays.direction, self.range_sigma)
+        seg = self.apply_effects(seg, rays)
+        z = self.density.sample(seg, uniforms(seed, rays.ray_id, end.segments - 1), rays)
+        intensity = self.intensity.sample(seg, uniform(seed, rays.ray_id, end.segments - 1, INTENSITY_STREAM), rays)
+        z, reported = self._reported(z, rays, end.returned)
+        out["range"] = dr.select(reported, z, out["range"])
+        out["intensity"] = dr.select(reported, intensity, out["intensity"])
+        out["hit"] = out["hit"] | reported
+        for name, value in (
+            ("element_id", seg.element),
+            ("shape_id", seg.shape),
+            ("label", seg.label),
+            ("cos_incidence", seg.cos_incidence),
+            ("nominal_range", seg.nominal),
+        ):
+            out[name] = dr.select(end.returned, value, out[name])
+        out["segments"] = end.segments
+        self._escape(out, dr.arange(mi.UInt32, n), rays, end.escaped, seed)
+        dr.eval(out)
+        return out
 
-        # ---------------- Virtual elements (outliers, clutter) before the scene ----------
-        for v in range(len(self.virtual_segments(rays))):
-            seg = self.virtual_segments(rays)[v]  # rebuilt on the compacted lanes
-            u = uniform(seed, rays.ray_id, VIRTUAL_SEGMENT + v, 0)
-            returned = seg.valid & (u < seg.p * (1.0 - seg.drop))
-            self._report(
-                out, index, rays, returned, sample_range(seg, uniform(seed, rays.ray_id, VIRTUAL_SEGMENT + v, 1))
-            )
-            dr.eval(out)
-            index, rays, _ = keep(~(seg.valid & (u < seg.p)))
-        start = mi.Point3f(rays.origin)
-        for k in range(self.max_segments):
-            # ---------------- Trace the next element of every live ray ----------------
-            si, valid, element = next_intersection(scene, table, start, rays.origin, rays.direction, self.max_range)
-            seg = table.traced_segment(si, valid, element, rays.origin, rays.direction, self.range_sigma)
-            seg = self.apply_effects(seg, rays)
+    def _pass_through(
+        self, scene, table, rays: RayBatch, start: mi.Point3f, end: _BeamEnds, first: int, last: int, seed: int
+    ):
+        """Walk ``rays`` from ``start`` through their elements ``first .. last - 1`` (one symbolic loop).
+
+        ``end`` holds what the rays met before this phase.
+
+        Returns:
+            A :class:`_Phase`: where each beam ended, and which rays passed all these elements (and
+            have elements left to meet).
+        """
+        n = rays.width
+        origin, direction = rays.origin, rays.direction
+
+        def passing(k, going, start, end):
+            return going & (k < last_k)
+
+        def meet_element(k, going, start, end):
+            # ---------------- Trace the next element ----------------
+            si, valid, element = next_intersection(scene, table, start, origin, direction, self.max_range, going)
+            seg = table.traced_segment(si, valid, element, origin, direction, self.range_sigma)
+            seg = self.apply_effects(seg, rays)  # only p and drop are used here: the rest is not compiled
 
             # ---------------- One draw: return, lose the beam, or pass through ---------
             u = uniform(seed, rays.ray_id, k, 0)
-            returned = seg.valid & (u < seg.p * (1.0 - seg.drop))
-            z = self.density.sample(seg, uniforms(seed, rays.ray_id, k), rays)
-            intensity = self.intensity.sample(seg, uniform(seed, rays.ray_id, k, INTENSITY_STREAM), rays)
-            self._report(out, index, rays, returned, z, intensity)
-            for name, value in (
-                ("element_id", seg.element),
-                ("shape_id", seg.shape),
-                ("label", seg.label),
-                ("cos_incidence", seg.cos_incidence),
-                ("nominal_range", seg.nominal),
-            ):
-                dr.scatter(out[name], value, index, returned)
-            dr.scatter(out["segments"], dr.opaque(mi.UInt32, k + 1), index, seg.valid)
+            returned = valid & (u < seg.p * (1.0 - seg.drop))
+            k = k + 1
+            end = _BeamEnds(
+                element=dr.select(returned, element, end.element),
+                point=dr.select(returned, si.p, end.point),
+                normal=dr.select(returned, mi.Vector3f(si.n), end.normal),
+                segments=dr.select(valid, k, end.segments),
+                returned=returned,
+                escaped=~valid,
+            )
+            going = valid & (u >= seg.p)
+            return k, going, mi.Point3f(si.p + RESTART_OFFSET * direction), end
 
-            # ---------------- Keep the rays that passed through ------------------------
-            passed = seg.valid & (u >= seg.p)
-            escaped = ~seg.valid
-            dr.eval(out, passed, escaped, si.p)
-            if dr.width(dr.compress(passed)) == 0:
-                self._escape(out, index, rays, escaped, seed)
-                break
-            self._escape(out, index, rays, escaped, seed)
-            point = si.p
-            index, rays, live = keep(passed)
-            start = dr.gather(mi.Point3f, point, live) + RESTART_OFFSET * rays.direction
-        return out
+        last_k = dr.opaque(mi.UInt32, last)  # opaque: every phase runs the same kernel
+        state = (
+            dr.opaque(mi.UInt32, first, n),  # k: elements met so far (random-stream segment)
+            dr.full(mi.Bool, True, n),  # going: the beam goes on to the next element
+            start,  # where each ray continues from, m
+            end,  # where each beam ended
+        )
+        _, going, start, end = dr.while_loop(state, passing, meet_element, label="lidar pass-through")
+        return _Phase(end=end, going=going, start=start)
 
     def sample_trace(self, table: ElementTable, rays: RayBatch, rounds, seed: int = 0) -> tuple[mi.Float, mi.Bool]:
         """One draw of every ray's reported range from an existing trace, with the sampler's rules.
@@ -261,14 +335,7 @@ class SensorModel:
         rays = self.prepare_rays(rays)
         n = rays.width
         out = {"range": dr.full(mi.Float, dr.nan, n), "hit": dr.full(mi.Bool, False, n)}
-        everyone = dr.arange(mi.UInt32, n)
-        alive = dr.full(mi.Bool, True, n)
-        for v, seg in enumerate(self.virtual_segments(rays)):
-            u = uniform(seed, rays.ray_id, VIRTUAL_SEGMENT + v, 0)
-            returned = alive & seg.valid & (u < seg.p * (1.0 - seg.drop))
-            z = sample_range(seg, uniform(seed, rays.ray_id, VIRTUAL_SEGMENT + v, 1))
-            self._report(out, everyone, rays, returned, z)
-            alive = alive & ~(seg.valid & (u < seg.p))
+        alive = self._virtual_returns(out, rays, seed)
         for k, r in enumerate(rounds.rounds):
             sub = rays.take(r.ray)
             base = (
@@ -283,7 +350,7 @@ class SensorModel:
             self._report(out, r.ray, sub, returned, self.density.sample(seg, uniforms(seed, sub.ray_id, k), sub))
             dr.scatter(alive, False, r.ray, live & (u < seg.p))
             dr.eval(out, alive)
-        self._escape(out, everyone, rays, alive, seed)
+        self._escape(out, dr.arange(mi.UInt32, n), rays, alive, seed)
         return out["range"], out["hit"]
 
     def _escape(self, out: dict, index: mi.UInt32, rays: RayBatch, escaped: mi.Bool, seed: int) -> None:
@@ -297,3 +364,48 @@ class SensorModel:
         z = self.density.sample(escape, uniforms(seed, rays.ray_id, ESCAPE_SEGMENT), rays)
         self._report(out, index, rays, returned, z)
         dr.eval(out)
+
+
+ELEMENTS_PER_PHASE = 2  # elements a ray passes per symbolic loop before the survivors are compacted
+
+
+@dataclass
+class _BeamEnds:
+    """Where each beam ended (one lane per ray): the state the pass-through loop carries.
+
+    Attributes:
+        element: element that returned the beam (valid where ``returned``).
+        point, normal: its traced point (m) and normal.
+        segments: elements met, including the one where the beam ended.
+        returned: the beam returned from ``element``.
+        escaped: the beam met nothing more within range.
+    """
+
+    element: mi.UInt32
+    point: mi.Point3f
+    normal: mi.Vector3f
+    segments: mi.UInt32
+    returned: mi.Bool
+    escaped: mi.Bool
+
+    @classmethod
+    def empty(cls, n: int) -> _BeamEnds:
+        """``n`` beams that have met nothing yet."""
+        return cls(
+            element=dr.full(mi.UInt32, NO_ELEMENT, n),
+            point=dr.zeros(mi.Point3f, n),
+            normal=dr.zeros(mi.Vector3f, n),
+            segments=dr.zeros(mi.UInt32, n),
+            returned=dr.full(mi.Bool, False, n),
+            escaped=dr.full(mi.Bool, False, n),
+        )
+
+
+@dataclass
+class _Phase:
+    """Result of one phase of the pass-through loop: the beams' ends, the rays still passing through
+    (``going``) and where they continue from (``start``, m)."""
+
+    end: _BeamEnds
+    going: mi.Bool
+    start: mi.Point3f

@@ -41,13 +41,16 @@ RESTART_OFFSET = 1e-4  # m: a ray continues this far past the element it passed 
 CACHED_FIELDS = ("mean", "sigma", "lo", "hi")  # return distribution before effects, m
 
 
-def next_intersection(scene, table, start: mi.Point3f, origin: mi.Point3f, direction: mi.Vector3f, max_range: float):
+def next_intersection(
+    scene, table, start: mi.Point3f, origin: mi.Point3f, direction: mi.Vector3f, max_range: float, active=True
+):
     """The next element along each ray from ``start``: ``(si, valid, element)``.
 
     ``valid`` is False where the ray meets nothing within ``max_range`` (m, measured from
-    ``origin``). Rays are Lidar-ordered, so the intersection query is flagged coherent.
+    ``origin``) and on inactive lanes (``active``: a mask or True). Rays are Lidar-ordered, so the
+    intersection query is flagged coherent.
     """
-    si = scene.ray_intersect(mi.Ray3f(start, direction), mi.RayFlags.Minimal, True)
+    si = scene.ray_intersect(mi.Ray3f(start, direction), mi.RayFlags.Minimal, True, active)
     nominal = dr.dot(si.p - origin, direction)
     valid = si.is_valid() & (nominal <= max_range)
     return si, valid, dr.select(valid, table.element_of(si), 0)

@@ -30,7 +30,7 @@ from mi_lidar.io.commands import convert, info
 from mi_lidar.io.dispatch import read_any, write_any
 from mi_lidar.io.exr import read_exr, read_exr_log, write_exr, write_exr_log
 from mi_lidar.io.kitti import read_bin_log, read_kitti_bin, write_bin_log, write_kitti_bin
-from mi_lidar.io.las import read_las_log, write_las_log
+from mi_lidar.io.las import read_las, read_las_log, write_las_log
 from mi_lidar.io.ouster import range_digest, read_ouster
 from mi_lidar.io.pcd import read_pcd, read_pcd_log, write_pcd, write_pcd_log
 from mi_lidar.io.ply import read_ply, read_ply_log, write_ply, write_ply_log
@@ -54,6 +54,7 @@ __all__ = [
     "read_exr_log",
     "read_kitti_bin",
     "read_kitti_poses",
+    "read_las",
     "read_las_log",
     "read_ouster",
     "read_pcd",

@@ -51,8 +51,16 @@ def write_las_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
     return Path(path)
 
 
-def read_las_log(path: str | os.PathLike, min_range: float = 0.0) -> Log:
-    """Read a LAS/LAZ file as a one-scan log.
+def read_las(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, np.ndarray], float]:
+    """Read the points of a LAS/LAZ file and the attributes a log needs.
+
+    Args:
+        path: A ``.las`` or ``.laz`` file.
+
+    Returns:
+        ``(points, attributes, start)``: (N, 3) float64 coordinates (m); ``intensity`` (float32,
+        ``lidar_intensity`` when present), ``ring`` and ``column`` when present, and ``time`` (s
+        since ``start``, the earliest ``gps_time``) when the points have a ``gps_time``.
 
     Raises:
         LogFormatError: Missing, truncated or malformed file, or LAZ without a backend.
@@ -73,20 +81,34 @@ def read_las_log(path: str | os.PathLike, min_range: float = 0.0) -> Log:
                 )
             las = reader.read()
         names = set(las.point_format.dimension_names)
-        fields = {"x": np.asarray(las.x), "y": np.asarray(las.y), "z": np.asarray(las.z)}
-        fields["intensity"] = np.asarray(
-            las["lidar_intensity"] if "lidar_intensity" in names else las.intensity, dtype=np.float32
-        )
+        points = np.stack([las.x, las.y, las.z], axis=1)
+        attributes = {
+            "intensity": np.asarray(
+                las["lidar_intensity"] if "lidar_intensity" in names else las.intensity, dtype=np.float32
+            )
+        }
         for name in ("ring", "column"):
             if name in names:
-                fields[name] = np.asarray(las[name])
+                attributes[name] = np.asarray(las[name])
         start = 0.0
         if "gps_time" in names and len(las.gps_time):
-            start = float(np.min(las.gps_time))
-            fields["time"] = np.asarray(las.gps_time) - start
+            gps_time = np.asarray(las.gps_time)
+            start = float(gps_time.min())
+            attributes["time"] = gps_time - start
     except LogFormatError:
         raise
     except Exception as exc:  # laspy raises LaspyException, ValueError, struct and IO errors.
         hint = " (.laz needs `pip install 'laspy[lazrs]'`)" if path.suffix.lower() == ".laz" else ""
         raise LogFormatError(f"{path}: not a readable LAS file ({type(exc).__name__}: {exc}){hint}") from exc
+    return points, attributes, start
+
+
+def read_las_log(path: str | os.PathLike, min_range: float = 0.0) -> Log:
+    """Read a LAS/LAZ file as a one-scan log.
+
+    Raises:
+        LogFormatError: Missing, truncated or malformed file, or LAZ without a backend.
+    """
+    points, attributes, start = read_las(path)
+    fields = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2], **attributes}
     return log_from_fields(fields, min_range=min_range, sensor={"name": "las", "source": str(path)}, start_time=start)

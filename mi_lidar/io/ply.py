@@ -101,7 +101,9 @@ def _load(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
     if missing:
         raise LogFormatError(f"{path}: vertex element lacks properties {missing}; expected x y z")
     points = np.stack([vertex[c] for c in _COORDS], axis=1).astype(np.float32, copy=False)
-    attributes = {n: vertex[n].astype(vertex.dtype[n].newbyteorder("=")) for n in names if n not in _COORDS}
+    attributes = {  # views into the vertex table, copied only to swap a foreign byte order
+        n: vertex[n].astype(vertex.dtype[n].newbyteorder("="), copy=False) for n in names if n not in _COORDS
+    }
     return points, attributes, list(data.comments)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import weakref
 
 import drjit as dr
 import mitsuba as mi
@@ -19,6 +20,26 @@ from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.scene.loading import load_scene, scene_lidar_sensor, scene_sensor_model
 
 MAX_RAYS_PER_BATCH = 1 << 22  # rays traced at once (bounds peak memory)
+_PATTERN_RAYS: dict[int, tuple] = {}  # id(pattern) -> its rays, while the pattern lives
+
+
+def pattern_rays(pattern) -> tuple[np.ndarray, np.ndarray, mi.Vector3f, mi.Point3f]:
+    """The sensor-frame rays of ``pattern``, computed once per pattern object.
+
+    Returns:
+        ``(directions, origins, local_d, local_o)``: (H, W, 3) float32 numpy arrays (read-only, shared
+        by every log simulated with the pattern) and the same rays as Dr.Jit arrays (one lane per ray).
+    """
+    key = id(pattern)
+    if key not in _PATTERN_RAYS:
+        directions, origins = pattern.directions(), pattern.origins()
+        directions.setflags(write=False)
+        origins.setflags(write=False)
+        local_d = mi.Vector3f(*(aligned(c) for c in directions.reshape(-1, 3).T))
+        local_o = mi.Point3f(*(aligned(c) for c in origins.reshape(-1, 3).T))
+        _PATTERN_RAYS[key] = (directions, origins, local_d, local_o)
+        weakref.finalize(pattern, _PATTERN_RAYS.pop, key, None)
+    return _PATTERN_RAYS[key]
 
 
 def pose_entries(poses: np.ndarray, scan: mi.UInt32) -> list[mi.Float]:
@@ -90,9 +111,7 @@ def simulate(
         raise ValueError(f"scan_times has shape {scan_times.shape}; expected ({n_scans},) to match the poses")
 
     table = ElementTable.from_scene(scene)
-    directions, origins = pattern.directions(), pattern.origins()
-    local_d = mi.Vector3f(*(aligned(c) for c in directions.reshape(-1, 3).T))
-    local_o = mi.Point3f(*(aligned(c) for c in origins.reshape(-1, 3).T))
+    directions, origins, local_d, local_o = pattern_rays(pattern)
     ray_in_scan = dr.arange(mi.UInt32, n)
     beam = mi.UInt32(np.repeat(np.arange(height, dtype=np.uint32), width))
     rel_time = pattern.time.reshape(-1)
@@ -115,7 +134,7 @@ def simulate(
             channels.setdefault(name, []).append(value.reshape(len(batch), height, width))
         if progress is not None:
             progress(batch.stop, n_scans)
-    merged = {name: np.concatenate(values) for name, values in channels.items()}
+    merged = {name: values[0] if len(values) == 1 else np.concatenate(values) for name, values in channels.items()}
     times = scan_times[:, None, None] + rel_time.reshape(1, height, width)
     return Log(
         poses=poses,

@@ -8,6 +8,7 @@ from mi_lidar.io import (
     log_from_points,
     read_any,
     read_bin_log,
+    read_las,
     read_pcd,
     read_pcd_log,
     read_rosbag_log,
@@ -87,6 +88,19 @@ def test_round_trip_keeps_grid_and_ranges(tmp_path, suffix):
         np.testing.assert_allclose(back.directions, log.directions, atol=1e-5)
     np.testing.assert_allclose(back.times[back.hit], log.times[log.hit], atol=1e-5)
     assert [p.name for p in tmp_path.iterdir()] == [f"scan{suffix}"]
+
+
+def test_read_las_gives_the_written_hits_and_attributes(tmp_path):
+    log = synthetic_log()
+    points, attributes, start = read_las(write_any(log, tmp_path / "scan.las"))
+    cloud = cloud_from_log(log)
+    expected = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1)
+    np.testing.assert_allclose(points, expected, atol=1e-4)  # 0.1 mm coordinate resolution
+    np.testing.assert_allclose(attributes["intensity"], cloud["intensity"], atol=1e-6)
+    np.testing.assert_array_equal(attributes["ring"], cloud["ring"])
+    np.testing.assert_array_equal(attributes["column"], cloud["column"])
+    assert start == pytest.approx(log.times[0].min(), abs=1e-6)
+    np.testing.assert_allclose(attributes["time"], cloud["time"], atol=1e-6)
 
 
 def test_kitti_bin_round_trip_writes_hits_only(tmp_path):
