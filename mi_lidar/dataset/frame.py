@@ -48,8 +48,8 @@ SEMANTIC_IDS = {
     "large_tree": 110,
 }
 INTENSITY_NOTE = (
-    "velodyne/*.bin intensity column is 0: the simulator has no intensity model yet; "
-    "the column is kept so KITTI loaders read the files unchanged"
+    "velodyne/*.bin intensity column: the simulated intensity in the sensor's integer scale "
+    "(mi_lidar.core.intensity: element reflectivity, range, incidence, per-beam gain and noise)"
 )
 
 

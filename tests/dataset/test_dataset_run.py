@@ -144,7 +144,8 @@ def test_points_and_labels(serial):
         points = read_kitti_bin(serial / "velodyne" / f"{k:06d}.bin")
         semantic, instance = read_semantic_labels(serial / "labels" / f"{k:06d}.label")
         assert len(points) == len(semantic) > 1000
-        np.testing.assert_array_equal(points[:, 3], 0.0)
+        intensity = points[:, 3]  # the simulated intensity: non-negative integers that vary over the scene
+        assert np.all(intensity >= 0) and np.all(intensity == np.round(intensity)) and np.std(intensity) > 1.0
         if k < 2:  # street: road (40) and buildings (50) everywhere, the car (10) has instance 1
             assert {40, 50} <= set(np.unique(semantic).tolist())
             assert np.all(semantic[instance == 1] == 10)
