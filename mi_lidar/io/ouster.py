@@ -49,6 +49,13 @@ class _Field:
     mask: int = 0
     shift: int = 0
 
+    @property
+    def stored(self) -> str:
+        """The dtype decoded values are kept in: at least 16 bits, wide enough for the shifted mask
+        (low-bandwidth ranges in 8 mm units reach 0x7FFF << 3 = 262 136 mm)."""
+        largest = (self.mask or (1 << (8 * np.dtype(self.dtype).itemsize)) - 1) << self.shift
+        return "<u2" if largest <= 0xFFFF else "<u4"
+
 
 @dataclass(frozen=True)
 class _Profile:
@@ -120,7 +127,6 @@ PROFILES = {
 }
 MAX_COLUMNS = 8192
 MAX_BEAMS = 512
-_WIDE = {"u1": "<u2", "<u2": "<u2", "<u4": "<u4"}
 
 
 @dataclass
@@ -202,7 +208,7 @@ def read_ouster_metadata(path: str | os.PathLike) -> OusterMetadata:
         origin = float(find("lidar_origin_to_beam_origin_mm", default=0.0))
         frequency = float(mode.split("x")[1])
         profile = str(find("udp_profile_lidar", default="LEGACY"))
-    except (TypeError, ValueError, IndexError) as exc:
+    except (TypeError, ValueError, IndexError, OverflowError) as exc:
         raise LogFormatError(f"{path}: malformed metadata value ({exc})") from exc
     height = len(altitude)
     if height == 0 or azimuth.shape != (height,) or shift.shape != (height,):
@@ -260,7 +266,7 @@ def _take(block: np.ndarray, spec: _Field) -> np.ndarray:
     """Decode field ``spec`` from the last axis (bytes) of ``block``."""
     size = np.dtype(spec.dtype).itemsize
     raw = np.ascontiguousarray(block[..., spec.offset : spec.offset + size]).view(spec.dtype)[..., 0]
-    values = raw.astype(_WIDE[spec.dtype])
+    values = raw.astype(spec.stored)
     if spec.mask:
         values &= spec.mask
     if spec.shift:
@@ -369,7 +375,7 @@ def read_ouster(
     cells = (scan[:, None], rows, (measurement[:, None] + np.asarray(shift)[None, :]) % width)
     fields = {}
     for name, spec in profile.fields.items():
-        image = np.zeros((n_scans, height, width), dtype=_WIDE[spec.dtype])
+        image = np.zeros((n_scans, height, width), dtype=spec.stored)
         image[cells] = _take(pixels, spec).reshape(-1, height)
         fields[name] = image
     valid = np.zeros((n_scans, height, width), dtype=bool)
