@@ -185,3 +185,12 @@ def test_simulated_ouster_fires_the_real_frame_rays(shared_data):
     np.testing.assert_allclose(log.directions, real.directions, atol=1e-6)
     np.testing.assert_allclose(log.origins, real.origins, atol=1e-7)
     assert 0.3 < log.hit.mean() < 1.0
+
+
+def test_bundled_scenes_are_found_by_name():
+    from mi_lidar.core.errors import SceneError
+    from mi_lidar.scene import bundled_scene
+
+    assert bundled_scene("offroad.xml").is_file()
+    with pytest.raises(SceneError, match="nowhere.xml: no such bundled scene"):
+        bundled_scene("nowhere.xml")

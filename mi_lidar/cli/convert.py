@@ -9,9 +9,15 @@ from rich.table import Table
 
 from mi_lidar.cli.app import app, console
 
+MODEL_HELP = (
+    "Velodyne model (VLP-16, VLP-32C, HDL-32E); default: the packets' product byte, checked against the "
+    "packet timing and the calibration table."
+)
 
-def _reader_options(metadata: Path | None, calibration: Path | None) -> dict:
-    return {k: v for k, v in (("metadata", metadata), ("calibration", calibration)) if v is not None}
+
+def _reader_options(metadata: Path | None, calibration: Path | None, model: str | None) -> dict:
+    options = (("metadata", metadata), ("calibration", calibration), ("model", model))
+    return {k: v for k, v in options if v is not None}
 
 
 @app.command(rich_help_panel="Sensor files")
@@ -29,6 +35,7 @@ def convert(
     ),
     metadata: Path | None = typer.Option(None, help="Ouster metadata JSON (default: next to the pcap)."),
     calibration: Path | None = typer.Option(None, help="Velodyne calibration YAML (default: next to the pcap)."),
+    model: str | None = typer.Option(None, help=MODEL_HELP),
 ):
     """Convert a Lidar file to another format, keeping misses explicit where the format allows.
 
@@ -43,7 +50,7 @@ def convert(
     from mi_lidar.io import convert as run
 
     with console.status(f"converting {source.name}"):
-        path = run(source, target, to=to, scan=scan, **_reader_options(metadata, calibration))
+        path = run(source, target, to=to, scan=scan, **_reader_options(metadata, calibration, model))
     console.print(f"wrote {path}")
 
 
@@ -52,6 +59,7 @@ def info(
     source: Path = typer.Argument(..., help="Any file `convert` reads.", exists=True),
     metadata: Path | None = typer.Option(None, help="Ouster metadata JSON (default: next to the pcap)."),
     calibration: Path | None = typer.Option(None, help="Velodyne calibration YAML (default: next to the pcap)."),
+    model: str | None = typer.Option(None, help=MODEL_HELP),
 ):
     """Summarise a Lidar file: sensor, beams, firings, scans, miss fraction, range span, pose extents.
 
@@ -59,12 +67,14 @@ def info(
 
         mi-lidar info ../shared/data/velodyne/velodyne_vlp16.pcap
 
+        mi-lidar info capture.pcap --model HDL-32E --calibration 32db.yaml
+
         mi-lidar info drive.npz
     """
     from mi_lidar.io import info as run
 
     with console.status(f"reading {source.name}"):
-        summary = run(source, **_reader_options(metadata, calibration))
+        summary = run(source, **_reader_options(metadata, calibration, model))
     table = Table(title=str(source.name), show_header=True, header_style="bold")
     table.add_column("quantity")
     table.add_column("value", justify="right")

@@ -13,8 +13,6 @@ from mi_lidar.cli.app import app, console
 from mi_lidar.cli.progress import progress
 from mi_lidar.core.errors import MiLidarError, ParameterError
 
-DEFAULT_SCENE = Path(__file__).resolve().parents[2] / "scenes_xml" / "offroad.xml"
-
 
 def scan_summary(log, title: str, elapsed: float | None = None) -> Table:
     """A rich table summarising a log: rays, hit fraction, range quantiles, returns per label."""
@@ -256,7 +254,8 @@ def demo(
         mi-lidar demo --out demo_out
     """
     from mi_lidar.loop.demo import run_demo
+    from mi_lidar.scene import bundled_scene
 
-    render(DEFAULT_SCENE, out, seed=seed, pattern=None)
+    render(bundled_scene("offroad.xml"), out, seed=seed, pattern=None)
     console.rule("The loop: a log with a hidden effect, its diagnosis, the error before and after")
     run_demo(out=out / "loop", echo=console.print)

@@ -30,7 +30,9 @@ from __future__ import annotations
 
 import json
 import os
+import tokenize
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -42,6 +44,19 @@ from mi_lidar.core.errors import LogFormatError
 
 FORMAT_NAME = "mi-lidar-log"
 FORMAT_VERSION = 1
+# What numpy's .npy / .npz parsing raises on damaged files (a mangled header reaches ``ast`` and
+# ``tokenize``, a huge shape overflows; a damaged deflate stream raises ``zlib.error``).
+NUMPY_FILE_ERRORS = (
+    zipfile.BadZipFile,
+    zlib.error,
+    ValueError,
+    OSError,
+    EOFError,
+    OverflowError,
+    UnicodeDecodeError,
+    SyntaxError,
+    tokenize.TokenError,
+)
 
 
 @dataclass
@@ -175,16 +190,17 @@ class Log:
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
-        except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+            meta = json.loads(arrays.pop("meta").tobytes().decode()) if "meta" in arrays else None
+        except NUMPY_FILE_ERRORS as exc:
             raise LogFormatError(
-                f"{path}: not a readable mi-lidar log ({exc}); was it truncated? Re-create it with "
-                "`mi-lidar simulate` or `mi-lidar convert`."
+                f"{path}: not a readable mi-lidar log ({type(exc).__name__}: {exc}); was it truncated? Re-create "
+                "it with `mi-lidar simulate` or `mi-lidar convert`."
             ) from exc
-        if "meta" not in arrays:
+        if meta is None:
             raise LogFormatError(f"{path}: missing 'meta' entry; this .npz is not an mi-lidar log")
-        meta = json.loads(arrays.pop("meta").tobytes().decode())
-        if meta.get("format") != FORMAT_NAME:
-            raise LogFormatError(f"{path}: format {meta.get('format')!r}; expected {FORMAT_NAME!r}")
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
+            found = meta.get("format") if isinstance(meta, dict) else meta
+            raise LogFormatError(f"{path}: format {found!r}; expected {FORMAT_NAME!r}")
         if meta.get("version") != FORMAT_VERSION:
             raise LogFormatError(
                 f"{path}: log format version {meta.get('version')}; this mi-lidar reads version "
@@ -193,14 +209,22 @@ class Log:
         missing = [k for k in ("poses", "directions", "origins", "ranges", "hit", "times") if k not in arrays]
         if missing:
             raise LogFormatError(f"{path}: missing arrays {missing}")
+        sensor = meta.get("sensor", {})
+        if not isinstance(sensor, dict):
+            raise LogFormatError(f"{path}: meta 'sensor' is a {type(sensor).__name__}; expected a JSON object")
         attributes = {k[len("attr/") :]: v for k, v in arrays.items() if k.startswith("attr/")}
-        return cls(
-            poses=arrays["poses"],
-            directions=arrays["directions"],
-            origins=arrays["origins"],
-            ranges=arrays["ranges"],
-            hit=arrays["hit"],
-            times=arrays["times"],
-            attributes=attributes,
-            sensor=meta.get("sensor", {}),
-        )
+        try:
+            return cls(
+                poses=arrays["poses"],
+                directions=arrays["directions"],
+                origins=arrays["origins"],
+                ranges=arrays["ranges"],
+                hit=arrays["hit"],
+                times=arrays["times"],
+                attributes=attributes,
+                sensor=sensor,
+            )
+        except LogFormatError as exc:
+            raise LogFormatError(f"{path}: {exc}") from exc
+        except (ValueError, TypeError) as exc:
+            raise LogFormatError(f"{path}: an array has values of the wrong type ({exc})") from exc

@@ -118,9 +118,11 @@ def read_carmen(
         raise LogFormatError(f"{path}: {message} scans have different beam counts {sorted(widths)}")
     n = widths.pop()
     table = np.stack(rows)
-    if not np.isfinite(table).all():
-        bad = int(np.argmax(~np.isfinite(table).all(axis=1)))
-        raise LogFormatError(f"{path}: line {numbers[bad]}: non-finite value in a {message} message")
+    # Ranges are stored as float32: a reading beyond its range (3.4e38) is as bad as a NaN.
+    finite = np.isfinite(table).all(axis=1) & (np.abs(table[:, :n]) < np.finfo(np.float32).max).all(axis=1)
+    if not finite.all():
+        bad = int(np.argmax(~finite))
+        raise LogFormatError(f"{path}: line {numbers[bad]}: non-finite or out-of-range value in a {message} message")
     readings, pose, odometry, stamp = table[:, :n], table[:, n : n + 3], table[:, n + 3 : n + 6], table[:, n + 6]
     if max_range is None:
         max_range = detect_max_range(readings)

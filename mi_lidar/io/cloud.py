@@ -29,7 +29,7 @@ import numpy as np
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
 
-MAX_EMPTY_CELLS = 1 << 22
+MAX_EMPTY_CELLS = 1 << 20  # a damaged ring or column field cannot make a huge grid (and a slow read)
 INTENSITY_SOURCES = ("intensity", "reflectivity", "signal")
 STANDARD_FIELDS = ("x", "y", "z", "intensity", "ring", "column", "time")
 

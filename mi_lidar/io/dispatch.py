@@ -77,21 +77,26 @@ def detect_format(path: str | os.PathLike, for_writing: bool = False) -> str:
     return _SUFFIX_FORMATS[suffix]
 
 
-def _read_pcap(path: Path, metadata=None, calibration=None, **options) -> Log:
+def _read_pcap(path: Path, metadata=None, calibration=None, model=None, **options) -> Log:
     """Ouster when metadata is given or sits next to the capture, else Velodyne.
 
     A Velodyne capture without ``calibration`` uses the calibration YAML next to it when the
-    folder holds exactly one (the packets' product byte is not always right).
+    folder holds exactly one.
     """
     sidecar = path.with_suffix(".json")
-    if metadata is not None or (sidecar.is_file() and calibration is None):
+    if metadata is not None or (sidecar.is_file() and calibration is None and model is None):
+        if calibration is not None or model is not None:
+            raise LogFormatError(
+                f"{path}: calibration= (--calibration) and model= (--model) are for Velodyne captures; "
+                "an Ouster capture takes metadata= (--metadata) only"
+            )
         return ouster.read_ouster(path, metadata=metadata or sidecar)
     sizes = {len(p) for p in read_udp(path).payloads}
     if velodyne.PACKET_SIZE in sizes:
         if calibration is None:
             tables = sorted(path.parent.glob("*.yaml"))
             calibration = tables[0] if len(tables) == 1 else None  # the one calibration table beside it
-        return velodyne.read_velodyne(path, calibration=calibration, **options)
+        return velodyne.read_velodyne(path, calibration=calibration, model=model, **options)
     raise LogFormatError(
         f"{path}: no Velodyne data packets and no Ouster metadata JSON next to it; pass metadata= "
         "(Ouster) or calibration= (Velodyne)"

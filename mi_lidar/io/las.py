@@ -11,6 +11,7 @@ present (``H = 1, W = N`` otherwise). Compressed ``.laz`` needs a laspy LAZ back
 from __future__ import annotations
 
 import os
+import struct
 from pathlib import Path
 
 import laspy
@@ -22,6 +23,35 @@ from mi_lidar.core.log import Log
 from mi_lidar.io.cloud import cloud_from_log, log_from_fields
 
 COORDINATE_SCALE = 1e-4
+VLR_HEADER_BYTES = 54
+EVLR_HEADER_BYTES = 60
+
+
+def _check_record_counts(path: Path, size: int) -> None:
+    """Reject VLR / EVLR counts the file cannot hold (laspy would loop over them at end of file).
+
+    Public header fields (LAS 1.0-1.4): ``header_size`` u16 at byte 94, ``number_of_vlrs`` u32 at
+    100, and for 1.4 ``start_of_first_evlr`` u64 at 235 and ``number_of_evlrs`` u32 at 243.
+    """
+    with open(path, "rb") as stream:
+        head = stream.read(247)
+    if len(head) < 104 or head[:4] != b"LASF":
+        return  # laspy reports the bad signature or the short header
+    header_size, _, vlrs = struct.unpack_from("<HII", head, 94)
+    if header_size > size:
+        raise LogFormatError(f"{path}: header field header_size = {header_size} exceeds the {size}-byte file")
+    if vlrs * VLR_HEADER_BYTES > size - header_size:
+        raise LogFormatError(
+            f"{path}: header field number_of_vlrs = {vlrs} needs at least {vlrs * VLR_HEADER_BYTES} bytes after "
+            f"the {header_size}-byte header; the file has {size} bytes (corrupt header)"
+        )
+    if head[25] >= 4 and len(head) == 247 and header_size >= 247:
+        start, evlrs = struct.unpack_from("<QI", head, 235)
+        if evlrs and (start > size or evlrs * EVLR_HEADER_BYTES > size - start):
+            raise LogFormatError(
+                f"{path}: header fields start_of_first_evlr = {start} and number_of_evlrs = {evlrs} do not fit "
+                f"the {size}-byte file (corrupt header)"
+            )
 
 
 def write_las_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
@@ -69,6 +99,7 @@ def read_las(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, np.ndarray]
     if not path.is_file():
         raise LogFormatError(f"{path}: no such LAS file")
     size = path.stat().st_size
+    _check_record_counts(path, size)
     try:
         with laspy.open(str(path)) as reader:
             header = reader.header

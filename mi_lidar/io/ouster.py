@@ -51,6 +51,13 @@ class _Field:
     mask: int = 0
     shift: int = 0
 
+    @property
+    def stored(self) -> str:
+        """The dtype decoded values are kept in: at least 16 bits, wide enough for the shifted mask
+        (low-bandwidth ranges in 8 mm units reach 0x7FFF << 3 = 262 136 mm)."""
+        largest = (self.mask or (1 << (8 * np.dtype(self.dtype).itemsize)) - 1) << self.shift
+        return "<u2" if largest <= 0xFFFF else "<u4"
+
 
 @dataclass(frozen=True)
 class _Profile:
@@ -158,7 +165,7 @@ def _take(block: np.ndarray, spec: _Field) -> np.ndarray:
     """Decode field ``spec`` from the last axis (bytes) of ``block``."""
     size = np.dtype(spec.dtype).itemsize
     raw = np.ascontiguousarray(block[..., spec.offset : spec.offset + size]).view(spec.dtype)[..., 0]
-    values = raw.astype(_WIDE[spec.dtype])
+    values = raw.astype(spec.stored)
     if spec.mask:
         values &= spec.mask
     if spec.shift:
@@ -234,7 +241,7 @@ def read_ouster(
     cells = (scan[:, None], rows, (measurement[:, None] + np.asarray(shift)[None, :]) % width)
     fields = {}
     for name, spec in profile.fields.items():
-        image = np.zeros((n_scans, height, width), dtype=_WIDE[spec.dtype])
+        image = np.zeros((n_scans, height, width), dtype=spec.stored)
         image[cells] = _take(pixels, spec).reshape(-1, height)
         fields[name] = image
     valid = np.zeros((n_scans, height, width), dtype=bool)

@@ -14,6 +14,7 @@ import numpy as np
 
 from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.log import NUMPY_FILE_ERRORS
 from mi_lidar.core.poses import validate_poses
 
 
@@ -86,8 +87,8 @@ def read_pose_matrices(path: str | os.PathLike) -> np.ndarray:
     if path.suffix.lower() == ".npy":
         try:
             poses = np.load(path, allow_pickle=False)
-        except (ValueError, OSError, EOFError) as exc:
-            raise LogFormatError(f"{path}: not a readable .npy array ({exc})") from exc
+        except NUMPY_FILE_ERRORS as exc:
+            raise LogFormatError(f"{path}: not a readable .npy array ({type(exc).__name__}: {exc})") from exc
         if poses.ndim == 2 and poses.shape == (4, 4):
             poses = poses[None]
         if poses.ndim != 3 or poses.shape[1:] != (4, 4):

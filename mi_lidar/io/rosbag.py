@@ -9,8 +9,10 @@ invalid cells (``attributes['valid']`` False).
 Writing: a ROS 2 bag (sqlite3 storage, Humble message definitions) with one organized ``H x W``
 PointCloud2 per scan on ``topic``: fields ``x y z intensity`` (FLOAT32), ``ring`` (UINT16, 0 =
 lowest beam), ``column`` (UINT32) and ``time`` (FLOAT32, s since the scan's first ray), misses
-as NaN points with ``is_dense`` False, which RViz and Open3D accept. Poses are not written (use
-a TF topic in the bag for that).
+as NaN points with ``is_dense`` False, which RViz and Open3D accept. Poses go on ``/tf``: one
+``tf2_msgs/TFMessage`` per scan at the scan's stamp with ``world_frame -> base_frame`` = the scan's
+sensor-to-world pose, and ``/tf_static`` holds the identity ``base_frame -> frame_id`` (the log's
+poses are the sensor's own), so RViz with fixed frame ``map`` places every scan.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from mi_lidar.core.log import Log
 from mi_lidar.io.cloud import cloud_from_log, log_from_fields, stack_scans
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 _WRITE_FIELDS = (("x", 7), ("y", 7), ("z", 7), ("intensity", 7), ("ring", 4), ("column", 6), ("time", 7))
 
@@ -124,8 +127,50 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
     return stack_scans(logs)
 
 
-def write_rosbag_log(log: Log, path: str | os.PathLike, topic: str = "/points", frame_id: str = "lidar") -> Path:
-    """Write every scan of ``log`` as a PointCloud2 message into a new ROS 2 bag directory.
+def _latched_qos() -> list:
+    """The QoS ``ros2 bag record`` offers for ``/tf_static``: reliable, transient local (latched)."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    forever = QosTime(2147483647, 4294967295)
+    return [
+        Qos(
+            QosHistory.KEEP_LAST,
+            1,
+            QosReliability.RELIABLE,
+            QosDurability.TRANSIENT_LOCAL,
+            forever,
+            forever,
+            QosLiveliness.AUTOMATIC,
+            forever,
+            avoid_ros_namespace_conventions=False,
+        )
+    ]
+
+
+def _tf_message(types, stamp, parent: str, child: str, pose: np.ndarray):
+    """A ``tf2_msgs/TFMessage`` with one transform ``parent -> child`` = (4, 4) ``pose``."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(pose[:3, :3]).as_quat()
+    transform = types["geometry_msgs/msg/Transform"](
+        translation=types["geometry_msgs/msg/Vector3"](x=float(pose[0, 3]), y=float(pose[1, 3]), z=float(pose[2, 3])),
+        rotation=types["geometry_msgs/msg/Quaternion"](x=float(x), y=float(y), z=float(z), w=float(w)),
+    )
+    header = types["std_msgs/msg/Header"](stamp=stamp, frame_id=parent)
+    stamped = types["geometry_msgs/msg/TransformStamped"](header=header, child_frame_id=child, transform=transform)
+    return types[TF_MESSAGE](transforms=[stamped])
+
+
+def write_rosbag_log(
+    log: Log,
+    path: str | os.PathLike,
+    topic: str = "/points",
+    frame_id: str = "lidar",
+    world_frame: str = "map",
+    base_frame: str = "base_link",
+) -> Path:
+    """Write every scan of ``log`` as a PointCloud2 message into a new ROS 2 bag directory, with the
+    poses on ``/tf`` and ``/tf_static`` (see the module docstring).
 
     The bag is written to a temporary directory next to ``path`` and renamed when complete.
 
@@ -159,6 +204,10 @@ def write_rosbag_log(log: Log, path: str | os.PathLike, topic: str = "/points", 
         bag = staging / "bag"
         with Writer(bag, version=8) as writer:
             connection = writer.add_connection(topic, POINTCLOUD2, typestore=store)
+            tf = writer.add_connection("/tf", TF_MESSAGE, typestore=store)
+            tf_static = writer.add_connection(
+                "/tf_static", TF_MESSAGE, typestore=store, offered_qos_profiles=_latched_qos()
+            )
             for index in range(log.n_scans):
                 cloud = cloud_from_log(log, index, organized=True)
                 table = np.empty(height * width, dtype=record)
@@ -179,7 +228,13 @@ def write_rosbag_log(log: Log, path: str | os.PathLike, topic: str = "/points", 
                     data=np.frombuffer(table.tobytes(), dtype=np.uint8),
                     is_dense=bool(log.hit[index].all()),
                 )
-                writer.write(connection, int(round(start * 1e9)), store.serialize_cdr(msg, POINTCLOUD2))
+                nanoseconds = int(round(start * 1e9))
+                if index == 0:
+                    mount = _tf_message(types, stamp, base_frame, frame_id, np.eye(4))
+                    writer.write(tf_static, nanoseconds, store.serialize_cdr(mount, TF_MESSAGE))
+                pose = _tf_message(types, stamp, world_frame, base_frame, log.poses[index])
+                writer.write(tf, nanoseconds, store.serialize_cdr(pose, TF_MESSAGE))
+                writer.write(connection, nanoseconds, store.serialize_cdr(msg, POINTCLOUD2))
         os.replace(bag, path)
     finally:
         shutil.rmtree(staging, ignore_errors=True)

@@ -40,6 +40,7 @@ BLOCK_FLAG = 0xEEFF  # bytes FF EE read as little-endian u16
 RETURN_MODES = {0x37: "strongest", 0x38: "last", 0x39: "dual"}
 PRODUCT_IDS = {0x21: "HDL-32E", 0x22: "VLP-16", 0x24: "VLP-16", 0x28: "VLP-32C"}
 TIMING_TOLERANCE = 0.15
+ELEVATION_TOLERANCE_DEG = 1.0
 
 
 @dataclass(frozen=True)
@@ -54,6 +55,10 @@ class Model:
     resolution_m: float
     elevation_deg: np.ndarray
     azimuth_offset_deg: np.ndarray
+
+    def packet_us(self, mode: str) -> float:
+        """Time between data packets (us): 12 firings per packet, 6 in ``"dual"`` return mode."""
+        return (BLOCKS // 2 if mode == "dual" else BLOCKS) * self.sequence_us * self.sequences_per_block
 
 
 MODELS = {
@@ -289,29 +294,87 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
     )
 
 
-def _choose_model(path: Path, model: str | None, calibration: Calibration | None, product: int) -> Model:
-    """Resolve the sensor model from the argument, the calibration size or the product byte."""
+def table_model(calibration: Calibration) -> Model | None:
+    """The model whose nominal elevations a calibration table matches, or None.
+
+    A table matches a model with as many lasers when its sorted ``vert_correction`` angles lie
+    within :data:`ELEVATION_TOLERANCE_DEG` of the model's nominal ones (per-unit corrections are
+    a few tenths of a degree; the HDL-32E and VLP-32C tables differ by up to 5 degrees).
+    """
+    measured = np.sort(np.degrees(calibration.vert))
+    for model in MODELS.values():
+        if (
+            model.lasers == len(measured)
+            and np.abs(np.sort(model.elevation_deg) - measured).max() <= ELEVATION_TOLERANCE_DEG
+        ):
+            return model
+    return None
+
+
+def _choose_model(
+    path: Path,
+    model: str | None,
+    calibration: Calibration | None,
+    table: str | None,
+    product: int,
+    mode: str,
+    spacing_us: float | None,
+) -> tuple[Model, str]:
+    """Resolve the sensor model and check that the calibration table fits it.
+
+    Without ``model``, the first of these whose packet timing matches the capture wins: the
+    packets' product byte, the model the calibration table's elevations match, the model the
+    packet spacing alone implies (some firmware writes another model's product byte).
+
+    Returns:
+        ``(model, source)``, ``source`` saying what chose it.
+    """
+    fitted = None if calibration is None else table_model(calibration)
+    timed = lambda m: spacing_us is None or abs(spacing_us / m.packet_us(mode) - 1) <= TIMING_TOLERANCE
     if model is not None:
         if model not in MODELS:
             raise LogFormatError(f"{path}: unknown Velodyne model {model!r}; supported: {', '.join(MODELS)}")
-        chosen = MODELS[model]
-    elif calibration is not None and len(calibration.vert) == 16:
-        chosen = MODELS["VLP-16"]
-    elif product in PRODUCT_IDS and (
-        calibration is None or MODELS[PRODUCT_IDS[product]].lasers == len(calibration.vert)
-    ):
-        chosen = MODELS[PRODUCT_IDS[product]]
+        chosen, source = MODELS[model], f"model={model!r}"
     else:
-        raise LogFormatError(
-            f"{path}: cannot tell the Velodyne model (product byte 0x{product:02x}); "
-            f"pass model= one of {', '.join(MODELS)}"
+        hints = (
+            [(MODELS[PRODUCT_IDS[product]], f"the packets' product byte 0x{product:02x}")]
+            if product in PRODUCT_IDS
+            else []
         )
-    if calibration is not None and len(calibration.vert) != chosen.lasers:
+        hints += [(fitted, f"calibration {table}")] if fitted is not None else []
+        if spacing_us is not None:
+            hints += [(m, f"the packet spacing ({spacing_us:.1f} us)") for m in MODELS.values()]
+        chosen, source = next(((m, s) for m, s in hints if timed(m)), (None, ""))
+        if chosen is None:
+            raise LogFormatError(
+                f"{path}: cannot tell the Velodyne model (product byte 0x{product:02x}); "
+                f"pass model= (--model) one of {', '.join(MODELS)}"
+            )
+    if not timed(chosen):
         raise LogFormatError(
-            f"{path}: calibration has {len(calibration.vert)} lasers but a {chosen.name} has {chosen.lasers}; "
-            "wrong calibration file for this capture?"
+            f"{path}: packets are {spacing_us:.1f} us apart but a {chosen.name} in {mode} mode sends one every "
+            f"{chosen.packet_us(mode):.1f} us; wrong model or calibration?"
         )
-    return chosen
+    if calibration is None:
+        return chosen, source
+    fix = "pass the calibration table of this sensor (--calibration) or the right model= (--model)"
+    if len(calibration.vert) != chosen.lasers:
+        raise LogFormatError(
+            f"{path}: calibration {table} has {len(calibration.vert)} lasers but a {chosen.name} ({source}) has "
+            f"{chosen.lasers}; {fix}"
+        )
+    if fitted is not None and fitted is not chosen:
+        raise LogFormatError(
+            f"{path}: calibration {table} holds the elevations of a {fitted.name} but {source} says "
+            f"{chosen.name}; {fix}"
+        )
+    if calibration.resolution_m and not np.isclose(calibration.resolution_m, chosen.resolution_m):
+        raise LogFormatError(
+            f"{path}: calibration {table} has distance_resolution {calibration.resolution_m} m but a "
+            f"{chosen.name} reports distances in {chosen.resolution_m} m units (ranges would scale by "
+            f"{calibration.resolution_m / chosen.resolution_m:.3g}); {fix}"
+        )
+    return chosen, source
 
 
 def _u16(block: np.ndarray, offset: int) -> np.ndarray:
@@ -330,8 +393,10 @@ def read_velodyne(
     Args:
         path: The ``.pcap`` capture (data port 2368; GPS packets on 8308 are skipped).
         calibration: A ``velodyne_pointcloud`` YAML; the model's nominal table when None.
-        model: ``"VLP-16"``, ``"VLP-32C"`` or ``"HDL-32E"``; inferred from the calibration size or
-            the packet's product byte when None.
+        model: ``"VLP-16"``, ``"VLP-32C"`` or ``"HDL-32E"``; when None, the packets' product byte,
+            else the model the calibration's elevations match, else the one the packet spacing
+            implies (the first whose packet timing fits the capture; ``sensor['model_source']``
+            says which).
         return_mode: For dual-return captures, which return fills ``ranges``: ``"strongest"`` or
             ``"last"``; the other is kept in ``attributes['range_last' | 'range_strongest']`` (m,
             NaN for none).
@@ -344,8 +409,9 @@ def read_velodyne(
 
     Raises:
         LogFormatError: Unreadable pcap or calibration, no data packets, a bad block flag (named
-            with its packet offset), or packet timing inconsistent with the model (wrong model or
-            calibration for this capture).
+            with its packet offset), packet timing inconsistent with the model, or a calibration
+            table that does not fit the model (laser count, elevations of another model, or a
+            ``distance_resolution`` other than the model's distance unit).
     """
     if return_mode not in ("strongest", "last"):
         raise ValueError(f"read_velodyne: return_mode={return_mode!r}; expected 'strongest' or 'last'")
@@ -362,7 +428,10 @@ def read_velodyne(
             f"{path}: packet at byte {offsets[bad]}: return-mode byte 0x{int(data[bad, 1204]):02x}; expected 0x37, "
             "0x38 or 0x39, the same in every packet"
         )
-    sensor_model = _choose_model(path, model, calib, product)
+    stamp_us = np.ascontiguousarray(data[:, 1200:1204]).view("<u4")[:, 0].astype(np.float64)
+    spacing_us = float(np.median(np.diff(stamp_us) % 3.6e9)) if len(data) > 1 else None
+    table = None if calibration is None else str(calibration)
+    sensor_model, model_source = _choose_model(path, model, calib, table, product, RETURN_MODES[mode_byte], spacing_us)
     calib = calib or Calibration.of_model(sensor_model)
     resolution = calib.resolution_m or sensor_model.resolution_m
     dual = RETURN_MODES[mode_byte] == "dual"
@@ -383,19 +452,10 @@ def read_velodyne(
     distance = _u16(channels, 0)
     reflectivity = channels[..., 2]
 
-    stamp_us = np.ascontiguousarray(data[:, 1200:1204]).view("<u4")[:, 0].astype(np.float64)
     hour = np.round((capture_times - stamp_us * 1e-6) / 3600.0) * 3600.0
     packet_time = hour + stamp_us * 1e-6
     firings_per_packet = BLOCKS // 2 if dual else BLOCKS
     block_us = sensor_model.sequence_us * sensor_model.sequences_per_block
-    if len(data) > 1:
-        measured = np.median(np.diff(stamp_us) % 3.6e9)
-        expected = firings_per_packet * block_us
-        if abs(measured / expected - 1) > TIMING_TOLERANCE:
-            raise LogFormatError(
-                f"{path}: packets are {measured:.1f} us apart but a {sensor_model.name} in "
-                f"{RETURN_MODES[mode_byte]} mode sends one every {expected:.1f} us; wrong model or calibration?"
-            )
 
     # Firings in time order: (P, F, sequences, lasers) with F = blocks (single) or block pairs (dual).
     lasers, per_block = sensor_model.lasers, sensor_model.sequences_per_block
@@ -482,6 +542,7 @@ def read_velodyne(
         "calibration": None if calibration is None else str(calibration),
         "return_mode": RETURN_MODES[mode_byte] if not dual else f"dual ({return_mode} in ranges)",
         "product_byte": product,
+        "model_source": model_source,
         "distance_resolution_m": resolution,
         "layout": "firing order, rows by elevation",
         "columns_per_scan": np.bincount(scan).tolist(),

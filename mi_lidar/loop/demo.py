@@ -10,10 +10,9 @@ import numpy as np
 from mi_lidar.core.effects import parse_effects
 from mi_lidar.loop.compare import compare
 from mi_lidar.loop.diagnose import diagnose
-from mi_lidar.scene.loading import load_scene, scene_sensor_model
+from mi_lidar.scene.loading import bundled_scene, load_scene, scene_sensor_model
 from mi_lidar.scene.simulation import simulate
 
-ROOM = Path(__file__).resolve().parents[2] / "scenes_xml" / "indoor_planar.xml"
 HIDDEN = "incidence_dropout(gamma=2)"
 CANDIDATES = ["range_dropout", "incidence_dropout", "label_dropout", "outliers"]
 F1_NOTE = (
@@ -30,7 +29,7 @@ def make_hidden_log(hidden: str = HIDDEN, n_scans: int = 24, seed: int = 1):
     Returns:
         ``(scene, model, log)``: the scene, the default model (without ``hidden``) and the log.
     """
-    scene = load_scene(ROOM)
+    scene = load_scene(bundled_scene("indoor_planar.xml"))
     model, pose = scene_sensor_model(scene)
     rng = np.random.default_rng(0)
     poses = np.repeat(pose[None], n_scans, 0)

@@ -12,6 +12,23 @@ from mi_lidar.core.errors import MiLidarError, SceneError
 from mi_lidar.core.sensor_model import SensorModel
 
 
+def bundled_scene(name: str) -> Path:
+    """Path of a bundled example scene, e.g. ``"offroad.xml"``.
+
+    Installed from a wheel the scenes are package data (``mi_lidar/scenes_xml``); in a source
+    checkout they are the repository's ``scenes_xml`` folder.
+
+    Raises:
+        SceneError: No bundled scene of that name.
+    """
+    package = Path(__file__).resolve().parents[1]
+    folders = (package / "scenes_xml", package.parent / "scenes_xml")
+    for folder in folders:
+        if (folder / name).is_file():
+            return folder / name
+    raise SceneError(f"{name}: no such bundled scene in {' or '.join(str(f) for f in folders)}")
+
+
 def load_scene(source, optimize: bool = False, **parameters):
     """Load a Mitsuba scene from an XML path or a scene dict.
 

@@ -130,12 +130,40 @@ def test_rosbag_round_trip_and_fields(tmp_path):
     np.testing.assert_allclose(back.ranges[back.hit], log.ranges[log.hit], atol=1e-5)
     np.testing.assert_allclose(back.times, log.times, atol=1e-5)
     with AnyReader([path]) as reader:
-        (connection,) = reader.connections
-        msg = reader.deserialize(next(reader.messages())[2], connection.msgtype)
+        (connection,) = [c for c in reader.connections if c.topic == "/points"]
+        msg = reader.deserialize(next(reader.messages([connection]))[2], connection.msgtype)
     assert [f.name for f in msg.fields][:5] == ["x", "y", "z", "intensity", "ring"]
     assert (msg.height, msg.width, msg.is_dense) == (8, 64, False)
     with pytest.raises(FileExistsError):
         write_any(log, path)
+
+
+def test_rosbag_carries_the_poses_on_tf(tmp_path):
+    from rosbags.highlevel import AnyReader
+    from scipy.spatial.transform import Rotation
+
+    log = synthetic_log(scans=3)
+    log.poses[:, :3, :3] = Rotation.from_euler("zyx", [[0.3, 0.1, 0], [1.2, 0, -0.2], [-2.5, 0.05, 0.1]]).as_matrix()
+    log.poses[:, :3, 3] = [[1, 2, 3], [4, 5, 6], [-7, 8, 0.5]]
+    path = write_any(log, tmp_path / "bag")
+    with AnyReader([path]) as reader:
+        topics = {c.topic: c for c in reader.connections}
+        assert "transient_local" in str(topics["/tf_static"].ext.offered_qos_profiles).lower()
+        clouds = [t for _, t, _ in reader.messages([topics["/points"]])]
+        tf = [(t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages([topics["/tf"]])]
+        static = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages([topics["/tf_static"]])]
+    assert [t for t, _ in tf] == clouds
+    for index, (_, message) in enumerate(tf):
+        (stamped,) = message.transforms
+        assert (stamped.header.frame_id, stamped.child_frame_id) == ("map", "base_link")
+        q, v = stamped.transform.rotation, stamped.transform.translation
+        np.testing.assert_allclose(
+            Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix(), log.poses[index, :3, :3], atol=1e-12
+        )
+        np.testing.assert_allclose([v.x, v.y, v.z], log.poses[index, :3, 3])
+    (mount,) = static[0].transforms
+    assert (mount.header.frame_id, mount.child_frame_id, len(static)) == ("base_link", "lidar", 1)
+    assert mount.transform.rotation.w == 1.0
 
 
 def test_open3d_reads_our_point_clouds(tmp_path):

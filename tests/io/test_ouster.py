@@ -9,7 +9,7 @@ from mi_lidar.core.patterns import ouster
 from mi_lidar.io import range_digest, read_any, read_ouster
 from mi_lidar.io.ouster import destagger, restagger
 
-from .conftest import data_file
+from .conftest import data_file, ouster_sdk_file
 from .synth import ouster_metadata, ouster_payloads, pcap_bytes, write_ouster
 
 OUSTER = "ouster/OS-1-32-G_v2.1.1_1024x10.pcap"
@@ -29,6 +29,44 @@ def test_real_frame_matches_vendor_range_digest(real):
     packets = staggered.reshape(32, 64, 16).transpose(1, 0, 2)
     assert hashlib.md5(np.ascontiguousarray(packets).tobytes()).hexdigest() == digest["packet_hash"]["RANGE"]
     assert real.sensor["frame_ids"] == [int(digest["scans"][0]["FRAME_ID"])]
+
+
+SDK_CAPTURES = {  # capture -> profile; the SDK's digests are over the staggered fields in these dtypes
+    "OS-2-32-U0_v2.0.0_1024x10": "LEGACY",
+    "OS-2-128-U1_v2.3.0_1024x10": "RNG19_RFL8_SIG16_NIR16",
+    "OS-0-32-U1_v2.2.0_1024x10": "RNG19_RFL8_SIG16_NIR16_DUAL",
+    "OS-0-128-U1_v2.3.0_1024x10": "RNG15_RFL8_NIR8",
+}
+SDK_FIELDS = {  # digest key -> (attribute, dtype of the SDK's field)
+    "RANGE": ("range_mm", np.uint32),
+    "RANGE2": ("range2_mm", np.uint32),
+    "SIGNAL": ("signal", np.uint16),
+    "SIGNAL2": ("signal2", np.uint16),
+    "REFLECTIVITY": ("reflectivity", np.uint8),
+    "REFLECTIVITY2": ("reflectivity2", np.uint8),
+    "NEAR_IR": ("near_ir", np.uint16),
+}
+
+
+@pytest.mark.parametrize("capture", list(SDK_CAPTURES))
+def test_every_profile_matches_the_sdk_digests(capture):
+    pcap = ouster_sdk_file(f"{capture}.pcap")
+    digest = json.loads(ouster_sdk_file(f"{capture}_digest.json").read_text())
+    log = read_ouster(pcap, metadata=ouster_sdk_file(f"{capture}.json"))
+    assert log.sensor["profile"] == SDK_CAPTURES[capture]
+    assert log.sensor["frame_ids"] == [int(scan["FRAME_ID"]) for scan in digest["scans"]]
+    shift = log.sensor["pixel_shift_by_row"]
+    for index, scan in enumerate(digest["scans"]):
+        checked = []
+        for key, (name, dtype) in SDK_FIELDS.items():
+            if key in scan:
+                field = np.ascontiguousarray(restagger(log.attributes[name][index], shift), dtype=dtype)
+                assert hashlib.md5(field.tobytes()).hexdigest() == scan[key], f"{capture} scan {index} {key}"
+                checked.append(key)
+        assert {"RANGE", "REFLECTIVITY", "NEAR_IR"} <= set(checked)
+    if SDK_CAPTURES[capture] == "RNG15_RFL8_NIR8":  # 8 mm units: ranges reach beyond 65.535 m
+        assert np.nanmax(log.ranges) > 65.535
+        assert np.all(log.attributes["range_mm"] % 8 == 0)
 
 
 def test_real_frame_misses_ranges_and_geometry(real):
@@ -84,8 +122,10 @@ def test_dual_and_low_bandwidth_profiles(tmp_path):
     np.testing.assert_array_equal(restagger(dual.attributes["range2_mm"][0], shift), staggered + 1000)
     np.testing.assert_array_equal(dual.attributes["reflectivity2"][0][:, 0], np.arange(8))
     np.testing.assert_array_equal(dual.attributes["signal2"][0][:, 0], 50 + np.arange(8))
+    staggered[0, :4] = [65_536, 100_000, 200_000, 0x7FFF * 8]  # beyond 16 bits of mm
     low = read_ouster(write_ouster(tmp_path, staggered, profile="RNG15_RFL8_NIR8"))
     np.testing.assert_array_equal(restagger(low.attributes["range_mm"][0], shift), staggered)
+    assert np.nanmax(low.ranges) == np.float32(0x7FFF * 8 / 1000.0)
     np.testing.assert_array_equal(low.attributes["near_ir"][0][:, 0], ((200 + np.arange(8)) >> 4) << 4)
 
 

@@ -100,7 +100,7 @@ def test_mismatched_model_or_calibration(tmp_path):
         f"- {{laser_id: {i}, rot_correction: 0.0, vert_correction: {np.radians(i - 16):.6f}}}\n" for i in range(32)
     )
     (tmp_path / "32.yaml").write_text(table)
-    with pytest.raises(LogFormatError, match="calibration has 32 lasers but a VLP-16 has 16"):
+    with pytest.raises(LogFormatError, match=r"32\.yaml has 32 lasers but a VLP-16 \(model='VLP-16'\) has 16"):
         read_velodyne(path, tmp_path / "32.yaml", model="VLP-16")
     (tmp_path / "bad.yaml").write_text("lasers:\n- {laser_id: 0}\n")
     with pytest.raises(LogFormatError, match=r"lasers\[0\]: bad or missing field"):
@@ -110,5 +110,58 @@ def test_mismatched_model_or_calibration(tmp_path):
         read_velodyne(tmp_path / "other.pcap")
 
 
+def _table(tmp_path, model: str, resolution: float | None = None, name: str = "table.yaml"):
+    """A calibration YAML with ``model``'s nominal elevations (+0.1 deg, as a per-unit correction)."""
+    lines = [f"distance_resolution: {resolution}"] if resolution else []
+    lines += ["lasers:"] + [
+        f"- {{laser_id: {i}, rot_correction: 0.0, vert_correction: {np.radians(e + 0.1):.6f}}}"
+        for i, e in enumerate(MODELS[model].elevation_deg)
+    ]
+    (tmp_path / name).write_text("\n".join(lines) + "\n")
+    return tmp_path / name
+
+
+def test_table_of_another_model_is_an_error(tmp_path):
+    hdl = _capture(tmp_path, "HDL-32E", product=0x21)
+    vlp32 = _table(tmp_path, "VLP-32C", 0.004)
+    with pytest.raises(LogFormatError, match=r"holds the elevations of a VLP-32C but the packets' product byte 0x21"):
+        read_velodyne(hdl, calibration=vlp32)
+    own = _table(tmp_path, "HDL-32E", 0.004, "hdl.yaml")
+    with pytest.raises(LogFormatError, match=r"distance_resolution 0\.004 m .* \(ranges would scale by 2\)"):
+        read_velodyne(hdl, calibration=own)
+    log = read_velodyne(hdl, calibration=_table(tmp_path, "HDL-32E", 0.002, "hdl2.yaml"))
+    np.testing.assert_allclose(log.ranges[log.hit], 2500 * 0.002, rtol=1e-6)
+
+
+def test_model_from_timing_or_table_when_the_product_byte_is_wrong_or_unknown(tmp_path):
+    vlp16 = read_velodyne(_capture(tmp_path, "VLP-16", product=0x21))  # HDL-32E byte, VLP-16 timing
+    assert vlp16.sensor["name"] == "velodyne:VLP-16" and "packet spacing" in vlp16.sensor["model_source"]
+    unknown = _capture(tmp_path, "VLP-32C", product=0x00)
+    log = read_velodyne(unknown, calibration=_table(tmp_path, "VLP-32C"))
+    assert log.sensor["name"] == "velodyne:VLP-32C" and "table.yaml" in log.sensor["model_source"]
+    np.testing.assert_allclose(log.ranges[log.hit], 2500 * 0.004, rtol=1e-6)
+    with pytest.raises(LogFormatError, match=r"663\.\d us apart but a HDL-32E in strongest mode sends one every 553"):
+        read_velodyne(unknown, calibration=_table(tmp_path, "VLP-32C"), model="HDL-32E")
+
+
 def test_dispatch_reads_velodyne_pcap(tmp_path):
     assert read_any(_capture(tmp_path)).sensor["name"] == "velodyne:VLP-16"
+
+
+def test_cli_model_and_calibration_options(tmp_path):
+    from typer.testing import CliRunner
+
+    from mi_lidar.cli import app
+
+    runner = CliRunner()
+    hdl = _capture(tmp_path, "HDL-32E", product=0x21)
+    (tmp_path / "tables").mkdir()
+    vlp32 = _table(tmp_path / "tables", "VLP-32C", 0.004)
+    result = runner.invoke(app, ["info", str(hdl), "--calibration", str(vlp32)])
+    assert result.exit_code == 2
+    assert "holds the elevations of a VLP-32C" in " ".join(result.output.split())
+    result = runner.invoke(app, ["info", str(hdl), "--model", "VLP-16"])
+    assert result.exit_code == 2 and "VLP-16 in strongest mode" in " ".join(result.output.split())
+    result = runner.invoke(app, ["convert", str(hdl), str(tmp_path / "hdl.npz"), "--model", "HDL-32E"])
+    assert result.exit_code == 0, result.output
+    assert read_any(tmp_path / "hdl.npz").sensor["name"] == "velodyne:HDL-32E"
