@@ -127,7 +127,6 @@ PROFILES = {
         },
     ),
 }
-_WIDE = {"u1": "<u2", "<u2": "<u2", "<u4": "<u4"}
 
 
 def _decoder_metadata(path: Path) -> OusterMetadata:
