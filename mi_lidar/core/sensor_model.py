@@ -33,6 +33,7 @@ from mi_lidar.core.trace import RESTART_OFFSET, next_intersection
 NO_ELEMENT = 0xFFFFFFFF
 VIRTUAL_SEGMENT = 1000  # random-stream segment index of the first virtual element
 ESCAPE_SEGMENT = 2000  # random-stream segment index of the escape law
+FOOTPRINT_SEGMENT = 3000  # random-stream segment index of a footprint effect's choices per beam
 CHANNELS = ("range", "hit", "element_id", "shape_id", "label", "cos_incidence", "nominal_range", "segments")
 
 
@@ -150,7 +151,8 @@ class SensorModel:
         if fan is None:
             return self._first_returns(scene, table, rays, seed)
         effect, sub, weight = fan
-        return effect.combine(self._first_returns(scene, table, sub, seed), weight, rays.width)
+        choice = uniforms(seed, rays.ray_id, FOOTPRINT_SEGMENT)
+        return effect.combine(self._first_returns(scene, table, sub, seed), weight, rays.width, choice)
 
     def _report(self, out: dict, index: mi.UInt32, rays: RayBatch, returned: mi.Bool, z: mi.Float) -> None:
         """Write the reported ranges of the lanes that returned (post-processed, blind zone applied)."""
