@@ -7,16 +7,18 @@ held-out ray. One test decides everything the report says:
 
 * **held-out significance**: the per-ray gains of the held-out log-likelihood (candidate minus
   current model) are tested with a one-sided paired z-test; a candidate is *significant* when
-  ``p < P_VALUE / candidates`` (Bonferroni over the round's candidates) and its mean gain is
-  positive. The training likelihood ratio and BIC change are reported beside it, not used.
+  ``p < P_VALUE / candidates`` (Bonferroni over the round's candidates) and its mean gain is at
+  least :data:`MIN_GAIN` (smaller gains on a large log are significant but are the leftovers of an
+  imperfect fit of the effects already found, not a new physical effect). The training likelihood
+  ratio and BIC change are reported beside it, not used.
 
 Candidates are ranked by held-out gain per ray. A significant candidate **joins** the model only
-when, after every effect of the augmented model is refitted together on the whole training split,
-the augmented model still beats the current one held out by the same test; otherwise the next
+when, after every effect of the augmented model is refitted together (on the same subsample), the
+augmented model still beats the current one held out by the same test; otherwise the next
 significant candidate is tried. Rounds repeat (``rounds`` at most) until no candidate joins; after
 the first round only the candidates that were significant in it are tried again (an effect that
-does not improve the model alone is not looked for behind another). Then
-the model gets a final joint refit, and per-beam or per-label values without evidence (their
+does not improve the model alone is not looked for behind another). Then the model gets a final
+joint refit on the whole training split, and per-beam or per-label values without evidence (their
 likelihood ratio against the parameter's default below the chi-square(1) critical value) are set
 back to the default. Last, the residuals of the final model are tested for structure along time,
 azimuth, beam, range and label (:mod:`mi_lidar.loop.residuals`): what varies there is something
@@ -52,6 +54,7 @@ from mi_lidar.loop.compare import BREAKDOWNS, RayTable, first_elements, group_ke
 from mi_lidar.loop.residuals import plot_structure, residual_structure, structure_verdict
 
 P_VALUE = 1e-3
+MIN_GAIN = 0.01  # nats/ray: the smallest held-out gain that counts as a missing effect
 MIN_NLL_FOR_PERCENT = 1.0  # nats/ray: below this a gain relative to the NLL is not meaningful
 
 
@@ -94,7 +97,7 @@ class Candidate:
         lr: training likelihood-ratio statistic ``2 train_gain`` (reported, not used).
         p_value: one-sided p-value of the held-out paired test of the per-ray gains.
         delta_bic: ``k ln n - lr`` on the fitting rays (reported, not used).
-        significant: ``p_value`` below the round's threshold and a positive held-out gain.
+        significant: ``p_value`` below the round's threshold and a held-out gain of at least :data:`MIN_GAIN`.
         status: ``joined``, ``lost in the joint refit`` (significant alone, not once the model's
             effects were refitted with it) or ``""``.
         parameters: fitted values (of the candidate fit).
@@ -262,7 +265,7 @@ def diagnose(
         out: folder for ``diagnosis.json``, ``diagnosis.md`` and ``residual_structure.png``
             (nothing written when None).
         candidates: effect names to try (default: every registered effect not in the model).
-        steps: Adam steps per fit (the final joint refit takes twice as many).
+        steps: Adam steps per fit.
         rounds: selection rounds (effects added at most).
         max_train, max_test: rays per split (random subsample beyond).
         max_fit: training rays each candidate is fitted on (a subsample of the training split).
@@ -333,7 +336,7 @@ def diagnose(
                     lr=lr,
                     p_value=p,
                     delta_bic=k * math.log(fit_index.size) - lr,
-                    significant=bool(p < threshold and gain > 0),
+                    significant=bool(p < threshold and gain >= MIN_GAIN),
                     parameters=fit.parameters,
                     history=fit.history,
                     effect=effect,
@@ -347,10 +350,10 @@ def diagnose(
         joined = None
         for c in (c for c in ranked if c.significant):
             augmented = dataclasses.replace(base, effects=base.effects + [copy.deepcopy(c.effect)])
-            fit_parts(augmented, train, steps=steps)  # earlier effects adapt to the new one
+            fit_parts(augmented, fitting, steps=steps)  # earlier effects adapt to the new one
             after_test = test.log_likelihood(augmented)
             gain, p = held_out_test(after_test, before_test)
-            if p < threshold and gain > 0:
+            if p < threshold and gain >= MIN_GAIN:
                 joined = c
                 break
             c.status = "lost in the joint refit"
@@ -367,8 +370,8 @@ def diagnose(
         names = [(n, v) for n, v in names if n != chosen]
     added = base.effects[len(base.effects) - len(selected) :] if selected else []
     if selected:
-        fit_parts(base, train, steps=2 * steps)
-        shrink_without_evidence(base, added, train)
+        fit_parts(base, train, steps=steps)
+        shrink_without_evidence(base, added, fitting)
     final_test = test.log_likelihood(base)
     structure = _structure(scene, test, rays, base, azimuth, seed)
     result = Diagnosis(
