@@ -20,9 +20,10 @@ the first round only the candidates that were significant in it are tried again 
 does not improve the model alone is not looked for behind another). Then the model gets a final
 joint refit on the whole training split, and per-beam or per-label values without evidence (their
 likelihood ratio against the parameter's default below the chi-square(1) critical value) are set
-back to the default. Last, the residuals of the final model are tested for structure along time,
-azimuth, beam, range and label (:mod:`mi_lidar.loop.residuals`): what varies there is something
-no catalog effect explains.
+back to the default; an effect that joined only to take up what an earlier one had not yet fitted,
+and has no held-out gain after the final refit, is dropped. Last, the residuals of the final model
+are tested for structure along time, azimuth, beam, range and label
+(:mod:`mi_lidar.loop.residuals`): what varies there is something no catalog effect explains.
 
 The scene is traced once per split and model rays (:meth:`~mi_lidar.core.problem.Problem.trace`
 re-traces only for effects that move rays). Scores are floored per ray with the one floor of
@@ -99,7 +100,8 @@ class Candidate:
         delta_bic: ``k ln n - lr`` on the fitting rays (reported, not used).
         significant: ``p_value`` below the round's threshold and a held-out gain of at least :data:`MIN_GAIN`.
         status: ``joined``, ``lost in the joint refit`` (significant alone, not once the model's
-            effects were refitted with it) or ``""``.
+            effects were refitted with it), ``dropped after the final refit`` (it joined, but the
+            final joint refit left it no held-out gain) or ``""``.
         parameters: fitted values (of the candidate fit).
         history: training mean log-likelihood per step, nats/ray.
     """
@@ -265,7 +267,7 @@ def diagnose(
         out: folder for ``diagnosis.json``, ``diagnosis.md`` and ``residual_structure.png``
             (nothing written when None).
         candidates: effect names to try (default: every registered effect not in the model).
-        steps: Adam steps per fit.
+        steps: Adam steps per fit (the final joint refit takes twice as many).
         rounds: selection rounds (effects added at most).
         max_train, max_test: rays per split (random subsample beyond).
         max_fit: training rays each candidate is fitted on (a subsample of the training split).
@@ -370,7 +372,8 @@ def diagnose(
         names = [(n, v) for n, v in names if n != chosen]
     added = base.effects[len(base.effects) - len(selected) :] if selected else []
     if selected:
-        fit_parts(base, train, steps=steps)
+        fit_parts(base, train, steps=2 * steps)
+        base, added = _drop_passengers(base, added, test, all_rounds, selected, train, steps)
         shrink_without_evidence(base, added, fitting)
     final_test = test.log_likelihood(base)
     structure = _structure(scene, test, rays, base, azimuth, seed)
@@ -394,6 +397,35 @@ def diagnose(
         atomic_write(out / "diagnosis.md", lambda stream: stream.write(diagnosis_markdown(result).encode()))
         plot_structure(structure, out / "residual_structure.png")
     return result
+
+
+def _drop_passengers(base, added, test, rounds, selected, train, steps):
+    """Remove the selected effects that no longer win held out once every effect is refitted together.
+
+    An effect chosen to mop up what an earlier one had not yet fitted loses its gain in the final
+    joint refit; each later effect is dropped when the final model without it is not significantly
+    worse held out (the same test as for joining). ``selected`` and the rows' status are updated.
+
+    Returns:
+        The model and its remaining added effects (refitted when one was dropped).
+    """
+    full = test.log_likelihood(base)
+    kept = list(added)
+    for effect in added[1:]:
+        without = dataclasses.replace(base, effects=[e for e in base.effects if e is not effect])
+        gain, p = held_out_test(full, test.log_likelihood(without))
+        if p < P_VALUE and gain >= MIN_GAIN:
+            continue
+        i = added.index(effect)
+        row = next(c for c in rounds[i] if c.name == selected[i])
+        row.status = "dropped after the final refit"
+        base, full = without, test.log_likelihood(without)
+        kept.remove(effect)
+    for name in [c.name for r in rounds for c in r if c.status == "dropped after the final refit"]:
+        selected.remove(name)
+    if len(kept) < len(added):
+        fit_parts(base, train, steps=steps)
+    return base, kept
 
 
 def _structure(scene, test: Problem, rays: LogRays, model: SensorModel, azimuth: np.ndarray, seed: int) -> list:
@@ -427,8 +459,8 @@ def verdict(d: Diagnosis) -> str:
                 f"The best candidate, {best.name}, gains {best.test_gain:+.4f} nats/ray held out "
                 f"(p = {best.p_value:.2g})."
             )
-    for i, name in enumerate(d.selected):
-        c = next(c for c in d.rounds[i] if c.name == name)
+    for name in d.selected:
+        c = next(c for r in d.rounds for c in r if c.name == name and c.status == "joined")
         mine = name.split("(")[0]
         params = ", ".join(
             f"{key.split('.', 1)[1]}={_values(v)}" for key, v in d.parameters.items() if key.split(".")[0] == mine
@@ -438,7 +470,7 @@ def verdict(d: Diagnosis) -> str:
             f"{'' if math.isnan(c.test_gain_pct) else f'({c.test_gain_pct:.1f} %) '}"
             f"(held-out p = {c.p_value:.2g}; {c.k} parameter(s))."
         )
-        groups = d.evidence[i]["groups"] if i < len(d.evidence) else []
+        groups = next((e["groups"] for e in d.evidence if e["effect"] == name), [])
         if groups:
             g = groups[0]
             text += (
@@ -446,6 +478,13 @@ def verdict(d: Diagnosis) -> str:
                 f"{g['nll_before']:.3f} to {g['nll_after']:.3f} nats/ray."
             )
         parts.append(text)
+    dropped = [c.name for r in d.rounds for c in r if c.status == "dropped after the final refit"]
+    if dropped:
+        parts.append(
+            "Joined, then dropped (no held-out gain once every effect was refitted together): "
+            + ", ".join(dropped)
+            + "."
+        )
     if lost:
         parts.append(
             "Significant alone but not once refitted with the model's effects (not added): "
