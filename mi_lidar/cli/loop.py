@@ -55,11 +55,11 @@ def diagnose_command(
     candidate: list[str] | None = typer.Option(
         None, "--candidate", help="Only try these effects (repeatable); default: the whole catalog."
     ),
-    steps: int = typer.Option(120, min=1, help="Adam steps per candidate fit."),
+    steps: int = typer.Option(60, min=1, help="Adam steps per candidate fit."),
     force: bool = typer.Option(False, help="Diagnose even when the log's sensor does not match the scene's."),
 ):
-    """Find the physical effect the model lacks: fit every candidate on a training split, rank by held-out gain with a
-    likelihood-ratio / BIC test.
+    """Find the physical effects the model lacks: fit every candidate on training rays, rank and confirm them by a
+    held-out test, and say what the residuals still vary with.
 
     Examples:
 

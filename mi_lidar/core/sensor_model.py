@@ -36,6 +36,7 @@ from mi_lidar.core.trace import RESTART_OFFSET, next_intersection
 NO_ELEMENT = 0xFFFFFFFF
 VIRTUAL_SEGMENT = 1000  # random-stream segment index of the first virtual element
 ESCAPE_SEGMENT = 2000  # random-stream segment index of the escape law
+FOOTPRINT_SEGMENT = 3000  # random-stream segment index of a footprint effect's choices per beam
 CHANNELS = (
     "range",
     "hit",
@@ -173,7 +174,8 @@ class SensorModel:
         if fan is None:
             return self._first_returns(scene, table, rays, seed)
         effect, sub, weight = fan
-        return effect.combine(self._first_returns(scene, table, sub, seed), weight, rays.width)
+        choice = uniforms(seed, rays.ray_id, FOOTPRINT_SEGMENT)
+        return effect.combine(self._first_returns(scene, table, sub, seed), weight, rays.width, choice)
 
     def _reported(self, z: mi.Float, rays: RayBatch, returned: mi.Bool) -> tuple[mi.Float, mi.Bool]:
         """Post-processed ranges (m) and the lanes that report them (returned, beyond the blind zone)."""

@@ -139,13 +139,15 @@ class FootprintEffect(Effect, metaclass=abc.ABCMeta):
         """
 
     @abc.abstractmethod
-    def combine(self, sub: dict, weight: mi.Float, n: int) -> dict:
+    def combine(self, sub: dict, weight: mi.Float, n: int, u: mi.Point2f) -> dict:
         """Form each beam's reported return from its sub-rays' first returns (sampler).
 
         Args:
             sub: channels of :meth:`SensorModel.simulate_rays` for the ``m n`` sub-rays.
             weight: (m n,) energy weights of the sub-rays.
             n: number of beams.
+            u: (n,) two uniform numbers per beam for the effect's own random choices (which
+                sub-ray reports, say), from the beam's counter-based random stream.
 
         Returns:
             The same channels for the ``n`` beams.

@@ -12,6 +12,8 @@ from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
+MAX_COS = 0.9999999  # largest |cos(incidence)| the logistic law differentiates through
+
 
 @register_effect
 class IncidenceDropout(DropoutEffect):
@@ -73,5 +75,6 @@ class IncidenceDropout(DropoutEffect):
         cos = dr.clip(seg.cos_incidence, 1e-4, 1.0)
         if self.choices["law"] == "cos":
             return dr.exp(self["gamma"] * dr.log(cos))
-        delta = dr.acos(cos) * (180.0 / math.pi)
+        # below 1: acos has an infinite slope at normal incidence (NaN gradients for ray-moving effects)
+        delta = dr.acos(dr.minimum(cos, MAX_COS)) * (180.0 / math.pi)
         return 1.0 - 1.0 / (1.0 + dr.exp(-(delta - self["angle50"]) / self["width"]))

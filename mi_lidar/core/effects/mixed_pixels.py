@@ -18,47 +18,63 @@ LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 MIN_VARIANCE = 1e-8  # m^2: floor of the combined range variance
 
 
+FOOTPRINT_SPECS = {
+    "divergence": ParamSpec(
+        0.0,
+        "rad",
+        "angle between the beam axis and its outer sub-rays",
+        lower=0.0,
+        upper=0.05,
+        fit_start=0.001,
+        fit_scale=0.001,
+    ),
+    "edge_weight": ParamSpec(
+        0.15, "1", "energy share of each of the four outer sub-rays", lower=0.0, upper=0.25, fit=False
+    ),
+}
+
+
+def _sub(values, j: int, n: int):
+    """Lane block ``j`` (sub-ray ``j`` of every beam) of a sub-ray array."""
+    return dr.gather(type(values), values, dr.arange(mi.UInt32, n) + j * n)
+
+
 @register_effect
 class MixedPixels(FootprintEffect):
-    """Beam divergence: each beam is 5 sub-rays whose returns merge into one energy-weighted range.
+    """Beam divergence: at a depth edge a beam reports the foreground, the background or a range in between.
 
     The footprint is the beam axis plus four sub-rays turned by ``divergence`` (rad) up, down,
     left and right in the sensor frame; each outer sub-ray carries ``edge_weight`` of the beam's
     energy and the axis the rest. Each sub-ray is simulated as an ordinary ray (pass-through,
-    dropout, noise and the other effects); the beam returns when any sub-ray does, at the
-    energy-weighted mean ``sum_j w_j z_j / sum_j w_j`` of the returning sub-rays. At an edge this
-    puts points between the foreground and the background: the mixed pixels of real Lidars.
-    Channels other than the range (element, label, incidence...) are those of the returning
-    sub-ray with the largest weight.
+    dropout, noise and the other effects); the beam returns when any sub-ray does. Of its returns,
+    a share ``share`` is *in between*: the energy-weighted mean ``sum_j w_j r_j / sum_j w_j`` of the
+    returning sub-rays' nominal ranges plus the range noise of one sub-ray; the others are *pure*:
+    the return of one sub-ray, chosen with probability proportional to its energy. Where every
+    sub-ray meets the same surface both are that surface's return; at an edge they are the mixed
+    pixels of real Lidars (in-between points) and the foreground and background points around them.
+    Channels other than the range (element, label, incidence...) are those of the chosen sub-ray.
 
     Likelihood (approximation). Each sub-ray's first return is summarised by its return
     probability ``r_j`` and the mean ``mu_j`` and variance ``v_j`` of its range (moments of the
-    pass-through mixture with untruncated element Gaussians, :class:`SubRayMoments`). The beam
-    misses with probability ``prod_j (1 - r_j)``; a return is Gaussian with mean
-    ``sum_j a_j mu_j / A`` and variance ``sum_j a_j^2 v_j / A^2``, ``a_j = w_j r_j``,
-    ``A = sum_j a_j``. This is exact when every sub-ray meets one opaque surface with Gaussian
-    noise; with dropout or permeable elements it replaces the random set of returning sub-rays by
-    its expectation and each sub-ray's multi-modal range by a Gaussian.
+    pass-through mixture with untruncated element Gaussians, :class:`SubRayMoments`). With
+    ``a_j = w_j r_j`` and ``A = sum_j a_j``, the beam misses with probability ``prod_j (1 - r_j)``
+    and a return has density
+    ``share N(z; sum_j a_j mu_j / A, sum_j a_j v_j / A) + (1 - share) sum_j (a_j / A) N(z; mu_j, v_j)``.
+    This replaces the random set of returning sub-rays by its expectation and each sub-ray's
+    multi-modal range by a Gaussian.
 
     ``divergence`` is fitted through the traced tangent planes of the sub-rays (which surface a
-    sub-ray meets has no gradient); ``edge_weight`` is fixed.
+    sub-ray meets has no gradient); ``share`` is fitted; ``edge_weight`` is fixed.
 
-    Example: ``mixed_pixels(divergence=0.003)`` (3 mrad, about a VLP-16's beam divergence).
+    Example: ``mixed_pixels(divergence=0.003, share=0.6)`` (3 mrad, about a VLP-16's beam
+    divergence; 60 % of edge returns in between).
     """
 
     name = "mixed_pixels"
     specs = {
-        "divergence": ParamSpec(
-            0.0,
-            "rad",
-            "angle between the beam axis and its outer sub-rays",
-            lower=0.0,
-            upper=0.05,
-            fit_start=0.001,
-            fit_scale=0.001,
-        ),
-        "edge_weight": ParamSpec(
-            0.15, "1", "energy share of each of the four outer sub-rays", lower=0.0, upper=0.25, fit=False
+        **FOOTPRINT_SPECS,
+        "share": ParamSpec(
+            1.0, "1", "share of returns in between the sub-rays' ranges", lower=0.0, upper=1.0, fit_start=0.5
         ),
     }
 
@@ -84,49 +100,53 @@ class MixedPixels(FootprintEffect):
             sensor_position=sub.sensor_position,
         ), weight
 
-    def combine(self, sub: dict, weight: mi.Float, n: int) -> dict:
-        total, weighted, energy = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
-        taken = dr.full(mi.Bool, False, n)
-        out: dict = {}
-        for j in range(len(PATTERN)):  # the axis first: it carries the largest weight
-            index = dr.arange(mi.UInt32, n) + j * n
-            hit = dr.gather(mi.Bool, sub["hit"], index)
-            w = dr.gather(mi.Float, weight, index)
-            total += dr.select(hit, w, 0.0)
-            weighted += dr.select(hit, w * dr.gather(mi.Float, sub["range"], index), 0.0)
-            energy += dr.select(hit, w * dr.gather(mi.Float, sub["intensity"], index), 0.0)
-            for name, value in sub.items():
-                mine = dr.gather(type(value), value, index)
-                out[name] = mine if j == 0 else dr.select(~taken & hit, mine, out[name])
-            taken |= hit
+    def combine(self, sub: dict, weight: mi.Float, n: int, u: mi.Point2f) -> dict:
+        m = len(PATTERN)
+        hits = [_sub(sub["hit"], j, n) for j in range(m)]
+        weights = [dr.select(hits[j], _sub(weight, j, n), 0.0) for j in range(m)]
+        total = sum(weights[1:], weights[0])
+        weighted = sum(
+            (w * dr.select(h, _sub(sub["nominal_range"], j, n), 0.0) for j, (w, h) in enumerate(zip(weights, hits))),
+            dr.zeros(mi.Float, n),
+        )
+        # one returning sub-ray, chosen by energy: the first whose cumulative share exceeds u.x
+        target, running = u.x * total, dr.zeros(mi.Float, n)
+        chosen, found = dr.zeros(mi.UInt32, n), dr.full(mi.Bool, False, n)
+        for j in range(m):
+            running += weights[j]
+            pick = ~found & hits[j] & (running > target)
+            chosen = dr.select(pick, dr.arange(mi.UInt32, n) + j * n, chosen)
+            found |= pick
+        out = {name: dr.gather(type(value), value, chosen) for name, value in sub.items()}
         out["hit"] = total > 0
-        out["range"] = dr.select(out["hit"], weighted / dr.maximum(total, 1e-12), dr.nan)
-        out["intensity"] = dr.round(energy)  # the returned power of every sub-ray that returned
+        shift = weighted / dr.maximum(total, 1e-12) - out["nominal_range"]
+        in_between = u.y < self["share"]
+        out["range"] = dr.select(out["hit"], out["range"] + dr.select(in_between, shift, 0.0), dr.nan)
+        if "intensity" in sub:  # the returned power of every sub-ray that returned
+            energy = sum((w * _sub(sub["intensity"], j, n) for j, w in enumerate(weights)), dr.zeros(mi.Float, n))
+            out["intensity"] = dr.round(energy)
         return out
 
     def combine_log_likelihood(
         self, moments: SubRayMoments, weight: mi.Float, z: mi.Float, hit: mi.Bool, n: int
     ) -> mi.Float:
-        log_miss, a_sum, mean_sum, var_sum = (
-            dr.zeros(mi.Float, n),
-            dr.zeros(mi.Float, n),
-            dr.zeros(mi.Float, n),
-            dr.zeros(mi.Float, n),
-        )
-        for j in range(len(PATTERN)):
-            index = dr.arange(mi.UInt32, n) + j * n
-            r = dr.gather(mi.Float, moments.p_return, index)
+        m = len(PATTERN)
+        log_miss, a_sum, mean_sum, var_sum, pure = (dr.zeros(mi.Float, n) for _ in range(5))
+        for j in range(m):
+            r = _sub(moments.p_return, j, n)
             safe = dr.maximum(r, 1e-12)
-            mu = dr.gather(mi.Float, moments.m1, index) / safe
-            var = dr.maximum(dr.gather(mi.Float, moments.m2, index) / safe - dr.square(mu), 0.0)
-            a = dr.gather(mi.Float, weight, index) * r
-            log_miss += dr.gather(mi.Float, moments.log_miss, index)
+            mu = _sub(moments.m1, j, n) / safe
+            var = dr.maximum(_sub(moments.m2, j, n) / safe - dr.square(mu), MIN_VARIANCE)
+            a = _sub(weight, j, n) * r
+            log_miss += _sub(moments.log_miss, j, n)
             a_sum += a
             mean_sum += a * mu
-            var_sum += dr.square(a) * var
+            var_sum += a * var
+            pure += a * dr.exp(-0.5 * dr.square(z - mu) / var) / dr.sqrt(var)
         safe = dr.maximum(a_sum, 1e-12)
-        mean = mean_sum / safe
-        variance = dr.maximum(var_sum / dr.square(safe), MIN_VARIANCE)
+        mean, variance = mean_sum / safe, dr.maximum(var_sum / safe, MIN_VARIANCE)
+        between = dr.exp(-0.5 * dr.square(z - mean) / variance) / dr.sqrt(variance)
+        share = self["share"]
+        density = (share * between + (1.0 - share) * pure / safe) * math.exp(-LOG_SQRT_2PI)
         p_hit = dr.maximum(1.0 - dr.exp(log_miss), 1e-12)
-        ll_hit = dr.log(p_hit) - 0.5 * dr.square(z - mean) / variance - 0.5 * dr.log(variance) - LOG_SQRT_2PI
-        return dr.select(hit, ll_hit, log_miss)
+        return dr.select(hit, dr.log(p_hit) + dr.log(dr.maximum(density, 1e-30)), log_miss)

@@ -6,7 +6,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_lidar.core.effects.base import SubRayMoments, register_effect
-from mi_lidar.core.effects.mixed_pixels import LOG_SQRT_2PI, MIN_VARIANCE, PATTERN, MixedPixels
+from mi_lidar.core.effects.mixed_pixels import FOOTPRINT_SPECS, LOG_SQRT_2PI, MIN_VARIANCE, PATTERN, MixedPixels
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.segment import normal_cdf
 
@@ -44,13 +44,13 @@ class MultipleReturns(MixedPixels):
     options = {"mode": ("first", "strongest", "last")}
     variant_options = ("mode",)
     specs = {
-        **MixedPixels.specs,
+        **FOOTPRINT_SPECS,
         "separation": ParamSpec(
             0.3, "m", "echoes closer than this merge (strongest mode)", lower=0.0, upper=10.0, fit=False
         ),
     }
 
-    def combine(self, sub: dict, weight: mi.Float, n: int) -> dict:
+    def combine(self, sub: dict, weight: mi.Float, n: int, u: mi.Point2f) -> dict:
         m, mode = len(PATTERN), self.choices["mode"]
         lanes = [dr.arange(mi.UInt32, n) + j * n for j in range(m)]
         hits = [dr.gather(mi.Bool, sub["hit"], i) for i in lanes]

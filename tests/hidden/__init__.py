@@ -1,0 +1,1 @@
+"""Hidden-effect test sets written by independent numpy simulators (not the project's sampler)."""

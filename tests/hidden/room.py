@@ -1,0 +1,128 @@
+"""An independent numpy room for planar hidden-effect tests: line segments, an N-beam x 1-firing scanner.
+
+The room (12 m x 8 m walls, label 1; a 1 m pillar, label 2; a slanted partition, label 3) is a set of
+vertical wall segments, ray cast here in 2D (:func:`tests.planar.world.cast`) and written as a
+Mitsuba scene of 2 m high rectangles for the project to load (:func:`scene_xml`). The scanner sits
+0.5 m above the floor with ``beams`` bearings over 360 degrees, one firing per scan (planar logs are N
+beams x 1 firing); it reports the first wall's distance with Gaussian noise (sigma 1 cm) or nothing
+beyond 30 m.
+
+:class:`Hidden` lists the effects the simulator can hide, each written from its physical description:
+range scale, per-beam bias, range-proportional noise and a dropout that stops the beam, logistic in
+the incidence angle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tests.planar.world import cast
+
+# x0, y0, x1, y1, label
+SEGMENTS = np.array(
+    [
+        [0, 0, 12, 0, 1],
+        [12, 0, 12, 8, 1],
+        [12, 8, 0, 8, 1],
+        [0, 8, 0, 0, 1],
+        [5.5, 3.5, 6.5, 3.5, 2],
+        [6.5, 3.5, 6.5, 4.5, 2],
+        [6.5, 4.5, 5.5, 4.5, 2],
+        [5.5, 4.5, 5.5, 3.5, 2],
+        [8.5, 6.8, 10.5, 5.8, 3],
+    ],
+    float,
+)
+SIGMA = 0.01  # m
+MAX_RANGE = 30.0  # m
+HEIGHT = 0.5  # m: scanner above the floor
+WALL_HEIGHT = 2.0  # m
+PERIOD = 0.1  # s: one mirror turn
+
+
+def scene_xml() -> str:
+    """The room as a Mitsuba scene of vertical rectangles (the project's loader reads it)."""
+    shapes = []
+    for i, (x0, y0, x1, y1, label) in enumerate(SEGMENTS):
+        length, angle = np.hypot(x1 - x0, y1 - y0), np.degrees(np.arctan2(y1 - y0, x1 - x0))
+        shapes.append(
+            f'<shape type="rectangle" id="wall_{i}"><transform name="to_world">'
+            f'<scale x="{length / 2}" y="{WALL_HEIGHT / 2}"/><rotate x="1" angle="90"/>'
+            f'<rotate z="1" angle="{angle}"/>'
+            f'<translate x="{(x0 + x1) / 2}" y="{(y0 + y1) / 2}" z="{WALL_HEIGHT / 2}"/></transform>'
+            f'<bsdf type="lidar_material"><integer name="label" value="{int(label)}"/></bsdf></shape>'
+        )
+    return (
+        '<scene version="3.0.0"><integrator type="lidar_integrator"><integer name="max_segments" value="4"/>'
+        f'</integrator><sensor type="lidar"><string name="pattern" value="planar-360"/>'
+        f'<float name="max_range" value="{MAX_RANGE}"/><float name="range_sigma" value="{SIGMA}"/></sensor>'
+        + "".join(shapes)
+        + "</scene>"
+    )
+
+
+@dataclass
+class Hidden:
+    """Effects hidden in a room log (every default is 'absent').
+
+    Attributes:
+        scale: range scale (reported = scale x true range).
+        bias: (beams,) per-beam range bias, m.
+        noise_k: range-proportional noise, m per m (added in quadrature to the 1 cm).
+        logistic: (angle50, width), deg: a beam is lost (no return, nothing behind it seen) with
+            probability 1 / (1 + exp(-(delta - angle50) / width)), delta the incidence angle.
+    """
+
+    scale: float = 1.0
+    bias: np.ndarray | None = None
+    noise_k: float = 0.0
+    logistic: tuple | None = None
+
+
+def room_log(hidden: Hidden, scans: int = 60, beams: int = 360, seed: int = 0) -> dict:
+    """Simulate ``scans`` scans with the ``hidden`` effects.
+
+    Returns:
+        The arrays of a ``mi_lidar`` log: ``poses`` (S, 4, 4), ``directions`` (1, beams, 1, 3),
+        ``ranges`` (S, beams, 1, NaN = miss), ``hit`` and ``times`` (S, beams, 1).
+    """
+    rng = np.random.default_rng(seed)
+    bearing = 2 * np.pi * np.arange(beams) / beams
+    walls, labels = SEGMENTS[:, :4], SEGMENTS[:, 4]
+    along = walls[:, 2:] - walls[:, :2]
+    along /= np.linalg.norm(along, axis=1, keepdims=True)
+    a = np.linspace(0, 2 * np.pi, scans, endpoint=False)
+    xs, ys, headings = 6 + 4.0 * np.cos(a), 4 + 2.6 * np.sin(a), a + 0.3 * np.sin(3 * a)
+    poses, ranges, times = [], [], []
+    for s, (x, y, heading) in enumerate(zip(xs, ys, headings)):
+        pose = np.eye(4)
+        pose[:2, :2] = [[np.cos(heading), -np.sin(heading)], [np.sin(heading), np.cos(heading)]]
+        pose[:3, 3] = (x, y, HEIGHT)
+        poses.append(pose)
+        direction = np.stack([np.cos(heading + bearing), np.sin(heading + bearing)], axis=1)
+        t = cast(np.repeat([[x, y]], beams, 0), direction, walls)  # (beams, segments)
+        first = np.argmin(t, axis=1)
+        r = t[np.arange(beams), first]
+        cos_inc = np.abs(direction[:, 0] * along[first, 1] - direction[:, 1] * along[first, 0])
+        keep = np.isfinite(r) & (r <= MAX_RANGE) & (labels[first] > 0)
+        if hidden.logistic is not None:
+            angle50, width = hidden.logistic
+            delta = np.degrees(np.arccos(np.clip(cos_inc, 0.0, 1.0)))
+            keep &= rng.random(beams) >= 1.0 / (1.0 + np.exp(-(delta - angle50) / width))
+        bias = 0.0 if hidden.bias is None else np.asarray(hidden.bias)
+        sigma = np.sqrt(SIGMA**2 + (hidden.noise_k * np.where(keep, r, 0.0)) ** 2)
+        z = hidden.scale * np.where(keep, r, 0.0) + bias + rng.normal(0.0, 1.0, beams) * sigma
+        hit = keep & (z > 0) & (z <= MAX_RANGE)
+        ranges.append(np.where(hit, z, np.nan)[:, None])
+        times.append((s * 0.2 + bearing / (2 * np.pi) * PERIOD)[:, None])
+    directions = np.stack([np.cos(bearing), np.sin(bearing), np.zeros(beams)], axis=1)[:, None]
+    stacked = np.stack(ranges).astype(np.float32)
+    return {
+        "poses": np.stack(poses),
+        "directions": directions[None].astype(np.float32),
+        "ranges": stacked,
+        "hit": np.isfinite(stacked),
+        "times": np.stack(times),
+    }
