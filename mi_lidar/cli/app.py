@@ -101,6 +101,16 @@ app = typer.Typer(
 )
 
 
+def density_option():
+    """The ``--density`` option of the verbs that simulate or score a scene (see :func:`mi_lidar.scene.use_density`)."""
+    return typer.Option(
+        None,
+        "--density",
+        help="Return density to use instead of the scene's, e.g. `np_reg(file=sensor.npz)` from `fit-sensor`, "
+        "or `physics(k=1e-4)`.",
+    )
+
+
 def versions() -> dict[str, str]:
     """Versions of mi-lidar, Mitsuba, Dr.Jit, the active variant and the LLVM library."""
     import drjit as dr

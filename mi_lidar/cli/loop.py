@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from mi_lidar.cli.app import app, console
+from mi_lidar.cli.app import app, console, density_option
 from mi_lidar.cli.progress import progress
 
 
@@ -24,6 +24,7 @@ def compare_command(
     ),
     seed: int = typer.Option(0, min=0, help="Seed of the simulated scan."),
     force: bool = typer.Option(False, help="Compare even when the log's sensor does not match the scene's."),
+    density: str | None = density_option(),
 ):
     """Compare the model with a measured log ray by ray: NLL, range error, hit/miss F1, histogram match, and where it
     fails worst.
@@ -34,10 +35,10 @@ def compare_command(
     """
     from mi_lidar.io import read_any
     from mi_lidar.loop import compare as run
-    from mi_lidar.scene import load_scene
+    from mi_lidar.scene import load_scene, use_density
 
     with progress("simulating the log's rays and comparing"):
-        result = run(read_any(log), load_scene(scene), out=out, seed=seed, force=force)
+        result = run(read_any(log), use_density(load_scene(scene), density), out=out, seed=seed, force=force)
     head = result.headline
     console.print(
         f"NLL {head['nll']:.3f} nats/ray, hit/miss F1 {head['f1']:.3f}; worst: "
@@ -57,6 +58,7 @@ def diagnose_command(
     ),
     steps: int = typer.Option(60, min=1, help="Adam steps per candidate fit."),
     force: bool = typer.Option(False, help="Diagnose even when the log's sensor does not match the scene's."),
+    density: str | None = density_option(),
 ):
     """Find the physical effects the model lacks: fit every candidate on training rays, rank and confirm them by a
     held-out test, and say what the residuals still vary with.
@@ -72,12 +74,12 @@ def diagnose_command(
 
     from mi_lidar.io import read_any
     from mi_lidar.loop import diagnose as run
-    from mi_lidar.scene import load_scene
+    from mi_lidar.scene import load_scene, use_density
 
     with progress("diagnose") as update:
         result = run(
             read_any(log),
-            load_scene(scene),
+            use_density(load_scene(scene), density),
             out=out,
             candidates=candidate or None,
             steps=steps,

@@ -9,7 +9,7 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from mi_lidar.cli.app import app, console
+from mi_lidar.cli.app import app, console, density_option
 from mi_lidar.cli.progress import progress
 from mi_lidar.core.errors import MiLidarError, ParameterError
 
@@ -73,6 +73,7 @@ def render(
     pattern: str | None = typer.Option(
         None, help="Override the firing pattern, e.g. `hdl32e`, `os1-32`, `planar-360`."
     ),
+    density: str | None = density_option(),
 ):
     """Render one scan of SCENE and write `scan.exr`, `points.ply`, `scan.bin`, `scan.npz` and PNG previews.
 
@@ -86,10 +87,10 @@ def render(
 
     from mi_lidar.core.channels import tensor_to_numpy
     from mi_lidar.core.log import Log
-    from mi_lidar.scene import load_scene, scene_lidar_sensor
+    from mi_lidar.scene import load_scene, scene_lidar_sensor, use_density
     from mi_lidar.scene.simulation import simulate
 
-    loaded = load_scene(scene)
+    loaded = use_density(load_scene(scene), density)
     start = time.perf_counter()
     sensor = scene_lidar_sensor(loaded)
     if pattern is None:
@@ -138,6 +139,7 @@ def simulate(
     out: Path = typer.Option(..., "--out", "-o", help="Output log (`.npz`)."),
     seed: int = typer.Option(0, min=0, help="Random seed."),
     pattern: str | None = typer.Option(None, help="Firing pattern (default: the scene sensor's)."),
+    density: str | None = density_option(),
 ):
     """Simulate one scan per pose and write a log (`.npz`, see `mi_lidar.core.log`).
 
@@ -147,10 +149,10 @@ def simulate(
 
         mi-lidar simulate scenes_xml/indoor_planar.xml --poses kitti_poses.txt --out room.npz --pattern planar-180
     """
-    from mi_lidar.scene import load_scene
+    from mi_lidar.scene import load_scene, use_density
     from mi_lidar.scene.simulation import simulate as run
 
-    loaded = load_scene(scene)
+    loaded = use_density(load_scene(scene), density)
     pose_array = read_poses(poses)
     start = time.perf_counter()
     with progress("simulating scans", total=len(pose_array)) as update:

@@ -139,8 +139,7 @@ def plot_residual_image(t, shape: tuple, path: Path) -> Path:
         (axes[0], res, "coolwarm", "measured - nominal (m)", dict(vmin=-lim, vmax=lim)),
         (axes[1], nll, "magma", "NLL (nats)", {}),
     ):
-        colours = matplotlib.colormaps[cmap].copy()
-        colours.set_bad("black")
+        colours = matplotlib.colormaps[cmap].with_extremes(bad="black")
         im = ax.imshow(
             np.repeat(image, max(1, 8 // h), axis=0) if h < 8 else image,
             aspect="auto",

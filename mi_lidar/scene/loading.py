@@ -60,6 +60,40 @@ def load_scene(source, optimize: bool = False, **parameters):
         raise SceneError(f"{where}: could not load the scene:\n{exc}{hint}") from exc
 
 
+def use_density(scene, spec: str | None):
+    """Make ``spec`` the return density of ``scene``'s ``lidar_integrator`` (None leaves the scene as it is).
+
+    The same as writing ``<string name="density" value="SPEC"/>`` in the scene's integrator, for a
+    density fitted after the scene was written (``mi-lidar fit-sensor``): every path that renders,
+    simulates or scores the scene then uses it.
+
+    Args:
+        scene: a loaded scene.
+        spec: a density of the catalog with its settings, e.g. ``"np_reg(file=sensor.npz)"``,
+            ``"physics(k=1e-4)"``; file names are relative to the working directory.
+
+    Returns:
+        ``scene``.
+
+    Raises:
+        SceneError: the scene has no ``lidar_integrator`` to carry the density.
+        ParameterError: ``spec`` names no density of the catalog or a bad setting (named).
+    """
+    if spec is None:
+        return scene
+    from mi_lidar.core.densities import parse_density
+    from mi_lidar.plugins.lidar_integrator import LidarIntegrator
+
+    integrator = scene.integrator()
+    if not isinstance(integrator, LidarIntegrator):
+        raise SceneError(
+            f"--density {spec!r}: the scene's integrator is {type(integrator).__name__}, not a lidar_integrator; "
+            'add <integrator type="lidar_integrator"/> to the scene'
+        )
+    integrator.density = parse_density(spec, resolve=lambda name: os.fspath(Path(name).resolve()))
+    return scene
+
+
 def scene_lidar_sensor(scene):
     """The scene's first ``lidar`` sensor, or None."""
     from mi_lidar.plugins.lidar_sensor import LidarSensor

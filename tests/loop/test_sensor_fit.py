@@ -73,3 +73,27 @@ def test_calibrate_scores_with_the_same_likelihood(street_log):
     loss = cal.held_out_loss({})
     rays = LogRays.from_log(log, relative_time=False)
     assert loss == pytest.approx(Problem.build(scene, rays, cal.held_out).nll(cal.model), abs=1e-4)
+
+
+def test_cli_density_option_is_the_xml_reference(street_log, tmp_path, monkeypatch):
+    """`compare --density np_reg(file=...)` gives the NLL of the same density referenced from the scene XML;
+    an unknown density is a one-line error (exit 2)."""
+    from typer.testing import CliRunner
+
+    from mi_lidar.cli import app
+    from mi_lidar.scene import use_density
+
+    scene, log = street_log
+    save_sensor(fit_sensor(log, scene, "np-reg"), tmp_path / "sensor.npz")
+    log.save(tmp_path / "drive.npz")
+    monkeypatch.chdir(tmp_path)
+    expected = compare(log, use_density(mi_lidar.load_scene(SCENES / "urban_street.xml"), "np_reg(file=sensor.npz)"))
+    runner = CliRunner()
+    args = ["compare", "drive.npz", str(SCENES / "urban_street.xml"), "--out", "report"]
+    result = runner.invoke(app, [*args, "--density", "np_reg(file=sensor.npz)"], terminal_width=200)
+    assert result.exit_code == 0, result.stdout
+    assert f"NLL {expected.headline['nll']:.3f} nats/ray" in result.stdout
+    plain = runner.invoke(app, args, terminal_width=200)
+    assert f"NLL {expected.headline['nll']:.3f} nats/ray" not in plain.stdout  # the scene's own density differs
+    bad = runner.invoke(app, [*args, "--density", "no_such_density"], terminal_width=200)
+    assert bad.exit_code == 2 and "no_such_density" in bad.stdout and "Traceback" not in bad.stdout
