@@ -4,7 +4,7 @@ Fenced blocks tagged ``bash`` are shell commands, ``python`` blocks are Python (
 of one page form one session); other tags (``text``, ``xml``) are not run. The fast test checks
 every ``mi-lidar`` command line against the CLI (verb and options exist); the slow test runs
 every block verbatim, in file order (README, then docs/ by name), in one temporary folder holding
-links to ``scenes_xml`` and ``../shared/data`` so later commands read what earlier ones wrote.
+links to ``scenes_xml``, ``examples`` and ``../shared/data`` so later commands read what earlier ones wrote.
 Lines running ``make`` are not run (they are the targets that run this suite). Blocks that read
 ``../shared/data`` are skipped when it is absent.
 """
@@ -79,7 +79,8 @@ def test_every_documented_command_exists_with_its_options():
 def test_every_block_runs_verbatim(tmp_path):
     work = tmp_path / "work"
     work.mkdir()
-    (work / "scenes_xml").symlink_to(REPO / "scenes_xml")
+    for folder in ("scenes_xml", "examples"):  # the README runs from a checkout: its scenes and example specs
+        (work / folder).symlink_to(REPO / folder)
     have_data = SHARED_DATA.is_dir()
     if have_data:
         (tmp_path / "shared").mkdir()
