@@ -86,7 +86,11 @@ def diagnose_command(
             progress=lambda i, n, label: update(i, n, label),
             force=force,
         )
+    from mi_lidar.scene.files import scene_with_effects
+
+    found = scene_with_effects(scene, ", ".join(e.describe() for e in result.model.effects), out / "scene.xml")
     if as_json:
         typer.echo(json.dumps(result.ranking(), indent=1, default=float))
     else:
         console.print(result.summary)
+        console.print(f"report: {out / 'diagnosis.html'}; the scene with the model's effects: {found}")

@@ -258,6 +258,6 @@ def demo(
     from mi_lidar.loop.demo import run_demo
     from mi_lidar.scene import bundled_scene
 
-    render(bundled_scene("offroad.xml"), out, seed=seed, pattern=None)
+    render(bundled_scene("offroad.xml"), out, seed=seed, pattern=None, density=None)
     console.rule("The loop: a log with a hidden effect, its diagnosis, the error before and after")
     run_demo(out=out / "loop", echo=console.print)

@@ -53,6 +53,7 @@ from mi_lidar.core.rays import LogRays
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop.catalog import candidate, candidate_names, variants
 from mi_lidar.loop.compare import BREAKDOWNS, RayTable, first_elements, group_keys, simulate_log_rays
+from mi_lidar.loop.report import markdown_to_html
 from mi_lidar.loop.residuals import plot_structure, residual_structure, structure_verdict
 
 P_VALUE = 1e-3
@@ -275,7 +276,7 @@ def diagnose(
         log: measured log.
         scene: loaded Mitsuba scene or scene XML path.
         model: the current sensor model (default: the scene's); its effects are refitted first.
-        out: folder for ``diagnosis.json``, ``diagnosis.md`` and ``residual_structure.png``
+        out: folder for ``diagnosis.json``, ``diagnosis.md``, ``diagnosis.html`` and ``residual_structure.png``
             (nothing written when None).
         candidates: effect names to try (default: every registered effect not in the model).
         steps: Adam steps per fit (the final joint refit takes twice as many).
@@ -412,7 +413,10 @@ def diagnose(
         out.mkdir(parents=True, exist_ok=True)
         text = json.dumps(result.to_json(), indent=1, default=float).encode()
         atomic_write(out / "diagnosis.json", lambda stream: stream.write(text))
-        atomic_write(out / "diagnosis.md", lambda stream: stream.write(diagnosis_markdown(result).encode()))
+        markdown = diagnosis_markdown(result)
+        atomic_write(out / "diagnosis.md", lambda stream: stream.write(markdown.encode()))
+        html = markdown_to_html(markdown, "mi-lidar diagnosis").encode()
+        atomic_write(out / "diagnosis.html", lambda stream: stream.write(html))
         plot_structure(structure, out / "residual_structure.png")
     return result
 

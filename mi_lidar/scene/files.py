@@ -183,3 +183,47 @@ def write_scene_xml(path, shapes: list[ShapeEntry], header_comment: str = "", ex
     body.append("</scene>\n")
     text = "\n".join(body).encode()
     return atomic_write(path, lambda stream: stream.write(text))
+
+
+def scene_with_effects(source: str | Path, effects: str, path: str | Path) -> Path:
+    """Write a copy of the scene XML ``source`` whose ``lidar_integrator`` carries ``effects``, to ``path``.
+
+    Used by ``diagnose`` to hand back the scene with the effects it found (the loop's next step is
+    ``compare`` or ``calibrate`` on that file). File references (``filename`` values, pattern tables)
+    are made absolute, so the copy loads from any folder.
+
+    Args:
+        source: the scene XML.
+        effects: the effects in the catalog's spec syntax, e.g. ``"range_bias(bias=0.02)"`` ("" for none).
+        path: the output XML.
+
+    Raises:
+        ParameterError: the scene has no ``<integrator type="lidar_integrator">``.
+    """
+    import re
+
+    source = Path(source)
+    text = source.read_text(encoding="utf-8")
+    folder = source.resolve().parent
+
+    def absolute(match: re.Match) -> str:
+        value = match.group(2)
+        return match.group(1) + quoteattr(str(folder / value)) if not Path(value).is_absolute() else match.group(0)
+
+    text = re.sub(r'(name="filename"\s+value=)"([^"]+)"', absolute, text)
+    text = re.sub(r'(name="pattern"\s+value=)"([^"]+\.(?:npy|csv|txt))"', absolute, text)
+    opening = re.search(r'<integrator\s+type="lidar_integrator"[^>]*?(/?)>', text)
+    if opening is None:
+        raise ParameterError(f'{source}: no <integrator type="lidar_integrator"> to carry the effects {effects!r}')
+    line = f'<string name="effects" value={quoteattr(effects)}/>'
+    existing = re.compile(r'<string\s+name="effects"\s+value="[^"]*"\s*/>')
+    if opening.group(1):  # a self-closing integrator: open it
+        head = opening.group(0)[:-2].rstrip()
+        text = text[: opening.start()] + f"{head}>\n        {line}\n    </integrator>" + text[opening.end() :]
+    else:
+        close = text.index("</integrator>", opening.end())
+        body = text[opening.end() : close]
+        body = existing.sub(line, body) if existing.search(body) else f"\n        {line}" + body
+        text = text[: opening.end()] + body + text[close:]
+    data = text.encode("utf-8")
+    return atomic_write(Path(path), lambda stream: stream.write(data))
