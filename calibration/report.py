@@ -20,6 +20,7 @@ from mi_lidar.core.atomic import atomic_path, atomic_write  # noqa: E402
 from mi_lidar.core.elements import ELLIPSOID_STRIDE, ordered_shapes  # noqa: E402
 from mi_lidar.core.errors import CalibrationError, PatternError  # noqa: E402
 from mi_lidar.core.patterns import get_pattern, to_table  # noqa: E402
+from mi_lidar.io.markdown import markdown_to_html  # noqa: E402
 from mi_lidar.scene.dicts import AnalyticElements, EllipsoidElements, MeshElements, save_scene  # noqa: E402
 from mi_lidar.scene.files import ANALYTIC_SHAPES  # noqa: E402
 from mi_lidar.scene.loading import scene_lidar_sensor  # noqa: E402
@@ -216,8 +217,9 @@ def change_rows(result: FitResult, units: dict) -> list[dict]:
 
 
 def write_report(out, result: FitResult, scene, units: dict, title: str, pattern=None) -> dict[str, Path]:
-    """Write ``scene.xml`` (+ assets), ``loss.png``, ``changes.csv``, ``history.csv``, ``parameters.npz`` and
-    ``report.json``, each atomically; ``pattern`` (the log's) replaces the scene sensor's in ``scene.xml``."""
+    """Write ``scene.xml`` (+ assets), ``loss.png``, ``changes.csv``, ``history.csv``, ``parameters.npz``,
+    ``report.json`` and ``report.html``, each atomically; ``pattern`` (the log's) replaces the scene
+    sensor's in ``scene.xml``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = {
@@ -241,7 +243,42 @@ def write_report(out, result: FitResult, scene, units: dict, title: str, pattern
     files["report"] = atomic_write(
         out / "report.json", lambda stream: stream.write(json.dumps(summary, indent=1).encode())
     )
+    page = markdown_to_html(calibration_markdown(summary, rows, title), title).encode()
+    files["html"] = atomic_write(out / "report.html", lambda stream: stream.write(page))
     return files
+
+
+def _cell(value) -> str:
+    """A table cell: floats to 4 significant digits, ``|`` escaped."""
+    return (f"{value:.4g}" if isinstance(value, float) else str(value)).replace("|", "\\|")
+
+
+def calibration_markdown(summary: dict, rows: list[dict], title: str) -> str:
+    """The calibration report page: held-out NLL before and after, the parameters' changes, the loss trace."""
+    nll = summary["held_out_nll"]
+    lines = [
+        f"# {title}",
+        "",
+        f"Held-out NLL (nats/ray): initial **{nll['initial']:.4f}**, counting start {nll['counting']:.4f}, "
+        f"fitted **{nll['fitted']:.4f}**; {summary['steps_run']} Adam steps"
+        + (" (stopped early: the held-out loss stopped falling)." if summary["stopped_early"] else "."),
+        "",
+        "## Parameters",
+        "",
+        "| " + " | ".join(_cell(k) for k in rows[0]) + " |",
+        "|" + "---|" * len(rows[0]),
+        *(
+            "| " + " | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in row.values()) + " |"
+            for row in rows
+        ),
+        "",
+        "## Training and held-out loss",
+        "",
+        "![loss](loss.png)",
+    ]
+    if summary["effects"]:
+        lines += ["", "## Effects in the calibrated scene", "", *(f"`{e}`" for e in summary["effects"])]
+    return "\n".join(lines) + "\n"
 
 
 def _write_csv(path: Path, header: list, rows) -> Path:

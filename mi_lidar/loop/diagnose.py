@@ -51,9 +51,9 @@ from mi_lidar.core.log import Log
 from mi_lidar.core.problem import Problem, fit_parts, make_opaque, n_parameters
 from mi_lidar.core.rays import LogRays
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.io.markdown import markdown_to_html
 from mi_lidar.loop.catalog import candidate, candidate_names, variants
 from mi_lidar.loop.compare import BREAKDOWNS, RayTable, first_elements, group_keys, simulate_log_rays
-from mi_lidar.loop.report import markdown_to_html
 from mi_lidar.loop.residuals import plot_structure, residual_structure, structure_verdict
 
 P_VALUE = 1e-3

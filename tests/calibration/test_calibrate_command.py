@@ -62,7 +62,9 @@ def test_calibrate_recovers_truth_and_writes_report(files):
     assert held[-1] < held[0] and result.fitted_nll < result.initial_nll
     report = json.loads((out / "report.json").read_text())
     assert report["held_out_nll"]["fitted"] == pytest.approx(result.fitted_nll)
-    assert {p.name for p in written.values()} >= {"scene.xml", "loss.png", "changes.csv", "history.csv"}
+    assert {p.name for p in written.values()} >= {"scene.xml", "loss.png", "changes.csv", "history.csv", "report.html"}
+    page = (out / "report.html").read_text()  # one page: NLL before and after, the parameter table, the loss trace
+    assert f"{result.fitted_nll:.4f}" in page and "sensor.range_bias" in page and 'src="loss.png"' in page
     # The calibrated scene reloads with the fitted values, sensor and effect.
     scene = mi_lidar.load_scene(out / "scene.xml")
     table = ElementTable.from_scene(scene)

@@ -1,6 +1,7 @@
 """The compare report's Markdown tables keep their columns when a header or cell contains `|`."""
 
-from mi_lidar.loop.report import markdown_table, markdown_to_html
+from mi_lidar.io.markdown import markdown_to_html
+from mi_lidar.loop.report import markdown_table
 
 
 def test_pipes_in_headers_and_cells_are_escaped():
