@@ -120,25 +120,36 @@ def plot_residuals(t, path: Path) -> Path:
 
 
 def plot_residual_image(t, shape: tuple, path: Path) -> Path:
-    """Residual range image (measured - nominal) of the scan with the worst mean NLL."""
+    """The scan with the worst mean NLL as range images: measured and simulated side by side (one colour
+    scale), the residual (measured - nominal) and the NLL per ray; black where there is no return."""
     s, h, w = shape
     scan = int(
         np.argmin(np.bincount(t.scan, weights=t.ll, minlength=s) / np.maximum(np.bincount(t.scan, minlength=s), 1))
     )
     m = t.scan == scan
-    res = np.full((h, w), np.nan)
-    res[t.beam[m], t.column[m]] = np.where(t.hit[m], t.measured[m] - t.nominal[m], np.nan)
-    nll = np.full((h, w), np.nan)
-    nll[t.beam[m], t.column[m]] = -t.ll[m]
+
+    def image(values: np.ndarray) -> np.ndarray:
+        out = np.full((h, w), np.nan)
+        out[t.beam[m], t.column[m]] = values
+        return out
+
+    measured = image(np.where(t.hit[m], t.measured[m], np.nan))
+    simulated = image(np.where(t.sim_hit[m], t.sim_range[m], np.nan))
+    res = image(np.where(t.hit[m], t.measured[m] - t.nominal[m], np.nan))
+    nll = image(-t.ll[m])
     lim = max(float(np.nanpercentile(np.abs(res), 95)), 1e-3) if np.isfinite(res).any() else 1
-    fig, axes = plt.subplots(2, 1, figsize=(13, 5 if h > 1 else 3.5))
-    for ax, image, cmap, label, kw in (
-        (axes[0], res, "coolwarm", "measured - nominal (m)", dict(vmin=-lim, vmax=lim)),
-        (axes[1], nll, "magma", "NLL (nats)", {}),
+    both = np.concatenate([measured[np.isfinite(measured)], simulated[np.isfinite(simulated)]])
+    scale = dict(vmin=float(np.percentile(both, 1)), vmax=float(np.percentile(both, 99))) if both.size else {}
+    fig, axes = plt.subplots(4, 1, figsize=(13, 9 if h > 1 else 6))
+    for ax, picture, cmap, label, kw in (
+        (axes[0], measured, "viridis", "measured range (m)", scale),
+        (axes[1], simulated, "viridis", "simulated range (m)", scale),
+        (axes[2], res, "coolwarm", "measured - nominal (m)", dict(vmin=-lim, vmax=lim)),
+        (axes[3], nll, "magma", "NLL (nats)", {}),
     ):
         colours = matplotlib.colormaps[cmap].with_extremes(bad="black")
         im = ax.imshow(
-            np.repeat(image, max(1, 8 // h), axis=0) if h < 8 else image,
+            np.repeat(picture, max(1, 8 // h), axis=0) if h < 8 else picture,
             aspect="auto",
             cmap=colours,
             interpolation="nearest",
@@ -147,7 +158,7 @@ def plot_residual_image(t, shape: tuple, path: Path) -> Path:
         fig.colorbar(im, ax=ax).set_label(label, fontsize=8)
         ax.set_xlabel("firing (column)")
         ax.set_ylabel("beam" if h > 1 else "")
-    axes[0].set_title(f"scan {scan}: residual range image (black: no return)")
+    axes[0].set_title(f"scan {scan}: measured and simulated (one draw) range images, residual, NLL (black: no return)")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -93,6 +93,11 @@ def test_cli_density_option_is_the_xml_reference(street_log, tmp_path, monkeypat
     result = runner.invoke(app, [*args, "--density", "np_reg(file=sensor.npz)"], terminal_width=200)
     assert result.exit_code == 0, result.stdout
     assert f"NLL {expected.headline['nll']:.3f} nats/ray" in result.stdout
+    from matplotlib.image import imread
+
+    # The report shows the worst scan measured and simulated side by side, above its residual and NLL.
+    assert "residual_image.png" in (tmp_path / "report" / "report.html").read_text()
+    assert imread(tmp_path / "report" / "residual_image.png").shape[0] >= 700  # four panels, 9 in at 90 dpi
     plain = runner.invoke(app, args, terminal_width=200)
     assert f"NLL {expected.headline['nll']:.3f} nats/ray" not in plain.stdout  # the scene's own density differs
     bad = runner.invoke(app, [*args, "--density", "no_such_density"], terminal_width=200)
