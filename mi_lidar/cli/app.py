@@ -111,6 +111,20 @@ def density_option():
     )
 
 
+def carmen_log_argument():
+    """The LOG argument of the verbs that read a planar CARMEN log (``benchmark-planar``, ``evaluate-apps``)."""
+    return typer.Argument(
+        ..., help="A SLAM-corrected CARMEN log (`.log` or `.log.gz`) with FLASER lines.", exists=True, dir_okay=False
+    )
+
+
+def max_range_option():
+    """The ``--max-range`` option of the verbs that read a planar CARMEN log."""
+    return typer.Option(
+        None, "--max-range", min=0.1, help="The sensor's no-return value (m); default: detected from the log."
+    )
+
+
 def versions() -> dict[str, str]:
     """Versions of mi-lidar, Mitsuba, Dr.Jit, the active variant and the LLVM library."""
     import drjit as dr

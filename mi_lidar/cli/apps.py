@@ -7,19 +7,15 @@ from pathlib import Path
 import typer
 from rich.table import Table
 
-from mi_lidar.cli.app import app, console
+from mi_lidar.cli.app import app, carmen_log_argument, console, max_range_option
 from mi_lidar.cli.progress import progress
 
 
 @app.command("evaluate-apps", rich_help_panel="The loop")
 def evaluate_apps(
-    log: Path = typer.Argument(
-        ..., help="A SLAM-corrected CARMEN log (`.log` or `.log.gz`) with FLASER lines.", exists=True, dir_okay=False
-    ),
+    log: Path = carmen_log_argument(),
     out: Path = typer.Option(..., "--out", "-o", help="Report folder: apps.json, apps.html, PNGs, cache/."),
-    max_range: float | None = typer.Option(
-        None, "--max-range", min=0.1, help="The sensor's no-return value (m); default: detected from the log."
-    ),
+    max_range: float | None = max_range_option(),
     simulator: list[str] | None = typer.Option(
         None, "--simulator", "-s", help="Only these simulators (repeatable): M0 M1 P-Reg NP-Reg mi-lidar (default)."
     ),

@@ -7,19 +7,15 @@ from pathlib import Path
 import typer
 from rich.table import Table
 
-from mi_lidar.cli.app import app, console
+from mi_lidar.cli.app import app, carmen_log_argument, console, max_range_option
 from mi_lidar.cli.progress import progress
 
 
 @app.command("benchmark-planar", rich_help_panel="The loop")
 def benchmark_planar(
-    log: Path = typer.Argument(
-        ..., help="A SLAM-corrected CARMEN log (`.log` or `.log.gz`) with FLASER lines.", exists=True, dir_okay=False
-    ),
+    log: Path = carmen_log_argument(),
     out: Path = typer.Option(..., "--out", "-o", help="Report folder: benchmark.json, benchmark.html, PNGs."),
-    max_range: float | None = typer.Option(
-        None, "--max-range", min=0.1, help="The sensor's no-return value (m); default: detected from the log."
-    ),
+    max_range: float | None = max_range_option(),
     test_every: int = typer.Option(5, min=2, help="Every k-th scan is a test scan."),
     cell: float = typer.Option(0.05, min=0.005, max=1.0, help="Map cell (m)."),
     radius: float = typer.Option(1.0, min=0.0, help="A test scan's map leaves out scans within this distance (m) ..."),

@@ -136,15 +136,6 @@ class _IndexedRays(LogRays):
 
     def batch(self, index: np.ndarray | None = None):
         index = np.arange(self.n) if index is None else np.asarray(index)
-        full = LogRays(
-            log=self.log,
-            scan=self.scan,
-            beam=self.beam,
-            column=self.column,
-            time=self.time,
-            measured=self.measured,
-            hit=self.hit,
-        )
-        rays, measured, hit = full.batch(index)
+        rays, measured, hit = LogRays.batch(self, index)  # the subset's rays, then the log's ray ids
         rays.ray_id = mi.UInt32(self.ids[index].astype(np.uint32))
         return rays, measured, hit

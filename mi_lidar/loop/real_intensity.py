@@ -165,22 +165,11 @@ def intensity_figure(scores: list[IntensityScores], path: str | Path) -> Path:
     fig, axes = plt.subplots(1, len(scores), figsize=(5.5 * len(scores), 5), squeeze=False)
     for ax, s in zip(axes[0], scores):
         top = float(np.nanpercentile(s.measured, 99.5))
-        ax.scatter(
-            s.measured,
-            s.baseline,
-            s=2,
-            alpha=0.25,
-            color="0.6",
-            label=f"constant per beam (r={s.baseline_correlation:.2f}, NLL {s.baseline_nll:.2f})",
-        )
-        ax.scatter(
-            s.measured,
-            s.predicted,
-            s=2,
-            alpha=0.35,
-            color="C0",
-            label=f"fitted model (r={s.correlation:.2f}, NLL {s.nll:.2f})",
-        )
+        for values, alpha, colour, label in (
+            (s.baseline, 0.25, "0.6", f"constant per beam (r={s.baseline_correlation:.2f}, NLL {s.baseline_nll:.2f})"),
+            (s.predicted, 0.35, "C0", f"fitted model (r={s.correlation:.2f}, NLL {s.nll:.2f})"),
+        ):
+            ax.scatter(s.measured, values, s=2, alpha=alpha, color=colour, label=label)
         ax.plot([0, top], [0, top], color="k", lw=0.8)
         ax.set(
             xlim=(0, top),
