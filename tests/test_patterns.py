@@ -81,6 +81,25 @@ def test_velodyne_elevations_and_timing_match_the_manuals(model, lo, hi, lasers,
     np.testing.assert_allclose(p.time[:, 0], p.beam_id * spacing, atol=1e-12)
 
 
+def test_vlp32c_fires_its_lasers_in_pairs():
+    p = spinning("vlp32c")
+    assert p.shape == (32, math.floor(0.1 / 55.296e-6))
+    el = np.degrees(p.elevation[:, 0])
+    assert (el.min(), el.max()) == (pytest.approx(-25.0), pytest.approx(15.0))
+    assert np.all(np.diff(el) < 0)
+    np.testing.assert_allclose(p.time[:, 0], (p.beam_id // 2) * 2.304e-6, atol=1e-12)
+
+
+def test_the_velodyne_reader_and_the_pattern_share_one_laser_table():
+    from mi_lidar.io.velodyne import MODELS
+
+    for name, model in MODELS.items():
+        p = spinning(name.replace("-", "").lower())
+        assert model.lasers == p.shape[0]
+        np.testing.assert_allclose(np.sort(model.elevation_deg)[::-1], np.degrees(p.elevation[:, 0]), atol=1e-9)
+        np.testing.assert_allclose(model.sequence_us, np.diff(p.time[0, :2])[0] * 1e6, rtol=1e-9)
+
+
 def test_vlp16_rows_match_the_recorded_calibration_file():
     text = need(VLP16_YAML).read_text()
     ids = [int(v) for v in re.findall(r"\blaser_id:\s*(\d+)", text)]

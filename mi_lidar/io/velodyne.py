@@ -31,6 +31,7 @@ import numpy as np
 
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
+from mi_lidar.core.patterns.vendor import HDL32E, VLP16, VLP32C, SpinningTable
 from mi_lidar.io._pcap import read_udp
 
 PACKET_SIZE = 1206
@@ -45,16 +46,42 @@ ELEVATION_TOLERANCE_DEG = 1.0
 
 @dataclass(frozen=True)
 class Model:
-    """Firing geometry and timing of one Velodyne model (times in microseconds)."""
+    """One Velodyne model as its packets see it: the core's laser table plus the packet layout.
+
+    Attributes:
+        name: The vendor's name (``"VLP-16"``), as :data:`PRODUCT_IDS` and ``--model`` spell it.
+        table: Laser angles and firing timing (:mod:`mi_lidar.core.patterns.vendor`, the same table
+            the simulated pattern of this sensor uses).
+        sequences_per_block: Firing sequences per data block (2 for the VLP-16, 1 for 32 lasers).
+        resolution_m: Distance unit of the packets (m).
+    """
 
     name: str
-    lasers: int
+    table: SpinningTable
     sequences_per_block: int
-    sequence_us: float
-    laser_us: np.ndarray
     resolution_m: float
-    elevation_deg: np.ndarray
-    azimuth_offset_deg: np.ndarray
+
+    @property
+    def lasers(self) -> int:
+        return len(self.table.elevation_deg)
+
+    @property
+    def sequence_us(self) -> float:
+        """Duration of one firing sequence (us)."""
+        return self.table.cycle_s * 1e6
+
+    @property
+    def laser_us(self) -> np.ndarray:
+        """(L,) firing time of each laser within its sequence (us)."""
+        return np.asarray(self.table.firing_offset_s) * 1e6
+
+    @property
+    def elevation_deg(self) -> np.ndarray:
+        return np.asarray(self.table.elevation_deg, float)
+
+    @property
+    def azimuth_offset_deg(self) -> np.ndarray:
+        return np.asarray(self.table.azimuth_offset_deg, float)
 
     def packet_us(self, mode: str) -> float:
         """Time between data packets (us): 12 firings per packet, 6 in ``"dual"`` return mode."""
@@ -62,141 +89,12 @@ class Model:
 
 
 MODELS = {
-    "VLP-16": Model(
-        "VLP-16",
-        16,
-        2,
-        55.296,
-        np.arange(16) * 2.304,
-        0.002,
-        np.array([-15, 1, -13, 3, -11, 5, -9, 7, -7, 9, -5, 11, -3, 13, -1, 15], float),
-        np.zeros(16),
-    ),
-    "HDL-32E": Model(
-        "HDL-32E",
-        32,
-        1,
-        46.08,
-        np.arange(32) * 1.152,
-        0.002,
-        np.array(
-            [
-                -30.67,
-                -9.33,
-                -29.33,
-                -8.00,
-                -28.00,
-                -6.66,
-                -26.66,
-                -5.33,
-                -25.33,
-                -4.00,
-                -24.00,
-                -2.67,
-                -22.67,
-                -1.33,
-                -21.33,
-                0.00,
-                -20.00,
-                1.33,
-                -18.67,
-                2.67,
-                -17.33,
-                4.00,
-                -16.00,
-                5.33,
-                -14.67,
-                6.67,
-                -13.33,
-                8.00,
-                -12.00,
-                9.33,
-                -10.67,
-                10.67,
-            ]
-        ),
-        np.zeros(32),
-    ),
-    "VLP-32C": Model(
-        "VLP-32C",
-        32,
-        1,
-        55.296,
-        (np.arange(32) // 2) * 2.304,
-        0.004,
-        np.array(
-            [
-                -25,
-                -1,
-                -1.667,
-                -15.639,
-                -11.31,
-                0,
-                -0.667,
-                -8.843,
-                -7.254,
-                0.333,
-                -0.333,
-                -6.148,
-                -5.333,
-                1.333,
-                0.667,
-                -4,
-                -4.667,
-                1.667,
-                1,
-                -3.667,
-                -3.333,
-                3.333,
-                2.333,
-                -2.667,
-                -3,
-                7,
-                4.667,
-                -2.333,
-                -2,
-                15,
-                10.333,
-                -1.333,
-            ]
-        ),
-        np.array(
-            [
-                1.4,
-                -4.2,
-                1.4,
-                -1.4,
-                1.4,
-                -1.4,
-                4.2,
-                -1.4,
-                1.4,
-                -4.2,
-                1.4,
-                -1.4,
-                4.2,
-                -1.4,
-                4.2,
-                -1.4,
-                1.4,
-                -4.2,
-                1.4,
-                -4.2,
-                4.2,
-                -1.4,
-                1.4,
-                -1.4,
-                1.4,
-                -1.4,
-                1.4,
-                -4.2,
-                4.2,
-                -1.4,
-                1.4,
-                -1.4,
-            ]
-        ),
-    ),
+    model.name: model
+    for model in (
+        Model("VLP-16", VLP16, 2, 0.002),
+        Model("HDL-32E", HDL32E, 1, 0.002),
+        Model("VLP-32C", VLP32C, 1, 0.004),
+    )
 }
 
 

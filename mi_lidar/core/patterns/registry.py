@@ -20,6 +20,7 @@ _REGISTRY: dict[str, tuple[Callable[..., FiringPattern], dict]] = {
     "planar-180": (planar, {"n_bearings": 180, "fov_deg": 180.0}),
     "vlp16": (spinning, {"model": "vlp16"}),
     "hdl32e": (spinning, {"model": "hdl32e"}),
+    "vlp32c": (spinning, {"model": "vlp32c"}),
     "hdl64e": (spinning, {"model": "hdl64e"}),
     "os1-32": (ouster, {"beams": 32}),
     "os1-64": (ouster, {"beams": 64}),

@@ -1,4 +1,4 @@
-"""Velodyne spinning sensors (VLP-16, HDL-32E, HDL-64E) and the thesis's 32 x 32 HDL-32E packet.
+"""Velodyne spinning sensors (VLP-16, HDL-32E, VLP-32C, HDL-64E) and the thesis's 32 x 32 HDL-32E packet.
 
 The per-laser angles, offsets and firing times come from :mod:`mi_lidar.core.patterns.vendor`.
 """
@@ -29,7 +29,7 @@ def spinning(model: str, n_firings: int | None = None, rpm: float = 600.0) -> Fi
     offset corrections); the other models fire from the sensor origin.
 
     Args:
-        model: ``"vlp16"``, ``"hdl32e"`` or ``"hdl64e"`` (case-insensitive).
+        model: ``"vlp16"``, ``"hdl32e"``, ``"vlp32c"`` or ``"hdl64e"`` (case-insensitive).
         n_firings: Columns W, or None for the vendor's firings per revolution at ``rpm``.
         rpm: Rotor speed, revolutions per minute (> 0); ``period = 60 / rpm``.
 
