@@ -2,9 +2,10 @@
 
 Fenced blocks tagged ``bash`` are shell commands, ``python`` blocks are Python (the python blocks
 of one page form one session); other tags (``text``, ``xml``) are not run. The fast test checks
-every ``mi-lidar`` command line against the CLI (verb and options exist); the slow test runs
-every block verbatim, in file order (README, then docs/ by name), in one temporary folder holding
-links to ``scenes_xml``, ``examples`` and ``../shared/data`` so later commands read what earlier ones wrote.
+every ``mi-lidar`` command line against the CLI (verb and options exist) and runs the README's
+blocks verbatim; the slow test runs every block of every page verbatim, in file order (README, then
+docs/ by name). Blocks run in one temporary folder holding links to ``scenes_xml``, ``examples`` and
+``../shared/data``, so later commands read what earlier ones wrote.
 Lines running ``make`` are not run (they are the targets that run this suite). Blocks that read
 ``../shared/data`` are skipped when it is absent.
 """
@@ -75,8 +76,12 @@ def test_every_documented_command_exists_with_its_options():
     assert not problems, "\n".join(problems)
 
 
-@pytest.mark.slow
-def test_every_block_runs_verbatim(tmp_path):
+def run_verbatim(pages: list[Path], tmp_path: Path) -> list[str]:
+    """Run every block of ``pages`` verbatim, in documentation order, in one folder under ``tmp_path``.
+
+    Returns:
+        Where the blocks that read ``../shared/data`` are, when it is absent (not run).
+    """
     work = tmp_path / "work"
     work.mkdir()
     for folder in ("scenes_xml", "examples"):  # the README runs from a checkout: its scenes and example specs
@@ -86,14 +91,17 @@ def test_every_block_runs_verbatim(tmp_path):
         (tmp_path / "shared").mkdir()
         (tmp_path / "shared" / "data").symlink_to(SHARED_DATA)
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    on_pages = lambda where: REPO / where.split(":")[0] in pages
     # The python blocks of one page are one session (later blocks use earlier names): one run each.
-    pages: dict[str, tuple[str, str]] = {}
-    for where, block in blocks("python"):
+    sessions: dict[str, tuple[str, str]] = {}
+    for where, block in filter(lambda wb: on_pages(wb[0]), blocks("python")):
         page = where.split(":")[0]
-        first, text = pages.get(page, (where, ""))
-        pages[page] = (first, text + block)
-    runs = [("bash", w, b) for w, b in blocks("bash")] + [("python", w, b) for w, b in pages.values()]
+        first, text = sessions.get(page, (where, ""))
+        sessions[page] = (first, text + block)
+    runs = [("bash", w, b) for w, b in blocks("bash") if on_pages(w)]
+    runs += [("python", w, b) for w, b in sessions.values()]
     runs.sort(key=lambda run: (DOCS.index(REPO / run[1].split(":")[0]), int(run[1].split(":")[1])))
+    assert runs, f"no runnable blocks on {pages}"
     skipped = []
     for language, where, block in runs:
         if "../shared/data" in block and not have_data:
@@ -106,5 +114,16 @@ def test_every_block_runs_verbatim(tmp_path):
             command = [sys.executable, "-c", block]
         result = subprocess.run(command, cwd=work, env=env, capture_output=True, text=True)
         assert result.returncode == 0, f"{where}:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    return skipped
+
+
+def test_every_readme_block_runs_verbatim(tmp_path):
+    skipped = run_verbatim([REPO / "README.md"], tmp_path)
+    assert len(skipped) <= 1, f"only the real-data block may need ../shared/data: {skipped}"
+
+
+@pytest.mark.slow
+def test_every_block_runs_verbatim(tmp_path):
+    skipped = run_verbatim(DOCS, tmp_path)
     if skipped:
         pytest.skip(f"blocks reading ../shared/data skipped (absent): {skipped}")
