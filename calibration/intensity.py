@@ -13,7 +13,7 @@ reflectivities reproduce every calibration intensity and the noise parameters co
 bounds: the fit then explains nothing new. :func:`fit_intensity` therefore takes a log-normal prior
 ``ln rho_e ~ N(ln rho0_e, prior_sigma^2)`` about each element's starting reflectivity (the maximum a
 posteriori fit), and :func:`calibrate_intensity` chooses ``prior_sigma`` on rays the fit does not
-see (0: the starting reflectivities are kept; infinite: no prior).
+see (0: the starting reflectivities are kept; infinite: no prior), where it also fits the noise.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from mi_lidar.core.sensor_model import SensorModel
 REFLECTIVITY_BOUNDS = (1e-3, 100.0)
 REFLECTIVITY = "elements.reflectivity"
 NOISE = ("noise_floor", "noise_relative", "p_outlier")  # kept while the reflectivities move
-PRIOR_SIGMAS = (0.0, 0.1, 0.2, 0.4, 0.8, 1.6, math.inf)  # ln-reflectivity prior widths select_prior_sigma tries
+PRIOR_SIGMAS = (0.0, 0.1, 0.2, 0.4, 0.8, 1.6, math.inf)  # ln-reflectivity prior widths calibrate_intensity tries
 
 
 @dataclass
@@ -206,11 +206,11 @@ def calibrate_intensity(
         fit_intensity(model, check, steps=steps, prior_sigma=0.0, fixed=_curve(part))
         return trial.table.reflectivity, _values(part), check.nll(model)
 
-    start = _values(part)
-    fitted = {sigma: fit_at(sigma, start) for sigma in sigmas}
-    selection = {sigma: result[2] for sigma, result in fitted.items()}
-    for sigma, nll in selection.items():
-        say(f"reflectivity prior width {sigma:g}: check NLL {nll:.4f} nats/ray")
+    start, fitted, selection = _values(part), {}, {}
+    for sigma in sigmas:
+        fitted[sigma] = fit_at(sigma, start)
+        selection[sigma] = fitted[sigma][2]
+        say(f"reflectivity prior width {sigma:g}: check NLL {selection[sigma]:.4f} nats/ray")
     best = min(selection, key=selection.get)
     reflectivity, values, _ = fit_at(best, fitted[best][1])  # once more, with the noise the check rays gave
     make_opaque([part])

@@ -216,6 +216,21 @@ def test_calibrated_reflectivities_shrink_by_a_held_out_width():
     assert np.array_equal(np.asarray(kept.table.reflectivity), np.asarray(table.reflectivity))
 
 
+def test_intensity_fits_refuse_bad_input():
+    """Rays without intensities, a negative prior width and a log of several scans are refused by name."""
+    from mi_lidar.core.errors import CalibrationError
+    from mi_lidar.loop.real_intensity import intensity_experiment
+
+    model = SensorModel(intensity=IntensityModel(gain=120.0))
+    scene, log = street_log(model, n_firings=10)
+    with pytest.raises(CalibrationError, match="intensity="):
+        fit_intensity(model, Problem.build(scene, LogRays.from_log(log)))
+    with pytest.raises(CalibrationError, match="prior_sigma=-1"):
+        fit_intensity(model, Problem.build(scene, LogRays.from_log(log, intensity="intensity")), prior_sigma=-1.0)
+    with pytest.raises(LogFormatError, match="2 scans"):
+        intensity_experiment(log.select([0, 0]), "intensity")
+
+
 def test_reflectivity_dropout_keep_law():
     """keep = logistic((ln(rho cos) - 2 ln(r / range50)) / width): half at range50 sqrt(rho cos)."""
     effect = make_effect("reflectivity_dropout", range50=60.0, width=0.5)
