@@ -44,6 +44,12 @@ def compare_command(
         f"NLL {head['nll']:.3f} nats/ray, hit/miss F1 {head['f1']:.3f}; worst: "
         f"{result.worst[0]['breakdown']} {result.worst[0]['group']} ({result.worst[0]['nll']:.2f} nats/ray)"
     )
+    if result.intensity is not None:
+        i = result.intensity.metrics()
+        console.print(
+            f"intensity ({result.intensity.attribute}): NLL {i['intensity_nll']:.3f} nats/return, "
+            f"measured / model median {i['intensity_ratio']:.2f} over {i['returns']} returns"
+        )
     console.print(f"report: {out / 'report.html'}")
 
 

@@ -10,7 +10,8 @@ For every ray of the log the model is scored and simulated:
 
 Each is broken down by nominal range, incidence angle, beam, azimuth, time, element type, label
 and shape (taken from the first element along the ray), and the groups where the model fails
-worst (largest excess NLL) lead the report.
+worst (largest excess NLL) lead the report. When the log carries intensities, their residuals
+follow, by range, incidence, beam and label (:mod:`mi_lidar.loop.intensity_residuals`).
 """
 
 from __future__ import annotations
@@ -192,6 +193,10 @@ class Comparison:
         headline: overall metrics (see :func:`metrics`).
         breakdowns: breakdown name -> rows of per-group metrics.
         worst: the groups with the largest excess NLL across all breakdowns.
+        table: the per-ray results.
+        intensity: the intensity residuals
+            (:class:`~mi_lidar.loop.intensity_residuals.IntensityResiduals`) when the log carries
+            intensities, else None.
         files: written report files.
     """
 
@@ -199,10 +204,12 @@ class Comparison:
     breakdowns: dict
     worst: list
     table: RayTable = field(repr=False, default=None)
+    intensity: object = field(repr=False, default=None)
     files: list = field(default_factory=list)
 
     def to_json(self) -> dict:
-        return {"headline": self.headline, "breakdowns": self.breakdowns, "worst": self.worst}
+        out = {"headline": self.headline, "breakdowns": self.breakdowns, "worst": self.worst}
+        return out | ({"intensity": self.intensity.to_json()} if self.intensity is not None else {})
 
 
 def compare(
@@ -221,7 +228,8 @@ def compare(
         scene: loaded Mitsuba scene or scene XML path.
         model: sensor model (default: the scene's sensor and integrator settings).
         out: report folder (PNG plots, residual range image, residual PLY, report.md/.html,
-            comparison.json); nothing is written when None.
+            comparison.json, and intensity_residuals.png when the log carries intensities); nothing
+            is written when None.
         seed: simulation seed.
         title: report title.
         force: compare even when the log's sensor does not match the scene's.
@@ -246,6 +254,9 @@ def compare(
         dict(row, breakdown=b) for b, rows in result.breakdowns.items() if b != "beam" or len(rows) > 1 for row in rows
     ]
     result.worst = sorted(groups, key=lambda r: -r["excess_nll"])[:8]
+    from mi_lidar.loop.intensity_residuals import intensity_residuals
+
+    result.intensity = intensity_residuals(log, scene, model, seed=seed)
     if out is not None:
         from mi_lidar.loop.report import write_comparison
 

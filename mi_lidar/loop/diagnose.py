@@ -54,6 +54,7 @@ from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.io.markdown import markdown_to_html
 from mi_lidar.loop.catalog import candidate, candidate_names, variants
 from mi_lidar.loop.compare import BREAKDOWNS, RayTable, first_elements, group_keys, simulate_log_rays
+from mi_lidar.loop.intensity_residuals import intensity_residuals, intensity_section
 from mi_lidar.loop.residuals import plot_structure, residual_structure, structure_verdict
 
 P_VALUE = 1e-3
@@ -413,7 +414,9 @@ def diagnose(
         out.mkdir(parents=True, exist_ok=True)
         text = json.dumps(result.to_json(), indent=1, default=float).encode()
         atomic_write(out / "diagnosis.json", lambda stream: stream.write(text))
-        markdown = diagnosis_markdown(result)
+        markdown = diagnosis_markdown(result) + intensity_section(
+            intensity_residuals(log, scene, base, test_index), out
+        )
         atomic_write(out / "diagnosis.md", lambda stream: stream.write(markdown.encode()))
         html = markdown_to_html(markdown, "mi-lidar diagnosis").encode()
         atomic_write(out / "diagnosis.html", lambda stream: stream.write(html))

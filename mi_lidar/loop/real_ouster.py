@@ -70,7 +70,7 @@ def range_image_mesh(log: Log, columns: np.ndarray) -> MeshElements:
 
 
 def column_log(log: Log, columns: np.ndarray) -> Log:
-    """The rays of ``columns`` of a one-scan log, as a log of its own (same pose and sensor)."""
+    """The rays of ``columns`` of a one-scan log, as a log of its own (same pose, sensor and per-ray attributes)."""
     cols = np.asarray(columns)
     return Log(
         poses=log.poses,
@@ -79,6 +79,7 @@ def column_log(log: Log, columns: np.ndarray) -> Log:
         ranges=log.ranges[:, :, cols],
         hit=log.hit[:, :, cols],
         times=log.times[:, :, cols],
+        attributes={name: values[:, :, cols] for name, values in log.attributes.items()},
         sensor=dict(log.sensor),
     )
 

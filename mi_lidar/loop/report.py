@@ -28,6 +28,11 @@ FMT = {
     "histogram_l1": "{:.4f}",
     "excess_nll": "{:.1f}",
     "residual_median": "{:+.4f}",
+    "returns": "{:d}",
+    "intensity_measured": "{:.1f}",
+    "intensity_expected": "{:.1f}",
+    "intensity_ratio": "{:.2f}",
+    "intensity_nll": "{:.3f}",
 }
 NAMES = {
     "rays": "rays",
@@ -43,6 +48,11 @@ NAMES = {
     "histogram_l1": "histogram L1 (m)",
     "excess_nll": "excess NLL (nats)",
     "residual_median": "median residual (m)",
+    "returns": "returns",
+    "intensity_measured": "median intensity (meas.)",
+    "intensity_expected": "median intensity (model)",
+    "intensity_ratio": "median (meas.+1)/(model+1)",
+    "intensity_nll": "intensity NLL (nats/return)",
 }
 
 
@@ -193,6 +203,8 @@ def write_comparison(result, log, out: Path, title: str, model) -> list[Path]:
     """Write the comparison report into folder ``out``; return the files."""
     out.mkdir(parents=True, exist_ok=True)
     t = result.table
+    from mi_lidar.loop.intensity_residuals import FIGURE, intensity_section
+
     files = [
         plot_breakdowns(result, out / "breakdowns.png"),
         plot_residuals(t, out / "residuals.png"),
@@ -243,7 +255,8 @@ def write_comparison(result, log, out: Path, title: str, model) -> list[Path]:
     for name, rows in result.breakdowns.items():
         lines += ["", f"### By {name}", "", markdown_table(rows, keys[:1] + keys[2:])]
     lines += ["", "`residuals.ply`: measured points coloured by measured - nominal range (red long, blue short)."]
-    md = "\n".join(lines) + "\n"
+    md = "\n".join(lines) + "\n" + intensity_section(result.intensity, out)
     (out / "report.md").write_text(md)
     (out / "report.html").write_text(markdown_to_html(md, title))
+    files += [out / FIGURE] if result.intensity is not None else []
     return files + [out / "report.md", out / "report.html"]

@@ -51,11 +51,14 @@ def test_mesh_joins_neighbouring_returns_in_the_world_frame_and_skips_quads_with
 
 
 def test_column_log_keeps_the_rays_of_its_columns():
+    """Ranges, directions and per-ray attributes (an Ouster frame's REFLECTIVITY, for the intensity residuals)."""
     log = synthetic_frame()
+    log.attributes["reflectivity"] = np.arange(log.ranges.size).reshape(log.shape)
     sub = column_log(log, np.arange(1, 256, 2))
     assert sub.shape == (1, 16, 128)
     np.testing.assert_array_equal(sub.ranges[0], log.ranges[0][:, 1::2])
     np.testing.assert_array_equal(sub.directions[0], log.directions[0][:, 1::2])
+    np.testing.assert_array_equal(sub.attributes["reflectivity"][0], log.attributes["reflectivity"][0][:, 1::2])
 
 
 def test_development_path_on_the_real_frame_falls_and_ends_finite(shared_data):
