@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
-from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.elements import ElementTable, registry_id
 from mi_lidar.core.errors import SceneError, SpecError
 from mi_lidar.dataset.spec import DatasetSpec, SceneSpec
 from mi_lidar.hybrid.blocks import read_mesh_ply
@@ -72,6 +72,8 @@ class SceneInstance:
             (shapes absent are stuff, instance 0). label_names: class name per element label.
         ground_height: ``f(x, y) -> z`` (m) on the ground mesh, None for XML scenes.
         shape_ids: the scene's element-table shape ids (the simulator's ``shape_id`` indexes them).
+        instance_of_shape: instance id per Dr.Jit registry id of the scene's shapes (what ``si.shape``
+            carries; 0 for stuff and for index 0, no shape).
     """
 
     scene: object
@@ -80,6 +82,7 @@ class SceneInstance:
     label_names: dict[int, str]
     ground_height: Callable | None = None
     shape_ids: list[str] = field(default_factory=list)
+    instance_of_shape: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
 
 
 def shape_bounds(scene) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -89,6 +92,14 @@ def shape_bounds(scene) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         box = shape.bbox()
         bounds[shape.id()] = (np.array(box.min, dtype=np.float64), np.array(box.max, dtype=np.float64))
     return bounds
+
+
+def instance_by_registry(scene, shape_instance: dict[str, int]) -> np.ndarray:
+    """Instance id per Dr.Jit registry id of the scene's shapes (``si.shape`` carries it); 0 for the rest."""
+    registry = {registry_id(s): shape_instance.get(s.id(), 0) for s in scene.shapes()}
+    table = np.zeros(max(registry, default=0) + 1, np.int64)
+    table[list(registry)] = list(registry.values())
+    return table
 
 
 def xml_scene(spec: DatasetSpec, scene_spec: SceneSpec) -> SceneInstance:
@@ -252,6 +263,7 @@ def build_scene(spec: DatasetSpec, scene_index: int, variant: int) -> SceneInsta
     instance = xml_scene(spec, scene_spec) if scene_spec.xml is not None else hybrid_scene(spec, scene_index, variant)
     table = ElementTable.from_scene(instance.scene)
     instance.shape_ids = list(table.shape_ids)
+    instance.instance_of_shape = instance_by_registry(instance.scene, instance.shape_instance)
     unnamed = sorted(set(np.unique(np.asarray(table.label)).tolist()) - set(instance.label_names))
     if unnamed:
         raise SpecError(
