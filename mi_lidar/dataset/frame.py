@@ -157,7 +157,10 @@ def render_frame(spec: DatasetSpec, rig: Rig, index: int, scenes: dict) -> Frame
                 (np.c_[world, np.ones(len(world))] @ world_to_reference.T)[:, :3],
                 np.zeros(len(world)) if intensity is None else np.asarray(intensity[0][hit]),
                 semantic,
-                shape_instance[shapes] if len(shape_instance) else np.zeros(len(world), np.uint16),
+                # shape -1: a return of no element (the density's spurious readings): instance 0
+                np.where(shapes >= 0, shape_instance[np.maximum(shapes, 0)], 0).astype(np.uint16)
+                if len(shape_instance)
+                else np.zeros(len(world), np.uint16),
             )
         )
     images = [render_camera(scene.scene, camera.at(ego), spp=spec.output.spp, seed=seeds[-1]) for camera in rig.cameras]

@@ -69,7 +69,8 @@ class SceneInstance:
 
     Attributes:
         scene: the Mitsuba scene. boxes: labelled objects. shape_instance: instance id per shape id
-            (shapes absent are stuff, instance 0). label_names: class name per element label.
+            (shapes absent are stuff, instance 0). label_names: class name per element label (label 0,
+            also that of returns of no element, is ``unlabeled`` unless the spec names it).
         ground_height: ``f(x, y) -> z`` (m) on the ground mesh, None for XML scenes.
         shape_ids: the scene's element-table shape ids (the simulator's ``shape_id`` indexes them).
         instance_of_shape: instance id per Dr.Jit registry id of the scene's shapes (what ``si.shape``
@@ -118,7 +119,7 @@ def xml_scene(spec: DatasetSpec, scene_spec: SceneSpec) -> SceneInstance:
         high = np.max([bounds[s][1] for s in obj.shapes], axis=0)
         boxes.append(Box3D(obj.class_name, i + 1, (low + high) / 2, high - low, 0.0))
         shape_instance.update({s: i + 1 for s in obj.shapes})
-    return SceneInstance(scene, boxes, shape_instance, dict(scene_spec.labels))
+    return SceneInstance(scene, boxes, shape_instance, {0: "unlabeled", **scene_spec.labels})
 
 
 def height_function(ground: GroundMesh) -> Callable:

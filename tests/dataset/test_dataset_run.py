@@ -31,7 +31,10 @@ name: ci-dataset
 seed: 5
 rig:
   lidars:
-    - {{name: top, pattern: vlp16, mount: {{xyz: [0, 0, 1.8]}}, effects: "range_noise(sigma0=0.01)"}}
+    - name: top
+      pattern: vlp16
+      mount: {{xyz: [0, 0, 1.8]}}
+      effects: "range_noise(sigma0=0.01), outliers(p_near=0.01, p_uniform=0.01, uniform_max=60)"
   cameras:
     - {{name: front, width: 128, height: 80, fov_deg: 80, mount: {{xyz: [0.5, 0, 1.6]}}}}
     - {{name: left, width: 96, height: 64, fov_deg: 90, mount: {{xyz: [0, 0.3, 1.6], rpy_deg: [0, 0, 90]}}}}
@@ -149,6 +152,8 @@ def test_points_and_labels(serial):
         assert len(points) == len(semantic) > 1000
         intensity = points[:, 3]  # the simulated intensity: non-negative integers that vary over the scene
         assert np.all(intensity >= 0) and np.all(intensity == np.round(intensity)) and np.std(intensity) > 1.0
+        # outliers are returns of no element: unlabeled (0), no instance
+        assert 0 < np.count_nonzero(semantic == 0) < 0.05 * len(semantic) and np.all(instance[semantic == 0] == 0)
         if k < 2:  # street: road (40) and buildings (50) everywhere, the car (10) has instance 1
             assert {40, 50} <= set(np.unique(semantic).tolist())
             assert np.all(semantic[instance == 1] == 10)
