@@ -323,8 +323,10 @@ def _run_on_dask(spec, out, todo, scheduler, workers, retries, dashboard_address
         client.register_plugin(MitsubaWorker(workers_per_host(addresses)))
         report.worker_setup = client.run(worker_setup)
         threads = sorted({s["threads"] for s in report.worker_setup.values()})
+        # a LocalCluster started without a dashboard address still serves HTTP there, but no dashboard
         services = client.scheduler_info(n_workers=0).get("services", {})
-        report.dashboard = client.dashboard_link if "dashboard" in services else None
+        wanted = scheduler is not None or dashboard_address
+        report.dashboard = client.dashboard_link if wanted and "dashboard" in services else None
         announce(
             f"Dask: {len(report.worker_setup)} workers ({'scheduler ' + scheduler if scheduler else 'LocalCluster'}), "
             f"Dr.Jit threads per worker {'/'.join(map(str, threads))}"
