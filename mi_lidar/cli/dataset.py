@@ -64,6 +64,7 @@ def dataset(
         ("partial files removed", report.removed_partial),
         ("wall time (s)", f"{report.seconds:.1f}"),
         ("frames per minute (rendered now)", f"{60 * report.rendered / max(report.seconds, 1e-9):.1f}"),
+        ("CPU seconds per frame (rendered now)", f"{report.cpu_seconds / max(report.rendered, 1):.2f}"),
     ):
         table.add_row(name, str(value))
     console.print(table)

@@ -19,6 +19,9 @@ def fit_sensor_command(
     out: Path = typer.Option(..., "--out", "-o", help="Output density file (`.npz`)."),
     steps: int = typer.Option(200, min=1, help="Adam steps (beam, physics)."),
     seed: int = typer.Option(0, min=0, help="Seed of the split and of the sampled scan."),
+    pool_labels: bool = typer.Option(
+        False, "--pool-labels", help="NP-Reg: one state per range and incidence, whatever the element label."
+    ),
 ):
     """Fit a return density to a log in its scene; print held-out NLL beside sample realism; save it.
 
@@ -30,12 +33,17 @@ def fit_sensor_command(
         mi-lidar fit-sensor drive.npz scenes_xml/urban_street.xml --model np-reg --out sensor.npz
 
         mi-lidar fit-sensor drive.npz scenes_xml/urban_street.xml -m p-reg -o p_reg.npz
+
+    With --pool-labels an NP-Reg density applies to scenes whose labels mean other classes (a density
+    fitted off-road, used in a street).
     """
     from mi_lidar.io import read_any
     from mi_lidar.loop.sensor_fit import fit_sensor, save_sensor
 
     with progress(f"fitting {model}"):
-        result = fit_sensor(read_any(log), scene, model, steps=steps, seed=seed, progress=console.log)
+        result = fit_sensor(
+            read_any(log), scene, model, steps=steps, seed=seed, pool_labels=pool_labels, progress=console.log
+        )
         path = save_sensor(result, out)
     table = Table(title=f"{log.name}: held-out rays ({result.test_rays:,})", header_style="bold")
     columns = [

@@ -8,11 +8,13 @@ with ``[spec.seed, scene, variant]``. Any worker, in any order, writes the same 
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from mi_lidar.dataset.occlusion import hidden_fractions, occlusion_level
 from mi_lidar.dataset.rig import Rig
 from mi_lidar.dataset.scenes import Box3D, SceneInstance, build_scene, path_frame
 from mi_lidar.dataset.spec import DatasetSpec
@@ -63,6 +65,9 @@ class Frame:
         intensity: (N,) float32. semantic, instance: (N,) uint16 per point.
         images: one (H, W, 3) linear RGB float32 image per rig camera.
         boxes: labelled objects of the scene.
+        hidden: hidden fraction of each box seen by camera 0, by instance id (NaN: unknown; see
+            :mod:`.occlusion`).
+        scene_seconds: wall time spent loading the scene for this frame, s (0 when it was cached).
     """
 
     index: int
@@ -74,6 +79,8 @@ class Frame:
     instance: np.ndarray
     images: list[np.ndarray]
     boxes: list[Box3D]
+    hidden: dict[int, float] = field(default_factory=dict)
+    scene_seconds: float = 0.0
 
 
 def frame_seeds(seed: int, index: int, count: int) -> list[int]:
@@ -119,9 +126,11 @@ def render_frame(spec: DatasetSpec, rig: Rig, index: int, scenes: dict) -> Frame
 
     scene_index, variant, step, steps = spec.locate(index)
     key = (scene_index, variant)
+    start = time.perf_counter()
     if key not in scenes:
         scenes.clear()
         scenes[key] = build_scene(spec, scene_index, variant)
+    scene_seconds = time.perf_counter() - start
     scene = scenes[key]
     ego = ego_pose(spec, scene, scene_index, step, steps)
     seeds = frame_seeds(spec.seed, index, len(rig.lidars) + 1)
@@ -148,10 +157,14 @@ def render_frame(spec: DatasetSpec, rig: Rig, index: int, scenes: dict) -> Frame
                 (np.c_[world, np.ones(len(world))] @ world_to_reference.T)[:, :3],
                 np.zeros(len(world)) if intensity is None else np.asarray(intensity[0][hit]),
                 semantic,
-                shape_instance[shapes] if len(shape_instance) else np.zeros(len(world), np.uint16),
+                # shape -1: a return of no element (the density's spurious readings): instance 0
+                np.where(shapes >= 0, shape_instance[np.maximum(shapes, 0)], 0).astype(np.uint16)
+                if len(shape_instance)
+                else np.zeros(len(world), np.uint16),
             )
         )
     images = [render_camera(scene.scene, camera.at(ego), spp=spec.output.spp, seed=seeds[-1]) for camera in rig.cameras]
+    hidden = hidden_fractions(scene.scene, rig.cameras[0].at(ego), scene.boxes, scene.instance_of_shape)
     return Frame(
         index=index,
         scene=spec.scenes[scene_index].name,
@@ -162,14 +175,18 @@ def render_frame(spec: DatasetSpec, rig: Rig, index: int, scenes: dict) -> Frame
         instance=np.concatenate([p[3] for p in parts]),
         images=images,
         boxes=scene.boxes,
+        hidden=hidden,
+        scene_seconds=scene_seconds,
     )
 
 
 def kitti_objects(frame: Frame, rig: Rig) -> list[dict]:
     """``label_2`` rows of the frame's boxes in front of the reference camera whose projection meets the image.
 
-    ``truncated`` is the fraction of the projected box outside the image; ``occluded`` is 3 (unknown);
-    boxes reaching behind the camera plane are left out.
+    ``truncated`` is the fraction of the projected box outside the image; ``occluded`` is KITTI's level
+    (0 fully visible, 1 partly occluded, 2 largely occluded, 3 unknown) of the object's hidden fraction
+    as camera 0 sees it (:mod:`.occlusion`); boxes reaching behind the camera plane are left out.
+    Each row also carries the ``instance`` id and the ``hidden`` fraction (the manifest keeps them).
     """
     camera = rig.cameras[0].at(frame.ego_to_world)
     world_to_camera = camera.world_to_opencv
@@ -193,7 +210,7 @@ def kitti_objects(frame: Frame, rig: Rig) -> list[dict]:
             {
                 "type": box.class_name,
                 "truncated": float(np.clip(truncated, 0, 1)),
-                "occluded": 3,
+                "occluded": occlusion_level(frame.hidden.get(box.instance, float("nan"))),
                 "alpha": float(alpha),
                 "left": clipped[0],
                 "top": clipped[1],
@@ -207,6 +224,7 @@ def kitti_objects(frame: Frame, rig: Rig) -> list[dict]:
                 "z": z,
                 "rotation_y": rotation_y,
                 "instance": box.instance,
+                "hidden": frame.hidden.get(box.instance, float("nan")),
             }
         )
     return rows
@@ -251,7 +269,15 @@ def write_frame(out: Path, frame: Frame, rig: Rig, overlays: bool) -> dict:
         "ego_to_world": frame.ego_to_world.tolist(),
         "reference_camera_to_world": (frame.ego_to_world @ rig.cameras[0].optical_to_ego).tolist(),
         "points": int(len(frame.points)),
-        "objects": [{"instance": o["instance"], "type": o["type"]} for o in objects],
+        "objects": [
+            {
+                "instance": o["instance"],
+                "type": o["type"],
+                "occluded": o["occluded"],
+                "hidden": None if np.isnan(o["hidden"]) else round(o["hidden"], 3),
+            }
+            for o in objects
+        ],
         "files": {str(Path(f).relative_to(out)): file_digest(f) for f in files},
     }
 

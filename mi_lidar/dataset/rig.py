@@ -31,6 +31,7 @@ class RigCamera:
     Attributes:
         name: camera name. width, height: image size, pixels. fov_deg: horizontal field of view, deg.
         optical_to_ego: (4, 4) OpenCV optical frame to ego.
+        principal_point: (cx, cy) pixels from the image's top-left corner, None for the image centre.
     """
 
     name: str
@@ -38,16 +39,17 @@ class RigCamera:
     height: int
     fov_deg: float
     optical_to_ego: np.ndarray
+    principal_point: tuple[float, float] | None = None
 
     def at(self, ego_to_world: np.ndarray) -> PinholeCamera:
         """The camera placed by the ego pose (4, 4)."""
         to_world = ego_to_world @ self.optical_to_ego @ MITSUBA_FROM_OPENCV
-        return PinholeCamera(to_world=to_world, width=self.width, height=self.height, fov_deg=self.fov_deg)
+        return PinholeCamera(to_world, self.width, self.height, self.fov_deg, self.principal_point)
 
     @property
     def intrinsics(self) -> np.ndarray:
-        """(3, 3) pixel intrinsics K (principal point at the image centre)."""
-        return PinholeCamera(np.eye(4), self.width, self.height, self.fov_deg).intrinsics
+        """(3, 3) pixel intrinsics K."""
+        return PinholeCamera(np.eye(4), self.width, self.height, self.fov_deg, self.principal_point).intrinsics
 
 
 @dataclass(frozen=True)
@@ -109,6 +111,20 @@ def camera_from_spec(spec: CameraSpec) -> RigCamera:
     return RigCamera(spec.name, spec.width, spec.height, spec.fov_deg, optical)
 
 
+def nuscenes_camera(name: str, camera: dict, scale: float) -> RigCamera:
+    """A rig camera from a nuScenes calibration entry (``K``, ``width``, ``height``, ``cam2ego``), scaled by ``scale``.
+
+    The field of view comes from the focal length ``K[0, 0]`` (nuScenes' pixels are square); the
+    principal point is ``K``'s, moved from OpenCV's integer-centred pixel coordinates to the
+    image-corner ones of :class:`~mi_lidar.scene.camera.PinholeCamera` (+0.5) and scaled with the image.
+    """
+    k = np.asarray(camera["K"], dtype=np.float64)
+    fov = math.degrees(2 * math.atan(camera["width"] / (2 * k[0, 0])))
+    width, height = round(camera["width"] * scale), round(camera["height"] * scale)
+    centre = ((k[0, 2] + 0.5) * width / camera["width"], (k[1, 2] + 0.5) * height / camera["height"])
+    return RigCamera(name, width, height, fov, camera["cam2ego"], centre)
+
+
 def build_rig(spec: DatasetSpec) -> Rig:
     """The rig of a dataset spec; nuScenes cameras follow the explicit ones and give the Lidars their mount.
 
@@ -130,10 +146,6 @@ def build_rig(spec: DatasetSpec) -> Rig:
                     f"rig.nuscenes.cameras: {name!r} is not in {nuscenes.file}; "
                     f"choose from {', '.join(sorted(calibration['cameras']))}"
                 )
-            camera = calibration["cameras"][name]
-            fov = math.degrees(2 * math.atan(camera["width"] / (2 * camera["K"][0, 0])))
-            width = round(camera["width"] * nuscenes.image_scale)
-            height = round(camera["height"] * nuscenes.image_scale)
-            cameras.append(RigCamera(name, width, height, fov, camera["cam2ego"]))
+            cameras.append(nuscenes_camera(name, calibration["cameras"][name], nuscenes.image_scale))
     lidars = [RigLidar(s, m, sensor_model(s, resolve)) for s, m in zip(spec.rig.lidars, lidar_mounts)]
     return Rig(lidars, cameras)

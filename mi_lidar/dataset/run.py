@@ -1,12 +1,15 @@
 """Running a dataset: one Dask task per frame, a manifest that makes every run resumable.
 
 The manifest (``manifest.json``) holds the spec as written, the software versions and, per finished
-frame, the SHA-256 of every file it wrote. A new run with the same spec verifies the recorded
-frames' digests, keeps the intact ones and renders only the rest; leftover temporary files of a
-killed run are removed first. Frames run on a ``distributed.LocalCluster`` (one single-threaded
-process per core by default) or on an existing Dask scheduler; each worker imports Mitsuba once
-and keeps the current scene between frames. Dr.Jit's on-disk kernel cache is shared safely by the
-workers: it writes each kernel to an exclusive temporary file, then links it into place.
+frame, the SHA-256 of every file it wrote (and the frame's CPU and wall seconds). A new run with the
+same spec verifies the recorded frames' digests, keeps the intact ones and renders only the rest;
+leftover temporary files of a killed run are removed first. Frames run on a
+``distributed.LocalCluster`` (one single-threaded process per core by default) or on an existing
+Dask scheduler; each worker imports Mitsuba once, sizes Dr.Jit's thread pool to its share of the
+host's cores (:mod:`.workers`), renders one frame at a time and keeps the rig and the current scene
+between frames. Dr.Jit's on-disk kernel cache (``~/.drjit``) is shared safely by concurrent
+processes: Dr.Jit writes a kernel to a temporary file named by its process id, hard-links it into
+place, and checks a checksum when it loads one.
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ from __future__ import annotations
 import json
 import os
 import platform
+import resource
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -24,8 +29,17 @@ from mi_lidar.core.errors import SpecError
 from mi_lidar.dataset.spec import DatasetSpec
 
 MANIFEST = "manifest.json"
+MANIFEST_SAVE_RATIO = 20.0  # throttled manifest writes take at most 1/20 of the run's time (Manifest.save)
+WORKER_WAIT_S = 60.0  # how long a run waits for the first worker of an existing Dask cluster
 FORMAT = "mi-lidar-dataset"
 _WORKER_STATE: dict = {}
+_FRAME_LOCK = threading.Lock()  # Dr.Jit's thread pool and the scene cache serve one frame at a time
+
+
+def cpu_seconds() -> float:
+    """User + system CPU seconds of this process so far (all its threads)."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
 
 
 def software_versions() -> dict[str, str]:
@@ -45,17 +59,27 @@ def frame_task(spec: DatasetSpec, out: str, index: int) -> dict:
     """Render and write frame ``index`` in this process; returns its manifest record.
 
     The rig and the current scene are kept in a per-process cache, so a worker loads a scene once for
-    all the frames of that scene variant it runs.
+    all the frames of that scene variant it runs. The record's ``cpu_seconds`` (this process, all
+    threads) and ``seconds`` (wall) time the frame, ``scene_seconds`` the scene load it needed (0
+    when cached).
     """
     from mi_lidar.dataset.frame import render_frame, write_frame
     from mi_lidar.dataset.rig import build_rig
 
-    if _WORKER_STATE.get("digest") != spec.digest:
-        _WORKER_STATE.clear()
-        _WORKER_STATE.update(digest=spec.digest, rig=build_rig(spec), scenes={})
-    rig = _WORKER_STATE["rig"]
-    frame = render_frame(spec, rig, index, _WORKER_STATE["scenes"])
-    return write_frame(Path(out), frame, rig, spec.output.overlays)
+    with _FRAME_LOCK:
+        start, cpu = time.perf_counter(), cpu_seconds()
+        if _WORKER_STATE.get("digest") != spec.digest:
+            _WORKER_STATE.clear()
+            _WORKER_STATE.update(digest=spec.digest, rig=build_rig(spec), scenes={})
+        rig = _WORKER_STATE["rig"]
+        frame = render_frame(spec, rig, index, _WORKER_STATE["scenes"])
+        record = write_frame(Path(out), frame, rig, spec.output.overlays)
+        record.update(
+            cpu_seconds=round(cpu_seconds() - cpu, 4),
+            seconds=round(time.perf_counter() - start, 4),
+            scene_seconds=round(frame.scene_seconds, 4),
+        )
+        return record
 
 
 def verify_frame(out: Path, record: dict) -> bool:
@@ -78,6 +102,7 @@ class Manifest:
 
     def __init__(self, out: Path, data: dict):
         self.out, self.data = out, data
+        self.saved_at, self.save_cost = -float("inf"), 0.0
 
     @classmethod
     def open(cls, out: Path, spec: DatasetSpec, semantic_classes: dict[str, int], notes: list[str]) -> Manifest:
@@ -126,15 +151,34 @@ class Manifest:
         """Record a frame that failed after its retries."""
         self.data["failed"][str(index)] = error
 
-    def save(self) -> Path:
-        """Write the manifest atomically."""
+    def save(self, throttled: bool = False) -> Path | None:
+        """Write the manifest atomically; ``throttled``: only if the last write is long enough ago (else None).
+
+        The file grows with the frames, so after each frame it is written only when the time since the
+        last write is at least :data:`MANIFEST_SAVE_RATIO` times what that write took: small manifests
+        are written after every frame, one of thousands of frames keeps its writes to a few percent of
+        the run. A kill loses at most the frames finished since the last write; their files are
+        rendered again (atomically) by the next run.
+        """
+        start = time.monotonic()
+        if throttled and start - self.saved_at < MANIFEST_SAVE_RATIO * self.save_cost:
+            return None
         text = json.dumps(self.data, indent=1, sort_keys=True)
-        return atomic_write(self.out / MANIFEST, lambda stream: stream.write(text.encode()))
+        path = atomic_write(self.out / MANIFEST, lambda stream: stream.write(text.encode()))
+        self.saved_at = time.monotonic()
+        self.save_cost = self.saved_at - start
+        return path
 
 
 @dataclass
 class RunReport:
-    """What a run did: frames in the spec, skipped (already done), rendered now, failed (index -> error)."""
+    """What a run did: frames in the spec, skipped (already done), rendered now, failed (index -> error).
+
+    ``seconds`` is the run's wall time, ``cpu_seconds`` the CPU time of the frames rendered now (their
+    worker processes, all threads).
+    ``worker_peak_mib`` and ``worker_setup`` (Dr.Jit threads, cores, pid; see
+    :func:`~mi_lidar.dataset.workers.worker_setup`) are keyed by Dask worker address.
+    """
 
     total: int
     skipped: int
@@ -142,8 +186,10 @@ class RunReport:
     failed: dict[int, str] = field(default_factory=dict)
     removed_partial: int = 0
     seconds: float = 0.0
+    cpu_seconds: float = 0.0
     dashboard: str | None = None
     worker_peak_mib: dict[str, float] = field(default_factory=dict)
+    worker_setup: dict[str, dict] = field(default_factory=dict)
 
 
 def write_poses(out: Path, manifest: Manifest, total: int) -> Path | None:
@@ -179,7 +225,7 @@ def run_dataset(
         spec: the dataset spec. out: output folder (on a file system every worker can write).
         scheduler: address of an existing Dask scheduler (``tcp://host:8786``); None starts a LocalCluster.
         workers: LocalCluster processes (default: one per core); each runs Dr.Jit on
-            ``cores // workers`` threads (at least 1).
+            ``cores // workers`` threads (at least 1; on a cluster, cores of its host // workers there).
         serial: render in this process, in frame order, without Dask.
         retries: extra attempts of a failing frame before it is reported.
         dashboard_address: the LocalCluster dashboard's address (None: no dashboard).
@@ -211,20 +257,24 @@ def run_dataset(
         if record is not None:
             manifest.add(record)
             report.rendered += 1
+            report.cpu_seconds += record["cpu_seconds"]
         else:
             manifest.fail(index, error)
             report.failed[index] = error
-        manifest.save()
+        manifest.save(throttled=True)
         if progress is not None:
             progress(report.skipped + report.rendered + len(report.failed), spec.frames)
 
     if progress is not None:
         progress(report.skipped, spec.frames)
-    if serial:
-        for index in todo:
-            finished(index, *_attempt(spec, out, index, retries))
-    elif todo:
-        _run_on_dask(spec, out, todo, scheduler, workers, retries, dashboard_address, finished, announce, report)
+    try:
+        if serial:
+            for index in todo:
+                finished(index, *_attempt(spec, out, index, retries))
+        elif todo:
+            _run_on_dask(spec, out, todo, scheduler, workers, retries, dashboard_address, finished, announce, report)
+    finally:
+        manifest.save()
     write_poses(out, manifest, spec.frames)
     report.seconds = time.perf_counter() - start
     return report
@@ -244,30 +294,42 @@ def _attempt(spec: DatasetSpec, out: Path, index: int, retries: int) -> tuple[di
 
 def peak_memory_mib() -> float:
     """Peak resident memory of this process, MiB (Linux ``ru_maxrss``)."""
-    import resource
-
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def _run_on_dask(spec, out, todo, scheduler, workers, retries, dashboard_address, finished, announce, report) -> None:
     from distributed import Client, LocalCluster, as_completed
 
-    from mi_lidar.dataset.workers import MitsubaWorker, worker_threads
+    from mi_lidar.core.errors import SetupError
+    from mi_lidar.dataset.workers import MitsubaWorker, host_cores, worker_setup, workers_per_host
 
     if scheduler is not None:
         client, cluster = Client(scheduler), None
     else:
-        workers = workers or os.cpu_count() or 1
+        workers = workers or host_cores()
         cluster = LocalCluster(
             n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=dashboard_address
         )
         client = Client(cluster)
     try:
-        n_workers = len(client.scheduler_info()["workers"])
-        client.register_plugin(MitsubaWorker(worker_threads(n_workers)))
-        report.dashboard = client.dashboard_link if dashboard_address or scheduler else None
+        try:
+            client.wait_for_workers(1, timeout=WORKER_WAIT_S)
+        except TimeoutError:
+            raise SetupError(
+                f"the Dask scheduler {scheduler} has had no worker for {WORKER_WAIT_S:.0f} s; "
+                f"start some: dask worker {scheduler} --nthreads 1"
+            ) from None
+        addresses = list(client.scheduler_info(n_workers=-1)["workers"])
+        client.register_plugin(MitsubaWorker(workers_per_host(addresses)))
+        report.worker_setup = client.run(worker_setup)
+        threads = sorted({s["threads"] for s in report.worker_setup.values()})
+        # a LocalCluster started without a dashboard address still serves HTTP there, but no dashboard
+        services = client.scheduler_info(n_workers=0).get("services", {})
+        wanted = scheduler is not None or dashboard_address
+        report.dashboard = client.dashboard_link if wanted and "dashboard" in services else None
         announce(
-            f"Dask: {n_workers} workers ({'scheduler ' + scheduler if scheduler else 'LocalCluster'})"
+            f"Dask: {len(report.worker_setup)} workers ({'scheduler ' + scheduler if scheduler else 'LocalCluster'}), "
+            f"Dr.Jit threads per worker {'/'.join(map(str, threads))}"
             + (f", dashboard {report.dashboard}" if report.dashboard else "")
         )
         futures = {

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
-from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.elements import ElementTable, registry_id
 from mi_lidar.core.errors import SceneError, SpecError
 from mi_lidar.dataset.spec import DatasetSpec, SceneSpec
 from mi_lidar.hybrid.blocks import read_mesh_ply
@@ -69,9 +69,12 @@ class SceneInstance:
 
     Attributes:
         scene: the Mitsuba scene. boxes: labelled objects. shape_instance: instance id per shape id
-            (shapes absent are stuff, instance 0). label_names: class name per element label.
+            (shapes absent are stuff, instance 0). label_names: class name per element label (label 0,
+            also that of returns of no element, is ``unlabeled`` unless the spec names it).
         ground_height: ``f(x, y) -> z`` (m) on the ground mesh, None for XML scenes.
         shape_ids: the scene's element-table shape ids (the simulator's ``shape_id`` indexes them).
+        instance_of_shape: instance id per Dr.Jit registry id of the scene's shapes (what ``si.shape``
+            carries; 0 for stuff and for index 0, no shape).
     """
 
     scene: object
@@ -80,6 +83,7 @@ class SceneInstance:
     label_names: dict[int, str]
     ground_height: Callable | None = None
     shape_ids: list[str] = field(default_factory=list)
+    instance_of_shape: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
 
 
 def shape_bounds(scene) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -89,6 +93,14 @@ def shape_bounds(scene) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         box = shape.bbox()
         bounds[shape.id()] = (np.array(box.min, dtype=np.float64), np.array(box.max, dtype=np.float64))
     return bounds
+
+
+def instance_by_registry(scene, shape_instance: dict[str, int]) -> np.ndarray:
+    """Instance id per Dr.Jit registry id of the scene's shapes (``si.shape`` carries it); 0 for the rest."""
+    registry = {registry_id(s): shape_instance.get(s.id(), 0) for s in scene.shapes()}
+    table = np.zeros(max(registry, default=0) + 1, np.int64)
+    table[list(registry)] = list(registry.values())
+    return table
 
 
 def xml_scene(spec: DatasetSpec, scene_spec: SceneSpec) -> SceneInstance:
@@ -107,7 +119,7 @@ def xml_scene(spec: DatasetSpec, scene_spec: SceneSpec) -> SceneInstance:
         high = np.max([bounds[s][1] for s in obj.shapes], axis=0)
         boxes.append(Box3D(obj.class_name, i + 1, (low + high) / 2, high - low, 0.0))
         shape_instance.update({s: i + 1 for s in obj.shapes})
-    return SceneInstance(scene, boxes, shape_instance, dict(scene_spec.labels))
+    return SceneInstance(scene, boxes, shape_instance, {0: "unlabeled", **scene_spec.labels})
 
 
 def height_function(ground: GroundMesh) -> Callable:
@@ -252,6 +264,7 @@ def build_scene(spec: DatasetSpec, scene_index: int, variant: int) -> SceneInsta
     instance = xml_scene(spec, scene_spec) if scene_spec.xml is not None else hybrid_scene(spec, scene_index, variant)
     table = ElementTable.from_scene(instance.scene)
     instance.shape_ids = list(table.shape_ids)
+    instance.instance_of_shape = instance_by_registry(instance.scene, instance.shape_instance)
     unnamed = sorted(set(np.unique(np.asarray(table.label)).tolist()) - set(instance.label_names))
     if unnamed:
         raise SpecError(

@@ -106,7 +106,7 @@ class NuScenesRig(Strict):
     """Cameras (and the Lidar mount) from a nuScenes calibration pickle (``cam2img``, ``cam2ego``, ``lidar2ego``).
 
     ``image_scale`` shrinks the 1600x900 images (0.25 gives 400x225); the field of view comes from the
-    focal length, the principal point is taken at the image centre (nuScenes' is 8-27 px off).
+    focal length and the principal point from ``cam2img`` (nuScenes' lie 8-51 px from the image centre).
     """
 
     file: Path

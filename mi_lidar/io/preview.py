@@ -1,7 +1,8 @@
-"""Quick-look PNG images of scans: range images and bird's-eye views.
+"""Quick-look PNG images of scans: range images, bird's-eye views, camera images and Lidar overlays.
 
 Figures are drawn with matplotlib's object API on an Agg canvas, so no global backend is
-changed and no display is needed.
+changed and no display is needed; camera images and overlays, written once per dataset frame,
+are drawn with numpy and Pillow directly (milliseconds instead of a figure's half second).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ EMPTY_COLOUR = "#b0b0b0"
 FIGURE_WIDTH_IN = 12.0
 DPI = 110
 ROW_HEIGHT_IN = 0.1
+OVERLAY_WIDTH = 960  # pixels: overlays enlarge the camera image by a whole factor to about this width
 
 
 def _save(figure: Figure, path: str | os.PathLike) -> Path:
@@ -186,17 +188,55 @@ def rgb_png(path: str | os.PathLike, image: np.ndarray) -> Path:
 def overlay_png(
     path: str | os.PathLike, image: np.ndarray, uv: np.ndarray, depth: np.ndarray, title: str = "Lidar over camera"
 ) -> Path:
-    """Draw Lidar returns (pixel coordinates ``uv`` (N, 2), depth (N,) m) over a linear RGB image."""
+    """Draw Lidar returns over a linear RGB image, coloured by depth, with a title and a colour bar.
+
+    Drawn with numpy and Pillow (a few milliseconds, so datasets can afford one per frame and camera):
+    the image is enlarged by a whole factor to about :data:`OVERLAY_WIDTH` pixels (nearest
+    neighbour), each return is a square dot of the ``turbo`` colour of its depth between the
+    nearest and farthest return, nearer dots drawn over farther ones.
+
+    Args:
+        path: destination ``.png``.
+        image: (H, W, 3) linear RGB.
+        uv: (N, 2) pixel coordinates of the returns ((0, 0) is the top-left corner of the image).
+        depth: (N,) depth along the optical axis, m.
+        title: text above the image; the number of points is appended.
+    """
+    from PIL import Image, ImageDraw, ImageFont
+
     height, width = image.shape[:2]
-    figure = Figure(figsize=(FIGURE_WIDTH_IN, FIGURE_WIDTH_IN * height / width + 0.8))
-    axes = figure.add_subplot()
-    axes.imshow(_srgb(image), interpolation="nearest")
-    dots = axes.scatter(uv[:, 0], uv[:, 1], c=depth, s=2, cmap="turbo")
-    axes.set_xlim(0, width)
-    axes.set_ylim(height, 0)
-    axes.set_axis_off()
-    colour_bar = figure.colorbar(dots, ax=axes, pad=0.01, fraction=0.04)
-    colour_bar.set_label("depth (m)")
-    axes.set_title(f"{title}  ({len(uv)} points)")
-    figure.tight_layout()
-    return _save(figure, path)
+    scale = max(1, round(OVERLAY_WIDTH / width))
+    canvas = np.repeat(np.repeat(np.round(_srgb(image) * 255.0).astype(np.uint8), scale, 0), scale, 1)
+    uv, depth = np.asarray(uv, np.float64).reshape(-1, 2), np.asarray(depth, np.float64).reshape(-1)
+    low, high = (float(depth.min()), float(depth.max())) if len(depth) else (0.0, 1.0)
+    turbo = (colormaps["turbo"](np.linspace(0, 1, 256))[:, :3] * 255).astype(np.uint8)
+    order = np.argsort(-depth, kind="stable")  # far first: near dots end on top
+    level = np.round(255 * (depth[order] - low) / max(high - low, 1e-9)).astype(int)
+    centre = np.floor(uv[order] * scale).astype(int)
+    dot = max(2, scale)
+    for dy in range(dot):
+        for dx in range(dot):
+            x, y = centre[:, 0] + dx - dot // 2, centre[:, 1] + dy - dot // 2
+            inside = (x >= 0) & (x < canvas.shape[1]) & (y >= 0) & (y < canvas.shape[0])
+            canvas[y[inside], x[inside]] = turbo[level[inside]]
+    font = ImageFont.load_default(size=14)
+    top, bar, margin = 24, 16, 84
+    page = Image.new("RGB", (canvas.shape[1] + bar + margin, canvas.shape[0] + top), "white")
+    page.paste(Image.fromarray(canvas), (0, top))
+    ramp = np.repeat(turbo[::-1][np.linspace(0, 255, canvas.shape[0]).astype(int)][:, None], bar, axis=1)
+    page.paste(Image.fromarray(ramp), (canvas.shape[1] + 6, top))
+    draw = ImageDraw.Draw(page)
+    draw.text((4, 4), f"{title}  ({len(uv)} points)", fill="black", font=font)
+    right = canvas.shape[1] + bar + 10
+    for fraction in np.linspace(0, 1, 5):
+        y = top + (1 - fraction) * (canvas.shape[0] - 1)
+        draw.text(
+            (right, min(max(y - 7, top), page.height - 16)),
+            f"{low + fraction * (high - low):.1f}",
+            fill="black",
+            font=font,
+        )
+    draw.text((right, 4), "depth (m)", fill="black", font=font)
+    with atomic_path(path) as tmp:
+        page.save(tmp, format="PNG")
+    return Path(path)

@@ -101,6 +101,7 @@ def fit_sensor(
     max_test: int = 200_000,
     steps: int = 200,
     seed: int = 0,
+    pool_labels: bool = False,
     progress=None,
 ) -> SensorFit:
     """Fit a return density of ``family`` to ``log`` in ``scene`` (see the module docstring).
@@ -112,6 +113,8 @@ def fit_sensor(
         max_train, max_test: rays per split (random subsample beyond).
         steps: Adam steps for the parametric families.
         seed: subsampling and sampling seed.
+        pool_labels: NP-Reg states ignore the element labels (one histogram per range and incidence),
+            so the density means the same in scenes whose labels name other classes (P-Reg always pools).
         progress: optional ``progress(message)``.
     """
     from mi_lidar.scene.loading import load_scene, scene_sensor_model
@@ -133,7 +136,7 @@ def fit_sensor(
     def held_out(density) -> float:
         return test.nll(dataclasses.replace(base, density=density))
 
-    n_labels = int(np.asarray(table.label).max()) + 1
+    n_labels = 1 if pool_labels else int(np.asarray(table.label).max()) + 1
     if family in ("np-reg", "p-reg"):
         fit = fit_np_reg if family == "np-reg" else fit_p_reg
         if family == "np-reg":

@@ -26,19 +26,30 @@ class PinholeCamera:
         to_world: (4, 4) camera-to-world transform in Mitsuba's convention (camera looks along
             +z, x left, y up in its own frame).
         width, height: image size, pixels.
-        fov_deg: horizontal field of view, degrees.
+        fov_deg: horizontal field of view, degrees (square pixels: one focal length).
+        principal_point: (cx, cy) pixels, or None for the image centre. Pixel coordinates put
+            (0, 0) at the top-left corner of the image, so pixel (i, j) spans [i, i+1) x [j, j+1)
+            (OpenCV's integer-centred coordinates are these minus 0.5).
     """
 
     to_world: np.ndarray
     width: int = 640
     height: int = 400
     fov_deg: float = 70.0
+    principal_point: tuple[float, float] | None = None
 
     def __post_init__(self):
         if not (self.width > 0 and self.height > 0 and 0 < self.fov_deg < 180):
             raise ParameterError(
                 f"camera: need width, height > 0 and 0 < fov_deg < 180; got {self.width}, {self.height}, {self.fov_deg}"
             )
+        if self.principal_point is not None:
+            cx, cy = self.principal_point
+            if not (0 < cx < self.width and 0 < cy < self.height):
+                raise ParameterError(
+                    f"camera: principal point ({cx}, {cy}) lies outside the {self.width} x {self.height} image; "
+                    "give it in pixels from the top-left corner"
+                )
 
     @classmethod
     def look_at(cls, origin, target, up=(0.0, 0.0, 1.0), **kwargs) -> PinholeCamera:
@@ -52,7 +63,13 @@ class PinholeCamera:
     def intrinsics(self) -> np.ndarray:
         """(3, 3) pixel intrinsics K for the OpenCV convention (x right, y down, z forward)."""
         f = 0.5 * self.width / math.tan(math.radians(self.fov_deg) / 2)
-        return np.array([[f, 0, self.width / 2], [0, f, self.height / 2], [0, 0, 1.0]])
+        cx, cy = self.centre
+        return np.array([[f, 0, cx], [0, f, cy], [0, 0, 1.0]])
+
+    @property
+    def centre(self) -> tuple[float, float]:
+        """The principal point (cx, cy), pixels."""
+        return self.principal_point or (self.width / 2, self.height / 2)
 
     @property
     def world_to_opencv(self) -> np.ndarray:
@@ -62,11 +79,15 @@ class PinholeCamera:
 
     def sensor(self, spp: int = 64):
         """The Mitsuba ``perspective`` sensor of this camera."""
+        cx, cy = self.centre
         return mi.load_dict(
             {
                 "type": "perspective",
                 "fov": float(self.fov_deg),
                 "fov_axis": "x",
+                # Mitsuba's offsets are fractions of the film, positive towards image left and up
+                "principal_point_offset_x": float(self.width / 2 - cx) / self.width,
+                "principal_point_offset_y": float(self.height / 2 - cy) / self.height,
                 "to_world": mi.ScalarTransform4f(self.to_world.astype(np.float32)),
                 "film": {
                     "type": "hdrfilm",

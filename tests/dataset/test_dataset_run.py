@@ -18,6 +18,7 @@ import pytest
 
 from mi_lidar.core.errors import SpecError
 from mi_lidar.dataset import load_spec, run_dataset
+from mi_lidar.dataset.workers import host_cores, worker_threads, workers_per_host
 from mi_lidar.hybrid.classes import CLASS_ID
 from mi_lidar.hybrid.model import EllipsoidSet
 from mi_lidar.hybrid.primitives import Primitive, PrimitiveLibrary
@@ -30,7 +31,10 @@ name: ci-dataset
 seed: 5
 rig:
   lidars:
-    - {{name: top, pattern: vlp16, mount: {{xyz: [0, 0, 1.8]}}, effects: "range_noise(sigma0=0.01)"}}
+    - name: top
+      pattern: vlp16
+      mount: {{xyz: [0, 0, 1.8]}}
+      effects: "range_noise(sigma0=0.01), outliers(p_near=0.01, p_uniform=0.01, uniform_max=60)"
   cameras:
     - {{name: front, width: 128, height: 80, fov_deg: 80, mount: {{xyz: [0.5, 0, 1.6]}}}}
     - {{name: left, width: 96, height: 64, fov_deg: 90, mount: {{xyz: [0, 0.3, 1.6], rpy_deg: [0, 0, 90]}}}}
@@ -116,6 +120,8 @@ def test_resume_keeps_finished_frames_and_cluster_equals_serial(resumed, serial)
     assert all((out / name).stat().st_mtime_ns == mtime for name, mtime in kept.items()), "a finished frame was redone"
     assert not [p for p in out.rglob(".*") if ".tmp" in p.name], "partial files left behind"
     assert len(report.worker_peak_mib) == 2
+    # two workers share the cores: each runs Dr.Jit on cores // 2 threads (1 on this 2-core machine)
+    assert [s["threads"] for s in report.worker_setup.values()] == [max(1, host_cores() // 2)] * 2
     cluster, reference = frames_of(out), frames_of(serial)
     assert sorted(cluster) == ["0", "1", "2", "3"]
     for k in reference:
@@ -146,6 +152,8 @@ def test_points_and_labels(serial):
         assert len(points) == len(semantic) > 1000
         intensity = points[:, 3]  # the simulated intensity: non-negative integers that vary over the scene
         assert np.all(intensity >= 0) and np.all(intensity == np.round(intensity)) and np.std(intensity) > 1.0
+        # outliers are returns of no element: unlabeled (0), no instance
+        assert 0 < np.count_nonzero(semantic == 0) < 0.05 * len(semantic) and np.all(instance[semantic == 0] == 0)
         if k < 2:  # street: road (40) and buildings (50) everywhere, the car (10) has instance 1
             assert {40, 50} <= set(np.unique(semantic).tolist())
             assert np.all(semantic[instance == 1] == 10)
@@ -159,7 +167,7 @@ def test_car_points_fall_in_its_3d_and_2d_boxes(serial):
     frame = frames_of(serial)["0"]
     objects = read_kitti_labels(serial / "label_2" / "000000.txt")
     row = objects[[o["instance"] for o in frame["objects"]].index(1)]
-    assert row["type"] == "Car" and row["truncated"] == 0.0
+    assert row["type"] == "Car" and row["truncated"] == 0.0 and row["occluded"] == 0  # in plain view
     calib = read_kitti_calib(serial / "calib" / "000000.txt")
     points = read_kitti_bin(serial / "velodyne" / "000000.bin")[:, :3]
     _, instance = read_semantic_labels(serial / "labels" / "000000.label")
@@ -186,3 +194,64 @@ def test_other_spec_in_the_same_folder_is_refused(serial, spec_path, tmp_path):
     (tmp_path / "library").symlink_to(spec_path.parent / "library")
     with pytest.raises(SpecError, match="different spec"):
         run_dataset(load_spec(changed), serial, serial=True)
+
+
+def test_workers_share_their_hosts_cores():
+    """A lone worker keeps every core; workers on one host split them; hosts are counted apart."""
+    assert worker_threads(2, 1) == 2 and worker_threads(2, 2) == 1 and worker_threads(2, 3) == 1
+    assert worker_threads(16, 4) == 4
+    addresses = ["tcp://10.0.0.5:40001", "tcp://10.0.0.5:40002", "tcp://10.0.0.6:40001"]
+    assert workers_per_host(addresses) == {"10.0.0.5": 2, "10.0.0.6": 1}
+
+
+@pytest.fixture
+def dask_cluster(tmp_path):
+    """A real Dask cluster on this machine: ``dask scheduler`` and ``dask worker --nworkers 2 --nthreads 1``."""
+    address_file = tmp_path / "scheduler.json"
+    dask = str(Path(sys.executable).parent / "dask")
+    started = [
+        subprocess.Popen(
+            [dask, "scheduler", "--scheduler-file", str(address_file), "--port", "0", "--dashboard-address", ":0"],
+            start_new_session=True,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    ]
+    try:
+        address = None
+        while address is None:  # the scheduler writes the file in place: wait until it parses
+            assert started[0].poll() is None, "dask scheduler exited"
+            time.sleep(0.1)
+            try:
+                address = json.loads(address_file.read_text())["address"]
+            except (OSError, ValueError, KeyError):
+                pass
+        started.append(
+            subprocess.Popen(
+                [dask, "worker", "--scheduler-file", str(address_file), "--nworkers", "2", "--nthreads", "1"],
+                start_new_session=True,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+        )
+        yield address
+    finally:
+        for process in reversed(started):
+            os.killpg(process.pid, signal.SIGTERM)
+            process.wait()
+
+
+@pytest.mark.slow
+def test_an_existing_dask_cluster_renders_the_serial_frames(spec_path, serial, dask_cluster, tmp_path):
+    """--scheduler: the frames go to a separately started scheduler and its two workers (one Dr.Jit
+    thread each on 2 cores) and come back with the serial run's digests."""
+    from distributed import Client
+
+    with Client(dask_cluster) as client:
+        client.wait_for_workers(2)
+    report = run_dataset(load_spec(spec_path), tmp_path / "out", scheduler=dask_cluster)
+    assert report.rendered == 4 and not report.failed and report.dashboard.startswith("http")
+    assert [s["threads"] for s in report.worker_setup.values()] == [max(1, host_cores() // 2)] * 2
+    assert len({s["pid"] for s in report.worker_setup.values()}) == 2
+    cluster, reference = frames_of(tmp_path / "out"), frames_of(serial)
+    assert {k: r["files"] for k, r in cluster.items()} == {k: r["files"] for k, r in reference.items()}

@@ -94,8 +94,10 @@ def test_unreadable_specs(folder):
         load_spec(folder / "s.yaml")
 
 
-def test_nuscenes_rig_reproduces_the_recorded_lidar_to_camera_transform(folder, shared_data):
-    """Reference camera CAM_FRONT and nuScenes' lidar2ego: Tr_velo_to_cam matches the file's lidar2cam.
+def test_nuscenes_rig_reproduces_the_recorded_calibration(folder, shared_data):
+    """Reference camera CAM_FRONT and nuScenes' lidar2ego: Tr_velo_to_cam matches the file's lidar2cam,
+    and P2 / P3 carry the file's cam2img scaled to the images (principal points 16-42 px off centre at
+    full size), shifted by half a pixel to image-corner coordinates.
 
     The recorded lidar2cam goes through the global frame at the two sensors' timestamps (35 ms apart, the
     car at about 9 m/s), so it differs from the rig's static transform by the ego motion: rotations to
@@ -113,7 +115,13 @@ def test_nuscenes_rig_reproduces_the_recorded_lidar_to_camera_transform(folder, 
     assert [(c.name, c.width, c.height) for c in rig.cameras] == [("CAM_FRONT", 400, 225), ("CAM_BACK", 400, 225)]
     assert rig.cameras[0].fov_deg == pytest.approx(64.56, abs=0.01)  # 2 atan(800 / 1266.4)
     with open(info, "rb") as stream:
-        recorded = np.asarray(_NumpyOnly(stream).load()["data_list"][0]["images"]["CAM_FRONT"]["lidar2cam"])
-    transform = rig.calibration()["Tr_velo_to_cam"]
+        images = _NumpyOnly(stream).load()["data_list"][0]["images"]
+    recorded = np.asarray(images["CAM_FRONT"]["lidar2cam"])
+    calibration = rig.calibration()
+    transform = calibration["Tr_velo_to_cam"]
     np.testing.assert_allclose(transform[:, :3], recorded[:3, :3], atol=2e-3)
     assert np.linalg.norm(transform[:, 3] - recorded[:3, 3]) < 0.35
+    for name, intrinsics in (("CAM_FRONT", calibration["P2"][:, :3]), ("CAM_BACK", rig.cameras[1].intrinsics)):
+        k = np.asarray(images[name]["cam2img"])[:3, :3]
+        np.testing.assert_allclose(intrinsics[:2, 2], (k[:2, 2] + 0.5) * 0.25, atol=1e-9)
+        np.testing.assert_allclose(intrinsics[0, 0], k[0, 0] * 0.25, rtol=1e-9)

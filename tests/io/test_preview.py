@@ -44,3 +44,26 @@ def test_birds_eye_png(tmp_path):
     assert path2.stat().st_size > 10000
     with pytest.raises(ValueError, match="values"):
         birds_eye_png(tmp_path / "d.png", points, values=np.arange(3.0))
+
+
+def test_overlay_png_draws_each_return_at_its_pixel_in_its_depth_colour(tmp_path):
+    """Returns land on their pixel of the enlarged image (10x for a 96-pixel-wide image), coloured from
+    the nearest (turbo's first colour) to the farthest (its last); a nearer return covers a farther one."""
+    from matplotlib import colormaps
+    from PIL import Image
+
+    from mi_lidar.io.preview import overlay_png
+
+    image = np.full((40, 96, 3), 0.2, np.float32)
+    uv = np.array([[10.5, 10.5], [10.5, 10.5], [80.2, 30.7], [50.0, 20.0]])
+    depth = np.array([5.0, 9.0, 13.0, 9.0])
+    page = np.asarray(Image.open(overlay_png(tmp_path / "o.png", image, uv, depth, title="t")).convert("RGB"))
+    turbo = (colormaps["turbo"](np.linspace(0, 1, 256))[:, :3] * 255).astype(np.uint8)
+    top, scale = 24, 10  # title strip above the image; 960 / 96
+    assert page.shape[1] > 96 * scale and page.shape[0] == 40 * scale + top
+    pixel = lambda u, v: page[int(v * scale) + top, int(u * scale)]  # noqa: E731
+    np.testing.assert_array_equal(pixel(10.5, 10.5), turbo[0])  # the nearer of the two at one pixel
+    np.testing.assert_array_equal(pixel(80.2, 30.7), turbo[255])
+    np.testing.assert_array_equal(pixel(50.0, 20.0), turbo[128])
+    grey = np.round(255 * (1.055 * 0.2 ** (1 / 2.4) - 0.055))
+    np.testing.assert_array_equal(pixel(30.0, 35.0), [grey] * 3)  # no return there: the sRGB image

@@ -102,3 +102,13 @@ def test_cli_density_option_is_the_xml_reference(street_log, tmp_path, monkeypat
     assert f"NLL {expected.headline['nll']:.3f} nats/ray" not in plain.stdout  # the scene's own density differs
     bad = runner.invoke(app, [*args, "--density", "no_such_density"], terminal_width=200)
     assert bad.exit_code == 2 and "no_such_density" in bad.stdout and "Traceback" not in bad.stdout
+
+
+def test_pooled_labels_give_one_state_per_range_and_incidence(street_log):
+    """--pool-labels: the NP-Reg grid has one label (the street has five), so a density fitted here means
+    the same in a scene whose labels name other classes; it still beats the scene model held out."""
+    scene, log = street_log
+    labelled, pooled = fit_sensor(log, scene, "np-reg"), fit_sensor(log, scene, "np-reg", pool_labels=True)
+    assert labelled.density.grid.n_labels > 1 and pooled.density.grid.n_labels == 1
+    assert pooled.density.grid.size * labelled.density.grid.n_labels == labelled.density.grid.size
+    assert pooled.rows[1]["nll"] < pooled.rows[0]["nll"] - 1.0
