@@ -31,7 +31,7 @@ from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.intensity import IntensityModel
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment, sample_range
-from mi_lidar.core.trace import RESTART_OFFSET, next_intersection
+from mi_lidar.core.trace import RESTART_OFFSET, next_hit
 
 NO_ELEMENT = 0xFFFFFFFF
 VIRTUAL_SEGMENT = 1000  # random-stream segment index of the first virtual element
@@ -214,10 +214,13 @@ class SensorModel:
         """The sampling loop of :meth:`simulate_rays` on prepared rays (one lane per ray).
 
         The rays walk through their elements in a symbolic Dr.Jit loop that only decides where each
-        beam ends (returned, lost, met nothing more, or passed ``max_segments`` elements); the
-        range is then drawn once per ray, at the element that returned it. The loop runs in
-        phases of :data:`ELEMENTS_PER_PHASE` elements, between which the rays still passing
-        through are compacted, so that a SIMD packet waits for few long rays.
+        beam ends (returned, lost, met nothing more, or passed ``max_segments`` elements): it
+        traces preliminary intersections and compiles only what the draw reads (``p`` and ``drop``;
+        the surface interaction only when an effect reads the incidence). The range is then drawn
+        once per ray, at the element that returned it, from that element's surface interaction.
+        Every ray walks its first :data:`FIRST_PHASE` elements; the rays still passing through are
+        then compacted and walk the rest in the same compiled loop, so that SIMD packets of
+        mostly finished rays do not wait for a few long ones.
         """
         n = rays.width
         out = {
@@ -232,28 +235,29 @@ class SensorModel:
             "intensity": dr.zeros(mi.Float, n),
         }
         alive = self._virtual_returns(out, rays, seed)  # virtual elements (outliers, clutter) come first
-        end = _BeamEnds.empty(n)
-        index = dr.compress(alive)  # lanes still passing through elements
-        start = dr.gather(mi.Point3f, rays.origin, index)
-        for first in range(0, self.max_segments, ELEMENTS_PER_PHASE):
-            if dr.width(index) == 0:
-                break
-            live = rays.take(index)
-            last = min(first + ELEMENTS_PER_PHASE, self.max_segments)
-            phase = self._pass_through(scene, table, live, start, dr.gather(_BeamEnds, end, index), first, last, seed)
-            dr.eval(phase)  # the loop's outputs in one kernel
-            if dr.width(index) == n:  # every ray took part (the first phase, without virtual elements)
-                end = phase.end
-            else:
-                dr.scatter(end, phase.end, index)
-            going = dr.compress(phase.going)
-            index = dr.gather(mi.UInt32, index, going)
-            start = dr.gather(mi.Point3f, phase.start, going)
-            dr.eval(end, index, start)
+        first = min(FIRST_PHASE, self.max_segments)
+        end, going, start = self._pass_through(
+            scene, table, rays, alive, rays.origin, _BeamEnds.empty(n), 0, first, seed
+        )
+        dr.eval(end, going, start)
+        index = dr.compress(going)  # the rays still passing through: compacted for the rest of the walk
+        if dr.width(index) > 0:
+            rest, _, _ = self._pass_through(
+                scene,
+                table,
+                rays.take(index),
+                True,
+                dr.gather(mi.Point3f, start, index),
+                dr.gather(_BeamEnds, end, index),
+                first,
+                self.max_segments,
+                seed,
+            )
+            dr.scatter(end, rest, index)
+            dr.eval(end)
 
         # ---------------- Draw the range at the element that returned the beam ----------------
-        si = dr.zeros(mi.SurfaceInteraction3f, n)
-        si.p, si.n = end.point, end.normal
+        si = end.hit.compute_surface_interaction(mi.Ray3f(end.start, rays.direction), mi.RayFlags.Minimal, end.returned)
         seg = table.traced_segment(si, end.returned, end.element, rays.origin, rays.direction, self.range_sigma)
         seg = self.apply_effects(seg, rays)
         z = self.density.sample(seg, uniforms(seed, rays.ray_id, end.segments - 1), rays)
@@ -276,25 +280,30 @@ class SensorModel:
         return out
 
     def _pass_through(
-        self, scene, table, rays: RayBatch, start: mi.Point3f, end: _BeamEnds, first: int, last: int, seed: int
-    ):
+        self, scene, table, rays: RayBatch, going, start: mi.Point3f, end: _BeamEnds, first: int, last: int, seed: int
+    ) -> tuple[_BeamEnds, mi.Bool, mi.Point3f]:
         """Walk ``rays`` from ``start`` through their elements ``first .. last - 1`` (one symbolic loop).
 
-        ``end`` holds what the rays met before this phase.
+        Args:
+            going: the beams that go in (a mask or True).
+            start: where each ray continues from, m.
+            end: what the beams met before element ``first``.
 
         Returns:
-            A :class:`_Phase`: where each beam ended, and which rays passed all these elements (and
-            have elements left to meet).
+            ``(end, going, start)``: where each beam ended, the beams still passing through after
+            element ``last - 1`` (with elements left to meet) and where they continue from.
         """
         n = rays.width
         origin, direction = rays.origin, rays.direction
+        max_k = self.max_segments
 
         def passing(k, going, start, end):
             return going & (k < last_k)
 
         def meet_element(k, going, start, end):
-            # ---------------- Trace the next element ----------------
-            si, valid, element = next_intersection(scene, table, start, origin, direction, self.max_range, going)
+            # ---------------- Trace the next element (its surface details wait for the return) --------
+            pi, point, valid, element = next_hit(scene, table, start, origin, direction, self.max_range, going)
+            si = pi.compute_surface_interaction(mi.Ray3f(start, direction), mi.RayFlags.Minimal, valid)
             seg = table.traced_segment(si, valid, element, origin, direction, self.range_sigma)
             seg = self.apply_effects(seg, rays)  # only p and drop are used here: the rest is not compiled
 
@@ -304,24 +313,24 @@ class SensorModel:
             k = k + 1
             end = _BeamEnds(
                 element=dr.select(returned, element, end.element),
-                point=dr.select(returned, si.p, end.point),
-                normal=dr.select(returned, mi.Vector3f(si.n), end.normal),
+                hit=dr.select(returned, pi, end.hit),
+                start=dr.select(returned, start, end.start),
                 segments=dr.select(valid, k, end.segments),
                 returned=returned,
                 escaped=~valid,
             )
-            going = valid & (u >= seg.p)
-            return k, going, mi.Point3f(si.p + RESTART_OFFSET * direction), end
+            going = valid & (u >= seg.p) & (k < max_k)
+            return k, going, mi.Point3f(point + RESTART_OFFSET * direction), end
 
-        last_k = dr.opaque(mi.UInt32, last)  # opaque: every phase runs the same kernel
+        last_k = dr.opaque(mi.UInt32, last)  # opaque: both phases run the same kernel
         state = (
             dr.opaque(mi.UInt32, first, n),  # k: elements met so far (random-stream segment)
-            dr.full(mi.Bool, True, n),  # going: the beam goes on to the next element
-            start,  # where each ray continues from, m
+            going & dr.full(mi.Bool, True, n),  # going: the beam goes on to the next element
+            mi.Point3f(start),  # where each ray continues from, m
             end,  # where each beam ended
         )
         _, going, start, end = dr.while_loop(state, passing, meet_element, label="lidar pass-through")
-        return _Phase(end=end, going=going, start=start)
+        return end, going, start
 
     def sample_trace(self, table: ElementTable, rays: RayBatch, rounds, seed: int = 0) -> tuple[mi.Float, mi.Bool]:
         """One draw of every ray's reported range from an existing trace, with the sampler's rules.
@@ -368,7 +377,7 @@ class SensorModel:
         dr.eval(out)
 
 
-ELEMENTS_PER_PHASE = 2  # elements a ray passes per symbolic loop before the survivors are compacted
+FIRST_PHASE = 2  # elements every ray may pass before the rays still passing through are compacted
 
 
 @dataclass
@@ -377,15 +386,16 @@ class _BeamEnds:
 
     Attributes:
         element: element that returned the beam (valid where ``returned``).
-        point, normal: its traced point (m) and normal.
+        hit: its preliminary intersection (the surface interaction is computed once, after the loop).
+        start: where the ray that met it started, m.
         segments: elements met, including the one where the beam ended.
         returned: the beam returned from ``element``.
         escaped: the beam met nothing more within range.
     """
 
     element: mi.UInt32
-    point: mi.Point3f
-    normal: mi.Vector3f
+    hit: mi.PreliminaryIntersection3f
+    start: mi.Point3f
     segments: mi.UInt32
     returned: mi.Bool
     escaped: mi.Bool
@@ -395,19 +405,9 @@ class _BeamEnds:
         """``n`` beams that have met nothing yet."""
         return cls(
             element=dr.full(mi.UInt32, NO_ELEMENT, n),
-            point=dr.zeros(mi.Point3f, n),
-            normal=dr.zeros(mi.Vector3f, n),
+            hit=dr.zeros(mi.PreliminaryIntersection3f, n),
+            start=dr.zeros(mi.Point3f, n),
             segments=dr.zeros(mi.UInt32, n),
             returned=dr.full(mi.Bool, False, n),
             escaped=dr.full(mi.Bool, False, n),
         )
-
-
-@dataclass
-class _Phase:
-    """Result of one phase of the pass-through loop: the beams' ends, the rays still passing through
-    (``going``) and where they continue from (``start``, m)."""
-
-    end: _BeamEnds
-    going: mi.Bool
-    start: mi.Point3f
