@@ -152,7 +152,7 @@ class SensorModel:
         return [seg for effect in self.effects for seg in effect.virtual_segments(rays)]
 
     # ------------------------------------------------------------- sampling
-    def simulate_rays(self, scene, table: ElementTable, rays: RayBatch, seed: int = 0) -> dict:
+    def simulate_rays(self, scene, table: ElementTable, rays: RayBatch, seed: int = 0, evaluate: bool = True) -> dict:
         """Simulate the first return of every ray.
 
         Args:
@@ -160,6 +160,10 @@ class SensorModel:
             table: its :class:`ElementTable`.
             rays: the wavefront (world frame); lanes are compacted as rays terminate.
             seed: random seed.
+            evaluate: evaluate the outputs before returning them. False leaves the last step (the
+                draw at the returning element) to the kernel that reads the outputs, so that a caller
+                that rearranges them at once (the range-image tensor of ``mi.render``) writes them once;
+                read such outputs in one ``dr.eval`` (each ``np.asarray`` of a channel would recompute it).
 
         Returns:
             Dict of per-ray arrays named as :data:`CHANNELS`: ``range`` (m, NaN for a miss),
@@ -172,7 +176,7 @@ class SensorModel:
         rays = self.prepare_rays(rays)
         fan = self.fan_out(rays)
         if fan is None:
-            return self._first_returns(scene, table, rays, seed)
+            return self._first_returns(scene, table, rays, seed, evaluate)
         effect, sub, weight = fan
         choice = uniforms(seed, rays.ray_id, FOOTPRINT_SEGMENT)
         return effect.combine(self._first_returns(scene, table, sub, seed), weight, rays.width, choice)
@@ -210,7 +214,7 @@ class SensorModel:
             alive = alive & ~(seg.valid & (u < seg.p))
         return alive
 
-    def _first_returns(self, scene, table: ElementTable, rays: RayBatch, seed: int) -> dict:
+    def _first_returns(self, scene, table: ElementTable, rays: RayBatch, seed: int, evaluate: bool = True) -> dict:
         """The sampling loop of :meth:`simulate_rays` on prepared rays (one lane per ray).
 
         The rays walk through their elements in a symbolic Dr.Jit loop that only decides where each
@@ -276,7 +280,8 @@ class SensorModel:
             out[name] = dr.select(end.returned, value, out[name])
         out["segments"] = end.segments
         self._escape(out, dr.arange(mi.UInt32, n), rays, end.escaped, seed)
-        dr.eval(out)
+        if evaluate:
+            dr.eval(out)
         return out
 
     def _pass_through(
