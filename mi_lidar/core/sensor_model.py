@@ -316,10 +316,10 @@ class SensorModel:
             u = uniform(seed, rays.ray_id, k, 0)
             returned = valid & (u < seg.p * (1.0 - seg.drop))
             k = k + 1
-            end = _BeamEnds(
-                element=dr.select(returned, element, end.element),
-                hit=dr.select(returned, pi, end.hit),
-                start=dr.select(returned, start, end.start),
+            end = _BeamEnds(  # a finished lane keeps its state: the element it ended at
+                element=element,
+                hit=pi,
+                start=start,
                 segments=dr.select(valid, k, end.segments),
                 returned=returned,
                 escaped=~valid,
@@ -390,7 +390,7 @@ class _BeamEnds:
     """Where each beam ended (one lane per ray): the state the pass-through loop carries.
 
     Attributes:
-        element: element that returned the beam (valid where ``returned``).
+        element: the last element met: the one that returned the beam where ``returned``.
         hit: its preliminary intersection (the surface interaction is computed once, after the loop).
         start: where the ray that met it started, m.
         segments: elements met, including the one where the beam ended.
