@@ -45,7 +45,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 PERFORMANCE_PAGE = Path(__file__).resolve().parents[1] / "docs" / "performance.md"
 COLUMNS = (
     "benchmark",
-    "Mrays/s",
+    "result",
     "vs raw ray_intersect",
     "vs raw pass-through loop",
     "vs Open3D",
@@ -74,8 +74,8 @@ def _cells(row: bench_core.Row) -> list[str]:
     def ratio(value):
         return "" if value is None else f"{value:.2f}x"
 
-    verdict = {True: "PASS", False: f"FAIL ({row.failed})", None: ""}[row.passed]
-    rate = row.value if row.mrays is None else f"{row.mrays:.1f}"
+    verdict = {True: "PASS", False: f"FAIL ({row.failed})" if row.failed else "FAIL", None: ""}[row.passed]
+    rate = row.value if row.mrays is None else f"{row.mrays:.1f} Mrays/s"
     ratios = [ratio(value) for value in (row.vs_raw, row.vs_raw_loop, row.vs_open3d, row.vs_embreex)]
     return [row.benchmark, rate, *ratios, row.target, verdict]
 
