@@ -246,7 +246,9 @@ class SensorModel:
         dr.eval(end, going, start)
         index = dr.compress(going)  # the rays still passing through: compacted for the rest of the walk
         if dr.width(index) > 0:
-            rest, _, _ = self._pass_through(
+            # keep only `end` of the rest of the walk, evaluated before the scatter: unevaluated outputs
+            # would still read the phase-1 `end`, and scattering into it would copy it (+200 MB at 4M rays)
+            rest = self._pass_through(
                 scene,
                 table,
                 rays.take(index),
@@ -256,7 +258,8 @@ class SensorModel:
                 first,
                 self.max_segments,
                 seed,
-            )
+            )[0]
+            dr.eval(rest)
             dr.scatter(end, rest, index)
             dr.eval(end)
 
