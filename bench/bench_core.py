@@ -10,13 +10,21 @@ here:
   with hit probabilities in [0.2, 0.4] that beams pass through.
 
 Every measurement traces the same ~1M rays (one sweep of a dense 128 x 8192 spinning pattern
-2 m above the terrain), excludes a warm-up run (kernel compilation) and reports the median of
-:data:`REPEATS` runs, with ``dr.sync_thread()`` before each timer read. Open3D has no
-ellipsoids: on the vegetation scene it traces each ellipsoid as an icosahedron (20 triangles
-at the ellipsoid's extent) and runs the same pass-through loop in numpy, where exit faces of
-an icosahedron are crossed without a draw. Peak memory of a 4M-ray :func:`mi_lidar.simulate`
-is read from ``VmHWM`` of a child process. The time of ``import mi_lidar`` in a fresh process is
-set beside that of Mitsuba with its variant alone (the floor the package cannot go below).
+2 m above the terrain), excludes a warm-up run (kernel compilation) and reports the fastest of
+:data:`REPEATS` rounds in which every method runs once (interleaved, in an order that rotates
+every round, so that all share the machine's load; other processes only ever add time, so the
+fastest run is the one they disturbed least), with ``dr.sync_thread()`` before each timer read.
+Besides raw first-hit casting, the reference of the pass-through path is the minimal
+pass-through loop written directly on Mitsuba (:func:`raw_pass_through`: one symbolic loop of
+preliminary intersections, a hit-probability lookup and one counter-based draw per element,
+the range of the returning element as the result): what ``simulate_rays`` adds on top of it is
+the sensor model. Open3D has no ellipsoids: on the vegetation scene it traces each ellipsoid as
+an icosahedron (20 triangles at the ellipsoid's extent) and runs the same pass-through loop in
+numpy, where exit faces of an icosahedron are crossed without a draw. A peer that is not
+installed gets a row saying so, and the targets stated against it are not checked. Peak memory of
+a 4M-ray :func:`mi_lidar.simulate` is read from ``VmHWM`` of a child process. The time of
+``import mi_lidar`` in a fresh process is set beside that of Mitsuba with its variant alone (the
+floor the package cannot go below).
 """
 
 from __future__ import annotations
@@ -26,7 +34,6 @@ import json
 import math
 import os
 import secrets
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -36,6 +43,15 @@ from pathlib import Path
 
 import numpy as np
 
+from .peers import (
+    embreex_first_hit,
+    missing_peer,
+    open3d_first_hit,
+    open3d_pass_through,
+    open3d_scene,
+    raw_pass_through,
+)
+
 CORES = 2  # the targets are set for a 2-core machine
 N_BEAMS, N_FIRINGS = 128, 8192  # 1,048,576 rays per sweep
 TERRAIN_VERTICES = 708  # per side: 2 * 707^2 = 999,698 triangles
@@ -44,7 +60,7 @@ N_ELLIPSOIDS = 100_000
 ELLIPSOID_EXTENT = 3.0  # sigmas
 SENSOR_HEIGHT = 2.0  # m above the terrain
 MAX_SEGMENTS = 16
-REPEATS = 3
+REPEATS = 5
 SEED = 7
 MEMORY_POSES = 4  # 4 sweeps of 1M rays: the 4M-ray scan
 MEMORY_LIMIT_GB = 2.0
@@ -62,6 +78,8 @@ class Row:
         benchmark: what was measured, e.g. ``"terrain: simulate_rays"``.
         mrays: million rays per second (None for memory rows).
         vs_raw: ``mrays`` over raw coherent ``ray_intersect`` on the same scene and rays.
+        vs_raw_loop: ``mrays`` over the raw Mitsuba pass-through loop (:func:`raw_pass_through`) on
+            the same scene and rays.
         vs_open3d: ``mrays`` over Open3D on the same scene and rays.
         vs_embreex: ``mrays`` over embreex on the same scene and rays (None where not measured).
         target: the target, in words ("" when the row is a reference).
@@ -73,6 +91,7 @@ class Row:
     benchmark: str
     mrays: float | None = None
     vs_raw: float | None = None
+    vs_raw_loop: float | None = None
     vs_open3d: float | None = None
     vs_embreex: float | None = None
     target: str = ""
@@ -196,26 +215,28 @@ def write_scenes(folder: Path) -> dict[str, Path]:
 
 
 # ----------------------------------------------------------------------------------- timing
-def median_seconds(runs: dict, repeats: int = REPEATS) -> dict[str, float]:
-    """Median wall time (s) of each callable in ``runs`` after one warm-up run each.
+def fastest_seconds(runs: dict, repeats: int = REPEATS) -> dict[str, float]:
+    """Fastest wall time (s) of each callable in ``runs`` over ``repeats`` rounds, after one warm-up run each.
 
-    The runs are interleaved (one of each per round) so that they share the machine's load.
-    Each callable must evaluate its outputs; Dr.Jit's queue is synchronized before each timer
-    read.
+    Every round runs each callable once, in an order that rotates from round to round, so that they
+    share the machine's load. Each callable must evaluate its outputs; Dr.Jit's queue is synchronized
+    before each timer read.
     """
     import drjit as dr
 
     for run in runs.values():
         run()
         dr.sync_thread()
-    times = {name: [] for name in runs}
-    for _ in range(repeats):
-        for name, run in runs.items():
+    names = list(runs)
+    times = {name: [] for name in names}
+    for round_ in range(repeats):
+        shift = round_ % len(names)
+        for name in names[shift:] + names[:shift]:
             start = time.perf_counter()
-            run()
+            runs[name]()
             dr.sync_thread()
             times[name].append(time.perf_counter() - start)
-    return {name: statistics.median(values) for name, values in times.items()}
+    return {name: min(values) for name, values in times.items()}
 
 
 def make_rays(pattern, pose: np.ndarray):
@@ -237,129 +258,16 @@ def make_rays(pattern, pose: np.ndarray):
     )
 
 
-# ----------------------------------------------------------------------------------- Open3D
-def open3d_scene(veg: dict[str, np.ndarray] | None):
-    """Open3D scene of the terrain (geometry 0) and, given ``veg``, its ellipsoids as icosahedra (geometry 1).
-
-    Returns:
-        ``(scene, faces_per_ellipsoid)``; 0 faces without ``veg``.
-    """
-    o3d = import_open3d()
-    vertices, faces = make_terrain()
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(faces.astype(np.uint32)))
-    faces_per_ellipsoid = 0
-    if veg is not None:
-        ico = o3d.geometry.TriangleMesh.create_icosahedron(radius=1.0)
-        unit = np.asarray(ico.vertices)
-        tri = np.asarray(ico.triangles)
-        faces_per_ellipsoid = len(tri)
-        q = veg["quaternions"]
-        rot = _quaternion_matrices(q)
-        local = unit[None] * (veg["scales"][:, None, :] * ELLIPSOID_EXTENT)
-        world = np.einsum("nij,nvj->nvi", rot, local) + veg["centers"][:, None, :]
-        all_faces = tri[None] + (np.arange(len(q)) * len(unit))[:, None, None]
-        scene.add_triangles(
-            o3d.core.Tensor(world.reshape(-1, 3).astype(np.float32)),
-            o3d.core.Tensor(all_faces.reshape(-1, 3).astype(np.uint32)),
-        )
-    return scene, faces_per_ellipsoid
-
-
-def import_open3d():
-    """Import Open3D, explaining the usual failure (its wheel links the system's libusb)."""
-    try:
-        import open3d
-    except ImportError as exc:
-        hint = " Install it with `apt-get install libusb-1.0-0`." if "libusb" in str(exc) else ""
-        raise RuntimeError(f"the benchmark compares with Open3D, which does not import: {exc}.{hint}") from exc
-    return open3d
-
-
-def _quaternion_matrices(q: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices of unit quaternions (x, y, z, w)."""
-    x, y, z, w = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
-        ],
-        axis=1,
-    )
-
-
-def open3d_first_hit(scene, origin: np.ndarray, direction: np.ndarray) -> dict:
-    """Open3D first hits of rays ``(origin, direction)`` on :data:`CORES` threads."""
-    o3d = import_open3d()
-    rays = o3d.core.Tensor(np.concatenate([origin, direction], axis=1).astype(np.float32))
-    return scene.cast_rays(rays, nthreads=CORES)
-
-
-def open3d_pass_through(
-    scene,
-    faces_per_ellipsoid: int,
-    p_hit: np.ndarray,
-    origin: np.ndarray,
-    direction: np.ndarray,
-    rng: np.random.Generator,
-) -> np.ndarray:
-    """The pass-through sampling loop on Open3D: first-return range per ray (NaN = miss).
-
-    Terrain (geometry 0) is opaque; an icosahedron's entry face returns with its ellipsoid's
-    ``p_hit``, its exit face is crossed without a draw. Rays stop after ``MAX_SEGMENTS``
-    elements or beyond 120 m.
-    """
-    n = len(origin)
-    result = np.full(n, np.nan, np.float32)
-    segments = np.zeros(n, np.int32)
-    live = np.arange(n)
-    start = origin.copy()
-    while live.size:
-        hits = open3d_first_hit(scene, start[live], direction[live])
-        t = hits["t_hit"].numpy()
-        geometry = hits["geometry_ids"].numpy()
-        prim = hits["primitive_ids"].numpy()
-        normal = hits["primitive_normals"].numpy()
-        point = start[live] + t[:, None] * direction[live]
-        nominal = np.einsum("ij,ij->i", point - origin[live], direction[live])
-        valid = np.isfinite(t) & (nominal <= 120.0)
-        is_veg = valid & (geometry == 1)
-        exit_face = is_veg & (np.einsum("ij,ij->i", normal, direction[live]) > 0)
-        element = valid & ~exit_face
-        p = np.where(is_veg, p_hit[np.where(is_veg, prim // faces_per_ellipsoid, 0)], 1.0)
-        returned = element & (rng.random(live.size) < p)
-        result[live[returned]] = nominal[returned]
-        segments[live] += element
-        keep = valid & ~returned & (segments[live] < MAX_SEGMENTS)
-        start[live] = point + 1e-4 * direction[live]
-        live = live[keep]
-    return result
-
-
-# ---------------------------------------------------------------------------------- embreex
-def embreex_first_hit(origin: np.ndarray, direction: np.ndarray):
-    """A callable casting the rays on the terrain with embreex (first hit), or None when not installed."""
-    try:
-        from embreex import rtcore_scene
-        from embreex.mesh_construction import TriangleMesh
-    except ImportError:
-        return None
-    vertices, faces = make_terrain()
-    scene = rtcore_scene.EmbreeScene()
-    TriangleMesh(scene, vertices[faces].astype(np.float32))
-    return lambda: scene.run(origin, direction, output=1)
-
-
 # -------------------------------------------------------------------------------- measuring
 def measure_scene(name: str, xml: Path) -> dict[str, float]:
     """Seconds per sweep of every method on one scene, plus statistics of the direct path.
 
     Returns:
-        Dict with ``rays``; the median seconds of ``raw``, ``simulate_rays``, ``simulate``,
-        ``render``, ``open3d`` and (terrain, when installed) ``embreex``; ``new_seed``, the seconds
-        of one ``simulate_rays`` with a seed never used before (kernel compilation included); and
-        ``hit_fraction`` / ``mean_segments`` of the direct path.
+        Dict with ``rays``; the fastest seconds (:func:`fastest_seconds`) of ``raw``, ``raw_loop``,
+        ``simulate_rays``, ``simulate``, ``render`` and, when installed, ``open3d`` and (terrain)
+        ``embreex``; ``new_seed``, the seconds of one ``simulate_rays`` with a seed never used
+        before (kernel compilation included); ``hit_fraction`` / ``mean_segments`` of the direct
+        path and ``raw_hit_fraction`` of the raw loop.
     """
     import drjit as dr
     import mitsuba as mi
@@ -376,10 +284,17 @@ def measure_scene(name: str, xml: Path) -> dict[str, float]:
     table = ElementTable.from_scene(scene)
     ray = mi.Ray3f(rays.origin, rays.direction)
     dr.eval(rays, ray)
+    veg = None if name == "terrain" else make_vegetation(np.random.default_rng(SEED))
+    p_hit = {"terrain": np.ones(2 * (TERRAIN_VERTICES - 1) ** 2)}  # per shape id: the terrain is opaque
+    if veg is not None:
+        p_hit["vegetation"] = veg["p_hit"]
 
     def raw():
         si = scene.ray_intersect(ray, mi.RayFlags.Minimal, True)
         dr.eval(si.t, si.prim_index, si.shape)
+
+    def raw_loop():
+        dr.eval(raw_pass_through(scene, p_hit, ray.o, ray.d, rays.ray_id, model.max_range, model.max_segments))
 
     def direct():
         dr.eval(model.simulate_rays(scene, table, rays, SEED))
@@ -390,23 +305,27 @@ def measure_scene(name: str, xml: Path) -> dict[str, float]:
     def end_to_end():
         mi_lidar.simulate(scene, pattern, pose, seed=SEED, model=model)
 
+    runs = {"raw": raw, "raw_loop": raw_loop, "simulate_rays": direct, "simulate": end_to_end, "render": render}
     origin = np.asarray(rays.origin).T.astype(np.float32).copy()
     direction = np.asarray(rays.direction).T.astype(np.float32).copy()
-    veg = None if name == "terrain" else make_vegetation(np.random.default_rng(SEED))
-    o3d_scene, faces = open3d_scene(veg)
-    rng = np.random.default_rng(SEED)
+    vertices, faces = make_terrain()
+    if not missing_peer("open3d"):
+        o3d_scene, per_ellipsoid = open3d_scene(vertices, faces, veg, ELLIPSOID_EXTENT)
+        rng = np.random.default_rng(SEED)
 
-    def open3d():
-        if veg is None:
-            open3d_first_hit(o3d_scene, origin, direction)
-        else:
-            open3d_pass_through(o3d_scene, faces, veg["p_hit"], origin, direction, rng)
+        def open3d():
+            if veg is None:
+                open3d_first_hit(o3d_scene, origin, direction, CORES)
+            else:
+                open3d_pass_through(
+                    o3d_scene, per_ellipsoid, veg["p_hit"], origin, direction, rng, CORES, model.max_range, MAX_SEGMENTS
+                )
 
-    runs = {"raw": raw, "simulate_rays": direct, "simulate": end_to_end, "render": render, "open3d": open3d}
-    embree = embreex_first_hit(origin, direction) if veg is None else None
+        runs["open3d"] = open3d
+    embree = embreex_first_hit(vertices, faces, origin, direction) if veg is None else None
     if embree is not None:
         runs["embreex"] = embree
-    seconds = median_seconds(runs)
+    seconds = fastest_seconds(runs)
     fresh_seed = SEED + 1 + secrets.randbelow(1 << 30)  # not in Dr.Jit's kernel cache on disk
     start = time.perf_counter()
     dr.eval(model.simulate_rays(scene, table, rays, fresh_seed))
@@ -415,6 +334,8 @@ def measure_scene(name: str, xml: Path) -> dict[str, float]:
     out = model.simulate_rays(scene, table, rays, SEED)
     seconds["hit_fraction"] = float(np.mean(np.asarray(out["hit"])))
     seconds["mean_segments"] = float(np.mean(np.asarray(out["segments"])))
+    z = raw_pass_through(scene, p_hit, ray.o, ray.d, rays.ray_id, model.max_range, model.max_segments)
+    seconds["raw_hit_fraction"] = float(np.mean(np.isfinite(np.asarray(z))))
     seconds["rays"] = n
     return seconds
 
@@ -528,39 +449,41 @@ def run() -> list[Row]:
 
 def _scene_rows(name: str, s: dict) -> list[Row]:
     """The table rows of one scene's measurements (:func:`measure_scene`), with their targets."""
-    keys = [k for k in ("raw", "simulate_rays", "new_seed", "simulate", "render", "open3d", "embreex") if k in s]
-    mrays = {k: s["rays"] / s[k] / 1e6 for k in keys}
+    keys = ("raw", "raw_loop", "simulate_rays", "new_seed", "simulate", "render", "open3d", "embreex")
+    mrays = {k: s["rays"] / s[k] / 1e6 for k in keys if k in s}
 
     def row(label: str, key: str) -> Row:
         rate = mrays[key]
-        vs_embreex = rate / mrays["embreex"] if "embreex" in mrays else None
-        checks = []
+        vs = {peer: rate / mrays[peer] if peer in mrays else None for peer in ("raw", "raw_loop", "open3d", "embreex")}
+        checks, target = [], ""
         if name == "terrain" and key in OPEN3D_FACTOR:
-            factor = rate / mrays["open3d"]
-            checks = [(f"{factor:.2f}x Open3D", factor >= OPEN3D_FACTOR[key])]
             target = f">= {OPEN3D_FACTOR[key]:g}x Open3D"
+            if vs["open3d"] is None:
+                target += " (not checked: Open3D not installed)"
+            else:
+                checks = [(f"{vs['open3d']:.2f}x Open3D", vs["open3d"] >= OPEN3D_FACTOR[key])]
         elif name == "vegetation" and key == "simulate_rays":
             checks = [(f"{rate:.1f} Mrays/s", rate >= VEGETATION_MRAYS)]
             target = f">= {VEGETATION_MRAYS:g} Mrays/s"
-        else:
-            target = ""
         passed, failed = _verdict(checks) if checks else (None, "")
         return Row(
-            f"{name}: {label}", rate, rate / mrays["raw"], rate / mrays["open3d"], vs_embreex, target, passed, failed
+            f"{name}: {label}", rate, vs["raw"], vs["raw_loop"], vs["open3d"], vs["embreex"], target, passed, failed
         )
 
     stats = f"{s['hit_fraction']:.0%} hits, {s['mean_segments']:.2f} elements/ray"
-    o3d_label = "Open3D cast_rays" if name == "terrain" else "Open3D icosahedra + numpy pass-through"
     rows = [
         row("raw ray_intersect (coherent, first hit)", "raw"),
+        row(f"raw Mitsuba pass-through loop ({s['raw_hit_fraction']:.0%} hits)", "raw_loop"),
         row(f"simulate_rays ({stats})", "simulate_rays"),
         row("simulate_rays, first call with a new seed", "new_seed"),
         row("mi_lidar.simulate (end to end)", "simulate"),
         row("mi.render (XML, lidar_integrator)", "render"),
-        row(o3d_label, "open3d"),
     ]
-    if "embreex" in mrays:
-        rows.append(row("embreex first hit (1 thread)", "embreex"))
+    peers = {"open3d": "Open3D cast_rays" if name == "terrain" else "Open3D icosahedra + numpy pass-through"}
+    if name == "terrain":
+        peers["embreex"] = "embreex first hit (1 thread)"
+    for peer, label in peers.items():
+        rows.append(row(label, peer) if peer in mrays else Row(f"{name}: {label}: not run, {missing_peer(peer)}"))
     return rows
 
 

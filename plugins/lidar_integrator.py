@@ -114,8 +114,9 @@ class LidarIntegrator(mi.SamplingIntegrator):
         sample2 = mi.Point2f((mi.Float(col) + 0.5) / width, (mi.Float(row) + 0.5) / height)
         ray, _ = sensor.sample_ray(mi.Float(0.0), mi.Float(0.5), sample2, mi.Point2f(0.5), mi.Bool(True))
         rays = RayBatch(origin=ray.o, direction=ray.d, beam=row, time=ray.time, ray_id=index)
-        out = self.sensor_model(sensor).simulate_rays(scene, ElementTable.from_scene(scene), rays, int(seed))
-        return channels_to_tensor(out, height, width)
+        model = self.sensor_model(sensor)
+        out = model.simulate_rays(scene, ElementTable.from_scene(scene), rays, int(seed), evaluate=False)
+        return channels_to_tensor(out, height, width)  # the last draw and the tensor: one kernel
 
     def traverse(self, callback):
         for effect in self.effects:

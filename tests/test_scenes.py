@@ -194,3 +194,27 @@ def test_bundled_scenes_are_found_by_name():
     assert bundled_scene("offroad.xml").is_file()
     with pytest.raises(SceneError, match="nowhere.xml: no such bundled scene"):
         bundled_scene("nowhere.xml")
+
+
+def test_sampling_the_likelihood_trace_gives_the_sampler_scan():
+    """The likelihood's tracer (``trace_rounds``) meets the elements the sampler meets, in order, so
+    drawing from its trace with the same seed gives the sampler's scan (ranges to float rounding: the
+    trace rebuilds surface ranges from the table's triangles), and ``mi.render``, whose last draw is
+    fused with the range-image tensor, gives it too."""
+    from mi_lidar.core.elements import ElementTable
+    from mi_lidar.core.rays import LogRays
+    from mi_lidar.core.trace import trace_rounds
+    from mi_lidar.scene.loading import scene_sensor_model
+
+    scene = mi_lidar.load_scene(SCENES / "offroad.xml")
+    model = scene_sensor_model(scene)[0]
+    table = ElementTable.from_scene(scene)
+    log = mi_lidar.simulate(scene, seed=4)
+    rays, _, _ = LogRays.from_log(log, relative_time=False).batch(np.arange(log.n_rays))
+    sampled = model.simulate_rays(scene, table, rays, seed=4)
+    assert np.asarray(sampled["segments"]).max() > 1  # beams pass through vegetation
+    z, hit = model.sample_trace(table, rays, trace_rounds(scene, table, model, rays), seed=4)
+    np.testing.assert_array_equal(np.asarray(hit), np.asarray(sampled["hit"]))
+    np.testing.assert_allclose(np.asarray(z), np.asarray(sampled["range"]), atol=1e-4, equal_nan=True)
+    rendered = tensor_to_numpy(mi.render(scene, seed=4))
+    np.testing.assert_array_equal(rendered["range"].ravel(), np.asarray(sampled["range"]))

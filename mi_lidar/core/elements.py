@@ -152,6 +152,11 @@ class ElementTable:
     def n_elements(self) -> int:
         return int(sum(self.element_counts))
 
+    @property
+    def has_ellipsoids(self) -> bool:
+        """Whether any element is an ellipsoid."""
+        return "ellipsoids" in self.shape_kinds
+
     @classmethod
     def from_scene(cls, scene) -> ElementTable:
         """Build the table of a loaded scene; raise :class:`SceneError` on invalid values."""
@@ -342,8 +347,11 @@ class ElementTable:
         nominal = dr.dot(si.p - origin, direction)
         p, sigma, kind, shape, label, rho = self._properties(element, valid, default_sigma)
         is_ellipsoid = valid & (kind == ELLIPSOID)
-        center, scale, quat, extent = self._ellipsoid(element, is_ellipsoid)
-        restricted = ray_restricted_gaussian(center, scale, quat, extent, origin, direction)
+        if self.has_ellipsoids:
+            center, scale, quat, extent = self._ellipsoid(element, is_ellipsoid)
+            restricted = ray_restricted_gaussian(center, scale, quat, extent, origin, direction)
+        else:  # no lane is an ellipsoid: skip their gathers (every lane selects the surface values)
+            restricted = (nominal, sigma, nominal, nominal)
         return _segment(
             valid,
             element,

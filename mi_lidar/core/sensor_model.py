@@ -31,7 +31,7 @@ from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.intensity import IntensityModel
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment, sample_range
-from mi_lidar.core.trace import RESTART_OFFSET, next_intersection
+from mi_lidar.core.trace import RESTART_OFFSET, next_hit
 
 NO_ELEMENT = 0xFFFFFFFF
 VIRTUAL_SEGMENT = 1000  # random-stream segment index of the first virtual element
@@ -152,7 +152,7 @@ class SensorModel:
         return [seg for effect in self.effects for seg in effect.virtual_segments(rays)]
 
     # ------------------------------------------------------------- sampling
-    def simulate_rays(self, scene, table: ElementTable, rays: RayBatch, seed: int = 0) -> dict:
+    def simulate_rays(self, scene, table: ElementTable, rays: RayBatch, seed: int = 0, evaluate: bool = True) -> dict:
         """Simulate the first return of every ray.
 
         Args:
@@ -160,6 +160,10 @@ class SensorModel:
             table: its :class:`ElementTable`.
             rays: the wavefront (world frame); lanes are compacted as rays terminate.
             seed: random seed.
+            evaluate: evaluate the outputs before returning them. False leaves the last step (the
+                draw at the returning element) to the kernel that reads the outputs, so that a caller
+                that rearranges them at once (the range-image tensor of ``mi.render``) writes them once;
+                read such outputs in one ``dr.eval`` (each ``np.asarray`` of a channel would recompute it).
 
         Returns:
             Dict of per-ray arrays named as :data:`CHANNELS`: ``range`` (m, NaN for a miss),
@@ -172,7 +176,7 @@ class SensorModel:
         rays = self.prepare_rays(rays)
         fan = self.fan_out(rays)
         if fan is None:
-            return self._first_returns(scene, table, rays, seed)
+            return self._first_returns(scene, table, rays, seed, evaluate)
         effect, sub, weight = fan
         choice = uniforms(seed, rays.ray_id, FOOTPRINT_SEGMENT)
         return effect.combine(self._first_returns(scene, table, sub, seed), weight, rays.width, choice)
@@ -210,14 +214,17 @@ class SensorModel:
             alive = alive & ~(seg.valid & (u < seg.p))
         return alive
 
-    def _first_returns(self, scene, table: ElementTable, rays: RayBatch, seed: int) -> dict:
+    def _first_returns(self, scene, table: ElementTable, rays: RayBatch, seed: int, evaluate: bool = True) -> dict:
         """The sampling loop of :meth:`simulate_rays` on prepared rays (one lane per ray).
 
         The rays walk through their elements in a symbolic Dr.Jit loop that only decides where each
-        beam ends (returned, lost, met nothing more, or passed ``max_segments`` elements); the
-        range is then drawn once per ray, at the element that returned it. The loop runs in
-        phases of :data:`ELEMENTS_PER_PHASE` elements, between which the rays still passing
-        through are compacted, so that a SIMD packet waits for few long rays.
+        beam ends (returned, lost, met nothing more, or passed ``max_segments`` elements): it
+        traces preliminary intersections and compiles only what the draw reads (``p`` and ``drop``;
+        the surface interaction only when an effect reads the incidence). The range is then drawn
+        once per ray, at the element that returned it, from that element's surface interaction.
+        Every ray walks its first :data:`FIRST_PHASE` elements; the rays still passing through are
+        then compacted and walk the rest in the same compiled loop, so that SIMD packets of
+        mostly finished rays do not wait for a few long ones.
         """
         n = rays.width
         out = {
@@ -232,28 +239,32 @@ class SensorModel:
             "intensity": dr.zeros(mi.Float, n),
         }
         alive = self._virtual_returns(out, rays, seed)  # virtual elements (outliers, clutter) come first
-        end = _BeamEnds.empty(n)
-        index = dr.compress(alive)  # lanes still passing through elements
-        start = dr.gather(mi.Point3f, rays.origin, index)
-        for first in range(0, self.max_segments, ELEMENTS_PER_PHASE):
-            if dr.width(index) == 0:
-                break
-            live = rays.take(index)
-            last = min(first + ELEMENTS_PER_PHASE, self.max_segments)
-            phase = self._pass_through(scene, table, live, start, dr.gather(_BeamEnds, end, index), first, last, seed)
-            dr.eval(phase)  # the loop's outputs in one kernel
-            if dr.width(index) == n:  # every ray took part (the first phase, without virtual elements)
-                end = phase.end
-            else:
-                dr.scatter(end, phase.end, index)
-            going = dr.compress(phase.going)
-            index = dr.gather(mi.UInt32, index, going)
-            start = dr.gather(mi.Point3f, phase.start, going)
-            dr.eval(end, index, start)
+        first = min(FIRST_PHASE, self.max_segments)
+        end, going, start = self._pass_through(
+            scene, table, rays, alive, rays.origin, _BeamEnds.empty(n), 0, first, seed
+        )
+        dr.eval(end, going, start)
+        index = dr.compress(going)  # the rays still passing through: compacted for the rest of the walk
+        if dr.width(index) > 0:
+            # keep only `end` of the rest of the walk, evaluated before the scatter: unevaluated outputs
+            # would still read the phase-1 `end`, and scattering into it would copy it (+200 MB at 4M rays)
+            rest = self._pass_through(
+                scene,
+                table,
+                rays.take(index),
+                True,
+                dr.gather(mi.Point3f, start, index),
+                dr.gather(_BeamEnds, end, index),
+                first,
+                self.max_segments,
+                seed,
+            )[0]
+            dr.eval(rest)
+            dr.scatter(end, rest, index)
+            dr.eval(end)
 
         # ---------------- Draw the range at the element that returned the beam ----------------
-        si = dr.zeros(mi.SurfaceInteraction3f, n)
-        si.p, si.n = end.point, end.normal
+        si = end.hit.compute_surface_interaction(mi.Ray3f(end.start, rays.direction), mi.RayFlags.Minimal, end.returned)
         seg = table.traced_segment(si, end.returned, end.element, rays.origin, rays.direction, self.range_sigma)
         seg = self.apply_effects(seg, rays)
         z = self.density.sample(seg, uniforms(seed, rays.ray_id, end.segments - 1), rays)
@@ -272,29 +283,35 @@ class SensorModel:
             out[name] = dr.select(end.returned, value, out[name])
         out["segments"] = end.segments
         self._escape(out, dr.arange(mi.UInt32, n), rays, end.escaped, seed)
-        dr.eval(out)
+        if evaluate:
+            dr.eval(out)
         return out
 
     def _pass_through(
-        self, scene, table, rays: RayBatch, start: mi.Point3f, end: _BeamEnds, first: int, last: int, seed: int
-    ):
+        self, scene, table, rays: RayBatch, going, start: mi.Point3f, end: _BeamEnds, first: int, last: int, seed: int
+    ) -> tuple[_BeamEnds, mi.Bool, mi.Point3f]:
         """Walk ``rays`` from ``start`` through their elements ``first .. last - 1`` (one symbolic loop).
 
-        ``end`` holds what the rays met before this phase.
+        Args:
+            going: the beams that go in (a mask or True).
+            start: where each ray continues from, m.
+            end: what the beams met before element ``first``.
 
         Returns:
-            A :class:`_Phase`: where each beam ended, and which rays passed all these elements (and
-            have elements left to meet).
+            ``(end, going, start)``: where each beam ended, the beams still passing through after
+            element ``last - 1`` (with elements left to meet) and where they continue from.
         """
         n = rays.width
         origin, direction = rays.origin, rays.direction
+        max_k = self.max_segments
 
         def passing(k, going, start, end):
             return going & (k < last_k)
 
         def meet_element(k, going, start, end):
-            # ---------------- Trace the next element ----------------
-            si, valid, element = next_intersection(scene, table, start, origin, direction, self.max_range, going)
+            # ---------------- Trace the next element (its surface details wait for the return) --------
+            pi, point, valid, element = next_hit(scene, table, start, origin, direction, self.max_range, going)
+            si = pi.compute_surface_interaction(mi.Ray3f(start, direction), mi.RayFlags.Minimal, valid)
             seg = table.traced_segment(si, valid, element, origin, direction, self.range_sigma)
             seg = self.apply_effects(seg, rays)  # only p and drop are used here: the rest is not compiled
 
@@ -302,26 +319,26 @@ class SensorModel:
             u = uniform(seed, rays.ray_id, k, 0)
             returned = valid & (u < seg.p * (1.0 - seg.drop))
             k = k + 1
-            end = _BeamEnds(
-                element=dr.select(returned, element, end.element),
-                point=dr.select(returned, si.p, end.point),
-                normal=dr.select(returned, mi.Vector3f(si.n), end.normal),
+            end = _BeamEnds(  # a finished lane keeps its state: the element it ended at
+                element=element,
+                hit=pi,
+                start=start,
                 segments=dr.select(valid, k, end.segments),
                 returned=returned,
                 escaped=~valid,
             )
-            going = valid & (u >= seg.p)
-            return k, going, mi.Point3f(si.p + RESTART_OFFSET * direction), end
+            going = valid & (u >= seg.p) & (k < max_k)
+            return k, going, mi.Point3f(point + RESTART_OFFSET * direction), end
 
-        last_k = dr.opaque(mi.UInt32, last)  # opaque: every phase runs the same kernel
+        last_k = dr.opaque(mi.UInt32, last)  # opaque: both phases run the same kernel
         state = (
             dr.opaque(mi.UInt32, first, n),  # k: elements met so far (random-stream segment)
-            dr.full(mi.Bool, True, n),  # going: the beam goes on to the next element
-            start,  # where each ray continues from, m
+            going & dr.full(mi.Bool, True, n),  # going: the beam goes on to the next element
+            mi.Point3f(start),  # where each ray continues from, m
             end,  # where each beam ended
         )
         _, going, start, end = dr.while_loop(state, passing, meet_element, label="lidar pass-through")
-        return _Phase(end=end, going=going, start=start)
+        return end, going, start
 
     def sample_trace(self, table: ElementTable, rays: RayBatch, rounds, seed: int = 0) -> tuple[mi.Float, mi.Bool]:
         """One draw of every ray's reported range from an existing trace, with the sampler's rules.
@@ -368,7 +385,7 @@ class SensorModel:
         dr.eval(out)
 
 
-ELEMENTS_PER_PHASE = 2  # elements a ray passes per symbolic loop before the survivors are compacted
+FIRST_PHASE = 2  # elements every ray may pass before the rays still passing through are compacted
 
 
 @dataclass
@@ -376,16 +393,17 @@ class _BeamEnds:
     """Where each beam ended (one lane per ray): the state the pass-through loop carries.
 
     Attributes:
-        element: element that returned the beam (valid where ``returned``).
-        point, normal: its traced point (m) and normal.
+        element: the last element met: the one that returned the beam where ``returned``.
+        hit: its preliminary intersection (the surface interaction is computed once, after the loop).
+        start: where the ray that met it started, m.
         segments: elements met, including the one where the beam ended.
         returned: the beam returned from ``element``.
         escaped: the beam met nothing more within range.
     """
 
     element: mi.UInt32
-    point: mi.Point3f
-    normal: mi.Vector3f
+    hit: mi.PreliminaryIntersection3f
+    start: mi.Point3f
     segments: mi.UInt32
     returned: mi.Bool
     escaped: mi.Bool
@@ -395,19 +413,9 @@ class _BeamEnds:
         """``n`` beams that have met nothing yet."""
         return cls(
             element=dr.full(mi.UInt32, NO_ELEMENT, n),
-            point=dr.zeros(mi.Point3f, n),
-            normal=dr.zeros(mi.Vector3f, n),
+            hit=dr.zeros(mi.PreliminaryIntersection3f, n),
+            start=dr.zeros(mi.Point3f, n),
             segments=dr.zeros(mi.UInt32, n),
             returned=dr.full(mi.Bool, False, n),
             escaped=dr.full(mi.Bool, False, n),
         )
-
-
-@dataclass
-class _Phase:
-    """Result of one phase of the pass-through loop: the beams' ends, the rays still passing through
-    (``going``) and where they continue from (``start``, m)."""
-
-    end: _BeamEnds
-    going: mi.Bool
-    start: mi.Point3f

@@ -13,7 +13,7 @@ every round keeps only its *entries*, the rays that met an element in it:
 * :func:`trace_rounds` traces a batch of rays round by round with Mitsuba, compacting the live rays
   after every round and stopping when none is left (the sampler,
   :meth:`~mi_lidar.core.sensor_model.SensorModel.simulate_rays`, walks the same rounds with
-  :func:`next_intersection` and draws as it goes);
+  :func:`next_hit` and draws as it goes);
 * :func:`rounds_from_segments` builds the same structure from segments traced by another tracer
   (the grid ray march of planar logs, :mod:`mi_lidar.planar`);
 * :class:`RayCache` stores the rounds of a whole part of a log ray by ray (the entries of ray ``i``
@@ -41,19 +41,35 @@ RESTART_OFFSET = 1e-4  # m: a ray continues this far past the element it passed 
 CACHED_FIELDS = ("mean", "sigma", "lo", "hi")  # return distribution before effects, m
 
 
+def next_hit(
+    scene, table, start: mi.Point3f, origin: mi.Point3f, direction: mi.Vector3f, max_range: float, active=True
+):
+    """The next element along each ray from ``start``, without its surface details: ``(pi, point, valid, element)``.
+
+    ``pi`` is Mitsuba's preliminary intersection (distance, primitive, shape: enough to compute the
+    surface interaction later, ``pi.compute_surface_interaction``); ``point = start + pi.t direction``
+    is where the ray met the element (m); the ray continues from ``point + RESTART_OFFSET direction``.
+    ``valid`` is False where the ray meets nothing within ``max_range`` (m, measured from ``origin``
+    along ``direction``) and on inactive lanes (``active``: a mask or True). Rays are Lidar-ordered,
+    so the query is flagged coherent.
+    """
+    ray = mi.Ray3f(start, direction)
+    pi = scene.ray_intersect_preliminary(ray, True, active)
+    point = ray(pi.t)
+    valid = pi.is_valid() & (dr.dot(point - origin, direction) <= max_range)
+    return pi, point, valid, dr.select(valid, table.element_of(pi), 0)
+
+
 def next_intersection(
     scene, table, start: mi.Point3f, origin: mi.Point3f, direction: mi.Vector3f, max_range: float, active=True
 ):
-    """The next element along each ray from ``start``: ``(si, valid, element)``.
+    """The next element along each ray from ``start`` with its surface interaction: ``(si, valid, element)``.
 
-    ``valid`` is False where the ray meets nothing within ``max_range`` (m, measured from
-    ``origin``) and on inactive lanes (``active``: a mask or True). Rays are Lidar-ordered, so the
-    intersection query is flagged coherent.
+    :func:`next_hit` followed by the surface interaction (``mi.RayFlags.Minimal``: ``si.p``, ``si.n``)
+    of the element met; ``valid`` and ``element`` as there.
     """
-    si = scene.ray_intersect(mi.Ray3f(start, direction), mi.RayFlags.Minimal, True, active)
-    nominal = dr.dot(si.p - origin, direction)
-    valid = si.is_valid() & (nominal <= max_range)
-    return si, valid, dr.select(valid, table.element_of(si), 0)
+    pi, _, valid, element = next_hit(scene, table, start, origin, direction, max_range, active)
+    return pi.compute_surface_interaction(mi.Ray3f(start, direction), mi.RayFlags.Minimal, active), valid, element
 
 
 @dataclass
@@ -148,10 +164,11 @@ def trace_rounds(scene, table, model, rays: RayBatch) -> Rounds:
         none = dr.full(mi.Bool, True, n)
         for k in range(model.max_segments):
             # ---------------- Next element along every live ray ----------------
-            si, valid, element = next_intersection(scene, table, start, origin, direction, model.max_range)
+            pi, point, valid, element = next_hit(scene, table, start, origin, direction, model.max_range)
+            si = pi.compute_surface_interaction(mi.Ray3f(start, direction), mi.RayFlags.Minimal)
             nominal = dr.dot(si.p - origin, direction)
             cos_incidence = dr.abs(dr.dot(si.n, direction))
-            dr.eval(valid, element, nominal, cos_incidence, si.p, si.n)
+            dr.eval(valid, element, nominal, cos_incidence, si.p, si.n, point)
             if k == 0:
                 none = ~valid
             else:
@@ -175,7 +192,7 @@ def trace_rounds(scene, table, model, rays: RayBatch) -> Rounds:
             )
             origin = dr.gather(mi.Point3f, origin, keep)
             direction = dr.gather(mi.Vector3f, direction, keep)
-            start = rounds[-1].point + RESTART_OFFSET * direction
+            start = dr.gather(mi.Point3f, point, keep) + RESTART_OFFSET * direction
             dr.eval(rounds[-1], origin, direction, start)
     return Rounds(width=n, none=none, rounds=rounds)
 

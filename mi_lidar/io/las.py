@@ -27,14 +27,17 @@ VLR_HEADER_BYTES = 54
 EVLR_HEADER_BYTES = 60
 
 
-def _check_record_counts(path: Path, size: int) -> None:
+def _check_record_counts(path: Path, head: bytes, size: int) -> None:
     """Reject VLR / EVLR counts the file cannot hold (laspy would loop over them at end of file).
 
     Public header fields (LAS 1.0-1.4): ``header_size`` u16 at byte 94, ``number_of_vlrs`` u32 at
     100, and for 1.4 ``start_of_first_evlr`` u64 at 235 and ``number_of_evlrs`` u32 at 243.
+
+    Args:
+        path: the file (for messages).
+        head: its first 247 bytes (fewer for a shorter file).
+        size: its size, bytes.
     """
-    with open(path, "rb") as stream:
-        head = stream.read(247)
     if len(head) < 104 or head[:4] != b"LASF":
         return  # laspy reports the bad signature or the short header
     header_size, _, vlrs = struct.unpack_from("<HII", head, 94)
@@ -96,42 +99,57 @@ def read_las(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, np.ndarray]
         LogFormatError: Missing, truncated or malformed file, or LAZ without a backend.
     """
     path = Path(path)
-    if not path.is_file():
-        raise LogFormatError(f"{path}: no such LAS file")
-    size = path.stat().st_size
-    _check_record_counts(path, size)
     try:
-        with laspy.open(str(path)) as reader:
-            header = reader.header
-            need = header.offset_to_point_data + header.point_count * header.point_format.size
-            if not header.are_points_compressed and need > size:
-                raise LogFormatError(
-                    f"{path}: header field point_count = {header.point_count} needs {need} bytes of "
-                    f"{header.point_format.size}-byte records from byte {header.offset_to_point_data}; "
-                    f"the file has {size} (truncated or corrupt header)"
+        stream = open(path, "rb")  # closed by the with block below
+    except (FileNotFoundError, IsADirectoryError) as exc:
+        raise LogFormatError(f"{path}: no such LAS file") from exc
+    with stream:
+        size = os.fstat(stream.fileno()).st_size
+        _check_record_counts(path, stream.read(247), size)
+        stream.seek(0)
+        try:
+            with laspy.open(stream, closefd=False) as reader:
+                header = reader.header
+                need = header.offset_to_point_data + header.point_count * header.point_format.size
+                if not header.are_points_compressed and need > size:
+                    raise LogFormatError(
+                        f"{path}: header field point_count = {header.point_count} needs {need} bytes of "
+                        f"{header.point_format.size}-byte records from byte {header.offset_to_point_data}; "
+                        f"the file has {size} (truncated or corrupt header)"
+                    )
+                las = reader.read()
+            names = set(las.point_format.dimension_names)
+            points = _coordinates(las)
+            attributes = {
+                "intensity": np.asarray(
+                    las["lidar_intensity"] if "lidar_intensity" in names else las.intensity, dtype=np.float32
                 )
-            las = reader.read()
-        names = set(las.point_format.dimension_names)
-        points = np.stack([las.x, las.y, las.z], axis=1)
-        attributes = {
-            "intensity": np.asarray(
-                las["lidar_intensity"] if "lidar_intensity" in names else las.intensity, dtype=np.float32
-            )
-        }
-        for name in ("ring", "column"):
-            if name in names:
-                attributes[name] = np.asarray(las[name])
-        start = 0.0
-        if "gps_time" in names and len(las.gps_time):
-            gps_time = np.asarray(las.gps_time)
-            start = float(gps_time.min())
-            attributes["time"] = gps_time - start
-    except LogFormatError:
-        raise
-    except Exception as exc:  # laspy raises LaspyException, ValueError, struct and IO errors.
-        hint = " (.laz needs `pip install 'laspy[lazrs]'`)" if path.suffix.lower() == ".laz" else ""
-        raise LogFormatError(f"{path}: not a readable LAS file ({type(exc).__name__}: {exc}){hint}") from exc
+            }
+            for name in ("ring", "column"):
+                if name in names:
+                    attributes[name] = np.asarray(las[name])
+            start = 0.0
+            if "gps_time" in names and len(las.gps_time):
+                gps_time = np.asarray(las.gps_time)
+                start = float(gps_time.min())
+                attributes["time"] = gps_time - start
+        except LogFormatError:
+            raise
+        except Exception as exc:  # laspy raises LaspyException, ValueError, struct and IO errors.
+            hint = " (.laz needs `pip install 'laspy[lazrs]'`)" if path.suffix.lower() == ".laz" else ""
+            raise LogFormatError(f"{path}: not a readable LAS file ({type(exc).__name__}: {exc}){hint}") from exc
     return points, attributes, start
+
+
+def _coordinates(las) -> np.ndarray:
+    """(N, 3) float64 coordinates (m) of the points of ``las``: stored integers times scale plus offset,
+    as laspy's ``x``, ``y``, ``z``, written straight into one array."""
+    raw, header = las.points.array, las.header
+    points = np.empty((len(raw), 3))
+    for axis, name in enumerate("XYZ"):
+        np.multiply(raw[name], header.scales[axis], out=points[:, axis])
+        points[:, axis] += header.offsets[axis]
+    return points
 
 
 def read_las_log(path: str | os.PathLike, min_range: float = 0.0) -> Log:

@@ -87,11 +87,11 @@ def write_ply(
 
 def _load(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
     """Points, attributes and header comments of a PLY file (see :func:`read_ply`)."""
-    if not path.is_file():
-        raise LogFormatError(f"{path}: no such PLY file")
     try:
         data = plyfile.PlyData.read(str(path))
         vertex = data["vertex"].data
+    except (FileNotFoundError, IsADirectoryError) as exc:
+        raise LogFormatError(f"{path}: no such PLY file") from exc
     except KeyError as exc:
         raise LogFormatError(f"{path}: no 'vertex' element; expected a point cloud") from exc
     except Exception as exc:  # plyfile raises PlyParseError, ValueError, struct errors, ...
@@ -101,10 +101,12 @@ def _load(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
     if missing:
         raise LogFormatError(f"{path}: vertex element lacks properties {missing}; expected x y z")
     points = np.stack([vertex[c] for c in _COORDS], axis=1).astype(np.float32, copy=False)
-    attributes = {  # views into the vertex table, copied only to swap a foreign byte order
-        n: vertex[n].astype(vertex.dtype[n].newbyteorder("="), copy=False) for n in names if n not in _COORDS
-    }
-    return points, attributes, list(data.comments)
+    attributes = {}
+    for name in names:
+        if name not in _COORDS:  # views into the vertex table, copied only to swap a foreign byte order
+            column = vertex[name]
+            attributes[name] = column if column.dtype.isnative else column.astype(column.dtype.newbyteorder("="))
+    return points, attributes, data.comments
 
 
 def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, np.ndarray]]:
