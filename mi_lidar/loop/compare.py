@@ -6,7 +6,8 @@ For every ray of the log the model is scored and simulated:
   one floor of :func:`mi_lidar.core.likelihood.score`;
 * range error: ``|z_measured - z_simulated|`` where both returned, m;
 * hit/miss confusion: precision, recall and F1 of simulated returns against measured ones;
-* histogram match: L1 distance between the CDFs of measured and simulated ranges, m.
+* histogram match: L1 distance between the CDFs of measured and simulated ranges, m;
+* Chamfer distance between the measured and simulated point clouds in the world frame, m (overall only).
 
 Each is broken down by nominal range, incidence angle, beam, azimuth, time, element type, label
 and shape (taken from the first element along the ray), and the groups where the model fails
@@ -119,6 +120,15 @@ def ray_table(log: Log, scene, model: SensorModel, seed: int = 0) -> RayTable:
         azimuth=azimuth,
         **first,
     )
+
+
+def world_rays(log: Log, t: RayTable) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) origins (m) and unit directions of the table's rays in the world frame (each scan's pose)."""
+    scan = np.minimum(t.scan, log.directions.shape[0] - 1)
+    d = log.directions[scan, t.beam, t.column]
+    o = np.broadcast_to(log.origins, log.directions.shape)[scan, t.beam, t.column]
+    rotation, translation = log.poses[t.scan, :3, :3], log.poses[t.scan, :3, 3]
+    return np.einsum("nij,nj->ni", rotation, o) + translation, np.einsum("nij,nj->ni", rotation, d)
 
 
 def metrics(t: RayTable, mask: np.ndarray | None = None) -> dict:
@@ -241,7 +251,9 @@ def compare(
     check_log_sensor(log, scene, force=force)
     model = model or scene_sensor_model(scene)[0]
     t = ray_table(log, scene, model, seed)
-    result = Comparison(headline=metrics(t), breakdowns={b: breakdown(t, b) for b in BREAKDOWNS}, worst=[], table=t)
+    origins, directions = world_rays(log, t)
+    headline = metrics_of(t.ll, t.measured, t.hit, t.sim_range, t.sim_hit, origins, directions)
+    result = Comparison(headline=headline, breakdowns={b: breakdown(t, b) for b in BREAKDOWNS}, worst=[], table=t)
     groups = [
         dict(row, breakdown=b) for b, rows in result.breakdowns.items() if b != "beam" or len(rows) > 1 for row in rows
     ]
