@@ -44,7 +44,7 @@ from mi_lidar.core.errors import LogFormatError, ParameterError
 from mi_lidar.core.log import Log
 from mi_lidar.core.metrics import metrics_of
 from mi_lidar.core.problem import Problem
-from mi_lidar.core.rays import LogRays
+from mi_lidar.core.rays import LogRays, world_rays
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop.compare import simulate_log_rays
 from mi_lidar.loop.real_ouster import MESH_EVERY, column_log, ouster_development_path, range_image_mesh
@@ -86,22 +86,23 @@ def split_columns(log: Log) -> dict[str, np.ndarray]:
     }
 
 
-def world_rays(log: Log) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) origins and directions of every ray of a one-scan log in the world frame (row-major)."""
-    pose = log.poses[0]
-    origins = np.broadcast_to(log.origins[0], log.directions[0].shape).reshape(-1, 3)
-    return origins @ pose[:3, :3].T + pose[:3, 3], log.directions[0].reshape(-1, 3) @ pose[:3, :3].T
+def frame_rays(log: Log) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) world-frame origins and directions of every ray of a one-scan log (row-major)."""
+    scan, beam, column = (
+        a.ravel() for a in np.meshgrid(0, np.arange(log.shape[1]), np.arange(log.shape[2]), indexing="ij")
+    )
+    return world_rays(log, scan, beam, column)
 
 
 def frame_states(log: Log, starts: int = 8, seed: int = 0) -> FrameStates:
     """The map (measured calibration points), the test rays and ``starts`` seeded initial-pose errors."""
     columns = split_columns(log)
     calibration, test = column_log(log, columns["calibration"]), column_log(log, columns["test"])
-    origins, directions = world_rays(calibration)
+    origins, directions = frame_rays(calibration)
     r = np.where(calibration.hit[0], calibration.ranges[0], np.nan).ravel()
     keep = np.isfinite(r)
     map_points = origins[keep] + r[keep, None] * directions[keep]
-    origins, directions = world_rays(test)
+    origins, directions = frame_rays(test)
     return FrameStates(map_points, origins, directions, perturbations(starts, seed))
 
 
@@ -169,7 +170,7 @@ def simulated_scans(log: Log, mesh, models: dict, seed: int = 0) -> tuple[dict, 
     scene = mi.load_dict(scene_dict({"map": mesh}))
     table = ElementTable.from_scene(scene)
     problem = Problem.build(scene, rays, table=table)
-    origins, directions = world_rays(test)
+    origins, directions = frame_rays(test)
     measured = np.where(rays.hit, rays.measured, np.nan)
     ranges, rows = {"real": measured[None]}, []
     for name, model in models.items():

@@ -10,7 +10,7 @@ distribution of the measured residual has a paired error about sqrt(2) times the
 (two independent draws), while a deterministic model that returns the mean has 1 times. On the shared
 Ouster frame an oracle that samples the empirical residual of the range-image mesh (binned by state)
 has a paired median 35 % above the bare mesh's. The distribution-level measures (histogram match,
-hit/miss F1, Chamfer distance) have no such bias; :func:`worse_samples` judges by those by default.
+hit/miss F1, Chamfer distance and its stray half) have no such bias; :func:`worse_samples` judges by those by default.
 """
 
 from __future__ import annotations
@@ -31,16 +31,19 @@ def cdf_l1(a: np.ndarray, b: np.ndarray) -> float:
 def chamfer(a: np.ndarray, b: np.ndarray) -> float:
     """Symmetric point-cloud error (Chamfer distance): the mean of the mean distances (m) from each
     point of ``a`` (P, 3) to the nearest point of ``b`` (Q, 3) and from ``b`` to ``a``; NaN when one is empty."""
+    return float(np.mean(chamfer_halves(a, b)))
+
+
+def chamfer_halves(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """The two halves of :func:`chamfer`: mean distance (m) from ``a`` to ``b`` and from ``b`` to ``a``."""
     from scipy.spatial import cKDTree
 
     if len(a) == 0 or len(b) == 0:
-        return float("nan")
-    there = cKDTree(b).query(a)[0]
-    back = cKDTree(a).query(b)[0]
-    return float(0.5 * (there.mean() + back.mean()))
+        return float("nan"), float("nan")
+    return float(cKDTree(b).query(a)[0].mean()), float(cKDTree(a).query(b)[0].mean())
 
 
-REALISM = ("histogram_l1", "f1", "chamfer")  # distribution-level realism measures :func:`worse_samples` checks
+REALISM = ("histogram_l1", "f1", "chamfer", "stray")  # distribution-level realism measures :func:`worse_samples` checks
 HIGHER_IS_BETTER = ("f1", "precision", "recall")
 
 
@@ -90,7 +93,9 @@ def metrics_of(
         return rates; ``range_error_mean``/``_median``/``_p90``: |measured - sampled| range where both
         returned (m); hit/miss ``precision``, ``recall`` and ``f1`` of sampled returns against measured
         ones; ``histogram_l1``: L1 distance between the CDFs of measured and sampled ranges (m);
-        ``chamfer`` (m, with rays): :func:`chamfer` of the measured and sampled points.
+        ``chamfer`` (m, with rays): :func:`chamfer` of the measured and sampled points, and ``stray``
+        (m): its half from the sampled points to the measured ones (how far sampled points stray from
+        what the sensor saw: outliers drawn anywhere raise it, samples on the real surfaces do not).
     """
     both = hit & sim_hit
     err = np.abs(measured[both] - sim_range[both])
@@ -114,8 +119,9 @@ def metrics_of(
         "histogram_l1": cdf_l1(measured[hit], sim_range[sim_hit]),
     }
     if origins is not None and directions is not None:
-        out["chamfer"] = chamfer(
+        missed, stray = chamfer_halves(
             origins[hit] + measured[hit, None] * directions[hit],
             origins[sim_hit] + sim_range[sim_hit, None] * directions[sim_hit],
         )
+        out["chamfer"], out["stray"] = 0.5 * (missed + stray), stray
     return out

@@ -27,7 +27,7 @@ from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.log import Log
 from mi_lidar.core.metrics import metrics_of
 from mi_lidar.core.problem import Problem
-from mi_lidar.core.rays import LogRays
+from mi_lidar.core.rays import LogRays, world_rays
 from mi_lidar.core.segment import ELLIPSOID
 from mi_lidar.core.sensor_model import SensorModel
 
@@ -120,15 +120,6 @@ def ray_table(log: Log, scene, model: SensorModel, seed: int = 0) -> RayTable:
         azimuth=azimuth,
         **first,
     )
-
-
-def world_rays(log: Log, t: RayTable) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) origins (m) and unit directions of the table's rays in the world frame (each scan's pose)."""
-    scan = np.minimum(t.scan, log.directions.shape[0] - 1)
-    d = log.directions[scan, t.beam, t.column]
-    o = np.broadcast_to(log.origins, log.directions.shape)[scan, t.beam, t.column]
-    rotation, translation = log.poses[t.scan, :3, :3], log.poses[t.scan, :3, 3]
-    return np.einsum("nij,nj->ni", rotation, o) + translation, np.einsum("nij,nj->ni", rotation, d)
 
 
 def metrics(t: RayTable, mask: np.ndarray | None = None) -> dict:
@@ -251,7 +242,7 @@ def compare(
     check_log_sensor(log, scene, force=force)
     model = model or scene_sensor_model(scene)[0]
     t = ray_table(log, scene, model, seed)
-    origins, directions = world_rays(log, t)
+    origins, directions = world_rays(log, t.scan, t.beam, t.column)
     headline = metrics_of(t.ll, t.measured, t.hit, t.sim_range, t.sim_hit, origins, directions)
     result = Comparison(headline=headline, breakdowns={b: breakdown(t, b) for b in BREAKDOWNS}, worst=[], table=t)
     groups = [

@@ -4,7 +4,8 @@
 and scores it, giving one :class:`Step` (a row of :func:`development_table`): the NLL beside the
 realism of a scan sampled at the same rays (:func:`~mi_lidar.core.metrics.metrics_of`). With a
 *realism guard*, an effect is kept only when it lowers the calibration NLL without making the
-calibration samples less realistic (:func:`~mi_lidar.core.metrics.worse_samples`); otherwise the
+calibration samples less realistic (:func:`~mi_lidar.core.metrics.worse_samples`: histogram match,
+F1, Chamfer distance and its stray half); otherwise the
 row says why and the model goes back to what it was. Used by the real-frame loop
 (:mod:`mi_lidar.loop.real_ouster`); the planar real-log benchmark lives in :mod:`mi_lidar.planar`.
 """
@@ -20,7 +21,7 @@ from mi_lidar.core.effects.base import Effect
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.metrics import metrics_of, worse_samples
 from mi_lidar.core.problem import Problem, fit_parts
-from mi_lidar.core.rays import LogRays
+from mi_lidar.core.rays import LogRays, world_rays
 from mi_lidar.core.sensor_model import SensorModel
 
 
@@ -61,7 +62,9 @@ class Scored:
         from mi_lidar.loop.compare import simulate_log_rays
 
         sim_range, sim_hit = simulate_log_rays(self.scene, self.table, self.rays, model, seed)
-        return metrics_of(self.per_beam(model), self.rays.measured, self.rays.hit, sim_range, sim_hit)
+        r = self.rays
+        origins, directions = world_rays(r.log, r.scan, r.beam, r.column)
+        return metrics_of(self.per_beam(model), r.measured, r.hit, sim_range, sim_hit, origins, directions)
 
     def fit(self, model: SensorModel, effects: list[Effect], steps: int = 150) -> None:
         """Fit ``effects`` (members of ``model.effects``) on these rays by maximum likelihood (:func:`fit_parts`)."""

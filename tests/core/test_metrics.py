@@ -21,11 +21,16 @@ def test_metrics_with_rays_add_the_chamfer_of_measured_and_sampled_points():
     hit = np.ones(n, bool)
     row = metrics_of(np.zeros(n), measured, hit, sampled, hit, origins, directions)
     assert row["chamfer"] == pytest.approx(0.2) and row["range_error_median"] == pytest.approx(0.2)
+    assert row["stray"] == pytest.approx(0.2)
+    stray = sampled.copy()
+    stray[::20] = 40.0  # 5 % of the sampled returns drawn far from any measured point
+    row = metrics_of(np.zeros(n), measured, hit, stray, hit, origins, directions)
+    assert row["stray"] > 1.0 and row["range_error_median"] == pytest.approx(0.2)  # the paired median does not see them
     assert "chamfer" not in metrics_of(np.zeros(n), measured, hit, sampled, hit)
 
 
 def test_worse_samples_flags_realism_that_got_worse_beyond_the_tolerance():
-    before = {"histogram_l1": 0.25, "f1": 0.90, "chamfer": 0.30, "range_error_median": 0.05}
+    before = {"histogram_l1": 0.25, "f1": 0.90, "chamfer": 0.30, "stray": 0.3, "range_error_median": 0.05}
     assert worse_samples(before, {**before, "histogram_l1": 0.27, "f1": 0.85}) == {}  # within 10 %
     flagged = worse_samples(before, {**before, "histogram_l1": 2.28, "f1": 0.70, "range_error_median": 1.0})
     assert flagged == {"histogram_l1": (0.25, 2.28), "f1": (0.90, 0.70)}  # the paired error is not judged by default
