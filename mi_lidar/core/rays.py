@@ -26,7 +26,8 @@ def world_rays(log: Log, scan: np.ndarray, beam: np.ndarray, column: np.ndarray)
     (each scan's pose applied), numpy."""
     pattern = np.minimum(scan, log.directions.shape[0] - 1)
     d = log.directions[pattern, beam, column]
-    o = np.broadcast_to(log.origins, log.directions.shape)[pattern, beam, column]
+    origins = np.zeros_like(log.directions) if log.origins is None else log.origins
+    o = np.broadcast_to(origins, log.directions.shape)[pattern, beam, column]
     rotation, translation = log.poses[scan, :3, :3], log.poses[scan, :3, 3]
     return np.einsum("nij,nj->ni", rotation, o) + translation, np.einsum("nij,nj->ni", rotation, d)
 
