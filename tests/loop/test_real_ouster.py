@@ -102,3 +102,36 @@ def test_calibrated_model_beats_the_bare_mesh_in_nll_and_samples_like_the_sensor
     assert final["nll"] < bare["nll"] - 5.0
     assert final["histogram_l1"] <= bare["histogram_l1"] and final["f1"] >= bare["f1"] - 0.01
     assert final["range_error_median"] < 3.0 * bare["range_error_median"]
+
+
+def test_the_realism_guard_rejects_a_step_and_restores_the_model():
+    """A guarded step that does not lower the calibration NLL is marked rejected: its effect is removed and the
+    other effects get their parameters back (the refit moved them)."""
+    import mitsuba as mi
+
+    from mi_lidar.core.effects import make_effect
+    from mi_lidar.core.elements import ElementTable
+    from mi_lidar.core.rays import LogRays
+    from mi_lidar.core.sensor_model import SensorModel
+    from mi_lidar.loop.development import Scored, effect_step, ray_subset
+    from mi_lidar.scene.dicts import scene_dict
+
+    log = synthetic_frame()
+    log.ranges[0] += np.random.default_rng(0).normal(0, 0.05, log.ranges[0].shape)
+    mesh = range_image_mesh(log, np.arange(0, 256, 4))
+    scene = mi.load_dict(scene_dict({"map": mesh}))
+    table, rays = ElementTable.from_scene(scene), LogRays.from_log(log)
+    train, test = (
+        Scored(scene, table, ray_subset(rays, keep), len(mesh.faces))
+        for keep in (rays.column % 4 == 2, rays.column % 2 == 1)
+    )
+    noise = make_effect("range_noise", law="constant", sigma0=0.2)
+    model = SensorModel(range_sigma=0.01, max_segments=2, effects=[noise])
+    kept = effect_step("mesh", "noise", train, test, model, 30, lambda m: None, guard=(np.inf, train.samples(model)))
+    assert not kept.rejected and kept.fitted["range_noise.sigma0"] < 0.2  # the fit moved sigma0 towards 5 cm
+    sigma0 = float(np.asarray(noise["sigma0"])[0])
+    model.effects = model.effects + [make_effect("range_bias", bias=0.3)]
+    row = effect_step("mesh", "bias", train, test, model, 5, lambda m: None, guard=(-np.inf, train.samples(model)))
+    assert row.rejected == "calibration NLL did not fall"
+    assert [e.name for e in model.effects] == ["range_noise"]
+    assert float(np.asarray(noise["sigma0"])[0]) == pytest.approx(sigma0)
