@@ -43,6 +43,7 @@ from mi_lidar.core.errors import CalibrationError, ParameterError
 from mi_lidar.core.fitting import adam_fit, constant_schedule
 from mi_lidar.core.likelihood import mixture_log_likelihood, round_segment, score
 from mi_lidar.core.log import Log
+from mi_lidar.core.metrics import metrics_of
 from mi_lidar.core.problem import moves_rays
 from mi_lidar.core.rays import LogRays
 from mi_lidar.core.segment import ELLIPSOID, Segment
@@ -106,6 +107,8 @@ class FitResult:
         stopped_early: the held-out loss stopped improving before ``steps``.
         steps_run: Adam steps taken.
         table, model: the fitted element table and sensor model.
+        samples: ``{"initial", "fitted"}``: the held-out NLL beside the realism of a scan sampled at the
+            held-out rays by the initial and the fitted model (:func:`~mi_lidar.core.metrics.metrics_of`).
     """
 
     names: list
@@ -121,6 +124,7 @@ class FitResult:
     steps_run: int
     table: object
     model: SensorModel
+    samples: dict = field(default_factory=dict)
 
 
 def returned_and_passed(seg: Segment, z: mi.Float, hit: mi.Bool, gate: float) -> tuple[mi.Bool, mi.Bool]:
@@ -258,6 +262,35 @@ class Calibration:
                 total += float(dr.sum(-self.log_likelihood(values, rays, z, hit, rounds))[0])
         return total / len(self.held_out)
 
+    def held_out_samples(self, values: dict, seed: int = 0) -> dict:
+        """The held-out NLL beside the realism of a scan sampled at the held-out rays under natural ``values``.
+
+        Returns:
+            :func:`~mi_lidar.core.metrics.metrics_of` of the held-out rays (Chamfer distance included).
+        """
+        parts: dict[str, list] = {k: [] for k in ("ll", "z", "hit", "range", "sim_hit", "origin", "direction")}
+        size = self.options.batch_size
+        with dr.suspend_grad():
+            table, model = self.space.build(values, self.model)
+            if self.geometric:
+                self.space.push_geometry(table)
+            for first in range(0, len(self.held_out), size):
+                position = np.arange(first, min(first + size, len(self.held_out)))
+                rays, z, hit, rounds = self._records("held_out", position, values)
+                sim = model.simulate_rays(self.scene, table, rays, seed)
+                for key, value in (
+                    ("ll", self.log_likelihood(values, rays, z, hit, rounds)),
+                    ("z", z),
+                    ("hit", hit),
+                    ("range", sim["range"]),
+                    ("sim_hit", sim["hit"]),
+                    ("origin", np.asarray(rays.origin).T),  # (3, B) -> (B, 3)
+                    ("direction", np.asarray(rays.direction).T),
+                ):
+                    parts[key].append(np.asarray(value))
+        a = {k: np.concatenate(v) for k, v in parts.items()}
+        return metrics_of(a["ll"], a["z"], a["hit"], a["range"], a["sim_hit"], a["origin"], a["direction"])
+
     # ------------------------------------------------------------------ counting start
     def counting_estimate(self, values: dict) -> dict[str, np.ndarray]:
         """Closed-form hit probabilities ``hits / (hits + pass-throughs)`` per element (thesis).
@@ -329,6 +362,7 @@ class Calibration:
         initial = {n: p.initial.copy() for n, p in self.params.items()}
         natural = {n: mi.Float(p.initial.astype(np.float32)) for n, p in self.params.items()}
         initial_nll = self.held_out_loss(natural)
+        samples = {"initial": self.held_out_samples(natural)}
         counting = self.counting_estimate(natural) if opts.counting_start else {}
         natural.update({n: mi.Float(v.astype(np.float32)) for n, v in counting.items()})
         counting_nll = self.held_out_loss(natural) if counting else initial_nll
@@ -379,6 +413,7 @@ class Calibration:
         fitted = result.values
         final = {n: mi.Float(v.astype(np.float32)) for n, v in fitted.items()}
         table, model = self.space.build(final, self.model)
+        samples["fitted"] = self.held_out_samples(final)
         if self.geometric:
             self.space.push_geometry(table)
         return FitResult(
@@ -395,4 +430,5 @@ class Calibration:
             steps_run=result.steps_run,
             table=table,
             model=model,
+            samples=samples,
         )

@@ -12,10 +12,11 @@ module                 verbs
 :mod:`.benchmark`      ``benchmark-planar``
 :mod:`.dataset`        ``dataset``
 :mod:`.apps`           ``evaluate-apps``
+:mod:`.apps3d`         ``evaluate-apps-3d``
 =====================  ==========================================================================
 """
 
-from mi_lidar.cli import apps, benchmark, calibrate, convert, dataset, hybrid, loop, render, sensor  # noqa: F401  (register)
+from mi_lidar.cli import apps, apps3d, benchmark, calibrate, convert, dataset, hybrid, loop, render, sensor  # noqa: F401  (register)
 from mi_lidar.cli.app import app
 
 __all__ = ["app"]

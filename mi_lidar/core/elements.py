@@ -149,6 +149,11 @@ class ElementTable:
     smoothing: float = 0.0
 
     @property
+    def has_triangles(self) -> bool:
+        """True when a shape is a triangle mesh (its segments then know their corners)."""
+        return "mesh" in self.shape_kinds
+
+    @property
     def n_elements(self) -> int:
         return int(sum(self.element_counts))
 
@@ -352,6 +357,11 @@ class ElementTable:
             restricted = ray_restricted_gaussian(center, scale, quat, extent, origin, direction)
         else:  # no lane is an ellipsoid: skip their gathers (every lane selects the surface values)
             restricted = (nominal, sigma, nominal, nominal)
+        corner = (None, None)
+        if self.has_triangles:
+            triangle = valid & dr.gather(mi.Bool, self.is_triangle, element, valid)
+            v0, v1, v2 = (self._vertex(element, c, triangle) for c in range(3))
+            corner = corners(v0, v1, v2, triangle, origin, direction, nominal)
         return _segment(
             valid,
             element,
@@ -365,6 +375,7 @@ class ElementTable:
             nominal,
             restricted,
             dr.abs(dr.dot(si.n, direction)),
+            corner,
         )
 
     def _vertex(self, element: mi.UInt32, corner: int, active: mi.Bool) -> mi.Point3f:
@@ -427,6 +438,7 @@ class ElementTable:
             dr.select(is_ellipsoid, e_lo, t_plane),
             (e_mean, e_sigma, e_lo, e_hi),
             dr.select(is_ellipsoid, e_cos, dr.abs(d_n)),
+            corners(v0, v1, v2, triangle, origin, direction, t_plane) if self.has_triangles else (None, None),
         )
 
     def cached_segment(self, entry, valid: mi.Bool, default_sigma: float) -> Segment:
@@ -438,11 +450,13 @@ class ElementTable:
         Args:
             entry: a :class:`~mi_lidar.core.trace.Round` (or a gathered view of one) holding
                 ``element``, ``nominal``, ``cos_incidence`` and ``cached`` = ``(mean, sigma, lo, hi)``
-                of the return distribution before effects (m; ``sigma`` is used for ellipsoids only).
+                of the return distribution before effects (m; ``sigma`` is used for ellipsoids only),
+                followed by the 3 corner offsets (m) and 3 corner weights where the tracer knew them.
             valid: lanes that hold an entry (the others read nothing).
             default_sigma: the sensor's range sigma (m), used where an element has none.
         """
-        mean, e_sigma, lo, hi = entry.cached
+        mean, e_sigma, lo, hi = entry.cached[:4]
+        corner = entry.cached[4:]
         p, sigma, kind, shape, label, rho = self._properties(entry.element, valid, default_sigma)
         return Segment(
             valid=valid,
@@ -458,16 +472,41 @@ class ElementTable:
             label=label,
             kind=kind,
             reflectivity=rho,
+            corner_offset=mi.Vector3f(*corner[:3]) if corner else None,
+            corner_weight=mi.Vector3f(*corner[3:]) if corner else None,
         )
 
 
+def corners(v0, v1, v2, triangle: mi.Bool, origin, direction, t) -> tuple[mi.Vector3f, mi.Vector3f]:
+    """A triangle's corners along the ray ``origin + t direction`` that hits it at range ``t`` (m).
+
+    Returns:
+        ``(offset, weight)``: the range at which the ray passes each vertex (its projection on the
+        ray) minus ``t`` (m), and the barycentric weights of the hit point (clipped to the triangle);
+        zeros and ``(1, 0, 0)`` where ``triangle`` is False.
+    """
+    e1, e2, ep = v1 - v0, v2 - v0, origin + t * direction - v0
+    d11, d12, d22 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
+    d1, d2 = dr.dot(ep, e1), dr.dot(ep, e2)
+    det = d11 * d22 - d12 * d12
+    safe = dr.select(dr.abs(det) > 1e-20, det, 1e-20)
+    b1 = dr.clip((d22 * d1 - d12 * d2) / safe, 0.0, 1.0)
+    b2 = dr.clip((d11 * d2 - d12 * d1) / safe, 0.0, 1.0)
+    b0 = dr.maximum(1.0 - b1 - b2, 0.0)
+    total = dr.maximum(b0 + b1 + b2, 1e-12)
+    weight = dr.select(triangle, mi.Vector3f(b0, b1, b2) / total, mi.Vector3f(1.0, 0.0, 0.0))
+    offset = mi.Vector3f(*(dr.dot(v - origin, direction) - t for v in (v0, v1, v2)))
+    return dr.select(triangle, offset, 0.0), weight
+
+
 def _segment(
-    valid, element, p, sigma, kind, shape, label, reflectivity, is_ellipsoid, nominal, restricted, cos_incidence
+    valid, element, p, sigma, kind, shape, label, reflectivity, is_ellipsoid, nominal, restricted, cos_incidence, corner
 ) -> Segment:
     """A :class:`Segment`: a surface returns around its nominal range; an ellipsoid its restricted Gaussian.
 
     Args:
         restricted: ``(mean, sigma, lo, hi)`` of the ellipsoid Gaussian restricted to the ray (m).
+        corner: ``(offset, weight)`` of :func:`corners`.
     """
     e_mean, e_sigma, e_lo, e_hi = restricted
     return Segment(
@@ -484,6 +523,8 @@ def _segment(
         label=label,
         kind=kind,
         reflectivity=reflectivity,
+        corner_offset=corner[0],
+        corner_weight=corner[1],
     )
 
 

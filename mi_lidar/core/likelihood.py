@@ -40,7 +40,7 @@ import mitsuba as mi
 from mi_lidar.core.effects.base import SubRayMoments
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import Segment, log_density
+from mi_lidar.core.segment import Segment, log_density, range_moments
 from mi_lidar.core.trace import CachedBatch, Round, Rounds
 
 RESOLUTION = 0.01  # m: a return scores the probability of its 1 cm range bin
@@ -289,7 +289,8 @@ def _moment_step(moments: SubRayMoments, log_pass: mi.Float, seg: Segment, lanes
     reach = log_pass if lanes is None else dr.gather(mi.Float, log_pass, lanes)
     weight = dr.select(seg.valid, dr.exp(reach) * seg.p * (1.0 - seg.drop), 0.0)
     passed = reach + dr.select(seg.valid, dr.log(dr.clip(1.0 - seg.p, TINY, 1.0)), 0.0)
-    values = (weight, weight * seg.mean, weight * (dr.square(seg.sigma) + dr.square(seg.mean)))
+    first, second = range_moments(seg)
+    values = (weight, weight * first, weight * second)
     if lanes is None:
         return SubRayMoments(
             moments.log_miss, moments.p_return + values[0], moments.m1 + values[1], moments.m2 + values[2]

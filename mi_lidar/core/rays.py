@@ -21,6 +21,17 @@ from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
 
 
+def world_rays(log: Log, scan: np.ndarray, beam: np.ndarray, column: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) origins (m) and unit directions of rays ``(scan, beam, column)`` of ``log`` in the world frame
+    (each scan's pose applied), numpy."""
+    pattern = np.minimum(scan, log.directions.shape[0] - 1)
+    d = log.directions[pattern, beam, column]
+    origins = np.zeros_like(log.directions) if log.origins is None else log.origins
+    o = np.broadcast_to(origins, log.directions.shape)[pattern, beam, column]
+    rotation, translation = log.poses[scan, :3, :3], log.poses[scan, :3, 3]
+    return np.einsum("nij,nj->ni", rotation, o) + translation, np.einsum("nij,nj->ni", rotation, d)
+
+
 @dataclass
 class RayBatch:
     """A wavefront of Lidar rays (one lane per ray).

@@ -21,9 +21,18 @@ truncated to ``[lo, hi]``:
   ``mean = -b / a``, ``sigma = 1 / sqrt(a)`` and the chord is ``mean +- sqrt((E^2 - m^2) / a)``
   with ``m^2 = c - b^2 / a`` the closest approach and ``E`` the extent.
 
-Effects (``mi_lidar.core.effects``) edit ``p``, ``drop``, ``mean`` and ``sigma``; sampling and the
-likelihood read the edited values through the same density, so the two stay consistent by
-construction.
+A triangle also knows its *corners* along the ray: the range at which the ray passes each vertex
+(``corner_offset``, relative to the plane's range) and the barycentric weights of the point it hits
+(``corner_weight``). A mesh made of samples of a surface (a range-image mesh, a fitted ground)
+interpolates linearly between them; at a depth edge the sensor instead sees the surface of one of the
+samples, the foreground or the background. With ``corner_share`` ``s > 0`` (the ``corner_returns``
+effect) a surface returns from the plane with probability ``1 - s`` and from corner ``i`` with
+probability ``s w_i``, each with the element's Gaussian: the density is the mixture
+``(1 - s) N(z; mean, sigma^2) + s sum_i w_i N(z; mean + offset_i, sigma^2)``.
+
+Effects (``mi_lidar.core.effects``) edit ``p``, ``drop``, ``mean``, ``sigma`` and ``corner_share``;
+sampling and the likelihood read the edited values through the same density, so the two stay
+consistent by construction.
 """
 
 from __future__ import annotations
@@ -59,6 +68,12 @@ class Segment:
         drop: probability that an intercepted beam gives no return (the beam stops); 0 by default.
         reflectivity: Lambertian reflectivity of the element at the sensor's wavelength (1 = white
             diffuse target); sets the returned power (intensity, weak-return dropout).
+        corner_offset: range (m) at which the ray passes each vertex of a triangle, minus the plane's
+            range (zeros for other elements); None where the tracer knows no corners.
+        corner_weight: barycentric weights of the hit point on a triangle (``(1, 0, 0)`` for other
+            elements).
+        corner_share: probability ``s`` that the return comes from a corner's surface (0: the plane).
+        corner_sigma: Gaussian scale (m) of a corner's return (None: ``sigma``, the plane's).
     """
 
     valid: mi.Bool
@@ -75,6 +90,10 @@ class Segment:
     kind: mi.UInt32
     drop: mi.Float | float = 0.0
     reflectivity: mi.Float | float = DEFAULT_REFLECTIVITY
+    corner_offset: mi.Vector3f | None = None
+    corner_weight: mi.Vector3f | None = None
+    corner_share: mi.Float | float = 0.0
+    corner_sigma: mi.Float | None = None
 
     def with_(self, **changes) -> Segment:
         """A copy with some fields replaced (effects use this)."""
@@ -86,17 +105,54 @@ def normal_cdf(x: mi.Float) -> mi.Float:
     return 0.5 * (1.0 + dr.erf(x * INV_SQRT2))
 
 
+def has_corners(seg: Segment) -> bool:
+    """True when ``seg`` may return from its corners (known corners and a share that is not a literal 0)."""
+    share = seg.corner_share
+    return seg.corner_offset is not None and not (isinstance(share, (int, float)) and share == 0)
+
+
+def _components(seg: Segment) -> list[tuple]:
+    """The corner mixture of a segment with corners: ``(weight, mean, sigma)`` of the plane, then of each corner."""
+    offset, weight = seg.corner_offset, seg.corner_weight
+    if offset is None or weight is None:
+        raise ValueError("a segment without corners has no corner mixture")
+    share = seg.corner_share
+    corner_sigma = seg.sigma if seg.corner_sigma is None else seg.corner_sigma
+    return [(1.0 - share, seg.mean, seg.sigma)] + [
+        (share * weight[i], seg.mean + offset[i], corner_sigma) for i in range(3)
+    ]
+
+
+def _corner_choice(seg: Segment, u: mi.Float) -> tuple[mi.Float, mi.Float, mi.Float]:
+    """The component of the corner mixture ``u`` picks: its mean (m), sigma (m) and ``u`` rescaled to [0, 1)."""
+    components = _components(seg)
+    _, mean, sigma = components[0]
+    start, width, edge = dr.zeros(mi.Float, dr.width(u)), components[0][0], components[0][0]
+    for w, m, sd in components[1:]:
+        pick = (u >= edge) & (u < edge + w)
+        start, width = dr.select(pick, edge, start), dr.select(pick, w, width)
+        mean, sigma = dr.select(pick, m, mean), dr.select(pick, sd, sigma)
+        edge = edge + w
+    return mean, sigma, dr.clip((u - start) / dr.maximum(width, 1e-12), 0.0, 1.0 - 1e-7)
+
+
 def sample_range(seg: Segment, u: mi.Float) -> mi.Float:
     """Draw the returned range of each lane from its truncated Gaussian by inversion.
 
+    With corner returns (:func:`has_corners`) ``u`` first picks the plane or a corner, then is
+    rescaled to draw the range from that component's Gaussian.
+
     Args:
-        seg: the segment (``mean``, ``sigma``, ``lo``, ``hi``).
+        seg: the segment (``mean``, ``sigma``, ``lo``, ``hi``; corners).
         u: uniform samples in [0, 1), one per lane.
 
     Returns:
         Ranges in m; where the truncated mass is negligible (< 1e-6, a grazing chord far from the
         mean) the range is uniform on ``[lo, hi]``.
     """
+    if has_corners(seg):
+        mean, sigma, u = _corner_choice(seg, u)
+        seg = seg.with_(mean=mean, sigma=sigma)
     sigma = dr.maximum(seg.sigma, 1e-9)
     cdf_lo = normal_cdf((seg.lo - seg.mean) / sigma)
     cdf_hi = normal_cdf((seg.hi - seg.mean) / sigma)
@@ -108,6 +164,31 @@ def sample_range(seg: Segment, u: mi.Float) -> mi.Float:
 
 
 def log_density(seg: Segment, z: mi.Float) -> mi.Float:
+    """Log density (1/m) of range ``z`` under each lane's truncated Gaussian (-inf outside), or its
+    corner mixture (:func:`has_corners`)."""
+    if not has_corners(seg):
+        return _gaussian_log_density(seg, z)
+    terms = [(w, _gaussian_log_density(seg.with_(mean=m, sigma=sd), z)) for w, m, sd in _components(seg)]
+    top = terms[0][1]
+    for _, value in terms[1:]:
+        top = dr.maximum(top, value)
+    safe = dr.select(dr.isinf(top), 0.0, top)
+    total = sum((w * dr.exp(value - safe) for w, value in terms[1:]), terms[0][0] * dr.exp(terms[0][1] - safe))
+    return dr.select(dr.isinf(top), top, safe + dr.log(dr.maximum(total, 1e-30)))
+
+
+def range_moments(seg: Segment) -> tuple[mi.Float, mi.Float]:
+    """First and second moments (m, m^2) of each lane's returned range (untruncated Gaussians, corners included)."""
+    if not has_corners(seg):
+        return seg.mean, dr.square(seg.sigma) + dr.square(seg.mean)
+    first = second = dr.zeros(mi.Float, dr.width(seg.mean))
+    for w, m, sd in _components(seg):
+        first = first + w * m
+        second = second + w * (dr.square(sd) + dr.square(m))
+    return first, second
+
+
+def _gaussian_log_density(seg: Segment, z: mi.Float) -> mi.Float:
     """Log density (1/m) of range ``z`` under each lane's truncated Gaussian (-inf outside)."""
     sigma = dr.maximum(seg.sigma, 1e-9)
     x = (z - seg.mean) / sigma

@@ -38,7 +38,7 @@ from mi_lidar.core.arrays import aligned
 from mi_lidar.core.rays import RayBatch
 
 RESTART_OFFSET = 1e-4  # m: a ray continues this far past the element it passed through
-CACHED_FIELDS = ("mean", "sigma", "lo", "hi")  # return distribution before effects, m
+CACHED_FIELDS = ("mean", "sigma", "lo", "hi")  # return distribution before effects, m (then the corners)
 
 
 def next_hit(
@@ -87,7 +87,8 @@ class Round:
             shapes whose geometry the element table does not hold).
         cached: optional ``(mean, sigma, lo, hi)`` (m) of the element's return distribution before
             effects, computed once without gradients (``sigma`` is used for ellipsoids only; surfaces
-            read theirs from the table so that it can be fitted).
+            read theirs from the table so that it can be fitted), followed in scenes with triangles
+            by the 3 corner offsets (m) and 3 corner weights (:func:`~mi_lidar.core.elements.corners`).
         log_density: optional log density (1/m) of the ray's measured range under the element's
             return distribution after effects, computed once (valid while only hit probabilities
             are fitted and no effect edits segments).
@@ -251,6 +252,8 @@ def cache_distributions(rounds: Rounds, table, model, rays: RayBatch, measured: 
             else:  # segments of another tracer come with their distributions
                 seg = table.cached_segment(r, valid, model.range_sigma)
             cached = tuple(getattr(seg, f) for f in CACHED_FIELDS)
+            if seg.corner_offset is not None:
+                cached += tuple(seg.corner_offset) + tuple(seg.corner_weight)
             density = drop = None
             if measured is not None:
                 seg = model.segment_law(seg, sub)
@@ -299,7 +302,7 @@ class RayCache:
         element = dr.zeros(mi.UInt32, size)
         nominal, cos_incidence = dr.zeros(mi.Float, size), dr.zeros(mi.Float, size)
         point, normal = dr.zeros(mi.Point3f, size), dr.zeros(mi.Vector3f, size)
-        cached = tuple(dr.zeros(mi.Float, size) for _ in CACHED_FIELDS) if first and first.cached else None
+        cached = tuple(dr.zeros(mi.Float, size) for _ in first.cached) if first and first.cached else None
         with_density = first is not None and first.log_density is not None
         density = dr.zeros(mi.Float, size) if with_density else None
         drop = dr.zeros(mi.Float, size) if with_density else None

@@ -6,7 +6,8 @@ For every ray of the log the model is scored and simulated:
   one floor of :func:`mi_lidar.core.likelihood.score`;
 * range error: ``|z_measured - z_simulated|`` where both returned, m;
 * hit/miss confusion: precision, recall and F1 of simulated returns against measured ones;
-* histogram match: L1 distance between the CDFs of measured and simulated ranges, m.
+* histogram match: L1 distance between the CDFs of measured and simulated ranges, m;
+* Chamfer distance between the measured and simulated point clouds in the world frame, m (overall only).
 
 Each is broken down by nominal range, incidence angle, beam, azimuth, time, element type, label
 and shape (taken from the first element along the ray), and the groups where the model fails
@@ -27,7 +28,7 @@ from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.log import Log
 from mi_lidar.core.metrics import metrics_of
 from mi_lidar.core.problem import Problem
-from mi_lidar.core.rays import LogRays
+from mi_lidar.core.rays import LogRays, world_rays
 from mi_lidar.core.segment import ELLIPSOID
 from mi_lidar.core.sensor_model import SensorModel
 
@@ -249,7 +250,9 @@ def compare(
     check_log_sensor(log, scene, force=force)
     model = model or scene_sensor_model(scene)[0]
     t = ray_table(log, scene, model, seed)
-    result = Comparison(headline=metrics(t), breakdowns={b: breakdown(t, b) for b in BREAKDOWNS}, worst=[], table=t)
+    origins, directions = world_rays(log, t.scan, t.beam, t.column)
+    headline = metrics_of(t.ll, t.measured, t.hit, t.sim_range, t.sim_hit, origins, directions)
+    result = Comparison(headline=headline, breakdowns={b: breakdown(t, b) for b in BREAKDOWNS}, worst=[], table=t)
     groups = [
         dict(row, breakdown=b) for b, rows in result.breakdowns.items() if b != "beam" or len(rows) > 1 for row in rows
     ]

@@ -1,9 +1,13 @@
 """A development path on measured rays: effects added one by one, each fitted on calibration rays, scored on test rays.
 
 :class:`Scored` holds a scene traced once with its rays; :func:`effect_step` refits a model's effects
-and scores it, giving one :class:`Step` (a row of :func:`development_table`). Used by the real
-Ouster loop (:mod:`mi_lidar.loop.real_ouster`); the planar real-log benchmark lives in
-:mod:`mi_lidar.planar`.
+and scores it, giving one :class:`Step` (a row of :func:`development_table`): the NLL beside the
+realism of a scan sampled at the same rays (:func:`~mi_lidar.core.metrics.metrics_of`). With a
+*realism guard*, an effect is kept only when it lowers the calibration NLL without making the
+calibration samples less realistic (:func:`~mi_lidar.core.metrics.worse_samples`: histogram match,
+F1, Chamfer distance and its stray half); otherwise the
+row says why and the model goes back to what it was. Used by the real-frame loop
+(:mod:`mi_lidar.loop.real_ouster`); the planar real-log benchmark lives in :mod:`mi_lidar.planar`.
 """
 
 from __future__ import annotations
@@ -15,8 +19,9 @@ import numpy as np
 
 from mi_lidar.core.effects.base import Effect
 from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.metrics import metrics_of, worse_samples
 from mi_lidar.core.problem import Problem, fit_parts
-from mi_lidar.core.rays import LogRays
+from mi_lidar.core.rays import LogRays, world_rays
 from mi_lidar.core.sensor_model import SensorModel
 
 
@@ -52,6 +57,15 @@ class Scored:
         """Mean negative log-likelihood per beam (nats) under ``model``."""
         return self.problem.nll(model)
 
+    def samples(self, model: SensorModel, seed: int = 0) -> dict:
+        """NLL and the realism of one scan sampled by ``model`` at these rays (:func:`metrics_of`)."""
+        from mi_lidar.loop.compare import simulate_log_rays
+
+        sim_range, sim_hit = simulate_log_rays(self.scene, self.table, self.rays, model, seed)
+        r = self.rays
+        origins, directions = world_rays(r.log, r.scan, r.beam, r.column)
+        return metrics_of(self.per_beam(model), r.measured, r.hit, sim_range, sim_hit, origins, directions)
+
     def fit(self, model: SensorModel, effects: list[Effect], steps: int = 150) -> None:
         """Fit ``effects`` (members of ``model.effects``) on these rays by maximum likelihood (:func:`fit_parts`)."""
         fit_parts(model, self.problem, effects, steps=steps)
@@ -67,6 +81,8 @@ class Step:
         nll: mean negative log-likelihood per test beam, nats.
         train_nll: the same on the calibration beams, nats.
         fitted: fitted parameters, ``{"effect.param": value}``.
+        samples: realism of a scan sampled at the test beams (:func:`metrics_of`).
+        rejected: why the realism guard did not keep the step ("" when kept).
     """
 
     model: str
@@ -74,21 +90,28 @@ class Step:
     nll: float
     train_nll: float
     fitted: dict
+    samples: dict = field(default_factory=dict)
+    rejected: str = ""
 
 
 def development_table(rows: list[Step], title: str):
     """A rich table of a development path; each row lists the parameters new since the previous row of its model."""
     from rich.table import Table
 
-    table = Table(title=title)
-    for column in ("model", "added", "test NLL", "calibration NLL", "new parameters"):
+    table = Table(title=title, caption="samples: one scan sampled at the test beams; |err| = |measured - sampled|")
+    columns = ("model", "added", "test NLL", "calibration NLL", "samples: median |err| m", "hist L1 m", "F1")
+    for column in (*columns, "new parameters"):
         table.add_column(column)
     previous, model = {}, None
     for row in rows:
         previous = previous if row.model == model else {}
         fitted = ", ".join(f"{k}={v:.4g}" for k, v in row.fitted.items() if k not in previous)
-        table.add_row(row.model, row.added, f"{row.nll:.3f}", f"{row.train_nll:.3f}", fitted)
-        previous, model = row.fitted, row.model
+        s = row.samples
+        realism = [f"{s[k]:.3f}" if k in s else "" for k in ("range_error_median", "histogram_l1", "f1")]
+        added = row.added + (f" [not kept: {row.rejected}]" if row.rejected else "")
+        table.add_row(row.model, added, f"{row.nll:.3f}", f"{row.train_nll:.3f}", *realism, fitted)
+        if not row.rejected:
+            previous, model = row.fitted, row.model
     return table
 
 
@@ -106,11 +129,39 @@ def fit_and_score(
     return test.nll(model), train.nll(model)
 
 
-def effect_step(model_name: str, label: str, train: Scored, test: Scored, model: SensorModel, steps: int, say) -> Step:
-    """Refit every effect of ``model`` on ``train``, score it on ``test``: the development-path row ``+ label``."""
+def effect_step(
+    model_name: str, label: str, train: Scored, test: Scored, model: SensorModel, steps: int, say, guard=None
+) -> Step:
+    """Refit every effect of ``model`` on ``train``, score it on ``test``: the development-path row ``+ label``.
+
+    Args:
+        model_name, label: the row's model and what it adds.
+        train, test: calibration and test rays.
+        model: the model with the new effect appended (changed in place).
+        steps: Adam steps.
+        say: ``say(message)`` progress.
+        guard: the previous step's ``(calibration NLL, calibration samples)`` for the realism guard, or None
+            to keep the step whatever it does. A guarded step that does not lower the calibration NLL, or
+            makes the calibration samples less realistic (:func:`worse_samples`), is marked rejected and
+            the model is restored (last effect removed, the others' parameters as before).
+    """
+    saved = [{k: mi.Float(np.asarray(v)) for k, v in e.params.items()} for e in model.effects]
     nll, train_nll = fit_and_score(train, test, model, model.effects, steps)
-    say(f"+ {label}: {nll:.3f}")
-    return Step(model_name, f"+ {label}", nll, train_nll, describe_effects(model.effects))
+    row = Step(model_name, f"+ {label}", nll, train_nll, describe_effects(model.effects), test.samples(model))
+    if guard is not None:
+        before_nll, before_samples = guard
+        worse = worse_samples(before_samples, train.samples(model))
+        if train_nll >= before_nll or worse:
+            row.rejected = (
+                "calibration NLL did not fall"
+                if train_nll >= before_nll
+                else "samples worse: " + ", ".join(f"{k} {a:.3g} -> {b:.3g}" for k, (a, b) in worse.items())
+            )
+            model.effects = model.effects[:-1]
+            for effect, params in zip(model.effects, saved):
+                effect.params.update(params)
+    say(f"+ {label}: {nll:.3f}" + (f" (not kept: {row.rejected})" if row.rejected else ""))
+    return row
 
 
 def ray_subset(rays: LogRays, keep: np.ndarray) -> LogRays:

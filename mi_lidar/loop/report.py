@@ -234,8 +234,10 @@ def write_comparison(result, log, out: Path, title: str, model) -> list[Path]:
         "",
         f"**NLL {h['nll']:.3f} nats/ray** (median {h['nll_median']:.3f}); hit/miss F1 {fmt('f1', h['f1'])} "
         f"(precision {fmt('precision', h['precision'])}, recall {fmt('recall', h['recall'])}); "
-        f"median range error {fmt('range_error_median', h['range_error_median'])} m; "
-        f"histogram L1 {fmt('histogram_l1', h['histogram_l1'])} m; hit rate measured "
+        f"sampled range error median {fmt('range_error_median', h['range_error_median'])} m, "
+        f"p90 {fmt('range_error_median', h['range_error_p90'])} m; "
+        f"histogram L1 {fmt('histogram_l1', h['histogram_l1'])} m; Chamfer {h.get('chamfer', float('nan')):.3f} m; "
+        f"hit rate measured "
         f"{h['hit_rate_measured']:.3f} vs simulated {h['hit_rate_simulated']:.3f}.",
         "",
         "## Where the model fails worst",

@@ -65,6 +65,13 @@ def test_calibrate_recovers_truth_and_writes_report(files):
     assert {p.name for p in written.values()} >= {"scene.xml", "loss.png", "changes.csv", "history.csv", "report.html"}
     page = (out / "report.html").read_text()  # one page: NLL before and after, the parameter table, the loss trace
     assert f"{result.fitted_nll:.4f}" in page and "sensor.range_bias" in page and 'src="loss.png"' in page
+    # Samples beside the likelihood: the fitted model's scan matches the measured one better (the
+    # start's range bias is gone) and the page shows both rows.
+    samples = report["held_out_samples"]
+    assert samples["fitted"]["nll"] == pytest.approx(result.fitted_nll, abs=1e-3)
+    assert samples["fitted"]["histogram_l1"] < samples["initial"]["histogram_l1"]
+    assert samples["fitted"]["chamfer"] < samples["initial"]["chamfer"]
+    assert "Samples beside the likelihood" in page and "Chamfer" in page
     # The calibrated scene reloads with the fitted values, sensor and effect.
     scene = mi_lidar.load_scene(out / "scene.xml")
     table = ElementTable.from_scene(scene)

@@ -5,6 +5,7 @@ Importing this package registers every catalog effect (each module ends with ``@
 
 from mi_lidar.core.effects.base import EFFECTS, Effect, FootprintEffect, make_effect, parse_effects, register_effect
 from mi_lidar.core.effects.beam_offsets import BeamOffsets
+from mi_lidar.core.effects.corner_returns import CornerReturns
 from mi_lidar.core.effects.extrinsics import Extrinsics
 from mi_lidar.core.effects.incidence_dropout import IncidenceDropout
 from mi_lidar.core.effects.label_dropout import LabelDropout
@@ -25,6 +26,7 @@ from mi_lidar.core.rays import RayBatch
 __all__ = [
     "EFFECTS",
     "BeamOffsets",
+    "CornerReturns",
     "Effect",
     "Extrinsics",
     "FootprintEffect",

@@ -9,6 +9,8 @@ from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
+MIN_COS = 0.01  # the footprint law's floor of |cos(incidence)|: tan(delta) <= 100
+
 
 @register_effect
 class RangeNoise(Effect):
@@ -19,10 +21,16 @@ class RangeNoise(Effect):
     * ``constant``:     sigma = sigma0
     * ``proportional``: sigma = sigma0 + k r
     * ``physics``:      sigma^2 = sigma0^2 + K r^2 / cos(delta)  (the thesis's physics baseline)
+    * ``footprint``:    sigma = sigma0 + k r tan(delta)
+
+    The ``footprint`` law is the depth a patch of angular size ``k`` (rad) spans along the beam when
+    seen at range ``r`` and incidence ``delta``: the spread of a beam footprint (mixed pixels) and of
+    a mesh interpolated between returns ``k`` apart, both largest at grazing incidence and at depth
+    edges, whose faces are seen edge-on (``tan(delta)`` is capped at ``1 / MIN_COS``).
     """
 
     name = "range_noise"
-    options = {"law": ("constant", "proportional", "physics")}
+    options = {"law": ("constant", "proportional", "physics", "footprint")}
     variant_options = ("law",)
     specs = {
         "sigma0": ParamSpec(
@@ -32,12 +40,12 @@ class RangeNoise(Effect):
         # 1e-4 for the physics law's K (sigma 1 cm at 1 m, normal incidence).
         "k": ParamSpec(
             0.0,
-            "m/m (proportional) or 1 (physics K)",
+            "m/m (proportional), 1 (physics K) or rad (footprint)",
             "range-dependent coefficient",
             lower=0.0,
             fit_start=1e-4,
             fit_scale=lambda effect: 1e-4 if effect.choices["law"] == "physics" else 0.01,
-            only={"law": ("proportional", "physics")},
+            only={"law": ("proportional", "physics", "footprint")},
         ),
     }
 
@@ -49,6 +57,9 @@ class RangeNoise(Effect):
             return dr.square(self["sigma0"]) + 0.0 * r
         if law == "proportional":
             return dr.square(self["sigma0"] + self["k"] * r)
+        if law == "footprint":
+            cos = dr.clip(seg.cos_incidence, MIN_COS, 1.0)
+            return dr.square(self["sigma0"] + self["k"] * r * dr.sqrt(1.0 - cos * cos) / cos)
         cos = dr.maximum(seg.cos_incidence, 1e-3)
         return dr.square(self["sigma0"]) + self["k"] * r * r / cos
 

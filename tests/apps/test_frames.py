@@ -1,0 +1,60 @@
+"""The 3D applications on one frame: the column protocol, the shared states, and evaluate-apps-3d end to end."""
+
+import json
+
+import numpy as np
+import pytest
+
+from mi_lidar.apps.frames import frame_states, one_frame, split_columns
+from mi_lidar.core.log import Log
+from tests.loop.test_real_ouster import synthetic_frame
+
+
+def test_the_protocol_splits_columns_and_every_source_shares_map_rays_and_starts():
+    log = synthetic_frame()
+    columns = split_columns(log)
+    assert set(columns["mesh"] % 4) == {0} and set(columns["calibration"] % 4) == {2}
+    assert set(columns["test"] % 2) == {1} and len(columns["test"]) == 128
+    states = frame_states(log, starts=3, seed=1)
+    assert states.n == 16 * 128 and states.starts.shape == (3, 4, 4)
+    # the map is the measured points of the calibration columns, in the world frame
+    expected = (log.ranges[0][..., None] * log.directions[0])[:, columns["calibration"]].reshape(-1, 3)
+    np.testing.assert_allclose(states.map_points, expected, atol=1e-4)
+    np.testing.assert_allclose(states.directions, log.directions[0][:, columns["test"]].reshape(-1, 3), atol=1e-6)
+
+
+def test_one_frame_is_the_scan_with_most_returns():
+    log = synthetic_frame()
+    two = Log(
+        poses=np.repeat(log.poses, 2, axis=0),
+        directions=log.directions,
+        ranges=np.repeat(log.ranges, 2, axis=0),
+        hit=np.stack([np.zeros_like(log.hit[0]), log.hit[0]]),
+        times=np.repeat(log.times, 2, axis=0),
+    )
+    frame = one_frame(two)
+    assert frame.shape == (1, 16, 256) and frame.hit.all()
+
+
+@pytest.mark.slow
+def test_evaluate_frame_writes_the_report_and_resumes_from_its_cache(tmp_path):
+    from mi_lidar.apps.evaluate3d import evaluate_frame
+
+    path = synthetic_frame().save(tmp_path / "frame.npz")
+    settings = dict(simulators=("gaussian", "mi-lidar"), draws=2, starts=2, steps=30)
+    first = evaluate_frame(path, tmp_path / "out", **settings)
+    for name in ("apps3d.json", "apps3d.html", "scans.png", "scan_matching_3d_loss.png", "scan_matching_3d_paths.png"):
+        assert (tmp_path / "out" / name).is_file()
+    report = json.loads((tmp_path / "out" / "apps3d.json").read_text())
+    (app,) = report["applications"]
+    assert set(app["risk"]) == {"gaussian", "mi-lidar"} and all(
+        v >= 0 for v in report["risk_se"][app["application"]].values()
+    )
+    assert {row["model"] for row in report["benchmark"]} == {"gaussian", "mi-lidar"}
+    assert all(np.isfinite(row["chamfer"]) for row in report["benchmark"])
+    evaluated = []
+    again = evaluate_frame(
+        path, tmp_path / "out", **settings, progress=lambda done, total, label: evaluated.append(label)
+    )
+    assert again.results[0].risk == first.results[0].risk
+    assert not any(label.startswith("evaluating") for label in evaluated)  # every J came from the cache
