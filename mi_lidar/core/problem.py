@@ -196,6 +196,7 @@ def fit_parts(
     lr: float = LEARNING_RATE,
     retrace_every: int = 10,
     progress=None,
+    tolerance: float | None = None,
 ) -> PartsFit:
     """Maximise the mean scored log-likelihood of ``problem``'s rays over the parameters of ``parts``.
 
@@ -208,6 +209,8 @@ def fit_parts(
         lr: learning rate in units of each parameter's ``fit_scale`` (cosine decay to lr / 10).
         retrace_every: steps between re-traces when a fitted effect moves rays.
         progress: optional callable ``progress(step, steps)``.
+        tolerance: stop once the mean training log-likelihood (nats/ray) improved by less than this
+            over 15 steps (:func:`~mi_lidar.core.fitting.stalled`; None: run every step).
 
     Returns:
         The loss history and the fitted parameters: those of the lowest loss seen (the loss is over
@@ -251,7 +254,7 @@ def fit_parts(
             progress(step, steps)
         return total
 
-    result = adam_fit(variables, objective, steps, lr=lr)
+    result = adam_fit(variables, objective, steps, lr=lr, tolerance=tolerance)
     assign({name: mi.Float(aligned(result.values[name].astype(np.float32))) for name in names})
     make_opaque(parts)
     if moving:

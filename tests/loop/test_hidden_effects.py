@@ -15,7 +15,7 @@ import pytest
 from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import LogRays
 from mi_lidar.loop import diagnose
-from mi_lidar.loop.diagnose import split_rays
+from mi_lidar.loop.split import split_rays
 
 from .helpers import hidden_log, room, street
 
