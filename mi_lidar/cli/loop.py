@@ -88,7 +88,12 @@ def diagnose_command(
         )
     from mi_lidar.scene.files import scene_with_effects
 
-    found = scene_with_effects(scene, ", ".join(e.describe() for e in result.model.effects), out / "scene.xml")
+    density = None
+    if result.density is not None:  # a learned density replaced the scene's: save it beside the scene
+        saved = result.density.save(out / f"{result.density.name}.npz", notes={"from": "mi-lidar diagnose"})
+        density = f"{result.density.name}(file={Path(saved).resolve()})"
+    effects = ", ".join(e.describe() for e in result.model.effects)
+    found = scene_with_effects(scene, effects, out / "scene.xml", density)
     if as_json:
         typer.echo(json.dumps(result.ranking(), indent=1, default=float))
     else:

@@ -210,7 +210,8 @@ def fit_parts(
         retrace_every: steps between re-traces when a fitted effect moves rays.
         progress: optional callable ``progress(step, steps)``.
         tolerance: stop once the mean training log-likelihood (nats/ray) improved by less than this
-            over 15 steps (:func:`~mi_lidar.core.fitting.stalled`; None: run every step).
+            over the last 10 steps (``retrace_every + 5`` when a fitted effect moves rays), after 2 more
+            (:func:`~mi_lidar.core.fitting.stalled`; None: run every step).
 
     Returns:
         The loss history and the fitted parameters: those of the lowest loss seen (the loss is over
@@ -254,7 +255,9 @@ def fit_parts(
             progress(step, steps)
         return total
 
-    result = adam_fit(variables, objective, steps, lr=lr, tolerance=tolerance)
+    # a fit of ray-moving parameters gains in jumps at its re-traces: look back over one of them at least
+    window = retrace_every + 5 if moving else 10
+    result = adam_fit(variables, objective, steps, lr=lr, tolerance=tolerance, window=window, min_steps=window + 2)
     assign({name: mi.Float(aligned(result.values[name].astype(np.float32))) for name in names})
     make_opaque(parts)
     if moving:

@@ -36,12 +36,16 @@ from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop.sensor_fit import fit_density
 
 DENSITY_CANDIDATES = {"np_reg": "np-reg", "p_reg": "p-reg"}  # candidate name: fit-sensor family
-# P-Reg's local regressions cost about 0.6 s of CPU per bandwidth pair on a street log: diagnose screens
-# it on 4 pairs (fit-sensor tries 12)
-DENSITY_OPTIONS = {"p_reg": {"h_ranges": (1.0, 4.0), "h_incidences": (5.0, 20.0)}}
-SCREEN_TOLERANCE = 1e-3  # nats/ray: a screening fit stops once it gained less than this over 15 steps
-COARSE = ((8, 1.0), (4, 1 / 4), (4, 1 / 16), (4, 1 / 64))  # (half points, step in fit_scale units) per pass
-FINE = ((4, 1 / 8), (4, 1 / 32), (4, 1 / 128))  # around values already fitted
+# bandwidths screened (fit-sensor tries 12 pairs; P-Reg's local regressions cost 0.6 s of CPU per pair)
+DENSITY_OPTIONS = {
+    "np_reg": {"h_ranges": (1.0, 4.0), "h_incidences": (5.0, 20.0)},
+    "p_reg": {"h_ranges": (1.0, 4.0), "h_incidences": (10.0,)},
+}
+SCREEN_TOLERANCE = 1e-3  # nats/ray: a screening fit stops once it gains less than this over 10 to 15 steps
+# (effect, option, choice): the choice whose likelihood it shares (MultipleReturns scores strongest as first)
+SCORED_AS = {("multiple_returns", "mode", "strongest"): "first"}
+COARSE = ((6, 1.0), (3, 1 / 3), (3, 1 / 9), (3, 1 / 27))  # (half points, step in fit_scale units) per pass
+FINE = ((3, 1 / 9), (3, 1 / 27), (3, 1 / 81))  # around values already fitted
 
 
 def candidate(name: str, n_beams: int, n_labels: int, **options) -> Effect:
@@ -61,13 +65,18 @@ def candidate(name: str, n_beams: int, n_labels: int, **options) -> Effect:
 
 
 def variants(name: str) -> list[dict]:
-    """Option settings to try for effect ``name``: every combination of its ``variant_options``."""
+    """Option settings to try for effect ``name``: every combination of its ``variant_options``.
+
+    Choices scored with another choice's likelihood are left out (:data:`SCORED_AS`): their row would
+    repeat the other's.
+    """
     if name in DENSITY_CANDIDATES:
         return [{}]
     cls = EFFECTS[name]
     settings: list[dict] = [{}]
     for option in cls.variant_options:
-        settings = [{**s, option: choice} for s in settings for choice in cls.options[option]]
+        choices = [c for c in cls.options[option] if (name, option, c) not in SCORED_AS]
+        settings = [{**s, option: choice} for s in settings for choice in choices]
     return settings
 
 

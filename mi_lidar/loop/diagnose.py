@@ -120,6 +120,7 @@ class Diagnosis:
             (:class:`Realism`, held-out rays).
         held_out: the held-out rays described (first element, beam, azimuth...), for the figures.
         model: the augmented, fitted model.
+        density: the learned density that joined and replaced the model's (None when none did).
     """
 
     rounds: list
@@ -133,6 +134,7 @@ class Diagnosis:
     realism: list = field(default_factory=list)
     held_out: RayTable | None = field(repr=False, default=None)
     model: SensorModel = field(repr=False, default=None)
+    density: object = field(repr=False, default=None)
 
     def ranking(self) -> list[dict]:
         """The first round's ranking as JSON-able rows."""
@@ -453,6 +455,7 @@ def diagnose(
         realism=realism,
         held_out=data.held_out,
         model=base,
+        density=next((c.effect for r in all_rounds for c in r if c.kind == "density" and c.status == JOINED), None),
     )
     result.summary = verdict(result)
     if out is not None:

@@ -214,8 +214,10 @@ def plot_before_after(d, k: int, path: Path) -> Path:
         unit = UNITS[dimension]
         for row in range(3):
             axes[row, col].set_xlabel(f"{dimension} ({unit})" if unit else dimension)
-            if row:
+            if row:  # at least +-1 cm / point, so that agreement looks flat
                 axes[row, col].axhline(0.0, color="grey", lw=0.6)
+                low, high = axes[row, col].get_ylim()
+                axes[row, col].set_ylim(min(low, -1.0), max(high, 1.0))
         axes[0, col].legend(fontsize=7)
     axes[0, 0].set_ylabel("held-out NLL, nats/ray")
     axes[1, 0].set_ylabel("range residual, cm\n(measured - sampled)")
