@@ -21,7 +21,8 @@
 4. **realism**: with every joined effect the model is sampled at the held-out rays before and after
    (the same random numbers), and the realism of the samples is put beside the NLL (median and p90
    |range error|, return rate, hit/miss F1, histogram match; :func:`~mi_lidar.core.metrics.metrics_of`);
-   :func:`realism_warning` says so when an effect buys likelihood with samples that are clearly worse.
+   :func:`~mi_lidar.loop.realism.realism_warning` says so when an effect buys likelihood with samples
+   that are clearly worse.
 5. **final fit**: every effect is refitted together on the whole training split; effects left
    without held-out gain are dropped, per-beam or per-label values without evidence shrunk.
 6. **what is left**: the residuals of the final model are tested for structure along time, azimuth,
@@ -41,11 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.log import Log
-from mi_lidar.core.metrics import metrics_of
-from mi_lidar.core.problem import Problem, n_parameters
-from mi_lidar.core.rays import LogRays
+from mi_lidar.core.problem import n_parameters
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop.catalog import (
     COARSE,
@@ -57,7 +55,8 @@ from mi_lidar.loop.catalog import (
     refit,
     variants,
 )
-from mi_lidar.loop.compare import BREAKDOWNS, RayTable, first_elements, group_keys, simulate_log_rays
+from mi_lidar.loop.compare import BREAKDOWNS, RayTable, first_elements, group_keys
+from mi_lidar.loop.realism import Realism
 from mi_lidar.loop.residuals import residual_structure
 from mi_lidar.loop.selection import (
     DROPPED,
@@ -72,36 +71,9 @@ from mi_lidar.loop.selection import (
     shrink_without_evidence,
     significant,
 )
-from mi_lidar.loop.sensor_fit import traced_states
-from mi_lidar.loop.split import split_rays, subsample
+from mi_lidar.loop.split import Splits
 
 SIMULATION_STREAM = 7  # seed offset of the samples drawn for realism (the same for every model compared)
-HISTOGRAM_WORSE = 0.5  # a joined effect that raises the histogram distance by half (and 1 cm) ...
-RATE_WORSE = 0.02  # ... or moves the sampled return rate 2 points further from the measured one ...
-ERROR_WORSE = 1.5  # ... or multiplies the median and p90 |range error| by 1.5 without a better histogram
-
-
-@dataclass
-class Realism:
-    """A model's held-out score beside the realism of one sampled scan at the held-out rays.
-
-    Attributes:
-        model: what the row is (``given model``, ``+ effect``, ``final model``).
-        metrics: :func:`~mi_lidar.core.metrics.metrics_of` (NLL, |range error|, return rates, F1, histogram).
-        warning: why the samples are clearly worse than the previous row's ('' when they are not).
-        ll: (N,) held-out per-ray log-likelihood, nats.
-        sim_range, sim_hit: (N,) the sampled scan (m, NaN for a miss) and its returns.
-    """
-
-    model: str
-    metrics: dict
-    warning: str = ""
-    ll: np.ndarray = field(repr=False, default=None)
-    sim_range: np.ndarray = field(repr=False, default=None)
-    sim_hit: np.ndarray = field(repr=False, default=None)
-
-    def row(self) -> dict:
-        return {"model": self.model, **self.metrics, "warning": self.warning}
 
 
 @dataclass
@@ -117,7 +89,7 @@ class Diagnosis:
         parameters: the final model's fitted values of the selected effects, ``{"effect.param": values}``.
         structure: residual structure left by the final model (:class:`~mi_lidar.loop.residuals.Structure`).
         realism: the given model, the model after each joined candidate, and the final model
-            (:class:`Realism`, held-out rays).
+            (:class:`~mi_lidar.loop.realism.Realism`, held-out rays).
         held_out: the held-out rays described (first element, beam, azimuth...), for the figures.
         model: the augmented, fitted model.
         density: the learned density that joined and replaced the model's (None when none did).
@@ -160,122 +132,6 @@ class Diagnosis:
             "structure": [s.row() for s in self.structure],
             "summary": self.summary,
         }
-
-
-@dataclass
-class Splits:
-    """The log's rays in the scene, split and traced once (see the module docstring).
-
-    Attributes:
-        scene: the loaded scene.
-        rays: the log's rays.
-        table: the scene's element table.
-        train: every training ray (the final joint fit).
-        fitting: the training subsample candidates are fitted on.
-        test: the held-out rays (every score and test).
-        estimation: training rays outside ``fitting`` (learned densities are estimated on them).
-        azimuth: (N,) sensor-frame azimuth of every held-out ray, deg.
-        n_beams, n_labels: beams of the log and class labels of the scene.
-        held_out: the held-out rays described under the given model (:meth:`describe`).
-    """
-
-    scene: object
-    rays: LogRays
-    table: ElementTable
-    train: Problem
-    fitting: Problem
-    test: Problem
-    estimation: Problem
-    azimuth: np.ndarray
-    n_beams: int
-    n_labels: int
-    held_out: RayTable | None = None
-    _states: object = field(default=None, repr=False)
-
-    @classmethod
-    def build(cls, log: Log, scene, max_train: int, max_test: int, max_fit: int, seed: int) -> Splits:
-        """Split and trace the rays of ``log`` (see :func:`diagnose` for the arguments)."""
-        rays = LogRays.from_log(log)
-        train_index, test_index = split_rays(log, max_train, max_test, seed)
-        fit_index = subsample(train_index, max_fit, seed + 1)
-        table = ElementTable.from_scene(scene)
-        scan_of = rays.scan[test_index] if log.directions.shape[0] > 1 else np.zeros(test_index.size, int)
-        d = log.directions[scan_of, rays.beam[test_index], rays.column[test_index]]
-        return cls(
-            scene=scene,
-            rays=rays,
-            table=table,
-            train=Problem.build(scene, rays, train_index, table),
-            fitting=Problem.build(scene, rays, fit_index, table),
-            test=Problem.build(scene, rays, test_index, table),
-            estimation=Problem.build(scene, rays, np.setdiff1d(train_index, fit_index), table),
-            azimuth=np.degrees(np.arctan2(d[:, 1], d[:, 0])),
-            n_beams=log.shape[1],
-            n_labels=int(np.asarray(table.label).max()) + 1,
-        )
-
-    def describe(self, model: SensorModel) -> RayTable:
-        """The held-out rays described under ``model``: first element met, beam, azimuth (:attr:`held_out`)."""
-        index = self.test.index
-        self.held_out = RayTable(
-            ll=np.zeros(index.size),
-            measured=self.rays.measured[index],
-            hit=self.rays.hit[index],
-            sim_range=self.rays.measured[index],
-            sim_hit=self.rays.hit[index],
-            beam=self.rays.beam[index],
-            column=self.rays.column[index],
-            scan=self.rays.scan[index],
-            azimuth=self.azimuth,
-            **first_elements(self.scene, self.table, self.test, model),
-        )
-        return self.held_out
-
-    def states(self, model: SensorModel):
-        """The first element of every estimation ray under ``model`` (traced once; learned densities)."""
-        if self._states is None:
-            self._states = traced_states(self.estimation, model)
-        return self._states
-
-    def realism(self, model: SensorModel, label: str, seed: int, previous: Realism | None = None) -> Realism:
-        """Score and sample ``model`` at the held-out rays (:class:`Realism`), warned against ``previous``."""
-        index = self.test.index
-        ll = self.test.log_likelihood(model)
-        sim_range, sim_hit = simulate_log_rays(self.scene, self.table, self.rays, model, seed, index)
-        metrics = metrics_of(ll, self.rays.measured[index], self.rays.hit[index], sim_range, sim_hit)
-        warning = "" if previous is None else realism_warning(label, previous.metrics, metrics)
-        return Realism(label, metrics, warning, ll, sim_range, sim_hit)
-
-
-def realism_warning(label: str, before: dict, after: dict) -> str:
-    """Why the samples of ``after`` are clearly worse than those of ``before`` ('' when they are not).
-
-    A one-draw |range error| grows when a missing noise law is added (the samples spread as the
-    sensor does), so it only counts with a histogram that is no better; the histogram distance and
-    the return rate are distribution-level and cannot get worse for an effect that is right.
-    """
-    reasons = []
-    if after["histogram_l1"] > (1.0 + HISTOGRAM_WORSE) * before["histogram_l1"] + 0.01:
-        reasons.append(
-            f"the histogram distance grows from {before['histogram_l1']:.3f} to {after['histogram_l1']:.3f} m"
-        )
-    rate = after["hit_rate_measured"]
-    if abs(after["hit_rate_simulated"] - rate) > abs(before["hit_rate_simulated"] - rate) + RATE_WORSE:
-        reasons.append(
-            f"the sampled return rate moves from {before['hit_rate_simulated']:.3f} to "
-            f"{after['hit_rate_simulated']:.3f} (measured {rate:.3f})"
-        )
-    errors = ("range_error_median", "range_error_p90")
-    if after["histogram_l1"] >= before["histogram_l1"] and all(
-        after[k] > ERROR_WORSE * before[k] for k in errors if math.isfinite(before[k])
-    ):
-        reasons.append(
-            f"the median / p90 |range error| of samples grow from {before['range_error_median']:.3f} / "
-            f"{before['range_error_p90']:.3f} to {after['range_error_median']:.3f} / {after['range_error_p90']:.3f} m"
-        )
-    if not reasons:
-        return ""
-    return f"{label} lowers the held-out NLL but its samples look less like the sensor: " + "; ".join(reasons) + "."
 
 
 def _label(name: str, variant: dict) -> str:

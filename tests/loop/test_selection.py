@@ -5,7 +5,7 @@ import pytest
 
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.loop.catalog import candidate_names, fans_out
-from mi_lidar.loop.diagnose import realism_warning
+from mi_lidar.loop.realism import realism_warning
 from mi_lidar.loop.selection import Candidate, held_out_test, rank
 
 N = 20_000
