@@ -14,8 +14,8 @@ Every fit in mi-lidar (effect parameters in ``diagnose``, scene and sensor param
   data every ``eval_every`` steps for early stopping;
 * the result holds the best values seen (lowest held-out loss when ``evaluate`` is given, else
   lowest training loss), so a refit never ends worse than its start;
-* with a ``tolerance``, a fit stops once its best training loss has improved by less than that over
-  the last ``window`` steps (a screening fit that has converged, or that finds nothing to fit, stops
+* with a ``tolerance``, a fit stops once its best loss has improved by less than that over the last
+  ``window`` steps (a screening fit that has converged, or that finds nothing to fit, stops
   instead of running out its steps).
 
 Kernel reuse: the starting values and scales enter kernels as opaque arrays (64-byte aligned), so one
@@ -149,6 +149,11 @@ def cosine_schedule(step: int, steps: int) -> float:
     return 0.1 + 0.45 * (1.0 + math.cos(math.pi * step / max(steps, 1)))
 
 
+def fine_cosine_schedule(step: int, steps: int) -> float:
+    """Learning-rate factor decaying from 1 to 0.01 along a half cosine (fits whose optimum is sharp)."""
+    return 0.01 + 0.495 * (1.0 + math.cos(math.pi * step / max(steps, 1)))
+
+
 def constant_schedule(step: int, steps: int) -> float:
     """Learning-rate factor 1 at every step."""
     return 1.0
@@ -183,8 +188,9 @@ def adam_fit(
         eval_every: steps between held-out evaluations (and after the last step).
         patience: stop after this many held-out evaluations without improvement (None: never).
         progress: optional ``progress(step, steps, training loss, held-out loss or NaN)``.
-        tolerance: stop once the best training loss improved by less than this over the last
-            ``window`` steps, after at least ``min_steps`` steps (:func:`stalled`; None: run every step).
+        tolerance: stop once the best loss (held-out when ``evaluate`` is given, else training)
+            improved by less than this over the last ``window`` steps, after at least ``min_steps``
+            steps (:func:`stalled`; None: run every step).
         window, min_steps: see ``tolerance``.
 
     Returns:
@@ -238,7 +244,7 @@ def adam_fit(
             else:
                 stale += 1
         best.history.append((step, total, held))
-        trail.append(min(total, trail[-1]) if trail else total)
+        trail.append(best.best_loss if evaluate is not None else min(total, trail[-1]) if trail else total)
         if progress is not None:
             progress(step, steps, total, held)
         if (patience is not None and stale >= patience) or stalled(trail, tolerance, window, min_steps):

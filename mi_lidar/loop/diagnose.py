@@ -174,6 +174,37 @@ def _screen(name, variant, base, data: Splits, steps, threshold, nll_before, bef
     )
 
 
+def _converged(ranked, base, data: Splits, steps, threshold, nll_before, before_test, base_fit) -> list[Candidate]:
+    """``ranked`` with its best effect refitted for ``4 steps`` more without stopping early, and scored again.
+
+    A screening fit stops once it stops gaining; an effect whose parameters trade off along a narrow
+    valley (the constant and proportional parts of a noise law) may stop short of its optimum, where a
+    learned density, estimated in closed form, would beat it by a few hundredths of a nat per ray.
+    """
+    best = next((c for c in ranked if c.kind == "effect"), None)
+    if best is None:
+        return ranked
+    trial = dataclasses.replace(base, effects=base.effects + [best.effect])
+    fit = refit(trial, data.fitting, [best.effect], steps=4 * steps)
+    test_ll = data.test.log_likelihood(trial)
+    gain, p = held_out_test(test_ll, before_test)
+    train_gain = float(data.fitting.log_likelihood(trial).sum()) - base_fit
+    best = dataclasses.replace(
+        best,
+        train_gain=train_gain,
+        test_gain=gain,
+        test_gain_pct=relative_gain(gain, nll_before),
+        lr=max(2.0 * train_gain, 0.0),
+        p_value=p,
+        delta_bic=best.k * math.log(data.fitting.n) - max(2.0 * train_gain, 0.0),
+        significant=significant(gain, p, threshold),
+        parameters=fit.parameters,
+        history=best.history + fit.history,
+        test_ll=test_ll,
+    )
+    return [best if c.kind == "effect" and c.name == best.name else c for c in ranked]
+
+
 def _join(ranked: list[Candidate], base: SensorModel, data: Splits, steps: int, threshold: float, before_test):
     """The first significant candidate that still wins held out once the model's effects are refitted with it.
 
@@ -268,6 +299,8 @@ def diagnose(
             if progress is not None:
                 progress(done, total, ranked[-1].name)
         ranked = rank(ranked)
+        if ranked and ranked[0].kind == "density":  # before a learned density leads, let the best effect converge
+            ranked = rank(_converged(ranked, base, data, steps, threshold, nll_before, before_test, base_fit))
         all_rounds.append(ranked)
         joined, augmented, after_test = _join(ranked, base, data, steps, threshold, before_test)
         if joined is None:
