@@ -10,7 +10,8 @@
    the model (a learned density replaces its density), fitted on the subsample
    (:func:`~mi_lidar.loop.catalog.refit`) and scored on every held-out ray; candidates are ranked by
    held-out gain per ray, a simpler candidate first when the best does not beat it significantly
-   (:func:`~mi_lidar.loop.selection.rank`).
+   (:func:`~mi_lidar.loop.selection.rank`). Screening fits stop once they stop gaining, so the effects
+   in a close race with the leader are fitted to the end before the ranking decides.
 3. **join**: the best significant candidate that still wins held out after the model's effects are
    refitted with it joins (:mod:`mi_lidar.loop.selection`: one test for the tables and the verdict).
    Learned densities (NP-Reg, P-Reg) are screened in the first round, against the model as given
@@ -74,6 +75,7 @@ from mi_lidar.loop.selection import (
 from mi_lidar.loop.split import Splits
 
 SIMULATION_STREAM = 7  # seed offset of the samples drawn for realism (the same for every model compared)
+CLOSE = 0.02  # effects within 2 % of the leader's held-out gain are fitted to the end before the ranking decides
 
 
 @dataclass
@@ -175,34 +177,43 @@ def _screen(name, variant, base, data: Splits, steps, threshold, nll_before, bef
 
 
 def _converged(ranked, base, data: Splits, steps, threshold, nll_before, before_test, base_fit) -> list[Candidate]:
-    """``ranked`` with its best effect refitted for ``4 steps`` more without stopping early, and scored again.
+    """``ranked`` with the effects in a close race refitted for ``4 steps`` without stopping early, and scored again.
 
     A screening fit stops once it stops gaining; an effect whose parameters trade off along a narrow
-    valley (the constant and proportional parts of a noise law) may stop short of its optimum, where a
-    learned density, estimated in closed form, would beat it by a few hundredths of a nat per ray.
+    valley (the constant and proportional parts of a noise law) may stop short of its optimum. So the
+    effects within :data:`CLOSE` of the leader's held-out gain, and the best effect when a learned
+    density (estimated in closed form) leads, are fitted to the end before the ranking decides.
     """
-    best = next((c for c in ranked if c.kind == "effect"), None)
-    if best is None:
+    if not ranked or not ranked[0].significant:
         return ranked
-    trial = dataclasses.replace(base, effects=base.effects + [best.effect])
-    fit = refit(trial, data.fitting, [best.effect], steps=4 * steps)
-    test_ll = data.test.log_likelihood(trial)
-    gain, p = held_out_test(test_ll, before_test)
-    train_gain = float(data.fitting.log_likelihood(trial).sum()) - base_fit
-    best = dataclasses.replace(
-        best,
-        train_gain=train_gain,
-        test_gain=gain,
-        test_gain_pct=relative_gain(gain, nll_before),
-        lr=max(2.0 * train_gain, 0.0),
-        p_value=p,
-        delta_bic=best.k * math.log(data.fitting.n) - max(2.0 * train_gain, 0.0),
-        significant=significant(gain, p, threshold),
-        parameters=fit.parameters,
-        history=best.history + fit.history,
-        test_ll=test_ll,
-    )
-    return [best if c.kind == "effect" and c.name == best.name else c for c in ranked]
+    leader = ranked[0]
+    effects = [c for c in ranked if c.kind == "effect" and c.significant]
+    close = [c for c in effects if c.test_gain >= (1.0 - CLOSE) * leader.test_gain]
+    if leader.kind == "density" and effects and effects[0] not in close:
+        close.append(effects[0])
+    if len(close) + (leader.kind == "density") < 2:
+        return ranked
+    refitted = {}
+    for c in close:
+        trial = dataclasses.replace(base, effects=base.effects + [c.effect])
+        fit = refit(trial, data.fitting, [c.effect], steps=4 * steps)
+        test_ll = data.test.log_likelihood(trial)
+        gain, p = held_out_test(test_ll, before_test)
+        train_gain = float(data.fitting.log_likelihood(trial).sum()) - base_fit
+        refitted[id(c)] = dataclasses.replace(
+            c,
+            train_gain=train_gain,
+            test_gain=gain,
+            test_gain_pct=relative_gain(gain, nll_before),
+            lr=max(2.0 * train_gain, 0.0),
+            p_value=p,
+            delta_bic=c.k * math.log(data.fitting.n) - max(2.0 * train_gain, 0.0),
+            significant=significant(gain, p, threshold),
+            parameters=fit.parameters,
+            history=c.history + fit.history,
+            test_ll=test_ll,
+        )
+    return [refitted.get(id(c), c) for c in ranked]
 
 
 def _join(ranked: list[Candidate], base: SensorModel, data: Splits, steps: int, threshold: float, before_test):
@@ -298,9 +309,7 @@ def diagnose(
             done += 1
             if progress is not None:
                 progress(done, total, ranked[-1].name)
-        ranked = rank(ranked)
-        if ranked and ranked[0].kind == "density":  # before a learned density leads, let the best effect converge
-            ranked = rank(_converged(ranked, base, data, steps, threshold, nll_before, before_test, base_fit))
+        ranked = rank(_converged(rank(ranked), base, data, steps, threshold, nll_before, before_test, base_fit))
         all_rounds.append(ranked)
         joined, augmented, after_test = _join(ranked, base, data, steps, threshold, before_test)
         if joined is None:
