@@ -19,7 +19,6 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.arrays import aligned
-from mi_lidar.core.effects.base import Effect
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.fitting import FitVariable, adam_fit, cosine_schedule, fine_cosine_schedule
@@ -34,10 +33,7 @@ LEARNING_RATE = 0.3  # Adam step in units of each parameter's scale (cosine deca
 
 def moves_rays(model) -> bool:
     """True when an effect of ``model`` edits rays before tracing (angle offsets, extrinsics, motion, footprint)."""
-    return any(
-        type(e).perturb_rays is not Effect.perturb_rays or type(e).footprint is not Effect.footprint
-        for e in model.effects
-    )
+    return any(e.moves_rays for e in model.effects)
 
 
 def _ray_key(model) -> tuple:
@@ -45,7 +41,7 @@ def _ray_key(model) -> tuple:
     return tuple(
         (e.name, tuple(np.asarray(dr.detach(v)).tobytes() for v in e.params.values()))
         for e in model.effects
-        if type(e).perturb_rays is not Effect.perturb_rays or type(e).footprint is not Effect.footprint
+        if e.moves_rays
     )
 
 

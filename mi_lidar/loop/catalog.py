@@ -117,14 +117,6 @@ def fans_out(name: str) -> bool:
     return name not in DENSITY_CANDIDATES and issubclass(EFFECTS[name], FootprintEffect)
 
 
-def moves_rays(effect) -> bool:
-    """True when ``effect`` edits rays before tracing (angle offsets, extrinsics, motion, footprint)."""
-    cls = type(effect)
-    return isinstance(effect, Effect) and (
-        cls.perturb_rays is not Effect.perturb_rays or cls.footprint is not Effect.footprint
-    )
-
-
 def search_by_beam(model: SensorModel, effect: Effect, key: str, problem: Problem, passes=COARSE) -> None:
     """Search every beam's value of the per-beam parameter ``key`` of ``effect`` at once (in place).
 
@@ -176,7 +168,8 @@ def refit(
         problem: the rays fitted on.
         parts: the effects to fit (default: all of the model's).
         steps: Adam steps.
-        tolerance: stop Adam once it gains less than this (nats/ray) over 15 steps (None: all steps).
+        tolerance: stop Adam once it gains less than this (nats/ray) over 10 steps, 15 for effects that
+            move rays (None: all steps).
         passes: grid passes of the beam-by-beam search (:data:`COARSE` from a fitting start,
             :data:`FINE` around fitted values).
 
@@ -186,7 +179,7 @@ def refit(
     parts = model.effects if parts is None else parts
     fit = fit_parts(model, problem, parts, steps=steps, tolerance=tolerance)
     for part in parts:
-        if moves_rays(part):
+        if isinstance(part, Effect) and part.moves_rays:
             for key in part.fitted_names():
                 if part.specs[key].per_beam:
                     search_by_beam(model, part, key, problem, passes)
