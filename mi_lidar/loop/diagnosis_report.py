@@ -187,6 +187,8 @@ def plot_before_after(d, k: int, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from mi_lidar.loop.report import save_figure
+
     t = d.held_out
     before, after = d.realism[k], d.realism[k + 1]
     values = {
@@ -224,11 +226,7 @@ def plot_before_after(d, k: int, path: Path) -> Path:
     axes[2, 0].set_ylabel("return rate, points\n(measured - sampled)")
     fig.suptitle(f"Before and after {d.evidence[k]['effect']} joined (held-out rays; bars: 2 standard errors)")
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=90)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    return save_figure(fig, path)
 
 
 def write_report(d, out: Path) -> None:

@@ -187,6 +187,8 @@ def plot_structure(found: list[Structure], path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from mi_lidar.loop.report import save_figure
+
     fig, axes = plt.subplots(2, len(DIMENSIONS), figsize=(3.2 * len(DIMENSIONS), 5.2), squeeze=False)
     by_key = {(s.channel, s.dimension): s for s in found}
     for row, channel in enumerate(("range", "returns")):
@@ -206,8 +208,4 @@ def plot_structure(found: list[Structure], path: Path) -> Path:
                 ax.set_ylabel("range residual, cm" if channel == "range" else "return rate, points")
     fig.suptitle("Measured minus model, per group (bars: 2 standard errors; red: structure left)")
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=90)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    return save_figure(fig, path)
