@@ -6,19 +6,17 @@
    candidates are fitted on a subsample of the training rays. Each split is traced once in the
    scene and reused by every candidate and round (:class:`~mi_lidar.core.problem.Problem` traces
    again only for effects that move rays).
-2. **screen**: each round, every candidate of the catalog (:mod:`mi_lidar.loop.catalog`) is added to
-   the model (a learned density replaces its density), fitted on the subsample
+2. **screen**: each round, every effect of the catalog (:mod:`mi_lidar.loop.catalog`) is added to
+   the model, fitted on the subsample
    (:func:`~mi_lidar.loop.catalog.refit`) and scored on every held-out ray; candidates are ranked by
    held-out gain per ray, a simpler candidate first when the best does not beat it significantly
    (:func:`~mi_lidar.loop.selection.rank`). Screening fits stop once they stop gaining, so the effects
    in a close race with the leader are fitted to the end before the ranking decides.
 3. **join**: the best significant candidate that still wins held out after the model's effects are
    refitted with it joins (:mod:`mi_lidar.loop.selection`: one test for the tables and the verdict).
-   Learned densities (NP-Reg, P-Reg) are screened in the first round, against the model as given
-   when it has no effects, and rank first only when they beat every catalog effect significantly: a
-   physical effect is the better answer when there is one. Rounds repeat (``rounds`` at most) until
-   nothing joins; after the first round only the candidates that were significant in it are tried
-   again (an effect that does not improve the model alone is not looked for behind another).
+   Rounds repeat (``rounds`` at most) until nothing joins; after the first round only the candidates
+   that were significant in it are tried again (an effect that does not improve the model alone is
+   not looked for behind another).
 4. **realism**: with every joined effect the model is sampled at the held-out rays before and after
    (the same random numbers), and the realism of the samples is put beside the NLL (median and p90
    |range error|, return rate, hit/miss F1, histogram match; :func:`~mi_lidar.core.metrics.metrics_of`);
@@ -26,9 +24,14 @@
    that are clearly worse.
 5. **final fit**: every effect is refitted together on the whole training split; effects left
    without held-out gain are dropped, per-beam or per-label values without evidence shrunk.
-6. **what is left**: the residuals of the final model are tested for structure along time, azimuth,
+6. **learned densities**: when the given model has no effects, the thesis's learned densities
+   (NP-Reg, P-Reg) replace its density and are held against the model with the effects found; one
+   replaces that model only when it beats it significantly, by 0.01 nats/ray at least (a physical
+   effect says why, a learned density only what, so it wins only what no combination of catalog
+   effects explains: a skewed residual, say).
+7. **what is left**: the residuals of the final model are tested for structure along time, azimuth,
    beam, range and label (:mod:`mi_lidar.loop.residuals`): what varies there no catalog effect explains.
-7. **report**: :mod:`mi_lidar.loop.diagnosis_report` (Markdown, HTML, JSON and figures).
+8. **report**: :mod:`mi_lidar.loop.diagnosis_report` (Markdown, HTML, JSON and figures).
 
 Scores are floored per ray with the one floor of :func:`~mi_lidar.core.likelihood.score`.
 """
@@ -64,6 +67,7 @@ from mi_lidar.loop.selection import (
     JOINED,
     LOST,
     P_VALUE,
+    REPLACED,
     Candidate,
     drop_passengers,
     held_out_test,
@@ -86,7 +90,8 @@ class Diagnosis:
         rounds: per round, the candidates ranked best first.
         selected: names of the candidates that joined, in order.
         nll_before, nll_after: held-out NLL per ray of the given and of the final model.
-        evidence: per selected candidate, the breakdown groups where its gain concentrates.
+        evidence: per joined candidate, the breakdown groups where its gain concentrates and the rows of
+            ``realism`` before and after it joined.
         summary: the plain-words verdict.
         parameters: the final model's fitted values of the selected effects, ``{"effect.param": values}``.
         structure: residual structure left by the final model (:class:`~mi_lidar.loop.residuals.Structure`).
@@ -143,17 +148,10 @@ def _label(name: str, variant: dict) -> str:
 
 def _screen(name, variant, base, data: Splits, steps, threshold, nll_before, before_test, base_fit) -> Candidate:
     """Fit one candidate on the subsample and test it on the held-out rays."""
-    if name in DENSITY_CANDIDATES:
-        density, table = fit_density_candidate(name, base, data.states(base), data.fitting, data.n_labels)
-        trial = dataclasses.replace(base, density=density)
-        k = int(sum(np.size(v) for v in density.tables().values()))
-        best = min(table, key=lambda row: row[-1])
-        parameters, history, added, kind = {f"{name}.bandwidths": np.asarray(best[:-1])}, [], density, "density"
-    else:
-        added = candidate(name, data.n_beams, data.n_labels, **variant)
-        trial = dataclasses.replace(base, effects=base.effects + [added])
-        fit = refit(trial, data.fitting, [added], steps=steps, tolerance=SCREEN_TOLERANCE, passes=COARSE)
-        k, parameters, history, kind = n_parameters([added]), fit.parameters, fit.history, "effect"
+    added = candidate(name, data.n_beams, data.n_labels, **variant)
+    trial = dataclasses.replace(base, effects=base.effects + [added])
+    fit = refit(trial, data.fitting, [added], steps=steps, tolerance=SCREEN_TOLERANCE, passes=COARSE)
+    k, parameters, history = n_parameters([added]), fit.parameters, fit.history
     gain_fit = float(data.fitting.log_likelihood(trial).sum()) - base_fit
     lr = max(2.0 * gain_fit, 0.0)
     test_ll = data.test.log_likelihood(trial)
@@ -170,7 +168,6 @@ def _screen(name, variant, base, data: Splits, steps, threshold, nll_before, bef
         significant=significant(gain, p, threshold),
         parameters=parameters,
         history=history,
-        kind=kind,
         effect=added,
         test_ll=test_ll,
     )
@@ -181,39 +178,84 @@ def _converged(ranked, base, data: Splits, steps, threshold, nll_before, before_
 
     A screening fit stops once it stops gaining; an effect whose parameters trade off along a narrow
     valley (the constant and proportional parts of a noise law) may stop short of its optimum. So the
-    effects within :data:`CLOSE` of the leader's held-out gain, and the best effect when a learned
-    density (estimated in closed form) leads, are fitted to the end before the ranking decides.
+    significant effects within :data:`CLOSE` of the leader's held-out gain are fitted to the end before
+    the ranking decides.
     """
     if not ranked or not ranked[0].significant:
         return ranked
-    leader = ranked[0]
-    effects = [c for c in ranked if c.kind == "effect" and c.significant]
-    close = [c for c in effects if c.test_gain >= (1.0 - CLOSE) * leader.test_gain]
-    if leader.kind == "density" and effects and effects[0] not in close:
-        close.append(effects[0])
-    if len(close) + (leader.kind == "density") < 2:
+    close = [c for c in ranked if c.significant and c.test_gain >= (1.0 - CLOSE) * ranked[0].test_gain]
+    if len(close) < 2:
         return ranked
     refitted = {}
     for c in close:
         trial = dataclasses.replace(base, effects=base.effects + [c.effect])
         fit = refit(trial, data.fitting, [c.effect], steps=4 * steps)
-        test_ll = data.test.log_likelihood(trial)
-        gain, p = held_out_test(test_ll, before_test)
-        train_gain = float(data.fitting.log_likelihood(trial).sum()) - base_fit
-        refitted[id(c)] = dataclasses.replace(
-            c,
-            train_gain=train_gain,
-            test_gain=gain,
-            test_gain_pct=relative_gain(gain, nll_before),
-            lr=max(2.0 * train_gain, 0.0),
-            p_value=p,
-            delta_bic=c.k * math.log(data.fitting.n) - max(2.0 * train_gain, 0.0),
-            significant=significant(gain, p, threshold),
-            parameters=fit.parameters,
-            history=c.history + fit.history,
-            test_ll=test_ll,
-        )
+        refitted[id(c)] = _scored(c, trial, data, threshold, nll_before, before_test, base_fit, fit)
     return [refitted.get(id(c), c) for c in ranked]
+
+
+def _scored(c: Candidate, trial, data: Splits, threshold, nll_before, before_test, base_fit, fit) -> Candidate:
+    """``c`` scored again with the model ``trial`` after ``fit`` (a :class:`~mi_lidar.core.problem.PartsFit`)."""
+    test_ll = data.test.log_likelihood(trial)
+    gain, p = held_out_test(test_ll, before_test)
+    train_gain = float(data.fitting.log_likelihood(trial).sum()) - base_fit
+    return dataclasses.replace(
+        c,
+        train_gain=train_gain,
+        test_gain=gain,
+        test_gain_pct=relative_gain(gain, nll_before),
+        lr=max(2.0 * train_gain, 0.0),
+        p_value=p,
+        delta_bic=c.k * math.log(data.fitting.n) - max(2.0 * train_gain, 0.0),
+        significant=significant(gain, p, threshold),
+        parameters=fit.parameters,
+        history=c.history + fit.history,
+        test_ll=test_ll,
+    )
+
+
+def _learned(names: list[str], given: SensorModel, found: SensorModel, data: Splits, final) -> list:
+    """The learned densities, each replacing the given model's density, against the model with the effects found.
+
+    A density is estimated on the estimation rays (its bandwidths chosen on the fitting rays) and
+    scored on the held-out rays against ``final`` (the found model's :class:`~mi_lidar.loop.realism.Realism`).
+    The best one joins (replacing the effects found) only when it beats that model significantly,
+    by :data:`~mi_lidar.loop.selection.MIN_GAIN` at least: a physical effect says why, a learned
+    density only what.
+
+    Returns:
+        The density rows, best first.
+    """
+    threshold, rows = P_VALUE / len(names), []
+    found_fit = float(data.fitting.log_likelihood(found).sum())
+    for name in names:
+        density, table = fit_density_candidate(name, given, data.states(given), data.fitting, data.n_labels)
+        trial = dataclasses.replace(given, density=density)
+        test_ll = data.test.log_likelihood(trial)
+        gain, p = held_out_test(test_ll, final.ll)
+        train_gain = float(data.fitting.log_likelihood(trial).sum()) - found_fit
+        k = int(sum(np.size(v) for v in density.tables().values()))
+        rows.append(
+            Candidate(
+                name=name,
+                k=k,
+                train_gain=train_gain,
+                test_gain=gain,
+                test_gain_pct=relative_gain(gain, float(-final.ll.mean())),
+                lr=max(2.0 * train_gain, 0.0),
+                p_value=p,
+                delta_bic=k * math.log(data.fitting.n) - max(2.0 * train_gain, 0.0),
+                significant=significant(gain, p, threshold),
+                parameters={f"{name}.bandwidths": np.asarray(min(table, key=lambda row: row[-1])[:-1])},
+                kind="density",
+                effect=density,
+                test_ll=test_ll,
+            )
+        )
+    rows.sort(key=lambda c: -c.test_gain)
+    if rows and rows[0].significant:
+        rows[0].status = JOINED
+    return rows
 
 
 def _join(ranked: list[Candidate], base: SensorModel, data: Splits, steps: int, threshold: float, before_test):
@@ -223,12 +265,8 @@ def _join(ranked: list[Candidate], base: SensorModel, data: Splits, steps: int, 
         ``(candidate, augmented model, its held-out per-ray log-likelihood)`` or ``(None, None, None)``.
     """
     for c in (c for c in ranked if c.significant):
-        if c.kind == "density":
-            augmented = dataclasses.replace(base, density=c.effect)
-        else:
-            augmented = dataclasses.replace(base, effects=base.effects + [copy.deepcopy(c.effect)])
-        if augmented.effects:
-            refit(augmented, data.fitting, steps=steps, tolerance=SCREEN_TOLERANCE)  # earlier effects adapt
+        augmented = dataclasses.replace(base, effects=base.effects + [copy.deepcopy(c.effect)])
+        refit(augmented, data.fitting, steps=steps, tolerance=SCREEN_TOLERANCE)  # earlier effects adapt
         after_test = data.test.log_likelihood(augmented)
         if significant(*held_out_test(after_test, before_test), threshold):
             c.status = JOINED
@@ -296,8 +334,11 @@ def diagnose(
     before_test = realism[0].ll
     nll_before = float(-before_test.mean())
     names = [(n, v) for n in candidate_names(base.effects, candidates, not base.effects) for v in variants(n)]
+    densities = [n for n, _ in names if n in DENSITY_CANDIDATES] if not base.effects else []
+    names = [(n, v) for n, v in names if n not in DENSITY_CANDIDATES]
+    given = copy.deepcopy(base)
     all_rounds, selected, evidence, joined_effects = [], [], [], []
-    total, done = len(names) * rounds, 0
+    total, done = len(names) * rounds + len(densities), 0
     for _ in range(rounds):
         if not names:
             break
@@ -314,15 +355,14 @@ def diagnose(
         joined, augmented, after_test = _join(ranked, base, data, steps, threshold, before_test)
         if joined is None:
             break
-        evidence.append({"effect": joined.name, "groups": _evidence(data, before_test, after_test)})
+        groups = _evidence(data, before_test, after_test)
+        evidence.append({"effect": joined.name, "groups": groups, "realism": [len(realism) - 1, len(realism)]})
         realism.append(data.realism(augmented, f"+ {joined.name}", stream, realism[-1]))
-        if joined.kind == "effect":
-            joined_effects.append((joined.name, augmented.effects[-1]))
+        joined_effects.append((joined.name, augmented.effects[-1]))
         base, before_test = augmented, after_test
         selected.append(joined.name)
-        if len(all_rounds) == 1:  # later rounds retry only what was significant alone, and no density
+        if len(all_rounds) == 1:  # later rounds retry only what was significant alone
             names = [(n, v) for n, v in names if _label(n, v) in {c.name for c in ranked if c.significant}]
-            names = [(n, v) for n, v in names if n not in DENSITY_CANDIDATES]
         kept = set(candidate_names(base.effects, [n for n, _ in names]))
         names = [(n, v) for n, v in names if n in kept]
     if joined_effects:
@@ -338,6 +378,23 @@ def diagnose(
         shrink_without_evidence(base, [e for _, e in joined_effects], data.train)
     if selected:
         realism.append(data.realism(base, "final model", stream, None))
+    if densities:
+        learned = _learned(densities, given, base, data, realism[-1])
+        all_rounds.append(learned)
+        done += len(densities)
+        if progress is not None:
+            progress(done, total, "learned densities")
+        if learned and learned[0].status == JOINED:
+            for c in (c for r in all_rounds for c in r if c.status == JOINED and c.kind == "effect"):
+                c.status = REPLACED
+            base, selected, joined_effects = (
+                dataclasses.replace(given, density=learned[0].effect),
+                [learned[0].name],
+                [],
+            )
+            groups = _evidence(data, realism[-1].ll, learned[0].test_ll)
+            evidence.append({"effect": learned[0].name, "groups": groups, "realism": [len(realism) - 1, len(realism)]})
+            realism.append(data.realism(base, f"{learned[0].name} instead", stream, realism[-1]))
     final = realism[-1]
     result = Diagnosis(
         rounds=all_rounds,

@@ -22,7 +22,7 @@ import numpy as np
 from mi_lidar.core.atomic import atomic_write
 from mi_lidar.io.markdown import markdown_to_html
 from mi_lidar.loop.residuals import UNITS, group_index, plot_structure, residual_structure, structure_verdict
-from mi_lidar.loop.selection import DROPPED, JOINED, LOST, MIN_GAIN
+from mi_lidar.loop.selection import DROPPED, JOINED, LOST, MIN_GAIN, REPLACED
 
 FIGURE_DIMENSIONS = ("range", "incidence", "beam")
 
@@ -49,10 +49,13 @@ def verdict(d) -> str:
             "" if math.isnan(c.test_gain_pct) else f"({c.test_gain_pct:.1f} %) "
         )
         if c.kind == "density":
+            replaced = [r.name for r in rows if r.status == REPLACED]
+            instead = f"the model with {', '.join(replaced)}" if replaced else "the given model"
             text = (
-                f"No catalog effect explains the residuals as well as a learned density: **{name}** replaces the "
-                f"model's return density ({gain}(held-out p = {c.p_value:.2g})). It describes what the sensor "
-                "does without saying why; a physical effect would say more (see docs/writing_an_effect.md)."
+                f"No combination of catalog effects explains the log as well as a learned density: **{name}** "
+                f"replaces the model's return density, {gain}against {instead} (held-out p = {c.p_value:.2g}). "
+                "It describes what the sensor does without saying why; a physical effect would say more (see "
+                "docs/writing_an_effect.md)."
             )
         else:
             mine = name.split("(")[0]
@@ -98,8 +101,9 @@ def verdict(d) -> str:
 def _ranking(d) -> list[str]:
     lines = []
     for i, ranked in enumerate(d.rounds):
+        learned = ranked and ranked[0].kind == "density"
         lines += [
-            f"## Round {i + 1}",
+            "## Learned densities against the model with the effects found" if learned else f"## Round {i + 1}",
             "",
             "| rank | candidate | k | held-out gain (nats/ray) | gain % | held-out p | significant | status "
             "| train LR |",
@@ -114,8 +118,8 @@ def _ranking(d) -> list[str]:
         lines.append("")
     if any(c.kind == "density" for r in d.rounds for c in r):
         lines += [
-            "A learned density ranks first only when it beats every catalog effect significantly held out, by "
-            f"{MIN_GAIN} nats/ray at least: a physical effect says why, a learned density only what.",
+            "A learned density replaces the model with the effects found only when it beats it significantly held "
+            f"out, by {MIN_GAIN} nats/ray at least: a physical effect says why, a learned density only what.",
             "",
         ]
     return lines
@@ -190,7 +194,7 @@ def plot_before_after(d, k: int, path: Path) -> Path:
     from mi_lidar.loop.report import save_figure
 
     t = d.held_out
-    before, after = d.realism[k], d.realism[k + 1]
+    before, after = (d.realism[i] for i in d.evidence[k]["realism"])
     values = {
         "range": t.nominal,
         "incidence": np.where(np.isfinite(t.nominal), np.degrees(np.arccos(np.clip(t.cos_incidence, 0, 1))), np.nan),

@@ -8,9 +8,7 @@
   physical effect). The training likelihood ratio and BIC change are reported beside it, not used.
 * **ranking** (:func:`rank`): by held-out gain, except that a simpler candidate (fewer parameters)
   goes first when the best one does not beat it significantly held out (a per-label dropout with
-  every label alike is a random dropout), and a learned density goes first only when it beats every
-  catalog effect significantly held out, by :data:`MIN_GAIN` at least (a physical effect says why,
-  a learned density only what);
+  every label alike is a random dropout);
 * **joining** (:func:`significant`): a candidate joins only when, after every effect of the
   augmented model is refitted together, the augmented model still passes the same test against the
   current one.
@@ -42,6 +40,7 @@ MIN_NLL_FOR_PERCENT = 1.0  # nats/ray: below this a gain relative to the NLL is 
 JOINED = "joined"
 LOST = "lost in the joint refit"
 DROPPED = "dropped after the final refit"
+REPLACED = "replaced by a learned density"
 
 
 def relative_gain(gain: float, nll: float) -> float:
@@ -86,7 +85,8 @@ class Candidate:
         parameters: fitted values (of the candidate fit).
         status: :data:`JOINED`, :data:`LOST` (significant alone, not once the model's effects were
             refitted with it), :data:`DROPPED` (it joined, but the final joint refit left it no
-            held-out gain) or ``""``.
+            held-out gain), :data:`REPLACED` (a learned density beat the model with the effects found)
+            or ``""``.
         kind: ``effect`` or ``density``.
         history: training mean log-likelihood per step, nats/ray.
         effect: the fitted effect or density.
@@ -117,25 +117,12 @@ class Candidate:
 
 
 def rank(candidates: list[Candidate]) -> list[Candidate]:
-    """Candidates best first (see the module docstring).
-
-    By held-out gain; while a candidate with fewer parameters (of the same kind) is not beaten by the
-    leader in the paired held-out test at :data:`P_VALUE`, the best of those simpler ones leads
-    instead; a learned density that leads without beating the best effect significantly (and by
-    :data:`MIN_GAIN`) gives way to it.
-    """
+    """Candidates best first: by held-out gain; while a candidate with fewer parameters is not beaten by the
+    leader in the paired held-out test at :data:`P_VALUE`, the best of those simpler ones leads instead."""
     ranked = sorted(candidates, key=lambda c: -c.test_gain)
     while ranked:
         leader = ranked[0]
-        equal = [
-            c
-            for c in ranked[1:]
-            if c.k < leader.k and c.kind == leader.kind and held_out_test(leader.test_ll, c.test_ll)[1] >= P_VALUE
-        ]
-        if leader.kind == "density":
-            effects = [c for c in ranked if c.kind == "effect"]
-            if effects and not significant(*held_out_test(leader.test_ll, effects[0].test_ll), P_VALUE):
-                equal = effects[:1]
+        equal = [c for c in ranked[1:] if c.k < leader.k and held_out_test(leader.test_ll, c.test_ll)[1] >= P_VALUE]
         if not equal:
             break
         ranked.remove(equal[0])

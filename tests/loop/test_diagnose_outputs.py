@@ -60,8 +60,9 @@ def test_scene_with_effects_replaces_an_existing_effects_string(tmp_path):
 
 
 def test_a_joined_learned_density_is_saved_and_referenced_by_the_written_scene(tmp_path, monkeypatch):
-    """Returns of the independent street arrive late by an exponential delay (no catalog law is skewed): among
-    effects that spread returns, NP-Reg ranks first and joins; out/scene.xml references its saved tables."""
+    """Returns of the independent street arrive late by an exponential delay (no catalog law is skewed): NP-Reg
+    beats the model with the effects that spread returns and replaces it; out/scene.xml references its saved
+    tables and carries no effect."""
     from mi_lidar.core.densities import NPRegDensity
     from mi_lidar.core.log import Log
 
@@ -74,9 +75,11 @@ def test_a_joined_learned_density_is_saved_and_referenced_by_the_written_scene(t
         arguments += ["--candidate", name]
     result = CliRunner().invoke(app, arguments, terminal_width=200)
     assert result.exit_code == 0, result.stdout
-    first = json.loads((tmp_path / "d" / "diagnosis.json").read_text())["rounds"][0][0]
-    assert first["name"] == "np_reg" and first["status"] == "joined", first
+    report = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
+    learned = report["rounds"][-1][0]
+    assert learned["name"] == "np_reg" and learned["status"] == "joined", learned
+    assert report["selected"] == ["np_reg"]
     assert (tmp_path / "d" / "np_reg.npz").is_file()
     monkeypatch.chdir(tmp_path / "d")
     found, _ = scene_sensor_model(load_scene(tmp_path / "d" / "scene.xml"))
-    assert isinstance(found.density, NPRegDensity)
+    assert isinstance(found.density, NPRegDensity) and found.effects == []
