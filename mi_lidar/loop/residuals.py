@@ -202,6 +202,8 @@ def plot_structure(found: list[Structure], path: Path) -> Path:
             colour = "tab:red" if s.flagged else "tab:blue"
             ax.errorbar(s.centers, scale * s.difference, yerr=2 * scale * s.error, fmt="o-", color=colour, ms=3)
             ax.axhline(0.0, color="grey", lw=0.6)
+            low, high = ax.get_ylim()  # at least +-1 cm / point, so that agreement looks flat
+            ax.set_ylim(min(low, -1.0), max(high, 1.0))
             ax.set_xlabel(f"{dimension} ({UNITS[dimension]})" if UNITS[dimension] else dimension)
             ax.set_title(f"p = {s.p_value:.1g}", fontsize=8, color=colour)
             if col == 0:
