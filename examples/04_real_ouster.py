@@ -26,7 +26,8 @@ from mi_lidar.core.effects import make_effect
 from mi_lidar.io import read_any
 from mi_lidar.loop.compare import compare
 from mi_lidar.loop.development import development_table
-from mi_lidar.loop.diagnose import diagnose, verdict
+from mi_lidar.loop.diagnose import diagnose
+from mi_lidar.loop.diagnosis_report import verdict
 from mi_lidar.loop.real_ouster import MESH_EVERY, column_log, ouster_development_path, range_image_mesh
 from mi_lidar.scene.dicts import scene_dict
 

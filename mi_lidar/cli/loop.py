@@ -60,14 +60,20 @@ def diagnose_command(
     out: Path = typer.Option(..., "--out", "-o", help="Report folder."),
     as_json: bool = typer.Option(False, "--json", help="Print the ranking as JSON (for scripts)."),
     candidate: list[str] | None = typer.Option(
-        None, "--candidate", help="Only try these effects (repeatable); default: the whole catalog."
+        None,
+        "--candidate",
+        help="Only try these effects or learned densities (np_reg, p_reg) (repeatable); default: the whole catalog.",
     ),
-    steps: int = typer.Option(60, min=1, help="Adam steps per candidate fit."),
+    steps: int = typer.Option(
+        60, min=1, help="Adam steps per candidate fit at most (a fit stops once it stops gaining)."
+    ),
     force: bool = typer.Option(False, help="Diagnose even when the log's sensor does not match the scene's."),
     density: str | None = density_option(),
 ):
     """Find the physical effects the model lacks: fit every candidate on training rays, rank and confirm them by a
-    held-out test, and say what the residuals still vary with.
+    held-out test, and say what the residuals still vary with. The report folder gets diagnosis.html (rankings,
+    likelihood beside the realism of samples, a before/after figure per effect found, residual structure) and
+    scene.xml, the scene with the effects found (and a learned density's tables when one replaced the density).
 
     Examples:
 
@@ -94,7 +100,12 @@ def diagnose_command(
         )
     from mi_lidar.scene.files import scene_with_effects
 
-    found = scene_with_effects(scene, ", ".join(e.describe() for e in result.model.effects), out / "scene.xml")
+    density = None
+    if result.density is not None:  # a learned density replaced the scene's: save it beside the scene
+        saved = result.density.save(out / f"{result.density.name}.npz", notes={"from": "mi-lidar diagnose"})
+        density = f"{result.density.name}(file={Path(saved).resolve()})"
+    effects = ", ".join(e.describe() for e in result.model.effects)
+    found = scene_with_effects(scene, effects, out / "scene.xml", density)
     if as_json:
         typer.echo(json.dumps(result.ranking(), indent=1, default=float))
     else:

@@ -13,7 +13,10 @@ Every fit in mi-lidar (effect parameters in ``diagnose``, scene and sensor param
   calling ``dr.backward`` on each) and returns its total; an optional ``evaluate`` scores held-out
   data every ``eval_every`` steps for early stopping;
 * the result holds the best values seen (lowest held-out loss when ``evaluate`` is given, else
-  lowest training loss), so a refit never ends worse than its start.
+  lowest training loss), so a refit never ends worse than its start;
+* with a ``tolerance``, a fit stops once its best loss has improved by less than that over the last
+  ``window`` steps (a screening fit that has converged, or that finds nothing to fit, stops
+  instead of running out its steps).
 
 Kernel reuse: the starting values and scales enter kernels as opaque arrays (64-byte aligned), so one
 compiled kernel serves every step of a fit and every fit of the same code.
@@ -127,9 +130,28 @@ class FitResult:
     stopped_early: bool = False
 
 
+def stalled(best: list[float], tolerance: float | None, window: int, min_steps: int) -> bool:
+    """True when the best loss ``best[-1]`` improved by less than ``tolerance`` over the last ``window`` steps.
+
+    Args:
+        best: best training loss after each step so far (non-increasing).
+        tolerance: the improvement that counts, in the loss's units (None: never stalled).
+        window: steps looked back.
+        min_steps: steps taken before a fit may stop.
+    """
+    if tolerance is None or len(best) < max(min_steps, window + 1):
+        return False
+    return best[-1 - window] - best[-1] < tolerance
+
+
 def cosine_schedule(step: int, steps: int) -> float:
     """Learning-rate factor decaying from 1 to 0.1 along a half cosine."""
     return 0.1 + 0.45 * (1.0 + math.cos(math.pi * step / max(steps, 1)))
+
+
+def fine_cosine_schedule(step: int, steps: int) -> float:
+    """Learning-rate factor decaying from 1 to 0.01 along a half cosine (fits whose optimum is sharp)."""
+    return 0.01 + 0.495 * (1.0 + math.cos(math.pi * step / max(steps, 1)))
 
 
 def constant_schedule(step: int, steps: int) -> float:
@@ -147,6 +169,9 @@ def adam_fit(
     eval_every: int = 10,
     patience: int | None = None,
     progress: Callable[[int, int, float, float], None] | None = None,
+    tolerance: float | None = None,
+    window: int = 15,
+    min_steps: int = 20,
 ) -> FitResult:
     """Minimise ``objective`` over ``variables`` with projected Adam.
 
@@ -163,6 +188,10 @@ def adam_fit(
         eval_every: steps between held-out evaluations (and after the last step).
         patience: stop after this many held-out evaluations without improvement (None: never).
         progress: optional ``progress(step, steps, training loss, held-out loss or NaN)``.
+        tolerance: stop once the best loss (held-out when ``evaluate`` is given, else training)
+            improved by less than this over the last ``window`` steps, after at least ``min_steps``
+            steps (:func:`stalled`; None: run every step).
+        window, min_steps: see ``tolerance``.
 
     Returns:
         The :class:`FitResult` (best values, history).
@@ -189,6 +218,7 @@ def adam_fit(
             best.best_loss = float(evaluate({v.name: v.natural(dr.detach(opt[v.name])) for v in variables}))
         best.history.append((0, math.nan, best.best_loss))
     stale, step = 0, 0
+    trail: list[float] = []  # best training loss after each step
     for step in range(1, steps + 1):
         opt.set_learning_rate(lr * schedule(step - 1, steps))
         current = snapshot() if evaluate is None else {}
@@ -214,9 +244,10 @@ def adam_fit(
             else:
                 stale += 1
         best.history.append((step, total, held))
+        trail.append(best.best_loss if evaluate is not None else min(total, trail[-1]) if trail else total)
         if progress is not None:
             progress(step, steps, total, held)
-        if patience is not None and stale >= patience:
+        if (patience is not None and stale >= patience) or stalled(trail, tolerance, window, min_steps):
             best.stopped_early = True
             break
     best.steps_run = step

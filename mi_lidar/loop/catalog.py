@@ -1,15 +1,51 @@
-"""Candidate effects for diagnosis: every registered effect, started where fitting can move it.
+"""Candidates for diagnosis, and how each is fitted: every registered effect, and the learned densities.
 
-An effect's :class:`~mi_lidar.core.params.ParamSpec` declarations carry everything diagnosis needs:
-the fitting start (``fit_start``, where the default sits on a boundary with no gradient), the step
-unit (``fit_scale``), parameters kept fixed (``fit=False``), and per-beam / per-label widths. Options
-listed in the class's ``variant_options`` are tried as separate candidates (each noise law, each
-dropout law).
+**Effects.** An effect's :class:`~mi_lidar.core.params.ParamSpec` declarations carry everything
+diagnosis needs: the fitting start (``fit_start``, where the default sits on a boundary with no
+gradient), the step unit (``fit_scale``), parameters kept fixed (``fit=False``), and per-beam /
+per-label widths. Options listed in the class's ``variant_options`` are tried as separate candidates
+(each noise law, each dropout law).
+
+**Learned densities** (:data:`DENSITY_CANDIDATES`: NP-Reg and P-Reg, thesis ch. 3.3-3.4) replace the
+model's return density instead of adding to it. They are estimated in closed form from the training
+rays that the effects are not fitted on, their bandwidths chosen on the fitting rays
+(:func:`fit_density_candidate`), so the held-out rays judge them exactly as they judge an effect.
+
+**Fitting** (:func:`refit`): the one fitter (projected Adam, :func:`~mi_lidar.core.problem.fit_parts`),
+then, for the per-beam parameters of effects that move rays (beam elevation and azimuth offsets), a
+search beam by beam. Their gradients come from the tangent planes of the surfaces the rays met at the
+last trace, so they cannot see a ray that moves onto another surface (a roof line, a car's top, the
+ground behind a wall), which is all a beam that only meets vertical walls tells about its elevation.
+Each ray belongs to one beam, so the likelihood is a sum of per-beam terms and every beam's value is
+searched at once on a grid that narrows around the best value (:func:`search_by_beam`), each point
+traced anew.
 """
 
 from __future__ import annotations
 
-from mi_lidar.core.effects.base import EFFECTS, Effect
+import dataclasses
+
+import mitsuba as mi
+import numpy as np
+
+from mi_lidar.core.arrays import aligned
+from mi_lidar.core.effects.base import EFFECTS, Effect, FootprintEffect
+from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.problem import PartsFit, Problem, fit_parts, make_opaque
+from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.loop.sensor_fit import fit_density
+
+DENSITY_CANDIDATES = {"np_reg": "np-reg", "p_reg": "p-reg"}  # candidate name: fit-sensor family
+# bandwidths screened (fit-sensor tries 12 pairs; P-Reg's local regressions cost 0.6 s of CPU per pair)
+DENSITY_OPTIONS = {
+    "np_reg": {"h_ranges": (1.0, 4.0), "h_incidences": (5.0, 20.0)},
+    "p_reg": {"h_ranges": (1.0, 4.0), "h_incidences": (10.0,)},
+}
+SCREEN_TOLERANCE = 1e-3  # nats/ray: a screening fit stops once it gains less than this over 10 to 15 steps
+# (effect, option, choice): the choice whose likelihood it shares (MultipleReturns scores strongest as first)
+SCORED_AS = {("multiple_returns", "mode", "strongest"): "first"}
+COARSE = ((6, 1.0), (3, 1 / 3), (3, 1 / 9), (3, 1 / 27))  # (half points, step in fit_scale units) per pass
+FINE = ((3, 1 / 9), (3, 1 / 27), (3, 1 / 81))  # around values already fitted
 
 
 def candidate(name: str, n_beams: int, n_labels: int, **options) -> Effect:
@@ -29,20 +65,144 @@ def candidate(name: str, n_beams: int, n_labels: int, **options) -> Effect:
 
 
 def variants(name: str) -> list[dict]:
-    """Option settings to try for effect ``name``: every combination of its ``variant_options``."""
+    """Option settings to try for effect ``name``: every combination of its ``variant_options``.
+
+    Choices scored with another choice's likelihood are left out (:data:`SCORED_AS`): their row would
+    repeat the other's.
+    """
+    if name in DENSITY_CANDIDATES:
+        return [{}]
     cls = EFFECTS[name]
     settings: list[dict] = [{}]
     for option in cls.variant_options:
-        settings = [{**s, option: choice} for s in settings for choice in cls.options[option]]
+        choices = [c for c in cls.options[option] if (name, option, c) not in SCORED_AS]
+        settings = [{**s, option: choice} for s in settings for choice in choices]
     return settings
 
 
-def candidate_names(present: list[Effect], include: list[str] | None = None) -> list[str]:
-    """Registered effects not yet in the model (``include`` restricts and orders them).
+def candidate_names(present: list[Effect], include: list[str] | None = None, densities: bool = True) -> list[str]:
+    """Registered effects not yet in the model, then the learned densities (``include`` restricts and orders them).
+
+    A model holds one effect that fans beams out (:class:`~mi_lidar.core.effects.base.FootprintEffect`):
+    when it has one, the others are left out.
+
+    Args:
+        present: the model's effects.
+        include: names to try (effects or :data:`DENSITY_CANDIDATES`); None: every effect and, with
+            ``densities``, every learned density.
+        densities: offer the learned densities when ``include`` is None.
 
     Raises:
-        ParameterError: a name of ``include`` is not in the catalog (the message lists it).
+        ParameterError: a name of ``include`` is in neither catalog (the message lists both).
     """
     have = {e.name for e in present}
-    names = [EFFECTS.cls(n).name for n in include] if include is not None else sorted(EFFECTS)
-    return [n for n in names if n not in have]
+    fanned = any(isinstance(e, FootprintEffect) for e in present)  # a model holds one footprint effect
+    if include is None:
+        names = sorted(EFFECTS) + (list(DENSITY_CANDIDATES) if densities else [])
+    else:
+        names = []
+        for n in include:
+            if n in DENSITY_CANDIDATES:
+                names.append(n)
+                continue
+            try:
+                names.append(EFFECTS.cls(n).name)
+            except ParameterError as error:
+                raise ParameterError(f"{error}; or a learned density: {', '.join(DENSITY_CANDIDATES)}") from None
+    return [n for n in names if n not in have and not (fanned and fans_out(n))]
+
+
+def fans_out(name: str) -> bool:
+    """True when candidate ``name`` fans beams out into sub-rays (a model holds one such effect)."""
+    return name not in DENSITY_CANDIDATES and issubclass(EFFECTS[name], FootprintEffect)
+
+
+def search_by_beam(model: SensorModel, effect: Effect, key: str, problem: Problem, passes=COARSE) -> None:
+    """Search every beam's value of the per-beam parameter ``key`` of ``effect`` at once (in place).
+
+    Each pass tries the current values shifted by ``-half .. half`` steps (the same shift for every
+    beam, traced anew) and keeps, beam by beam, the value whose rays score best; the next pass
+    narrows around it.
+
+    Args:
+        model: the model holding ``effect``.
+        effect: a ray-moving effect.
+        key: a per-beam parameter of it.
+        problem: the rays it is fitted on.
+        passes: ``(half, step)`` per pass, the step in units of the parameter's ``fit_scale``.
+    """
+    spec = effect.specs[key]
+    values = np.asarray(effect.params[key], np.float64).copy()
+    beams = np.minimum(problem.rays.beam[problem.index], values.size - 1)
+
+    def score(trial: np.ndarray) -> np.ndarray:
+        effect.params[key] = mi.Float(aligned(trial.astype(np.float32)))
+        make_opaque([effect])
+        return np.bincount(beams, weights=problem.log_likelihood(model), minlength=values.size)
+
+    best = score(values)
+    for half, step in passes:
+        centre = values.copy()
+        for shift in np.arange(-half, half + 1) * step * effect.fit_scale(key):
+            if shift == 0.0:
+                continue
+            trial = np.clip(centre + shift, spec.fit_bound, spec.upper)
+            ll = score(trial)
+            better = ll > best
+            values[better], best[better] = trial[better], ll[better]
+    score(values)
+
+
+def refit(
+    model: SensorModel,
+    problem: Problem,
+    parts: list | None = None,
+    steps: int = 60,
+    tolerance: float | None = None,
+    passes=FINE,
+) -> PartsFit:
+    """Fit ``parts`` of ``model`` (default: every effect) on ``problem``: the one fitter, then :func:`search_by_beam`.
+
+    Args:
+        model: the model (changed in place).
+        problem: the rays fitted on.
+        parts: the effects to fit (default: all of the model's).
+        steps: Adam steps.
+        tolerance: stop Adam once it gains less than this (nats/ray) over 10 steps, 15 for effects that
+            move rays (None: all steps).
+        passes: grid passes of the beam-by-beam search (:data:`COARSE` from a fitting start,
+            :data:`FINE` around fitted values).
+
+    Returns:
+        The fit (history and the fitted values after the search).
+    """
+    parts = model.effects if parts is None else parts
+    fit = fit_parts(model, problem, parts, steps=steps, tolerance=tolerance)
+    for part in parts:
+        if isinstance(part, Effect) and part.moves_rays:
+            for key in part.fitted_names():
+                if part.specs[key].per_beam:
+                    search_by_beam(model, part, key, problem, passes)
+                    fit.parameters[f"{part.name}.{key}"] = np.asarray(part.params[key])
+    return fit
+
+
+def fit_density_candidate(name: str, base: SensorModel, states, fitting: Problem, n_labels: int):
+    """The learned density ``name`` estimated from ``states``, its bandwidths chosen on ``fitting``'s rays.
+
+    Args:
+        name: a key of :data:`DENSITY_CANDIDATES`.
+        base: the current model (its effects apply on top of the new density).
+        states: :class:`~mi_lidar.core.densities.samples.StateSamples` of training rays not in ``fitting``.
+        fitting: the rays that choose the bandwidths.
+        n_labels: class labels of the scene.
+
+    Returns:
+        ``(density, bandwidth table)``.
+    """
+
+    def validation_nll(density) -> float:
+        return fitting.nll(dataclasses.replace(base, density=density))
+
+    family = DENSITY_CANDIDATES[name]
+    return fit_density(family, base, states, validation_nll, n_labels, fitting, 0, **DENSITY_OPTIONS.get(name, {}))

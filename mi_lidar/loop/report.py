@@ -11,7 +11,17 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from mi_lidar.core.atomic import atomic_path  # noqa: E402
 from mi_lidar.io.markdown import markdown_to_html  # noqa: E402
+
+
+def save_figure(fig, path: Path, dpi: int = 90) -> Path:
+    """Write ``fig`` as a PNG at ``path`` atomically and close it."""
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+    plt.close(fig)
+    return Path(path)
+
 
 PLOTTED = ("range", "incidence", "azimuth", "beam", "label", "time")
 FMT = {
@@ -101,9 +111,7 @@ def plot_breakdowns(result, path: Path) -> Path:
     handles = axes[0, 0].get_legend_handles_labels()[0] + twins[0].get_legend_handles_labels()[0]
     fig.legend(handles, [h.get_label() for h in handles], loc="upper center", ncol=4)
     fig.tight_layout(rect=(0, 0, 1, 0.95))
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_residuals(t, path: Path) -> Path:
@@ -124,9 +132,7 @@ def plot_residuals(t, path: Path) -> Path:
     b.set_ylabel("returns")
     b.set_title("range residuals")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_residual_image(t, shape: tuple, path: Path) -> Path:
@@ -170,9 +176,7 @@ def plot_residual_image(t, shape: tuple, path: Path) -> Path:
         ax.set_ylabel("beam" if h > 1 else "")
     axes[0].set_title(f"scan {scan}: measured and simulated (one draw) range images, residual, NLL (black: no return)")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def write_residual_ply(t, log, path: Path) -> Path:

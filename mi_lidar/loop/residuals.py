@@ -42,6 +42,7 @@ CLOSEST = {
     ("returns", "label"): "label_dropout",
 }
 GUIDE = "docs/writing_an_effect.md"
+UNITS = {"time": "s", "azimuth": "deg", "beam": "", "range": "m", "label": "", "incidence": "deg"}
 
 
 @dataclass
@@ -83,8 +84,12 @@ class Structure:
         }
 
 
-def _groups(dimension: str, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(group index per ray, group centres) for ``values`` along ``dimension``."""
+def group_index(dimension: str, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(group index per ray, -1 where the value is unknown; group centres) for ``values`` along ``dimension``.
+
+    Beams and labels are their own groups, azimuth has 12 sectors of 30 deg, any other dimension 12
+    groups of equal counts.
+    """
     if dimension in ("beam", "label"):
         centers, index = np.unique(values, return_inverse=True)
         return index, centers.astype(float)
@@ -144,7 +149,7 @@ def residual_structure(
     traced = np.isfinite(nominal)
     out = []
     for dimension, values in dimensions.items():
-        index, centers = _groups(dimension, np.asarray(values, float))
+        index, centers = group_index(dimension, np.asarray(values, float))
         for channel, args, minimum in (
             ("range", (res_m, res_s, near_m, near_s), MIN_RANGE_DEPARTURE),
             ("returns", (hit.astype(float), sim_hit.astype(float), traced, traced), MIN_RATE_DEPARTURE),
@@ -182,7 +187,8 @@ def plot_structure(found: list[Structure], path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    units = {"time": "s", "azimuth": "deg", "beam": "", "range": "m", "label": ""}
+    from mi_lidar.loop.report import save_figure
+
     fig, axes = plt.subplots(2, len(DIMENSIONS), figsize=(3.2 * len(DIMENSIONS), 5.2), squeeze=False)
     by_key = {(s.channel, s.dimension): s for s in found}
     for row, channel in enumerate(("range", "returns")):
@@ -196,14 +202,12 @@ def plot_structure(found: list[Structure], path: Path) -> Path:
             colour = "tab:red" if s.flagged else "tab:blue"
             ax.errorbar(s.centers, scale * s.difference, yerr=2 * scale * s.error, fmt="o-", color=colour, ms=3)
             ax.axhline(0.0, color="grey", lw=0.6)
-            ax.set_xlabel(f"{dimension} ({units[dimension]})" if units[dimension] else dimension)
+            low, high = ax.get_ylim()  # at least +-1 cm / point, so that agreement looks flat
+            ax.set_ylim(min(low, -1.0), max(high, 1.0))
+            ax.set_xlabel(f"{dimension} ({UNITS[dimension]})" if UNITS[dimension] else dimension)
             ax.set_title(f"p = {s.p_value:.1g}", fontsize=8, color=colour)
             if col == 0:
                 ax.set_ylabel("range residual, cm" if channel == "range" else "return rate, points")
     fig.suptitle("Measured minus model, per group (bars: 2 standard errors; red: structure left)")
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=90)
-    plt.close(fig)
-    tmp.replace(path)
-    return path
+    return save_figure(fig, path)

@@ -37,7 +37,7 @@ from mi_lidar.core.problem import Problem, fit_parts
 from mi_lidar.core.rays import LogRays
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop.compare import simulate_log_rays
-from mi_lidar.loop.diagnose import split_rays
+from mi_lidar.loop.split import split_rays
 
 FAMILIES = ("np-reg", "p-reg", "beam", "physics")
 
@@ -137,19 +137,8 @@ def fit_sensor(
         return test.nll(dataclasses.replace(base, density=density))
 
     n_labels = 1 if pool_labels else int(np.asarray(table.label).max()) + 1
-    if family in ("np-reg", "p-reg"):
-        fit = fit_np_reg if family == "np-reg" else fit_p_reg
-        if family == "np-reg":
-            density, result.candidates = fit_np_reg(
-                samples, default_grid(samples, n_labels), held_out, z_max=base.max_range
-            )
-        else:
-            density, result.candidates = fit(samples, held_out, z_max=base.max_range)
-        model = dataclasses.replace(base, density=density)
-    else:
-        density = BeamDensity(z_max=base.max_range) if family == "beam" else PhysicsDensity()
-        model = dataclasses.replace(base, density=density)
-        fit_parts(model, train, [density], steps=steps)
+    density, result.candidates = fit_density(family, base, samples, held_out, n_labels, train, steps)
+    model = dataclasses.replace(base, density=density)
     say(f"fitted {family}")
     result.model = model
     for name, candidate in (("scene model", base), (f"{family} fitted", model)):
@@ -161,6 +150,41 @@ def fit_sensor(
             }
         )
     return result
+
+
+def fit_density(
+    family: str,
+    base: SensorModel,
+    samples: StateSamples,
+    held_out,
+    n_labels: int,
+    train: Problem,
+    steps: int,
+    **options,
+) -> tuple:
+    """A density of ``family`` fitted to training states (learned families) or rays (parametric ones).
+
+    Args:
+        family: one of :data:`FAMILIES`.
+        base: the model whose density is replaced (its maximum range bounds the learned densities).
+        samples: the first element of every training ray (:func:`traced_states`).
+        held_out: ``held_out(density) -> NLL`` (nats per ray) on rays not in ``samples``, which picks
+            the bandwidths of the learned families.
+        n_labels: class labels of the scene.
+        train: the training rays (the parametric families are fitted on them by the one fitter).
+        steps: Adam steps of the parametric families.
+        **options: candidate bandwidths of the learned families (``h_ranges``, ``h_incidences``).
+
+    Returns:
+        The density and its bandwidth table (empty for the parametric families).
+    """
+    if family == "np-reg":
+        return fit_np_reg(samples, default_grid(samples, n_labels), held_out, z_max=base.max_range, **options)
+    if family == "p-reg":
+        return fit_p_reg(samples, held_out, z_max=base.max_range, **options)
+    density = BeamDensity(z_max=base.max_range) if family == "beam" else PhysicsDensity()
+    fit_parts(dataclasses.replace(base, density=density), train, [density], steps=steps)
+    return density, []
 
 
 def sample_metrics(scene, table, rays: LogRays, problem: Problem, model: SensorModel, seed: int) -> dict:

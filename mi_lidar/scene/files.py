@@ -185,7 +185,7 @@ def write_scene_xml(path, shapes: list[ShapeEntry], header_comment: str = "", ex
     return atomic_write(path, lambda stream: stream.write(text))
 
 
-def scene_with_effects(source: str | Path, effects: str, path: str | Path) -> Path:
+def scene_with_effects(source: str | Path, effects: str, path: str | Path, density: str | None = None) -> Path:
     """Write a copy of the scene XML ``source`` whose ``lidar_integrator`` carries ``effects``, to ``path``.
 
     Used by ``diagnose`` to hand back the scene with the effects it found (the loop's next step is
@@ -196,6 +196,8 @@ def scene_with_effects(source: str | Path, effects: str, path: str | Path) -> Pa
         source: the scene XML.
         effects: the effects in the catalog's spec syntax, e.g. ``"range_bias(bias=0.02)"`` ("" for none).
         path: the output XML.
+        density: a return density to set as well, e.g. ``"np_reg(file=/abs/np_reg.npz)"`` (None: the
+            scene's stays).
 
     Raises:
         ParameterError: the scene has no ``<integrator type="lidar_integrator">``.
@@ -212,18 +214,20 @@ def scene_with_effects(source: str | Path, effects: str, path: str | Path) -> Pa
 
     text = re.sub(r'(name="filename"\s+value=)"([^"]+)"', absolute, text)
     text = re.sub(r'(name="pattern"\s+value=)"([^"]+\.(?:npy|csv|txt))"', absolute, text)
-    opening = re.search(r'<integrator\s+type="lidar_integrator"[^>]*?(/?)>', text)
-    if opening is None:
-        raise ParameterError(f'{source}: no <integrator type="lidar_integrator"> to carry the effects {effects!r}')
-    line = f'<string name="effects" value={quoteattr(effects)}/>'
-    existing = re.compile(r'<string\s+name="effects"\s+value="[^"]*"\s*/>')
-    if opening.group(1):  # a self-closing integrator: open it
-        head = opening.group(0)[:-2].rstrip()
-        text = text[: opening.start()] + f"{head}>\n        {line}\n    </integrator>" + text[opening.end() :]
-    else:
-        close = text.index("</integrator>", opening.end())
-        body = text[opening.end() : close]
-        body = existing.sub(line, body) if existing.search(body) else f"\n        {line}" + body
-        text = text[: opening.end()] + body + text[close:]
+    settings = {"effects": effects} if density is None else {"effects": effects, "density": density}
+    for name, value in settings.items():
+        opening = re.search(r'<integrator\s+type="lidar_integrator"[^>]*?(/?)>', text)
+        if opening is None:
+            raise ParameterError(f'{source}: no <integrator type="lidar_integrator"> to carry the {name} {value!r}')
+        line = f'<string name="{name}" value={quoteattr(value)}/>'
+        existing = re.compile(rf'<string\s+name="{name}"\s+value="[^"]*"\s*/>')
+        if opening.group(1):  # a self-closing integrator: open it
+            head = opening.group(0)[:-2].rstrip()
+            text = text[: opening.start()] + f"{head}>\n        {line}\n    </integrator>" + text[opening.end() :]
+        else:
+            close = text.index("</integrator>", opening.end())
+            body = text[opening.end() : close]
+            body = existing.sub(line, body) if existing.search(body) else f"\n        {line}" + body
+            text = text[: opening.end()] + body + text[close:]
     data = text.encode("utf-8")
     return atomic_write(Path(path), lambda stream: stream.write(data))

@@ -25,17 +25,19 @@ from mi_lidar.core.problem import Problem
 
 from .catalog import case_ids, label, make_part, model_with, simulated, street
 
-# Parameters whose derivative is not defined where the finite difference looks (strict: a change shows up).
+# Parameters whose derivative is not defined where the finite difference may look. Not strict: whether a
+# ray's sweep changes within the step depends on the other parameters' test values (at 0.5 fit scale).
 DISAGREE = {
-    "motion_distortion.period": "dt = time mod period jumps for rays whose sweep changes; autodiff 1.28e5 vs "
-    "finite difference 1.19e5 nats/s (the effect documents period as fixed)",
+    "motion_distortion.period": "dt = time mod period jumps for rays whose sweep changes (autodiff 1.28e5 vs "
+    "finite difference 1.19e5 nats/s with the angular velocities at 0.1 rad/s; they agree at 0.025 rad/s); the "
+    "effect documents period as fixed",
 }
 PARAMETERS = []
 for _case in case_ids():
     _part = make_part(_case, 0.0, 16, 8)
     for _key in (k for k in _part.specs if _part.active(k)):
         _id = f"{label(_case)}.{_key}"
-        _marks = [pytest.mark.xfail(reason=DISAGREE[_id], strict=True)] if _id in DISAGREE else []
+        _marks = [pytest.mark.xfail(reason=DISAGREE[_id], strict=False)] if _id in DISAGREE else []
         PARAMETERS.append(pytest.param(_case, _key, id=_id, marks=_marks))
 
 

@@ -9,10 +9,14 @@ the street at 10 m/s (log poses are the sweep starts). The sensor reports a Gaus
 
 :class:`Hidden` lists the effects the simulator can hide in a log, each written from its physical
 description (not from the project's code): range scale and per-beam bias, range-proportional noise,
-dropouts that stop the beam (logistic in incidence, per label, growing with range, random), beam
-elevation offsets, a mounting error, motion during the sweep, mixed pixels at depth edges (a share
-of in-between returns, pure foreground or background returns otherwise), near clutter,
-quantization, and a range bias that drifts with time (outside the catalog).
+dropouts that stop the beam (logistic in incidence, per label, growing with range, random, and weak
+returns below the detector's threshold), beam elevation offsets, a mounting error, motion during
+the sweep, mixed pixels at depth edges (a share of in-between returns, pure foreground or
+background returns otherwise), multiple echoes of a diverging beam (the first or the last one
+reported), near clutter, quantization, and two effects outside the catalog: a range bias that
+drifts with time, and a range walk (late returns: an exponential delay behind every surface, which
+no catalog effect's law has).
+Surfaces have a Lambertian reflectivity per label (:data:`REFLECTIVITY`, written into the scene).
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ POLES = np.array([[-8, -6], [8, -6], [0, 6], [16, -6], [-14, 6]], float)  # x, y
 POLE_RADIUS, POLE_HEIGHT, POLE_LABEL = 0.15, 6.0, 3
 GROUND_HALF = (60.0, 30.0)  # m: the ground rectangle's half sizes
 GROUND_LABEL = 1
+REFLECTIVITY = {1: 0.2, 2: 0.6, 3: 0.35, 4: 0.08}  # asphalt, facades, poles, dark car paint
 SIGMA = 0.01  # m: the scene's range noise
 MAX_RANGE = 100.0
 HEIGHT = 1.8  # m: sensor above the ground
@@ -48,6 +53,14 @@ MIXED_OFFSETS = ((0.0, 0.0), (1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))  
 MIXED_WEIGHTS = (0.4, 0.15, 0.15, 0.15, 0.15)
 
 
+def material(label: int) -> str:
+    """The ``lidar_material`` of a surface of class ``label`` (its label and reflectivity)."""
+    return (
+        f'<bsdf type="lidar_material"><integer name="label" value="{label}"/>'
+        f'<float name="reflectivity" value="{REFLECTIVITY[label]}"/></bsdf>'
+    )
+
+
 def scene_xml() -> str:
     """The street as a Mitsuba scene (the project's loader reads it)."""
     shapes = []
@@ -56,18 +69,18 @@ def scene_xml() -> str:
             f'<shape type="cube" id="box_{i}"><transform name="to_world">'
             f'<scale x="{(x1 - x0) / 2}" y="{(y1 - y0) / 2}" z="{(z1 - z0) / 2}"/>'
             f'<translate x="{(x1 + x0) / 2}" y="{(y1 + y0) / 2}" z="{(z1 + z0) / 2}"/></transform>'
-            f'<bsdf type="lidar_material"><integer name="label" value="{int(label)}"/></bsdf></shape>'
+            f"{material(int(label))}</shape>"
         )
     for i, (x, y) in enumerate(POLES):
         shapes.append(
             f'<shape type="cylinder" id="pole_{i}"><point name="p0" x="{x}" y="{y}" z="0"/>'
             f'<point name="p1" x="{x}" y="{y}" z="{POLE_HEIGHT}"/><float name="radius" value="{POLE_RADIUS}"/>'
-            f'<bsdf type="lidar_material"><integer name="label" value="{POLE_LABEL}"/></bsdf></shape>'
+            f"{material(POLE_LABEL)}</shape>"
         )
     shapes.append(
         f'<shape type="rectangle" id="ground"><transform name="to_world">'
         f'<scale x="{GROUND_HALF[0]}" y="{GROUND_HALF[1]}"/></transform>'
-        f'<bsdf type="lidar_material"><integer name="label" value="{GROUND_LABEL}"/></bsdf></shape>'
+        f"{material(GROUND_LABEL)}</shape>"
     )
     return (
         '<scene version="3.0.0"><integrator type="lidar_integrator"><integer name="max_segments" value="4"/>'
@@ -149,9 +162,14 @@ class Hidden:
             log's poses (sweep starts) do not show.
         mixed: (divergence rad, share): 5 sub-rays; at every beam a share of returns report the
             energy-weighted mean of the sub-rays' ranges, the rest one sub-ray's range (chosen by energy).
+        echo: (divergence rad, ``first`` or ``last``): 5 sub-rays, each an echo at its surface; the
+            sensor reports the nearest or the farthest echo, with one range-noise draw.
+        weak: (range50 m, width): the detector keeps a return of power ``rho cos(delta) / r^2`` with
+            the logistic probability of ``ln(power)`` against ``ln(1 / range50^2)``, spread ``width``.
         near: (p, scale): near clutter returns with probability p at a half-normal range of that scale, m.
         step: quantization step of reported ranges, m.
         drift: range bias growing with time, m/s (outside the catalog).
+        walk: mean of an exponential delay added to every return, m (outside the catalog).
     """
 
     scale: float = 1.0
@@ -165,13 +183,16 @@ class Hidden:
     mount: tuple | None = None
     velocity: tuple | None = None
     mixed: tuple | None = None
+    echo: tuple | None = None
+    weak: tuple | None = None
     near: tuple | None = None
     step: float = 0.0
     drift: float = 0.0
+    walk: float = 0.0
 
 
-def street_log(hidden: Hidden, sweeps: int = 12, columns: int = 900, seed: int = 0) -> dict:
-    """Simulate ``sweeps`` sweeps with the ``hidden`` effects.
+def street_log(hidden: Hidden, sweeps: int = 12, columns: int = 900, seed: int = 0, sigma: float = SIGMA) -> dict:
+    """Simulate ``sweeps`` sweeps with the ``hidden`` effects (``sigma``: the range noise, m).
 
     Returns:
         The arrays of a ``mi_lidar`` log: ``poses`` (S, 4, 4), ``directions`` (1, 16, W, 3),
@@ -205,23 +226,30 @@ def street_log(hidden: Hidden, sweeps: int = 12, columns: int = 900, seed: int =
             return local @ true_pose_rot.T
 
         n = beam.size
-        if hidden.mixed is None:
-            direction = directions(0.0, 0.0)
+        direction = directions(0.0, 0.0)
+        if hidden.mixed is None and hidden.echo is None:
             r, normal, label = cast(origin, direction)
         else:
-            divergence, share = hidden.mixed
+            divergence = (hidden.mixed or hidden.echo)[0]
             subs = [cast(origin, directions(e * divergence, a * divergence)) for e, a in MIXED_OFFSETS]
             sub_r = np.stack([x[0] for x in subs])  # (5, n)
-            w = np.where(np.isfinite(sub_r), np.asarray(MIXED_WEIGHTS)[:, None], 0.0)
-            total = w.sum(0)
-            share_of = np.cumsum(w / np.maximum(total, 1e-12), axis=0)
-            pick = np.minimum((share_of < rng.random(n)).sum(0), 4)  # one sub-ray, chosen by energy
-            weighted = (w * np.where(np.isfinite(sub_r), sub_r, 0)).sum(0)
-            mixed_range = np.where(total > 0, weighted / np.maximum(total, 1e-12), np.inf)
-            in_between = rng.random(n) < share
-            r = np.where(in_between, mixed_range, sub_r[pick, np.arange(n)])
-            direction = directions(0.0, 0.0)
-            _, normal, label = subs[0]
+            if hidden.mixed is not None:
+                w = np.where(np.isfinite(sub_r), np.asarray(MIXED_WEIGHTS)[:, None], 0.0)
+                total = w.sum(0)
+                share_of = np.cumsum(w / np.maximum(total, 1e-12), axis=0)
+                pick = np.minimum((share_of < rng.random(n)).sum(0), 4)  # one sub-ray, chosen by energy
+                weighted = (w * np.where(np.isfinite(sub_r), sub_r, 0)).sum(0)
+                mixed_range = np.where(total > 0, weighted / np.maximum(total, 1e-12), np.inf)
+                in_between = rng.random(n) < hidden.mixed[1]
+                r = np.where(in_between, mixed_range, sub_r[pick, np.arange(n)])
+                _, normal, label = subs[0]
+            else:  # the nearest or farthest surface the footprint meets
+                first = hidden.echo[1] == "first"
+                key = np.where(np.isfinite(sub_r), sub_r, np.inf if first else -np.inf)
+                pick = np.argmin(key, axis=0) if first else np.argmax(key, axis=0)
+                r = sub_r[pick, np.arange(n)]
+                normal = np.stack([x[1] for x in subs])[pick, np.arange(n)]
+                label = np.stack([x[2] for x in subs])[pick, np.arange(n)]
         cos_inc = np.abs(np.sum(normal * direction, axis=1))
         keep = np.isfinite(r)
         if hidden.logistic is not None:
@@ -234,9 +262,16 @@ def street_log(hidden: Hidden, sweeps: int = 12, columns: int = 900, seed: int =
             rate, power = hidden.range_dropout
             keep &= rng.random(n) < np.exp(-rate * (np.where(np.isfinite(r), r, 0) / 10.0) ** power)
         keep &= rng.random(n) >= hidden.random_drop
+        if hidden.weak is not None:
+            range50, width = hidden.weak
+            rho = np.array([REFLECTIVITY.get(k, 0.0) for k in range(max(REFLECTIVITY) + 1)])[label.astype(int)]
+            power = rho * np.maximum(cos_inc, 1e-6) / np.where(np.isfinite(r), r, 1.0) ** 2
+            keep &= rng.random(n) < 1 / (1 + np.exp(-(np.log(power) + 2 * np.log(range50)) / width))
         bias = 0.0 if hidden.bias is None else np.asarray(hidden.bias)[beam]
-        sigma = np.sqrt(SIGMA**2 + (hidden.noise_k * np.where(np.isfinite(r), r, 0)) ** 2)
-        z = hidden.scale * np.where(keep, r, 0.0) + bias + hidden.drift * (t0 + dt) + rng.normal(0, 1, n) * sigma
+        noise = np.sqrt(sigma**2 + (hidden.noise_k * np.where(np.isfinite(r), r, 0)) ** 2)
+        z = hidden.scale * np.where(keep, r, 0.0) + bias + hidden.drift * (t0 + dt) + rng.normal(0, 1, n) * noise
+        if hidden.walk > 0:
+            z = z + rng.exponential(hidden.walk, n)
         if hidden.near is not None:
             p_near, scale = hidden.near
             clutter = rng.random(n) < p_near

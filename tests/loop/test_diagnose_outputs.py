@@ -1,5 +1,7 @@
 """diagnose hands back what it found: an HTML report and the scene XML with the model's effects."""
 
+import json
+
 import mitsuba as mi
 import numpy as np
 from typer.testing import CliRunner
@@ -13,8 +15,8 @@ from .helpers import hidden_log, room
 
 
 def test_diagnose_writes_html_and_the_scene_with_the_found_effect(tmp_path, monkeypatch):
-    """A hidden 5 cm range bias is found; out/scene.xml loads from another folder and carries it (seeded; the
-    bias refits within 1 cm)."""
+    """A hidden 5 cm range bias is found; the page shows its before/after figure and the samples' realism beside the
+    NLL; out/scene.xml loads from another folder and carries it (seeded; the bias refits within 1 cm)."""
     scene, model, poses = room(6)
     log, _ = hidden_log(scene, model, poses, "range_bias(bias=0.05)")
     log.save(tmp_path / "room.npz")
@@ -34,7 +36,12 @@ def test_diagnose_writes_html_and_the_scene_with_the_found_effect(tmp_path, monk
         terminal_width=200,
     )
     assert result.exit_code == 0, result.stdout
-    assert "range_bias" in (tmp_path / "d" / "diagnosis.html").read_text()
+    page = (tmp_path / "d" / "diagnosis.html").read_text()
+    assert "range_bias" in page and "realism of samples" in page and 'src="before_after_1.png"' in page
+    assert (tmp_path / "d" / "before_after_1.png").stat().st_size > 10_000
+    realism = json.loads((tmp_path / "d" / "diagnosis.json").read_text())["realism"]
+    assert [r["model"] for r in realism] == ["given model", "+ range_bias", "final model"]
+    assert realism[2]["nll"] < realism[0]["nll"] and realism[1]["warning"] == ""
     monkeypatch.chdir(tmp_path)  # the copy's file references are absolute
     found, _ = scene_sensor_model(load_scene(tmp_path / "d" / "scene.xml"))
     bias = [e for e in found.effects if e.name == "range_bias"]
@@ -50,3 +57,29 @@ def test_scene_with_effects_replaces_an_existing_effects_string(tmp_path):
     assert out.count("<integrator") == text.count("<integrator")
     model, _ = scene_sensor_model(mi.load_file(str(second)))
     assert [e.name for e in model.effects] == ["outliers"]
+
+
+def test_a_joined_learned_density_is_saved_and_referenced_by_the_written_scene(tmp_path, monkeypatch):
+    """Returns of the independent street arrive late by an exponential delay (no catalog law is skewed): NP-Reg
+    beats the model with the effects that spread returns and replaces it; out/scene.xml references its saved
+    tables and carries no effect."""
+    from mi_lidar.core.densities import NPRegDensity
+    from mi_lidar.core.log import Log
+
+    from ..hidden.street import Hidden, scene_xml, street_log
+
+    (tmp_path / "street.xml").write_text(scene_xml())
+    Log(**street_log(Hidden(walk=0.03), sweeps=4), sensor={"name": "street"}).save(tmp_path / "walk.npz")
+    arguments = ["diagnose", str(tmp_path / "walk.npz"), str(tmp_path / "street.xml"), "--out", str(tmp_path / "d")]
+    for name in ("range_noise", "outliers", "range_bias", "np_reg"):
+        arguments += ["--candidate", name]
+    result = CliRunner().invoke(app, arguments, terminal_width=200)
+    assert result.exit_code == 0, result.stdout
+    report = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
+    learned = report["rounds"][-1][0]
+    assert learned["name"] == "np_reg" and learned["status"] == "joined", learned
+    assert report["selected"] == ["np_reg"]
+    assert (tmp_path / "d" / "np_reg.npz").is_file()
+    monkeypatch.chdir(tmp_path / "d")
+    found, _ = scene_sensor_model(load_scene(tmp_path / "d" / "scene.xml"))
+    assert isinstance(found.density, NPRegDensity) and found.effects == []

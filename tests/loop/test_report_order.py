@@ -5,7 +5,7 @@ import math
 import numpy as np
 
 from mi_lidar.loop.compare import RayTable, breakdown
-from mi_lidar.loop.diagnose import relative_gain
+from mi_lidar.loop.selection import relative_gain
 
 
 def table(azimuth: np.ndarray) -> RayTable:

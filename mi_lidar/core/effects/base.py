@@ -73,6 +73,12 @@ class Effect(Parametrized):
 
     kind = "effect"
 
+    @property
+    def moves_rays(self) -> bool:
+        """True when the effect edits rays before tracing (:meth:`perturb_rays`) or fans them out (``footprint``)."""
+        cls = type(self)
+        return cls.perturb_rays is not Effect.perturb_rays or cls.footprint is not Effect.footprint
+
     def perturb_rays(self, rays: RayBatch) -> RayBatch:
         """Edit rays before tracing (default: unchanged)."""
         return rays

@@ -44,7 +44,7 @@ class MotionDistortion(Effect):
         },
         **{
             f"w{a}": ParamSpec(
-                0.0, "rad/s", f"angular velocity about sensor {a}", lower=-20.0, upper=20.0, fit_scale=0.2
+                0.0, "rad/s", f"angular velocity about sensor {a}", lower=-20.0, upper=20.0, fit_scale=0.05
             )
             for a in "xyz"
         },

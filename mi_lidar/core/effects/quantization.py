@@ -10,6 +10,8 @@ from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
+MIN_VARIANCE = 1e-12  # m^2: floor of the widened variance (a micrometre)
+
 
 @register_effect
 class Quantization(Effect):
@@ -40,4 +42,6 @@ class Quantization(Effect):
 
     def likelihood_segment(self, seg: Segment, rays: RayBatch) -> Segment:
         """Add the rounding variance ``step^2 / 12`` (m^2) to the element's Gaussian."""
-        return seg.with_(sigma=dr.sqrt(dr.square(seg.sigma) + dr.square(self["step"]) / 12.0))
+        # floored: a density whose own spread is 0 (NP-Reg) would give 0/0 at step 0
+        variance = dr.maximum(dr.square(seg.sigma) + dr.square(self["step"]) / 12.0, MIN_VARIANCE)
+        return seg.with_(sigma=dr.sqrt(variance))

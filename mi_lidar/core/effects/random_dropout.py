@@ -31,7 +31,7 @@ class RandomDropout(DropoutEffect):
             lower=0.0,
             upper=1.0,
             fit_start=0.01,
-            fit_scale=0.01,
+            fit_scale=0.05,  # a step of 0.01 took 60 steps to reach 7 % of a 10 % dropout
         )
     }
 

@@ -1,0 +1,34 @@
+"""The one fitter stops a fit that has stopped gaining, and only then."""
+
+import drjit as dr
+import numpy as np
+
+from mi_lidar.core.fitting import FitVariable, adam_fit, stalled
+
+
+def quadratic(target: float):
+    """The objective ``(x - target)^2`` of one variable, as adam_fit calls it."""
+
+    def objective(values, step):
+        loss = dr.square(values()["x"] - target)
+        dr.backward(loss)
+        return float(loss[0])
+
+    return objective
+
+
+def test_stalled_looks_back_one_window():
+    best = [1.0] * 5 + [0.5] * 20
+    assert not stalled(best[:16], 1e-3, window=15, min_steps=10)  # the drop is within the window
+    assert stalled(best, 1e-3, window=15, min_steps=10)
+    assert not stalled(best, None, window=15, min_steps=10)
+    assert not stalled(best[:8], 1e-3, window=5, min_steps=10)  # too few steps yet
+
+
+def test_a_fit_at_its_optimum_stops_and_a_fit_on_its_way_does_not():
+    at_optimum = adam_fit([FitVariable("x", np.array([2.0]), scale=0.1)], quadratic(2.0), 100, tolerance=1e-6)
+    assert at_optimum.stopped_early and at_optimum.steps_run == 20  # min_steps: nothing to gain from the start
+    far = adam_fit([FitVariable("x", np.array([0.0]), scale=0.1)], quadratic(2.0), 60, tolerance=1e-6)
+    assert not far.stopped_early and far.steps_run == 60  # 0.03 per step: still gaining at the end
+    # Adam's steps are about lr * scale = 0.03, decaying along the cosine: at most 0.03 * 33 = 1 in total
+    assert 0.5 < far.values["x"][0] <= 1.0 + 1e-3

@@ -1,0 +1,71 @@
+"""The selection rules of diagnose on made-up held-out scores: ranking, Occam, realism warnings, candidate names."""
+
+import numpy as np
+import pytest
+
+from mi_lidar.core.errors import ParameterError
+from mi_lidar.loop.catalog import candidate_names, fans_out
+from mi_lidar.loop.realism import realism_warning
+from mi_lidar.loop.selection import Candidate, held_out_test, rank
+
+N = 20_000
+RNG = np.random.default_rng(0)
+BEFORE = RNG.normal(-2.0, 1.0, N)
+
+
+def made_up(name: str, k: int, gain: float, noise: float = 0.05, seed: int = 1) -> Candidate:
+    """A candidate whose held-out per-ray log-likelihood is BEFORE + gain + its own noise (seeded)."""
+    ll = BEFORE + gain + np.random.default_rng(seed).normal(0.0, noise, N)
+    g, p = held_out_test(ll, BEFORE)
+    return Candidate(name, k, 0.0, g, 0.0, 0.0, p, 0.0, True, {}, test_ll=ll)
+
+
+def test_the_best_gain_leads_when_it_beats_the_simpler_ones():
+    ranked = rank([made_up("simple", 1, 0.10, seed=1), made_up("rich", 5, 0.30, seed=2)])
+    assert [c.name for c in ranked] == ["rich", "simple"]
+
+
+def test_a_simpler_candidate_leads_when_the_best_does_not_beat_it():
+    """A per-label dropout with every label alike gains what a random dropout gains, by chance a hair more."""
+    ranked = rank([made_up("label_dropout", 5, 0.1002, seed=3), made_up("random_dropout", 1, 0.1000, seed=4)])
+    assert [c.name for c in ranked] == ["random_dropout", "label_dropout"]
+
+
+def metrics(**changes) -> dict:
+    base = dict(
+        histogram_l1=0.03,
+        hit_rate_measured=0.8,
+        hit_rate_simulated=0.8,
+        range_error_median=0.02,
+        range_error_p90=0.06,
+    )
+    return base | changes
+
+
+@pytest.mark.parametrize(
+    "after,worse",
+    [
+        (metrics(), False),
+        (metrics(range_error_median=0.04, range_error_p90=0.12, histogram_l1=0.02), False),  # a noise law added
+        (metrics(histogram_l1=0.06), True),
+        (metrics(hit_rate_simulated=0.75), True),
+        (metrics(range_error_median=0.43, range_error_p90=0.9, histogram_l1=0.035), True),  # outlier mass
+    ],
+)
+def test_realism_warning_only_when_samples_are_clearly_worse(after, worse):
+    text = realism_warning("+ effect", metrics(), after)
+    assert bool(text) == worse, text
+    if worse:
+        assert text.startswith("+ effect lowers the held-out NLL but its samples look less like the sensor")
+
+
+def test_candidate_names_keep_one_footprint_effect_and_name_both_catalogs_in_errors():
+    from mi_lidar.core.effects import make_effect
+
+    assert fans_out("mixed_pixels") and fans_out("multiple_returns") and not fans_out("range_bias")
+    names = candidate_names([make_effect("mixed_pixels")])
+    assert "multiple_returns" not in names and "mixed_pixels" not in names and "range_bias" in names
+    assert candidate_names([], ["np_reg", "range_bias"]) == ["np_reg", "range_bias"]
+    assert "np_reg" not in candidate_names([], None, densities=False)
+    with pytest.raises(ParameterError, match="np_reg"):
+        candidate_names([], ["no_such_effect"])
