@@ -37,6 +37,8 @@ from mi_lidar.core.segment import (
     ELLIPSOID,
     SURFACE,
     Segment,
+    corners,
+    element_segment,
     ray_quadratic,
     ray_restricted_gaussian,
     rotate_inverse,
@@ -362,7 +364,7 @@ class ElementTable:
             triangle = valid & dr.gather(mi.Bool, self.is_triangle, element, valid)
             v0, v1, v2 = (self._vertex(element, c, triangle) for c in range(3))
             corner = corners(v0, v1, v2, triangle, origin, direction, nominal)
-        return _segment(
+        return element_segment(
             valid,
             element,
             p,
@@ -425,7 +427,7 @@ class ElementTable:
             soft = presence(a, b, c, extent, self.smoothing)
             p = dr.select(is_ellipsoid, p * soft, p)
 
-        return _segment(
+        return element_segment(
             valid,
             element,
             p,
@@ -475,57 +477,6 @@ class ElementTable:
             corner_offset=mi.Vector3f(*corner[:3]) if corner else None,
             corner_weight=mi.Vector3f(*corner[3:]) if corner else None,
         )
-
-
-def corners(v0, v1, v2, triangle: mi.Bool, origin, direction, t) -> tuple[mi.Vector3f, mi.Vector3f]:
-    """A triangle's corners along the ray ``origin + t direction`` that hits it at range ``t`` (m).
-
-    Returns:
-        ``(offset, weight)``: the range at which the ray passes each vertex (its projection on the
-        ray) minus ``t`` (m), and the barycentric weights of the hit point (clipped to the triangle);
-        zeros and ``(1, 0, 0)`` where ``triangle`` is False.
-    """
-    e1, e2, ep = v1 - v0, v2 - v0, origin + t * direction - v0
-    d11, d12, d22 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
-    d1, d2 = dr.dot(ep, e1), dr.dot(ep, e2)
-    det = d11 * d22 - d12 * d12
-    safe = dr.select(dr.abs(det) > 1e-20, det, 1e-20)
-    b1 = dr.clip((d22 * d1 - d12 * d2) / safe, 0.0, 1.0)
-    b2 = dr.clip((d11 * d2 - d12 * d1) / safe, 0.0, 1.0)
-    b0 = dr.maximum(1.0 - b1 - b2, 0.0)
-    total = dr.maximum(b0 + b1 + b2, 1e-12)
-    weight = dr.select(triangle, mi.Vector3f(b0, b1, b2) / total, mi.Vector3f(1.0, 0.0, 0.0))
-    offset = mi.Vector3f(*(dr.dot(v - origin, direction) - t for v in (v0, v1, v2)))
-    return dr.select(triangle, offset, 0.0), weight
-
-
-def _segment(
-    valid, element, p, sigma, kind, shape, label, reflectivity, is_ellipsoid, nominal, restricted, cos_incidence, corner
-) -> Segment:
-    """A :class:`Segment`: a surface returns around its nominal range; an ellipsoid its restricted Gaussian.
-
-    Args:
-        restricted: ``(mean, sigma, lo, hi)`` of the ellipsoid Gaussian restricted to the ray (m).
-        corner: ``(offset, weight)`` of :func:`corners`.
-    """
-    e_mean, e_sigma, e_lo, e_hi = restricted
-    return Segment(
-        valid=valid,
-        nominal=nominal,
-        p=p,
-        mean=dr.select(is_ellipsoid, e_mean, nominal),
-        sigma=dr.select(is_ellipsoid, e_sigma, sigma),
-        lo=dr.select(is_ellipsoid, e_lo, -dr.inf),
-        hi=dr.select(is_ellipsoid, e_hi, dr.inf),
-        cos_incidence=cos_incidence,
-        element=element,
-        shape=shape,
-        label=label,
-        kind=kind,
-        reflectivity=reflectivity,
-        corner_offset=corner[0],
-        corner_weight=corner[1],
-    )
 
 
 def _check_values(shape_id: str, name: str, values: np.ndarray) -> None:

@@ -88,7 +88,7 @@ class Round:
         cached: optional ``(mean, sigma, lo, hi)`` (m) of the element's return distribution before
             effects, computed once without gradients (``sigma`` is used for ellipsoids only; surfaces
             read theirs from the table so that it can be fitted), followed in scenes with triangles
-            by the 3 corner offsets (m) and 3 corner weights (:func:`~mi_lidar.core.elements.corners`).
+            by the 3 corner offsets (m) and 3 corner weights (:func:`~mi_lidar.core.segment.corners`).
         log_density: optional log density (1/m) of the ray's measured range under the element's
             return distribution after effects, computed once (valid while only hit probabilities
             are fitted and no effect edits segments).
