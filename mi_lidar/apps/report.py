@@ -1,9 +1,12 @@
 """Outputs of ``evaluate-apps``: ``apps.json`` (every number), PNG figures and one self-contained ``apps.html``.
 
-Per application: the loss ``l(alpha)`` at every prior draw for each simulator (thesis fig. 3.16), the
-simulated against the real objective at the draws, and the development paths (thesis figs. 2.11,
-3.17): the objective a developer sees on each simulator along its path beside the real objective of
-the same settings. Files are written atomically.
+The page opens with the risk table (application x simulator, with standard errors over the draws) and
+the paired differences of the simulators' risks. Per application: the loss ``l(alpha)`` at every prior
+draw for each simulator (thesis fig. 3.16), the simulated against the real objective at the draws (bars:
+the standard error over the runs), and the development paths (thesis figs. 2.11, 3.17): the objective a
+developer sees on each simulator along its path beside the real objective of the same settings. A
+figure of one test scan, real and as each simulator samples it, shows what the applications see.
+Files are written atomically.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
-from mi_lidar.apps.risk import WITHIN, AppResult, alpha_key  # noqa: E402
+from mi_lidar.apps.risk import WITHIN, AppResult, alpha_key, standard_error  # noqa: E402
 from mi_lidar.core.atomic import atomic_path, atomic_write  # noqa: E402
 
 SAMPLE_KEYS = ("range_error_median", "range_error_p90", "f1", "histogram_l1")  # benchmark columns shown
@@ -45,10 +48,21 @@ def loss_figure(result: AppResult, path: Path) -> Path:
     order = np.argsort(result.J["real"])
     colors = _colors(result.risk)
     figure, (left, right) = plt.subplots(1, 2, figsize=(11, 3.4))
+    real_se = _run_errors(result, "real")
     for name in result.risk:
         style = {"linewidth": 2.2 if name == "mi-lidar" else 1.0, "color": colors[name], "marker": "o", "markersize": 3}
-        left.plot(result.loss(name)[order], label=f"{name} (risk {result.risk[name]:.3g})", **style)
-        right.scatter(result.J["real"], result.J[name], s=14, color=colors[name], label=name)
+        label = f"{name} (risk {result.risk[name]:.3g} ± {result.risk_se.get(name, 0.0):.2g})"
+        left.plot(result.loss(name)[order], label=label, **style)
+        right.errorbar(
+            result.J["real"],
+            result.J[name],
+            xerr=real_se,
+            yerr=_run_errors(result, name),
+            fmt="o",
+            markersize=3,
+            color=colors[name],
+            label=name,
+        )
     left.set_xlabel("prior draw k (sorted by real J)")
     left.set_ylabel("l(alpha_k) = |J real - J sim|")
     left.set_title(f"{result.name}: application-level loss")
@@ -60,6 +74,32 @@ def loss_figure(result: AppResult, path: Path) -> Path:
     right.set_xlabel("J on real scans")
     right.set_ylabel("J on simulated scans")
     right.set_title(result.objective, fontsize=9)
+    return _save(figure, path)
+
+
+def _run_errors(result: AppResult, source: str) -> np.ndarray:
+    """(M,) standard error over the runs of ``J`` at each draw (0 where the application reports no runs)."""
+    rows = result.metrics.get(source, [])
+    return np.array([standard_error(row.get("J_runs", [row["J"]])) for row in rows]) if rows else 0.0
+
+
+def scan_figure(states, ranges: dict, t: int, path: Path) -> Path:
+    """One test state seen by every source: its first scan's points (laser frame) and the map's visible wall pieces."""
+    from mi_lidar.apps.lines import LineDetection
+    from mi_lidar.apps.scans import run_ranges, scan_points
+
+    names = list(ranges)
+    colors = _colors(names)
+    walls = LineDetection.walls(states, t)
+    figure, axes = plt.subplots(1, len(names), figsize=(2.9 * len(names), 3.2), sharex=True, sharey=True, squeeze=False)
+    for axis, name in zip(axes[0], names):
+        for x0, y0, x1, y1 in walls:
+            axis.plot([x0, x1], [y0, y1], color="0.75", linewidth=3.0, solid_capstyle="butt")
+        points = scan_points(run_ranges(ranges[name], 1)[0, t], states.angles)
+        axis.scatter(points[:, 0], points[:, 1], s=2.0, color=colors[name])
+        axis.set_title(name, fontsize=9)
+        axis.set_aspect("equal")
+    axes[0][0].set_ylabel(f"state {t}: laser frame (m); grey: map wall pieces")
     return _save(figure, path)
 
 
@@ -91,8 +131,24 @@ def _risk_table(results: list[AppResult], simulators: tuple[str, ...]) -> str:
         best = min(r.risk.values())
         cells = [f"<td>{html.escape(r.name)}</td>"]
         for s in simulators:
-            value = r.risk[s]
-            cells.append(f"<td>{'<b>' if value == best else ''}{value:.4g}{'</b>' if value == best else ''}</td>")
+            text = f"{r.risk[s]:.4g} ± {r.risk_se.get(s, 0.0):.2g}"
+            cells.append(f"<td><b>{text}</b></td>" if r.risk[s] == best else f"<td>{text}</td>")
+        lines.append("<tr>" + "".join(cells) + "</tr>")
+    return "\n".join(lines + ["</table>"])
+
+
+def _paired_table(results: list[AppResult], simulators: tuple[str, ...], focus: str = "mi-lidar") -> str:
+    """Risk of ``focus`` minus each other simulator's at the same draws, with its standard error (negative: lower)."""
+    others = [s for s in simulators if s != focus]
+    if focus not in simulators or not others:
+        return ""
+    head = ["application", *(f"{focus} − {s}" for s in others)]
+    lines = ["<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head) + "</tr>"]
+    for r in results:
+        cells = [f"<td>{html.escape(r.name)}</td>"]
+        for s in others:
+            mean, se = r.paired[focus][s]
+            cells.append(f"<td>{mean:+.4g} ± {se:.2g}{' *' if abs(mean) > 2 * se else ''}</td>")
         lines.append("<tr>" + "".join(cells) + "</tr>")
     return "\n".join(lines + ["</table>"])
 
@@ -138,22 +194,38 @@ def write_report(evaluation, out: Path) -> dict[str, Path]:
         files[f"{r.name}_loss"] = loss_figure(r, out / f"{r.name}_loss.png")
         files[f"{r.name}_paths"] = path_figure(r, out / f"{r.name}_paths.png")
         params = ", ".join(f"{p['name']} in {p['values']} {p['unit']}".strip() for p in r.parameters)
+        noise = ", ".join(f"{name} {value:.2g}" for name, value in r.run_se.items())
         sections.append(
             f"<h2>{html.escape(r.name)}</h2><p>J: {html.escape(r.objective)}. Parameters (uniform prior over "
             f"each grid): {html.escape(params)}. Best real J found: {r.best_real[0]:.4g} at "
-            f"<code>{html.escape(alpha_key(r.best_real[1]))}</code>.</p>"
+            f"<code>{html.escape(alpha_key(r.best_real[1]))}</code>. Standard error of J over its runs (mean over "
+            f"the draws): {html.escape(noise)}.</p>"
             f"{_pick_table(r)}{_image(files[f'{r.name}_loss'])}{_image(files[f'{r.name}_paths'])}"
         )
+    scan_section = ""
+    if evaluation.ranges is not None and evaluation.states.test.any():
+        test = np.flatnonzero(evaluation.states.test)
+        t = int(test[len(test) // 2])
+        files["scan"] = scan_figure(evaluation.states, evaluation.ranges, t, out / "scan.png")
+        scan_section = f"<h2>One test scan as each source gives it</h2>{_image(files['scan'])}"
+    runs = info["runs"]
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>applications</title>
 <style>body{{font-family:sans-serif;max-width:1200px;margin:2em auto}}table{{border-collapse:collapse;margin:0.5em 0}}
 td,th{{border:1px solid #ccc;padding:3px 6px;font-size:13px;text-align:right}}th{{background:#eee}}</style></head><body>
 <h1>Applications on real and simulated scans: {html.escape(Path(evaluation.source).name)}</h1>
-<p>{info["states"]} test states x {info["beams"]} beams. Each simulator was fitted on the training scans of the
-real-planar protocol and sampled one scan per test state at the same beams, in the same leave-out map; real
-and simulated datasets differ only in the sensor model. Risk = mean over the prior draws of
-l(alpha) = |J(alpha, real) - J(alpha, simulated)| (lower is better).</p>
+<p>{info["states"]} states (every scan of the log; {info["test_states"]} of them the protocol's test scans) x
+{info["beams"]} beams. Each simulator was fitted on the training scans of the real-planar protocol and sampled
+{runs} scans per state at the same beams, in the same leave-out maps; real and simulated datasets differ only in the
+sensor model. The trackers (registration, localization) run along the whole log, {runs} runs per setting; run r
+has the same odometry noise, initial pose and particle draws on every source (common random numbers) and sees a
+simulator's r-th sampled scans; odometry noise: {html.escape(info["odometry_noise"])}. Line detection runs on the
+test scans (held out of every fit) against the walls of the map. Risk = mean over the {info["draws"]} prior draws
+of l(alpha) = |J(alpha, real) - J(alpha, simulated)| (lower is better) ± its standard error over the draws.</p>
 <h2>Risk (application x simulator)</h2>{_risk_table(evaluation.results, evaluation.simulators)}
+<p>Paired differences at the same draws (± standard error; * where larger than twice it):</p>
+{_paired_table(evaluation.results, evaluation.simulators)}
 <h2>The simulators (observation level, test scans)</h2>{_benchmark_table(evaluation.benchmark)}
+{scan_section}
 {"".join(sections)}
 <p>Seconds: {html.escape(json.dumps({k: round(v, 1) for k, v in evaluation.seconds.items()}))}</p>
 </body></html>"""

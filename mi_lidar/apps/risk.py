@@ -4,7 +4,11 @@ An application has parameters ``alpha`` with a prior ``p(alpha)`` and an objecti
 (lower is better) on a dataset ``D``. For a simulated dataset ``D_hat`` of the same states:
 
 * the loss ``l(alpha) = |J(alpha, D) - J(alpha, D_hat)|``;
-* the risk: the mean of ``l`` over ``M`` draws ``alpha ~ p(alpha)`` (the same draws for every simulator);
+* the risk: the mean of ``l`` over ``M`` draws ``alpha ~ p(alpha)`` (the same draws for every simulator),
+  with its standard error over the draws, and the paired difference of two simulators' risks (the mean
+  of ``l_a - l_b`` at the same draws) with its standard error: the draws are shared and a stochastic
+  application's runs use common random numbers, so the paired error is the one that says which
+  simulator is better;
 * a development path ``(alpha_i, J(alpha_i, D_hat))``: what a developer tuning on the simulator does,
   here a cyclic coordinate search on the parameters' grids from a first implementation ``alpha_0``
   (try every value of one parameter, keep the best, go on to the next parameter, until a whole cycle
@@ -151,6 +155,10 @@ class AppResult:
         alphas: the ``M`` prior draws.
         J: ``{source: (M,) J at the draws}``.
         risk: ``{simulator: mean loss}``.
+        risk_se: ``{simulator: standard error of the risk over the draws}``.
+        paired: ``{a: {b: (mean of l_a - l_b, its standard error)}}`` for every two simulators.
+        run_se: ``{source: mean over the draws of the standard error of J over its runs}`` (0 when the
+            application reports no ``J_runs``).
         paths: ``{source: [settings]}`` developed on that source ("real": developed on real data).
         path_J: ``{source: (sim J, real J) along its path}``.
         best_real: the best real J found (over draws and every path), and its setting.
@@ -169,6 +177,9 @@ class AppResult:
     best_real: tuple[float, dict]
     picks: dict[str, dict]
     metrics: dict[str, list[dict]] = field(default_factory=dict)
+    risk_se: dict[str, float] = field(default_factory=dict)
+    paired: dict[str, dict[str, tuple[float, float]]] = field(default_factory=dict)
+    run_se: dict[str, float] = field(default_factory=dict)
 
     def loss(self, source: str) -> np.ndarray:
         """(M,) ``l(alpha_k)`` of a simulator."""
@@ -183,6 +194,11 @@ class AppResult:
             "J": {k: v.tolist() for k, v in self.J.items()},
             "loss": {k: self.loss(k).tolist() for k in self.risk},
             "risk": self.risk,
+            "risk_se": self.risk_se,
+            "paired_difference": {
+                a: {b: {"mean": d, "se": e} for b, (d, e) in row.items()} for a, row in self.paired.items()
+            },
+            "run_se": self.run_se,
             "paths": self.paths,
             "path_J": {k: {"simulated": s, "real": r} for k, (s, r) in self.path_J.items()},
             "best_real": {"J": self.best_real[0], "alpha": self.best_real[1]},
@@ -207,7 +223,8 @@ def evaluate_application(app: Application, objectives: Objectives, m: int = 16, 
     alphas = sample_alphas(app, m, seed)
     metrics = {s: [objectives(app, s, a) for a in alphas] for s in sources}
     J = {s: np.array([row["J"] for row in metrics[s]]) for s in sources}
-    risk = {s: float(np.mean(np.abs(J[s] - J["real"]))) for s in simulators}
+    loss = {s: np.abs(J[s] - J["real"]) for s in simulators}
+    risk = {s: float(np.mean(loss[s])) for s in simulators}
     start = start_alpha(app)
     paths, path_J = {}, {}
     for s in ["real", *simulators]:
@@ -241,4 +258,18 @@ def evaluate_application(app: Application, objectives: Objectives, m: int = 16, 
         best_real=(float(best[0]), best[1]),
         picks=picks,
         metrics=metrics,
+        risk_se={s: standard_error(loss[s]) for s in simulators},
+        paired={
+            a: {b: (float(np.mean(loss[a] - loss[b])), standard_error(loss[a] - loss[b])) for b in simulators if b != a}
+            for a in simulators
+        },
+        run_se={
+            s: float(np.mean([standard_error(row.get("J_runs", [row["J"]])) for row in metrics[s]])) for s in sources
+        },
     )
+
+
+def standard_error(values) -> float:
+    """Standard error of the mean of ``values`` (0 for fewer than two)."""
+    values = np.asarray(values, np.float64)
+    return float(np.std(values, ddof=1) / np.sqrt(values.size)) if values.size > 1 else 0.0

@@ -97,7 +97,11 @@ def test_evaluate_datasets_reports_every_application_and_resumes_from_its_cache(
     lines = first.results[2]
     # Line detection on scans with the real share of clutter behaves as on the real scans; clean scans mislead.
     assert lines.risk["cluttered"] < lines.risk["clean"], lines.risk
-    assert (tmp_path / "apps.html").stat().st_size > 5000 and len(list(tmp_path.glob("*.png"))) == 6
+    assert (tmp_path / "apps.html").stat().st_size > 5000 and len(list(tmp_path.glob("*.png"))) == 7
+    for application in report["applications"]:  # standard errors of the risks and of their paired differences
+        assert set(application["risk_se"]) == {"clean", "cluttered"} and application["risk_se"]["clean"] >= 0.0
+        pair = application["paired_difference"]["clean"]["cluttered"]
+        assert pair["mean"] == pytest.approx(application["risk"]["clean"] - application["risk"]["cluttered"])
     for c in APPS:
         monkeypatch.setattr(f"{c.__module__}.{c.__name__}.evaluate", _fail)
     # Side by side in forked processes, every value comes from the applications' caches.
@@ -115,7 +119,7 @@ def test_evaluate_apps_on_the_room_log(tmp_path, monkeypatch):
     assert result.exit_code == 0, result.stdout
     assert "registration" in result.stdout and "localization" in result.stdout and "lines" in result.stdout
     report = json.loads((out / "apps.json").read_text())
-    assert report["states"] == 8 and report["simulators"] == ["M0", "M1"]
+    assert report["states"] == 40 and report["test_states"] == 8 and report["simulators"] == ["M0", "M1"]
     assert all(set(a["risk"]) == {"M0", "M1"} for a in report["applications"])
     # A rerun reads the simulated datasets from the cache.
     monkeypatch.setattr("mi_lidar.planar.benchmark.run_planar_benchmark", _fail)
