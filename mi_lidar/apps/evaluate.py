@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import multiprocessing
+import queue
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -29,7 +30,7 @@ from mi_lidar.apps.lines import LineDetection
 from mi_lidar.apps.localization import ParticleFilter
 from mi_lidar.apps.registration import ScanToMapEKF
 from mi_lidar.apps.risk import AppResult, Objectives, evaluate_application
-from mi_lidar.apps.scans import MOTION_NOISE, PlanarStates, ScanMaps, planar_datasets
+from mi_lidar.apps.scans import MOTION_NOISE, PlanarStates, ScanMaps, planar_datasets, scan_statistics
 from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.planar.benchmark import MODELS
@@ -59,6 +60,7 @@ class AppsEvaluation:
         runs: runs of the stochastic applications per setting.
         draws: prior draws of the risk.
         ranges: the datasets (for the report's scan figure).
+        scans: ``{source: scan_statistics}`` of every dataset against the nominal ray cast.
     """
 
     source: str
@@ -70,6 +72,7 @@ class AppsEvaluation:
     runs: int = 1
     draws: int = 0
     ranges: dict | None = field(default=None, repr=False)
+    scans: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         a, b, c, d = MOTION_NOISE
@@ -83,6 +86,7 @@ class AppsEvaluation:
             "odometry_noise": f"Gaussian per consecutive-scan motion (d, dtheta): sigma_xy = {a:g} m + {b:g} |d|, "
             f"sigma_theta = {np.degrees(c):g} deg + {d:g} |dtheta|",
             "simulators": list(self.simulators),
+            "scans": self.scans,
             "benchmark": self.benchmark,
             "applications": [r.to_json() for r in self.results],
             "seconds": self.seconds,
@@ -148,16 +152,19 @@ def _load_datasets(file: Path, key: str):
         return states, ranges, json.loads(str(z["benchmark"]))
 
 
-def app_settings(app, draws: int, seed: int) -> str:
-    """What an application's cached objectives depend on besides the datasets."""
-    return json.dumps([app.name, repr(app), draws, seed, CACHE_VERSION])
+def app_settings(app) -> str:
+    """What an application's cached objectives depend on besides the datasets.
+
+    Not the draws: a rerun with more draws reuses every objective already evaluated.
+    """
+    return json.dumps([app.name, repr(app), CACHE_VERSION])
 
 
 def _run_one(app, states, ranges, file: Path, key: str, draws: int, seed: int, progress=None):
-    """One application's :class:`AppResult` (cached in ``file``) and the seconds it took."""
-    t0 = time.perf_counter()
+    """One application's :class:`AppResult` (cached in ``file``), and the wall and CPU seconds it took."""
+    t0, c0 = time.perf_counter(), time.process_time()
     result = evaluate_application(app, Objectives(states, ranges, file, key, progress), m=draws, seed=seed)
-    return result, time.perf_counter() - t0
+    return result, time.perf_counter() - t0, time.process_time() - c0
 
 
 def evaluate_datasets(
@@ -172,6 +179,7 @@ def evaluate_datasets(
     seed: int = 0,
     workers: int = 1,
     progress=None,
+    spent: dict | None = None,
 ) -> AppsEvaluation:
     """Evaluate every planar application on datasets of the same states and write the report to ``out``.
 
@@ -186,9 +194,9 @@ def evaluate_datasets(
         draws: prior draws of the risk.
         runs: runs of each stochastic application per evaluation.
         seed: seed of the draws.
-        workers: processes running the applications side by side (each caches its own objectives;
-            progress is then reported per finished application).
+        workers: processes running the applications side by side (each caches its own objectives).
         progress: optional ``progress(done, total, label)``.
+        spent: wall and CPU seconds of earlier stages (``{"datasets": s, "datasets_cpu": s}``), for the totals.
     """
     from mi_lidar.apps.report import write_report
 
@@ -196,33 +204,44 @@ def evaluate_datasets(
     (out / "cache").mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     jobs = [
-        (app, out / "cache" / f"objectives-{app.name}.json", f"{key}|{app_settings(app, draws, seed)}")
-        for app in applications(runs)
+        (app, out / "cache" / f"objectives-{app.name}.json", f"{key}|{app_settings(app)}") for app in applications(runs)
     ]
     results, seconds = [], {}
+    total = (draws + 40) * len(ranges) * len(jobs)  # evaluations, roughly: draws and paths of every source
+    done = [0]
+
+    def tick(label: str) -> None:
+        done[0] += 1
+        say(min(done[0], total), total, f"evaluating {label}")
+
     if workers > 1:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("fork")) as pool:
+        context = multiprocessing.get_context("fork")
+        with context.Manager() as manager, ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+            labels = manager.Queue()
             futures = [
-                pool.submit(_run_one, app, states, ranges, file, app_key, draws, seed) for app, file, app_key in jobs
+                pool.submit(_run_one, app, states, ranges, file, app_key, draws, seed, labels.put)
+                for app, file, app_key in jobs
             ]
-            for k, future in enumerate(futures):
-                result, seconds[jobs[k][0].name] = future.result()
-                results.append(result)
-                say(k + 1, len(jobs), f"evaluated {result.name}")
+            while not all(f.done() for f in futures):
+                try:
+                    tick(labels.get(timeout=0.5))
+                except queue.Empty:
+                    continue
+            outcomes = [f.result() for f in futures]
     else:
-        for app, file, app_key in jobs:
-            done = [0]
-            hint = (draws + 40) * len(ranges)
-
-            def tick(label: str, done=done, hint=hint) -> None:
-                done[0] += 1
-                say(min(done[0], hint), hint, f"evaluating {label}")
-
-            result, seconds[app.name] = _run_one(app, states, ranges, file, app_key, draws, seed, tick)
-            results.append(result)
+        outcomes = [_run_one(app, states, ranges, file, app_key, draws, seed, tick) for app, file, app_key in jobs]
+    for (app, _, _), (result, wall, cpu) in zip(jobs, outcomes):
+        results.append(result)
+        seconds[app.name], seconds[f"{app.name}_cpu"] = wall, cpu
     seconds["applications"] = time.perf_counter() - start
+    earlier = spent or {"datasets": 0.0, "datasets_cpu": 0.0}
+    seconds = {**earlier, **seconds, "total": earlier["datasets"] + seconds["applications"]}
+    seconds["total_cpu"] = earlier["datasets_cpu"] + sum(seconds[f"{app.name}_cpu"] for app, _, _ in jobs)
     simulators = tuple(name for name in ranges if name != "real")
-    evaluation = AppsEvaluation(source, states, simulators, results, benchmark or [], seconds, runs, draws, ranges)
+    scans = {name: scan_statistics(states, value) for name, value in ranges.items()}
+    evaluation = AppsEvaluation(
+        source, states, simulators, results, benchmark or [], seconds, runs, draws, ranges, scans
+    )
     write_report(evaluation, out)
     return evaluation
 
@@ -263,7 +282,7 @@ def evaluate_log(
     path, out = Path(path), Path(out)
     protocol = protocol or PlanarProtocol()
     (out / "cache").mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     key = _key(path, protocol, tuple(simulators), runs, seed, max_range)
     loaded = _load_datasets(out / "cache" / "datasets.npz", key)
     if loaded is None:
@@ -274,7 +293,7 @@ def evaluate_log(
         _save_datasets(out / "cache" / "datasets.npz", key, states, ranges, benchmark)
     else:
         states, ranges, benchmark = loaded
-    seconds = time.perf_counter() - start
-    evaluation = evaluate_datasets(states, ranges, out, str(path), benchmark, key, draws, runs, seed, workers, progress)
-    evaluation.seconds = {"datasets": seconds, **evaluation.seconds, "total": time.perf_counter() - start}
-    return evaluation
+    spent = {"datasets": time.perf_counter() - start, "datasets_cpu": time.process_time() - cpu}
+    return evaluate_datasets(
+        states, ranges, out, str(path), benchmark, key, draws, runs, seed, workers, progress, spent
+    )

@@ -7,7 +7,7 @@ and merges neighbours whose joint fit stays within ``split``.
 
 The reference does not come from any detector: the walls are found in the whole-log map
 (:func:`~mi_lidar.apps.walls.map_walls`) and a state's reference is the pieces of them its nominal scan
-(the ideal ray cast in its leave-out map) sees over at least :data:`MIN_BEAMS` consecutive beams
+(the ideal ray cast in its leave-out map) sees over at least ``min_beams`` (5) consecutive beams
 (:func:`~mi_lidar.apps.walls.visible_walls`). A detected segment matches a wall piece
 (:func:`match_segments`) when their directions differ by less than 10 deg, its midpoint lies within
 0.15 m of the piece's line and projects onto the piece (0.25 m of slack); matching is one to one. The
@@ -36,7 +36,6 @@ from mi_lidar.apps.risk import Parameter
 from mi_lidar.apps.scans import PlanarStates, relative, scan_points
 from mi_lidar.apps.walls import visible_walls
 
-MIN_BEAMS = 5  # a wall piece seen by fewer consecutive nominal beams is not in the reference
 MATCH_ANGLE = np.radians(10.0)
 MATCH_OFFSET = 0.15  # m
 MATCH_SLACK = 0.25  # m
@@ -119,8 +118,13 @@ def match_segments(detected: np.ndarray, walls: np.ndarray) -> int:
 
 @dataclass
 class LineDetection:
-    """The line detection application (see the module docstring)."""
+    """The line detection application (see the module docstring).
 
+    Attributes:
+        min_beams: a wall piece seen by fewer consecutive nominal beams is not in the reference.
+    """
+
+    min_beams: int = 5
     name: str = "lines"
     objective: str = "line detection error, 1 - F1 against the map's walls"
     parameters: tuple[Parameter, ...] = (
@@ -129,16 +133,15 @@ class LineDetection:
         Parameter("gap", (0.1, 0.2, 0.3, 0.5, 1.0, 2.0), start=2.0, unit="m"),
     )
 
-    @staticmethod
-    def walls(states: PlanarStates, t: int) -> np.ndarray:
+    def walls(self, states: PlanarStates, t: int) -> np.ndarray:
         """(V, 4) the wall pieces state ``t`` sees, in the laser frame (built once per state)."""
 
         def build() -> np.ndarray:
-            pieces = visible_walls(states.walls, states.poses[t], states.nominal[t], states.angles, MIN_BEAMS)
+            pieces = visible_walls(states.walls, states.poses[t], states.nominal[t], states.angles, self.min_beams)
             ends = [relative(states.poses[t], np.c_[pieces[:, k : k + 2], np.zeros(len(pieces))]) for k in (0, 2)]
             return np.concatenate([e[:, :2] for e in ends], axis=1)
 
-        return states.memo(("walls", t), build)
+        return states.memo(("walls", self.min_beams, t), build)
 
     def evaluate(self, alpha: dict, states: PlanarStates, ranges: np.ndarray) -> dict:
         """Detect lines in every test scan of ``ranges`` ((S, T, N) or (T, N)) with setting ``alpha``."""

@@ -90,16 +90,18 @@ def scan_figure(states, ranges: dict, t: int, path: Path) -> Path:
 
     names = list(ranges)
     colors = _colors(names)
-    walls = LineDetection.walls(states, t)
-    figure, axes = plt.subplots(1, len(names), figsize=(2.9 * len(names), 3.2), sharex=True, sharey=True, squeeze=False)
+    walls = LineDetection().walls(states, t)
+    figure, axes = plt.subplots(1, len(names), figsize=(3.4 * len(names), 3.8), squeeze=False)
     for axis, name in zip(axes[0], names):
         for x0, y0, x1, y1 in walls:
             axis.plot([x0, x1], [y0, y1], color="0.75", linewidth=3.0, solid_capstyle="butt")
         points = scan_points(run_ranges(ranges[name], 1)[0, t], states.angles)
-        axis.scatter(points[:, 0], points[:, 1], s=2.0, color=colors[name])
+        axis.scatter(points[:, 0], points[:, 1], s=2.0, color=colors[name], zorder=3)
         axis.set_title(name, fontsize=9)
-        axis.set_aspect("equal")
-    axes[0][0].set_ylabel(f"state {t}: laser frame (m); grey: map wall pieces")
+        axis.set_aspect("equal", adjustable="datalim")
+        axis.set_xlabel("x (m)")
+    axes[0][0].set_ylabel("y (m)")
+    figure.suptitle(f"state {t}: the scan's points in the laser frame; grey: the map's wall pieces it sees", fontsize=9)
     return _save(figure, path)
 
 
@@ -178,6 +180,24 @@ def _benchmark_table(rows: list[dict]) -> str:
     return "\n".join(lines + ["</table>"])
 
 
+def _scans_table(scans: dict) -> str:
+    head = (
+        "source",
+        "no return",
+        "short > 0.5 m",
+        "long > 0.5 m",
+        "median |z - nominal| (m)",
+        "neighbour difference (m)",
+        "outlier run (beams)",
+    )
+    keys = ("no_return", "short", "long", "median_abs_error", "neighbour_difference", "outlier_run")
+    lines = ["<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head) + "</tr>"]
+    for name, row in scans.items():
+        cells = (name, *(f"{row[k]:.3f}" for k in keys))
+        lines.append("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in cells) + "</tr>")
+    return "\n".join(lines + ["</table>"])
+
+
 def _image(file: Path) -> str:
     return f'<p><img alt="{file.stem}" src="data:image/png;base64,{base64.b64encode(file.read_bytes()).decode()}"/></p>'
 
@@ -225,6 +245,10 @@ of l(alpha) = |J(alpha, real) - J(alpha, simulated)| (lower is better) ± its st
 <p>Paired differences at the same draws (± standard error; * where larger than twice it):</p>
 {_paired_table(evaluation.results, evaluation.simulators)}
 <h2>The simulators (observation level, test scans)</h2>{_benchmark_table(evaluation.benchmark)}
+<h2>What the scans contain (every state, against the nominal ray cast)</h2>
+<p>Shares of beams; the neighbour difference is the median |e_b - e_b+1| of neighbouring beams that both return
+within 0.5 m of their nominal range (e = z - nominal): how smooth a surface's points are; the outlier run is the mean
+length of the runs of no-return, short and long beams.</p>{_scans_table(evaluation.scans)}
 {scan_section}
 {"".join(sections)}
 <p>Seconds: {html.escape(json.dumps({k: round(v, 1) for k, v in evaluation.seconds.items()}))}</p>

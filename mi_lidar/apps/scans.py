@@ -264,3 +264,33 @@ def run_ranges(ranges: np.ndarray, runs: int) -> np.ndarray:
     if ranges.ndim == 2:
         ranges = ranges[None]
     return ranges[np.arange(runs) % ranges.shape[0]]
+
+
+def scan_statistics(states: PlanarStates, ranges: np.ndarray) -> dict:
+    """What a source's scans contain, against the nominal ray cast at the same states (every sampled dataset pooled).
+
+    Returns:
+        ``no_return`` share of beams; ``short`` and ``long``: share of beams with a nominal range that
+        return more than 0.5 m before or after it; ``median_abs_error`` (m) of the other returns;
+        ``neighbour_difference`` (m): median of ``|e_b - e_b+1|`` over neighbouring beams that both
+        return within 0.5 m of their nominal range (``e = z - nominal``; how smooth a surface's points
+        are); ``outlier_run``: mean length (beams) of the runs of no-return, short or long beams.
+    """
+    z = run_ranges(ranges, np.shape(ranges)[0] if np.ndim(ranges) == 3 else 1).astype(np.float64)
+    nominal = np.broadcast_to(states.nominal, z.shape)
+    met = np.isfinite(nominal)
+    e = z - nominal
+    hit = np.isfinite(z)
+    near = hit & met & (np.abs(np.nan_to_num(e, nan=np.inf)) <= 0.5)
+    both = near[..., 1:] & near[..., :-1]
+    outlier = ~hit | (met & hit & ~near)
+    flat = outlier.reshape(-1, outlier.shape[-1])
+    edges = np.diff(np.concatenate([np.zeros((flat.shape[0], 1), int), flat, np.zeros((flat.shape[0], 1), int)], 1), 1)
+    return {
+        "no_return": float(np.mean(~hit)),
+        "short": float(np.mean(met & hit & (e < -0.5))),
+        "long": float(np.mean(met & hit & (e > 0.5))),
+        "median_abs_error": float(np.median(np.abs(e[near]))) if near.any() else float("nan"),
+        "neighbour_difference": float(np.median(np.abs(np.diff(e, axis=-1))[both])) if both.any() else float("nan"),
+        "outlier_run": float(flat.sum() / max(int(np.sum(edges == 1)), 1)),
+    }

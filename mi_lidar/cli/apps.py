@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import typer
@@ -26,7 +27,9 @@ def evaluate_apps(
         help="Runs of the trackers (EKF, particle filter) per setting, paired across sources; also the scans each "
         "simulator samples per state.",
     ),
-    workers: int = typer.Option(1, min=1, help="Processes running the applications side by side (up to 3)."),
+    workers: int | None = typer.Option(
+        None, min=1, help="Processes running the three applications side by side (default: one per core, up to 3)."
+    ),
     test_every: int = typer.Option(5, min=2, help="Every k-th scan is a test state (the planar protocol)."),
     window: float = typer.Option(30.0, min=0.0, help="A state's map leaves out the scans within 1 m and this many s."),
 ):
@@ -56,7 +59,7 @@ def evaluate_apps(
             tuple(simulator) if simulator else SIMULATORS,
             draws=draws,
             runs=runs,
-            workers=workers,
+            workers=workers or min(3, os.cpu_count() or 1),
             progress=lambda done, total, label: update(done, total, label),
         )
     table = Table(
@@ -79,4 +82,8 @@ def evaluate_apps(
     console.print(table)
     for r in result.results:
         console.print(f"{r.name}: J = {r.objective}; best real J found {r.best_real[0]:.4g}")
-    console.print(f"{result.states.n} test states; {result.seconds['total']:.0f} s; report: {out / 'apps.html'}")
+    seconds = result.seconds
+    console.print(
+        f"{result.states.n} states ({int(result.states.test.sum())} test scans); {seconds['total']:.0f} s "
+        f"({seconds['total_cpu']:.0f} CPU s); report: {out / 'apps.html'}"
+    )
