@@ -29,6 +29,7 @@ alpha           meaning                                             unit
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -125,6 +126,8 @@ class LineDetection:
     """
 
     min_beams: int = 5
+    sweep: ClassVar[str] = "split"  # the parameter swept at the best real setting (thesis fig. 3.20)
+    effort: ClassVar[str] = "detections"  # the metric shown beside J along the sweep
     name: str = "lines"
     objective: str = "line detection error, 1 - F1 against the map's walls"
     parameters: tuple[Parameter, ...] = (

@@ -26,6 +26,7 @@ rate (share of states with error > 1 m) and the mean heading error (deg).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy.ndimage import distance_transform_edt
@@ -84,6 +85,8 @@ class ParticleFilter:
     runs: int = 8
     beams: int = 60
     seed: int = 0
+    sweep: ClassVar[str] = "particles"  # the parameter swept at the best real setting (thesis fig. 3.20)
+    effort: ClassVar[str] = "divergence"  # the metric shown beside J along the sweep
     name: str = "localization"
     objective: str = f"MCL mean position error, capped at {CAP:g} m (m)"
     parameters: tuple[Parameter, ...] = (

@@ -3,8 +3,10 @@
 The page opens with the risk table (application x simulator, with standard errors over the draws) and
 the paired differences of the simulators' risks. Per application: the loss ``l(alpha)`` at every prior
 draw for each simulator (thesis fig. 3.16), the simulated against the real objective at the draws (bars:
-the standard error over the runs), and the development paths (thesis figs. 2.11, 3.17): the objective a
-developer sees on each simulator along its path beside the real objective of the same settings. A
+the standard error over the runs), the development paths (thesis figs. 2.11, 3.17): the objective a
+developer sees on each simulator along its path beside the real objective of the same settings, and a
+sweep of one parameter at the best real setting with the loss and the application's effort metric along
+it (thesis fig. 3.20). A
 figure of one test scan, real and as each simulator samples it, shows what the applications see.
 Files are written atomically.
 """
@@ -74,6 +76,40 @@ def loss_figure(result: AppResult, path: Path) -> Path:
     right.set_xlabel("J on real scans")
     right.set_ylabel("J on simulated scans")
     right.set_title(result.objective, fontsize=9)
+    return _save(figure, path)
+
+
+def sweep_figure(result: AppResult, path: Path) -> Path:
+    """Every source's J along the swept parameter (others at the best real setting), the loss, and the effort metric."""
+    sweep = result.sweep
+    values, metrics, effort = np.asarray(sweep["values"]), sweep["metrics"], sweep.get("effort")
+    colors = _colors(metrics)
+    panels = 3 if effort else 2
+    figure, axes = plt.subplots(1, panels, figsize=(4.2 * panels, 3.4))
+    for name, rows in metrics.items():
+        style = {
+            "color": colors[name],
+            "marker": "o",
+            "markersize": 3,
+            "linewidth": 2.2 if name in ("real", "mi-lidar") else 1.0,
+        }
+        J = np.array([row["J"] for row in rows])
+        axes[0].errorbar(
+            values, J, yerr=[standard_error(row.get("J_runs", [row["J"]])) for row in rows], label=name, **style
+        )
+        if name != "real":
+            real = np.array([row["J"] for row in metrics["real"]])
+            axes[1].plot(values, np.abs(J - real), label=name, **style)
+        if effort:
+            axes[2].plot(values, [row[effort] for row in rows], label=name, **style)
+    titles = (result.objective, "loss l = |J real - J sim|", effort or "")
+    for axis, title in zip(axes, titles):
+        axis.set_xlabel(sweep["parameter"])
+        axis.set_title(title, fontsize=9)
+        if values.min() > 0 and values.max() / values.min() > 20:
+            axis.set_xscale("log")
+    axes[0].legend(fontsize=7)
+    figure.suptitle(f"{result.name}: along {sweep['parameter']} at {alpha_key(sweep['at'])}", fontsize=9)
     return _save(figure, path)
 
 
@@ -213,6 +249,10 @@ def write_report(evaluation, out: Path) -> dict[str, Path]:
     for r in evaluation.results:
         files[f"{r.name}_loss"] = loss_figure(r, out / f"{r.name}_loss.png")
         files[f"{r.name}_paths"] = path_figure(r, out / f"{r.name}_paths.png")
+        swept = ""
+        if r.sweep:
+            files[f"{r.name}_sweep"] = sweep_figure(r, out / f"{r.name}_sweep.png")
+            swept = _image(files[f"{r.name}_sweep"])
         params = ", ".join(f"{p['name']} in {p['values']} {p['unit']}".strip() for p in r.parameters)
         noise = ", ".join(f"{name} {value:.2g}" for name, value in r.run_se.items())
         sections.append(
@@ -220,7 +260,7 @@ def write_report(evaluation, out: Path) -> dict[str, Path]:
             f"each grid): {html.escape(params)}. Best real J found: {r.best_real[0]:.4g} at "
             f"<code>{html.escape(alpha_key(r.best_real[1]))}</code>. Standard error of J over its runs (mean over "
             f"the draws): {html.escape(noise)}.</p>"
-            f"{_pick_table(r)}{_image(files[f'{r.name}_loss'])}{_image(files[f'{r.name}_paths'])}"
+            f"{_pick_table(r)}{_image(files[f'{r.name}_loss'])}{_image(files[f'{r.name}_paths'])}{swept}"
         )
     scan_section = ""
     if evaluation.ranges is not None and evaluation.states.test.any():

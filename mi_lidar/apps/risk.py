@@ -12,7 +12,9 @@ An application has parameters ``alpha`` with a prior ``p(alpha)`` and an objecti
 * a development path ``(alpha_i, J(alpha_i, D_hat))``: what a developer tuning on the simulator does,
   here a cyclic coordinate search on the parameters' grids from a first implementation ``alpha_0``
   (try every value of one parameter, keep the best, go on to the next parameter, until a whole cycle
-  changes nothing); the same ``alpha_i`` are scored on the real data, which the developer does not see.
+  changes nothing); the same ``alpha_i`` are scored on the real data, which the developer does not see;
+* a sweep (thesis fig. 3.20): every source's metrics along the grid of the application's ``sweep``
+  parameter, the others at the best real setting found.
 
 The prior of a parameter is uniform over its grid of values (:class:`Parameter`), so a geometric grid
 is a log-uniform prior. ``J`` values are memoized by :class:`Objectives` (and cached on disk), so
@@ -57,7 +59,7 @@ class Parameter:
 
 
 class Application(Protocol):
-    """What :func:`evaluate_application` needs of an application."""
+    """What :func:`evaluate_application` needs of an application (``sweep``: optional name of the parameter swept)."""
 
     name: str
     objective: str
@@ -159,6 +161,8 @@ class AppResult:
         paired: ``{a: {b: (mean of l_a - l_b, its standard error)}}`` for every two simulators.
         run_se: ``{source: mean over the draws of the standard error of J over its runs}`` (0 when the
             application reports no ``J_runs``).
+        sweep: ``{"parameter", "values", "at", "effort", "metrics": {source: [metrics at each value]}}`` (``effort``:
+            the application's metric of the cost of a setting, e.g. ICP iterations), or None.
         paths: ``{source: [settings]}`` developed on that source ("real": developed on real data).
         path_J: ``{source: (sim J, real J) along its path}``.
         best_real: the best real J found (over draws and every path), and its setting.
@@ -180,6 +184,7 @@ class AppResult:
     risk_se: dict[str, float] = field(default_factory=dict)
     paired: dict[str, dict[str, tuple[float, float]]] = field(default_factory=dict)
     run_se: dict[str, float] = field(default_factory=dict)
+    sweep: dict | None = None
 
     def loss(self, source: str) -> np.ndarray:
         """(M,) ``l(alpha_k)`` of a simulator."""
@@ -199,6 +204,7 @@ class AppResult:
                 a: {b: {"mean": d, "se": e} for b, (d, e) in row.items()} for a, row in self.paired.items()
             },
             "run_se": self.run_se,
+            "sweep": self.sweep,
             "paths": self.paths,
             "path_J": {k: {"simulated": s, "real": r} for k, (s, r) in self.path_J.items()},
             "best_real": {"J": self.best_real[0], "alpha": self.best_real[1]},
@@ -234,6 +240,19 @@ def evaluate_application(app: Application, objectives: Objectives, m: int = 16, 
     real_seen = [(J["real"][k], alphas[k]) for k in range(m)]
     real_seen += [(j, a) for s in paths for j, a in zip(path_J[s][1], paths[s])]
     best = min(real_seen, key=lambda row: row[0])
+    sweep = None
+    if getattr(app, "sweep", None):
+        parameter = next(p for p in app.parameters if p.name == app.sweep)
+        settings = [{**best[1], parameter.name: float(v)} for v in parameter.values]
+        swept = {s: [objectives(app, s, a) for a in settings] for s in sources}
+        sweep = {
+            "parameter": parameter.name,
+            "values": list(parameter.values),
+            "at": best[1],
+            "effort": getattr(app, "effort", None),
+            "metrics": swept,
+        }
+        best = min([best, *((row["J"], a) for row, a in zip(swept["real"], settings))], key=lambda row: row[0])
     picks = {}
     for s in simulators:
         real_J = path_J[s][1][-1]
@@ -266,6 +285,7 @@ def evaluate_application(app: Application, objectives: Objectives, m: int = 16, 
         run_se={
             s: float(np.mean([standard_error(row.get("J_runs", [row["J"]])) for row in metrics[s]])) for s in sources
         },
+        sweep=sweep,
     )
 
 
