@@ -1,6 +1,8 @@
 """Particle-filter localization (Monte Carlo localization) with the likelihood-field model, along the whole log.
 
-Particles start around a noisy initial guess (uniform in a 0.5 m disc and +-10 deg), move with the
+The filter runs along every scan of the log, stretch after stretch (about 20 m of travel each). At the
+start of a stretch the particles are spread around a noisy guess (uniform in a 0.5 m disc and +-10 deg
+around the noisy start pose of :func:`~mi_lidar.apps.scans.noisy_runs`); they move with the
 (noisy) odometry motion plus the filter's own motion noise (:func:`~mi_lidar.apps.scans.motion_sigma`),
 and are weighted by the likelihood field of the state's leave-out map: each used beam's endpoint
 contributes ``log(z_hit N(d; 0, sigma_hit) + z_rand / z_max)`` with ``d`` the distance (m) from the
@@ -19,7 +21,8 @@ alpha           meaning                                                  unit
 ==============  =======================================================  ====
 
 ``J``: the mean position error (m) over states and runs, each state's error capped at
-:data:`~mi_lidar.apps.scans.CAP` m so a lost filter counts as lost, not as its distance. Also reported: the divergence
+:data:`~mi_lidar.apps.scans.CAP` m so a lost filter counts as lost, not as its distance; runs are added
+while its standard error exceeds ``target_se`` (up to ``max_runs``). Also reported: the divergence
 rate (share of states with error > 1 m) and the mean heading error (deg).
 """
 
@@ -32,7 +35,18 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from mi_lidar.apps.risk import Parameter
-from mi_lidar.apps.scans import CAP, REACH, PlanarStates, compose, motion_sigma, noisy_runs, run_ranges, wrap
+from mi_lidar.apps.scans import (
+    CAP,
+    REACH,
+    PlanarStates,
+    compose,
+    motion_sigma,
+    noisy_runs,
+    paired_runs,
+    run_ranges,
+    stretches,
+    wrap,
+)
 
 FIELD_CLIP = 2.55  # m: the distance field is kept in whole centimetres up to this
 
@@ -77,12 +91,20 @@ class ParticleFilter:
     """The localization application (see the module docstring).
 
     Attributes:
-        runs: filter runs per evaluation (each with its own noise, the same on every dataset).
+        runs: filter runs per batch (each with its own noise, the same on every dataset).
+        max_runs: most runs per evaluation: batches are added while the standard error of J exceeds
+            ``target_se`` (:func:`~mi_lidar.apps.scans.paired_runs`).
+        target_se: standard error of J (m) that stops adding runs.
+        stretch: travel (m) of one filter run: the log is cut into stretches of about this length
+            (:func:`~mi_lidar.apps.scans.stretches`), each filtered from its own noisy start.
         beams: beams used per update (evenly spread; the likelihood field's usual subsampling).
         seed: seed of the runs' noise.
     """
 
     runs: int = 8
+    max_runs: int = 32
+    target_se: float = 0.01
+    stretch: float = 20.0
     beams: int = 60
     seed: int = 0
     sweep: ClassVar[str] = "particles"  # the parameter swept at the best real setting (thesis fig. 3.20)
@@ -101,54 +123,63 @@ class ParticleFilter:
         g = states.maps.map_of(t)
         return states.memo(("field", g), lambda: distance_field(states.maps.occupancy(t), states.maps.grid.cell))
 
-    def evaluate(self, alpha: dict, states: PlanarStates, ranges: np.ndarray) -> dict:
-        """Run the filter ``runs`` times along the states on ``ranges`` ((S, T, N) or (T, N)) with setting ``alpha``."""
-        n, runs = int(alpha["particles"]), self.runs
+    def filter(self, alpha: dict, states: PlanarStates, ranges: np.ndarray, indices: np.ndarray) -> dict:
+        """Run the filter along the states for run indices ``indices`` (R,); per-run arrays of what it did."""
+        n, runs = int(alpha["particles"]), len(indices)
         sigma, z_rand = alpha["sigma_hit"], alpha["z_rand"]
         used = np.unique(np.linspace(0, states.angles.size - 1, min(self.beams, states.angles.size)).astype(int))
-        data = run_ranges(ranges, runs)[:, :, used]
+        data = run_ranges(ranges, indices)[:, :, used]
         cos, sin = np.cos(states.angles[used]), np.sin(states.angles[used])
-        guess, motions = noisy_runs(states, runs, self.seed)
-        streams = [np.random.default_rng([self.seed, run, 1]) for run in range(runs)]
-        radius = 0.5 * np.sqrt(np.stack([g.random(n) for g in streams]))
-        bearing = np.stack([g.uniform(-np.pi, np.pi, n) for g in streams])
-        turn = np.stack([g.uniform(-1.0, 1.0, n) for g in streams]) * np.radians(10.0)
-        particles = guess[:, None, :] + np.stack([radius * np.cos(bearing), radius * np.sin(bearing), turn], axis=-1)
+        starts, motions = noisy_runs(states, indices, self.seed)
+        streams = [np.random.default_rng([self.seed, int(run), 1]) for run in indices]
         errors, headings = np.empty((runs, states.n)), np.empty((runs, states.n))
         # log-likelihood of one endpoint at each distance of the field (whole centimetres)
         d = np.arange(256) / 100.0
         table = np.log((1.0 - z_rand) * np.exp(-0.5 * (d / sigma) ** 2) / (np.sqrt(2 * np.pi) * sigma) + z_rand / REACH)
-        for t in range(states.n):
-            if t > 0:
-                u = motions[:, t - 1][:, None, :]
-                jitter = np.stack([g.normal(0.0, 1.0, (n, 3)) for g in streams])
-                particles = compose(particles, u + jitter * motion_sigma(u))
-            r = data[:, t]  # (R, B)
-            ok = np.isfinite(r) & (r > 0) & (r < REACH)
-            lx, ly = np.where(ok, r, 0.0) * cos, np.where(ok, r, 0.0) * sin
-            c, s = np.cos(particles[..., 2:3]), np.sin(particles[..., 2:3])  # (R, n, 1)
-            ends = np.stack(
-                [
-                    particles[..., :1] + c * lx[:, None] - s * ly[:, None],
-                    particles[..., 1:2] + s * lx[:, None] + c * ly[:, None],
-                ],
-                axis=-1,
-            )
-            d = endpoint_distance(self.field(states, t), states.maps.grid, ends)  # (R, n, B)
-            log_w = np.sum(table[d] * ok[:, None, :], axis=2)
-            w = np.exp(log_w - log_w.max(axis=1, keepdims=True))
-            w /= w.sum(axis=1, keepdims=True)
-            heading = np.arctan2(np.sum(w * np.sin(particles[..., 2]), 1), np.sum(w * np.cos(particles[..., 2]), 1))
-            x, y = np.sum(w * particles[..., 0], 1), np.sum(w * particles[..., 1], 1)
-            errors[:, t] = np.hypot(x - states.poses[t, 0], y - states.poses[t, 1])
-            headings[:, t] = np.abs(wrap(heading - states.poses[t, 2]))
-            picks = low_variance_resample(w, np.array([g.random() for g in streams]))
-            particles = np.take_along_axis(particles, picks[..., None], axis=1)
-        per_run = np.minimum(errors, CAP).mean(axis=1)
+        for first, stop in stretches(states, self.stretch):
+            radius = 0.5 * np.sqrt(np.stack([g.random(n) for g in streams]))
+            bearing = np.stack([g.uniform(-np.pi, np.pi, n) for g in streams])
+            turn = np.stack([g.uniform(-1.0, 1.0, n) for g in streams]) * np.radians(10.0)
+            spread = np.stack([radius * np.cos(bearing), radius * np.sin(bearing), turn], axis=-1)
+            particles = starts[:, first][:, None, :] + spread
+            for t in range(first, stop):
+                if t > first:
+                    u = motions[:, t - 1][:, None, :]
+                    jitter = np.stack([g.normal(0.0, 1.0, (n, 3)) for g in streams])
+                    particles = compose(particles, u + jitter * motion_sigma(u))
+                r = data[:, t]  # (R, B)
+                ok = np.isfinite(r) & (r > 0) & (r < REACH)
+                lx, ly = np.where(ok, r, 0.0) * cos, np.where(ok, r, 0.0) * sin
+                c, s = np.cos(particles[..., 2:3]), np.sin(particles[..., 2:3])  # (R, n, 1)
+                ends = np.stack(
+                    [
+                        particles[..., :1] + c * lx[:, None] - s * ly[:, None],
+                        particles[..., 1:2] + s * lx[:, None] + c * ly[:, None],
+                    ],
+                    axis=-1,
+                )
+                d = endpoint_distance(self.field(states, t), states.maps.grid, ends)  # (R, n, B)
+                log_w = np.sum(table[d] * ok[:, None, :], axis=2)
+                w = np.exp(log_w - log_w.max(axis=1, keepdims=True))
+                w /= w.sum(axis=1, keepdims=True)
+                heading = np.arctan2(np.sum(w * np.sin(particles[..., 2]), 1), np.sum(w * np.cos(particles[..., 2]), 1))
+                x, y = np.sum(w * particles[..., 0], 1), np.sum(w * particles[..., 1], 1)
+                errors[:, t] = np.hypot(x - states.poses[t, 0], y - states.poses[t, 1])
+                headings[:, t] = np.abs(wrap(heading - states.poses[t, 2]))
+                picks = low_variance_resample(w, np.array([g.random() for g in streams]))
+                particles = np.take_along_axis(particles, picks[..., None], axis=1)
+        return {"objective": np.minimum(errors, CAP).mean(axis=1), "errors": errors, "headings": headings}
+
+    def evaluate(self, alpha: dict, states: PlanarStates, ranges: np.ndarray) -> dict:
+        """Run the filter along the states on ``ranges`` ((S, T, N) or (T, N)) with setting ``alpha``."""
+        done = paired_runs(
+            lambda runs: self.filter(alpha, states, ranges, runs), self.runs, self.max_runs, self.target_se
+        )
+        errors = done["errors"]
         return {
-            "J": float(per_run.mean()),
-            "J_runs": per_run.tolist(),
+            "J": float(done["objective"].mean()),
+            "J_runs": done["objective"].tolist(),
             "divergence": float(np.mean(errors > 1.0)),
-            "heading_error_deg": float(np.degrees(headings.mean())),
+            "heading_error_deg": float(np.degrees(done["headings"].mean())),
             "error_median": float(np.median(errors)),
         }

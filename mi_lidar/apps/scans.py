@@ -6,10 +6,13 @@ with (S, T, N) ranges per data source: the measured scans (S = 1), or S scans sa
 simulator fitted on the protocol's training scans (:func:`planar_datasets`). Real and simulated
 datasets differ only in the sensor model: same poses, same beams, same maps.
 
-The trackers (registration, localization) run along the whole log with noisy odometry between
-consecutive scans (:func:`noisy_runs`; the noise model is :data:`MOTION_NOISE`): run ``r`` of a
-stochastic application uses the ``r``-th noise stream on every source and the ``r``-th simulated scan
-of a simulator, so real and simulated runs are paired (common random numbers).
+The trackers (registration, localization) run along the whole log, stretch after stretch of about
+20 m (:func:`stretches`: each stretch is one filter run from a noisy start pose, so a filter that
+loses track loses one stretch, not the rest of the log), with noisy odometry between consecutive
+scans (:func:`noisy_runs`; the noise model is :data:`MOTION_NOISE`): run ``r`` of a stochastic
+application uses the ``r``-th noise stream on every source and the ``r``-th simulated scan of a
+simulator, so real and simulated runs are paired (common random numbers); :func:`paired_runs` adds
+runs while the objective is uncertain.
 
 Poses are planar ``(x, y, theta)`` (m, m, rad) of the laser in the map frame.
 """
@@ -240,30 +243,77 @@ def motion_sigma(u: np.ndarray) -> np.ndarray:
     return np.stack([xy, xy, c + d * np.abs(u[..., 2])], axis=-1)
 
 
-def noisy_runs(states: PlanarStates, runs: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """The inputs of ``runs`` filter runs: noisy initial poses (R, 3) and noisy odometry motions (R, T - 1, 3).
+def _indices(runs) -> np.ndarray:
+    """Run indices: ``runs`` itself, or ``0 .. runs - 1`` for a count."""
+    return np.arange(runs) if np.ndim(runs) == 0 else np.asarray(runs, np.int64)
+
+
+def stretches(states: PlanarStates, length: float) -> list[tuple[int, int]]:
+    """The log cut into consecutive stretches of about ``length`` m of travel: ``[(first, stop), ...]`` state indices.
+
+    A stretch ends at the first state at least ``length`` m of path (along the true poses) after its first
+    state; the last one ends with the log.
+    """
+    path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(states.poses[:, :2], axis=0).T))])
+    cuts, first = [], 0
+    while first < states.n:
+        stop = int(np.searchsorted(path, path[first] + length, side="left")) + 1
+        stop = min(max(stop, first + 2), states.n)
+        cuts.append((first, stop))
+        first = stop
+    return cuts
+
+
+def noisy_runs(states: PlanarStates, runs, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The inputs of filter runs: noisy start poses at every state (R, T, 3) and noisy odometry motions (R, T - 1, 3).
 
     The motions are the odometry's (``relative`` of consecutive odometry poses) plus Gaussian noise of
-    :func:`motion_sigma`; the initial pose is the true one plus Gaussian noise of :data:`START_NOISE`.
-    Run ``r`` draws from its own stream of ``seed``, so it is the same on every dataset and whatever
-    the number of runs (common random numbers).
+    :func:`motion_sigma`; a start pose is the true one plus Gaussian noise of :data:`START_NOISE` (a
+    filter that starts at a state uses it). Run ``r`` draws from its own stream of ``seed``, so it is
+    the same on every dataset and whatever the other runs (common random numbers).
+
+    Args:
+        runs: the run indices (R,), or their count (runs ``0 .. R - 1``).
     """
     u = relative(states.odometry[:-1], states.odometry[1:])
     xy, theta = START_NOISE
     starts, motions = [], []
-    for run in range(runs):
-        rng = np.random.default_rng([seed, run])
-        starts.append(states.poses[0] + rng.normal(0.0, 1.0, 3) * np.array([xy, xy, theta]))
+    for run in _indices(runs):
+        rng = np.random.default_rng([seed, int(run)])
+        starts.append(states.poses + rng.normal(0.0, 1.0, states.poses.shape) * np.array([xy, xy, theta]))
         motions.append(u + rng.normal(0.0, 1.0, u.shape) * motion_sigma(u))
     return np.asarray(starts), np.asarray(motions)
 
 
-def run_ranges(ranges: np.ndarray, runs: int) -> np.ndarray:
-    """(R, T, N) ranges of ``runs`` runs from (S, T, N) datasets (or one (T, N)): run ``r`` sees dataset ``r mod S``."""
+def run_ranges(ranges: np.ndarray, runs) -> np.ndarray:
+    """(R, T, N) ranges of runs (indices or a count) of (S, T, N) datasets or one (T, N); run ``r`` sees ``r mod S``."""
     ranges = np.asarray(ranges)
     if ranges.ndim == 2:
         ranges = ranges[None]
-    return ranges[np.arange(runs) % ranges.shape[0]]
+    return ranges[_indices(runs) % ranges.shape[0]]
+
+
+def paired_runs(batch, runs: int, max_runs: int, target_se: float) -> dict[str, np.ndarray]:
+    """Filter runs batch after batch until the per-run objective is known well enough.
+
+    ``batch(indices)`` runs the filter for run indices (R,) and returns per-run arrays (leading axis R)
+    with ``"objective"`` (R,) among them. Batches of ``runs`` runs (0 .. runs - 1, then the next ``runs``,
+    ...) are added while the standard error of the mean objective exceeds ``target_se`` and fewer than
+    ``max_runs`` have run: a setting where the filter sometimes diverges, and whose objective is then a
+    coin toss between tracking and lost, gets more runs than one that always tracks.
+
+    Returns:
+        The per-run arrays of every run, concatenated.
+    """
+    parts: list[dict] = []
+    done = 0
+    while True:
+        parts.append(batch(np.arange(done, done + runs)))
+        done += runs
+        objective = np.concatenate([p["objective"] for p in parts])
+        error = np.std(objective, ddof=1) / np.sqrt(objective.size) if objective.size > 1 else 0.0
+        if error <= target_se or done >= max_runs:
+            return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
 
 
 def scan_statistics(states: PlanarStates, ranges: np.ndarray) -> dict:

@@ -1,12 +1,23 @@
 """The planar applications on the test room, where the answer is known (tests/apps/room.py)."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 from mi_lidar.apps.lines import LineDetection, match_segments, split_and_merge
 from mi_lidar.apps.localization import ParticleFilter, distance_field, low_variance_resample
 from mi_lidar.apps.registration import MapIndex, ScanToMapEKF, icp
-from mi_lidar.apps.scans import compose, noisy_runs, relative, scan_points, to_world, wrap
+from mi_lidar.apps.scans import (
+    compose,
+    noisy_runs,
+    paired_runs,
+    relative,
+    scan_points,
+    stretches,
+    to_world,
+    wrap,
+)
 from mi_lidar.apps.walls import map_walls, visible_walls
 from tests.apps.room import GRID, cast_scans, room_ranges, room_states, wall_cells
 from tests.planar.world import WALLS
@@ -70,6 +81,22 @@ def test_distance_field_and_resampling():
     picks = low_variance_resample(weights, np.array([0.3, 0.9]))
     assert np.array_equal(np.bincount(picks[0], minlength=4), [0, 3, 1, 0])
     assert np.array_equal(np.bincount(picks[1], minlength=4), [2, 0, 0, 2])
+
+
+def test_stretches_cut_the_log_by_travel():
+    straight = SimpleNamespace(n=20, poses=np.c_[np.arange(20.0), np.zeros(20), np.zeros(20)])  # 1 m apart
+    assert stretches(straight, 5.0) == [(0, 6), (6, 12), (12, 18), (18, 20)]
+    assert stretches(straight, 100.0) == [(0, 20)]
+
+
+def test_paired_runs_add_runs_while_the_objective_is_uncertain():
+    def batch(indices):
+        return {"objective": (indices % 2).astype(float), "index": indices}
+
+    coin = paired_runs(batch, runs=4, max_runs=12, target_se=0.01)  # 0, 1, 0, 1, ...: SE 0.15 after 12 runs
+    assert np.array_equal(coin["index"], np.arange(12))
+    steady = paired_runs(lambda i: {"objective": np.full(i.size, 0.3)}, runs=4, max_runs=12, target_se=0.01)
+    assert steady["objective"].size == 4
 
 
 def test_runs_share_their_noise_whatever_the_number_of_runs(room):
