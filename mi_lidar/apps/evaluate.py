@@ -38,7 +38,7 @@ from mi_lidar.planar.grid import Grid
 from mi_lidar.planar.protocol import PlanarProtocol
 
 SIMULATORS = ("M0", "M1", "P-Reg", "NP-Reg", "mi-lidar")
-CACHE_VERSION = 2
+CACHE_VERSION = 3
 
 
 def applications(runs: int = 8) -> list:

@@ -128,13 +128,17 @@ def scan_figure(states, ranges: dict, t: int, path: Path) -> Path:
     colors = _colors(names)
     walls = LineDetection().walls(states, t)
     figure, axes = plt.subplots(1, len(names), figsize=(3.4 * len(names), 3.8), squeeze=False)
+    shown = scan_points(run_ranges(ranges[names[0]], 1)[0, t], states.angles)  # every panel shows the first's extent
+    lo, hi = (shown.min(axis=0) - 0.5, shown.max(axis=0) + 0.5) if len(shown) else (np.full(2, -1.0), np.ones(2))
     for axis, name in zip(axes[0], names):
         for x0, y0, x1, y1 in walls:
             axis.plot([x0, x1], [y0, y1], color="0.75", linewidth=3.0, solid_capstyle="butt")
         points = scan_points(run_ranges(ranges[name], 1)[0, t], states.angles)
         axis.scatter(points[:, 0], points[:, 1], s=2.0, color=colors[name], zorder=3)
         axis.set_title(name, fontsize=9)
-        axis.set_aspect("equal", adjustable="datalim")
+        axis.set_xlim(lo[0], hi[0])
+        axis.set_ylim(lo[1], hi[1])
+        axis.set_aspect("equal", adjustable="box")
         axis.set_xlabel("x (m)")
     axes[0][0].set_ylabel("y (m)")
     figure.suptitle(f"state {t}: the scan's points in the laser frame; grey: the map's wall pieces it sees", fontsize=9)

@@ -3,10 +3,11 @@
 The reference does not come from any scan or scan detector. :func:`map_walls` finds straight walls in
 the map itself by region growing on its occupied cells: every occupied cell gets a local line by PCA
 of the occupied cells within :data:`RADIUS` (line-like when at least 4 cells and the smaller
-eigenvalue is at most 0.1 times the larger, as the planar ray march decides incidences); from the most
-line-like cell on, a region takes neighbouring line-like cells (up to 2 cells away, bridging one-cell
-holes) whose line is within :data:`ANGLE` of the region's and whose centre lies within one cell of it
-(the region's line is refitted as it grows). A region longer than ``min_length`` is a wall: its total
+eigenvalue is at most :data:`LINEAR` times the larger: walls drawn a few cells thick are line-like);
+from the most line-like cell on, a region takes neighbouring line-like cells (up to 2 cells away, bridging one-cell
+holes) whose line is within :data:`ANGLE` of the region's and whose centre lies within :data:`THICK`
+cells of it (the region's line is refitted as it grows); regions on one line with at most 3 cells
+between them are joined. A region longer than ``min_length`` is a wall: its total
 least-squares line, between the extreme projections of its cells.
 
 :func:`visible_walls` cuts the walls a state sees out of its nominal scan (the ideal ray cast in its
@@ -24,9 +25,8 @@ from mi_lidar.planar.grid import Grid
 
 RADIUS = 3  # cells: the neighbourhood of a cell's local line (15 cm on the protocol's 5 cm grid)
 ANGLE = np.radians(10.0)  # largest angle between a cell's local line and its region's line
-LINEAR = (
-    0.3  # a cell is line-like when the smaller PCA eigenvalue of its neighbourhood is at most this times the larger
-)
+LINEAR = 0.3  # line-like: the smaller PCA eigenvalue of a cell's neighbourhood is at most this times the larger
+THICK = 2.0  # cells: a cell joins a wall within this distance of its line (maps draw walls 2-4 cells thick)
 NEAR = 0.1  # m: a nominal hit this close to a wall (and within its extent) belongs to it
 DISC = np.array(
     [
@@ -39,8 +39,8 @@ DISC = np.array(
 STEP = np.array([(dx, dy) for dx in range(-2, 3) for dy in range(-2, 3) if 0 < dx * dx + dy * dy <= 4])
 
 
-def _local_lines(occupancy: np.ndarray, ij: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Direction (rad) of the local line at each of (M, 2) occupied cells, and whether it is line-like."""
+def _local_lines(occupancy: np.ndarray, ij: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Local line at each of (M, 2) occupied cells: direction (rad), eigenvalue ratio, and whether it is line-like."""
     around = ij[:, None, :] + DISC[None]
     inside = np.all((around >= 0) & (around < np.asarray(occupancy.shape)), axis=-1)
     occ = inside & occupancy[np.where(inside, around[..., 0], 0), np.where(inside, around[..., 1], 0)]
@@ -51,7 +51,8 @@ def _local_lines(occupancy: np.ndarray, ij: np.ndarray) -> tuple[np.ndarray, np.
     cxy = (centred[..., 0] * centred[..., 1]).sum(1)
     root = np.sqrt((0.5 * (cxx - cyy)) ** 2 + cxy**2)
     big, small = 0.5 * (cxx + cyy) + root, 0.5 * (cxx + cyy) - root
-    return 0.5 * np.arctan2(2 * cxy, cxx - cyy), (n >= 4) & (small <= LINEAR * big) & (big > 0)
+    ratio = np.where(big > 0, small / np.where(big > 0, big, 1.0), np.inf)
+    return 0.5 * np.arctan2(2 * cxy, cxx - cyy), ratio, (n >= 4) & (ratio <= LINEAR)
 
 
 def _fit(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -71,7 +72,7 @@ def _segment(points: np.ndarray, cell: float) -> np.ndarray:
 
 
 def _merge_collinear(regions: list[np.ndarray], centres: np.ndarray, cell: float) -> list[np.ndarray]:
-    """Regions joined while two lie on one line (within :data:`ANGLE` and 1.5 cells) at most 3 cells apart."""
+    """Regions joined while two lie on one line (within :data:`ANGLE` and :data:`THICK`) at most 3 cells apart."""
     regions = list(regions)
     lines = [_fit(centres[m]) for m in regions]
     i = 0
@@ -83,7 +84,7 @@ def _merge_collinear(regions: list[np.ndarray], centres: np.ndarray, cell: float
                 c, d = _fit(centres[both])
                 rel = centres[both] - c
                 a, b = (centres[regions[i]] - c) @ d, (centres[regions[j]] - c) @ d
-                close = np.max(np.abs(rel[:, 0] * d[1] - rel[:, 1] * d[0])) <= 1.5 * cell
+                close = np.max(np.abs(rel[:, 0] * d[1] - rel[:, 1] * d[0])) <= THICK * cell
                 if close and max(a.min(), b.min()) - min(a.max(), b.max()) <= 3 * cell:
                     regions[i], lines[i] = both, (c, d)
                     del regions[j], lines[j]
@@ -99,13 +100,14 @@ def map_walls(occupancy: np.ndarray, grid: Grid, min_length: float = 0.5) -> np.
     ij = np.argwhere(occupancy)
     if ij.shape[0] == 0:
         return np.zeros((0, 4))
-    angle, linear = _local_lines(occupancy, ij)
+    angle, ratio, linear = _local_lines(occupancy, ij)
     slot = np.full(occupancy.shape, -1, np.int64)
     slot[ij[:, 0], ij[:, 1]] = np.arange(ij.shape[0])
     centres = np.asarray(grid.origin) + (ij + 0.5) * grid.cell
     region = np.full(ij.shape[0], -1, np.int64)
     regions = []
-    for seed in np.flatnonzero(linear):
+    seeds = np.flatnonzero(linear)
+    for seed in seeds[np.argsort(ratio[seeds], kind="stable")]:
         if region[seed] >= 0:
             continue
         region[seed] = seed
@@ -122,7 +124,7 @@ def map_walls(occupancy: np.ndarray, grid: Grid, min_length: float = 0.5) -> np.
             turn = np.abs(np.sin(angle[near] - np.arctan2(direction[1], direction[0])))
             rel = centres[near] - centre
             offset = np.abs(rel[:, 0] * direction[1] - rel[:, 1] * direction[0])
-            take = near[(turn < np.sin(ANGLE)) & (offset <= 1.5 * grid.cell)]
+            take = near[(turn < np.sin(ANGLE)) & (offset <= THICK * grid.cell)]
             region[take] = seed
             members += take.tolist()
             frontier = take.tolist()
