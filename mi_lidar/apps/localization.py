@@ -97,6 +97,7 @@ class ParticleFilter:
         target_se: standard error of J (m) that stops adding runs.
         stretch: travel (m) of one filter run: the log is cut into stretches of about this length
             (:func:`~mi_lidar.apps.scans.stretches`), each filtered from its own noisy start.
+        max_states: on a longer log, evenly spaced stretches holding at most this many states are run.
         beams: beams used per update (evenly spread; the likelihood field's usual subsampling).
         seed: seed of the runs' noise.
     """
@@ -105,6 +106,7 @@ class ParticleFilter:
     max_runs: int = 32
     target_se: float = 0.01
     stretch: float = 20.0
+    max_states: int = 1000
     beams: int = 60
     seed: int = 0
     sweep: ClassVar[str] = "particles"  # the parameter swept at the best real setting (thesis fig. 3.20)
@@ -136,7 +138,8 @@ class ParticleFilter:
         # log-likelihood of one endpoint at each distance of the field (whole centimetres)
         d = np.arange(256) / 100.0
         table = np.log((1.0 - z_rand) * np.exp(-0.5 * (d / sigma) ** 2) / (np.sqrt(2 * np.pi) * sigma) + z_rand / REACH)
-        for first, stop in stretches(states, self.stretch):
+        cuts = stretches(states, self.stretch, self.max_states)
+        for first, stop in cuts:
             radius = 0.5 * np.sqrt(np.stack([g.random(n) for g in streams]))
             bearing = np.stack([g.uniform(-np.pi, np.pi, n) for g in streams])
             turn = np.stack([g.uniform(-1.0, 1.0, n) for g in streams]) * np.radians(10.0)
@@ -168,6 +171,10 @@ class ParticleFilter:
                 headings[:, t] = np.abs(wrap(heading - states.poses[t, 2]))
                 picks = low_variance_resample(w, np.array([g.random() for g in streams]))
                 particles = np.take_along_axis(particles, picks[..., None], axis=1)
+        used = np.zeros(states.n, bool)
+        for first, stop in cuts:
+            used[first:stop] = True
+        errors, headings = errors[:, used], headings[:, used]
         return {"objective": np.minimum(errors, CAP).mean(axis=1), "errors": errors, "headings": headings}
 
     def evaluate(self, alpha: dict, states: PlanarStates, ranges: np.ndarray) -> dict:

@@ -248,11 +248,12 @@ def _indices(runs) -> np.ndarray:
     return np.arange(runs) if np.ndim(runs) == 0 else np.asarray(runs, np.int64)
 
 
-def stretches(states: PlanarStates, length: float) -> list[tuple[int, int]]:
+def stretches(states: PlanarStates, length: float, max_states: int | None = None) -> list[tuple[int, int]]:
     """The log cut into consecutive stretches of about ``length`` m of travel: ``[(first, stop), ...]`` state indices.
 
     A stretch ends at the first state at least ``length`` m of path (along the true poses) after its first
-    state; the last one ends with the log.
+    state; the last one ends with the log. With ``max_states``, a log with more states keeps evenly spaced
+    stretches holding at most that many states (what bounds a tracker's cost on long logs).
     """
     path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(states.poses[:, :2], axis=0).T))])
     cuts, first = [], 0
@@ -261,6 +262,12 @@ def stretches(states: PlanarStates, length: float) -> list[tuple[int, int]]:
         stop = min(max(stop, first + 2), states.n)
         cuts.append((first, stop))
         first = stop
+    if max_states is not None and states.n > max_states:
+        size = np.array([b - a for a, b in cuts])
+        keep = max(1, int(len(cuts) * max_states / states.n))
+        while keep > 1 and size[np.linspace(0, len(cuts) - 1, keep).astype(int)].sum() > max_states:
+            keep -= 1
+        cuts = [cuts[k] for k in np.unique(np.linspace(0, len(cuts) - 1, keep).astype(int))]
     return cuts
 
 

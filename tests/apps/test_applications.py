@@ -87,6 +87,8 @@ def test_stretches_cut_the_log_by_travel():
     straight = SimpleNamespace(n=20, poses=np.c_[np.arange(20.0), np.zeros(20), np.zeros(20)])  # 1 m apart
     assert stretches(straight, 5.0) == [(0, 6), (6, 12), (12, 18), (18, 20)]
     assert stretches(straight, 100.0) == [(0, 20)]
+    # A cap on the states keeps evenly spaced whole stretches.
+    assert stretches(straight, 5.0, max_states=12) == [(0, 6), (18, 20)]
 
 
 def test_paired_runs_add_runs_while_the_objective_is_uncertain():
