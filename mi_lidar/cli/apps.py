@@ -76,7 +76,7 @@ def evaluate_apps(
         best = min(r.risk.values())
         cells = []
         for name in result.simulators:
-            value = f"{r.risk[name]:.3g} ± {r.risk_se[name]:.1g} ({'ok' if r.picks[name]['within'] else 'off'})"
+            value = f"{r.risk[name]:.3g}\n± {r.risk_se[name]:.1g}\npick {'ok' if r.picks[name]['within'] else 'off'}"
             cells.append(f"[bold]{value}[/bold]" if r.risk[name] == best else value)
         table.add_row(r.name, *cells)
     console.print(table)
