@@ -1,14 +1,16 @@
 """``mi-lidar evaluate-apps``: the planar applications on real and simulated scans of a CARMEN log.
 
 The flow: the real-planar benchmark (:func:`~mi_lidar.planar.benchmark.run_planar_benchmark`) fits
-each simulator on the training scans and samples one scan per test state; :func:`planar_datasets`
-gathers the states, the measured and the sampled scans; every application is run on every dataset
-at the prior draws and along the development paths (:func:`~mi_lidar.apps.risk.evaluate_application`).
+each simulator on the training scans; :func:`planar_datasets` makes every scan of the log a state and
+samples ``runs`` scans per state from each simulator; every application is run on every dataset at
+the prior draws and along the development paths (:func:`~mi_lidar.apps.risk.evaluate_application`),
+``runs`` times where it is stochastic (run ``r`` with the same noise on every dataset and a
+simulator's ``r``-th sampled scans).
 
 Caches (in ``OUT/cache``): ``datasets.npz`` (states and scans; keyed by the log's SHA-256, the
-protocol, the simulators and the seed) and ``objectives-<application>.json`` (every evaluated ``J``,
-keyed by the same and the application's settings), so a rerun, or a run stopped half-way, resumes
-where it was.
+protocol, the simulators, the runs and the seed) and ``objectives-<application>.json`` (every
+evaluated ``J``, keyed by the same and the application's settings), so a rerun, or a run stopped
+half-way, resumes where it was.
 """
 
 from __future__ import annotations
@@ -16,9 +18,10 @@ from __future__ import annotations
 import hashlib
 import json
 import multiprocessing
+import queue
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +30,7 @@ from mi_lidar.apps.lines import LineDetection
 from mi_lidar.apps.localization import ParticleFilter
 from mi_lidar.apps.registration import ScanToMapEKF
 from mi_lidar.apps.risk import AppResult, Objectives, evaluate_application
-from mi_lidar.apps.scans import PlanarStates, ScanMaps, planar_datasets
+from mi_lidar.apps.scans import MOTION_NOISE, PlanarStates, ScanMaps, planar_datasets, scan_statistics
 from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.planar.benchmark import MODELS
@@ -35,10 +38,10 @@ from mi_lidar.planar.grid import Grid
 from mi_lidar.planar.protocol import PlanarProtocol
 
 SIMULATORS = ("M0", "M1", "P-Reg", "NP-Reg", "mi-lidar")
-CACHE_VERSION = 1
+CACHE_VERSION = 3
 
 
-def applications(runs: int = 3) -> list:
+def applications(runs: int = 8) -> list:
     """The planar applications, each run ``runs`` times per evaluation where it is stochastic."""
     return [ScanToMapEKF(runs=runs), ParticleFilter(runs=runs), LineDetection()]
 
@@ -54,6 +57,10 @@ class AppsEvaluation:
         results: one :class:`AppResult` per application.
         benchmark: the benchmark's rows of the simulators (NLL and sample realism).
         seconds: time per stage.
+        runs: runs of the stochastic applications per setting.
+        draws: prior draws of the risk.
+        ranges: the datasets (for the report's scan figure).
+        scans: ``{source: scan_statistics}`` of every dataset against the nominal ray cast.
     """
 
     source: str
@@ -62,22 +69,40 @@ class AppsEvaluation:
     results: list[AppResult]
     benchmark: list[dict]
     seconds: dict
+    runs: int = 1
+    draws: int = 0
+    ranges: dict | None = field(default=None, repr=False)
+    scans: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
+        a, b, c, d = MOTION_NOISE
         return {
             "log": self.source,
             "states": self.states.n,
+            "test_states": int(self.states.test.sum()),
             "beams": int(self.states.angles.size),
+            "runs": self.runs,
+            "draws": self.draws,
+            "odometry_noise": f"Gaussian per consecutive-scan motion (d, dtheta): sigma_xy = {a:g} m + {b:g} |d|, "
+            f"sigma_theta = {np.degrees(c):g} deg + {d:g} |dtheta|",
             "simulators": list(self.simulators),
+            "scans": self.scans,
             "benchmark": self.benchmark,
             "applications": [r.to_json() for r in self.results],
             "seconds": self.seconds,
         }
 
 
-def _key(path: Path, protocol: PlanarProtocol, simulators: tuple[str, ...], seed: int, max_range) -> str:
+def _key(path: Path, protocol: PlanarProtocol, simulators: tuple[str, ...], runs: int, seed: int, max_range) -> str:
     digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    settings = {"v": CACHE_VERSION, "protocol": protocol.__dict__, "sim": simulators, "seed": seed, "max": max_range}
+    settings = {
+        "v": CACHE_VERSION,
+        "protocol": protocol.__dict__,
+        "sim": simulators,
+        "runs": runs,
+        "seed": seed,
+        "max": max_range,
+    }
     return digest + "|" + json.dumps(settings, sort_keys=True)
 
 
@@ -87,12 +112,15 @@ def _save_datasets(file: Path, key: str, states: PlanarStates, ranges: dict, ben
         "key": np.array(key),
         "benchmark": np.array(json.dumps(benchmark, default=float)),
         "scans": states.scans,
+        "test": states.test,
         "angles": states.angles,
         "poses": states.poses,
         "odometry": states.odometry,
         "nominal": states.nominal,
         "map_start": states.maps.start,
         "map_cells": states.maps.cells,
+        "map_of_state": states.maps.of_state,
+        "walls": states.walls,
         "grid": np.array([*grid.origin, grid.cell, *grid.shape], np.float64),
         "sources": np.array(list(ranges)),
         **{f"ranges/{name}": value for name, value in ranges.items()},
@@ -112,26 +140,31 @@ def _load_datasets(file: Path, key: str):
         grid = Grid(origin=(float(g[0]), float(g[1])), cell=float(g[2]), shape=(int(g[3]), int(g[4])))
         states = PlanarStates(
             scans=z["scans"],
+            test=z["test"],
             angles=z["angles"],
             poses=z["poses"],
             odometry=z["odometry"],
             nominal=z["nominal"],
-            maps=ScanMaps(grid=grid, start=z["map_start"], cells=z["map_cells"]),
+            maps=ScanMaps(grid=grid, start=z["map_start"], cells=z["map_cells"], of_state=z["map_of_state"]),
+            walls=z["walls"],
         )
         ranges = {str(name): z[f"ranges/{name}"] for name in z["sources"]}
         return states, ranges, json.loads(str(z["benchmark"]))
 
 
-def app_settings(app, draws: int, seed: int) -> str:
-    """What an application's cached objectives depend on besides the datasets."""
-    return json.dumps([app.name, repr(app), draws, seed, CACHE_VERSION])
+def app_settings(app) -> str:
+    """What an application's cached objectives depend on besides the datasets.
+
+    Not the draws: a rerun with more draws reuses every objective already evaluated.
+    """
+    return json.dumps([app.name, repr(app), CACHE_VERSION])
 
 
 def _run_one(app, states, ranges, file: Path, key: str, draws: int, seed: int, progress=None):
-    """One application's :class:`AppResult` (cached in ``file``) and the seconds it took."""
-    t0 = time.perf_counter()
+    """One application's :class:`AppResult` (cached in ``file``), and the wall and CPU seconds it took."""
+    t0, c0 = time.perf_counter(), time.process_time()
     result = evaluate_application(app, Objectives(states, ranges, file, key, progress), m=draws, seed=seed)
-    return result, time.perf_counter() - t0
+    return result, time.perf_counter() - t0, time.process_time() - c0
 
 
 def evaluate_datasets(
@@ -142,16 +175,18 @@ def evaluate_datasets(
     benchmark: list[dict] | None = None,
     key: str = "",
     draws: int = 16,
-    runs: int = 3,
+    runs: int = 8,
     seed: int = 0,
     workers: int = 1,
     progress=None,
+    spent: dict | None = None,
 ) -> AppsEvaluation:
     """Evaluate every planar application on datasets of the same states and write the report to ``out``.
 
     Args:
         states: the states.
-        ranges: ``{"real": (T, N), <simulator>: (T, N), ...}`` ranges (m, NaN: no return).
+        ranges: ``{"real": (1, T, N), <simulator>: (S, T, N), ...}`` ranges (m, NaN: no return); run
+            ``r`` of a stochastic application sees a source's dataset ``r mod S``.
         out: report folder (``apps.json``, ``apps.html``, PNGs, ``cache/objectives.json``).
         source: the log file, for the report.
         benchmark: the simulators' benchmark rows (NLL and sample realism), for the report.
@@ -159,9 +194,9 @@ def evaluate_datasets(
         draws: prior draws of the risk.
         runs: runs of each stochastic application per evaluation.
         seed: seed of the draws.
-        workers: processes running the applications side by side (each caches its own objectives;
-            progress is then reported per finished application).
+        workers: processes running the applications side by side (each caches its own objectives).
         progress: optional ``progress(done, total, label)``.
+        spent: wall and CPU seconds of earlier stages (``{"datasets": s, "datasets_cpu": s}``), for the totals.
     """
     from mi_lidar.apps.report import write_report
 
@@ -169,33 +204,44 @@ def evaluate_datasets(
     (out / "cache").mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     jobs = [
-        (app, out / "cache" / f"objectives-{app.name}.json", f"{key}|{app_settings(app, draws, seed)}")
-        for app in applications(runs)
+        (app, out / "cache" / f"objectives-{app.name}.json", f"{key}|{app_settings(app)}") for app in applications(runs)
     ]
     results, seconds = [], {}
+    total = (draws + 40) * len(ranges) * len(jobs)  # evaluations, roughly: draws and paths of every source
+    done = [0]
+
+    def tick(label: str) -> None:
+        done[0] += 1
+        say(min(done[0], total), total, f"evaluating {label}")
+
     if workers > 1:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("fork")) as pool:
+        context = multiprocessing.get_context("fork")
+        with context.Manager() as manager, ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+            labels = manager.Queue()
             futures = [
-                pool.submit(_run_one, app, states, ranges, file, app_key, draws, seed) for app, file, app_key in jobs
+                pool.submit(_run_one, app, states, ranges, file, app_key, draws, seed, labels.put)
+                for app, file, app_key in jobs
             ]
-            for k, future in enumerate(futures):
-                result, seconds[jobs[k][0].name] = future.result()
-                results.append(result)
-                say(k + 1, len(jobs), f"evaluated {result.name}")
+            while not all(f.done() for f in futures):
+                try:
+                    tick(labels.get(timeout=0.5))
+                except queue.Empty:
+                    continue
+            outcomes = [f.result() for f in futures]
     else:
-        for app, file, app_key in jobs:
-            done = [0]
-            hint = (draws + 40) * len(ranges)
-
-            def tick(label: str, done=done, hint=hint) -> None:
-                done[0] += 1
-                say(min(done[0], hint), hint, f"evaluating {label}")
-
-            result, seconds[app.name] = _run_one(app, states, ranges, file, app_key, draws, seed, tick)
-            results.append(result)
+        outcomes = [_run_one(app, states, ranges, file, app_key, draws, seed, tick) for app, file, app_key in jobs]
+    for (app, _, _), (result, wall, cpu) in zip(jobs, outcomes):
+        results.append(result)
+        seconds[app.name], seconds[f"{app.name}_cpu"] = wall, cpu
     seconds["applications"] = time.perf_counter() - start
+    earlier = spent or {"datasets": 0.0, "datasets_cpu": 0.0}
+    seconds = {**earlier, **seconds, "total": earlier["datasets"] + seconds["applications"]}
+    seconds["total_cpu"] = earlier["datasets_cpu"] + sum(seconds[f"{app.name}_cpu"] for app, _, _ in jobs)
     simulators = tuple(name for name in ranges if name != "real")
-    evaluation = AppsEvaluation(source, states, simulators, results, benchmark or [], seconds)
+    scans = {name: scan_statistics(states, value) for name, value in ranges.items()}
+    evaluation = AppsEvaluation(
+        source, states, simulators, results, benchmark or [], seconds, runs, draws, ranges, scans
+    )
     write_report(evaluation, out)
     return evaluation
 
@@ -207,7 +253,7 @@ def evaluate_log(
     protocol: PlanarProtocol | None = None,
     simulators: tuple[str, ...] = SIMULATORS,
     draws: int = 16,
-    runs: int = 3,
+    runs: int = 8,
     seed: int = 0,
     workers: int = 1,
     progress=None,
@@ -221,7 +267,8 @@ def evaluate_log(
         protocol: the real-planar protocol's settings.
         simulators: models of the planar benchmark to simulate with.
         draws: prior draws of the risk.
-        runs: runs of each stochastic application per evaluation.
+        runs: runs of each stochastic application per evaluation, and scans sampled per state by each
+            simulator.
         seed: seed of the sampled scans and of the draws.
         workers: processes running the applications side by side.
         progress: optional ``progress(done, total, label)``.
@@ -235,18 +282,18 @@ def evaluate_log(
     path, out = Path(path), Path(out)
     protocol = protocol or PlanarProtocol()
     (out / "cache").mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-    key = _key(path, protocol, tuple(simulators), seed, max_range)
+    start, cpu = time.perf_counter(), time.process_time()
+    key = _key(path, protocol, tuple(simulators), runs, seed, max_range)
     loaded = _load_datasets(out / "cache" / "datasets.npz", key)
     if loaded is None:
         log = read_carmen(path, max_range=max_range)
         result = run_planar_benchmark(log, str(path), protocol, tuple(simulators), seed=seed, progress=progress)
-        states, ranges = planar_datasets(result)
+        states, ranges = planar_datasets(result, samples=runs, seed=seed)
         benchmark = [r.to_json() for r in result.rows]
         _save_datasets(out / "cache" / "datasets.npz", key, states, ranges, benchmark)
     else:
         states, ranges, benchmark = loaded
-    seconds = time.perf_counter() - start
-    evaluation = evaluate_datasets(states, ranges, out, str(path), benchmark, key, draws, runs, seed, workers, progress)
-    evaluation.seconds = {"datasets": seconds, **evaluation.seconds, "total": time.perf_counter() - start}
-    return evaluation
+    spent = {"datasets": time.perf_counter() - start, "datasets_cpu": time.process_time() - cpu}
+    return evaluate_datasets(
+        states, ranges, out, str(path), benchmark, key, draws, runs, seed, workers, progress, spent
+    )

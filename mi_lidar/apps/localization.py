@@ -1,12 +1,16 @@
-"""Particle-filter localization (Monte Carlo localization) with the likelihood-field model.
+"""Particle-filter localization (Monte Carlo localization) with the likelihood-field model, along the whole log.
 
-Particles start around a noisy initial guess (uniform in a 0.5 m disc and +-10 deg), move with the
+The filter runs along every scan of the log, stretch after stretch (about 20 m of travel each). At the
+start of a stretch the particles are spread around a noisy guess (uniform in a 0.5 m disc and +-10 deg
+around the noisy start pose of :func:`~mi_lidar.apps.scans.noisy_runs`); they move with the
 (noisy) odometry motion plus the filter's own motion noise (:func:`~mi_lidar.apps.scans.motion_sigma`),
-and are weighted by the likelihood field of the state's map: each used beam's endpoint contributes
-``log(z_hit N(d; 0, sigma_hit) + z_rand / z_max)`` with ``d`` the distance (m) from the endpoint to the
-nearest occupied cell, ``z_hit = 1 - z_rand`` and ``z_max`` :data:`~mi_lidar.apps.scans.REACH`; beams
-without a return are skipped. The estimate is the weighted mean; particles are resampled (low
-variance) after every update.
+and are weighted by the likelihood field of the state's leave-out map: each used beam's endpoint
+contributes ``log(z_hit N(d; 0, sigma_hit) + z_rand / z_max)`` with ``d`` the distance (m) from the
+endpoint to the nearest occupied cell, ``z_hit = 1 - z_rand`` and ``z_max``
+:data:`~mi_lidar.apps.scans.REACH`; beams without a return are skipped. The estimate is the weighted
+mean; particles are resampled (low variance) after every update. The runs of one evaluation are
+filtered side by side; run ``r`` has the same noise on every dataset (its own random stream for the
+odometry, the particles and the resampling) and sees a simulator's ``r``-th sampled scans.
 
 ==============  =======================================================  ====
 alpha           meaning                                                  unit
@@ -17,42 +21,69 @@ alpha           meaning                                                  unit
 ==============  =======================================================  ====
 
 ``J``: the mean position error (m) over states and runs, each state's error capped at
-:data:`~mi_lidar.apps.scans.CAP` m so a lost filter counts as lost, not as its distance. Also reported: the divergence
+:data:`~mi_lidar.apps.scans.CAP` m so a lost filter counts as lost, not as its distance; runs are added
+while its standard error exceeds ``target_se`` (up to ``max_runs``). Also reported: the divergence
 rate (share of states with error > 1 m) and the mean heading error (deg).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from mi_lidar.apps.risk import Parameter
-from mi_lidar.apps.scans import CAP, REACH, PlanarStates, compose, motion_sigma, noisy_run, wrap
+from mi_lidar.apps.scans import (
+    CAP,
+    REACH,
+    PlanarStates,
+    compose,
+    motion_sigma,
+    noisy_runs,
+    paired_runs,
+    run_ranges,
+    stretches,
+    wrap,
+)
 
 FIELD_CLIP = 2.55  # m: the distance field is kept in whole centimetres up to this
 
 
 def distance_field(occupancy: np.ndarray, cell: float) -> np.ndarray:
-    """(nx, ny) uint8 distance (cm, clipped at :data:`FIELD_CLIP`) from each cell centre to the nearest occupied one."""
-    if not occupancy.any():
-        return np.full(occupancy.shape, 255, np.uint8)
-    d = distance_transform_edt(~occupancy) * cell
-    return np.round(np.minimum(d, FIELD_CLIP) * 100).astype(np.uint8)
+    """(nx + 2, ny + 2) uint8 distance (cm, at most :data:`FIELD_CLIP`) from each cell centre to the nearest occupied.
+
+    The grid is padded by one cell of :data:`FIELD_CLIP` on every side: what lies outside the grid is far from the map.
+    """
+    field = np.full((occupancy.shape[0] + 2, occupancy.shape[1] + 2), round(FIELD_CLIP * 100), np.uint8)
+    if occupancy.any():
+        d = distance_transform_edt(~occupancy) * cell
+        field[1:-1, 1:-1] = np.round(np.minimum(d, FIELD_CLIP) * 100).astype(np.uint8)
+    return field
 
 
 def endpoint_distance(field: np.ndarray, grid, points: np.ndarray) -> np.ndarray:
-    """(...,) distance (m) from world ``points`` (..., 2) to the map (:data:`FIELD_CLIP` outside the grid)."""
-    flat = grid.cell_of(points)
-    return np.where(flat >= 0, field.ravel()[np.maximum(flat, 0)] / 100.0, FIELD_CLIP)
+    """(...,) uint8 distance (cm) from world ``points`` (..., 2) to the map, from a padded :func:`distance_field`."""
+    nx, ny = field.shape
+    i = np.clip(np.floor((points[..., 0] - grid.origin[0]) / grid.cell), -1, nx - 2).astype(np.intp) + 1
+    j = np.clip(np.floor((points[..., 1] - grid.origin[1]) / grid.cell), -1, ny - 2).astype(np.intp) + 1
+    return field.ravel()[i * ny + j]
 
 
-def low_variance_resample(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Indices of ``len(weights)`` particles drawn by systematic (low-variance) resampling of normalised weights."""
-    n = weights.size
-    positions = (rng.random() + np.arange(n)) / n
-    return np.minimum(np.searchsorted(np.cumsum(weights), positions), n - 1)
+def low_variance_resample(weights: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Systematic (low-variance) resampling of each row of normalised ``weights`` (R, n) with its offset in [0, 1) (R,).
+
+    Returns:
+        (R, n) indices of the drawn particles within each row.
+    """
+    runs, n = weights.shape
+    rows = np.arange(runs)[:, None]
+    cumulative = np.cumsum(weights, axis=1)
+    cumulative /= cumulative[:, -1:]
+    positions = (offsets[:, None] + np.arange(n)) / n
+    picks = np.searchsorted((cumulative + rows).ravel(), (positions + rows).ravel()).reshape(runs, n) - rows * n
+    return np.clip(picks, 0, n - 1)
 
 
 @dataclass
@@ -60,14 +91,26 @@ class ParticleFilter:
     """The localization application (see the module docstring).
 
     Attributes:
-        runs: filter runs per evaluation (each with its own noise, the same on every dataset).
+        runs: filter runs per batch (each with its own noise, the same on every dataset).
+        max_runs: most runs per evaluation: batches are added while the standard error of J exceeds
+            ``target_se`` (:func:`~mi_lidar.apps.scans.paired_runs`).
+        target_se: standard error of J (m) that stops adding runs.
+        stretch: travel (m) of one filter run: the log is cut into stretches of about this length
+            (:func:`~mi_lidar.apps.scans.stretches`), each filtered from its own noisy start.
+        max_states: on a longer log, evenly spaced stretches holding at most this many states are run.
         beams: beams used per update (evenly spread; the likelihood field's usual subsampling).
-        seed: seed of the first run.
+        seed: seed of the runs' noise.
     """
 
-    runs: int = 3
+    runs: int = 8
+    max_runs: int = 32
+    target_se: float = 0.01
+    stretch: float = 20.0
+    max_states: int = 1000
     beams: int = 60
     seed: int = 0
+    sweep: ClassVar[str] = "particles"  # the parameter swept at the best real setting (thesis fig. 3.20)
+    effort: ClassVar[str] = "divergence"  # the metric shown beside J along the sweep
     name: str = "localization"
     objective: str = f"MCL mean position error, capped at {CAP:g} m (m)"
     parameters: tuple[Parameter, ...] = (
@@ -78,50 +121,72 @@ class ParticleFilter:
 
     @staticmethod
     def field(states: PlanarStates, t: int) -> np.ndarray:
-        """The distance field of state ``t``'s map (built once per states)."""
-        return states.memo(("field", t), lambda: distance_field(states.maps.occupancy(t), states.maps.grid.cell))
+        """The distance field of state ``t``'s map (built once per map)."""
+        g = states.maps.map_of(t)
+        return states.memo(("field", g), lambda: distance_field(states.maps.occupancy(t), states.maps.grid.cell))
 
-    def evaluate(self, alpha: dict, states: PlanarStates, ranges: np.ndarray) -> dict:
-        """Run the filter ``runs`` times on ``ranges`` (T, N) with setting ``alpha``."""
-        n = int(alpha["particles"])
+    def filter(self, alpha: dict, states: PlanarStates, ranges: np.ndarray, indices: np.ndarray) -> dict:
+        """Run the filter along the states for run indices ``indices`` (R,); per-run arrays of what it did."""
+        n, runs = int(alpha["particles"]), len(indices)
         sigma, z_rand = alpha["sigma_hit"], alpha["z_rand"]
         used = np.unique(np.linspace(0, states.angles.size - 1, min(self.beams, states.angles.size)).astype(int))
+        data = run_ranges(ranges, indices)[:, :, used]
         cos, sin = np.cos(states.angles[used]), np.sin(states.angles[used])
-        floor = z_rand / REACH
-        errors, headings = [], []
-        for run in range(self.runs):
-            guess, motions = noisy_run(states, self.seed + run)
-            rng = np.random.default_rng(10_000 + self.seed + run)
-            radius, bearing = 0.5 * np.sqrt(rng.random(n)), rng.uniform(-np.pi, np.pi, n)
-            particles = guess + np.stack(
-                [radius * np.cos(bearing), radius * np.sin(bearing), rng.uniform(-1, 1, n) * np.radians(10.0)], 1
-            )
-            for t in range(states.n):
-                if t > 0:
-                    u = motions[t - 1]
-                    particles = compose(particles, u + rng.normal(0.0, 1.0, (n, 3)) * motion_sigma(u))
-                r = ranges[t, used]
+        starts, motions = noisy_runs(states, indices, self.seed)
+        streams = [np.random.default_rng([self.seed, int(run), 1]) for run in indices]
+        errors, headings = np.empty((runs, states.n)), np.empty((runs, states.n))
+        # log-likelihood of one endpoint at each distance of the field (whole centimetres)
+        d = np.arange(256) / 100.0
+        table = np.log((1.0 - z_rand) * np.exp(-0.5 * (d / sigma) ** 2) / (np.sqrt(2 * np.pi) * sigma) + z_rand / REACH)
+        cuts = stretches(states, self.stretch, self.max_states)
+        for first, stop in cuts:
+            radius = 0.5 * np.sqrt(np.stack([g.random(n) for g in streams]))
+            bearing = np.stack([g.uniform(-np.pi, np.pi, n) for g in streams])
+            turn = np.stack([g.uniform(-1.0, 1.0, n) for g in streams]) * np.radians(10.0)
+            spread = np.stack([radius * np.cos(bearing), radius * np.sin(bearing), turn], axis=-1)
+            particles = starts[:, first][:, None, :] + spread
+            for t in range(first, stop):
+                if t > first:
+                    u = motions[:, t - 1][:, None, :]
+                    jitter = np.stack([g.normal(0.0, 1.0, (n, 3)) for g in streams])
+                    particles = compose(particles, u + jitter * motion_sigma(u))
+                r = data[:, t]  # (R, B)
                 ok = np.isfinite(r) & (r > 0) & (r < REACH)
-                log_w = np.zeros(n)
-                if ok.any():
-                    lx, ly = r[ok] * cos[ok], r[ok] * sin[ok]
-                    c, s = np.cos(particles[:, 2:3]), np.sin(particles[:, 2:3])
-                    ends = np.stack([particles[:, :1] + c * lx - s * ly, particles[:, 1:2] + s * lx + c * ly], -1)
-                    d = endpoint_distance(self.field(states, t), states.maps.grid, ends)
-                    p = (1.0 - z_rand) * np.exp(-0.5 * (d / sigma) ** 2) / (np.sqrt(2 * np.pi) * sigma) + floor
-                    log_w = np.log(p).sum(axis=1)
-                w = np.exp(log_w - log_w.max())
-                w /= w.sum()
-                heading = np.arctan2(w @ np.sin(particles[:, 2]), w @ np.cos(particles[:, 2]))
-                estimate = np.array([w @ particles[:, 0], w @ particles[:, 1], heading])
-                truth = states.poses[t]
-                errors.append(float(np.hypot(*(estimate[:2] - truth[:2]))))
-                headings.append(float(abs(wrap(estimate[2] - truth[2]))))
-                particles = particles[low_variance_resample(w, rng)]
-        errors_np = np.asarray(errors)
+                lx, ly = np.where(ok, r, 0.0) * cos, np.where(ok, r, 0.0) * sin
+                c, s = np.cos(particles[..., 2:3]), np.sin(particles[..., 2:3])  # (R, n, 1)
+                ends = np.stack(
+                    [
+                        particles[..., :1] + c * lx[:, None] - s * ly[:, None],
+                        particles[..., 1:2] + s * lx[:, None] + c * ly[:, None],
+                    ],
+                    axis=-1,
+                )
+                d = endpoint_distance(self.field(states, t), states.maps.grid, ends)  # (R, n, B)
+                log_w = np.sum(table[d] * ok[:, None, :], axis=2)
+                w = np.exp(log_w - log_w.max(axis=1, keepdims=True))
+                w /= w.sum(axis=1, keepdims=True)
+                heading = np.arctan2(np.sum(w * np.sin(particles[..., 2]), 1), np.sum(w * np.cos(particles[..., 2]), 1))
+                x, y = np.sum(w * particles[..., 0], 1), np.sum(w * particles[..., 1], 1)
+                errors[:, t] = np.hypot(x - states.poses[t, 0], y - states.poses[t, 1])
+                headings[:, t] = np.abs(wrap(heading - states.poses[t, 2]))
+                picks = low_variance_resample(w, np.array([g.random() for g in streams]))
+                particles = np.take_along_axis(particles, picks[..., None], axis=1)
+        used = np.zeros(states.n, bool)
+        for first, stop in cuts:
+            used[first:stop] = True
+        errors, headings = errors[:, used], headings[:, used]
+        return {"objective": np.minimum(errors, CAP).mean(axis=1), "errors": errors, "headings": headings}
+
+    def evaluate(self, alpha: dict, states: PlanarStates, ranges: np.ndarray) -> dict:
+        """Run the filter along the states on ``ranges`` ((S, T, N) or (T, N)) with setting ``alpha``."""
+        done = paired_runs(
+            lambda runs: self.filter(alpha, states, ranges, runs), self.runs, self.max_runs, self.target_se
+        )
+        errors = done["errors"]
         return {
-            "J": float(np.mean(np.minimum(errors_np, CAP))),
-            "divergence": float(np.mean(errors_np > 1.0)),
-            "heading_error_deg": float(np.degrees(np.mean(headings))),
-            "error_median": float(np.median(errors_np)),
+            "J": float(done["objective"].mean()),
+            "J_runs": done["objective"].tolist(),
+            "divergence": float(np.mean(errors > 1.0)),
+            "heading_error_deg": float(np.degrees(done["headings"].mean())),
+            "error_median": float(np.median(errors)),
         }

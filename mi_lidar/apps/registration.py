@@ -1,14 +1,15 @@
 """Scan-to-map registration in an EKF along the trajectory (thesis 3.5.2).
 
-At each state the filter predicts the pose by the (noisy) odometry motion from the previous state
-(:func:`~mi_lidar.apps.scans.noisy_run`), registers the scan to the state's map by point-to-line ICP
-(:func:`icp`) from the prediction, and fuses the registered pose as a measurement of the pose (EKF
-update, :func:`_update`). A registration whose inlier share is below the gate is rejected (prediction
-only). With ``chained`` the prediction starts from the previous estimate (one filter along the whole
-trajectory); without, from the previous true pose with the start covariance, so every state is one
-registration instance: on logs whose states are seconds and metres apart (the protocol's test scans of
-the Intel log: median 2.4 m and 68 deg between states) one lost registration otherwise loses the rest
-of the run whatever the sensor model, and ``J`` measures luck more than registration.
+The filter runs along every scan of the log, stretch after stretch (about 20 m of travel each; each
+stretch starts from a noisy pose, so a filter that loses track loses one stretch, not the rest of the
+log): it predicts each state from the previous estimate by the noisy odometry motion
+(:func:`~mi_lidar.apps.scans.noisy_runs`; the filter's motion noise is the odometry's,
+:func:`~mi_lidar.apps.scans.motion_sigma`), registers the scan to the
+state's leave-out map by point-to-line ICP (:func:`icp_runs`) from the prediction, and fuses the
+registered pose as a measurement of the pose (EKF update, :func:`_update`). A registration whose inlier
+share is below the gate is rejected (prediction only). The runs of one evaluation are filtered side by
+side (one KD-tree query per ICP iteration for all of them); run ``r`` has the same noise on every
+dataset and sees a simulator's ``r``-th sampled scans.
 
 ========================  ============================================================  ======
 alpha                     meaning                                                       unit
@@ -19,7 +20,8 @@ alpha                     meaning                                               
 ========================  ============================================================  ======
 
 ``J``: the mean position error of the filter (m) over states and runs, against the SLAM-corrected
-poses, each state's error capped at :data:`~mi_lidar.apps.scans.CAP` m (a lost filter counts as lost).
+poses, each state's error capped at :data:`~mi_lidar.apps.scans.CAP` m (a lost filter counts as lost);
+runs are added while its standard error exceeds ``target_se`` (up to ``max_runs``).
 Also reported: the mean heading error (deg), the mean ICP iterations run (the thesis's convergence
 time), the share of rejected registrations and the divergence rate (error > 1 m).
 """
@@ -27,6 +29,7 @@ time), the share of rejected registrations and the divergence rate (error > 1 m)
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -34,13 +37,15 @@ from scipy.spatial import cKDTree
 from mi_lidar.apps.risk import Parameter
 from mi_lidar.apps.scans import (
     CAP,
+    REACH,
     START_NOISE,
     PlanarStates,
     compose,
     motion_sigma,
-    noisy_run,
-    scan_points,
-    to_world,
+    noisy_runs,
+    paired_runs,
+    run_ranges,
+    stretches,
     wrap,
 )
 
@@ -74,81 +79,133 @@ class MapIndex:
 
 @dataclass
 class Registration:
-    """Result of :func:`icp`.
+    """Result of :func:`icp_runs` for R runs.
 
     Attributes:
-        pose: (3,) the registered pose.
-        share: share of the scan's points within ``max_distance`` of the map at that pose.
-        iterations: iterations run.
-        information: (3, 3) ``sum J^T J`` of the point-to-line residuals at the pose (1/m^2 units per
+        pose: (R, 3) the registered poses.
+        share: (R,) share of each scan's points within ``max_distance`` of the map at that pose.
+        iterations: (R,) iterations run.
+        information: (R, 3, 3) ``sum J^T J`` of the point-to-line residuals at the pose (1/m^2 units per
             pose coordinate): small along directions the map does not constrain (a corridor's axis).
     """
 
     pose: np.ndarray
-    share: float
-    iterations: int
+    share: np.ndarray
+    iterations: np.ndarray
     information: np.ndarray
 
 
-def _pairs(points: np.ndarray, index: MapIndex, pose: np.ndarray, max_distance: float):
-    """Residuals (k,) and Jacobians (k, 3) of the point-to-line pairs within ``max_distance``, and the inlier share."""
-    world = to_world(pose, points)
-    distance, nearest = index.tree.query(world, distance_upper_bound=max_distance)
-    inlier = np.isfinite(distance)
-    p, n = world[inlier], index.normals[nearest[inlier]]
-    residual = np.sum(n * (p - index.points[nearest[inlier]]), axis=1)
-    arm = p - pose[:2]
-    jacobian = np.stack([n[:, 0], n[:, 1], n[:, 1] * arm[:, 0] - n[:, 0] * arm[:, 1]], axis=1)
-    return residual, jacobian, float(inlier.mean()) if len(points) else 0.0
+def _pairs(points: np.ndarray, valid: np.ndarray, index: MapIndex, pose: np.ndarray, max_distance: float):
+    """Point-to-line pairs of R scans at R poses: residuals (R, n), Jacobians (R, n, 3) (0 off the pairs), pairs (R, n).
+
+    ``points`` (R, n, 2) in the laser frame, ``valid`` (R, n) marks real points; a point pairs with its
+    nearest map point within ``max_distance``.
+    """
+    c, s = np.cos(pose[:, 2:3]), np.sin(pose[:, 2:3])
+    world = np.stack(
+        [pose[:, :1] + c * points[..., 0] - s * points[..., 1], pose[:, 1:2] + s * points[..., 0] + c * points[..., 1]],
+        axis=-1,
+    )
+    distance, nearest = index.tree.query(world.reshape(-1, 2), distance_upper_bound=max_distance)
+    paired = valid & np.isfinite(distance).reshape(valid.shape)
+    nearest = np.where(paired, nearest.reshape(valid.shape), 0)
+    n = index.normals[nearest]
+    residual = np.where(paired, np.sum(n * (world - index.points[nearest]), axis=-1), 0.0)
+    arm = world - pose[:, None, :2]
+    jacobian = np.stack([n[..., 0], n[..., 1], n[..., 1] * arm[..., 0] - n[..., 0] * arm[..., 1]], axis=-1)
+    return residual, jacobian * paired[..., None], paired
 
 
-def icp(
-    points: np.ndarray, index: MapIndex, pose: np.ndarray, max_distance: float, iterations: int, tolerance=1e-4
+def icp_runs(
+    points: np.ndarray,
+    valid: np.ndarray,
+    index: MapIndex,
+    pose: np.ndarray,
+    max_distance: float,
+    iterations: int,
+    tolerance: float = 1e-4,
 ) -> Registration:
-    """Point-to-line ICP of laser-frame ``points`` (n, 2) to a map, from ``pose`` (3,).
+    """Point-to-line ICP of R scans to one map, each from its own pose (R, 3).
 
-    Each iteration pairs every point with its nearest map point within ``max_distance`` and takes one
-    Gauss-Newton step on the sum of squared point-to-line distances; it stops after ``iterations``, when
-    fewer than 3 pairs remain, or when a step moves less than ``tolerance`` (m, and rad).
+    Each iteration pairs every point (``points`` (R, n, 2) in the laser frame where ``valid`` (R, n))
+    with its nearest map point within ``max_distance`` and takes one Gauss-Newton step on the sum of
+    squared point-to-line distances; a scan stops after ``iterations``, when fewer than 3 pairs remain,
+    or when a step moves less than ``tolerance`` (m, and rad).
     """
     pose = np.array(pose, np.float64)
-    run = 0
-    while run < iterations:
-        run += 1
-        residual, jacobian, _ = _pairs(points, index, pose, max_distance)
-        if residual.size < 3:
+    run = np.zeros(len(pose), np.int64)
+    active = np.arange(len(pose))
+    for _ in range(iterations):
+        if not active.size:
             break
-        step = np.linalg.solve(jacobian.T @ jacobian + 1e-6 * np.eye(3), -jacobian.T @ residual)
-        pose = pose + step
-        pose[2] = wrap(pose[2])
-        if np.hypot(step[0], step[1]) < tolerance and abs(step[2]) < tolerance:
-            break
-    _, jacobian, share = _pairs(points, index, pose, max_distance)
-    return Registration(pose=pose, share=share, iterations=run, information=jacobian.T @ jacobian)
+        run[active] += 1
+        residual, jacobian, paired = _pairs(points[active], valid[active], index, pose[active], max_distance)
+        hessian = np.einsum("rni,rnj->rij", jacobian, jacobian) + 1e-6 * np.eye(3)
+        step = np.linalg.solve(hessian, -np.einsum("rni,rn->ri", jacobian, residual)[..., None])[..., 0]
+        enough = paired.sum(axis=1) >= 3
+        step[~enough] = 0.0
+        pose[active] += step
+        pose[active, 2] = wrap(pose[active, 2])
+        small = (np.hypot(step[:, 0], step[:, 1]) < tolerance) & (np.abs(step[:, 2]) < tolerance)
+        active = active[enough & ~small]
+    _, jacobian, paired = _pairs(points, valid, index, pose, max_distance)
+    share = paired.sum(axis=1) / np.maximum(valid.sum(axis=1), 1)
+    return Registration(
+        pose=pose, share=share, iterations=run, information=np.einsum("rni,rnj->rij", jacobian, jacobian)
+    )
+
+
+def icp(points: np.ndarray, index: MapIndex, pose: np.ndarray, max_distance: float, iterations: int) -> Registration:
+    """ICP of one scan's laser-frame ``points`` (n, 2) from ``pose`` (3,) (:func:`icp_runs` with R = 1)."""
+    one = icp_runs(
+        points[None], np.ones((1, len(points)), bool), index, np.asarray(pose)[None], max_distance, iterations
+    )
+    return Registration(
+        pose=one.pose[0], share=one.share[0], iterations=one.iterations[0], information=one.information[0]
+    )
+
+
+def scan_batch(ranges: np.ndarray, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Laser-frame points (R, N, 2) of R scans' ranges (R, N) (m), and which are returns closer than :data:`REACH`."""
+    valid = np.isfinite(ranges) & (ranges > 0) & (ranges < REACH)
+    r = np.where(valid, ranges, 0.0)
+    return np.stack([r * np.cos(angles), r * np.sin(angles)], axis=-1), valid
 
 
 def _predict(mean: np.ndarray, cov: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """EKF motion update by ``u`` (3,) in the robot frame, with the noise of :func:`motion_sigma`."""
-    c, s = np.cos(mean[2]), np.sin(mean[2])
-    f = np.array([[1.0, 0.0, -s * u[0] - c * u[1]], [0.0, 1.0, c * u[0] - s * u[1]], [0.0, 0.0, 1.0]])
-    w = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    q = np.diag(motion_sigma(u) ** 2)
-    return compose(mean, u), f @ cov @ f.T + w @ q @ w.T
+    """EKF motion update of R filters (means (R, 3), covariances (R, 3, 3)) by robot-frame motions ``u`` (R, 3)."""
+    c, s = np.cos(mean[:, 2]), np.sin(mean[:, 2])
+    zero, one = np.zeros_like(c), np.ones_like(c)
+    f = np.stack(
+        [
+            np.stack([one, zero, -s * u[:, 0] - c * u[:, 1]], -1),
+            np.stack([zero, one, c * u[:, 0] - s * u[:, 1]], -1),
+            np.stack([zero, zero, one], -1),
+        ],
+        axis=1,
+    )
+    w = np.stack([np.stack([c, -s, zero], -1), np.stack([s, c, zero], -1), np.stack([zero, zero, one], -1)], axis=1)
+    q = motion_sigma(u) ** 2
+    noise = np.einsum("rij,rj,rkj->rik", w, q, w)
+    return compose(mean, u), f @ cov @ np.swapaxes(f, 1, 2) + noise
 
 
 def _update(mean: np.ndarray, cov: np.ndarray, registered: Registration) -> tuple[np.ndarray, np.ndarray]:
-    """EKF update with the registered pose as a measurement of the pose.
+    """EKF update of R filters with their registered poses as measurements of the pose.
 
-    Its covariance is ``POINT_SIGMA^2 (J^T J)^-1`` (the least-squares covariance of the registration)
-    plus :data:`MEASUREMENT_FLOOR`, so directions the map does not constrain are left to the prediction.
+    A measurement's covariance is ``POINT_SIGMA^2 (J^T J)^-1`` (the least-squares covariance of the
+    registration) plus :data:`MEASUREMENT_FLOOR`, so directions the map does not constrain are left to
+    the prediction.
     """
     xy, theta = MEASUREMENT_FLOOR
-    noise = POINT_SIGMA**2 * np.linalg.inv(registered.information + 1e-9 * np.eye(3))
-    gain = cov @ np.linalg.inv(cov + noise + np.diag([xy**2, xy**2, theta**2]))
+    noise = POINT_SIGMA**2 * np.linalg.inv(registered.information + 1e-9 * np.eye(3)) + np.diag(
+        [xy**2, xy**2, theta**2]
+    )
+    gain = cov @ np.linalg.inv(cov + noise)
     innovation = registered.pose - mean
-    innovation[2] = wrap(innovation[2])
-    mean = mean + gain @ innovation
-    mean[2] = wrap(mean[2])
+    innovation[:, 2] = wrap(innovation[:, 2])
+    mean = mean + np.einsum("rij,rj->ri", gain, innovation)
+    mean[:, 2] = wrap(mean[:, 2])
     return mean, (np.eye(3) - gain) @ cov
 
 
@@ -157,16 +214,26 @@ class ScanToMapEKF:
     """The registration application (see the module docstring).
 
     Attributes:
-        runs: filter runs per evaluation (each with its own noisy start and odometry, the same on every dataset).
-        seed: seed of the first run.
-        chained: predict from the previous estimate (else from the previous true pose).
+        runs: filter runs per batch (each with its own noisy start and odometry, the same on every dataset).
+        max_runs: most runs per evaluation: batches are added while the standard error of J exceeds
+            ``target_se`` (:func:`~mi_lidar.apps.scans.paired_runs`).
+        target_se: standard error of J (m) that stops adding runs.
+        stretch: travel (m) of one filter run: the log is cut into stretches of about this length
+            (:func:`~mi_lidar.apps.scans.stretches`), each filtered from its own noisy start pose.
+        max_states: on a longer log, evenly spaced stretches holding at most this many states are run.
+        seed: seed of the runs' noise.
     """
 
-    runs: int = 3
+    runs: int = 8
+    max_runs: int = 32
+    target_se: float = 0.01
+    stretch: float = 20.0
+    max_states: int = 1000
     seed: int = 0
-    chained: bool = False
+    sweep: ClassVar[str] = "iterations"  # the parameter swept at the best real setting (thesis fig. 3.20)
+    effort: ClassVar[str] = "icp_iterations"  # the metric shown beside J along the sweep
     name: str = "registration"
-    objective: str = "EKF mean position error (m)"
+    objective: str = f"EKF mean position error, capped at {CAP:g} m (m)"
     parameters: tuple[Parameter, ...] = (
         Parameter("max_distance", (0.05, 0.1, 0.2, 0.3, 0.5, 0.8, 1.2), start=1.2, unit="m"),
         Parameter("iterations", (1.0, 2.0, 3.0, 5.0, 8.0, 12.0, 20.0), start=1.0),
@@ -175,36 +242,58 @@ class ScanToMapEKF:
 
     @staticmethod
     def index(states: PlanarStates, t: int) -> MapIndex:
-        """The map index of state ``t`` (built once per states)."""
-        return states.memo(("map_index", t), lambda: MapIndex.build(states.maps.points(t)))
+        """The map index of state ``t``'s map (built once per map)."""
+        g = states.maps.map_of(t)
+        return states.memo(("map_index", g), lambda: MapIndex.build(states.maps.points(t)))
+
+    def filter(self, alpha: dict, states: PlanarStates, ranges: np.ndarray, runs: np.ndarray) -> dict:
+        """Run the filter along every stretch for run indices ``runs`` (R,); per-run arrays of what it did."""
+        data = run_ranges(ranges, runs)
+        starts, motions = noisy_runs(states, runs, self.seed)
+        start_cov = np.diag([START_NOISE[0] ** 2, START_NOISE[0] ** 2, START_NOISE[1] ** 2])
+        errors = np.empty((len(runs), states.n))
+        headings, iterations, rejected = np.empty_like(errors), np.empty_like(errors), np.empty_like(errors, bool)
+        cuts = stretches(states, self.stretch, self.max_states)
+        for first, stop in cuts:
+            mean, cov = starts[:, first].copy(), np.tile(start_cov, (len(runs), 1, 1))
+            for t in range(first, stop):
+                if t > first:
+                    mean, cov = _predict(mean, cov, motions[:, t - 1])
+                points, valid = scan_batch(data[:, t], states.angles)
+                registered = icp_runs(
+                    points, valid, self.index(states, t), mean, alpha["max_distance"], int(alpha["iterations"])
+                )
+                accept = (valid.sum(axis=1) >= 3) & (registered.share >= alpha["min_inliers"])
+                if accept.any():
+                    taken = Registration(*(v[accept] for v in vars(registered).values()))
+                    mean[accept], cov[accept] = _update(mean[accept], cov[accept], taken)
+                errors[:, t] = np.hypot(mean[:, 0] - states.poses[t, 0], mean[:, 1] - states.poses[t, 1])
+                headings[:, t] = np.abs(wrap(mean[:, 2] - states.poses[t, 2]))
+                iterations[:, t], rejected[:, t] = registered.iterations, ~accept
+        used = np.zeros(states.n, bool)
+        for first, stop in cuts:
+            used[first:stop] = True
+        errors, headings, iterations, rejected = (v[:, used] for v in (errors, headings, iterations, rejected))
+        return {
+            "objective": np.minimum(errors, CAP).mean(axis=1),
+            "errors": errors,
+            "headings": headings,
+            "iterations": iterations,
+            "rejected": rejected,
+        }
 
     def evaluate(self, alpha: dict, states: PlanarStates, ranges: np.ndarray) -> dict:
-        """Run the filter ``runs`` times on ``ranges`` (T, N) with setting ``alpha``."""
-        errors, headings, iterations, rejected = [], [], [], []
-        for run in range(self.runs):
-            mean, motions = noisy_run(states, self.seed + run)
-            start = np.diag([START_NOISE[0] ** 2, START_NOISE[0] ** 2, START_NOISE[1] ** 2])
-            cov = start
-            for t in range(states.n):
-                if t > 0 and self.chained:
-                    mean, cov = _predict(mean, cov, motions[t - 1])
-                elif t > 0:
-                    mean, cov = _predict(states.poses[t - 1], start, motions[t - 1])
-                points = scan_points(ranges[t], states.angles)
-                registered = icp(points, self.index(states, t), mean, alpha["max_distance"], int(alpha["iterations"]))
-                iterations.append(registered.iterations)
-                accept = len(points) >= 3 and registered.share >= alpha["min_inliers"]
-                rejected.append(not accept)
-                if accept:
-                    mean, cov = _update(mean, cov, registered)
-                truth = states.poses[t]
-                errors.append(float(np.hypot(*(mean[:2] - truth[:2]))))
-                headings.append(float(abs(wrap(mean[2] - truth[2]))))
+        """Run the filter along the states on ``ranges`` ((S, T, N) or (T, N)) with setting ``alpha``."""
+        done = paired_runs(
+            lambda runs: self.filter(alpha, states, ranges, runs), self.runs, self.max_runs, self.target_se
+        )
+        errors = done["errors"]
         return {
-            "J": float(np.mean(np.minimum(errors, CAP))),
-            "divergence": float(np.mean(np.asarray(errors) > 1.0)),
-            "heading_error_deg": float(np.degrees(np.mean(headings))),
-            "icp_iterations": float(np.mean(iterations)),
-            "rejected": float(np.mean(rejected)),
+            "J": float(done["objective"].mean()),
+            "J_runs": done["objective"].tolist(),
+            "divergence": float(np.mean(errors > 1.0)),
+            "heading_error_deg": float(np.degrees(done["headings"].mean())),
+            "icp_iterations": float(done["iterations"].mean()),
+            "rejected": float(done["rejected"].mean()),
             "error_p90": float(np.quantile(errors, 0.9)),
         }

@@ -4,11 +4,17 @@ An application has parameters ``alpha`` with a prior ``p(alpha)`` and an objecti
 (lower is better) on a dataset ``D``. For a simulated dataset ``D_hat`` of the same states:
 
 * the loss ``l(alpha) = |J(alpha, D) - J(alpha, D_hat)|``;
-* the risk: the mean of ``l`` over ``M`` draws ``alpha ~ p(alpha)`` (the same draws for every simulator);
+* the risk: the mean of ``l`` over ``M`` draws ``alpha ~ p(alpha)`` (the same draws for every simulator),
+  with its standard error over the draws, and the paired difference of two simulators' risks (the mean
+  of ``l_a - l_b`` at the same draws) with its standard error: the draws are shared and a stochastic
+  application's runs use common random numbers, so the paired error is the one that says which
+  simulator is better;
 * a development path ``(alpha_i, J(alpha_i, D_hat))``: what a developer tuning on the simulator does,
   here a cyclic coordinate search on the parameters' grids from a first implementation ``alpha_0``
   (try every value of one parameter, keep the best, go on to the next parameter, until a whole cycle
-  changes nothing); the same ``alpha_i`` are scored on the real data, which the developer does not see.
+  changes nothing); the same ``alpha_i`` are scored on the real data, which the developer does not see;
+* a sweep (thesis fig. 3.20): every source's metrics along the grid of the application's ``sweep``
+  parameter, the others at the best real setting found.
 
 The prior of a parameter is uniform over its grid of values (:class:`Parameter`), so a geometric grid
 is a log-uniform prior. ``J`` values are memoized by :class:`Objectives` (and cached on disk), so
@@ -53,7 +59,7 @@ class Parameter:
 
 
 class Application(Protocol):
-    """What :func:`evaluate_application` needs of an application."""
+    """What :func:`evaluate_application` needs of an application (``sweep``: optional name of the parameter swept)."""
 
     name: str
     objective: str
@@ -151,6 +157,12 @@ class AppResult:
         alphas: the ``M`` prior draws.
         J: ``{source: (M,) J at the draws}``.
         risk: ``{simulator: mean loss}``.
+        risk_se: ``{simulator: standard error of the risk over the draws}``.
+        paired: ``{a: {b: (mean of l_a - l_b, its standard error)}}`` for every two simulators.
+        run_se: ``{source: mean over the draws of the standard error of J over its runs}`` (0 when the
+            application reports no ``J_runs``).
+        sweep: ``{"parameter", "values", "at", "effort", "metrics": {source: [metrics at each value]}}`` (``effort``:
+            the application's metric of the cost of a setting, e.g. ICP iterations), or None.
         paths: ``{source: [settings]}`` developed on that source ("real": developed on real data).
         path_J: ``{source: (sim J, real J) along its path}``.
         best_real: the best real J found (over draws and every path), and its setting.
@@ -169,6 +181,10 @@ class AppResult:
     best_real: tuple[float, dict]
     picks: dict[str, dict]
     metrics: dict[str, list[dict]] = field(default_factory=dict)
+    risk_se: dict[str, float] = field(default_factory=dict)
+    paired: dict[str, dict[str, tuple[float, float]]] = field(default_factory=dict)
+    run_se: dict[str, float] = field(default_factory=dict)
+    sweep: dict | None = None
 
     def loss(self, source: str) -> np.ndarray:
         """(M,) ``l(alpha_k)`` of a simulator."""
@@ -183,6 +199,12 @@ class AppResult:
             "J": {k: v.tolist() for k, v in self.J.items()},
             "loss": {k: self.loss(k).tolist() for k in self.risk},
             "risk": self.risk,
+            "risk_se": self.risk_se,
+            "paired_difference": {
+                a: {b: {"mean": d, "se": e} for b, (d, e) in row.items()} for a, row in self.paired.items()
+            },
+            "run_se": self.run_se,
+            "sweep": self.sweep,
             "paths": self.paths,
             "path_J": {k: {"simulated": s, "real": r} for k, (s, r) in self.path_J.items()},
             "best_real": {"J": self.best_real[0], "alpha": self.best_real[1]},
@@ -207,7 +229,8 @@ def evaluate_application(app: Application, objectives: Objectives, m: int = 16, 
     alphas = sample_alphas(app, m, seed)
     metrics = {s: [objectives(app, s, a) for a in alphas] for s in sources}
     J = {s: np.array([row["J"] for row in metrics[s]]) for s in sources}
-    risk = {s: float(np.mean(np.abs(J[s] - J["real"]))) for s in simulators}
+    loss = {s: np.abs(J[s] - J["real"]) for s in simulators}
+    risk = {s: float(np.mean(loss[s])) for s in simulators}
     start = start_alpha(app)
     paths, path_J = {}, {}
     for s in ["real", *simulators]:
@@ -217,6 +240,19 @@ def evaluate_application(app: Application, objectives: Objectives, m: int = 16, 
     real_seen = [(J["real"][k], alphas[k]) for k in range(m)]
     real_seen += [(j, a) for s in paths for j, a in zip(path_J[s][1], paths[s])]
     best = min(real_seen, key=lambda row: row[0])
+    sweep = None
+    if getattr(app, "sweep", None):
+        parameter = next(p for p in app.parameters if p.name == app.sweep)
+        settings = [{**best[1], parameter.name: float(v)} for v in parameter.values]
+        swept = {s: [objectives(app, s, a) for a in settings] for s in sources}
+        sweep = {
+            "parameter": parameter.name,
+            "values": list(parameter.values),
+            "at": best[1],
+            "effort": getattr(app, "effort", None),
+            "metrics": swept,
+        }
+        best = min([best, *((row["J"], a) for row, a in zip(swept["real"], settings))], key=lambda row: row[0])
     picks = {}
     for s in simulators:
         real_J = path_J[s][1][-1]
@@ -241,4 +277,19 @@ def evaluate_application(app: Application, objectives: Objectives, m: int = 16, 
         best_real=(float(best[0]), best[1]),
         picks=picks,
         metrics=metrics,
+        risk_se={s: standard_error(loss[s]) for s in simulators},
+        paired={
+            a: {b: (float(np.mean(loss[a] - loss[b])), standard_error(loss[a] - loss[b])) for b in simulators if b != a}
+            for a in simulators
+        },
+        run_se={
+            s: float(np.mean([standard_error(row.get("J_runs", [row["J"]])) for row in metrics[s]])) for s in sources
+        },
+        sweep=sweep,
     )
+
+
+def standard_error(values) -> float:
+    """Standard error of the mean of ``values`` (0 for fewer than two)."""
+    values = np.asarray(values, np.float64)
+    return float(np.std(values, ddof=1) / np.sqrt(values.size)) if values.size > 1 else 0.0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import typer
@@ -20,17 +21,25 @@ def evaluate_apps(
         None, "--simulator", "-s", help="Only these simulators (repeatable): M0 M1 P-Reg NP-Reg mi-lidar (default)."
     ),
     draws: int = typer.Option(16, min=2, help="Prior draws of each application's parameters for the risk."),
-    runs: int = typer.Option(3, min=1, help="Runs of the stochastic applications (EKF, particle filter) per setting."),
-    workers: int = typer.Option(1, min=1, help="Processes running the applications side by side (up to 3)."),
+    runs: int = typer.Option(
+        8,
+        min=1,
+        help="Runs of the trackers (EKF, particle filter) per setting, paired across sources; also the scans each "
+        "simulator samples per state.",
+    ),
+    workers: int | None = typer.Option(
+        None, min=1, help="Processes running the three applications side by side (default: one per core, up to 3)."
+    ),
     test_every: int = typer.Option(5, min=2, help="Every k-th scan is a test state (the planar protocol)."),
     window: float = typer.Option(30.0, min=0.0, help="A state's map leaves out the scans within 1 m and this many s."),
 ):
-    """Run scan-to-map registration (EKF), particle-filter localization and line detection on the real scans
-    and on scans simulated at the same states by each simulator; print the application-level risk.
+    """Run scan-to-map registration (EKF) and particle-filter localization along the whole log, and line
+    detection on its test scans, on the real scans and on scans simulated at the same states by each
+    simulator; print the application-level risk with its standard error.
 
     The simulators are fitted on the training scans by the planar benchmark (`benchmark-planar`): M0 is the
     ray cast + one Gaussian (Gazebo-style), M1 the classic beam model, then P-Reg, NP-Reg and mi-lidar's
-    permeable map. Reruns reuse OUT/cache.
+    permeable map. Reruns reuse OUT/cache; a run stopped half-way resumes there.
 
     Examples:
 
@@ -50,11 +59,12 @@ def evaluate_apps(
             tuple(simulator) if simulator else SIMULATORS,
             draws=draws,
             runs=runs,
-            workers=workers,
+            workers=workers or min(3, os.cpu_count() or 1),
             progress=lambda done, total, label: update(done, total, label),
         )
     table = Table(
-        title=f"{log.name}: application-level risk, mean |J real - J sim| over {draws} draws (lower is better)",
+        title=f"{log.name}: application-level risk, mean |J real - J sim| over {draws} draws ± standard error "
+        "(lower is better)",
         caption="pick: the setting a developer reaches on the simulator; 'ok' when its real J is within 10 % of "
         "the best real J found",
         header_style="bold",
@@ -66,10 +76,14 @@ def evaluate_apps(
         best = min(r.risk.values())
         cells = []
         for name in result.simulators:
-            value = f"{r.risk[name]:.4g} ({'ok' if r.picks[name]['within'] else 'off'})"
+            value = f"{r.risk[name]:.3g}\n± {r.risk_se[name]:.1g}\npick {'ok' if r.picks[name]['within'] else 'off'}"
             cells.append(f"[bold]{value}[/bold]" if r.risk[name] == best else value)
         table.add_row(r.name, *cells)
     console.print(table)
     for r in result.results:
         console.print(f"{r.name}: J = {r.objective}; best real J found {r.best_real[0]:.4g}")
-    console.print(f"{result.states.n} test states; {result.seconds['total']:.0f} s; report: {out / 'apps.html'}")
+    seconds = result.seconds
+    console.print(
+        f"{result.states.n} states ({int(result.states.test.sum())} test scans); {seconds['total']:.0f} s "
+        f"({seconds['total_cpu']:.0f} CPU s); report: {out / 'apps.html'}"
+    )

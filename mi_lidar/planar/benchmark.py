@@ -52,7 +52,12 @@ def tuned_threshold(p_miss: np.ndarray, miss: np.ndarray) -> float:
 
 @dataclass
 class ModelRow:
-    """The benchmark's figures of one model (see the module docstring)."""
+    """The benchmark's figures of one model (see the module docstring).
+
+    Besides the figures: ``ll`` the test beams' log-likelihoods, ``sampled`` the test scan it sampled
+    (range, hit), and ``engine`` the ``(training beams, test beams, model)`` it was fitted and scored
+    with, to simulate more scans at the same beams (:func:`mi_lidar.apps.scans.planar_datasets`).
+    """
 
     name: str
     test_nll: float
@@ -66,6 +71,7 @@ class ModelRow:
     seconds: float
     ll: np.ndarray = field(repr=False, default=None)
     sampled: tuple = field(repr=False, default=None)
+    engine: tuple = field(repr=False, default=None)
 
     def to_json(self) -> dict:
         keep = ("range_error_median", "range_error_p90", "f1", "histogram_l1", "hit_rate_simulated")
@@ -130,6 +136,7 @@ def _row(
         seconds=seconds,
         ll=ll_test,
         sampled=(z, hit),
+        engine=(train, test, model),
     )
 
 

@@ -36,17 +36,19 @@ def cast_scans(states_poses: np.ndarray, angles: np.ndarray, walls: np.ndarray =
 
 
 def room_states(scans: int = 40, beams: int = 181) -> PlanarStates:
-    """States along the robot's loop in the room; every state's map is the whole room."""
+    """States along the robot's loop in the room (all test states); each maps the whole room, its walls the room's."""
     truth = poses(scans)
     angles = beam_angles(beams)
     cells = wall_cells()
     return PlanarStates(
         scans=np.arange(scans),
+        test=np.ones(scans, bool),
         angles=angles,
         poses=truth,
         odometry=truth.copy(),
         nominal=cast_scans(truth, angles),
-        maps=ScanMaps(grid=GRID, start=np.arange(scans + 1) * cells.size, cells=np.tile(cells, scans)),
+        maps=ScanMaps(grid=GRID, start=np.array([0, cells.size]), cells=cells, of_state=np.zeros(scans, np.int64)),
+        walls=WALLS.copy(),
     )
 
 

@@ -2,6 +2,7 @@
 
 import json
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -31,6 +32,7 @@ APPS = (ScanToMapEKF, ParticleFilter, LineDetection)
 class Bowl:
     """A toy application: J = (a - 3 - offset)^2 + (b - 1)^2 where ``offset`` is the mean of the dataset's ranges."""
 
+    sweep: ClassVar[str] = "a"
     name: str = "bowl"
     objective: str = "toy"
     parameters: tuple = (
@@ -73,6 +75,10 @@ def test_risk_is_zero_for_a_perfect_simulator_and_grows_with_its_bias(tmp_path):
     assert result.picks["perfect"]["within"] and result.picks["perfect"]["real_J"] == 0.0
     # Developed on the biased simulator, the developer picks a = 4: real J = 1, not within 10 % of 0.
     assert result.picks["biased"]["alpha"]["a"] == 4.0 and not result.picks["biased"]["within"]
+    # The sweep runs along a at the best real setting (a = 3, b = 1): real J = (a - 3)^2, biased J = (a - 4)^2.
+    assert result.sweep["at"] == {"a": 3.0, "b": 1.0} and result.sweep["values"] == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+    assert [row["J"] for row in result.sweep["metrics"]["real"]] == [9.0, 4.0, 1.0, 0.0, 1.0, 4.0]
+    assert [row["J"] for row in result.sweep["metrics"]["biased"]] == [16.0, 9.0, 4.0, 1.0, 0.0, 1.0]
     again = Objectives(None, ranges, tmp_path / "objectives.json", key="k")
     evaluate_application(Bowl(), again, m=12, seed=0)
     assert again.new == 0  # every value came from the file
@@ -97,7 +103,11 @@ def test_evaluate_datasets_reports_every_application_and_resumes_from_its_cache(
     lines = first.results[2]
     # Line detection on scans with the real share of clutter behaves as on the real scans; clean scans mislead.
     assert lines.risk["cluttered"] < lines.risk["clean"], lines.risk
-    assert (tmp_path / "apps.html").stat().st_size > 5000 and len(list(tmp_path.glob("*.png"))) == 6
+    assert (tmp_path / "apps.html").stat().st_size > 5000 and len(list(tmp_path.glob("*.png"))) == 10
+    for application in report["applications"]:  # standard errors of the risks and of their paired differences
+        assert set(application["risk_se"]) == {"clean", "cluttered"} and application["risk_se"]["clean"] >= 0.0
+        pair = application["paired_difference"]["clean"]["cluttered"]
+        assert pair["mean"] == pytest.approx(application["risk"]["clean"] - application["risk"]["cluttered"])
     for c in APPS:
         monkeypatch.setattr(f"{c.__module__}.{c.__name__}.evaluate", _fail)
     # Side by side in forked processes, every value comes from the applications' caches.
@@ -115,7 +125,7 @@ def test_evaluate_apps_on_the_room_log(tmp_path, monkeypatch):
     assert result.exit_code == 0, result.stdout
     assert "registration" in result.stdout and "localization" in result.stdout and "lines" in result.stdout
     report = json.loads((out / "apps.json").read_text())
-    assert report["states"] == 8 and report["simulators"] == ["M0", "M1"]
+    assert report["states"] == 40 and report["test_states"] == 8 and report["simulators"] == ["M0", "M1"]
     assert all(set(a["risk"]) == {"M0", "M1"} for a in report["applications"])
     # A rerun reads the simulated datasets from the cache.
     monkeypatch.setattr("mi_lidar.planar.benchmark.run_planar_benchmark", _fail)
