@@ -12,14 +12,17 @@ M2a, M2b   the same per nominal-range bin / per range x incidence bin; bins with
 M3a, M3b   residual histograms per bin with the protocol's smoothing (the binned NP baseline)
 P-Reg      thesis 3.3: P_null, mean, sigma by local linear kernel regression on range and incidence
 NP-Reg     thesis 3.4: per-state histograms smoothed across states by a kernel (frequency polygon)
-mi-lidar   the permeable map: every cell with leave-out hits is an element at its mean endpoint hit
+mi-lidar   the permeable map: every cell with leave-out hits is an element at its surface
            that intercepts the beam with its counting estimate (a Beta prior per occupancy class,
-           fitted), returns by an NP-Reg density conditioned on the cell's occupancy, range and
-           incidence (refined by EM over the segments)
+           fitted), returns by an NP-Reg density conditioned on the cell's occupancy, evidence (how
+           many leave-out hits), range and incidence (refined by EM over the segments); a beam's
+           return comes from its own trace or,
+           by a fitted share, from a neighbouring beam's (its angular spread)
 =========  ===================================================================================
 
-Bandwidths and priors are chosen on the training scans only: the learned models hold out every other
-training scan for the choice and are refitted on all training scans with the chosen setting.
+Bandwidths, uniform shares and priors are chosen on the training scans only: the learned models hold
+out every other training scan for the choice and are refitted on all training scans with the chosen
+setting; the Beta priors and the angular spread are fitted by maximum likelihood on the training beams.
 """
 
 from __future__ import annotations
@@ -36,25 +39,47 @@ from mi_lidar.core.densities.samples import StateSamples, protocol_residual_edge
 from mi_lidar.core.densities.tables import StateGrid
 from mi_lidar.core.problem import fit_parts
 from mi_lidar.core.sensor_model import SensorModel
-from mi_lidar.planar.beams import EngineBeams, fit_permeability, nominal_beams, permeability, segment_beams
+from mi_lidar.planar.beams import (
+    LABELS,
+    AngularMixture,
+    EngineBeams,
+    angular_mixture,
+    fit_angular_weight,
+    fit_permeability,
+    golden_section,
+    nominal_beams,
+    permeability,
+    segment_beams,
+    segment_labels,
+)
 from mi_lidar.planar.raymarch import PlanarTrace
 
 RANGE_EDGES = [float(e) for e in np.linspace(0.0, 40.0, 18)] + [1.0e9]  # 17 bins over 0-40 m (M2a, M3a)
 INCIDENCE_EDGES = [0.0, 20.0, 40.0, 55.0, 65.0, 75.0, 82.0, 90.0]  # plus the unknown bin (M2b, M3b)
 MIN_BEAMS = 300
+UNIFORMS = (1e-4, 1e-3, 1e-2)  # candidate shares of the return mass spread over [0, z_max] (NP-Reg, mi-lidar)
 
 
-def samples_of(trace: PlanarTrace, occupancy: bool = False) -> StateSamples:
-    """The nominal state of every beam (label 1: the nominal cell is occupied) and its measurement."""
-    n = trace.n
+def samples_of(trace: PlanarTrace) -> StateSamples:
+    """The nominal state of every beam and its measurement."""
     return StateSamples(
         nominal=trace.nominal,
         incidence=trace.incidence,
         beam=trace.beam,
-        label=np.ones(n, np.int64) if occupancy else np.zeros(n, np.int64),
+        label=np.zeros(trace.n, np.int64),
         z=trace.z,
         hit=trace.hit,
     )
+
+
+def first_occupied(trace: PlanarTrace) -> np.ndarray:
+    """(B,) index (into the segments) of each beam's first ``occ3`` occupied segment: its nominal cell (-1: none)."""
+    seg_beam = np.repeat(np.arange(trace.n), np.diff(trace.seg_start))
+    occupied = np.flatnonzero(trace.seg_occupied)
+    beams, first = np.unique(seg_beam[occupied], return_index=True)
+    out = np.full(trace.n, -1)
+    out[beams] = occupied[first]
+    return out
 
 
 def base_model(z_max: float, density) -> SensorModel:
@@ -73,20 +98,7 @@ def fit_m0(train: EngineBeams, samples: StateSamples, z_max: float) -> SensorMod
     def nll(log_sigma: float) -> float:
         return float(-np.mean(train.log_likelihood(base_model(z_max, density(log_sigma)))))
 
-    lo, hi = np.log(0.003), np.log(2.0)
-    golden = (np.sqrt(5.0) - 1.0) / 2.0
-    a, b = hi - golden * (hi - lo), lo + golden * (hi - lo)
-    fa, fb = nll(a), nll(b)
-    for _ in range(30):
-        if fa < fb:
-            hi, b, fb = b, a, fa
-            a = hi - golden * (hi - lo)
-            fa = nll(a)
-        else:
-            lo, a, fa = a, b, fb
-            b = lo + golden * (hi - lo)
-            fb = nll(b)
-    return base_model(z_max, density(0.5 * (lo + hi)))
+    return base_model(z_max, density(golden_section(nll, np.log(0.003), np.log(2.0))))
 
 
 def fit_beam(
@@ -186,7 +198,7 @@ def fit_learned(train: PlanarTrace, z_max: float, family: str) -> tuple[SensorMo
         setting: tuple = (h_r, h_d)
     else:
         grid = fine_grid(samples)
-        _, table = fit_np_reg(samples_of(fit_part), grid, held_out, z_max=z_max)
+        _, table = fit_np_reg(samples_of(fit_part), grid, held_out, uniforms=UNIFORMS, z_max=z_max)
         h_r, h_i, u, _ = min(table, key=lambda row: row[-1])
         density, _ = fit_np_reg(
             samples, grid, lambda d: 0.0, h_ranges=(h_r,), h_incidences=(h_i,), uniforms=(u,), z_max=z_max
@@ -207,7 +219,9 @@ def _responsibilities(trace: PlanarTrace, density: NPRegDensity, a: np.ndarray, 
     log_pass = np.log(np.clip(1.0 - p, 1e-12, 1.0))
     cumulative = np.cumsum(log_pass)
     before = cumulative - log_pass - np.repeat(np.concatenate([[0.0], cumulative])[trace.seg_start[:-1]], counts)
-    state = density.grid.index_np(trace.seg_at, trace.seg_incidence, None, trace.seg_occupied.astype(np.int64))
+    state = density.grid.index_np(
+        trace.seg_at, trace.seg_incidence, None, segment_labels(trace.seg_occupied, trace.seg_hits)
+    )
     e = trace.z[beam_of] - trace.seg_at
     k = np.clip(np.searchsorted(density.edges, e, side="right") - 1, 0, density.edges.size - 2)
     inside = (e >= density.edges[0]) & (e < density.edges[-1])
@@ -226,20 +240,27 @@ def _responsibilities(trace: PlanarTrace, density: NPRegDensity, a: np.ndarray, 
 
 @dataclass
 class PermeableMap:
-    """mi-lidar's planar model: a return density per segment state and the Beta prior of the cells.
+    """mi-lidar's planar model: a return density per segment state, the Beta prior of the cells, the angular spread.
 
     Attributes:
-        model: the sensor model (its density conditions on range, incidence and cell occupancy).
+        model: the sensor model (its density conditions on range, incidence, cell occupancy and evidence).
         a, b: (2,) the Beta priors of the cells' interception probabilities (stray-hit cells, occupied cells).
+        angular: the share of each neighbouring beam's trace in a beam's return
+            (:class:`~mi_lidar.planar.beams.AngularMixture`).
     """
 
     model: SensorModel
     a: np.ndarray
     b: np.ndarray
+    angular: float = 0.0
 
-    def beams(self, trace: PlanarTrace) -> EngineBeams:
+    def segments(self, trace: PlanarTrace) -> EngineBeams:
         """The engine's view of ``trace`` under this map (every segment, interception from its counts)."""
         return segment_beams(trace).with_permeability(self.a, self.b)
+
+    def beams(self, trace: PlanarTrace) -> AngularMixture:
+        """The beams of ``trace`` under this map, with their angular spread."""
+        return angular_mixture(trace, self.segments, self.angular)
 
 
 def fit_milidar(
@@ -247,37 +268,43 @@ def fit_milidar(
 ) -> PermeableMap:
     """mi-lidar's permeable map (see the module docstring).
 
-    Start: NP-Reg tables from each beam's nominal cell (with occupancy labels) and the kernel
-    ``bandwidths`` ``(h_range, h_incidence, uniform)`` chosen for NP-Reg on held-out training scans;
+    Start: NP-Reg tables from each beam's first occupied cell (its surface, incidence and label) and
+    the kernel ``bandwidths`` ``(h_range, h_incidence, uniform)`` chosen for NP-Reg on held-out training scans;
     then ``rounds`` times: fit the Beta prior (a, b) by the one fitter, assign each return to its most
-    likely segment, and re-estimate the tables from those assignments.
+    likely segment, and re-estimate the tables from those assignments. Last, the angular spread (the
+    neighbours' share) by maximum likelihood on the training beams.
     """
     h_r, h_i, u = bandwidths
-    samples = samples_of(train, occupancy=True)
-    grid = fine_grid(samples, labels=2)
+    grid = fine_grid(samples_of(train), labels=LABELS)
     edges = protocol_residual_edges(z_max)
     weights = kernel_weights(grid, h_r, h_i)
+    labels = segment_labels(train.seg_occupied, train.seg_hits)
+    first = first_occupied(train)
 
-    def tables(assigned: StateSamples) -> NPRegDensity:
+    def tables(chosen: np.ndarray) -> NPRegDensity:
+        """Tables from the returns assigned to segments ``chosen`` (-1: the beam's first occupied one, if any)."""
+        chosen = np.where(chosen >= 0, chosen, first)
+        seg = np.maximum(chosen, 0)
+        assigned = StateSamples(
+            nominal=np.where(chosen >= 0, train.seg_at[seg], np.nan),
+            incidence=np.where(chosen >= 0, train.seg_incidence[seg], np.nan),
+            beam=train.beam,
+            label=np.where(chosen >= 0, labels[seg], 0),
+            z=train.z,
+            hit=train.hit,
+        )
         counts = count_states(assigned, grid, edges)
         mass, p_null = _finish(np.concatenate([weights @ counts[:-1], counts[-1:]]), e_kernel=True)
         return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=z_max)
 
-    density = tables(samples)
+    density = tables(first)
     beams = segment_beams(train)
     for _ in range(rounds):
         a, b = fit_permeability(beams, base_model(z_max, density), steps)
-        chosen = _responsibilities(train, density, a, b)
-        seg = np.where(chosen >= 0, chosen, 0)
-        density = tables(
-            StateSamples(
-                nominal=np.where(chosen >= 0, train.seg_at[seg], train.nominal),
-                incidence=np.where(chosen >= 0, train.seg_incidence[seg], train.incidence),
-                beam=train.beam,
-                label=np.where(chosen >= 0, train.seg_occupied[seg], 1).astype(np.int64),
-                z=train.z,
-                hit=train.hit,
-            )
-        )
+        density = tables(_responsibilities(train, density, a, b))
     a, b = fit_permeability(beams, base_model(z_max, density), steps)
-    return PermeableMap(model=base_model(z_max, density), a=a, b=b)
+    fitted = PermeableMap(model=base_model(z_max, density), a=a, b=b)
+    mixture = fitted.beams(train)
+    raw = np.stack([part.raw_log_likelihood(fitted.model) for part in mixture.parts])
+    fitted.angular = fit_angular_weight(raw, mixture.hit)
+    return fitted

@@ -137,6 +137,22 @@ def test_every_model_on_the_room(room):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("beams", [180, 181, 360, 361])
+def test_every_carmen_beam_count(beams, tmp_path):
+    """180 and 360 beams (half-open fan) and 181 and 361 (inclusive): the same command, every model."""
+    path = tmp_path / "room.log"
+    path.write_text(room_log_text(scans=40, beams=beams))
+    log = read_carmen(path)
+    assert log.shape == (40, beams, 1)
+    result = run_planar_benchmark(log, protocol=PROTOCOL)
+    nll = {r.name: r.test_nll for r in result.rows}
+    assert all(np.isfinite(v) for v in nll.values()), nll
+    # measured ranges sit on the nominal walls (2 cm noise; the nominal range is a 5 cm cell's entry)
+    assert result.nominal["median_abs_err"] < 0.075, result.nominal
+    assert nll["mi-lidar"] < nll["M3b"] < nll["M0"], nll
+
+
+@pytest.mark.slow
 def test_intel_anchors_and_mi_lidar_margin(shared_data, tmp_path):
     """The protocol's anchors on the Intel log (within 0.03 nats) and mi-lidar <= M3b - 0.15 (measured: 0.25)."""
     result = run_planar_benchmark(read_carmen(shared_data / "carmen" / "intel-corrected.log.gz"))
