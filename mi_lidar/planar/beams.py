@@ -36,18 +36,18 @@ from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segments
 from mi_lidar.planar.raymarch import PlanarTrace
 
-EVIDENCE_CLASSES = 5  # leave-out hits of a cell: 1, 2-3, 4-7, 8-15, 16 or more (doublings)
-LABELS = 2 * EVIDENCE_CLASSES  # segment labels: occupancy x evidence
+EVIDENCE_CLASSES = 5  # at most: leave-out hits of a cell 1, 2-3, 4-7, 8-15, 16 or more (doublings)
 
 
-def segment_labels(occupied: np.ndarray, hits: np.ndarray) -> np.ndarray:
-    """Label of each segment: ``occupied * EVIDENCE_CLASSES + evidence``, evidence = log2 of its hits, capped.
+def segment_labels(occupied: np.ndarray, hits: np.ndarray, classes: int = EVIDENCE_CLASSES) -> np.ndarray:
+    """Label of each segment: ``occupied * classes + evidence``, evidence = log2 of its hits, capped at ``classes - 1``.
 
     A wall seen by many scans is located to a centimetre; a cell with one or two hits (seen once,
     or a person's legs) is not, and its returns spread more: the residual law depends on both.
+    ``2 * classes`` labels in all; ``classes = 1`` labels occupancy alone.
     """
-    evidence = np.clip(np.floor(np.log2(np.maximum(hits, 1))), 0, EVIDENCE_CLASSES - 1).astype(np.int64)
-    return np.asarray(occupied, np.int64) * EVIDENCE_CLASSES + evidence
+    evidence = np.clip(np.floor(np.log2(np.maximum(hits, 1))), 0, classes - 1).astype(np.int64)
+    return np.asarray(occupied, np.int64) * classes + evidence
 
 
 def _f(values) -> mi.Float:
@@ -251,10 +251,10 @@ def nominal_beams(trace: PlanarTrace) -> EngineBeams:
     )
 
 
-def segment_beams(trace: PlanarTrace) -> EngineBeams:
+def segment_beams(trace: PlanarTrace, classes: int = EVIDENCE_CLASSES) -> EngineBeams:
     """Each beam meets every cell with leave-out hits along it; elements carry counts and :func:`segment_labels`."""
     n_elements = trace.seg_range.size
-    labels = segment_labels(trace.seg_occupied, trace.seg_hits).astype(np.uint32)
+    labels = segment_labels(trace.seg_occupied, trace.seg_hits, classes).astype(np.uint32)
     table = ElementTable.from_elements(np.ones(max(n_elements, 1)), label=labels if n_elements else None)
     rounds = rounds_from_segments(trace.seg_start, np.arange(n_elements), trace.seg_at, _cos(trace.seg_incidence))
     return EngineBeams(

@@ -206,6 +206,7 @@ def run_planar_benchmark(
             "beta_prior_stray_cells": [float(permeable.a[0]), float(permeable.b[0])],
             "beta_prior_occupied_cells": [float(permeable.a[1]), float(permeable.b[1])],
             "angular_share_per_neighbour": float(permeable.angular),
+            "evidence_classes": int(permeable.classes),
         }
         say(len(models), len(models), "fitted mi-lidar")
         rows.append(

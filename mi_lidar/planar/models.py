@@ -15,14 +15,15 @@ NP-Reg     thesis 3.4: per-state histograms smoothed across states by a kernel (
 mi-lidar   the permeable map: every cell with leave-out hits is an element at its surface
            that intercepts the beam with its counting estimate (a Beta prior per occupancy class,
            fitted), returns by an NP-Reg density conditioned on the cell's occupancy, evidence (how
-           many leave-out hits), range and incidence (refined by EM over the segments); a beam's
-           return comes from its own trace or,
-           by a fitted share, from a neighbouring beam's (its angular spread)
+           many leave-out hits; whether to tell them apart is chosen held out), range and incidence
+           (refined by EM over the segments); a beam's return comes from its own trace or, by a
+           fitted share, from a neighbouring beam's (its angular spread)
 =========  ===================================================================================
 
-Bandwidths, uniform shares and priors are chosen on the training scans only: the learned models hold
-out every other training scan for the choice and are refitted on all training scans with the chosen
-setting; the Beta priors and the angular spread are fitted by maximum likelihood on the training beams.
+Bandwidths, priors and mi-lidar's evidence classes are chosen on the training scans only: the learned
+models hold out every other training scan for the choice and are refitted on all training scans with
+the chosen setting; the Beta priors and the angular spread are fitted by maximum likelihood on the
+training beams.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from mi_lidar.core.densities.tables import StateGrid
 from mi_lidar.core.problem import fit_parts
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.planar.beams import (
-    LABELS,
+    EVIDENCE_CLASSES,
     AngularMixture,
     EngineBeams,
     angular_mixture,
@@ -57,7 +58,6 @@ from mi_lidar.planar.raymarch import PlanarTrace
 RANGE_EDGES = [float(e) for e in np.linspace(0.0, 40.0, 18)] + [1.0e9]  # 17 bins over 0-40 m (M2a, M3a)
 INCIDENCE_EDGES = [0.0, 20.0, 40.0, 55.0, 65.0, 75.0, 82.0, 90.0]  # plus the unknown bin (M2b, M3b)
 MIN_BEAMS = 300
-UNIFORMS = (1e-4, 1e-3, 1e-2)  # candidate shares of the return mass spread over [0, z_max] (NP-Reg, mi-lidar)
 
 
 def samples_of(trace: PlanarTrace) -> StateSamples:
@@ -198,7 +198,7 @@ def fit_learned(train: PlanarTrace, z_max: float, family: str) -> tuple[SensorMo
         setting: tuple = (h_r, h_d)
     else:
         grid = fine_grid(samples)
-        _, table = fit_np_reg(samples_of(fit_part), grid, held_out, uniforms=UNIFORMS, z_max=z_max)
+        _, table = fit_np_reg(samples_of(fit_part), grid, held_out, z_max=z_max)
         h_r, h_i, u, _ = min(table, key=lambda row: row[-1])
         density, _ = fit_np_reg(
             samples, grid, lambda d: 0.0, h_ranges=(h_r,), h_incidences=(h_i,), uniforms=(u,), z_max=z_max
@@ -207,10 +207,13 @@ def fit_learned(train: PlanarTrace, z_max: float, family: str) -> tuple[SensorMo
     return base_model(z_max, density), setting
 
 
-def _responsibilities(trace: PlanarTrace, density: NPRegDensity, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _responsibilities(
+    trace: PlanarTrace, density: NPRegDensity, a: np.ndarray, b: np.ndarray, classes: int
+) -> np.ndarray:
     """For every hit beam, the index (into the segments) of the segment most likely to have returned it (-1: none).
 
-    ``a``, ``b``: (2,) Beta priors per occupancy class (:func:`~mi_lidar.planar.beams.fit_permeability`).
+    ``a``, ``b``: (2,) Beta priors per occupancy class (:func:`~mi_lidar.planar.beams.fit_permeability`);
+    ``classes``: evidence classes of the labels (:func:`~mi_lidar.planar.beams.segment_labels`).
     """
     k = trace.seg_occupied.astype(np.int64)
     p = permeability(trace.seg_hits, trace.seg_passes, a[k], b[k])
@@ -220,7 +223,7 @@ def _responsibilities(trace: PlanarTrace, density: NPRegDensity, a: np.ndarray, 
     cumulative = np.cumsum(log_pass)
     before = cumulative - log_pass - np.repeat(np.concatenate([[0.0], cumulative])[trace.seg_start[:-1]], counts)
     state = density.grid.index_np(
-        trace.seg_at, trace.seg_incidence, None, segment_labels(trace.seg_occupied, trace.seg_hits)
+        trace.seg_at, trace.seg_incidence, None, segment_labels(trace.seg_occupied, trace.seg_hits, classes)
     )
     e = trace.z[beam_of] - trace.seg_at
     k = np.clip(np.searchsorted(density.edges, e, side="right") - 1, 0, density.edges.size - 2)
@@ -245,6 +248,7 @@ class PermeableMap:
     Attributes:
         model: the sensor model (its density conditions on range, incidence, cell occupancy and evidence).
         a, b: (2,) the Beta priors of the cells' interception probabilities (stray-hit cells, occupied cells).
+        classes: evidence classes of the segment labels (:func:`~mi_lidar.planar.beams.segment_labels`).
         angular: the share of each neighbouring beam's trace in a beam's return
             (:class:`~mi_lidar.planar.beams.AngularMixture`).
     """
@@ -252,11 +256,12 @@ class PermeableMap:
     model: SensorModel
     a: np.ndarray
     b: np.ndarray
+    classes: int = EVIDENCE_CLASSES
     angular: float = 0.0
 
     def segments(self, trace: PlanarTrace) -> EngineBeams:
         """The engine's view of ``trace`` under this map (every segment, interception from its counts)."""
-        return segment_beams(trace).with_permeability(self.a, self.b)
+        return segment_beams(trace, self.classes).with_permeability(self.a, self.b)
 
     def beams(self, trace: PlanarTrace) -> AngularMixture:
         """The beams of ``trace`` under this map, with their angular spread."""
@@ -264,21 +269,46 @@ class PermeableMap:
 
 
 def fit_milidar(
-    train: PlanarTrace, z_max: float, bandwidths: tuple[float, float, float], rounds: int = 3, steps: int = 120
+    train: PlanarTrace, z_max: float, bandwidths: tuple[float, float, float], classes=(1, EVIDENCE_CLASSES)
 ) -> PermeableMap:
-    """mi-lidar's permeable map (see the module docstring).
+    """mi-lidar's permeable map (see the module docstring), its evidence classes chosen held out.
+
+    Each candidate number of evidence classes is fitted (one EM round) on the even training scans and
+    scored on the odd ones; the best is refitted on all training scans (:func:`fit_permeable_map`).
+    A log whose cells are seen by many scans gains from telling well-seen walls from cells seen once;
+    a sparser log spreads its returns over too many states and keeps occupancy alone.
+    """
+    if len(classes) > 1:
+        fit_part, check = train.take(train.scan % 2 == 0), train.take(train.scan % 2 == 1)
+        scores = []
+        for k in classes:
+            trial = fit_permeable_map(fit_part, z_max, bandwidths, k, rounds=1)
+            scores.append(-float(np.mean(trial.beams(check).log_likelihood(trial.model))))
+        classes = (classes[int(np.argmin(scores))],)
+    return fit_permeable_map(train, z_max, bandwidths, classes[0])
+
+
+def fit_permeable_map(
+    train: PlanarTrace,
+    z_max: float,
+    bandwidths: tuple[float, float, float],
+    classes: int = EVIDENCE_CLASSES,
+    rounds: int = 3,
+    steps: int = 120,
+) -> PermeableMap:
+    """mi-lidar's permeable map with ``classes`` evidence classes (see the module docstring).
 
     Start: NP-Reg tables from each beam's first occupied cell (its surface, incidence and label) and
-    the kernel ``bandwidths`` ``(h_range, h_incidence, uniform)`` chosen for NP-Reg on held-out training scans;
-    then ``rounds`` times: fit the Beta prior (a, b) by the one fitter, assign each return to its most
-    likely segment, and re-estimate the tables from those assignments. Last, the angular spread (the
-    neighbours' share) by maximum likelihood on the training beams.
+    the kernel ``bandwidths`` ``(h_range, h_incidence, uniform)`` chosen for NP-Reg on held-out training
+    scans; then ``rounds`` times: fit the Beta prior (a, b) by the one fitter, assign each return to its
+    most likely segment, and re-estimate the tables from those assignments. Last, the angular spread
+    (the neighbours' share) by maximum likelihood on the training beams.
     """
     h_r, h_i, u = bandwidths
-    grid = fine_grid(samples_of(train), labels=LABELS)
+    grid = fine_grid(samples_of(train), labels=2 * classes)
     edges = protocol_residual_edges(z_max)
     weights = kernel_weights(grid, h_r, h_i)
-    labels = segment_labels(train.seg_occupied, train.seg_hits)
+    labels = segment_labels(train.seg_occupied, train.seg_hits, classes)
     first = first_occupied(train)
 
     def tables(chosen: np.ndarray) -> NPRegDensity:
@@ -298,12 +328,12 @@ def fit_milidar(
         return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=z_max)
 
     density = tables(first)
-    beams = segment_beams(train)
+    beams = segment_beams(train, classes)
     for _ in range(rounds):
         a, b = fit_permeability(beams, base_model(z_max, density), steps)
-        density = tables(_responsibilities(train, density, a, b))
+        density = tables(_responsibilities(train, density, a, b, classes))
     a, b = fit_permeability(beams, base_model(z_max, density), steps)
-    fitted = PermeableMap(model=base_model(z_max, density), a=a, b=b)
+    fitted = PermeableMap(model=base_model(z_max, density), a=a, b=b, classes=classes)
     mixture = fitted.beams(train)
     raw = np.stack([part.raw_log_likelihood(fitted.model) for part in mixture.parts])
     fitted.angular = fit_angular_weight(raw, mixture.hit)

@@ -135,7 +135,8 @@ def test_every_model_on_the_room(room):
     assert nll["mi-lidar"] < nll["M3b"], nll
     assert mine.samples["hit_rate_simulated"] > 0.99, mine.samples
     assert 0.0 <= result.settings["mi-lidar"]["angular_share_per_neighbour"] <= 1.0 / 3.0, result.settings
-    assert result.settings["NP-Reg"]["uniform_share"] in (1e-4, 1e-3, 1e-2), result.settings
+    assert result.settings["NP-Reg"]["h_range_m"] in (0.5, 1.0, 2.0, 4.0), result.settings
+    assert result.settings["mi-lidar"]["evidence_classes"] in (1, 5), result.settings
 
 
 @pytest.mark.slow
