@@ -8,9 +8,10 @@ per-beam quantities (bias, angle offsets) are per row, as for every other sensor
 - beam ``i`` points at ``-pi/2 + i * pi / n`` in the laser frame (``pi / (n - 1)`` when ``n`` is
   odd, e.g. 181 or 361 beams covering 180 deg inclusive), in the horizontal plane;
 - the pose is the planar transform (rotation ``theta`` about z, translation ``(x, y, 0)``);
-- a reading within 1.5 cm of the sensor's no-return value is a miss. That value is detected from
-  the log (:func:`detect_max_range`: the largest reading, when enough readings sit on it: the SICK
-  maximum 81.83 m in the Intel log, 50 m in logs that clip there) or given as ``max_range``;
+- a reading at or above the sensor's no-return value (less 1.5 cm) is a miss. That value is detected
+  from the log (:func:`detect_max_range`: the spike of readings at the top of the range scale: the
+  SICK maximum 81.83 m in the Intel log, 50 m in logs that clip there, a band of codes such as
+  51.05-51.16 m or 81.83 and 81.91 m in others) or given as ``max_range``;
 - beam ``i`` is timed ``ipc_timestamp + i * sweep_s / n`` (SICK LMS 2xx: 180 deg of a 75 Hz
   mirror revolution, ``sweep_s = 1 / 150`` s).
 
@@ -31,7 +32,10 @@ from mi_lidar.core.log import Log
 
 SICK_SWEEP_S = 1.0 / 150.0
 MISS_MARGIN = 0.015  # m: readings this close to the no-return value are misses (the real-planar protocol)
-MIN_SHARE_AT_MAX = 1e-3  # share of readings on the largest value that makes it the no-return value
+MIN_SHARE_AT_MAX = 1e-3  # share of all readings a 1 cm bin must hold to be a no-return code
+SPIKE_RATIO = 20.0  # a no-return code holds this many times the readings of a 1 cm bin just below it
+NO_RETURN_BAND = 0.2  # m: no-return codes of one scanner lie within this band below the largest one
+BACKGROUND = 5.0  # m: the readings this far below the codes give the background density of real returns
 
 
 def _lines(path: Path) -> list[str]:
@@ -54,17 +58,37 @@ def beam_angles(n: int) -> np.ndarray:
 def detect_max_range(readings: np.ndarray) -> float:
     """The sensor's no-return value in a planar log's readings (m), or ``inf`` when it has none.
 
-    A scanner reports "no return" as its maximum range, so that value is the largest reading and a
-    good share of all readings sit on it. Rule: the largest reading ``m`` is the no-return value
-    when at least ``MIN_SHARE_AT_MAX`` of the readings (and at least 3) lie within ``MISS_MARGIN`` of
-    it; otherwise the log has no clipping value and every positive reading is a return.
+    A scanner reports "no return" as a code at the top of its range scale, so many readings sit on
+    one or a few values there, far more than real returns put into any 1 cm bin nearby (SICK logs
+    hold 81.83 m, 81.91 m, 50.00 m, or a band such as 51.05-51.16 m). Readings are binned at 1 cm; a
+    bin is a *code* when it holds at least ``MIN_SHARE_AT_MAX`` of all readings (and 3) and
+    ``SPIKE_RATIO`` times the mean count of the 1 cm bins in the ``BACKGROUND`` m below the band.
+    The largest code, with fewer readings above it than a code holds, is the top of the band; every
+    code within ``NO_RETURN_BAND`` below it belongs to the band, and the lowest is the no-return value
+    (readings from it less ``MISS_MARGIN`` upwards are misses). Without such a code the log has no
+    clipping value and every positive reading is a return.
     """
     values = readings[np.isfinite(readings) & (readings > 0)]
     if values.size == 0:
         return float("inf")
-    top = float(values.max())
-    at_top = int(np.sum(values >= top - MISS_MARGIN))
-    return top if at_top >= max(3, MIN_SHARE_AT_MAX * values.size) else float("inf")
+    levels, counts = np.unique(np.round(values * 100.0).astype(np.int64), return_counts=True)
+    need = max(3.0, MIN_SHARE_AT_MAX * values.size)
+    above = np.concatenate([np.cumsum(counts[::-1])[::-1][1:], [0]])  # readings in higher bins
+    band = round(NO_RETURN_BAND * 100.0)
+
+    def background(top: int) -> float:
+        below = (levels >= top - band - round(BACKGROUND * 100.0)) & (levels < top - band)
+        return float(counts[below].sum()) / (BACKGROUND * 100.0)
+
+    candidates = np.flatnonzero((counts >= need) & (above < need))
+    if candidates.size == 0:
+        return float("inf")
+    top = int(candidates[-1])
+    threshold = max(need, SPIKE_RATIO * background(int(levels[top])))
+    if counts[top] < threshold:
+        return float("inf")
+    codes = (levels >= levels[top] - band) & (levels <= levels[top]) & (counts >= threshold)
+    return float(levels[codes].min()) / 100.0
 
 
 def read_carmen(

@@ -7,12 +7,15 @@ one likelihood and sampled by the one sampler:
 * :func:`nominal_beams`: each beam meets one opaque element at its nominal range (the first occupied
   cell), or nothing (a nominal miss): the view of the protocol's models M0-M3, P-Reg and NP-Reg;
 * :func:`segment_beams`: each beam meets every cell with leave-out hits along it, in order, each an
-  element of its own with its counts, at the range of the cell's mean endpoint hit; its interception
+  element of its own with its counts, at the range of the cell's surface; its interception
   probability is the counting estimate with a fitted Beta prior (mi-lidar's permeable map,
-  :func:`permeability`, :func:`fit_permeability`).
+  :func:`permeability`, :func:`fit_permeability`);
+* :class:`AngularMixture`: a beam reports what its own trace or, with a small weight each, what its
+  neighbours' traces would (the beam's angular spread: divergence and heading error), scored as the
+  mixture of the three likelihoods (:func:`fit_angular_weight`).
 
-Element labels carry the cell's occupancy (1: ``occ3`` occupied, 0: stray hits), so densities can
-condition on it.
+Element labels carry the cell's occupancy (1: ``occ3`` occupied, 0: stray hits) and how much evidence
+its leave-out hits give (:func:`segment_labels`), so densities can condition on them.
 """
 
 from __future__ import annotations
@@ -32,6 +35,19 @@ from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segments
 from mi_lidar.planar.raymarch import PlanarTrace
+
+EVIDENCE_CLASSES = 5  # at most: leave-out hits of a cell 1, 2-3, 4-7, 8-15, 16 or more (doublings)
+
+
+def segment_labels(occupied: np.ndarray, hits: np.ndarray, classes: int = EVIDENCE_CLASSES) -> np.ndarray:
+    """Label of each segment: ``occupied * classes + evidence``, evidence = log2 of its hits, capped at ``classes - 1``.
+
+    A wall seen by many scans is located to a centimetre; a cell with one or two hits (seen once,
+    or a person's legs) is not, and its returns spread more: the residual law depends on both.
+    ``2 * classes`` labels in all; ``classes = 1`` labels occupancy alone.
+    """
+    evidence = np.clip(np.floor(np.log2(np.maximum(hits, 1))), 0, classes - 1).astype(np.int64)
+    return np.asarray(occupied, np.int64) * classes + evidence
 
 
 def _f(values) -> mi.Float:
@@ -73,11 +89,14 @@ class EngineBeams:
         """These beams as a fixed :class:`~mi_lidar.core.problem.Problem` (for the one fitter)."""
         return Problem.from_rounds(self.table, self.rays, self.rounds, self.z, self.hit)
 
+    def raw_log_likelihood(self, model) -> np.ndarray:
+        """(B,) raw log-likelihood per beam (log density (1/m) of a return, log P of a miss; nats)."""
+        with dr.suspend_grad():
+            return np.asarray(mixture_log_likelihood(self.table, model, self.rays, self.rounds, self.z, self.hit))
+
     def log_likelihood(self, model) -> np.ndarray:
         """(B,) scored log-likelihood per beam (nats)."""
-        with dr.suspend_grad():
-            raw = mixture_log_likelihood(self.table, model, self.rays, self.rounds, self.z, self.hit)
-            return np.asarray(score(raw, self.hit), np.float64)
+        return scored(self.raw_log_likelihood(model), np.asarray(self.hit))
 
     def p_miss(self, model) -> np.ndarray:
         """(B,) probability of no return per beam."""
@@ -100,6 +119,105 @@ class EngineBeams:
         with dr.suspend_grad():
             z, hit = model.sample_trace(self.table, self.rays, self.rounds, seed)
             return np.asarray(z, np.float64), np.asarray(hit)
+
+
+def scored(raw: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """(B,) the one score (:func:`~mi_lidar.core.likelihood.score`) of raw per-beam log-likelihoods, as float64."""
+    with dr.suspend_grad():
+        return np.asarray(score(_f(raw), mi.Bool(aligned(np.asarray(hit, bool)))), np.float64)
+
+
+@dataclass
+class AngularMixture:
+    """Beams whose return comes from their own trace or, with weight ``weight`` each, from a neighbour's.
+
+    A real beam is not a line: it diverges, and the pose it was fired from carries a heading error.
+    Where the scene changes within a beam spacing (a door frame, a table leg, a wall's end) the
+    return comes from either side. The beam's angular spread is discretised at the scan's own beam
+    spacing: beam ``i`` reports what the trace of beam ``i`` would with probability ``1 - 2 weight``
+    and what the trace of beam ``i - 1`` or ``i + 1`` (same pose, same leave-out map,
+    :meth:`~mi_lidar.planar.raymarch.PlanarTrace.shifted`) would with ``weight`` each. Its likelihood
+    is the mixture of the three pass-through likelihoods, scored once by the one score; sampling picks
+    one of the three traces, then samples it.
+
+    Attributes:
+        parts: the beams of offsets 0, -1, +1 (each with the measured returns of the beams themselves).
+        weight: the share of each neighbour, in [0, 1/3].
+    """
+
+    parts: tuple[EngineBeams, EngineBeams, EngineBeams]
+    weight: float
+
+    @property
+    def n(self) -> int:
+        return self.parts[0].n
+
+    @property
+    def hit(self) -> np.ndarray:
+        return np.asarray(self.parts[0].hit)
+
+    def shares(self) -> np.ndarray:
+        """(3,) probability of each part."""
+        return np.array([1.0 - 2.0 * self.weight, self.weight, self.weight])
+
+    def raw_log_likelihood(self, model) -> np.ndarray:
+        """(B,) raw log-likelihood of the mixture (nats)."""
+        return mix_raw(np.stack([b.raw_log_likelihood(model) for b in self.parts]), self.shares())
+
+    def log_likelihood(self, model) -> np.ndarray:
+        """(B,) scored log-likelihood per beam (nats)."""
+        return scored(self.raw_log_likelihood(model), self.hit)
+
+    def p_miss(self, model) -> np.ndarray:
+        """(B,) probability of no return per beam."""
+        return np.tensordot(self.shares(), np.stack([b.p_miss(model) for b in self.parts]), axes=1)
+
+    def sample(self, model, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """One sampled (range, hit) per beam: the part drawn by its share, then that part's sample."""
+        draws = [b.sample(model, seed + 7919 * k) for k, b in enumerate(self.parts)]
+        part = np.random.default_rng(seed).choice(3, size=self.n, p=self.shares())
+        rows = np.arange(self.n)
+        return np.stack([d[0] for d in draws])[part, rows], np.stack([d[1] for d in draws])[part, rows]
+
+
+def mix_raw(raw: np.ndarray, shares: np.ndarray) -> np.ndarray:
+    """(B,) ``log sum_k shares_k exp(raw_k)`` of (K, B) raw log-likelihoods (parts of zero share left out)."""
+    used = shares > 0
+    return np.logaddexp.reduce(raw[used] + np.log(shares[used])[:, None], axis=0)
+
+
+def angular_mixture(trace: PlanarTrace, beams, weight: float) -> AngularMixture:
+    """The :class:`AngularMixture` of ``trace`` with neighbour share ``weight``; ``beams(trace)`` builds each part."""
+    return AngularMixture(parts=(beams(trace), beams(trace.shifted(-1)), beams(trace.shifted(1))), weight=weight)
+
+
+def fit_angular_weight(raw: np.ndarray, hit: np.ndarray, iterations: int = 40) -> float:
+    """The neighbour share in [0, 1/3] that maximises the mean score of (3, B) raw part log-likelihoods.
+
+    The score is unimodal in the share (a mixture weight), so a golden-section search finds it.
+    """
+
+    def nll(weight: float) -> float:
+        return float(-scored(mix_raw(raw, np.array([1.0 - 2.0 * weight, weight, weight])), hit).mean())
+
+    return golden_section(nll, 0.0, 1.0 / 3.0, iterations)
+
+
+def golden_section(f, lo: float, hi: float, iterations: int = 30) -> float:
+    """The minimiser of a unimodal ``f`` on ``[lo, hi]`` by golden-section search (``iterations`` steps)."""
+    golden = (np.sqrt(5.0) - 1.0) / 2.0
+    a, b = hi - golden * (hi - lo), lo + golden * (hi - lo)
+    fa, fb = f(a), f(b)
+    for _ in range(iterations):
+        if fa < fb:
+            hi, b, fb = b, a, fa
+            a = hi - golden * (hi - lo)
+            fa = f(a)
+        else:
+            lo, a, fa = a, b, fb
+            b = lo + golden * (hi - lo)
+            fb = f(b)
+    return 0.5 * (lo + hi)
 
 
 def _rays(trace: PlanarTrace) -> RayBatch:
@@ -133,12 +251,11 @@ def nominal_beams(trace: PlanarTrace) -> EngineBeams:
     )
 
 
-def segment_beams(trace: PlanarTrace) -> EngineBeams:
-    """Each beam meets every cell with leave-out hits along it; elements carry counts and occupancy labels."""
+def segment_beams(trace: PlanarTrace, classes: int = EVIDENCE_CLASSES) -> EngineBeams:
+    """Each beam meets every cell with leave-out hits along it; elements carry counts and :func:`segment_labels`."""
     n_elements = trace.seg_range.size
-    table = ElementTable.from_elements(
-        np.ones(max(n_elements, 1)), label=trace.seg_occupied.astype(np.uint32) if n_elements else None
-    )
+    labels = segment_labels(trace.seg_occupied, trace.seg_hits, classes).astype(np.uint32)
+    table = ElementTable.from_elements(np.ones(max(n_elements, 1)), label=labels if n_elements else None)
     rounds = rounds_from_segments(trace.seg_start, np.arange(n_elements), trace.seg_at, _cos(trace.seg_incidence))
     return EngineBeams(
         table=table,

@@ -91,13 +91,14 @@ class ModelRow:
 
 @dataclass
 class PlanarBenchmark:
-    """Result of :func:`run_planar_benchmark`."""
+    """Result of :func:`run_planar_benchmark` (``settings``: what the learned models chose on the training scans)."""
 
     source: str
     data: PlanarData
     rows: list[ModelRow]
     nominal: dict
     seconds: dict
+    settings: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         log = self.data.log
@@ -111,6 +112,7 @@ class PlanarBenchmark:
             "train_beams": self.data.train.n,
             "nominal": self.nominal,
             "seconds": self.seconds,
+            "settings": self.settings,
             "models": [r.to_json() for r in self.rows],
         }
 
@@ -197,6 +199,8 @@ def run_planar_benchmark(
         model, settings["np_reg"] = m.fit_learned(data.train, z_max, "np_reg")
         return model
 
+    chosen = {}
+
     fit("NP-Reg", np_reg)
     rows = []
     for name in [n for n in MODELS if n in fitted and n in models]:
@@ -205,6 +209,12 @@ def run_planar_benchmark(
         t0 = time.perf_counter()
         permeable = m.fit_milidar(data.train, z_max, settings["np_reg"])
         elapsed = time.perf_counter() - t0
+        chosen["mi-lidar"] = {
+            "beta_prior_stray_cells": [float(permeable.a[0]), float(permeable.b[0])],
+            "beta_prior_occupied_cells": [float(permeable.a[1]), float(permeable.b[1])],
+            "angular_share_per_neighbour": float(permeable.angular),
+            "evidence_classes": int(permeable.classes),
+        }
         say(len(models), len(models), "fitted mi-lidar")
         rows.append(
             _row(
@@ -228,9 +238,12 @@ def run_planar_benchmark(
         "nominal_miss": float(np.mean(~np.isfinite(data.test.nominal))),
         "incidence_known": float(np.mean(np.isfinite(data.test.incidence[np.isfinite(data.test.nominal)]))),
     }
+    if "np_reg" in settings:
+        h_r, h_i, u = settings["np_reg"]
+        chosen["NP-Reg"] = {"h_range_m": h_r, "h_incidence_deg": h_i, "uniform_share": u}
     seconds["fit_and_score"] = time.perf_counter() - start - sum(data.seconds.values())
     seconds["total"] = time.perf_counter() - start
-    return PlanarBenchmark(source=source, data=data, rows=rows, nominal=nominal, seconds=seconds)
+    return PlanarBenchmark(source=source, data=data, rows=rows, nominal=nominal, seconds=seconds, settings=chosen)
 
 
 def benchmark_file(

@@ -12,14 +12,18 @@ M2a, M2b   the same per nominal-range bin / per range x incidence bin; bins with
 M3a, M3b   residual histograms per bin with the protocol's smoothing (the binned NP baseline)
 P-Reg      thesis 3.3: P_null, mean, sigma by local linear kernel regression on range and incidence
 NP-Reg     thesis 3.4: per-state histograms smoothed across states by a kernel (frequency polygon)
-mi-lidar   the permeable map: every cell with leave-out hits is an element at its mean endpoint hit
+mi-lidar   the permeable map: every cell with leave-out hits is an element at its surface
            that intercepts the beam with its counting estimate (a Beta prior per occupancy class,
-           fitted), returns by an NP-Reg density conditioned on the cell's occupancy, range and
-           incidence (refined by EM over the segments)
+           fitted), returns by an NP-Reg density conditioned on the cell's occupancy, evidence (how
+           many leave-out hits; whether to tell them apart is chosen held out), range and incidence
+           (refined by EM over the segments); a beam's return comes from its own trace or, by a
+           fitted share, from a neighbouring beam's (its angular spread)
 =========  ===================================================================================
 
-Bandwidths and priors are chosen on the training scans only: the learned models hold out every other
-training scan for the choice and are refitted on all training scans with the chosen setting.
+Bandwidths, priors and mi-lidar's evidence classes are chosen on the training scans only: the learned
+models hold out every other training scan for the choice and are refitted on all training scans with
+the chosen setting; the Beta priors and the angular spread are fitted by maximum likelihood on the
+training beams.
 """
 
 from __future__ import annotations
@@ -36,7 +40,19 @@ from mi_lidar.core.densities.samples import StateSamples, protocol_residual_edge
 from mi_lidar.core.densities.tables import StateGrid
 from mi_lidar.core.problem import fit_parts
 from mi_lidar.core.sensor_model import SensorModel
-from mi_lidar.planar.beams import EngineBeams, fit_permeability, nominal_beams, permeability, segment_beams
+from mi_lidar.planar.beams import (
+    EVIDENCE_CLASSES,
+    AngularMixture,
+    EngineBeams,
+    angular_mixture,
+    fit_angular_weight,
+    fit_permeability,
+    golden_section,
+    nominal_beams,
+    permeability,
+    segment_beams,
+    segment_labels,
+)
 from mi_lidar.planar.raymarch import PlanarTrace
 
 RANGE_EDGES = [float(e) for e in np.linspace(0.0, 40.0, 18)] + [1.0e9]  # 17 bins over 0-40 m (M2a, M3a)
@@ -44,17 +60,26 @@ INCIDENCE_EDGES = [0.0, 20.0, 40.0, 55.0, 65.0, 75.0, 82.0, 90.0]  # plus the un
 MIN_BEAMS = 300
 
 
-def samples_of(trace: PlanarTrace, occupancy: bool = False) -> StateSamples:
-    """The nominal state of every beam (label 1: the nominal cell is occupied) and its measurement."""
-    n = trace.n
+def samples_of(trace: PlanarTrace) -> StateSamples:
+    """The nominal state of every beam and its measurement."""
     return StateSamples(
         nominal=trace.nominal,
         incidence=trace.incidence,
         beam=trace.beam,
-        label=np.ones(n, np.int64) if occupancy else np.zeros(n, np.int64),
+        label=np.zeros(trace.n, np.int64),
         z=trace.z,
         hit=trace.hit,
     )
+
+
+def first_occupied(trace: PlanarTrace) -> np.ndarray:
+    """(B,) index (into the segments) of each beam's first ``occ3`` occupied segment: its nominal cell (-1: none)."""
+    seg_beam = np.repeat(np.arange(trace.n), np.diff(trace.seg_start))
+    occupied = np.flatnonzero(trace.seg_occupied)
+    beams, first = np.unique(seg_beam[occupied], return_index=True)
+    out = np.full(trace.n, -1)
+    out[beams] = occupied[first]
+    return out
 
 
 def base_model(z_max: float, density) -> SensorModel:
@@ -73,20 +98,7 @@ def fit_m0(train: EngineBeams, samples: StateSamples, z_max: float) -> SensorMod
     def nll(log_sigma: float) -> float:
         return float(-np.mean(train.log_likelihood(base_model(z_max, density(log_sigma)))))
 
-    lo, hi = np.log(0.003), np.log(2.0)
-    golden = (np.sqrt(5.0) - 1.0) / 2.0
-    a, b = hi - golden * (hi - lo), lo + golden * (hi - lo)
-    fa, fb = nll(a), nll(b)
-    for _ in range(30):
-        if fa < fb:
-            hi, b, fb = b, a, fa
-            a = hi - golden * (hi - lo)
-            fa = nll(a)
-        else:
-            lo, a, fa = a, b, fb
-            b = lo + golden * (hi - lo)
-            fb = nll(b)
-    return base_model(z_max, density(0.5 * (lo + hi)))
+    return base_model(z_max, density(golden_section(nll, np.log(0.003), np.log(2.0))))
 
 
 def fit_beam(
@@ -195,10 +207,13 @@ def fit_learned(train: PlanarTrace, z_max: float, family: str) -> tuple[SensorMo
     return base_model(z_max, density), setting
 
 
-def _responsibilities(trace: PlanarTrace, density: NPRegDensity, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _responsibilities(
+    trace: PlanarTrace, density: NPRegDensity, a: np.ndarray, b: np.ndarray, classes: int
+) -> np.ndarray:
     """For every hit beam, the index (into the segments) of the segment most likely to have returned it (-1: none).
 
-    ``a``, ``b``: (2,) Beta priors per occupancy class (:func:`~mi_lidar.planar.beams.fit_permeability`).
+    ``a``, ``b``: (2,) Beta priors per occupancy class (:func:`~mi_lidar.planar.beams.fit_permeability`);
+    ``classes``: evidence classes of the labels (:func:`~mi_lidar.planar.beams.segment_labels`).
     """
     k = trace.seg_occupied.astype(np.int64)
     p = permeability(trace.seg_hits, trace.seg_passes, a[k], b[k])
@@ -207,7 +222,9 @@ def _responsibilities(trace: PlanarTrace, density: NPRegDensity, a: np.ndarray, 
     log_pass = np.log(np.clip(1.0 - p, 1e-12, 1.0))
     cumulative = np.cumsum(log_pass)
     before = cumulative - log_pass - np.repeat(np.concatenate([[0.0], cumulative])[trace.seg_start[:-1]], counts)
-    state = density.grid.index_np(trace.seg_at, trace.seg_incidence, None, trace.seg_occupied.astype(np.int64))
+    state = density.grid.index_np(
+        trace.seg_at, trace.seg_incidence, None, segment_labels(trace.seg_occupied, trace.seg_hits, classes)
+    )
     e = trace.z[beam_of] - trace.seg_at
     k = np.clip(np.searchsorted(density.edges, e, side="right") - 1, 0, density.edges.size - 2)
     inside = (e >= density.edges[0]) & (e < density.edges[-1])
@@ -226,58 +243,98 @@ def _responsibilities(trace: PlanarTrace, density: NPRegDensity, a: np.ndarray, 
 
 @dataclass
 class PermeableMap:
-    """mi-lidar's planar model: a return density per segment state and the Beta prior of the cells.
+    """mi-lidar's planar model: a return density per segment state, the Beta prior of the cells, the angular spread.
 
     Attributes:
-        model: the sensor model (its density conditions on range, incidence and cell occupancy).
+        model: the sensor model (its density conditions on range, incidence, cell occupancy and evidence).
         a, b: (2,) the Beta priors of the cells' interception probabilities (stray-hit cells, occupied cells).
+        classes: evidence classes of the segment labels (:func:`~mi_lidar.planar.beams.segment_labels`).
+        angular: the share of each neighbouring beam's trace in a beam's return
+            (:class:`~mi_lidar.planar.beams.AngularMixture`).
     """
 
     model: SensorModel
     a: np.ndarray
     b: np.ndarray
+    classes: int = EVIDENCE_CLASSES
+    angular: float = 0.0
 
-    def beams(self, trace: PlanarTrace) -> EngineBeams:
+    def segments(self, trace: PlanarTrace) -> EngineBeams:
         """The engine's view of ``trace`` under this map (every segment, interception from its counts)."""
-        return segment_beams(trace).with_permeability(self.a, self.b)
+        return segment_beams(trace, self.classes).with_permeability(self.a, self.b)
+
+    def beams(self, trace: PlanarTrace) -> AngularMixture:
+        """The beams of ``trace`` under this map, with their angular spread."""
+        return angular_mixture(trace, self.segments, self.angular)
 
 
 def fit_milidar(
-    train: PlanarTrace, z_max: float, bandwidths: tuple[float, float, float], rounds: int = 3, steps: int = 120
+    train: PlanarTrace, z_max: float, bandwidths: tuple[float, float, float], classes=(1, EVIDENCE_CLASSES)
 ) -> PermeableMap:
-    """mi-lidar's permeable map (see the module docstring).
+    """mi-lidar's permeable map (see the module docstring), its evidence classes chosen held out.
 
-    Start: NP-Reg tables from each beam's nominal cell (with occupancy labels) and the kernel
-    ``bandwidths`` ``(h_range, h_incidence, uniform)`` chosen for NP-Reg on held-out training scans;
-    then ``rounds`` times: fit the Beta prior (a, b) by the one fitter, assign each return to its most
-    likely segment, and re-estimate the tables from those assignments.
+    Each candidate number of evidence classes is fitted (one EM round) on the even training scans and
+    scored on the odd ones; the best is refitted on all training scans (:func:`fit_permeable_map`).
+    A log whose cells are seen by many scans gains from telling well-seen walls from cells seen once;
+    a sparser log spreads its returns over too many states and keeps occupancy alone.
+    """
+    if len(classes) > 1:
+        fit_part, check = train.take(train.scan % 2 == 0), train.take(train.scan % 2 == 1)
+        scores = []
+        for k in classes:
+            trial = fit_permeable_map(fit_part, z_max, bandwidths, k, rounds=1)
+            scores.append(-float(np.mean(trial.beams(check).log_likelihood(trial.model))))
+        classes = (classes[int(np.argmin(scores))],)
+    return fit_permeable_map(train, z_max, bandwidths, classes[0])
+
+
+def fit_permeable_map(
+    train: PlanarTrace,
+    z_max: float,
+    bandwidths: tuple[float, float, float],
+    classes: int = EVIDENCE_CLASSES,
+    rounds: int = 3,
+    steps: int = 120,
+) -> PermeableMap:
+    """mi-lidar's permeable map with ``classes`` evidence classes (see the module docstring).
+
+    Start: NP-Reg tables from each beam's first occupied cell (its surface, incidence and label) and
+    the kernel ``bandwidths`` ``(h_range, h_incidence, uniform)`` chosen for NP-Reg on held-out training
+    scans; then ``rounds`` times: fit the Beta prior (a, b) by the one fitter, assign each return to its
+    most likely segment, and re-estimate the tables from those assignments. Last, the angular spread
+    (the neighbours' share) by maximum likelihood on the training beams.
     """
     h_r, h_i, u = bandwidths
-    samples = samples_of(train, occupancy=True)
-    grid = fine_grid(samples, labels=2)
+    grid = fine_grid(samples_of(train), labels=2 * classes)
     edges = protocol_residual_edges(z_max)
     weights = kernel_weights(grid, h_r, h_i)
+    labels = segment_labels(train.seg_occupied, train.seg_hits, classes)
+    first = first_occupied(train)
 
-    def tables(assigned: StateSamples) -> NPRegDensity:
+    def tables(chosen: np.ndarray) -> NPRegDensity:
+        """Tables from the returns assigned to segments ``chosen`` (-1: the beam's first occupied one, if any)."""
+        chosen = np.where(chosen >= 0, chosen, first)
+        seg = np.maximum(chosen, 0)
+        assigned = StateSamples(
+            nominal=np.where(chosen >= 0, train.seg_at[seg], np.nan),
+            incidence=np.where(chosen >= 0, train.seg_incidence[seg], np.nan),
+            beam=train.beam,
+            label=np.where(chosen >= 0, labels[seg], 0),
+            z=train.z,
+            hit=train.hit,
+        )
         counts = count_states(assigned, grid, edges)
         mass, p_null = _finish(np.concatenate([weights @ counts[:-1], counts[-1:]]), e_kernel=True)
         return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=z_max)
 
-    density = tables(samples)
-    beams = segment_beams(train)
+    density = tables(first)
+    beams = segment_beams(train, classes)
     for _ in range(rounds):
         a, b = fit_permeability(beams, base_model(z_max, density), steps)
-        chosen = _responsibilities(train, density, a, b)
-        seg = np.where(chosen >= 0, chosen, 0)
-        density = tables(
-            StateSamples(
-                nominal=np.where(chosen >= 0, train.seg_at[seg], train.nominal),
-                incidence=np.where(chosen >= 0, train.seg_incidence[seg], train.incidence),
-                beam=train.beam,
-                label=np.where(chosen >= 0, train.seg_occupied[seg], 1).astype(np.int64),
-                z=train.z,
-                hit=train.hit,
-            )
-        )
+        density = tables(_responsibilities(train, density, a, b, classes))
     a, b = fit_permeability(beams, base_model(z_max, density), steps)
-    return PermeableMap(model=base_model(z_max, density), a=a, b=b)
+    fitted = PermeableMap(model=base_model(z_max, density), a=a, b=b, classes=classes)
+    mixture = fitted.beams(train)
+    raw = np.stack([part.raw_log_likelihood(fitted.model) for part in mixture.parts])
+    fitted.angular = fit_angular_weight(raw, mixture.hit)
+    return fitted

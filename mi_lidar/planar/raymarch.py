@@ -11,12 +11,14 @@ accepted when there are at least 4 such cells and the smaller eigenvalue is at m
 larger; otherwise it is unknown.
 
 For pass-through models the march also lists every cell with at least one leave-out hit that the
-beam enters, in order (its segments: entry range, hits, passes, occupancy, incidence), up to
-``max_segments`` per beam and ``beyond`` metres past the nominal hit.
+beam enters, in order (its segments: entry range, hits, passes, occupancy, incidence, and the range
+of the surface in it, :func:`surface_range`), up to ``max_segments`` per beam and ``beyond`` metres
+past the nominal hit.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +27,8 @@ from mi_lidar.planar.grid import CountMap, Grid, LeaveOut, planar_beams
 
 START = 0.02  # m: the march starts here
 SEGMENT_FIELDS = ("seg_range", "seg_hits", "seg_passes", "seg_occupied", "seg_incidence", "seg_surface")
-NEIGHBOURS = np.array([(dx, dy) for dx in range(-3, 4) for dy in range(-3, 4) if dx * dx + dy * dy <= 9])
+NEIGHBOURS_REACH = 9  # squared cells: the neighbourhood of a cell is the disc of 3 cells (15 cm at 5 cm cells)
+NEIGHBOURS = np.array([(dx, dy) for dx in range(-3, 4) for dy in range(-3, 4) if dx * dx + dy * dy <= NEIGHBOURS_REACH])
 
 
 @dataclass
@@ -39,8 +42,8 @@ class PlanarTrace:
         incidence: incidence angle at the nominal hit, deg (NaN: unknown).
         seg_start: (B + 1,) offsets of each beam's segments.
         seg_range, seg_hits, seg_passes, seg_occupied, seg_incidence: per segment (E,).
-        seg_surface: per segment (E,), the range (m) of the cell's leave-out mean endpoint hit projected
-            on the beam: where inside the cell the surface is.
+        seg_surface: per segment (E,), the range (m) of the surface in the cell along the beam, from
+            the leave-out endpoint hits (:func:`surface_range`).
     """
 
     scan: np.ndarray
@@ -66,7 +69,7 @@ class PlanarTrace:
 
     @property
     def seg_at(self) -> np.ndarray:
-        """(E,) range (m) of each segment's surface: its mean endpoint hit where known, else the cell entry."""
+        """(E,) range (m) of each segment's surface (:func:`surface_range`) where known, else the cell entry."""
         return np.where(np.isfinite(self.seg_surface), self.seg_surface, self.seg_range)
 
     @classmethod
@@ -78,28 +81,33 @@ class PlanarTrace:
         values = {f: np.concatenate([getattr(p, f) for p in parts]) for f in fields}
         return cls(seg_start=start, **values)
 
-    def take(self, mask: np.ndarray) -> PlanarTrace:
-        """The beams where ``mask`` (bool), with their segments."""
-        index = np.flatnonzero(mask)
+    def take(self, which: np.ndarray) -> PlanarTrace:
+        """The beams ``which`` (a bool mask, or indices in any order, repeats allowed), with their segments."""
+        index = np.flatnonzero(which) if np.asarray(which).dtype == bool else np.asarray(which, np.int64)
         counts = np.diff(self.seg_start)[index]
-        rows = (
-            np.concatenate([np.arange(self.seg_start[i], self.seg_start[i + 1]) for i in index])
-            if index.size
-            else np.zeros(0, np.int64)
-        )
-        seg = {
-            f: getattr(self, f)[rows]
-            for f in ("seg_range", "seg_hits", "seg_passes", "seg_occupied", "seg_incidence", "seg_surface")
-        }
+        start = np.concatenate([[0], np.cumsum(counts)])
+        rows = np.repeat(self.seg_start[index] - start[:-1], counts) + np.arange(start[-1])
         return PlanarTrace(
             scan=self.scan[index],
             beam=self.beam[index],
             z=self.z[index],
             nominal=self.nominal[index],
             incidence=self.incidence[index],
-            seg_start=np.concatenate([[0], np.cumsum(counts)]),
-            **seg,
+            seg_start=start,
+            **{f: getattr(self, f)[rows] for f in SEGMENT_FIELDS},
         )
+
+    def shifted(self, k: int) -> PlanarTrace:
+        """Beam ``i + k`` of the same scan in place of every beam ``i``, with beam ``i``'s measurement.
+
+        Past the scan's edge a beam keeps its own trace. These are the traced neighbours of a beam:
+        where a beam turned by ``k`` beam spacings goes, seen from the same pose through the same
+        leave-out map.
+        """
+        i = np.arange(self.n)
+        j = np.clip(i + k, 0, max(self.n - 1, 0))
+        j = np.where(self.scan[j] == self.scan, j, i)
+        return dataclasses.replace(self.take(j), z=self.z, beam=self.beam, scan=self.scan)
 
 
 def occupied(hits: np.ndarray, passes: np.ndarray) -> np.ndarray:
@@ -153,6 +161,54 @@ def incidence_at(
     cos = np.abs(np.sum(normal * direction, axis=1))
     good = (n >= min_cells) & (small <= ratio * big) & (big > 0)
     return np.where(good, np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))), np.nan)
+
+
+def surface_range(
+    leave: LeaveOut,
+    grid: Grid,
+    query: np.ndarray,
+    cell: np.ndarray,
+    origin: np.ndarray,
+    direction: np.ndarray,
+    min_cells: int = 4,
+    ratio: float = 0.1,
+) -> np.ndarray:
+    """Range (m) along each unit ray of the surface in ``cell``, from the leave-out endpoint hits around it.
+
+    Where the surface is line-like, the ray crosses the line fitted (principal axis, weighted by
+    hits) to the leave-out mean endpoints of the ``occ3`` cells within 15 cm: the endpoints of all
+    scans, at sub-cell precision, locate a wall better than the cell's own few hits do, at any
+    incidence. The rule is the incidence rule's (at least ``min_cells`` cells, smaller spread at
+    most ``ratio`` of the larger), and the crossing is kept when it lies within those 15 cm of the
+    cell's own mean endpoint (projected on the ray) and the ray is not parallel to the line (within
+    84 deg of its normal). Elsewhere (corners, clutter, single cells) it is that projection; NaN
+    for a cell without leave-out hits.
+    """
+    if cell.size == 0:
+        return np.zeros(0)
+    own = np.einsum("ek,ek->e", leave.mean_hit(query, cell) - origin, direction)
+    ij = np.stack([cell // grid.shape[1], cell % grid.shape[1]], -1)
+    flat = grid.index(ij[:, None, :] + NEIGHBOURS[None])
+    valid = flat >= 0
+    safe = np.where(valid, flat, 0)
+    around = np.broadcast_to(query[:, None], safe.shape)
+    hits, passes = leave.counts(around, safe)
+    w = np.where(valid & occupied(hits, passes), hits, 0).astype(np.float64)
+    mean = np.nan_to_num(leave.mean_hit(around, safe))
+    centre = (w[..., None] * mean).sum(axis=1) / np.maximum(w.sum(axis=1), 1e-12)[:, None]
+    dx, dy = (mean - centre[:, None, :]).transpose(2, 0, 1)
+    cxx, cyy, cxy = (w * dx * dx).sum(1), (w * dy * dy).sum(1), (w * dx * dy).sum(1)
+    half, diff = 0.5 * (cxx + cyy), 0.5 * (cxx - cyy)
+    root = np.sqrt(diff * diff + cxy * cxy)
+    big, small = half + root, half - root
+    angle = 0.5 * np.arctan2(2 * cxy, cxx - cyy)  # direction of the line (major axis)
+    normal = np.stack([-np.sin(angle), np.cos(angle)], -1)
+    facing = np.sum(normal * direction, axis=1)
+    line_like = ((w > 0).sum(axis=1) >= min_cells) & (small <= ratio * big) & (big > 0) & (np.abs(facing) > 0.1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        crossing = np.sum((centre - origin) * normal, axis=1) / facing
+    reach = np.sqrt(NEIGHBOURS_REACH) * grid.cell
+    return np.where(line_like & (np.abs(crossing - own) <= reach), crossing, own)
 
 
 def trace_scans(
@@ -243,7 +299,7 @@ def trace_scans(
     hits, passes = leave.counts(query[rows], cells)
     seg_range = entry_distance(grid, o[rows], d[rows], cells)
     seg_inc = incidence_at(leave, grid, query[rows], cells, d[rows])
-    surface = np.einsum("ek,ek->e", leave.mean_hit(query[rows], cells) - o[rows], d[rows])
+    surface = surface_range(leave, grid, query[rows], cells, o[rows], d[rows])
     return PlanarTrace(
         scan=np.repeat(np.asarray(scans), n_beams),
         beam=np.tile(np.arange(n_beams), q_count),

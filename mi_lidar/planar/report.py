@@ -165,6 +165,7 @@ that reproduces the log's share of short and long returns (people, glass, doors)
 beams than the measurement, which raises the p90 error and lowers the hit/miss F1 even as its range
 distribution (histogram L1) gets closer to the sensor's.</p>
 {images}
+<p>Chosen on the training scans: {html.escape(json.dumps(info["settings"]))}</p>
 <p>Seconds: {html.escape(json.dumps({k: round(v, 1) for k, v in result.seconds.items()}))}</p>
 </body></html>"""
     files["html"] = atomic_write(out / "benchmark.html", lambda f: f.write(page.encode()))

@@ -15,6 +15,7 @@ the incidence angle.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -42,8 +43,18 @@ WALL_HEIGHT = 2.0  # m
 PERIOD = 0.1  # s: one mirror turn
 
 
-def scene_xml() -> str:
-    """The room as a Mitsuba scene of vertical rectangles (the project's loader reads it)."""
+def pattern_table(path, beams: int) -> str:
+    """Write the firing table of a ``beams``-bearing scanner over 360 degrees (one firing per scan); return its path."""
+    rows = [f"{i},0,0.0,{360.0 * i / beams:.9f},{PERIOD * i / beams:.9f}" for i in range(beams)]
+    Path(path).write_text("row,col,elevation_deg,azimuth_deg,time_s\n" + "\n".join(rows) + "\n")
+    return str(path)
+
+
+def scene_xml(pattern: str = "planar-360") -> str:
+    """The room as a Mitsuba scene of vertical rectangles (the project's loader reads it).
+
+    ``pattern`` names the scanner's firing pattern (a registered name or a table, :func:`pattern_table`).
+    """
     shapes = []
     for i, (x0, y0, x1, y1, label) in enumerate(SEGMENTS):
         length, angle = np.hypot(x1 - x0, y1 - y0), np.degrees(np.arctan2(y1 - y0, x1 - x0))
@@ -56,7 +67,7 @@ def scene_xml() -> str:
         )
     return (
         '<scene version="3.0.0"><integrator type="lidar_integrator"><integer name="max_segments" value="4"/>'
-        f'</integrator><sensor type="lidar"><string name="pattern" value="planar-360"/>'
+        f'</integrator><sensor type="lidar"><string name="pattern" value="{pattern}"/>'
         f'<float name="max_range" value="{MAX_RANGE}"/><float name="range_sigma" value="{SIGMA}"/></sensor>'
         + "".join(shapes)
         + "</scene>"

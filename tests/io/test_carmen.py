@@ -73,6 +73,22 @@ def test_empty_and_mixed_logs(tmp_path):
         read_carmen(tmp_path / "t.log.gz")
 
 
+def test_no_return_codes_of_real_scanners_are_detected():
+    """SICK logs carry one or several no-return codes at the top of the scale, above or among real returns."""
+    rng = np.random.default_rng(1)
+    indoor = rng.uniform(0.5, 30.0, 20_000)
+    # a band of codes (as in logs clipping near 51 m): every reading from the lowest code up is a miss
+    band = np.concatenate([indoor, np.full(300, 51.06), np.full(60, 51.11), np.full(2, 51.16)])
+    assert detect_max_range(band) == pytest.approx(51.06)
+    # a stray reading above the code does not hide it
+    assert detect_max_range(np.concatenate([band, [51.25]])) == pytest.approx(51.06)
+    # outdoors, real returns reach the top of the scale; two codes (81.83 and 81.91 m) sit on them
+    outdoor = np.concatenate([rng.uniform(0.5, 81.8, 20_000), np.full(400, 81.83), np.full(3000, 81.91)])
+    assert detect_max_range(outdoor) == pytest.approx(81.83)
+    # a busy range bin near the top of a log without codes is not a code
+    assert detect_max_range(np.concatenate([indoor, rng.normal(29.5, 0.005, 25)])) == np.inf
+
+
 def test_max_range_detected_or_given(tmp_path):
     rng = np.random.default_rng(0)
     readings = rng.uniform(0.5, 30.0, 5000)

@@ -35,6 +35,7 @@ from mi_lidar.core.segment import ELLIPSOID, LOG_SQRT_2PI, Segment, log_density,
 
 COMPONENTS = ("hit", "short", "max", "random")
 START_WEIGHTS = (0.85, 0.05, 0.03, 0.07)
+MIN_MASS = 1e-12  # floor of the hit Gaussian's mass on [0, z_max)
 
 
 @register_density
@@ -161,7 +162,8 @@ class BeamDensity(ReturnDensity):
         inside = (z >= 0) & (z < z_max)
         sigma = dr.maximum(seg.sigma, 1e-6)
         x = (z - seg.mean) / sigma
-        mass = dr.maximum(normal_cdf((z_max - seg.mean) / sigma) - normal_cdf(-seg.mean / sigma), 1e-30)
+        # floored where float32 still squares it (the gradient divides by mass^2): an element beyond z_max
+        mass = dr.maximum(normal_cdf((z_max - seg.mean) / sigma) - normal_cdf(-seg.mean / sigma), MIN_MASS)
         f_hit = dr.select(inside, dr.exp(-0.5 * x * x - LOG_SQRT_2PI) / (sigma * mass), 0.0)
         f_short = dr.select(
             (z >= 0) & (z <= reach), rate * dr.exp(-rate * z) / dr.maximum(1.0 - dr.exp(-rate * reach), 1e-12), 0.0
