@@ -16,7 +16,7 @@ from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import LogRays
 from mi_lidar.loop.compare import simulate_log_rays
 from mi_lidar.loop.real_ouster import column_log, range_image_mesh
-from mi_lidar.scene.dicts import scene_dict
+from mi_lidar.scene.dicts import AnalyticElements, scene_dict
 from tests.loop.test_real_ouster import synthetic_frame
 
 SIGMA = 0.01  # m
@@ -77,3 +77,30 @@ def test_the_likelihood_prefers_the_share_that_simulated_the_scan():
         )
         nll[share] = problem.nll(candidate)
     assert nll[0.8] < min(nll[0.0], nll[0.4], nll[1.0])
+
+
+def test_fitting_corner_returns_on_analytic_shapes_leaves_the_share_and_gains_nothing():
+    """A rectangle has no corners: the likelihood does not depend on the share, so the fit keeps its start
+    (the whole-catalog diagnosis of a scene of rectangles screens this candidate)."""
+    from mi_lidar.core.problem import fit_parts
+
+    wall = AnalyticElements(plugin="rectangle", to_world=np.diag([4.0, 4.0, 1.0, 1.0]), p_hit=1.0, label=0)
+    wall.to_world[2, 3] = 5.0
+    scene = mi.load_dict(scene_dict({"wall": wall}))
+    directions = np.stack([np.zeros(64), np.linspace(-0.2, 0.2, 64), np.ones(64)], 1)
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    ranges = (5.0 / directions[:, 2] + 0.01)[None, :, None]
+    log = mi_lidar.Log(
+        poses=np.eye(4)[None],
+        directions=directions[None, :, None, :],
+        ranges=ranges,
+        hit=np.ones(ranges.shape, bool),
+        times=np.zeros(ranges.shape),
+    )
+    problem = Problem.build(scene, LogRays.from_log(log))
+    effect = make_effect("corner_returns", share=0.3)
+    model = mi_lidar.SensorModel(range_sigma=SIGMA, effects=[effect])
+    before = problem.nll(model)
+    fit = fit_parts(model, problem, [effect], steps=20)
+    assert float(np.asarray(fit.parameters["corner_returns.share"]).ravel()[0]) == float(np.float32(0.3))
+    assert problem.nll(model) == before

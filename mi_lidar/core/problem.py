@@ -246,7 +246,9 @@ def fit_parts(
         for chunk in problem.chunks:
             assign(values())  # a fresh graph per chunk: backward releases the previous one
             loss = -dr.sum(problem.chunk_log_likelihood(model, chunk)) / n
-            dr.backward(loss)
+            # A loss that does not depend on the parameters (an effect that cannot act on these rays, e.g.
+            # corner returns on analytic shapes, which have no corners) leaves them where they are.
+            dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
             total += float(loss[0])
         if progress is not None:
             progress(step, steps)
