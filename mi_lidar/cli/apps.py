@@ -62,24 +62,14 @@ def evaluate_apps(
             workers=workers or min(3, os.cpu_count() or 1),
             progress=lambda done, total, label: update(done, total, label),
         )
-    table = Table(
-        title=f"{log.name}: application-level risk, mean |J real - J sim| over {draws} draws ± standard error "
-        "(lower is better)",
-        caption="pick: the setting a developer reaches on the simulator; 'ok' when its real J is within 10 % of "
-        "the best real J found",
-        header_style="bold",
+    console.print(
+        risk_table(
+            f"{log.name}: application-level risk, mean |J real - J sim| over {draws} draws ± standard error "
+            "(lower is better)",
+            result.simulators,
+            [(r.name, r.risk, r.risk_se, r.picks) for r in result.results],
+        )
     )
-    table.add_column("application", no_wrap=True)
-    for name in result.simulators:
-        table.add_column(name, justify="right", no_wrap=True)
-    for r in result.results:
-        best = min(r.risk.values())
-        cells = []
-        for name in result.simulators:
-            value = f"{r.risk[name]:.3g}\n± {r.risk_se[name]:.1g}\npick {'ok' if r.picks[name]['within'] else 'off'}"
-            cells.append(f"[bold]{value}[/bold]" if r.risk[name] == best else value)
-        table.add_row(r.name, *cells)
-    console.print(table)
     for r in result.results:
         console.print(f"{r.name}: J = {r.objective}; best real J found {r.best_real[0]:.4g}")
     seconds = result.seconds
@@ -87,3 +77,32 @@ def evaluate_apps(
         f"{result.states.n} states ({int(result.states.test.sum())} test scans); {seconds['total']:.0f} s "
         f"({seconds['total_cpu']:.0f} CPU s); report: {out / 'apps.html'}"
     )
+
+
+def risk_table(title: str, simulators, rows) -> Table:
+    """The risk table printed by the ``evaluate-apps`` verbs: one row per application, the lowest risk in bold.
+
+    Args:
+        title: table title.
+        simulators: the column names.
+        rows: ``(application, risk, standard error, picks)`` per application, each keyed by simulator;
+            ``picks[name]['within']`` says whether the development path's setting is within 10 % of the
+            best real J.
+    """
+    table = Table(
+        title=title,
+        caption="pick: the setting a developer reaches on the simulator; 'ok' when its real J is within 10 % of "
+        "the best real J found",
+        header_style="bold",
+    )
+    table.add_column("application", no_wrap=True)
+    for name in simulators:
+        table.add_column(name, justify="right", no_wrap=True)
+    for application, risk, se, picks in rows:
+        best = min(risk.values())
+        cells = []
+        for name in simulators:
+            value = f"{risk[name]:.3g}\n± {se[name]:.1g}\npick {'ok' if picks[name]['within'] else 'off'}"
+            cells.append(f"[bold]{value}[/bold]" if risk[name] == best else value)
+        table.add_row(application, *cells)
+    return table

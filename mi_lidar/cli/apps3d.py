@@ -8,6 +8,7 @@ import typer
 from rich.table import Table
 
 from mi_lidar.cli.app import app, console
+from mi_lidar.cli.apps import risk_table
 from mi_lidar.cli.progress import progress
 
 
@@ -56,23 +57,14 @@ def evaluate_apps_3d(
             steps=steps,
             progress=lambda done, total, label: update(done, total, label),
         )
-    table = Table(
-        title=f"{capture.name}: 3D registration risk, mean |J real - J sim| over {draws} draws (lower is better)",
-        caption="+- bootstrap standard error over the starts; pick: 'ok' when the setting a developer reaches on "
-        "the simulator has a real J within 10 % of the best real J found",
-        header_style="bold",
+    console.print(
+        risk_table(
+            f"{capture.name}: 3D registration risk, mean |J real - J sim| over {draws} draws ± bootstrap "
+            "standard error over the starts (lower is better)",
+            result.simulators,
+            [(r.name, r.risk, result.risk_se[r.name], r.picks) for r in result.results],
+        )
     )
-    table.add_column("application", no_wrap=True)
-    for name in result.simulators:
-        table.add_column(name, justify="right", no_wrap=True)
-    for r in result.results:
-        best, se = min(r.risk.values()), result.risk_se[r.name]
-        cells = []
-        for name in result.simulators:
-            value = f"{r.risk[name]:.3g}+-{se[name]:.2g} ({'ok' if r.picks[name]['within'] else 'off'})"
-            cells.append(f"[bold]{value}[/bold]" if r.risk[name] == best else value)
-        table.add_row(r.name, *cells)
-    console.print(table)
     samples = Table(title="the simulators on the test rays: NLL and the realism of their samples", header_style="bold")
     for column in ("simulator", "NLL", "median |err| m", "p90 |err| m", "F1", "hist L1 m", "Chamfer m"):
         samples.add_column(column, justify="right")
