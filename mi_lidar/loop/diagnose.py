@@ -80,6 +80,7 @@ from mi_lidar.loop.selection import (
 from mi_lidar.loop.split import Splits
 
 SIMULATION_STREAM = 7  # seed offset of the samples drawn for realism (the same for every model compared)
+MIN_ESTIMATION_RAYS = 1000  # training rays beyond the fitting subsample a learned density needs
 CLOSE = 0.02  # effects within 2 % of the leader's held-out gain are fitted to the end before the ranking decides
 
 
@@ -336,6 +337,9 @@ def diagnose(
     nll_before = float(-before_test.mean())
     names = [(n, v) for n in candidate_names(base.effects, candidates, not base.effects) for v in variants(n)]
     densities = [n for n, _ in names if n in DENSITY_CANDIDATES] if not base.effects else []
+    too_few = bool(densities) and data.estimation.n < MIN_ESTIMATION_RAYS
+    if too_few:  # a learned density is estimated on training rays the screening fits do not use
+        densities = []
     names = [(n, v) for n, v in names if n not in DENSITY_CANDIDATES]
     given = copy.deepcopy(base)
     all_rounds, selected, evidence, joined_effects = [], [], [], []
@@ -414,6 +418,13 @@ def diagnose(
         density=next((c.effect for r in all_rounds for c in r if c.kind == "density" and c.status == JOINED), None),
     )
     result.summary = verdict(result)
+    if too_few:
+        result.summary += (
+            f" The learned densities were not tried: they are estimated on the training rays beyond the "
+            f"{data.fitting.n:,} the screening fits use, and this log has {data.estimation.n:,} of them "
+            f"(at least {MIN_ESTIMATION_RAYS:,} needed); record a longer log (or pass a smaller max_fit to "
+            "mi_lidar.loop.diagnose)."
+        )
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)

@@ -25,6 +25,7 @@ from mi_lidar.loop.residuals import UNITS, group_index, plot_structure, residual
 from mi_lidar.loop.selection import DROPPED, JOINED, LOST, MIN_GAIN, REPLACED
 
 FIGURE_DIMENSIONS = ("range", "incidence", "beam")
+MIN_SHOWN = 30  # held-out rays a group needs to be drawn
 
 
 def _values(values) -> str:
@@ -179,6 +180,19 @@ def diagnosis_markdown(d) -> str:
     return "\n".join(lines)
 
 
+def _beam_groups(beam: np.ndarray, groups: int = 12) -> np.ndarray:
+    """Each ray's beam, or, for a scanner of more than 32 beams, the centre of its group of neighbouring beams.
+
+    ``groups``: groups of neighbouring beams the scanner's beams fall into.
+
+    A planar scanner's 360 beams leave a few held-out rays per beam, too few to plot (:data:`MIN_SHOWN`).
+    """
+    if np.unique(beam).size <= 32:
+        return beam
+    edges = np.linspace(beam.min(), beam.max() + 1.0, groups + 1)
+    return (0.5 * (edges[:-1] + edges[1:]))[np.clip(np.searchsorted(edges, beam, side="right") - 1, 0, groups - 1)]
+
+
 def plot_before_after(d, k: int, path: Path) -> Path:
     """Figure of joined candidate ``k`` (0-based): NLL, range residual and return rate by range, incidence, beam.
 
@@ -198,7 +212,7 @@ def plot_before_after(d, k: int, path: Path) -> Path:
     values = {
         "range": t.nominal,
         "incidence": np.where(np.isfinite(t.nominal), np.degrees(np.arccos(np.clip(t.cos_incidence, 0, 1))), np.nan),
-        "beam": t.beam.astype(float),
+        "beam": _beam_groups(t.beam.astype(float)),
     }
     fig, axes = plt.subplots(3, len(FIGURE_DIMENSIONS), figsize=(4.2 * len(FIGURE_DIMENSIONS), 8.0), squeeze=False)
     for col, dimension in enumerate(FIGURE_DIMENSIONS):
@@ -207,7 +221,7 @@ def plot_before_after(d, k: int, path: Path) -> Path:
             ok = index >= 0
             count = np.bincount(index[ok], minlength=centers.size)
             nll = -np.bincount(index[ok], weights=realism.ll[ok], minlength=centers.size) / np.maximum(count, 1)
-            shown = count >= 30
+            shown = count >= MIN_SHOWN
             axes[0, col].plot(centers[shown], nll[shown], "o-", color=colour, ms=3, label=label)
             found = residual_structure(
                 {dimension: values[dimension]}, t.nominal, t.measured, t.hit, realism.sim_range, realism.sim_hit

@@ -83,3 +83,27 @@ def test_a_joined_learned_density_is_saved_and_referenced_by_the_written_scene(t
     monkeypatch.chdir(tmp_path / "d")
     found, _ = scene_sensor_model(load_scene(tmp_path / "d" / "scene.xml"))
     assert isinstance(found.density, NPRegDensity) and found.effects == []
+
+
+def test_a_scanner_of_many_beams_is_drawn_by_groups_of_neighbouring_beams():
+    from mi_lidar.loop.diagnosis_report import _beam_groups
+
+    few = np.repeat(np.arange(16.0), 5)
+    assert np.array_equal(_beam_groups(few), few)
+    many = np.repeat(np.arange(360.0), 3)
+    grouped = _beam_groups(many)
+    centres, counts = np.unique(grouped, return_counts=True)
+    assert centres.size == 12 and np.all(counts == 90)  # 30 neighbouring beams x 3 rays each
+    assert np.all(np.abs(grouped - many) <= 15.0)
+
+
+def test_a_log_too_short_for_a_learned_density_is_diagnosed_without_it():
+    """Two planar scans (the README's room.npz): every training ray is in the fitting subsample, so no ray is
+    left to estimate NP-Reg on; the diagnosis runs and says why it left the learned densities out."""
+    from mi_lidar.loop import diagnose
+
+    scene, model, poses = room(2)
+    log, _ = hidden_log(scene, model, poses, "range_bias(bias=0.05)")
+    d = diagnose(log, scene, candidates=["range_bias", "np_reg"], rounds=1)
+    assert [c.name for r in d.rounds for c in r] == ["range_bias"]
+    assert "learned densities were not tried" in d.summary and "longer log" in d.summary
