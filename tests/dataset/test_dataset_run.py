@@ -5,6 +5,7 @@ and its 2D box through the written calibration, that the resumed run kept the ki
 frames untouched and left no partial file, and that every frame's digests equal the serial run's.
 """
 
+import contextlib
 import json
 import os
 import signal
@@ -222,10 +223,8 @@ def dask_cluster(tmp_path):
         while address is None:  # the scheduler writes the file in place: wait until it parses
             assert started[0].poll() is None, "dask scheduler exited"
             time.sleep(0.1)
-            try:
+            with contextlib.suppress(OSError, ValueError, KeyError):  # not written yet, or half written
                 address = json.loads(address_file.read_text())["address"]
-            except (OSError, ValueError, KeyError):
-                pass
         started.append(
             subprocess.Popen(
                 [dask, "worker", "--scheduler-file", str(address_file), "--nworkers", "2", "--nthreads", "1"],
