@@ -15,7 +15,6 @@ half-way, resumes where it was.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import multiprocessing
 import queue
@@ -26,12 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_lidar.apps.cache import cache_key, load_datasets, save_datasets
 from mi_lidar.apps.lines import LineDetection
 from mi_lidar.apps.localization import ParticleFilter
 from mi_lidar.apps.registration import ScanToMapEKF
 from mi_lidar.apps.risk import AppResult, Objectives, evaluate_application
 from mi_lidar.apps.scans import MOTION_NOISE, PlanarStates, ScanMaps, planar_datasets, scan_statistics
-from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.planar.benchmark import MODELS
 from mi_lidar.planar.grid import Grid
@@ -94,7 +93,6 @@ class AppsEvaluation:
 
 
 def _key(path: Path, protocol: PlanarProtocol, simulators: tuple[str, ...], runs: int, seed: int, max_range) -> str:
-    digest = hashlib.sha256(path.read_bytes()).hexdigest()
     settings = {
         "v": CACHE_VERSION,
         "protocol": protocol.__dict__,
@@ -103,14 +101,12 @@ def _key(path: Path, protocol: PlanarProtocol, simulators: tuple[str, ...], runs
         "seed": seed,
         "max": max_range,
     }
-    return digest + "|" + json.dumps(settings, sort_keys=True)
+    return cache_key(path, settings)
 
 
-def _save_datasets(file: Path, key: str, states: PlanarStates, ranges: dict, benchmark: list[dict]) -> None:
+def _state_arrays(states: PlanarStates) -> dict:
     grid = states.maps.grid
-    arrays = {
-        "key": np.array(key),
-        "benchmark": np.array(json.dumps(benchmark, default=float)),
+    return {
         "scans": states.scans,
         "test": states.test,
         "angles": states.angles,
@@ -122,34 +118,22 @@ def _save_datasets(file: Path, key: str, states: PlanarStates, ranges: dict, ben
         "map_of_state": states.maps.of_state,
         "walls": states.walls,
         "grid": np.array([*grid.origin, grid.cell, *grid.shape], np.float64),
-        "sources": np.array(list(ranges)),
-        **{f"ranges/{name}": value for name, value in ranges.items()},
     }
-    with atomic_path(file) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
 
 
-def _load_datasets(file: Path, key: str):
-    if not file.exists():
-        return None
-    with np.load(file) as z:
-        if str(z["key"]) != key:
-            return None
-        g = z["grid"]
-        grid = Grid(origin=(float(g[0]), float(g[1])), cell=float(g[2]), shape=(int(g[3]), int(g[4])))
-        states = PlanarStates(
-            scans=z["scans"],
-            test=z["test"],
-            angles=z["angles"],
-            poses=z["poses"],
-            odometry=z["odometry"],
-            nominal=z["nominal"],
-            maps=ScanMaps(grid=grid, start=z["map_start"], cells=z["map_cells"], of_state=z["map_of_state"]),
-            walls=z["walls"],
-        )
-        ranges = {str(name): z[f"ranges/{name}"] for name in z["sources"]}
-        return states, ranges, json.loads(str(z["benchmark"]))
+def _states(z: dict) -> PlanarStates:
+    g = z["grid"]
+    grid = Grid(origin=(float(g[0]), float(g[1])), cell=float(g[2]), shape=(int(g[3]), int(g[4])))
+    return PlanarStates(
+        scans=z["scans"],
+        test=z["test"],
+        angles=z["angles"],
+        poses=z["poses"],
+        odometry=z["odometry"],
+        nominal=z["nominal"],
+        maps=ScanMaps(grid=grid, start=z["map_start"], cells=z["map_cells"], of_state=z["map_of_state"]),
+        walls=z["walls"],
+    )
 
 
 def app_settings(app) -> str:
@@ -284,15 +268,16 @@ def evaluate_log(
     (out / "cache").mkdir(parents=True, exist_ok=True)
     start, cpu = time.perf_counter(), time.process_time()
     key = _key(path, protocol, tuple(simulators), runs, seed, max_range)
-    loaded = _load_datasets(out / "cache" / "datasets.npz", key)
+    loaded = load_datasets(out / "cache" / "datasets.npz", key)
     if loaded is None:
         log = read_carmen(path, max_range=max_range)
         result = run_planar_benchmark(log, str(path), protocol, tuple(simulators), seed=seed, progress=progress)
         states, ranges = planar_datasets(result, samples=runs, seed=seed)
         benchmark = [r.to_json() for r in result.rows]
-        _save_datasets(out / "cache" / "datasets.npz", key, states, ranges, benchmark)
+        save_datasets(out / "cache" / "datasets.npz", key, _state_arrays(states), ranges, benchmark)
     else:
-        states, ranges, benchmark = loaded
+        arrays, ranges, benchmark = loaded
+        states = _states(arrays)
     spent = {"datasets": time.perf_counter() - start, "datasets_cpu": time.process_time() - cpu}
     return evaluate_datasets(
         states, ranges, out, str(path), benchmark, key, draws, runs, seed, workers, progress, spent

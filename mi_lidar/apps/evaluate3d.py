@@ -16,18 +16,16 @@ evaluated ``J``), so a rerun, or a run stopped half-way, resumes where it was.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from mi_lidar.apps.cache import cache_key, load_datasets, save_datasets
 from mi_lidar.apps.frames import SIMULATORS, fit_simulators, frame_states, one_frame, simulated_scans
 from mi_lidar.apps.matching3d import FrameStates, ScanMatching3D
 from mi_lidar.apps.risk import AppResult, Objectives, evaluate_application
-from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import ParameterError
 
 CACHE_VERSION = 1
@@ -82,37 +80,13 @@ def risk_standard_error(result: AppResult, seed: int = 0) -> dict[str, float]:
     }
 
 
+FRAME_ARRAYS = ("map_points", "origins", "directions", "starts")  # the cached fields of FrameStates, in order
+
+
 def _key(path: Path, simulators, starts: int, seed: int, steps: int) -> str:
-    digest = hashlib.sha256(path.read_bytes()).hexdigest()
-    settings = {"v": CACHE_VERSION, "sim": list(simulators), "starts": starts, "seed": seed, "steps": steps}
-    return digest + "|" + json.dumps(settings, sort_keys=True)
-
-
-def _save(file: Path, key: str, states: FrameStates, ranges: dict, benchmark: list[dict]) -> None:
-    arrays = {
-        "key": np.array(key),
-        "benchmark": np.array(json.dumps(benchmark, default=float)),
-        "map_points": states.map_points,
-        "origins": states.origins,
-        "directions": states.directions,
-        "starts": states.starts,
-        "sources": np.array(list(ranges)),
-        **{f"ranges/{name}": value for name, value in ranges.items()},
-    }
-    with atomic_path(file) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
-
-
-def _load(file: Path, key: str):
-    if not file.exists():
-        return None
-    with np.load(file) as z:
-        if str(z["key"]) != key:
-            return None
-        states = FrameStates(z["map_points"], z["origins"], z["directions"], z["starts"])
-        ranges = {str(name): z[f"ranges/{name}"] for name in z["sources"]}
-        return states, ranges, json.loads(str(z["benchmark"]))
+    return cache_key(
+        path, {"v": CACHE_VERSION, "sim": list(simulators), "starts": starts, "seed": seed, "steps": steps}
+    )
 
 
 def frame_datasets(log, simulators=SIMULATORS, starts: int = 8, seed: int = 0, steps: int = 1500, progress=None):
@@ -158,15 +132,18 @@ def evaluate_frame(
     say = progress or (lambda done, total, label: None)
     start = time.perf_counter()
     key = _key(path, simulators, starts, seed, steps)
-    loaded = _load(out / "cache" / "frame.npz", key)
+    loaded = load_datasets(out / "cache" / "frame.npz", key)
     if loaded is None:
         say(0, 1, f"reading {path.name}")
         states, ranges, benchmark = frame_datasets(
             read_any(path), tuple(simulators), starts, seed, steps, lambda message: say(0, 1, message)
         )
-        _save(out / "cache" / "frame.npz", key, states, ranges, benchmark)
+        save_datasets(
+            out / "cache" / "frame.npz", key, {k: getattr(states, k) for k in FRAME_ARRAYS}, ranges, benchmark
+        )
     else:
-        states, ranges, benchmark = loaded
+        arrays, ranges, benchmark = loaded
+        states = FrameStates(*(arrays[k] for k in FRAME_ARRAYS))
     seconds = {"datasets": time.perf_counter() - start}
     app = ScanMatching3D()
     done = [0]

@@ -26,7 +26,8 @@ import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from mi_lidar.apps.risk import WITHIN, AppResult, alpha_key, standard_error  # noqa: E402
-from mi_lidar.core.atomic import atomic_path, atomic_write  # noqa: E402
+from mi_lidar.core.atomic import atomic_write  # noqa: E402
+from mi_lidar.loop.report import save_figure  # noqa: E402
 
 SAMPLE_KEYS = ("range_error_median", "range_error_p90", "f1", "histogram_l1")  # benchmark columns shown
 
@@ -39,10 +40,7 @@ def _colors(names) -> dict[str, str]:
 
 def _save(figure, path: Path) -> Path:
     figure.tight_layout()
-    with atomic_path(path) as tmp:
-        figure.savefig(tmp, dpi=90)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path)
 
 
 def loss_figure(result: AppResult, path: Path) -> Path:
