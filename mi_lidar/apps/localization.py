@@ -44,7 +44,9 @@ from mi_lidar.apps.scans import (
     noisy_runs,
     paired_runs,
     run_ranges,
+    stretch_mask,
     stretches,
+    tracker_metrics,
     wrap,
 )
 
@@ -171,9 +173,7 @@ class ParticleFilter:
                 headings[:, t] = np.abs(wrap(heading - states.poses[t, 2]))
                 picks = low_variance_resample(w, np.array([g.random() for g in streams]))
                 particles = np.take_along_axis(particles, picks[..., None], axis=1)
-        used = np.zeros(states.n, bool)
-        for first, stop in cuts:
-            used[first:stop] = True
+        used = stretch_mask(cuts, states.n)
         errors, headings = errors[:, used], headings[:, used]
         return {"objective": np.minimum(errors, CAP).mean(axis=1), "errors": errors, "headings": headings}
 
@@ -182,11 +182,7 @@ class ParticleFilter:
         done = paired_runs(
             lambda runs: self.filter(alpha, states, ranges, runs), self.runs, self.max_runs, self.target_se
         )
-        errors = done["errors"]
         return {
-            "J": float(done["objective"].mean()),
-            "J_runs": done["objective"].tolist(),
-            "divergence": float(np.mean(errors > 1.0)),
-            "heading_error_deg": float(np.degrees(done["headings"].mean())),
-            "error_median": float(np.median(errors)),
+            **tracker_metrics(done),
+            "error_median": float(np.median(done["errors"])),
         }

@@ -45,7 +45,9 @@ from mi_lidar.apps.scans import (
     noisy_runs,
     paired_runs,
     run_ranges,
+    stretch_mask,
     stretches,
+    tracker_metrics,
     wrap,
 )
 
@@ -270,9 +272,7 @@ class ScanToMapEKF:
                 errors[:, t] = np.hypot(mean[:, 0] - states.poses[t, 0], mean[:, 1] - states.poses[t, 1])
                 headings[:, t] = np.abs(wrap(mean[:, 2] - states.poses[t, 2]))
                 iterations[:, t], rejected[:, t] = registered.iterations, ~accept
-        used = np.zeros(states.n, bool)
-        for first, stop in cuts:
-            used[first:stop] = True
+        used = stretch_mask(cuts, states.n)
         errors, headings, iterations, rejected = (v[:, used] for v in (errors, headings, iterations, rejected))
         return {
             "objective": np.minimum(errors, CAP).mean(axis=1),
@@ -287,13 +287,9 @@ class ScanToMapEKF:
         done = paired_runs(
             lambda runs: self.filter(alpha, states, ranges, runs), self.runs, self.max_runs, self.target_se
         )
-        errors = done["errors"]
         return {
-            "J": float(done["objective"].mean()),
-            "J_runs": done["objective"].tolist(),
-            "divergence": float(np.mean(errors > 1.0)),
-            "heading_error_deg": float(np.degrees(done["headings"].mean())),
+            **tracker_metrics(done),
             "icp_iterations": float(done["iterations"].mean()),
             "rejected": float(done["rejected"].mean()),
-            "error_p90": float(np.quantile(errors, 0.9)),
+            "error_p90": float(np.quantile(done["errors"], 0.9)),
         }

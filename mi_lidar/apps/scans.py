@@ -323,6 +323,25 @@ def paired_runs(batch, runs: int, max_runs: int, target_se: float) -> dict[str, 
             return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
 
 
+def stretch_mask(cuts, n_states: int) -> np.ndarray:
+    """(T,) True at the states inside the stretches ``cuts`` (``(first, stop)`` pairs) a tracker ran along."""
+    used = np.zeros(n_states, bool)
+    for first, stop in cuts:
+        used[first:stop] = True
+    return used
+
+
+def tracker_metrics(done: dict[str, np.ndarray]) -> dict:
+    """J (mean over runs of the per-run objective), the per-run objectives, the divergence rate (share of
+    state errors above 1 m) and the mean heading error (deg) of a tracker's :func:`paired_runs`."""
+    return {
+        "J": float(done["objective"].mean()),
+        "J_runs": done["objective"].tolist(),
+        "divergence": float(np.mean(done["errors"] > 1.0)),
+        "heading_error_deg": float(np.degrees(done["headings"].mean())),
+    }
+
+
 def scan_statistics(states: PlanarStates, ranges: np.ndarray) -> dict:
     """What a source's scans contain, against the nominal ray cast at the same states (every sampled dataset pooled).
 
