@@ -37,7 +37,7 @@ from mi_lidar.planar.grid import Grid
 from mi_lidar.planar.protocol import PlanarProtocol
 
 SIMULATORS = ("M0", "M1", "P-Reg", "NP-Reg", "mi-lidar")
-CACHE_VERSION = 3
+CACHE_VERSION = 4  # 4: mi-lidar samples neighbouring beams with shared errors
 
 
 def applications(runs: int = 8) -> list:

@@ -9,12 +9,13 @@ may still return through the density's escape law. The likelihood of the same mo
 :func:`mi_lidar.core.likelihood.mixture_log_likelihood`, so sampling and scoring agree by
 construction.
 
-Randomness is counter-based (a TEA hash of seed, ray id, segment and stream), so a ray's draws do
-not depend on which other rays are traced with it: the same seed gives the same scan on both paths,
-and different seeds give independent scans. One uniform number decides an element's outcome:
-``u < p (1 - drop)`` returns, ``u < p`` loses the beam, otherwise it passes. A return from a scene
-element reports an intensity drawn from the model's :class:`~mi_lidar.core.intensity.IntensityModel`
-(stream 3 of the element's draw); stray returns (virtual elements, the escape law) report 0.
+Randomness is counter-based (a TEA hash of seed, ray id, segment and stream,
+:mod:`mi_lidar.core.streams`), so a ray's draws do not depend on which other rays are traced with
+it: the same seed gives the same scan on both paths, and different seeds give independent scans. One
+uniform number decides an element's outcome: ``u < p (1 - drop)`` returns, ``u < p`` loses the beam,
+otherwise it passes. A return from a scene element reports an intensity drawn from the model's
+:class:`~mi_lidar.core.intensity.IntensityModel` (stream 3 of the element's draw); stray returns
+(virtual elements, the escape law) report 0.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.intensity import IntensityModel
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment, sample_range
+from mi_lidar.core.streams import MAX_UNIFORM, NeighbourStreams, uniform, uniforms
 from mi_lidar.core.trace import RESTART_OFFSET, next_hit
 
 NO_ELEMENT = 0xFFFFFFFF
@@ -49,24 +51,6 @@ CHANNELS = (
     "intensity",
 )
 INTENSITY_STREAM = 3  # random stream of a return's intensity
-
-
-def uniform(seed: int, ray_id: mi.UInt32, segment, stream: int) -> mi.Float:
-    """Counter-based uniform numbers in [0, 1): one per lane, keyed by (seed, ray, segment, stream).
-
-    ``segment`` is a Python int or a per-lane ``mi.UInt32`` (the counter of a symbolic loop); both
-    give the same numbers, as the key is formed modulo 2^32 either way.
-    """
-    base = (int(seed) * 0x9E3779B1 + stream * 0xC2B2AE3D) & 0xFFFFFFFF
-    if isinstance(segment, int):
-        # An opaque key is a kernel input, not a constant: new seeds and rounds reuse compiled kernels.
-        return mi.sample_tea_float32(ray_id, dr.opaque(mi.UInt32, (base + segment * 0x85EBCA77) & 0xFFFFFFFF), 8)
-    return mi.sample_tea_float32(ray_id, dr.opaque(mi.UInt32, base) + segment * 0x85EBCA77, 8)
-
-
-def uniforms(seed: int, ray_id: mi.UInt32, segment) -> mi.Point2f:
-    """The two uniform numbers a return density draws a range from (streams 1 and 2 of :func:`uniform`)."""
-    return mi.Point2f(uniform(seed, ray_id, segment, 1), uniform(seed, ray_id, segment, 2))
 
 
 @dataclass
@@ -197,7 +181,7 @@ class SensorModel:
         if "intensity" in out:  # sample_trace draws ranges only
             dr.scatter(out["intensity"], mi.Float(intensity), index, reported)
 
-    def _virtual_returns(self, out: dict, rays: RayBatch, seed: int) -> mi.Bool:
+    def _virtual_returns(self, out: dict, rays: RayBatch, seed: int | NeighbourStreams) -> mi.Bool:
         """Draw the effects' virtual elements (outliers, clutter) of every lane, in order.
 
         Returns:
@@ -340,13 +324,22 @@ class SensorModel:
         _, going, start, end = dr.while_loop(state, passing, meet_element, label="lidar pass-through")
         return end, going, start
 
-    def sample_trace(self, table: ElementTable, rays: RayBatch, rounds, seed: int = 0) -> tuple[mi.Float, mi.Bool]:
+    def sample_trace(
+        self, table: ElementTable, rays: RayBatch, rounds, seed: int | NeighbourStreams = 0
+    ) -> tuple[mi.Float, mi.Bool]:
         """One draw of every ray's reported range from an existing trace, with the sampler's rules.
 
         For segments another tracer found (:func:`~mi_lidar.core.trace.rounds_from_segments`, e.g. a
         planar log's ray march) or a Mitsuba trace (:func:`~mi_lidar.core.trace.trace_rounds`): element
         ``k`` of a ray draws from the same random streams as in :meth:`simulate_rays`, so both give
         the same range for the same seed. Footprint effects are not supported here.
+
+        A :class:`~mi_lidar.core.streams.NeighbourStreams` in place of the seed draws the streams
+        correlated between neighbouring beams. Then the outcomes along a ray are decided by one number
+        per ray, carried from element to element: a beam that passes element ``k`` (``u >= p_k``) meets
+        the next with what is left of it, ``(u - p_k) / (1 - p_k)``, uniform again given the pass. Each
+        beam's law is the same; neighbouring beams that share their number stop at the same depth of
+        the pass-through law, although their elements differ in number and order.
 
         Returns:
             ``(range, hit)`` per ray (m, NaN for a miss).
@@ -355,6 +348,7 @@ class SensorModel:
         n = rays.width
         out = {"range": dr.full(mi.Float, dr.nan, n), "hit": dr.full(mi.Bool, False, n)}
         alive = self._virtual_returns(out, rays, seed)
+        carried = uniform(seed, rays.ray_id, 0, 0) if isinstance(seed, NeighbourStreams) else None
         for k, r in enumerate(rounds.rounds):
             sub = rays.take(r.ray)
             base = (
@@ -364,15 +358,20 @@ class SensorModel:
             )
             seg = self.apply_effects(base, sub)
             live = dr.gather(mi.Bool, alive, r.ray)
-            u = uniform(seed, sub.ray_id, k, 0)
+            u = uniform(seed, sub.ray_id, k, 0) if carried is None else dr.gather(mi.Float, carried, r.ray)
             returned = live & (u < seg.p * (1.0 - seg.drop))
             self._report(out, r.ray, sub, returned, self.density.sample(seg, uniforms(seed, sub.ray_id, k), sub))
             dr.scatter(alive, False, r.ray, live & (u < seg.p))
-            dr.eval(out, alive)
+            if carried is not None:
+                rest = dr.clip((u - seg.p) / dr.maximum(1.0 - seg.p, 1e-12), 0.0, MAX_UNIFORM)
+                dr.scatter(carried, rest, r.ray, live & (u >= seg.p))
+            dr.eval(out, alive, carried)
         self._escape(out, dr.arange(mi.UInt32, n), rays, alive, seed)
         return out["range"], out["hit"]
 
-    def _escape(self, out: dict, index: mi.UInt32, rays: RayBatch, escaped: mi.Bool, seed: int) -> None:
+    def _escape(
+        self, out: dict, index: mi.UInt32, rays: RayBatch, escaped: mi.Bool, seed: int | NeighbourStreams
+    ) -> None:
         """Draw the escape law's return (if the density has one) for the lanes that met nothing more."""
         escape = self.density.escape(rays)
         if escape is None or not dr.any(escaped):

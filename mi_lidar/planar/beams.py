@@ -33,6 +33,7 @@ from mi_lidar.core.fitting import FitVariable, adam_fit
 from mi_lidar.core.likelihood import mixture_log_likelihood, score
 from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.streams import BeamCorrelation, NeighbourStreams, scan_follows
 from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segments
 from mi_lidar.planar.raymarch import PlanarTrace
 
@@ -70,6 +71,10 @@ class EngineBeams:
         z, hit: measured range (m; 0 for a miss) and return flag per beam.
         hits, passes: leave-out counts of every element (for :func:`permeability`).
         occupied: (E,) 1 where the element is an ``occ3`` occupied cell, 0 for stray hits.
+        follows: (B,) beam ``i`` is the next beam of beam ``i - 1``'s scan
+            (:func:`~mi_lidar.core.streams.scan_follows`).
+        correlation: how much neighbouring beams share their random draws when sampled
+            (:class:`~mi_lidar.core.streams.BeamCorrelation`; none by default).
     """
 
     table: ElementTable
@@ -80,6 +85,8 @@ class EngineBeams:
     hits: np.ndarray
     passes: np.ndarray
     occupied: np.ndarray
+    follows: np.ndarray
+    correlation: BeamCorrelation = BeamCorrelation()
 
     @property
     def n(self) -> int:
@@ -115,9 +122,10 @@ class EngineBeams:
         return dataclasses.replace(self, table=self.table.replaced(p_hit=_f(p)))
 
     def sample(self, model, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """One sampled (range, hit) per beam."""
+        """One sampled (range, hit) per beam (neighbouring beams' draws shared by :attr:`correlation`)."""
+        streams = NeighbourStreams(seed, self.follows, self.correlation) if self.correlation.active else seed
         with dr.suspend_grad():
-            z, hit = model.sample_trace(self.table, self.rays, self.rounds, seed)
+            z, hit = model.sample_trace(self.table, self.rays, self.rounds, streams)
             return np.asarray(z, np.float64), np.asarray(hit)
 
 
@@ -172,9 +180,18 @@ class AngularMixture:
         """(B,) probability of no return per beam."""
         return np.tensordot(self.shares(), np.stack([b.p_miss(model) for b in self.parts]), axes=1)
 
+    def with_correlation(self, correlation: BeamCorrelation) -> AngularMixture:
+        """These beams with every part sampled with ``correlation``."""
+        parts = tuple(dataclasses.replace(b, correlation=correlation) for b in self.parts)
+        return dataclasses.replace(self, parts=parts)
+
     def sample(self, model, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """One sampled (range, hit) per beam: the part drawn by its share, then that part's sample."""
-        draws = [b.sample(model, seed + 7919 * k) for k, b in enumerate(self.parts)]
+        """One sampled (range, hit) per beam: the part drawn by its share, then that part's sample.
+
+        The parts draw from the same random streams (the part is chosen independently of them), so a
+        beam keeps its share of its neighbours' errors whichever part it reports.
+        """
+        draws = [b.sample(model, seed) for b in self.parts]
         part = np.random.default_rng(seed).choice(3, size=self.n, p=self.shares())
         rows = np.arange(self.n)
         return np.stack([d[0] for d in draws])[part, rows], np.stack([d[1] for d in draws])[part, rows]
@@ -248,6 +265,7 @@ def nominal_beams(trace: PlanarTrace) -> EngineBeams:
         hits=np.ones(n_elements),
         passes=np.zeros(n_elements),
         occupied=np.ones(n_elements, np.int64),
+        follows=scan_follows(trace.scan, trace.beam),
     )
 
 
@@ -266,6 +284,7 @@ def segment_beams(trace: PlanarTrace, classes: int = EVIDENCE_CLASSES) -> Engine
         hits=trace.seg_hits.astype(np.float64),
         passes=trace.seg_passes.astype(np.float64),
         occupied=trace.seg_occupied.astype(np.int64),
+        follows=scan_follows(trace.scan, trace.beam),
     )
 
 

@@ -214,6 +214,7 @@ def run_planar_benchmark(
             "beta_prior_occupied_cells": [float(permeable.a[1]), float(permeable.b[1])],
             "angular_share_per_neighbour": float(permeable.angular),
             "evidence_classes": int(permeable.classes),
+            "beam_correlation": {"shared": permeable.correlation.shared, "rho": permeable.correlation.rho},
         }
         say(len(models), len(models), "fitted mi-lidar")
         rows.append(

@@ -28,6 +28,7 @@ training beams.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -40,6 +41,7 @@ from mi_lidar.core.densities.samples import StateSamples, protocol_residual_edge
 from mi_lidar.core.densities.tables import StateGrid
 from mi_lidar.core.problem import fit_parts
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.core.streams import BeamCorrelation
 from mi_lidar.planar.beams import (
     EVIDENCE_CLASSES,
     AngularMixture,
@@ -53,6 +55,7 @@ from mi_lidar.planar.beams import (
     segment_beams,
     segment_labels,
 )
+from mi_lidar.planar.correlation import fit_beam_correlation
 from mi_lidar.planar.raymarch import PlanarTrace
 
 RANGE_EDGES = [float(e) for e in np.linspace(0.0, 40.0, 18)] + [1.0e9]  # 17 bins over 0-40 m (M2a, M3a)
@@ -251,6 +254,8 @@ class PermeableMap:
         classes: evidence classes of the segment labels (:func:`~mi_lidar.planar.beams.segment_labels`).
         angular: the share of each neighbouring beam's trace in a beam's return
             (:class:`~mi_lidar.planar.beams.AngularMixture`).
+        correlation: how much neighbouring beams share their errors when sampled
+            (:func:`~mi_lidar.planar.correlation.fit_beam_correlation`).
     """
 
     model: SensorModel
@@ -258,10 +263,12 @@ class PermeableMap:
     b: np.ndarray
     classes: int = EVIDENCE_CLASSES
     angular: float = 0.0
+    correlation: BeamCorrelation = BeamCorrelation()
 
     def segments(self, trace: PlanarTrace) -> EngineBeams:
         """The engine's view of ``trace`` under this map (every segment, interception from its counts)."""
-        return segment_beams(trace, self.classes).with_permeability(self.a, self.b)
+        beams = segment_beams(trace, self.classes).with_permeability(self.a, self.b)
+        return dataclasses.replace(beams, correlation=self.correlation)
 
     def beams(self, trace: PlanarTrace) -> AngularMixture:
         """The beams of ``trace`` under this map, with their angular spread."""
@@ -337,4 +344,23 @@ def fit_permeable_map(
     mixture = fitted.beams(train)
     raw = np.stack([part.raw_log_likelihood(fitted.model) for part in mixture.parts])
     fitted.angular = fit_angular_weight(raw, mixture.hit)
+    fitted.correlation = fit_correlation(fitted, train)
     return fitted
+
+
+CORRELATION_SCANS = 250  # at most this many training scans measure the shared errors
+
+
+def fit_correlation(fitted: PermeableMap, train: PlanarTrace) -> BeamCorrelation:
+    """How much neighbouring beams share their errors (:func:`~mi_lidar.planar.correlation.fit_beam_correlation`),
+    measured on at most :data:`CORRELATION_SCANS` evenly spaced training scans."""
+    scans = np.unique(train.scan)
+    kept = scans[:: max(1, -(-scans.size // CORRELATION_SCANS))]
+    part = train.take(np.isin(train.scan, kept))
+    mixture = dataclasses.replace(fitted, correlation=BeamCorrelation()).beams(part)
+
+    def sample(correlation: BeamCorrelation, seed: int):
+        return mixture.with_correlation(correlation).sample(fitted.model, seed)
+
+    correlation, _ = fit_beam_correlation(sample, part.z, part.hit, part.scan, part.beam)
+    return correlation
