@@ -215,6 +215,7 @@ def run_planar_benchmark(
             "angular_share_per_neighbour": float(permeable.angular),
             "evidence_classes": int(permeable.classes),
             "beam_correlation": {"shared": permeable.correlation.shared, "rho": permeable.correlation.rho},
+            "shared_errors_pit_lags": permeable.shared_errors,
         }
         say(len(models), len(models), "fitted mi-lidar")
         rows.append(

@@ -17,13 +17,15 @@ mi-lidar   the permeable map: every cell with leave-out hits is an element at it
            fitted), returns by an NP-Reg density conditioned on the cell's occupancy, evidence (how
            many leave-out hits; whether to tell them apart is chosen held out), range and incidence
            (refined by EM over the segments); a beam's return comes from its own trace or, by a
-           fitted share, from a neighbouring beam's (its angular spread)
+           fitted share, from a neighbouring beam's (its angular spread); sampled scans share
+           errors between neighbouring beams as the real training scans do (a Gaussian copula on
+           the sampler's streams, :mod:`~mi_lidar.planar.correlation`; no effect on the NLL)
 =========  ===================================================================================
 
 Bandwidths, priors and mi-lidar's evidence classes are chosen on the training scans only: the learned
 models hold out every other training scan for the choice and are refitted on all training scans with
 the chosen setting; the Beta priors and the angular spread are fitted by maximum likelihood on the
-training beams.
+training beams, the shared errors on at most 250 training scans.
 """
 
 from __future__ import annotations
@@ -256,6 +258,8 @@ class PermeableMap:
             (:class:`~mi_lidar.planar.beams.AngularMixture`).
         correlation: how much neighbouring beams share their errors when sampled
             (:func:`~mi_lidar.planar.correlation.fit_beam_correlation`).
+        shared_errors: that fit's summary: PIT lag correlations of the real training scans, of scans
+            sampled with ``correlation`` and of scans sampled with independent beams.
     """
 
     model: SensorModel
@@ -264,6 +268,7 @@ class PermeableMap:
     classes: int = EVIDENCE_CLASSES
     angular: float = 0.0
     correlation: BeamCorrelation = BeamCorrelation()
+    shared_errors: dict = dataclasses.field(default_factory=dict)
 
     def segments(self, trace: PlanarTrace) -> EngineBeams:
         """The engine's view of ``trace`` under this map (every segment, interception from its counts)."""
@@ -344,14 +349,14 @@ def fit_permeable_map(
     mixture = fitted.beams(train)
     raw = np.stack([part.raw_log_likelihood(fitted.model) for part in mixture.parts])
     fitted.angular = fit_angular_weight(raw, mixture.hit)
-    fitted.correlation = fit_correlation(fitted, train)
+    fitted.correlation, fitted.shared_errors = fit_correlation(fitted, train)
     return fitted
 
 
 CORRELATION_SCANS = 250  # at most this many training scans measure the shared errors
 
 
-def fit_correlation(fitted: PermeableMap, train: PlanarTrace) -> BeamCorrelation:
+def fit_correlation(fitted: PermeableMap, train: PlanarTrace) -> tuple[BeamCorrelation, dict]:
     """How much neighbouring beams share their errors (:func:`~mi_lidar.planar.correlation.fit_beam_correlation`),
     measured on at most :data:`CORRELATION_SCANS` evenly spaced training scans."""
     scans = np.unique(train.scan)
@@ -362,5 +367,5 @@ def fit_correlation(fitted: PermeableMap, train: PlanarTrace) -> BeamCorrelation
     def sample(correlation: BeamCorrelation, seed: int):
         return mixture.with_correlation(correlation).sample(fitted.model, seed)
 
-    correlation, _ = fit_beam_correlation(sample, part.z, part.hit, part.scan, part.beam)
-    return correlation
+    correlation, summary = fit_beam_correlation(sample, part.z, part.hit, part.scan, part.beam)
+    return correlation, {k: np.round(np.asarray(v, np.float64), 4).tolist() for k, v in summary.items()}

@@ -129,6 +129,26 @@ def _table(rows: list) -> str:
     return "\n".join(lines + ["</table>"])
 
 
+def _shared_errors(settings: dict) -> str:
+    """A paragraph on how much neighbouring beams share their errors, real against mi-lidar's samples."""
+    lags = settings.get("shared_errors_pit_lags")
+    if not lags:
+        return ""
+
+    def row(values) -> str:
+        return ", ".join(f"{v:.2f}" for v in values)
+
+    c = settings["beam_correlation"]
+    return (
+        f"<p>Shared errors of neighbouring beams (training scans; correlation of the normal scores of each "
+        f"beam's PIT under mi-lidar's own samples, at lags {', '.join(str(k) for k in lags['lags'])} beams): "
+        f"real {row(lags['real'])}; mi-lidar's samples {row(lags['sampled'])} (shared share "
+        f"{c['shared']:.3f}, decay {c['rho']:.3f} per beam); with independent beams "
+        f"{row(lags['uncorrelated'])}. The likelihood scores beams one by one and does not see this; "
+        f"line fitting and scan matching do.</p>"
+    )
+
+
 def write_benchmark(result, out: Path) -> dict[str, Path]:
     """Write the JSON, the figures and the HTML page of ``result`` into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
@@ -164,6 +184,7 @@ nominal hits.</p>
 that reproduces the log's share of short and long returns (people, glass, doors) draws them at other
 beams than the measurement, which raises the p90 error and lowers the hit/miss F1 even as its range
 distribution (histogram L1) gets closer to the sensor's.</p>
+{_shared_errors(info["settings"].get("mi-lidar", {}))}
 {images}
 <p>Chosen on the training scans: {html.escape(json.dumps(info["settings"]))}</p>
 <p>Seconds: {html.escape(json.dumps({k: round(v, 1) for k, v in result.seconds.items()}))}</p>

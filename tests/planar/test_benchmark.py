@@ -124,7 +124,7 @@ def test_unknown_model_is_named():
 
 
 @pytest.mark.slow
-def test_every_model_on_the_room(room):
+def test_every_model_on_the_room(room, tmp_path):
     result = run_planar_benchmark(read_carmen(room), protocol=PROTOCOL)
     nll = {r.name: r.test_nll for r in result.rows}
     assert all(np.isfinite(v) for v in nll.values()), nll
@@ -137,6 +137,13 @@ def test_every_model_on_the_room(room):
     assert 0.0 <= result.settings["mi-lidar"]["angular_share_per_neighbour"] <= 1.0 / 3.0, result.settings
     assert result.settings["NP-Reg"]["h_range_m"] in (0.5, 1.0, 2.0, 4.0), result.settings
     assert result.settings["mi-lidar"]["evidence_classes"] in (1, 5), result.settings
+    # How much neighbouring beams share their errors is measured at five lags and shown in the report.
+    lags = result.settings["mi-lidar"]["shared_errors_pit_lags"]
+    assert lags["lags"] == [1, 2, 3, 5, 10] and np.all(np.isfinite(lags["real"] + lags["sampled"])), lags
+    from mi_lidar.planar.report import write_benchmark
+
+    write_benchmark(result, tmp_path)
+    assert "Shared errors of neighbouring beams" in (tmp_path / "benchmark.html").read_text()
 
 
 @pytest.mark.slow
