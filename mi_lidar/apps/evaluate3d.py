@@ -28,7 +28,7 @@ from mi_lidar.apps.matching3d import FrameStates, ScanMatching3D
 from mi_lidar.apps.risk import AppResult, Objectives, evaluate_application
 from mi_lidar.core.errors import ParameterError
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 BOOTSTRAP = 400  # resamples of the starts for the risk's standard error
 
 

@@ -36,6 +36,7 @@ from mi_lidar.core.arrays import aligned
 from mi_lidar.core.errors import ParameterError
 
 TRANSFORMS = ("value", "log", "logit")
+OPEN_EDGE = 1e-6  # a log or logit variable starting on 0 (or 1), where T is infinite, starts this far inside
 
 
 def _forward(transform: str, x: np.ndarray) -> np.ndarray:
@@ -67,7 +68,8 @@ class FitVariable:
         initial: (n,) starting natural values.
         lower, upper: bounds of the natural values (kept after every step).
         scale: step unit in transformed units: Adam's steps are about ``lr * scale``.
-        transform: ``"value"``, ``"log"`` or ``"logit"``.
+        transform: ``"value"``, ``"log"`` or ``"logit"``; starting values where ``T`` is infinite (0 for
+            both, 1 for the logit) start :data:`OPEN_EDGE` inside.
     """
 
     name: str
@@ -85,7 +87,10 @@ class FitVariable:
         initial = np.atleast_1d(np.asarray(self.initial, np.float64))
         if not np.all(np.isfinite(initial)):
             raise ParameterError(f"fit variable {self.name!r}: starting values must be finite")
-        self.initial = np.clip(initial, self.lower, self.upper)
+        initial = np.clip(initial, self.lower, self.upper)
+        if self.transform != "value":
+            initial = np.clip(initial, OPEN_EDGE, 1.0 - OPEN_EDGE if self.transform == "logit" else np.inf)
+        self.initial = initial
         lo, hi = _forward(self.transform, np.array([self.lower, self.upper]))
         self._raw_bounds = (max(float(lo), -1e30), min(float(hi), 1e30))
         self._raw0 = mi.Float(aligned(_forward(self.transform, self.initial).astype(np.float32)))

@@ -44,7 +44,12 @@ class ParamSpec:
         fit_start: value fitting starts from when the default sits where the likelihood has no
             gradient (a dropout probability of exactly 0, say); None: start from the current value.
         fit_scale: the parameter's typical size, the fitter's step unit (a number, or a function of
-            the owning object for sizes that depend on an option).
+            the owning object for sizes that depend on an option), in the units of ``fit_transform``.
+        fit_transform: the units the fitter moves the parameter in: ``"value"``, ``"log"`` or ``"logit"``
+            (:class:`~mi_lidar.core.fitting.FitVariable`). A probability whose values span orders of
+            magnitude (a dropout of 2 % on one label and of 95 % on another) is fitted as a logit: a
+            step of fixed size in value units takes 2 % to the bound 0 at once, where a lost return's
+            likelihood is floored and the fit cannot come back.
         fit_lower: lower bound kept while fitting, when above ``lower``: a scale whose variance is
             quadratic in it (a noise sigma) has zero gradient at 0, so an optimizer that reaches 0
             would stay there whatever the data say.
@@ -62,6 +67,7 @@ class ParamSpec:
     fit: bool = True
     fit_start: float | None = None
     fit_scale: float | Callable[[Any], float] = 0.1
+    fit_transform: str = "value"
     fit_lower: float | None = None
     only: dict = field(default_factory=dict)
 

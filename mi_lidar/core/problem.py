@@ -227,6 +227,7 @@ def fit_parts(
             lower=max(part.specs[key].fit_bound, -1e30),
             upper=min(part.specs[key].upper, 1e30),
             scale=part.fit_scale(key),
+            transform=part.specs[key].fit_transform,
         )
         for name, (part, key) in zip(names, slots)
     ]

@@ -75,6 +75,22 @@ def test_holes_are_closed_at_a_neighbour_range_and_their_faces_labelled():
     )  # left neighbour's range
 
 
+def test_faces_are_labelled_by_how_many_of_their_corners_close_a_hole():
+    """Rows 1 and 2 lost (open space between two returning rows): row 1 is filled from row 0, row 2 from row 3.
+
+    Every quad between rows 0 and 1 gives a face with one filled corner and one with two; between rows 1
+    and 2 both faces are all fills; between rows 2 and 3 one face has two filled corners and one has one.
+    """
+    log = synthetic_frame()
+    log.hit[0, 1:3] = False
+    mesh = range_image_mesh(log, np.arange(0, 256, 2), fill_holes=True)
+    assert len(mesh.faces) == 15 * 128 * 2
+    assert np.bincount(mesh.label, minlength=4).tolist() == [12 * 256, 256, 256, 256]
+    vertex = mesh.vertices.reshape(16, 128, 3)
+    np.testing.assert_allclose(vertex[1], log.ranges[0, 0, ::2, None] * log.directions[0, 1, ::2], atol=1e-4)
+    np.testing.assert_allclose(vertex[2], log.ranges[0, 3, ::2, None] * log.directions[0, 2, ::2], atol=1e-4)
+
+
 @pytest.mark.slow
 def test_calibrated_model_beats_the_bare_mesh_in_nll_and_samples_like_the_sensor(shared_data):
     """The regression test of the real-frame loop (issue 13; docs/loop_results.md).
