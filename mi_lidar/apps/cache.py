@@ -1,14 +1,16 @@
 """The evaluations' dataset cache: the states and every source's scans of one run, in one ``.npz``.
 
-A cache belongs to its input file and settings (:func:`cache_key`); a file written for other ones is
-ignored, and the file is written atomically, so a run stopped half-way leaves either the old cache or
-the new one.
+A cache belongs to its input file, its settings and the code that wrote it (:func:`cache_key`); a file
+written for other ones is ignored, so a run stopped half-way resumes with the same code and never mixes
+scans of an older version into a newer one. The file is written atomically, so a run stopped half-way
+leaves either the old cache or the new one.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +19,26 @@ from mi_lidar.core.atomic import atomic_path
 
 
 def cache_key(path: Path, settings: dict) -> str:
-    """The SHA-256 of the input file's bytes and the settings (JSON, sorted keys)."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest() + "|" + json.dumps(settings, sort_keys=True)
+    """The SHA-256 of the input file's bytes, the settings (JSON, sorted keys) and :func:`code_digest`."""
+    data = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    return f"{data}|{json.dumps(settings, sort_keys=True)}|code {code_digest()}"
+
+
+@cache
+def code_digest() -> str:
+    """:func:`source_digest` of the installed ``mi_lidar`` package (computed once per process)."""
+    import mi_lidar
+
+    return source_digest(Path(mi_lidar.__file__).resolve().parent)
+
+
+def source_digest(root: Path) -> str:
+    """The SHA-256 of every Python file under ``root``: their relative paths and bytes, in path order."""
+    digest = hashlib.sha256()
+    for file in sorted(Path(root).rglob("*.py")):
+        digest.update(file.relative_to(root).as_posix().encode())
+        digest.update(file.read_bytes())
+    return digest.hexdigest()
 
 
 def save_datasets(file: Path, key: str, states: dict, ranges: dict, benchmark: list[dict]) -> None:

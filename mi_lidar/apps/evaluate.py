@@ -8,9 +8,9 @@ the prior draws and along the development paths (:func:`~mi_lidar.apps.risk.eval
 simulator's ``r``-th sampled scans).
 
 Caches (in ``OUT/cache``): ``datasets.npz`` (states and scans; keyed by the log's SHA-256, the
-protocol, the simulators, the runs and the seed) and ``objectives-<application>.json`` (every
-evaluated ``J``, keyed by the same and the application's settings), so a rerun, or a run stopped
-half-way, resumes where it was.
+protocol, the simulators, the runs, the seed and the code, :func:`~mi_lidar.apps.cache.cache_key`)
+and ``objectives-<application>.json`` (every evaluated ``J``, keyed by the same and the
+application's settings), so a rerun, or a run stopped half-way, resumes where it was.
 """
 
 from __future__ import annotations
@@ -37,7 +37,6 @@ from mi_lidar.planar.grid import Grid
 from mi_lidar.planar.protocol import PlanarProtocol
 
 SIMULATORS = ("M0", "M1", "P-Reg", "NP-Reg", "mi-lidar")
-CACHE_VERSION = 4  # 4: mi-lidar samples neighbouring beams with shared errors
 
 
 def applications(runs: int = 8) -> list:
@@ -94,7 +93,6 @@ class AppsEvaluation:
 
 def _key(path: Path, protocol: PlanarProtocol, simulators: tuple[str, ...], runs: int, seed: int, max_range) -> str:
     settings = {
-        "v": CACHE_VERSION,
         "protocol": protocol.__dict__,
         "sim": simulators,
         "runs": runs,
@@ -141,7 +139,7 @@ def app_settings(app) -> str:
 
     Not the draws: a rerun with more draws reuses every objective already evaluated.
     """
-    return json.dumps([app.name, repr(app), CACHE_VERSION])
+    return json.dumps([app.name, repr(app)])
 
 
 def _run_one(app, states, ranges, file: Path, key: str, draws: int, seed: int, progress=None):

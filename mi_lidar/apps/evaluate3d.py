@@ -28,7 +28,6 @@ from mi_lidar.apps.matching3d import FrameStates, ScanMatching3D
 from mi_lidar.apps.risk import AppResult, Objectives, evaluate_application
 from mi_lidar.core.errors import ParameterError
 
-CACHE_VERSION = 2
 BOOTSTRAP = 400  # resamples of the starts for the risk's standard error
 
 
@@ -84,9 +83,7 @@ FRAME_ARRAYS = ("map_points", "origins", "directions", "starts")  # the cached f
 
 
 def _key(path: Path, simulators, starts: int, seed: int, steps: int) -> str:
-    return cache_key(
-        path, {"v": CACHE_VERSION, "sim": list(simulators), "starts": starts, "seed": seed, "steps": steps}
-    )
+    return cache_key(path, {"sim": list(simulators), "starts": starts, "seed": seed, "steps": steps})
 
 
 def frame_datasets(log, simulators=SIMULATORS, starts: int = 8, seed: int = 0, steps: int = 1500, progress=None):
