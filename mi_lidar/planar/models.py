@@ -368,4 +368,5 @@ def fit_correlation(fitted: PermeableMap, train: PlanarTrace) -> tuple[BeamCorre
         return mixture.with_correlation(correlation).sample(fitted.model, seed)
 
     correlation, summary = fit_beam_correlation(sample, part.z, part.hit, part.scan, part.beam)
-    return correlation, {k: np.round(np.asarray(v, np.float64), 4).tolist() for k, v in summary.items()}
+    lags = {k: np.round(np.asarray(v, np.float64), 4).tolist() for k, v in summary.items() if k != "lags"}
+    return correlation, {"lags": [int(k) for k in summary["lags"]], **lags}

@@ -136,7 +136,7 @@ def _shared_errors(settings: dict) -> str:
         return ""
 
     def row(values) -> str:
-        return ", ".join(f"{v:.2f}" for v in values)
+        return ", ".join(f"{v + 0.0:.2f}" if abs(v) >= 0.005 else "0.00" for v in values)
 
     c = settings["beam_correlation"]
     return (
