@@ -121,9 +121,13 @@ class EngineBeams:
         p = permeability(self.hits, self.passes, np.asarray(a)[k], np.asarray(b)[k]) if self.hits.size else np.ones(1)
         return dataclasses.replace(self, table=self.table.replaced(p_hit=_f(p)))
 
-    def sample(self, model, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """One sampled (range, hit) per beam (neighbouring beams' draws shared by :attr:`correlation`)."""
-        streams = NeighbourStreams(seed, self.follows, self.correlation) if self.correlation.active else seed
+    def streams(self, seed: int) -> int | NeighbourStreams:
+        """The random streams of a sample with ``seed``: shared by neighbouring beams per :attr:`correlation`."""
+        return NeighbourStreams(seed, self.follows, self.correlation) if self.correlation.active else seed
+
+    def sample(self, model, seed: int | NeighbourStreams = 0) -> tuple[np.ndarray, np.ndarray]:
+        """One sampled (range, hit) per beam, from :meth:`streams` of ``seed`` (or the streams given)."""
+        streams = seed if isinstance(seed, NeighbourStreams) else self.streams(seed)
         with dr.suspend_grad():
             z, hit = model.sample_trace(self.table, self.rays, self.rounds, streams)
             return np.asarray(z, np.float64), np.asarray(hit)
@@ -191,7 +195,8 @@ class AngularMixture:
         The parts draw from the same random streams (the part is chosen independently of them), so a
         beam keeps its share of its neighbours' errors whichever part it reports.
         """
-        draws = [b.sample(model, seed) for b in self.parts]
+        streams = self.parts[0].streams(seed)  # the parts' beams are the same beams: draw the streams once
+        draws = [b.sample(model, streams) for b in self.parts]
         part = np.random.default_rng(seed).choice(3, size=self.n, p=self.shares())
         rows = np.arange(self.n)
         return np.stack([d[0] for d in draws])[part, rows], np.stack([d[1] for d in draws])[part, rows]
