@@ -79,7 +79,7 @@ if __name__ == "__main__":
     # 3. add effects, watch the error fall
     path = ouster_development_path(log, progress=say)
     console.print(development_table(path.rows, "Ouster OS-1-32 frame, nats per test ray (odd columns, 1 cm bins)"))
-    console.print("final parameters: " + ", ".join(f"{k}={v:.4g}" for k, v in path.rows[-1].fitted.items()))
+    console.print("final model: " + ", ".join(effect.describe() for effect in path.model.effects))  # kept steps only
 
     # 4. compare again
     report("final", path.mesh, path.model, test_log, out, say)

@@ -135,7 +135,8 @@ def ouster_development_path(log: Log, steps: int = 1500, progress=None) -> Ouste
     :func:`~mi_lidar.loop.development.effect_step`). The effects model what the bare mesh misses:
 
     * ``corner_returns``: at depth edges and in clutter the sensor sees the surface of one of the mesh's
-      samples (foreground or background), not the plane between them;
+      samples (foreground or background), not the plane between them; its spread is set to the
+      sensor's 1 cm, not fitted (see :class:`~mi_lidar.core.effects.corner_returns.CornerReturns`);
     * ``range_noise`` (footprint law): the interpolated plane's error grows with the depth a face spans
       along the beam, ``r tan(incidence)``;
     * ``label_dropout``: faces that close a hole of the range image (labels 1-3: how many corners fill
