@@ -100,7 +100,7 @@ def test_calibrated_model_beats_the_bare_mesh_in_nll_and_samples_like_the_sensor
     a sampled median error of 2.04 m, then at 4.39 nats with 16 cm (corner returns with a fitted 8 cm
     spread). The calibrated model must be better in NLL by 3 nats (measured: 4.5) and sample like the
     sensor: histogram match and hit/miss F1 no worse than the bare mesh's, the sampled median error within
-    10 % of the bare mesh's (measured: +2 %).
+    10 % of the bare mesh's (measured: +3 %; -1 to +4 % over sampling seeds 0-4).
     """
     import mitsuba as mi
 
