@@ -10,7 +10,7 @@ columns (nats per ray, 1 cm bins). The loop, as a user runs it:
 3. add effects one by one, fitted on the calibration columns, and print the development path;
 4. compare the final model with the test columns (OUT/final/).
 
-OUT defaults to ouster_loop/. About 2 minutes on 2 cores.
+OUT defaults to reports/ouster_loop/. About 2 minutes on 2 cores.
 """
 
 import sys
@@ -52,7 +52,7 @@ def report(name: str, mesh, model, test_log, out: Path, say) -> None:
 
 if __name__ == "__main__":
     console = Console()
-    out = Path(sys.argv[1] if len(sys.argv) > 1 else "ouster_loop")
+    out = Path(sys.argv[1] if len(sys.argv) > 1 else "reports/ouster_loop")
     start = time.perf_counter()
     say = lambda message: console.log(f"[{time.perf_counter() - start:6.1f} s] {message}")  # noqa: E731
     log = read_any(DATA)

@@ -7,7 +7,7 @@ For each channel it builds the range-image mesh of columns 0 mod 4, starts every
 vertices' intensities, calibrates the intensity curve, noise and per-face reflectivities on columns
 2 mod 4 (the reflectivities shrunk toward their start by a width chosen on columns 1 mod 4), and
 scores columns 3 mod 4 against a constant per beam. OUT/report.html holds the table and the figure.
-OUT defaults to intensity_real/. About 1 minute on 2 cores.
+OUT defaults to reports/intensity_real/. About 1 minute on 2 cores.
 """
 
 import sys
@@ -23,7 +23,7 @@ DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
 if __name__ == "__main__":
     console = Console()
-    out = Path(sys.argv[1] if len(sys.argv) > 1 else "intensity_real")
+    out = Path(sys.argv[1] if len(sys.argv) > 1 else "reports/intensity_real")
     ouster = read_any(DATA / "ouster" / "OS-1-32-G_v2.1.1_1024x10.pcap")
     velodyne = read_any(DATA / "velodyne" / "velodyne_vlp16.pcap")
     full = velodyne.scan(int(np.argmax(velodyne.hit.sum(axis=(1, 2)))))  # the capture's one full revolution
