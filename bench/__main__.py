@@ -65,6 +65,17 @@ symbolic loop of preliminary intersections, a hit-probability lookup and one dra
 what the vegetation path costs before any sensor model), Open3D's `RaycastingScene` and embreex. A
 peer that is not installed gets a row saying so. File reads are the fastest of {bench_io.REPEATS} interleaved runs
 with Python's garbage collector paused. Loaded machines slow every number down: compare ratios.
+
+Why the vegetation rows stay below 10 Mrays/s (measured 2026-11-25, same process, same rays): a ray
+that passes an ellipsoid restarts 1e-4 m past its entry, inside a clump of overlapping 3-sigma
+ellipsoids, and Embree then tests every ellipsoid whose box holds the restart point (one call into
+Mitsuba's ellipsoid code each). Such a restart costs 2-4 first hits in its first rounds and 10-25
+from the ninth on; the same rays traced from their origin cost 2-4x less. So 1.97 elements per ray
+cost about 6 first hits (the raw loop's rate against the first hit's), not 2. Every loop layout
+tried on the raw peer (compaction after every round or at rounds 2/4/8, incoherent restarts, maxt
+capped at the maximum range) reached at most 1.1-1.3x the raw loop, so short of 10 Mrays/s here. The
+sampler's own cost above the raw loop is the final draw at the returning element (density sample,
+surface interaction, intensity: about 0.6 first hits).
 """
 
 
