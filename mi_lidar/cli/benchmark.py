@@ -37,7 +37,7 @@ def benchmark_planar(
 
         mi-lidar benchmark-planar building.log.gz --out reports/building --max-range 50
     """
-    from mi_lidar.planar.benchmark import MODELS, benchmark_file
+    from mi_lidar.planar.benchmark import MODELS, SAMPLED_SCANS, benchmark_file
     from mi_lidar.planar.protocol import PlanarProtocol
 
     with progress(f"benchmark {log.name}") as update:
@@ -52,10 +52,13 @@ def benchmark_planar(
     table = Table(
         title=f"{log.name}: {result.data.test.n:,} test beams (nats per beam)",
         caption="|err|: one sampled scan vs the measured one where both returned (m); sample F1: hit/miss "
-        "agreement; hist L1: distance of the range CDFs; miss F1: threshold tuned on training beams",
+        "agreement; hist L1: distance of the range CDFs; CRPS: continuous ranked probability score per beam "
+        f"from {SAMPLED_SCANS} sampled scans (m; a no-return counts as {result.no_return:g} m), lowest in "
+        "expectation for the sensor's own distribution; miss F1: threshold tuned on training beams",
         header_style="bold",
     )
-    for title in ("model", "test NLL", "train NLL", "miss F1", "median |err|", "p90 |err|", "sample F1", "hist L1"):
+    columns = ("model", "test NLL", "train NLL", "miss F1", "median |err|", "p90 |err|", "sample F1", "hist L1")
+    for title in columns + ("CRPS mean", "CRPS median"):
         table.add_column(title, justify="left" if title == "model" else "right", no_wrap=title == "model")
     for r in result.rows:
         s = r.samples
@@ -68,6 +71,8 @@ def benchmark_planar(
             f"{s['range_error_p90']:.3f}",
             f"{s['f1']:.3f}",
             f"{s['histogram_l1']:.3f}",
+            f"{s['crps_mean']:.3f}",
+            f"{s['crps_median']:.4f}",
         )
     console.print(table)
     no_return = result.data.log.sensor["max_range_m"]

@@ -8,8 +8,12 @@ Per model it reports the test and training NLL per beam (and its split over hits
 miss precision, recall and F1 (threshold 0.5, and a threshold tuned on training beams), and the
 realism of one sampled scan: median and p90 |sampled - measured| range where both returned, hit/miss
 F1 of the samples, and the histogram match (L1 distance between the CDFs of measured and sampled
-ranges). Nothing is tuned to a particular log: the sensor's no-return value is detected from the log
-(or given), and bandwidths are chosen on held-out training scans.
+ranges); and, from :data:`SAMPLED_SCANS` sampled scans (the first is that one), the CRPS per test
+beam (mean and median, m; a no-return is the log's no-return value on both sides:
+:func:`~mi_lidar.core.metrics.crps`), a paired measure that, unlike the one-draw errors, does not
+reward a model for sampling less spread than the sensor. Nothing is tuned to a particular log: the
+sensor's no-return value is detected from the log (or given), and bandwidths are chosen on held-out
+training scans.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from mi_lidar.planar.beams import EngineBeams, nominal_beams
 from mi_lidar.planar.protocol import PlanarData, PlanarProtocol, prepare
 
 MODELS = ("M0", "M1", "M2a", "M2b", "M3a", "M3b", "P-Reg", "NP-Reg", "mi-lidar")
+SAMPLED_SCANS = 8  # sampled test scans per model for the CRPS (seeds seed, seed + 1, ...)
 
 
 def miss_scores(p_miss: np.ndarray, miss: np.ndarray, threshold: float) -> dict:
@@ -54,9 +59,10 @@ def tuned_threshold(p_miss: np.ndarray, miss: np.ndarray) -> float:
 class ModelRow:
     """The benchmark's figures of one model (see the module docstring).
 
-    Besides the figures: ``ll`` the test beams' log-likelihoods, ``sampled`` the test scan it sampled
-    (range, hit), and ``engine`` the ``(training beams, test beams, model)`` it was fitted and scored
-    with, to simulate more scans at the same beams (:func:`mi_lidar.apps.scans.planar_datasets`).
+    Besides the figures: ``ll`` the test beams' log-likelihoods, ``sampled`` the first test scan it
+    sampled (range, hit; the one the one-draw sample metrics pair with the measured scan), and
+    ``engine`` the ``(training beams, test beams, model)`` it was fitted and scored with, to simulate
+    more scans at the same beams (:func:`mi_lidar.apps.scans.planar_datasets`).
     """
 
     name: str
@@ -74,7 +80,15 @@ class ModelRow:
     engine: tuple = field(repr=False, default=None)
 
     def to_json(self) -> dict:
-        keep = ("range_error_median", "range_error_p90", "f1", "histogram_l1", "hit_rate_simulated")
+        keep = (
+            "range_error_median",
+            "range_error_p90",
+            "f1",
+            "histogram_l1",
+            "hit_rate_simulated",
+            "crps_mean",
+            "crps_median",
+        )
         return {
             "model": self.name,
             "test_nll": self.test_nll,
@@ -91,7 +105,9 @@ class ModelRow:
 
 @dataclass
 class PlanarBenchmark:
-    """Result of :func:`run_planar_benchmark` (``settings``: what the learned models chose on the training scans)."""
+    """Result of :func:`run_planar_benchmark` (``settings``: what the learned models chose on the training scans;
+    ``no_return``: the range (m) that stands for a no-return in the CRPS: the log's no-return value, or its
+    largest reading + 1 m when it has none)."""
 
     source: str
     data: PlanarData
@@ -99,6 +115,7 @@ class PlanarBenchmark:
     nominal: dict
     seconds: dict
     settings: dict = field(default_factory=dict)
+    no_return: float = float("nan")
 
     def to_json(self) -> dict:
         log = self.data.log
@@ -107,6 +124,7 @@ class PlanarBenchmark:
             "scans": int(log.shape[0]),
             "beams": int(log.shape[1]),
             "max_range_m": float(log.sensor.get("max_range_m", float("inf"))),
+            "crps_no_return_m": self.no_return,
             "protocol": self.data.protocol.__dict__,
             "test_beams": self.data.test.n,
             "train_beams": self.data.train.n,
@@ -118,13 +136,22 @@ class PlanarBenchmark:
 
 
 def _row(
-    name: str, train: EngineBeams, test: EngineBeams, model, data: PlanarData, seconds: float, seed: int
+    name: str,
+    train: EngineBeams,
+    test: EngineBeams,
+    model,
+    data: PlanarData,
+    seconds: float,
+    seed: int,
+    no_return: float,
 ) -> ModelRow:
     ll_test, ll_train = test.log_likelihood(model), train.log_likelihood(model)
     p_test, p_train = test.p_miss(model), train.p_miss(model)
     miss_test, miss_train = ~data.test.hit, ~data.train.hit
     threshold = tuned_threshold(p_train, miss_train)
-    z, hit = test.sample(model, seed)
+    draws = [test.sample(model, seed + k) for k in range(SAMPLED_SCANS)]
+    z, hit = draws[0]
+    ranges, hits = np.stack([d[0] for d in draws]), np.stack([d[1] for d in draws])
     return ModelRow(
         name=name,
         test_nll=float(-ll_test.mean()),
@@ -134,7 +161,7 @@ def _row(
         miss_at_half=miss_scores(p_test, miss_test, 0.5),
         miss_tuned=miss_scores(p_test, miss_test, threshold),
         threshold=threshold,
-        samples=metrics_of(ll_test, data.test.z, data.test.hit, z, hit),
+        samples=metrics_of(ll_test, data.test.z, data.test.hit, z, hit, draws=(ranges, hits), no_return=no_return),
         seconds=seconds,
         ll=ll_test,
         sampled=(z, hit),
@@ -157,7 +184,7 @@ def run_planar_benchmark(
         source: its file, for the report.
         protocol: the protocol's settings (default: the protocol's).
         models: the models to fit and score (names of :data:`MODELS`).
-        seed: seed of the sampled scan.
+        seed: seed of the first sampled scan (the others: ``seed + 1``, ...).
         progress: optional ``progress(done, total, label)``.
     """
     say = progress or (lambda done, total, label: None)
@@ -204,7 +231,7 @@ def run_planar_benchmark(
     fit("NP-Reg", np_reg)
     rows = []
     for name in [n for n in MODELS if n in fitted and n in models]:
-        rows.append(_row(name, train, test, fitted[name], data, timing[name], seed))
+        rows.append(_row(name, train, test, fitted[name], data, timing[name], seed, z_max))
     if "mi-lidar" in models:
         t0 = time.perf_counter()
         permeable = m.fit_milidar(data.train, z_max, settings["np_reg"])
@@ -227,6 +254,7 @@ def run_planar_benchmark(
                 data,
                 elapsed,
                 seed,
+                z_max,
             )
         )
     both = data.test.hit & np.isfinite(data.test.nominal)
@@ -245,7 +273,9 @@ def run_planar_benchmark(
         chosen["NP-Reg"] = {"h_range_m": h_r, "h_incidence_deg": h_i, "uniform_share": u}
     seconds["fit_and_score"] = time.perf_counter() - start - sum(data.seconds.values())
     seconds["total"] = time.perf_counter() - start
-    return PlanarBenchmark(source=source, data=data, rows=rows, nominal=nominal, seconds=seconds, settings=chosen)
+    return PlanarBenchmark(
+        source=source, data=data, rows=rows, nominal=nominal, seconds=seconds, settings=chosen, no_return=z_max
+    )
 
 
 def benchmark_file(

@@ -19,6 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mi_lidar.core.atomic import atomic_path, atomic_write  # noqa: E402
+from mi_lidar.planar.benchmark import SAMPLED_SCANS  # noqa: E402
 
 BINS = np.linspace(-1.5, 1.5, 121)
 
@@ -109,6 +110,7 @@ def _table(rows: list) -> str:
         "sample p90 |err| (m)",
         "sample hit/miss F1",
         "histogram L1 (m)",
+        "CRPS mean / median (m)",
     )
     lines = ["<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head) + "</tr>"]
     for r in rows:
@@ -124,6 +126,7 @@ def _table(rows: list) -> str:
             f"{s['range_error_p90']:.3f}",
             f"{s['f1']:.3f}",
             f"{s['histogram_l1']:.3f}",
+            f"{s['crps_mean']:.3f} / {s['crps_median']:.4f}",
         )
         lines.append("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in cells) + "</tr>")
     return "\n".join(lines + ["</table>"])
@@ -183,7 +186,10 @@ nominal hits.</p>
 <p>Sample metrics compare one scan sampled from each model with the measured scan, beam by beam: a model
 that reproduces the log's share of short and long returns (people, glass, doors) draws them at other
 beams than the measurement, which raises the p90 error and lowers the hit/miss F1 even as its range
-distribution (histogram L1) gets closer to the sensor's.</p>
+distribution (histogram L1) gets closer to the sensor's. The CRPS (continuous ranked probability score,
+fair estimator from {SAMPLED_SCANS} sampled scans per model, a no-return counted as
+{info["crps_no_return_m"]:g} m on both sides) is paired too, but proper: its expectation is lowest
+for the sensor's own distribution, and for a model that never varies it is the plain |error|.</p>
 {_shared_errors(info["settings"].get("mi-lidar", {}))}
 {images}
 <p>Chosen on the training scans: {html.escape(json.dumps(info["settings"]))}</p>
