@@ -31,8 +31,6 @@ from dataclasses import dataclass, field
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from scipy.signal import lfilter
-from scipy.special import ndtr, ndtri
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.errors import ParameterError
@@ -125,17 +123,23 @@ class NeighbourStreams:
         own, drive = (_scores(uniform(self.seed, ids, segment, s)) for s in (stream, stream + DRIVE_STREAM))
         shared = ar1(drive, self.follows, rho)
         score = np.sqrt(w) * shared + np.sqrt(1.0 - w) * own
+        from scipy.special import ndtr  # scipy on first use: `import mi_lidar` stays fast
+
         return mi.Float(aligned(np.clip(ndtr(score), 0.0, MAX_UNIFORM).astype(np.float32)))
 
 
 def _scores(u: mi.Float) -> np.ndarray:
     """Standard normal scores (float64) of uniform numbers."""
+    from scipy.special import ndtri
+
     return ndtri(np.clip(np.asarray(u, np.float64), 1e-12, MAX_UNIFORM))
 
 
 def ar1(drive: np.ndarray, follows: np.ndarray, rho: float) -> np.ndarray:
     """A stationary AR(1) process of unit variance driven by standard normals ``drive`` (N,), restarted where
     ``follows`` is False: ``a_0 = d_0``, ``a_i = rho a_(i-1) + sqrt(1 - rho^2) d_i``."""
+    from scipy.signal import lfilter
+
     x = np.sqrt(1.0 - rho * rho) * drive
     starts = ~np.asarray(follows, bool)
     x[starts] = drive[starts]
