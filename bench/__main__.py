@@ -91,14 +91,31 @@ def _cells(row: bench_core.Row) -> list[str]:
     return [row.benchmark, rate, *ratios, row.target, verdict]
 
 
+def _cpu() -> str:
+    """The CPU model and its widest SIMD set from /proc/cpuinfo ("" where there is none).
+
+    The SIMD width matters: Dr.Jit and Embree run 16 lanes with AVX-512 and 8 with AVX2, so Mitsuba's
+    rates (and mi-lidar's ratios against single-lane peers) differ several-fold between machines.
+    """
+    try:
+        info = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return ""
+    model = next((line.split(":", 1)[1].strip() for line in info.splitlines() if line.startswith("model name")), "")
+    flags = next((set(line.split(":", 1)[1].split()) for line in info.splitlines() if line.startswith("flags")), set())
+    simd = next((name for name in ("avx512f", "avx2", "avx", "sse4_2") if name in flags), "")
+    return f"{model}, {simd.upper()}" if model else simd.upper()
+
+
 def _machine(start_load: float) -> str:
     """One line on the machine and its load (other processes slow every number down)."""
     import drjit as dr
     import mitsuba as mi
 
     load = f"{start_load:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
+    cpu = f"{_cpu()}; " if _cpu() else ""
     return (
-        f"{platform.node()} ({os.cpu_count()} CPUs, benchmarks pinned to {bench_core.CORES}), "
+        f"{platform.node()} ({cpu}{os.cpu_count()} CPUs, benchmarks pinned to {bench_core.CORES}), "
         f"mitsuba {mi.__version__} / drjit {dr.__version__} ({mi.variant()}), load average {load}, "
         f"{time.strftime('%Y-%m-%d %H:%M')}"
     )
