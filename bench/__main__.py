@@ -101,8 +101,9 @@ def _cpu() -> str:
         info = Path("/proc/cpuinfo").read_text()
     except OSError:
         return ""
-    model = next((line.split(":", 1)[1].strip() for line in info.splitlines() if line.startswith("model name")), "")
-    flags = next((set(line.split(":", 1)[1].split()) for line in info.splitlines() if line.startswith("flags")), set())
+    fields = dict(line.split(":", 1) for line in reversed(info.splitlines()) if ":" in line)  # the first CPU's
+    fields = {key.strip(): value.strip() for key, value in fields.items()}
+    model, flags = fields.get("model name", ""), set(fields.get("flags", "").split())
     simd = next((name for name in ("avx512f", "avx2", "avx", "sse4_2") if name in flags), "")
     return f"{model}, {simd.upper()}" if model else simd.upper()
 
@@ -113,7 +114,8 @@ def _machine(start_load: float) -> str:
     import mitsuba as mi
 
     load = f"{start_load:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"
-    cpu = f"{_cpu()}; " if _cpu() else ""
+    cpu = _cpu()
+    cpu = f"{cpu}; " if cpu else ""
     return (
         f"{platform.node()} ({cpu}{os.cpu_count()} CPUs, benchmarks pinned to {bench_core.CORES}), "
         f"mitsuba {mi.__version__} / drjit {dr.__version__} ({mi.variant()}), load average {load}, "
