@@ -26,6 +26,12 @@ def test_scene_loads_and_renders(path):
     assert np.all(np.isfinite(channels["range"][hit])) and np.all(np.isnan(channels["range"][~hit]))
     assert np.all(channels["shape_id"][~hit] == -1) and np.all(channels["shape_id"][hit] >= 0)
     assert np.all((channels["cos_incidence"][hit] >= 0) & (channels["cos_incidence"][hit] <= 1.0001))
+    # The fast path traces the same rays and reports the same channels (integer ids, -1 for a miss).
+    log = mi_lidar.simulate(scene, seed=0)
+    np.testing.assert_array_equal(log.hit[0], hit)
+    for name in ("element_id", "shape_id", "label", "segments"):
+        assert log.attributes[name].dtype == np.int32
+        np.testing.assert_array_equal(log.attributes[name][0], channels[name], err_msg=name)
 
 
 def test_indoor_wall_range_within_noise():

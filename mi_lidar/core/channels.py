@@ -48,9 +48,7 @@ def channels_to_numpy(out: dict) -> dict[str, np.ndarray]:
     result = {}
     for name in CHANNELS:
         value = np.asarray(out[name])
-        if name in ("element_id", "shape_id"):
-            value = np.where(value == NO_ELEMENT, -1, value.astype(np.int64)).astype(np.int32)
-        elif name in INTEGER_CHANNELS:
+        if name in INTEGER_CHANNELS:  # uint32 -> int32 wraps NO_ELEMENT (2^32 - 1) to -1 in one copy
             value = value.astype(np.int32)
         result[name] = value
     return result
