@@ -76,6 +76,20 @@ tried on the raw peer (compaction after every round or at rounds 2/4/8, incohere
 capped at the maximum range) reached at most 1.1-1.3x the raw loop, so short of 10 Mrays/s here. The
 sampler's own cost above the raw loop is the final draw at the returning element (density sample,
 surface interaction, intensity: about 0.6 first hits).
+
+Why the terrain rows stay near 1x Open3D on an AVX2 machine (measured 2026-11-26 with Dr.Jit's kernel
+history, 1M rays, opaque terrain): `simulate_rays` is two kernels, the walk (75-98 ms: the coherent
+preliminary trace, 52-62 ms alone, plus the hit probability, one random number and the beam-end state
+it keeps for the draw; carrying only range, element and outcome instead would save about 11 ms but
+not the bits of the surface interaction) and the draw at the returning element (42-50 ms: surface
+interaction 11-15 ms, element lookups 3-5, range sample 3, intensity 10, the eight output channels
+11). Fusing the two into one kernel for the rays that end at their first element left
+`simulate_rays` as fast as before (113 against 111 ms) and slowed `mi.render` (which writes its
+tensor in the draw's kernel), so the costs are arithmetic and lookups, not memory traffic; the 2x
+target would need the whole sensor model in about 5 ms per million rays on top of the raw trace.
+`simulate_rays` runs at 0.44-0.49x the raw trace on both machines measured; what moves the ratio to
+Open3D is the raw trace's lead over Open3D: 5.4x on the AVX-512 machine of the first runs (where every
+terrain target was met), 2.3-2.4x on this AVX2 one.
 """
 
 
