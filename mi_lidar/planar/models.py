@@ -287,7 +287,8 @@ def fit_milidar(
 
     Each candidate number of evidence classes is fitted (one EM round) on the even training scans and
     scored on the odd ones; the best is refitted on all training scans (:func:`fit_permeable_map`).
-    The trials skip the shared-error fit: it changes the samples only, not the held-out score.
+    Last, how much neighbouring beams share their errors (:func:`fit_correlation`): it changes the
+    samples only, not the held-out score, so the trials go without it.
     A log whose cells are seen by many scans gains from telling well-seen walls from cells seen once;
     a sparser log spreads its returns over too many states and keeps occupancy alone.
     """
@@ -295,10 +296,12 @@ def fit_milidar(
         fit_part, check = train.take(train.scan % 2 == 0), train.take(train.scan % 2 == 1)
         scores = []
         for k in classes:
-            trial = fit_permeable_map(fit_part, z_max, bandwidths, k, rounds=1, shared_errors=False)
+            trial = fit_permeable_map(fit_part, z_max, bandwidths, k, rounds=1)
             scores.append(-float(np.mean(trial.beams(check).log_likelihood(trial.model))))
         classes = (classes[int(np.argmin(scores))],)
-    return fit_permeable_map(train, z_max, bandwidths, classes[0])
+    fitted = fit_permeable_map(train, z_max, bandwidths, classes[0])
+    fitted.correlation, fitted.shared_errors = fit_correlation(fitted, train)
+    return fitted
 
 
 def fit_permeable_map(
@@ -308,7 +311,6 @@ def fit_permeable_map(
     classes: int = EVIDENCE_CLASSES,
     rounds: int = 3,
     steps: int = 120,
-    shared_errors: bool = True,
 ) -> PermeableMap:
     """mi-lidar's permeable map with ``classes`` evidence classes (see the module docstring).
 
@@ -316,9 +318,8 @@ def fit_permeable_map(
     the kernel ``bandwidths`` ``(h_range, h_incidence, uniform)`` chosen for NP-Reg on held-out training
     scans; then ``rounds`` times: fit the Beta prior (a, b) by the one fitter, assign each return to its
     most likely segment, and re-estimate the tables from those assignments. Last, the angular spread
-    (the neighbours' share) by maximum likelihood on the training beams and, with ``shared_errors``, how
-    much neighbouring beams share their errors when sampled (:func:`fit_correlation`; without it the
-    beams are sampled independently).
+    (the neighbours' share) by maximum likelihood on the training beams. Its beams are sampled
+    independently until :func:`fit_correlation` sets how much neighbours share their errors.
     """
     h_r, h_i, u = bandwidths
     grid = fine_grid(samples_of(train), labels=2 * classes)
@@ -353,8 +354,6 @@ def fit_permeable_map(
     mixture = fitted.beams(train)
     raw = np.stack([part.raw_log_likelihood(fitted.model) for part in mixture.parts])
     fitted.angular = fit_angular_weight(raw, mixture.hit)
-    if shared_errors:
-        fitted.correlation, fitted.shared_errors = fit_correlation(fitted, train)
     return fitted
 
 
