@@ -350,6 +350,9 @@ class SensorModel:
         alive = self._virtual_returns(out, rays, seed)
         carried = uniform(seed, rays.ray_id, 0, 0) if isinstance(seed, NeighbourStreams) else None
         for k, r in enumerate(rounds.rounds):
+            r = r.take(dr.compress(dr.gather(mi.Bool, alive, r.ray)))  # only the beams still going draw
+            if r.width == 0:
+                break  # the next round's beams are a subset of this round's
             sub = rays.take(r.ray)
             base = (
                 table.segment(r, True, r.element, sub.origin, sub.direction, self.range_sigma)
@@ -357,14 +360,13 @@ class SensorModel:
                 else table.cached_segment(r, dr.full(mi.Bool, True, r.width), self.range_sigma)
             )
             seg = self.apply_effects(base, sub)
-            live = dr.gather(mi.Bool, alive, r.ray)
             u = uniform(seed, sub.ray_id, k, 0) if carried is None else dr.gather(mi.Float, carried, r.ray)
-            returned = live & (u < seg.p * (1.0 - seg.drop))
+            returned = u < seg.p * (1.0 - seg.drop)
             self._report(out, r.ray, sub, returned, self.density.sample(seg, uniforms(seed, sub.ray_id, k), sub))
-            dr.scatter(alive, False, r.ray, live & (u < seg.p))
+            dr.scatter(alive, False, r.ray, u < seg.p)
             if carried is not None:
                 rest = dr.clip((u - seg.p) / dr.maximum(1.0 - seg.p, 1e-12), 0.0, MAX_UNIFORM)
-                dr.scatter(carried, rest, r.ray, live & (u >= seg.p))
+                dr.scatter(carried, rest, r.ray, u >= seg.p)
             dr.eval(out, alive, carried)
         self._escape(out, dr.arange(mi.UInt32, n), rays, alive, seed)
         return out["range"], out["hit"]

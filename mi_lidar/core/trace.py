@@ -28,7 +28,7 @@ short as the round.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import drjit as dr
 import mitsuba as mi
@@ -111,6 +111,19 @@ class Round:
     def width(self) -> int:
         """Number of entries."""
         return dr.width(self.ray)
+
+    def take(self, index: mi.UInt32) -> Round:
+        """The entries at ``index`` (``prev`` still points into the previous round's entries)."""
+        return Round(**{f.name: _take(getattr(self, f.name), index) for f in fields(self)})
+
+
+def _take(array, index: mi.UInt32):
+    """``array`` (a Dr.Jit array, a tuple of them, or None) at ``index``."""
+    if array is None:
+        return None
+    if isinstance(array, tuple):
+        return tuple(_take(a, index) for a in array)
+    return dr.gather(type(array), array, index)
 
 
 @dataclass
@@ -371,23 +384,19 @@ class RayCache:
             prev = np.flatnonzero(count > 0) if k == 0 else np.flatnonzero(count[lanes] > k)
             lanes = lanes[prev]
             entry = mi.UInt32(aligned((start[lanes] + k).astype(np.uint32)))
-
-            def gather(array, entry=entry):
-                return None if array is None else dr.gather(type(array), array, entry)
-
             rounds.append(
                 Round(
                     ray=mi.UInt32(aligned(lanes.astype(np.uint32))),
                     prev=mi.UInt32(aligned(prev.astype(np.uint32))),
                     last=mi.Bool(aligned(count[lanes] == k + 1)),
-                    element=gather(self.element),
-                    nominal=gather(self.nominal),
-                    cos_incidence=gather(self.cos_incidence),
-                    point=gather(self.point),
-                    normal=gather(self.normal),
-                    cached=None if self.cached is None else tuple(gather(a) for a in self.cached),
-                    log_density=gather(self.log_density),
-                    drop=gather(self.drop),
+                    element=_take(self.element, entry),
+                    nominal=_take(self.nominal, entry),
+                    cos_incidence=_take(self.cos_incidence, entry),
+                    point=_take(self.point, entry),
+                    normal=_take(self.normal, entry),
+                    cached=_take(self.cached, entry),
+                    log_density=_take(self.log_density, entry),
+                    drop=_take(self.drop, entry),
                 )
             )
         return Rounds(width=len(position), none=mi.Bool(aligned(count == 0)), rounds=rounds)
