@@ -299,7 +299,9 @@ def permeability(hits: np.ndarray, passes: np.ndarray, a, b):
     return (hits + a) / (hits + passes + a + b)
 
 
-def fit_permeability(beams: EngineBeams, model, steps: int = 120) -> tuple[np.ndarray, np.ndarray]:
+def fit_permeability(
+    beams: EngineBeams, model, steps: int = 120, tolerance: float | None = PERMEABILITY_TOLERANCE
+) -> tuple[np.ndarray, np.ndarray]:
     """The Beta priors ``(a, b)`` of the cells' interception probabilities, one per occupancy class, by the one fitter.
 
     Stray-hit cells (hits in fewer than a quarter of visits: people, clutter, grazing wall edges) and
@@ -309,8 +311,8 @@ def fit_permeability(beams: EngineBeams, model, steps: int = 120) -> tuple[np.nd
     Only the interception probabilities move, so each segment's return density at the measured range
     is computed once (:func:`~mi_lidar.core.trace.cache_distributions`) and a step is a few gathers.
     The fit stops after at most ``steps`` steps, or once the mean score improved by less than
-    :data:`PERMEABILITY_TOLERANCE` over 15 steps (on the Intel log after 50-64 of 120 steps, within
-    1e-4 nats per beam of the 120-step loss).
+    ``tolerance`` (nats per beam; None: never) over 15 steps (on the Intel log after 50-64 of 120
+    steps, within 1e-4 nats per beam of the 120-step loss).
     """
     cache = RayCache.from_rounds(cache_distributions(beams.rounds, beams.table, model, beams.rays, beams.z))
     batch = cache.batch(np.arange(beams.n))
@@ -330,5 +332,5 @@ def fit_permeability(beams: EngineBeams, model, steps: int = 120) -> tuple[np.nd
         dr.backward(loss)
         return float(loss[0])
 
-    result = adam_fit(variables, objective, steps, lr=0.3, tolerance=PERMEABILITY_TOLERANCE)
+    result = adam_fit(variables, objective, steps, lr=0.3, tolerance=tolerance)
     return np.asarray(result.values["a"], np.float64), np.asarray(result.values["b"], np.float64)

@@ -197,3 +197,29 @@ def test_intel_anchors_and_mi_lidar_margin(shared_data, tmp_path):
     for name, anchor in {"M0": 5.006, "M1": 4.242, "M3a": 3.706, "M3b": 3.630}.items():
         assert abs(nll[name] - anchor) < 0.03, (name, nll[name], anchor)
     assert nll["mi-lidar"] <= nll["M3b"] - 0.15, nll
+
+
+def test_the_beta_prior_fit_stops_when_converged(room, monkeypatch):
+    """fit_permeability stops early on its tolerance and loses < 1e-4 nats per beam against a full-length fit."""
+    import mi_lidar.planar.beams as planar_beams
+    from mi_lidar.planar.models import base_model, fit_permeable_map
+
+    data = prepare(read_carmen(room), PROTOCOL)
+    z_max = float(np.nanmax(data.log.ranges)) + 1.0
+    model = fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01), 1, rounds=0).model
+    beams = planar_beams.segment_beams(data.train, 1)
+    steps_run = []
+    fit = planar_beams.adam_fit
+
+    def counted(*args, **kwargs):
+        result = fit(*args, **kwargs)
+        steps_run.append(result.steps_run)
+        return result
+
+    monkeypatch.setattr(planar_beams, "adam_fit", counted)
+    scores = []
+    for tolerance in (planar_beams.PERMEABILITY_TOLERANCE, None):
+        a, b = planar_beams.fit_permeability(beams, base_model(z_max, model.density), 200, tolerance)
+        scores.append(beams.with_permeability(a, b).log_likelihood(model).mean())
+    assert steps_run[0] < 200 and steps_run[1] == 200
+    assert scores[1] - 1e-4 <= scores[0] <= scores[1] + 1e-4
