@@ -142,41 +142,64 @@ class ScanCounts:
         return np.concatenate(parts) if parts else np.zeros((0, 2))
 
 
-def count_scans(log: Log, grid: Grid, reach: float = REACH, chunk: int = 64, progress=None) -> ScanCounts:
-    """Each scan's endpoint hits and pass-throughs on ``grid`` (see the module docstring)."""
-    step = grid.cell / 4
-    hit_start, pass_start, hit_cells, hit_points, pass_cells = [0], [0], [], [], []
-    for first in range(0, log.shape[0], chunk):
-        scans = np.arange(first, min(first + chunk, log.shape[0]))
-        origin, direction, z = planar_beams(log, scans)
-        n_beams = origin.shape[1]
-        o, d, r = origin.reshape(-1, 2), direction.reshape(-1, 2), z.ravel()
-        hit = np.isfinite(r)
-        point = o + np.nan_to_num(r)[:, None] * d
-        end = np.where(hit & (r < reach), grid.cell_of(point), -1)
-        ray, cell = march_cells(grid, o, d, np.where(hit, np.nan_to_num(r) - grid.cell, 0.0), step)
-        keep = cell != end[ray]
-        ray, cell = ray[keep], cell[keep]
-        bounds = np.searchsorted(ray // n_beams, np.arange(len(scans) + 1))
-        for local in range(len(scans)):
-            rows = slice(local * n_beams, (local + 1) * n_beams)
-            landed = end[rows] >= 0
-            mine = end[rows][landed]
-            hit_cells.append(mine)
-            hit_points.append(point[rows][landed])
-            hit_start.append(hit_start[-1] + mine.size)
-            pass_cells.append(cell[bounds[local] : bounds[local + 1]])
-            pass_start.append(pass_start[-1] + int(bounds[local + 1] - bounds[local]))
+def count_scans(
+    log: Log, grid: Grid, reach: float = REACH, chunk: int = 64, progress=None, workers: int = 1
+) -> ScanCounts:
+    """Each scan's endpoint hits and pass-throughs on ``grid`` (see the module docstring).
+
+    Chunks of ``chunk`` scans are counted on ``workers`` threads (numpy releases the GIL in its loops).
+    """
+    chunks = [np.arange(first, min(first + chunk, log.shape[0])) for first in range(0, log.shape[0], chunk)]
+    hit_cells, hit_points, pass_cells = [], [], []
+    for scans, (hits, points, passes) in zip(
+        chunks, in_threads(lambda scans: _count_chunk(log, grid, reach, scans), chunks, workers)
+    ):
+        hit_cells += hits
+        hit_points += points
+        pass_cells += passes
         if progress is not None:
             progress(scans[-1] + 1, log.shape[0])
     return ScanCounts(
         grid,
-        np.asarray(hit_start),
+        np.concatenate([[0], np.cumsum([c.size for c in hit_cells])]),
         np.concatenate(hit_cells),
         np.concatenate(hit_points),
-        np.asarray(pass_start),
+        np.concatenate([[0], np.cumsum([c.size for c in pass_cells])]),
         np.concatenate(pass_cells),
     )
+
+
+def _count_chunk(log: Log, grid: Grid, reach: float, scans: np.ndarray) -> tuple[list, list, list]:
+    """Per scan of ``scans``: its endpoint-hit cells, their (H, 2) positions (m), and its pass-through cells."""
+    origin, direction, z = planar_beams(log, scans)
+    n_beams = origin.shape[1]
+    o, d, r = origin.reshape(-1, 2), direction.reshape(-1, 2), z.ravel()
+    hit = np.isfinite(r)
+    point = o + np.nan_to_num(r)[:, None] * d
+    end = np.where(hit & (r < reach), grid.cell_of(point), -1)
+    ray, cell = march_cells(grid, o, d, np.where(hit, np.nan_to_num(r) - grid.cell, 0.0), grid.cell / 4)
+    keep = cell != end[ray]
+    ray, cell = ray[keep], cell[keep]
+    bounds = np.searchsorted(ray // n_beams, np.arange(len(scans) + 1))
+    hits, points, passes = [], [], []
+    for local in range(len(scans)):
+        rows = slice(local * n_beams, (local + 1) * n_beams)
+        landed = end[rows] >= 0
+        hits.append(end[rows][landed])
+        points.append(point[rows][landed])
+        passes.append(cell[bounds[local] : bounds[local + 1]])
+    return hits, points, passes
+
+
+def in_threads(work, items: list, workers: int):
+    """``work(item)`` for every item, on ``workers`` threads, yielded in order (numpy work releases the GIL)."""
+    if workers <= 1 or len(items) <= 1:
+        yield from map(work, items)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(min(workers, len(items))) as pool:
+        yield from pool.map(work, items)
 
 
 class CountMap:

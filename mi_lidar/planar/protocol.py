@@ -9,6 +9,7 @@ through their own leave-out maps (:mod:`mi_lidar.planar.raymarch`).
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 
@@ -16,7 +17,7 @@ import numpy as np
 
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.log import Log
-from mi_lidar.planar.grid import CountMap, Grid, count_scans, planar_beams
+from mi_lidar.planar.grid import CountMap, Grid, count_scans, in_threads, planar_beams
 from mi_lidar.planar.raymarch import PlanarTrace, trace_scans
 
 
@@ -32,7 +33,7 @@ class PlanarProtocol:
         resolution: range bin of the score, m.
         max_segments, beyond: segments kept per beam for pass-through models, and how far past the
             nominal hit (m) they are collected.
-        batch: query scans traced at once (memory).
+        batch: query scans traced at once (memory; one batch per worker thread).
     """
 
     cell: float = 0.05
@@ -88,9 +89,14 @@ class PlanarData:
     seconds: dict
 
 
-def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None) -> PlanarData:
-    """Count the whole-log map and trace every test and training beam through its leave-out map."""
+def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None, workers: int | None = None) -> PlanarData:
+    """Count the whole-log map and trace every test and training beam through its leave-out map.
+
+    Scans are counted and traced in batches on ``workers`` threads (default: one per CPU); the
+    result does not depend on their number.
+    """
     protocol = protocol or PlanarProtocol()
+    workers = workers or os.cpu_count() or 1
     say = progress or (lambda done, total, label: None)
     seconds, start = {}, time.perf_counter()
     origin, direction, z = planar_beams(log)
@@ -98,20 +104,26 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None) -> 
     lo, hi = np.percentile(ends, [0.05, 99.95], axis=0)
     inside = np.all((ends >= lo) & (ends <= hi), axis=1)
     grid = Grid.around(np.concatenate([ends[inside], log.poses[:, :2, 3]]), protocol.cell)
-    cmap = CountMap(count_scans(log, grid, protocol.reach, progress=lambda d, n: say(d, n, "counting the map")))
+    counts = count_scans(
+        log, grid, protocol.reach, progress=lambda d, n: say(d, n, "counting the map"), workers=workers
+    )
+    cmap = CountMap(counts)
     seconds["map"] = time.perf_counter() - start
     test_scans, train_scans = protocol.split(log.shape[0])
     traces = {}
+
+    def trace(batch: np.ndarray) -> PlanarTrace:
+        excluded = [protocol.excluded(log, int(q)) for q in batch]
+        return trace_scans(log, grid, cmap, batch, excluded, protocol.reach, protocol.max_segments, protocol.beyond)
+
     for name, scans in (("test", test_scans), ("train", train_scans)):
         start = time.perf_counter()
-        parts = []
-        for first in range(0, scans.size, protocol.batch):
-            batch = scans[first : first + protocol.batch]
-            excluded = [protocol.excluded(log, int(q)) for q in batch]
-            parts.append(
-                trace_scans(log, grid, cmap, batch, excluded, protocol.reach, protocol.max_segments, protocol.beyond)
-            )
-            say(first + batch.size, scans.size, f"tracing {name} beams")
+        batches = [scans[first : first + protocol.batch] for first in range(0, scans.size, protocol.batch)]
+        parts, done = [], 0
+        for batch, part in zip(batches, in_threads(trace, batches, workers)):
+            parts.append(part)
+            done += batch.size
+            say(done, scans.size, f"tracing {name} beams")
         traces[name] = PlanarTrace.concatenate(parts)
         seconds[name] = time.perf_counter() - start
     return PlanarData(

@@ -223,3 +223,19 @@ def test_the_beta_prior_fit_stops_when_converged(room, monkeypatch):
         scores.append(beams.with_permeability(a, b).log_likelihood(model).mean())
     assert steps_run[0] < 200 and steps_run[1] == 200
     assert scores[1] - 1e-4 <= scores[0] <= scores[1] + 1e-4
+
+
+def test_prepare_gives_the_same_traces_on_any_number_of_threads(room):
+    """Batches traced on worker threads are put back in order: the trace does not depend on the thread count."""
+    from mi_lidar.planar.raymarch import SEGMENT_FIELDS
+
+    log = read_carmen(room)
+    protocol = PlanarProtocol(window=5.0, batch=7)  # several batches per split
+    one, two = prepare(log, protocol, workers=1), prepare(log, protocol, workers=2)
+    np.testing.assert_array_equal(one.counts.hits, two.counts.hits)
+    np.testing.assert_array_equal(one.counts.passes, two.counts.passes)
+    for name, scans in zip(("test", "train"), protocol.split(log.shape[0])):
+        a, b = getattr(one, name), getattr(two, name)
+        np.testing.assert_array_equal(np.unique(a.scan), scans)
+        for field in ("scan", "beam", "z", "nominal", "incidence", "seg_start") + SEGMENT_FIELDS:
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=f"{name}.{field}")
