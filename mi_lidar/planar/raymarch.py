@@ -12,7 +12,7 @@ larger; otherwise it is unknown.
 
 For pass-through models the march also lists every cell with at least one leave-out hit that the
 beam enters, in order (its segments: entry range, hits, passes, occupancy, incidence, and the range
-of the surface in it, :func:`surface_range`), up to ``max_segments`` per beam and ``beyond`` metres
+of the surface in it, :meth:`CellLines.surface_range`), up to ``max_segments`` per beam and ``beyond`` metres
 past the nominal hit.
 """
 
@@ -43,7 +43,7 @@ class PlanarTrace:
         seg_start: (B + 1,) offsets of each beam's segments.
         seg_range, seg_hits, seg_passes, seg_occupied, seg_incidence: per segment (E,).
         seg_surface: per segment (E,), the range (m) of the surface in the cell along the beam, from
-            the leave-out endpoint hits (:func:`surface_range`).
+            the leave-out endpoint hits (:meth:`CellLines.surface_range`).
     """
 
     scan: np.ndarray
@@ -69,7 +69,7 @@ class PlanarTrace:
 
     @property
     def seg_at(self) -> np.ndarray:
-        """(E,) range (m) of each segment's surface (:func:`surface_range`) where known, else the cell entry."""
+        """(E,) range (m) of each segment's surface (:meth:`CellLines.surface_range`) where known, else its entry."""
         return np.where(np.isfinite(self.seg_surface), self.seg_surface, self.seg_range)
 
     @classmethod
@@ -127,88 +127,106 @@ def entry_distance(grid: Grid, origin: np.ndarray, direction: np.ndarray, cell: 
     return np.max(near, axis=1)
 
 
-def incidence_at(
-    leave: LeaveOut,
-    grid: Grid,
-    query: np.ndarray,
-    cell: np.ndarray,
-    direction: np.ndarray,
-    min_cells: int = 4,
-    ratio: float = 0.1,
-) -> np.ndarray:
-    """Incidence angle (deg) at ``cell`` by PCA of the occupied leave-out cells within 15 cm; NaN when not line-like."""
-    if cell.size == 0:
-        return np.zeros(0)
-    ij = np.stack([cell // grid.shape[1], cell % grid.shape[1]], -1)
-    around = ij[:, None, :] + NEIGHBOURS[None]
-    flat = grid.index(around)
-    valid = flat >= 0
-    safe = np.where(valid, flat, 0)
-    hits, passes = leave.counts(np.broadcast_to(query[:, None], safe.shape), safe)
-    occ = valid & occupied(hits, passes)
-    n = occ.sum(axis=1)
-    xy = NEIGHBOURS[None].astype(np.float64) * occ[..., None]
-    mean = xy.sum(axis=1) / np.maximum(n, 1)[:, None]
-    centred = (NEIGHBOURS[None] - mean[:, None, :]) * occ[..., None]
-    cxx = (centred[..., 0] ** 2).sum(1)
-    cyy = (centred[..., 1] ** 2).sum(1)
-    cxy = (centred[..., 0] * centred[..., 1]).sum(1)
+MIN_CELLS = 4  # occupied cells a line fit needs
+LINE_RATIO = 0.1  # a line: the smaller spread is at most this share of the larger
+
+
+def _principal_axis(cxx: np.ndarray, cyy: np.ndarray, cxy: np.ndarray):
+    """(larger eigenvalue, smaller eigenvalue, (N, 2) unit normal of the major axis) of 2x2 covariances."""
     half, diff = 0.5 * (cxx + cyy), 0.5 * (cxx - cyy)
     root = np.sqrt(diff * diff + cxy * cxy)
-    big, small = half + root, half - root
     angle = 0.5 * np.arctan2(2 * cxy, cxx - cyy)  # direction of the line (major axis)
-    normal = np.stack([-np.sin(angle), np.cos(angle)], -1)
-    cos = np.abs(np.sum(normal * direction, axis=1))
-    good = (n >= min_cells) & (small <= ratio * big) & (big > 0)
-    return np.where(good, np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))), np.nan)
+    return half + root, half - root, np.stack([-np.sin(angle), np.cos(angle)], -1)
 
 
-def surface_range(
-    leave: LeaveOut,
-    grid: Grid,
-    query: np.ndarray,
-    cell: np.ndarray,
-    origin: np.ndarray,
-    direction: np.ndarray,
-    min_cells: int = 4,
-    ratio: float = 0.1,
-) -> np.ndarray:
-    """Range (m) along each unit ray of the surface in ``cell``, from the leave-out endpoint hits around it.
+@dataclass
+class CellLines:
+    """The local line fits around (query, cell) pairs, fitted once per distinct pair.
 
-    Where the surface is line-like, the ray crosses the line fitted (principal axis, weighted by
-    hits) to the leave-out mean endpoints of the ``occ3`` cells within 15 cm: the endpoints of all
-    scans, at sub-cell precision, locate a wall better than the cell's own few hits do, at any
-    incidence. The rule is the incidence rule's (at least ``min_cells`` cells, smaller spread at
-    most ``ratio`` of the larger), and the crossing is kept when it lies within those 15 cm of the
-    cell's own mean endpoint (projected on the ray) and the ray is not parallel to the line (within
-    84 deg of its normal). Elsewhere (corners, clutter, single cells) it is that projection; NaN
-    for a cell without leave-out hits.
+    Beams of one scan cross the same cells (at 0.5 deg spacing, several beams per 5 cm cell), so
+    each distinct pair is fitted once and every entry reads its pair's fit.
+
+    Attributes:
+        at: (E,) the pair of each entry.
+        normal, line_like: (U, 2), (U,) the incidence rule's line: PCA of the offsets of the ``occ3``
+            occupied leave-out cells within 15 cm, line-like with at least :data:`MIN_CELLS` cells and
+            a spread ratio of at most :data:`LINE_RATIO`.
+        centre, surface_normal, surface_line: (U, 2), (U, 2), (U,) the surface rule's line: principal
+            axis of those cells' leave-out mean endpoints, weighted by their hits, by the same rule.
+        own: (U, 2) the cell's own leave-out mean endpoint (m; NaN for a cell without hits).
+        reach: the neighbourhood's radius, m (15 cm at 5 cm cells).
     """
-    if cell.size == 0:
-        return np.zeros(0)
-    own = np.einsum("ek,ek->e", leave.mean_hit(query, cell) - origin, direction)
-    ij = np.stack([cell // grid.shape[1], cell % grid.shape[1]], -1)
-    flat = grid.index(ij[:, None, :] + NEIGHBOURS[None])
-    valid = flat >= 0
-    safe = np.where(valid, flat, 0)
-    around = np.broadcast_to(query[:, None], safe.shape)
-    hits, passes = leave.counts(around, safe)
-    w = np.where(valid & occupied(hits, passes), hits, 0).astype(np.float64)
-    mean = np.nan_to_num(leave.mean_hit(around, safe))
-    centre = (w[..., None] * mean).sum(axis=1) / np.maximum(w.sum(axis=1), 1e-12)[:, None]
-    dx, dy = (mean - centre[:, None, :]).transpose(2, 0, 1)
-    cxx, cyy, cxy = (w * dx * dx).sum(1), (w * dy * dy).sum(1), (w * dx * dy).sum(1)
-    half, diff = 0.5 * (cxx + cyy), 0.5 * (cxx - cyy)
-    root = np.sqrt(diff * diff + cxy * cxy)
-    big, small = half + root, half - root
-    angle = 0.5 * np.arctan2(2 * cxy, cxx - cyy)  # direction of the line (major axis)
-    normal = np.stack([-np.sin(angle), np.cos(angle)], -1)
-    facing = np.sum(normal * direction, axis=1)
-    line_like = ((w > 0).sum(axis=1) >= min_cells) & (small <= ratio * big) & (big > 0) & (np.abs(facing) > 0.1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        crossing = np.sum((centre - origin) * normal, axis=1) / facing
-    reach = np.sqrt(NEIGHBOURS_REACH) * grid.cell
-    return np.where(line_like & (np.abs(crossing - own) <= reach), crossing, own)
+
+    at: np.ndarray
+    normal: np.ndarray
+    line_like: np.ndarray
+    centre: np.ndarray
+    surface_normal: np.ndarray
+    surface_line: np.ndarray
+    own: np.ndarray
+    reach: float
+
+    @classmethod
+    def fit(cls, leave: LeaveOut, grid: Grid, query: np.ndarray, cell: np.ndarray) -> CellLines:
+        """The fits of (E,) entries (query scan, flat cell) of ``leave``."""
+        pairs, at = np.unique(query * grid.size + cell, return_inverse=True)
+        query, cell = pairs // grid.size, pairs % grid.size
+        ij = np.stack([cell // grid.shape[1], cell % grid.shape[1]], -1)
+        flat = grid.index(ij[:, None, :] + NEIGHBOURS[None])
+        valid = flat >= 0
+        safe = np.where(valid, flat, 0)
+        around = np.broadcast_to(query[:, None], safe.shape)
+        hits, passes = leave.counts(around, safe)
+        occ = valid & occupied(hits, passes)
+        # ---------------- incidence rule: the occupied cells' offsets ---------------------------
+        n = occ.sum(axis=1)
+        xy = NEIGHBOURS[None].astype(np.float64) * occ[..., None]
+        mean = xy.sum(axis=1) / np.maximum(n, 1)[:, None]
+        centred = (NEIGHBOURS[None] - mean[:, None, :]) * occ[..., None]
+        big, small, normal = _principal_axis(
+            (centred[..., 0] ** 2).sum(1), (centred[..., 1] ** 2).sum(1), (centred[..., 0] * centred[..., 1]).sum(1)
+        )
+        line_like = (n >= MIN_CELLS) & (small <= LINE_RATIO * big) & (big > 0)
+        # ---------------- surface rule: the occupied cells' mean endpoints, weighted by hits ----
+        w = np.where(occ, hits, 0).astype(np.float64)
+        endpoints = np.nan_to_num(leave.mean_hit(around, safe))
+        centre = (w[..., None] * endpoints).sum(axis=1) / np.maximum(w.sum(axis=1), 1e-12)[:, None]
+        dx, dy = (endpoints - centre[:, None, :]).transpose(2, 0, 1)
+        big, small, surface_normal = _principal_axis((w * dx * dx).sum(1), (w * dy * dy).sum(1), (w * dx * dy).sum(1))
+        surface_line = ((w > 0).sum(axis=1) >= MIN_CELLS) & (small <= LINE_RATIO * big) & (big > 0)
+        return cls(
+            at=at.reshape(-1),
+            normal=normal,
+            line_like=line_like,
+            centre=centre,
+            surface_normal=surface_normal,
+            surface_line=surface_line,
+            own=leave.mean_hit(query, cell),
+            reach=float(np.sqrt(NEIGHBOURS_REACH) * grid.cell),
+        )
+
+    def incidence(self, direction: np.ndarray) -> np.ndarray:
+        """(E,) incidence angle (deg) of unit (E, 2) ``direction`` on each entry's line; NaN where not line-like."""
+        cos = np.abs(np.sum(self.normal[self.at] * direction, axis=1))
+        return np.where(self.line_like[self.at], np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))), np.nan)
+
+    def surface_range(self, origin: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """(E,) range (m) along unit rays of the surface in each entry's cell, from the leave-out endpoint hits.
+
+        Where the surface is line-like, the ray crosses the surface rule's line: the endpoints of
+        all scans, at sub-cell precision, locate a wall better than the cell's own few hits do, at
+        any incidence. The crossing is kept when it lies within 15 cm of the cell's own mean
+        endpoint (projected on the ray) and the ray is not parallel to the line (within 84 deg of
+        its normal). Elsewhere (corners, clutter, single cells) it is that projection; NaN for a
+        cell without leave-out hits.
+        """
+        own = np.einsum("ek,ek->e", self.own[self.at] - origin, direction)
+        normal = self.surface_normal[self.at]
+        facing = np.sum(normal * direction, axis=1)
+        line_like = self.surface_line[self.at] & (np.abs(facing) > 0.1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            crossing = np.sum((self.centre[self.at] - origin) * normal, axis=1) / facing
+        return np.where(line_like & (np.abs(crossing - own) <= self.reach), crossing, own)
 
 
 def trace_scans(
@@ -246,60 +264,73 @@ def trace_scans(
     stop_at = np.full(b, reach)
     alive = np.arange(b)
     prev_ij = grid.ij(o + START * d)
+    pending = np.ones(
+        b, bool
+    )  # look at the cell even if the ray stays in it: the first step, and after a blocked corner
     t = START
     while alive.size and t <= reach:
-        ij = grid.ij(o[alive] + t * d[alive])
+        ij_all = grid.ij(o[alive] + t * d[alive])
+        moved = np.any(ij_all != prev_ij[alive], axis=1) | pending[alive]
+        # a ray that stays in its cell learns nothing new (same cell, same counts): only the moved ones look
+        act, ij = alive[moved], ij_all[moved]
         flat = grid.index(ij)
         outside = flat < 0
         cand = np.where(outside, 0, flat)
-        diagonal = np.all(ij != prev_ij[alive], axis=1) & ~outside
+        diagonal = np.all(ij != prev_ij[act], axis=1) & ~outside
         # ---------------- the cell of this step, and the side cells of a corner crossing ----------
-        blocked_cell = np.full(alive.size, -1, np.int64)
+        blocked_cell = np.full(act.size, -1, np.int64)
         if np.any(diagonal):
             rows = np.flatnonzero(diagonal)
-            p = prev_ij[alive][rows]
+            p = prev_ij[act][rows]
             for side in (np.stack([ij[rows, 0], p[:, 1]], -1), np.stack([p[:, 0], ij[rows, 1]], -1)):
                 side_flat = grid.index(side)
                 ok = side_flat >= 0
-                h, n = leave.counts(query[alive][rows], np.where(ok, side_flat, 0))
+                h, n = leave.counts(query[act][rows], np.where(ok, side_flat, 0))
                 occ = ok & occupied(h, n)
                 take = occ & (blocked_cell[rows] < 0)
                 blocked_cell[rows[take]] = side_flat[take]
-        h, n = leave.counts(query[alive], cand)
+        h, n = leave.counts(query[act], cand)
         with_hits = ~outside & (h >= 1)
         occ_here = with_hits & occupied(h, n)
         hit_cell = np.where(blocked_cell >= 0, blocked_cell, np.where(occ_here, cand, -1))
         # ---------------- segments: cells with leave-out hits, in order, once each ------------------
         new = np.where(blocked_cell >= 0, blocked_cell, np.where(with_hits, cand, -1))
-        count = seg_count[alive]
-        last = np.where(count > 0, seg_cell[alive, np.maximum(count - 1, 0)], -1)
-        first = (hit_cell >= 0) & (first_cell[alive] < 0)
+        count = seg_count[act]
+        last = np.where(count > 0, seg_cell[act, np.maximum(count - 1, 0)], -1)
+        first = (hit_cell >= 0) & (first_cell[act] < 0)
         # a full list still takes the nominal hit, in its last slot
         record = (new >= 0) & (new != last) & ((count < max_segments) | first)
-        rows = alive[record]
+        rows = act[record]
         slot = np.minimum(seg_count[rows], max_segments - 1)
         seg_cell[rows, slot] = new[record]
         seg_count[rows] = slot + 1
         # ---------------- the nominal hit: the first occupied cell ------------------------------
-        rows = alive[first]
+        rows = act[first]
         first_cell[rows] = hit_cell[first]
         stop_at[rows] = np.minimum(reach, t + beyond)
-        prev_ij[alive] = ij
-        full = (seg_count[alive] >= max_segments) & (first_cell[alive] >= 0)
-        done = outside | full | (t + step > stop_at[alive])
+        prev_ij[act] = ij
+        pending[act] = blocked_cell >= 0
+        full = (seg_count[act] >= max_segments) & (first_cell[act] >= 0)
+        done = np.zeros(alive.size, bool)
+        done[moved] = outside | full
+        done |= t + step > stop_at[alive]
         alive = alive[~done]
         t += step
     has = first_cell >= 0
     nominal[has] = entry_distance(grid, o[has], d[has], first_cell[has])
-    incidence = np.full(b, np.nan)
-    incidence[has] = incidence_at(leave, grid, query[has], first_cell[has], d[has])
     # ---------------- segment arrays (CSR) ------------------------------------------------------
     rows = np.repeat(np.arange(b), seg_count)
     cells = seg_cell[np.arange(max_segments)[None, :] < seg_count[:, None]]  # row-major: each beam's in order
     hits, passes = leave.counts(query[rows], cells)
     seg_range = entry_distance(grid, o[rows], d[rows], cells)
-    seg_inc = incidence_at(leave, grid, query[rows], cells, d[rows])
-    surface = surface_range(leave, grid, query[rows], cells, o[rows], d[rows])
+    # the nominal cells are fitted with the segments' (nearly always one of them)
+    entry = np.concatenate([rows, np.flatnonzero(has)])
+    lines = CellLines.fit(leave, grid, query[entry], np.concatenate([cells, first_cell[has]]))
+    angles = lines.incidence(d[entry])
+    incidence = np.full(b, np.nan)
+    incidence[has] = angles[rows.size :]
+    seg_inc = angles[: rows.size]
+    surface = lines.surface_range(o[entry], d[entry])[: rows.size]
     return PlanarTrace(
         scan=np.repeat(np.asarray(scans), n_beams),
         beam=np.tile(np.arange(n_beams), q_count),
