@@ -113,7 +113,7 @@ def fit_beam(
     z_max: float,
     start: BeamDensity | None,
     fallback: Callable[[np.ndarray], np.ndarray] | None,
-    steps: int = 300,
+    steps: int = 150,
 ) -> SensorModel:
     """M1 / M2: the beam mixture on ``grid`` by the one fitter; thin states take ``fallback``'s parameters."""
     density = BeamDensity(grid=grid, z_max=z_max, escape="shared" if grid.size == 1 else "own")
