@@ -25,7 +25,7 @@ mi-lidar   the permeable map: every cell with leave-out hits is an element at it
 Bandwidths, priors and mi-lidar's evidence classes are chosen on the training scans only: the learned
 models hold out every other training scan for the choice and are refitted on all training scans with
 the chosen setting; the Beta priors and the angular spread are fitted by maximum likelihood on the
-training beams, the shared errors on at most 250 training scans.
+training beams, the shared errors on at most 45,000 training beams (250 scans of 180 beams).
 """
 
 from __future__ import annotations
@@ -357,15 +357,21 @@ def fit_permeable_map(
     return fitted
 
 
-CORRELATION_SCANS = 250  # at most this many training scans measure the shared errors
+CORRELATION_BEAMS = 45_000  # at most this many training beams (whole scans) measure the shared errors
+
+
+def correlation_scans(scan: np.ndarray) -> np.ndarray:
+    """Evenly spaced scans (of the scan index of every beam, ``scan``) with at most :data:`CORRELATION_BEAMS` beams."""
+    scans = np.unique(scan)
+    most = max(1, CORRELATION_BEAMS * scans.size // max(scan.size, 1))  # scans of that many beams
+    return scans[:: max(1, -(-scans.size // most))]
 
 
 def fit_correlation(fitted: PermeableMap, train: PlanarTrace) -> tuple[BeamCorrelation, dict]:
     """How much neighbouring beams share their errors (:func:`~mi_lidar.planar.correlation.fit_beam_correlation`),
-    measured on at most :data:`CORRELATION_SCANS` evenly spaced training scans."""
-    scans = np.unique(train.scan)
-    kept = scans[:: max(1, -(-scans.size // CORRELATION_SCANS))]
-    part = train.take(np.isin(train.scan, kept))
+    measured on evenly spaced training scans of at most :data:`CORRELATION_BEAMS` beams in all (the cost
+    follows the beams, whatever the scanner's resolution)."""
+    part = train.take(np.isin(train.scan, correlation_scans(train.scan)))
     mixture = dataclasses.replace(fitted, correlation=BeamCorrelation()).beams(part)
 
     def sample(correlation: BeamCorrelation, seed: int):
