@@ -9,6 +9,7 @@ present; the table says so when none is.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import os
@@ -170,8 +171,30 @@ def _write(path: Path, text: str) -> None:
     atomic_write(path, lambda stream: stream.write(text.encode()))
 
 
-def main() -> None:
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line: ``python -m bench [--only NAME ...]``."""
+    parser = argparse.ArgumentParser(
+        prog="python -m bench",
+        description="Run mi-lidar's benchmarks (speed and memory against the peers measured in the same run) and "
+        "print one table; every row states its target and PASS/FAIL. Needs an idle machine: the rates are "
+        "compared with the peers' in the same run, but a loaded machine slows the end-to-end rows.",
+        epilog="examples: make bench  |  python -m bench --only planar  |  python -m bench --only core io",
+    )
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        choices=[*BENCHMARKS, "cuda"],
+        metavar="NAME",
+        help=f"run only these benchmarks ({', '.join([*BENCHMARKS, 'cuda'])}); their tables go to "
+        "bench/results/NAME.md, and bench/results/bench.json and docs/performance.md are left as they are "
+        "(only a full run rewrites them)",
+    )
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> None:
     """Run the benchmarks, print the table and write the results (see the module docstring)."""
+    only = parse(argv).only
     console = Console(width=220)
     table = Table(
         title="mi-lidar benchmarks (rays per second: fastest of "
@@ -182,6 +205,8 @@ def main() -> None:
     RESULTS.mkdir(exist_ok=True)
     everything, headers = [], []
     for stem, run in {**BENCHMARKS, "cuda": _cuda_rows}.items():
+        if only and stem not in only:
+            continue
         start_load, start = os.getloadavg()[0], time.perf_counter()
         with console.status(f"running the {stem} benchmarks"):
             rows = run()
@@ -200,6 +225,9 @@ def main() -> None:
         json.dumps({"machines": headers, "rows": [dataclasses.asdict(row) for row in everything]}, indent=1),
     )
     summary = f"{passed} targets met, {failed} missed."
+    if only:
+        console.print(f"{summary} Written to {RESULTS}/ ({', '.join(f'{stem}.md' for stem in only)})")
+        return
     _write(
         PERFORMANCE_PAGE,
         _markdown(everything, "Performance (`make bench`)")
