@@ -264,9 +264,8 @@ def trace_scans(
     stop_at = np.full(b, reach)
     alive = np.arange(b)
     prev_ij = grid.ij(o + START * d)
-    pending = np.ones(
-        b, bool
-    )  # look at the cell even if the ray stays in it: the first step, and after a blocked corner
+    # a ray looks at its cell even if it stays in it on the first step, and after a blocked corner
+    pending = np.ones(b, bool)
     t = START
     while alive.size and t <= reach:
         ij_all = grid.ij(o[alive] + t * d[alive])
@@ -323,21 +322,20 @@ def trace_scans(
     cells = seg_cell[np.arange(max_segments)[None, :] < seg_count[:, None]]  # row-major: each beam's in order
     hits, passes = leave.counts(query[rows], cells)
     seg_range = entry_distance(grid, o[rows], d[rows], cells)
-    # the nominal cells are fitted with the segments' (nearly always one of them)
-    entry = np.concatenate([rows, np.flatnonzero(has)])
-    lines = CellLines.fit(leave, grid, query[entry], np.concatenate([cells, first_cell[has]]))
-    angles = lines.incidence(d[entry])
+    lines = CellLines.fit(leave, grid, query[rows], cells)
+    seg_inc = lines.incidence(d[rows])
+    surface = lines.surface_range(o[rows], d[rows])
+    # the nominal cell is one of its beam's segments (a full list still records it): its incidence is that segment's
+    seg_start = np.concatenate([[0], np.cumsum(seg_count)])
     incidence = np.full(b, np.nan)
-    incidence[has] = angles[rows.size :]
-    seg_inc = angles[: rows.size]
-    surface = lines.surface_range(o[entry], d[entry])[: rows.size]
+    incidence[has] = seg_inc[seg_start[:-1][has] + np.argmax(seg_cell[has] == first_cell[has, None], axis=1)]
     return PlanarTrace(
         scan=np.repeat(np.asarray(scans), n_beams),
         beam=np.tile(np.arange(n_beams), q_count),
         z=z.ravel(),
         nominal=nominal,
         incidence=incidence,
-        seg_start=np.concatenate([[0], np.cumsum(seg_count)]),
+        seg_start=seg_start,
         seg_range=seg_range,
         seg_hits=hits,
         seg_passes=passes,
