@@ -35,3 +35,20 @@ def pytest_terminal_summary(terminalreporter):
             f"finite-difference gradient checks: {len(_FD_CHECKED)} parameters of {len(cases)} catalog cases "
             "(effect variants and densities)"
         )
+
+
+def rays_along_x(n: int):
+    """``n`` rays from the origin along +x (beam 0, time 0, ray ids 0..n-1): a :class:`RayBatch` for unit tests."""
+    import drjit as dr
+    import mitsuba as mi
+
+    import mi_lidar  # noqa: F401  (sets up LLVM before Dr.Jit loads)
+    from mi_lidar.core.rays import RayBatch
+
+    return RayBatch(
+        origin=mi.Point3f(0, 0, 0),
+        direction=mi.Vector3f(1, 0, 0),
+        beam=dr.zeros(mi.UInt32, n),
+        time=dr.zeros(mi.Float, n),
+        ray_id=dr.arange(mi.UInt32, n),
+    )

@@ -1,6 +1,5 @@
 """The effect interface: parsing, XML wiring, and the range-noise laws in sampler and likelihood."""
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -9,10 +8,9 @@ import mi_lidar
 from mi_lidar.core.effects import RangeNoise, parse_effects
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.likelihood import mixture_log_likelihood
-from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.trace import trace_rounds
 
-from .conftest import SCENES
+from .conftest import SCENES, rays_along_x
 
 
 def test_parse_effects_round_trip():
@@ -70,13 +68,7 @@ def test_likelihood_matches_pass_through_mixture():
     model, _ = mi_lidar.scene.scene_sensor_model(scene)
     table = ElementTable.from_scene(scene)
     n = 4
-    rays = RayBatch(
-        origin=mi.Point3f(0, 0, 0),
-        direction=mi.Vector3f(1, 0, 0),
-        beam=dr.zeros(mi.UInt32, n),
-        time=dr.zeros(mi.Float, n),
-        ray_id=dr.arange(mi.UInt32, n),
-    )
+    rays = rays_along_x(n)
     rounds = trace_rounds(scene, table, model, rays)
     z = mi.Float([4.001, 8.0, 0.0, 5.0])
     hit = mi.Bool([True, True, False, True])

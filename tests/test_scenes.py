@@ -1,6 +1,5 @@
 """Every bundled XML scene loads, renders, and obeys the physics it was built to show."""
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -9,7 +8,7 @@ from scipy import stats
 import mi_lidar
 from mi_lidar.core.channels import tensor_to_numpy
 
-from .conftest import SCENES
+from .conftest import SCENES, rays_along_x
 
 SCENE_FILES = sorted(SCENES.glob("*.xml"))
 
@@ -153,16 +152,9 @@ def test_ellipsoid_returns_match_element_statistics():
         }
     )
     from mi_lidar.core.elements import ElementTable
-    from mi_lidar.core.rays import RayBatch
 
     n = 100_000
-    rays = RayBatch(
-        origin=mi.Point3f(0, 0, 0),
-        direction=mi.Vector3f(1, 0, 0),
-        beam=dr.zeros(mi.UInt32, n),
-        time=dr.zeros(mi.Float, n),
-        ray_id=dr.arange(mi.UInt32, n),
-    )
+    rays = rays_along_x(n)
     out = mi_lidar.SensorModel().simulate_rays(scene, ElementTable.from_scene(scene), rays, seed=2)
     z = np.asarray(out["range"])
     ref = stats.truncnorm(-3, 3, loc=10.0, scale=0.5)

@@ -7,6 +7,13 @@ an intercepted beam gives no return. A beam that meets nothing uses the *escape*
 of the measured range itself and the probability of a miss. A fraction ``uniform`` of the return
 mass is spread over ``[0, z_max]`` (a floor: no return is impossible).
 
+A reported range is never negative: the residual shape of a segment is truncated to ``z >= 0`` and
+renormalised (the part of a smoothed histogram below ``e = -r``, borrowed from farther states, is
+given back to the reachable bins), in :meth:`~NPRegDensity.log_prob` and
+:meth:`~NPRegDensity.sample` alike, so that a sampled scan has the misses the likelihood predicts.
+The effects' Gaussian spread on top of a polygon may still reach below 0 by about ``seg.sigma``: such
+a draw is not reported (the sensor model's blind zone).
+
 Shapes: ``histogram`` (piecewise constant in ``e``; the binned baseline M3 of the real-planar
 protocol) and ``polygon`` (the frequency polygon: linear between bin centres, which is smooth in the
 location, so that effects that shift or spread the range, such as a bias or range noise, are fitted
@@ -41,6 +48,7 @@ from mi_lidar.core.segment import ELLIPSOID, Segment, log_density, sample_range
 # 5-point Gauss-Hermite rule for E[f(e + sqrt(2) sigma x)], weights normalised by sqrt(pi)
 GH_NODES = (0.0, 0.958572464613819, -0.958572464613819, 2.020182870456086, -2.020182870456086)
 GH_WEIGHTS = (0.5333333333333333, 0.2220759220056126, 0.2220759220056126, 0.0112574113277207, 0.0112574113277207)
+MAX_CUT = 1.0 - 1e-6  # at most this share of a shape is cut at z = 0 (a state that lies wholly below keeps a sliver)
 
 
 def _f(values) -> mi.Float:
@@ -150,6 +158,29 @@ class NPRegDensity(ReturnDensity):
         inside = (e >= dr.gather(mi.Float, self._centres, 0)) & (e <= dr.gather(mi.Float, self._centres, b - 1))
         return dr.select(inside, (d0 + t * (d1 - d0)) / dr.gather(mi.Float, self._norm, state), 0.0)
 
+    def _shape_cdf(self, state: mi.UInt32, e: mi.Float) -> mi.Float:
+        """Mass of the state's histogram or polygon below residual ``e`` (0 below the support, 1 above)."""
+        b = self._b
+        if self.choices["shape"] == "histogram":
+            k = dr.minimum(dr.binary_search(0, b, lambda i: dr.gather(mi.Float, self._edges, i + 1) <= e), b - 1)
+            before = dr.select(k > 0, dr.gather(mi.Float, self._cdf_hist, state * b + k - 1), 0.0)
+            mass = dr.gather(mi.Float, self._cdf_hist, state * b + k) - before
+            frac = dr.clip((e - dr.gather(mi.Float, self._edges, k)) / dr.gather(mi.Float, self._width, k), 0.0, 1.0)
+            return before + frac * mass
+        m = b - 1
+        j = dr.minimum(dr.binary_search(0, m, lambda i: dr.gather(mi.Float, self._centres, i + 1) <= e), m - 1)
+        before = dr.select(j > 0, dr.gather(mi.Float, self._cdf_poly, state * m + j - 1), 0.0)
+        c0, c1 = dr.gather(mi.Float, self._centres, j), dr.gather(mi.Float, self._centres, j + 1)
+        norm = dr.gather(mi.Float, self._norm, state)
+        d0 = dr.gather(mi.Float, self._density, state * b + j) / norm
+        d1 = dr.gather(mi.Float, self._density, state * b + j + 1) / norm
+        t = dr.clip(e - c0, 0.0, c1 - c0)
+        return dr.clip(before + d0 * t + 0.5 * (d1 - d0) / (c1 - c0) * t * t, 0.0, 1.0)
+
+    def _below_zero(self, seg: Segment, state: mi.UInt32) -> mi.Float:
+        """Mass of each lane's shape at a negative range (``e < -r``): the part the truncation removes."""
+        return dr.minimum(self._shape_cdf(state, self._residual(seg, dr.zeros(mi.Float, dr.width(state)))), MAX_CUT)
+
     # ------------------------------------------------------------------ density interface
     def prepare(self, seg: Segment, rays: RayBatch) -> Segment:
         surface = seg.kind != ELLIPSOID
@@ -175,6 +206,7 @@ class NPRegDensity(ReturnDensity):
         u = self["uniform"]
         z_max = self["z_max"]
         floor = dr.select((z >= 0) & (z <= z_max), u / z_max, 0.0)
+        shape = dr.select(z >= 0, shape / (1.0 - self._below_zero(seg, state)), 0.0)
         value = dr.log(dr.maximum((1.0 - u) * shape + floor, 1e-30))
         return dr.select(seg.kind == ELLIPSOID, log_density(seg, z), value)
 
@@ -183,6 +215,8 @@ class NPRegDensity(ReturnDensity):
         share = self["uniform"]
         floor = u.x < share
         v = dr.clip((u.x - share) / (1.0 - share), 0.0, 1.0 - 1e-7)
+        cut = self._below_zero(seg, state)
+        v = dr.minimum(cut + v * (1.0 - cut), 1.0 - 1e-7)  # the shape truncated to z >= 0
         b = self._b
         if self.choices["shape"] == "histogram":
             k = dr.minimum(
