@@ -11,6 +11,11 @@ from mi_lidar.cli.app import app, carmen_log_argument, console, max_range_option
 from mi_lidar.cli.progress import progress
 
 
+def _figure(value: float, digits: int = 3) -> str:
+    """A table figure; "-" where there is nothing to score (no measured miss among the test beams, say)."""
+    return f"{value:.{digits}f}" if value == value else "-"
+
+
 @app.command("benchmark-planar", rich_help_panel="The loop")
 def benchmark_planar(
     log: Path = carmen_log_argument(),
@@ -49,32 +54,35 @@ def benchmark_planar(
             tuple(model) if model else MODELS,
             progress=lambda done, total, label: update(done, total, label),
         )
-    table = Table(
-        title=f"{log.name}: {result.data.test.n:,} test beams (nats per beam)",
-        caption="|err|: one sampled scan vs the measured one where both returned (m); sample F1: hit/miss "
-        "agreement; hist L1: distance of the range CDFs; CRPS: continuous ranked probability score per beam "
-        f"from {SAMPLED_SCANS} sampled scans (m; a no-return counts as {result.no_return:g} m), lowest in "
-        "expectation for the sensor's own distribution; miss F1: threshold tuned on training beams",
+    scores = Table(title=f"{log.name}: {result.data.test.n:,} test beams", header_style="bold")
+    samples = Table(
+        title="Sampled test scans",
+        caption="|err|: one sampled scan vs the measured one where both returned (m); F1: hit/miss agreement "
+        "of that scan; hist L1: distance of the range CDFs (m); CRPS: continuous ranked probability score "
+        f"per beam from {SAMPLED_SCANS} sampled scans (m; a no-return counts as {result.no_return:g} m), lowest "
+        "in expectation for the sensor's own law",
         header_style="bold",
     )
-    columns = ("model", "test NLL", "train NLL", "miss F1", "median |err|", "p90 |err|", "sample F1", "hist L1")
-    for title in columns + ("CRPS mean", "CRPS median"):
-        table.add_column(title, justify="left" if title == "model" else "right", no_wrap=title == "model")
+    for table, columns in (
+        (scores, ("test NLL", "train NLL", "NLL hits", "NLL misses", "miss F1")),
+        (samples, ("median |err|", "p90 |err|", "F1", "hist L1", "CRPS mean", "CRPS median")),
+    ):
+        table.add_column("model", no_wrap=True)
+        for title in columns:
+            table.add_column(title, justify="right", min_width=6)  # a header may wrap, a figure keeps its 6 digits
+    scores.caption = "nats per beam; miss F1: P(miss) above a threshold tuned on the training beams"
     for r in result.rows:
         s = r.samples
-        table.add_row(
-            r.name,
-            f"{r.test_nll:.3f}",
-            f"{r.train_nll:.3f}",
-            f"{r.miss_tuned['f1']:.3f}",
-            f"{s['range_error_median']:.3f}",
-            f"{s['range_error_p90']:.3f}",
-            f"{s['f1']:.3f}",
-            f"{s['histogram_l1']:.3f}",
-            f"{s['crps_mean']:.3f}",
-            f"{s['crps_median']:.4f}",
+        scores.add_row(
+            r.name, *(_figure(v) for v in (r.test_nll, r.train_nll, r.nll_hits, r.nll_misses, r.miss_tuned["f1"]))
         )
-    console.print(table)
+        samples.add_row(
+            r.name,
+            *(_figure(s[k]) for k in ("range_error_median", "range_error_p90", "f1", "histogram_l1", "crps_mean")),
+            _figure(s["crps_median"], 4),
+        )
+    console.print(scores)
+    console.print(samples)
     no_return = result.data.log.sensor["max_range_m"]
     console.print(
         (f"no-return value {no_return:g} m" if no_return < float("inf") else "no no-return value in the log")

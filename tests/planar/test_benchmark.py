@@ -84,7 +84,7 @@ def test_benchmark_cli_scores_and_reports_the_room(room, tmp_path):
     result = CliRunner().invoke(
         app,
         ["benchmark-planar", str(room), "--out", str(tmp_path), "--window", "5", "-m", "M0", "-m", "M3b"],
-        terminal_width=200,
+        terminal_width=80,
     )
     assert result.exit_code == 0, result.stdout
     assert "M3b" in result.stdout and "no no-return value" in result.stdout  # nothing reaches 50 m
@@ -101,6 +101,11 @@ def test_benchmark_cli_scores_and_reports_the_room(room, tmp_path):
     assert rows["M3b"]["samples"]["crps_mean"] < rows["M0"]["samples"]["crps_mean"], rows
     assert report["crps_no_return_m"] == pytest.approx(np.nanmax(read_carmen(room).ranges) + 1.0)
     assert "CRPS" in result.stdout and "CRPS mean / median" in (tmp_path / "benchmark.html").read_text()
+    # Every figure fits an 80-column terminal whole (no cell cut short with an ellipsis).
+    assert "\u2026" not in result.stdout, result.stdout
+    for row in rows.values():
+        for value in (row["test_nll"], row["train_nll"], row["samples"]["crps_mean"]):
+            assert f"{value:.3f}" in result.stdout, (value, result.stdout)
     assert (tmp_path / "benchmark.html").stat().st_size > 1000
     assert sorted(p.suffix for p in tmp_path.iterdir()).count(".png") >= 2
 
