@@ -4,11 +4,10 @@ import json
 
 import mitsuba as mi
 import numpy as np
-from typer.testing import CliRunner
 
-from mi_lidar.cli import app
 from mi_lidar.scene import load_scene, scene_sensor_model
 from mi_lidar.scene.files import scene_with_effects
+from tests.terminal import assert_whole, invoke_at_80
 
 from ..conftest import SCENES
 from .helpers import hidden_log, room
@@ -20,22 +19,12 @@ def test_diagnose_writes_html_and_the_scene_with_the_found_effect(tmp_path, monk
     scene, model, poses = room(6)
     log, _ = hidden_log(scene, model, poses, "range_bias(bias=0.05)")
     log.save(tmp_path / "room.npz")
-    result = CliRunner().invoke(
-        app,
-        [
-            "diagnose",
-            str(tmp_path / "room.npz"),
-            str(SCENES / "indoor_planar.xml"),
-            "--out",
-            str(tmp_path / "d"),
-            "--candidate",
-            "range_bias",
-            "--candidate",
-            "outliers",
-        ],
-        terminal_width=200,
-    )
+    out = tmp_path / "d"
+    candidates = ["--candidate", "range_bias", "--candidate", "outliers"]
+    result = invoke_at_80(["diagnose", tmp_path / "room.npz", SCENES / "indoor_planar.xml", "--out", out, *candidates])
     assert result.exit_code == 0, result.stdout
+    report = json.loads((out / "diagnosis.json").read_text())
+    assert_whole(result.stdout, f"{report['nll_before']:.4f}", f"{report['nll_after']:.4f}")
     page = (tmp_path / "d" / "diagnosis.html").read_text()
     assert "range_bias" in page and "realism of samples" in page and 'src="before_after_1.png"' in page
     assert (tmp_path / "d" / "before_after_1.png").stat().st_size > 10_000
@@ -73,7 +62,7 @@ def test_a_joined_learned_density_is_saved_and_referenced_by_the_written_scene(t
     arguments = ["diagnose", str(tmp_path / "walk.npz"), str(tmp_path / "street.xml"), "--out", str(tmp_path / "d")]
     for name in ("range_noise", "outliers", "range_bias", "np_reg"):
         arguments += ["--candidate", name]
-    result = CliRunner().invoke(app, arguments, terminal_width=200)
+    result = invoke_at_80(arguments)
     assert result.exit_code == 0, result.stdout
     report = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
     learned = report["rounds"][-1][0]

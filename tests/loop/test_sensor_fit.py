@@ -17,6 +17,7 @@ from mi_lidar.core.rays import LogRays
 from mi_lidar.loop.compare import compare
 from mi_lidar.loop.sensor_fit import fit_sensor, save_sensor
 from mi_lidar.scene import scene_sensor_model
+from tests.terminal import invoke_at_80
 
 from ..conftest import SCENES
 
@@ -78,9 +79,6 @@ def test_calibrate_scores_with_the_same_likelihood(street_log):
 def test_cli_density_option_is_the_xml_reference(street_log, tmp_path, monkeypatch):
     """`compare --density np_reg(file=...)` gives the NLL of the same density referenced from the scene XML;
     an unknown density is a one-line error (exit 2)."""
-    from typer.testing import CliRunner
-
-    from mi_lidar.cli import app
     from mi_lidar.scene import use_density
 
     scene, log = street_log
@@ -88,9 +86,8 @@ def test_cli_density_option_is_the_xml_reference(street_log, tmp_path, monkeypat
     log.save(tmp_path / "drive.npz")
     monkeypatch.chdir(tmp_path)
     expected = compare(log, use_density(mi_lidar.load_scene(SCENES / "urban_street.xml"), "np_reg(file=sensor.npz)"))
-    runner = CliRunner()
-    args = ["compare", "drive.npz", str(SCENES / "urban_street.xml"), "--out", "report"]
-    result = runner.invoke(app, [*args, "--density", "np_reg(file=sensor.npz)"], terminal_width=200)
+    args = ["compare", "drive.npz", SCENES / "urban_street.xml", "--out", "report"]
+    result = invoke_at_80([*args, "--density", "np_reg(file=sensor.npz)"])
     assert result.exit_code == 0, result.stdout
     assert f"NLL {expected.headline['nll']:.3f} nats/ray" in result.stdout
     from matplotlib.image import imread
@@ -98,9 +95,9 @@ def test_cli_density_option_is_the_xml_reference(street_log, tmp_path, monkeypat
     # The report shows the worst scan measured and simulated side by side, above its residual and NLL.
     assert "residual_image.png" in (tmp_path / "report" / "report.html").read_text()
     assert imread(tmp_path / "report" / "residual_image.png").shape[0] >= 700  # four panels, 9 in at 90 dpi
-    plain = runner.invoke(app, args, terminal_width=200)
+    plain = invoke_at_80(args)
     assert f"NLL {expected.headline['nll']:.3f} nats/ray" not in plain.stdout  # the scene's own density differs
-    bad = runner.invoke(app, [*args, "--density", "no_such_density"], terminal_width=200)
+    bad = invoke_at_80([*args, "--density", "no_such_density"])
     assert bad.exit_code == 2 and "no_such_density" in bad.stdout and "Traceback" not in bad.stdout
 
 
