@@ -5,10 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from rich.table import Table
 
 from mi_lidar.cli.app import app, console
 from mi_lidar.cli.progress import progress
+from mi_lidar.cli.tables import figure, figure_table
 
 
 @app.command("fit-sensor", rich_help_panel="The loop")
@@ -45,19 +45,15 @@ def fit_sensor_command(
             read_any(log), scene, model, steps=steps, seed=seed, pool_labels=pool_labels, progress=console.log
         )
         path = save_sensor(result, out)
-    table = Table(title=f"{log.name}: held-out rays ({result.test_rays:,})", header_style="bold")
-    columns = [
-        ("model", "model", "{}"),
-        ("NLL (nats/ray)", "nll", "{:.3f}"),
-        ("train NLL", "train_nll", "{:.3f}"),
-        ("median |err| (m)", "range_error_median", "{:.3f}"),
-        ("p90 |err| (m)", "range_error_p90", "{:.3f}"),
-        ("hit/miss F1", "f1", "{:.3f}"),
-        ("hist. L1 (m)", "histogram_l1", "{:.3f}"),
-    ]
-    for title, *_ in columns:
-        table.add_column(title, justify="left" if title == "model" else "right")
+    table = figure_table(
+        f"{log.name}: {result.test_rays:,} held-out rays",
+        "model",
+        ("test NLL", "train NLL", "median |err|", "p90 |err|", "F1", "hist L1"),
+        caption="NLL: nats per ray; |err|: a sampled scan vs the measured one where both returned (m); F1: "
+        "hit/miss agreement of that scan; hist L1: distance of the range CDFs (m)",
+    )
     for row in result.rows:
-        table.add_row(*(fmt.format(row[key]) for _, key, fmt in columns))
+        keys = ("nll", "train_nll", "range_error_median", "range_error_p90", "f1", "histogram_l1")
+        table.add_row(row["model"], *(figure(row[key]) for key in keys))
     console.print(table)
     console.print(f"wrote {path}")

@@ -17,7 +17,7 @@ from mi_lidar.core.rays import LogRays
 from mi_lidar.loop.compare import compare
 from mi_lidar.loop.sensor_fit import fit_sensor, save_sensor
 from mi_lidar.scene import scene_sensor_model
-from tests.terminal import invoke_at_80
+from tests.terminal import assert_whole, invoke_at_80
 
 from ..conftest import SCENES
 
@@ -99,6 +99,21 @@ def test_cli_density_option_is_the_xml_reference(street_log, tmp_path, monkeypat
     assert f"NLL {expected.headline['nll']:.3f} nats/ray" not in plain.stdout  # the scene's own density differs
     bad = invoke_at_80([*args, "--density", "no_such_density"])
     assert bad.exit_code == 2 and "no_such_density" in bad.stdout and "Traceback" not in bad.stdout
+
+
+def test_fit_sensor_prints_whole_figures_in_80_columns(street_log, tmp_path):
+    """fit-sensor's table (held-out NLL beside the realism of a sampled scan) fits an 80-column terminal."""
+    from mi_lidar.core.densities.tables import read_density
+
+    _, log = street_log
+    log.save(tmp_path / "drive.npz")
+    out = tmp_path / "beam.npz"
+    args = ["fit-sensor", tmp_path / "drive.npz", SCENES / "urban_street.xml", "-m", "beam", "--steps", "20"]
+    result = invoke_at_80([*args, "--out", out])
+    assert result.exit_code == 0, result.stdout
+    rows = read_density(out)[0]["notes"]["rows"]
+    keys = ("nll", "train_nll", "range_error_median", "histogram_l1")
+    assert_whole(result.stdout, *(row["model"] for row in rows), *(f"{row[k]:.3f}" for row in rows for k in keys))
 
 
 def test_pooled_labels_give_one_state_per_range_and_incidence(street_log):
