@@ -5,34 +5,43 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
+from rich.console import Group
 from rich.table import Table
 
 from mi_lidar.calibration.commands import calibrate_command
 from mi_lidar.calibration.fit import FitResult
 from mi_lidar.cli.app import app, console
 from mi_lidar.cli.progress import progress
+from mi_lidar.cli.tables import FIGURE_WIDTH, figure, figure_table
 
 
-def result_table(result: FitResult) -> Table:
-    """A rich table: held-out loss of the initial, counting and fitted models, and the parameter changes."""
-    table = Table(title="calibration", header_style="bold")
-    for column in ("parameter", "values", "mean before", "mean after", "max |change|"):
-        table.add_column(column, justify="left" if column == "parameter" else "right")
+def result_table(result: FitResult) -> Group:
+    """Two rich tables: the parameter changes, then the held-out loss of the initial, counting and fitted models.
+
+    A parameter name longer than its column folds onto a second line instead of being cut.
+    """
+    changes = Table(title="calibration", header_style="bold")
+    changes.add_column("parameter", overflow="fold")
+    for column in ("values", "mean\nbefore", "mean\nafter", "max\n|change|"):  # two-line headers: room for the names
+        changes.add_column(column, justify="right", min_width=FIGURE_WIDTH)
     for name in result.names:
         before, after = result.initial[name], result.fitted[name]
-        table.add_row(
+        changes.add_row(
             name, f"{before.size:,}", f"{before.mean():.6g}", f"{after.mean():.6g}", f"{abs(after - before).max():.3g}"
         )
-    table.add_section()
-    table.add_row(
-        "held-out NLL (nats/ray): initial / counting / fitted",
-        "",
-        f"{result.initial_nll:.5f}",
-        f"{result.counting_nll:.5f}",
-        f"{result.fitted_nll:.5f}",
+    losses = figure_table(
+        "held-out NLL",
+        "model",
+        ("nats/ray",),
+        caption=f"after {result.steps_run} Adam steps" + (" (early stop)" if result.stopped_early else ""),
     )
-    table.add_row("Adam steps" + (" (early stop)" if result.stopped_early else ""), str(result.steps_run), "", "", "")
-    return table
+    for name, nll in (
+        ("initial", result.initial_nll),
+        ("counting", result.counting_nll),
+        ("fitted", result.fitted_nll),
+    ):
+        losses.add_row(name, figure(nll, 5))
+    return Group(changes, losses)
 
 
 @app.command(rich_help_panel="The loop")

@@ -16,6 +16,7 @@ from mi_lidar.core.errors import CalibrationError, SensorMismatchError
 from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import LogRays
 from mi_lidar.scene.dicts import save_scene, scene_dict
+from tests.terminal import assert_whole, invoke_at_80
 
 from .scenes import SENSOR_HEIGHT, bowl, bowl_height, pattern, sensor_pose, shrubs
 
@@ -87,17 +88,19 @@ def test_calibrate_recovers_truth_and_writes_report(files):
 
 
 def test_cli_prints_table(files):
+    """The tables fit an 80-column terminal: a long parameter name and the held-out NLL are printed whole."""
     tmp, log, start = files
-    run = CliRunner().invoke(
-        app,
+    run = invoke_at_80(
         [
             "calibrate",
-            str(log),
-            str(start),
+            log,
+            start,
             "--params",
             "sensor.range_bias",
+            "--params",
+            "elements.*.range_sigma",
             "--out",
-            str(tmp / "cli"),
+            tmp / "cli",
             "--steps",
             "5",
             "--batch-size",
@@ -106,6 +109,8 @@ def test_cli_prints_table(files):
     )
     assert run.exit_code == 0, run.output
     assert "held-out NLL" in run.output and (tmp / "cli" / "scene.xml").is_file()
+    fitted = json.loads((tmp / "cli" / "report.json").read_text())["held_out_nll"]["fitted"]
+    assert_whole(run.stdout, "elements.terrain.range_sigma", f"{fitted:.5f}")
     bad = CliRunner().invoke(
         app, ["calibrate", str(log), str(start), "--params", "elements.*.nothing", "--out", str(tmp / "bad")]
     )
