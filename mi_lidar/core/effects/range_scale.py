@@ -10,10 +10,14 @@ from mi_lidar.core.segment import Segment
 
 @register_effect
 class RangeScale(Effect):
-    """Range scale ``z = scale * r`` (dimensionless) on every return.
+    """Range scale ``z = scale * r + noise`` (dimensionless) on every return.
 
-    The whole return distribution of each element is scaled: mean, sigma and, for ellipsoids,
-    the truncation chord. The nominal (geometric) range is unchanged. Differentiable.
+    The location of each element's return is scaled: its mean and, for ellipsoids, the truncation
+    chord. Its spread is not: the noise is added after the clock, from the nominal range, as in
+    ``z = scale * r + noise(r)``. So the scale and the noise laws commute (a diagnosis that finds the
+    noise first and the scale second fits the same noise as one that finds them the other way round;
+    scaling the spread too would shrink a fitted noise by the scale). The nominal (geometric) range is
+    unchanged. Differentiable.
 
     Example: ``range_scale(scale=1.002)``.
     """
@@ -25,4 +29,4 @@ class RangeScale(Effect):
 
     def modify_segment(self, seg: Segment, rays: RayBatch) -> Segment:
         s = self["scale"]
-        return seg.with_(mean=seg.mean * s, sigma=seg.sigma * s, lo=seg.lo * s, hi=seg.hi * s)
+        return seg.with_(mean=seg.mean * s, lo=seg.lo * s, hi=seg.hi * s)
