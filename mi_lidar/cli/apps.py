@@ -6,10 +6,13 @@ import os
 from pathlib import Path
 
 import typer
+from rich.console import Group
 from rich.table import Table
+from rich.text import Text
 
 from mi_lidar.cli.app import app, carmen_log_argument, console, max_range_option
 from mi_lidar.cli.progress import progress
+from mi_lidar.cli.tables import FIGURE_WIDTH
 
 
 @app.command("evaluate-apps", rich_help_panel="The loop")
@@ -64,8 +67,8 @@ def evaluate_apps(
         )
     console.print(
         risk_table(
-            f"{log.name}: application-level risk, mean |J real - J sim| over {draws} draws ± standard error "
-            "(lower is better)",
+            f"{log.name}: application-level risk",
+            f"mean |J real - J sim| over {draws} draws ± standard error",
             result.simulators,
             [(r.name, r.risk, r.risk_se, r.picks) for r in result.results],
         )
@@ -79,30 +82,34 @@ def evaluate_apps(
     )
 
 
-def risk_table(title: str, simulators, rows) -> Table:
-    """The risk table printed by the ``evaluate-apps`` verbs: one row per application, the lowest risk in bold.
+def risk_table(title: str, risk: str, simulators, rows) -> Group:
+    """The risk table printed by the ``evaluate-apps`` verbs, with its legend below it: one row per simulator, one
+    column per application, the lowest risk of each application in bold.
+
+    Simulators are rows so that the table keeps to 80 columns however many are compared (six in 3D); the
+    legend is a paragraph of its own, as wide as the terminal.
 
     Args:
         title: table title.
-        simulators: the column names.
+        risk: what a risk is, e.g. ``mean |J real - J sim| over 16 draws ± standard error``.
+        simulators: the row names.
         rows: ``(application, risk, standard error, picks)`` per application, each keyed by simulator;
             ``picks[name]['within']`` says whether the development path's setting is within 10 % of the
             best real J.
     """
-    table = Table(
-        title=title,
-        caption="pick: the setting a developer reaches on the simulator; 'ok' when its real J is within 10 % of "
-        "the best real J found",
-        header_style="bold",
-    )
-    table.add_column("application", no_wrap=True)
+    table = Table(title=title, header_style="bold")
+    table.add_column("simulator", no_wrap=True)
+    for application, *_ in rows:
+        table.add_column(application, justify="right", min_width=FIGURE_WIDTH)
     for name in simulators:
-        table.add_column(name, justify="right", no_wrap=True)
-    for application, risk, se, picks in rows:
-        best = min(risk.values())
         cells = []
-        for name in simulators:
-            value = f"{risk[name]:.3g}\n± {se[name]:.1g}\npick {'ok' if picks[name]['within'] else 'off'}"
-            cells.append(f"[bold]{value}[/bold]" if risk[name] == best else value)
-        table.add_row(application, *cells)
-    return table
+        for _, risks, se, picks in rows:
+            value = f"{risks[name]:.3g} ± {se[name]:.1g}\npick {'ok' if picks[name]['within'] else 'off'}"
+            cells.append(f"[bold]{value}[/bold]" if risks[name] == min(risks.values()) else value)
+        table.add_row(name, *cells)
+    legend = Text(
+        f"risk: {risk}, lower is better (the lowest of each application in bold); pick: the setting a developer "
+        "reaches on the simulator, 'ok' when its real J is within 10 % of the best real J found",
+        style="dim",
+    )
+    return Group(table, legend)

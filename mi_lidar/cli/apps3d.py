@@ -5,11 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from rich.table import Table
 
 from mi_lidar.cli.app import app, console
 from mi_lidar.cli.apps import risk_table
 from mi_lidar.cli.progress import progress
+from mi_lidar.cli.tables import figure, figure_table
 
 
 @app.command("evaluate-apps-3d", rich_help_panel="The loop")
@@ -59,23 +59,22 @@ def evaluate_apps_3d(
         )
     console.print(
         risk_table(
-            f"{capture.name}: 3D registration risk, mean |J real - J sim| over {draws} draws ± bootstrap "
-            "standard error over the starts (lower is better)",
+            f"{capture.name}: 3D registration risk",
+            f"mean |J real - J sim| over {draws} draws ± bootstrap standard error over the starts",
             result.simulators,
             [(r.name, r.risk, result.risk_se[r.name], r.picks) for r in result.results],
         )
     )
-    samples = Table(title="the simulators on the test rays: NLL and the realism of their samples", header_style="bold")
-    for column in ("simulator", "NLL", "median |err| m", "p90 |err| m", "F1", "hist L1 m", "Chamfer m"):
-        samples.add_column(column, justify="right")
+    samples = figure_table(
+        "the simulators on the test rays: NLL and the realism of their samples",
+        "simulator",
+        ("NLL", "median |err|", "p90 |err|", "F1", "hist L1", "Chamfer"),
+        caption="NLL: nats per ray; |err|: the sampled scan vs the measured one where both returned (m); F1: "
+        "hit/miss agreement; hist L1: distance of the range CDFs (m); Chamfer: distance of the point clouds (m)",
+    )
     for row in result.benchmark:
-        samples.add_row(
-            row["model"],
-            *(
-                f"{row[k]:.3f}"
-                for k in ("nll", "range_error_median", "range_error_p90", "f1", "histogram_l1", "chamfer")
-            ),
-        )
+        keys = ("nll", "range_error_median", "range_error_p90", "f1", "histogram_l1", "chamfer")
+        samples.add_row(row["model"], *(figure(row[k]) for k in keys))
     console.print(samples)
     for r in result.results:
         console.print(f"{r.name}: J = {r.objective}; best real J found {r.best_real[0]:.4g}")

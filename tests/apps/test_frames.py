@@ -36,6 +36,44 @@ def test_one_frame_is_the_scan_with_most_returns():
     assert frame.shape == (1, 16, 256) and frame.hit.all()
 
 
+def test_evaluate_apps_3d_prints_six_simulators_whole_in_80_columns(tmp_path, monkeypatch):
+    """The risk of every simulator and the realism of its samples fit an 80-column terminal (the evaluation is
+    stubbed: only the printed tables are under test)."""
+    from types import SimpleNamespace
+
+    from tests.terminal import assert_whole, invoke_at_80
+
+    names = ("gaussian", "physics", "beam", "P-Reg", "NP-Reg", "mi-lidar")
+    risk = dict(zip(names, (0.165, 0.149, 0.28, 0.205, 0.0295, 0.166)))
+    application = SimpleNamespace(
+        name="scan_matching_3d",
+        risk=risk,
+        picks={name: {"within": name == "beam"} for name in names},
+        objective="mean pose error over the starts",
+        best_real=(0.224,),
+    )
+    realism = {
+        "range_error_median": 0.024,
+        "range_error_p90": 0.06,
+        "f1": 0.968,
+        "histogram_l1": 0.617,
+        "chamfer": 0.13,
+    }
+    benchmark = [{"model": name, "nll": 2.5 + i / 7, **realism} for i, name in enumerate(names)]
+    result = SimpleNamespace(
+        simulators=names,
+        results=[application],
+        risk_se={"scan_matching_3d": dict.fromkeys(names, 0.002)},
+        benchmark=benchmark,
+        seconds={"total": 1.0},
+    )
+    monkeypatch.setattr("mi_lidar.apps.evaluate3d.evaluate_frame", lambda *args, **kwargs: result)
+    printed = invoke_at_80(["evaluate-apps-3d", synthetic_frame().save(tmp_path / "frame.npz"), "--out", tmp_path])
+    assert printed.exit_code == 0, printed.stdout
+    figures = [f"{value:.3g}" for value in risk.values()] + [f"{row['nll']:.3f}" for row in benchmark]
+    assert_whole(printed.stdout, *names, *figures, "pick ok", "pick off")
+
+
 @pytest.mark.slow
 def test_evaluate_frame_writes_the_report_and_resumes_from_its_cache(tmp_path):
     from mi_lidar.apps.evaluate3d import evaluate_frame

@@ -24,6 +24,7 @@ from mi_lidar.core.errors import ParameterError
 from mi_lidar.planar.protocol import PlanarProtocol
 from tests.apps.room import room_ranges, room_states
 from tests.planar.world import room_log_text
+from tests.terminal import assert_whole, invoke_at_80
 
 APPS = (ScanToMapEKF, ParticleFilter, LineDetection)
 
@@ -121,10 +122,11 @@ def test_evaluate_apps_on_the_room_log(tmp_path, monkeypatch):
     log.write_text(room_log_text(scans=40))
     out = tmp_path / "report"
     args = ["evaluate-apps", str(log), "--out", str(out), "-s", "M0", "-s", "M1", "--draws", "3", "--runs", "1"]
-    result = CliRunner().invoke(cli, [*args, "--window", "5"], terminal_width=200)
+    result = invoke_at_80([*args, "--window", "5"])
     assert result.exit_code == 0, result.stdout
     assert "registration" in result.stdout and "localization" in result.stdout and "lines" in result.stdout
     report = json.loads((out / "apps.json").read_text())
+    assert_whole(result.stdout, *(f"{a['risk'][name]:.3g}" for a in report["applications"] for name in ("M0", "M1")))
     assert report["states"] == 40 and report["test_states"] == 8 and report["simulators"] == ["M0", "M1"]
     assert all(set(a["risk"]) == {"M0", "M1"} for a in report["applications"])
     # A rerun reads the simulated datasets from the cache.
