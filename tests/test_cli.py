@@ -9,6 +9,7 @@ from mi_lidar.core.log import Log
 from mi_lidar.io import read_exr, read_ply
 
 from .conftest import SCENES
+from .terminal import assert_whole, invoke_at_80
 
 runner = CliRunner()
 
@@ -101,6 +102,36 @@ def test_info_and_convert_on_a_simulated_log(tmp_path):
     result = runner.invoke(app, ["convert", str(log_path), str(tmp_path / "room.pcd")])
     assert result.exit_code == 0, result.stdout
     assert (tmp_path / "room.pcd").stat().st_size > 1000
+
+
+def test_primitives_list_prints_one_table_that_fits_80_columns(tmp_path):
+    """The library's primitives once, on stdout, in 80 columns: whole ids, extents and returns counts."""
+    from mi_lidar.hybrid.classes import CLASS_ID
+    from mi_lidar.hybrid.model import EllipsoidSet
+    from mi_lidar.hybrid.primitives import Primitive, PrimitiveLibrary
+
+    label = CLASS_ID["medium_shrub"]
+    means = np.array([[0.0, 0.0, 0.0], [0.5, 0.2, 1.0]])
+    ellipsoids = EllipsoidSet(means, np.tile(np.eye(3) * 0.04, (2, 1, 1)), np.full(2, 0.6), label=label)
+    PrimitiveLibrary(
+        [
+            Primitive(
+                f"train_medium_shrub_{segment}",
+                label,
+                ellipsoids,
+                means.min(0) - 1.0,
+                means.max(0) + 1.0,
+                {"scene": "train", "segment": segment, "patch": segment > 1000, "n_points": n},
+            )
+            for segment, n in ((6, 935), (1001007, 1200))
+        ]
+    ).save(tmp_path / "lib")
+    result = invoke_at_80(["primitives", "list", tmp_path / "lib"])
+    assert result.exit_code == 0, result.output
+    assert_whole(
+        result.stdout, "train_medium_shrub_6", "train_medium_shrub_1001007", "2.50\u00d72.20\u00d73.00", "935", "1,200*"
+    )
+    assert result.output.count("train_medium_shrub_1001007") == 1  # one table, not one on stderr and one on stdout
 
 
 @pytest.mark.slow

@@ -6,7 +6,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from rich.table import Table
 
 from mi_lidar.cli.app import FriendlyGroup, app, console
 from mi_lidar.cli.progress import progress
@@ -94,16 +93,7 @@ def primitives_list(library: Path = typer.Argument(..., help="Library folder.", 
     """
     from mi_lidar.hybrid.commands import primitives_list as run
 
-    rows = run(library)
-    if not rows:
-        console.print(f"{library}: no primitives")
-        return
-    table = Table(title=str(library), header_style="bold")
-    for key in rows[0]:
-        table.add_column(str(key))
-    for row in rows:
-        table.add_row(*(f"{v:.2f}" if isinstance(v, float) else str(v) for v in row.values()))
-    console.print(table)
+    run(library, console)  # one table, on stdout
 
 
 @primitives_app.command("show")

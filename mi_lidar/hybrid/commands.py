@@ -152,15 +152,39 @@ def primitives_extract(log_path, library_dir, params: FitParams | None = None) -
     return library
 
 
-def primitives_list(library_dir) -> list[dict]:
-    """Print and return a summary row per primitive of the library at ``library_dir``."""
-    rows = PrimitiveLibrary.load(library_dir).rows()
-    table = Table(title=str(library_dir))
-    for col in ("id", "class", "ellipsoids", "extents (m)"):
-        table.add_column(col)
+def primitives_table(rows: list[dict], title: str) -> Table:
+    """A table of :meth:`PrimitiveLibrary.rows` that keeps to 80 columns: an id longer than its column folds.
+
+    The source's scene and segment are the id's parts (``<scene>_<class>_<segment>``); its returns count
+    and its patch flag make the ``points`` column.
+    """
+    table = Table(
+        title=title,
+        caption="points: the returns the primitive was fitted to; *: from a cell of a shrub patch",
+        header_style="bold",
+    )
+    table.add_column("id", overflow="fold")
+    table.add_column("class", no_wrap=True)
+    table.add_column("ellip-\nsoids", justify="right")  # a short header leaves the id its room
+    table.add_column("extents (m)", justify="right", no_wrap=True)
+    table.add_column("points", justify="right", no_wrap=True)
     for r in rows:
-        table.add_row(r["id"], r["class"], str(r["ellipsoids"]), " x ".join(f"{x:.2f}" for x in r["extents"]))
-    console.print(table)
+        source = r.get("source") or {}
+        points = f"{source['n_points']:,}" if "n_points" in source else "-"
+        table.add_row(
+            r["id"],
+            r["class"],
+            str(r["ellipsoids"]),
+            "\u00d7".join(f"{x:.2f}" for x in r["extents"]),
+            points + ("*" if source.get("patch") else ""),
+        )
+    return table
+
+
+def primitives_list(library_dir, out: Console = console) -> list[dict]:
+    """Print (on ``out``) and return a summary row per primitive of the library at ``library_dir``."""
+    rows = PrimitiveLibrary.load(library_dir).rows()
+    out.print(primitives_table(rows, str(library_dir)) if rows else f"{library_dir}: no primitives")
     return rows
 
 
