@@ -5,15 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from rich.table import Table
 
 from mi_lidar.cli.app import app, carmen_log_argument, console, max_range_option
 from mi_lidar.cli.progress import progress
-
-
-def _figure(value: float, digits: int = 3) -> str:
-    """A table figure; "-" where there is nothing to score (no measured miss among the test beams, say)."""
-    return f"{value:.{digits}f}" if value == value else "-"
+from mi_lidar.cli.tables import figure, figure_table
 
 
 @app.command("benchmark-planar", rich_help_panel="The loop")
@@ -54,32 +49,30 @@ def benchmark_planar(
             tuple(model) if model else MODELS,
             progress=lambda done, total, label: update(done, total, label),
         )
-    scores = Table(title=f"{log.name}: {result.data.test.n:,} test beams", header_style="bold")
-    samples = Table(
-        title="Sampled test scans",
+    scores = figure_table(
+        f"{log.name}: {result.data.test.n:,} test beams",
+        "model",
+        ("test NLL", "train NLL", "NLL hits", "NLL misses", "miss F1"),
+        caption="nats per beam; miss F1: P(miss) above a threshold tuned on the training beams",
+    )
+    samples = figure_table(
+        "Sampled test scans",
+        "model",
+        ("median |err|", "p90 |err|", "F1", "hist L1", "CRPS mean", "CRPS median"),
         caption="|err|: one sampled scan vs the measured one where both returned (m); F1: hit/miss agreement "
         "of that scan; hist L1: distance of the range CDFs (m); CRPS: continuous ranked probability score "
         f"per beam from {SAMPLED_SCANS} sampled scans (m; a no-return counts as {result.no_return:g} m), lowest "
         "in expectation for the sensor's own law",
-        header_style="bold",
     )
-    for table, columns in (
-        (scores, ("test NLL", "train NLL", "NLL hits", "NLL misses", "miss F1")),
-        (samples, ("median |err|", "p90 |err|", "F1", "hist L1", "CRPS mean", "CRPS median")),
-    ):
-        table.add_column("model", no_wrap=True)
-        for title in columns:
-            table.add_column(title, justify="right", min_width=6)  # a header may wrap, a figure keeps its 6 digits
-    scores.caption = "nats per beam; miss F1: P(miss) above a threshold tuned on the training beams"
     for r in result.rows:
         s = r.samples
         scores.add_row(
-            r.name, *(_figure(v) for v in (r.test_nll, r.train_nll, r.nll_hits, r.nll_misses, r.miss_tuned["f1"]))
+            r.name, *(figure(v) for v in (r.test_nll, r.train_nll, r.nll_hits, r.nll_misses, r.miss_tuned["f1"]))
         )
         samples.add_row(
             r.name,
-            *(_figure(s[k]) for k in ("range_error_median", "range_error_p90", "f1", "histogram_l1", "crps_mean")),
-            _figure(s["crps_median"], 4),
+            *(figure(s[k]) for k in ("range_error_median", "range_error_p90", "f1", "histogram_l1", "crps_mean")),
+            figure(s["crps_median"], 4),
         )
     console.print(scores)
     console.print(samples)
