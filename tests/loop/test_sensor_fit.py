@@ -124,3 +124,27 @@ def test_pooled_labels_give_one_state_per_range_and_incidence(street_log):
     assert labelled.density.grid.n_labels > 1 and pooled.density.grid.n_labels == 1
     assert pooled.density.grid.size * labelled.density.grid.n_labels == labelled.density.grid.size
     assert pooled.rows[1]["nll"] < pooled.rows[0]["nll"] - 1.0
+
+
+def test_fit_sensor_saves_a_parametric_density_that_loads_by_file(street_log, tmp_path, monkeypatch):
+    """`fit-sensor -m physics --out F` writes its fitted parameters (it used to crash: the parametric family had
+    no file to write); `physics(file=F)` loads the same values, and compare scores it as fit-sensor's model."""
+    from mi_lidar.scene import use_density
+
+    scene, log = street_log
+    log.save(tmp_path / "drive.npz")
+    args = ["fit-sensor", tmp_path / "drive.npz", SCENES / "urban_street.xml", "-m", "physics", "--steps", "40"]
+    result = invoke_at_80([*args, "--out", tmp_path / "physics.npz"])
+    assert result.exit_code == 0, result.stdout
+    monkeypatch.chdir(tmp_path)
+    loaded = scene_sensor_model(
+        use_density(mi_lidar.load_scene(SCENES / "urban_street.xml"), "physics(file=physics.npz)")
+    )[0]
+    fitted = fit_sensor(log, scene, "physics", steps=40).density
+    assert loaded.density.name == "physics"
+    for key in ("sigma0", "k", "p_null"):
+        np.testing.assert_allclose(np.asarray(loaded.density.params[key]), np.asarray(fitted.params[key]), rtol=1e-6)
+    rays = LogRays.from_log(log)
+    assert Problem.build(scene, rays).nll(loaded) == pytest.approx(
+        Problem.build(scene, rays).nll(dataclasses.replace(loaded, density=fitted)), abs=1e-6
+    )

@@ -31,6 +31,7 @@ from typing import ClassVar
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import Catalog, Parametrized, parse_calls
@@ -48,8 +49,23 @@ class ReturnDensity(Parametrized, metaclass=abc.ABCMeta):
 
     @classmethod
     def from_tables(cls, params: dict, grid, tables: dict) -> ReturnDensity:
-        """A learned density from the tables of its file (:mod:`mi_lidar.core.densities.tables`)."""
-        raise ParameterError(f"density {cls.name!r} has no tables: write it inline, e.g. {cls.name}(...)")
+        """The density of a file (:mod:`mi_lidar.core.densities.tables`): a parametric one from its parameters;
+        a learned one overrides this to read its grid and tables."""
+        if tables:
+            raise ParameterError(f"density {cls.name!r} has no tables, but its file holds {sorted(tables)}")
+        return cls(**params)
+
+    def tables(self) -> dict:
+        """The arrays saved to a density file beside the parameters (none for a parametric density)."""
+        return {}
+
+    def save(self, path, notes: dict | None = None):
+        """Write this density to ``path`` (``.npz``; reference it as ``name(file=...)``): its options and every
+        parameter (a learned density writes its tables too)."""
+        from mi_lidar.core.densities.tables import save_density
+
+        params = {**self.choices, **{k: np.asarray(v, np.float64).tolist() for k, v in self.params.items()}}
+        return save_density(path, self.name, params, None, self.tables(), notes)
 
     def prepare(self, seg: Segment, rays: RayBatch) -> Segment:
         """Set the family's law of each segment from its state (default: the element's own)."""
