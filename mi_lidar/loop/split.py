@@ -105,6 +105,11 @@ class Splits:
             n_labels=int(np.asarray(table.label).max()) + 1,
         )
 
+    def whole(self) -> Problem:
+        """Every training and held-out ray, traced (the final values are fitted on it once the held-out scores are
+        taken: :func:`~mi_lidar.loop.diagnose.diagnose`)."""
+        return Problem.build(self.scene, self.rays, np.concatenate([self.train.index, self.test.index]), self.table)
+
     def describe(self, model: SensorModel) -> RayTable:
         """The held-out rays described under ``model``: first element met, beam, azimuth (:attr:`held_out`)."""
         index = self.test.index

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +25,7 @@ class Outcome:
         significant_rows: rows marked significant in the first round.
         seconds: wall-clock time of the diagnosis (for the results table, never asserted).
         summary: the verdict.
+        scene, log, model: the scene and log diagnosed, and the final model.
     """
 
     first: str
@@ -34,6 +35,9 @@ class Outcome:
     significant_rows: list
     seconds: float
     summary: str
+    scene: object = field(repr=False, default=None)
+    log: Log | None = field(repr=False, default=None)
+    model: object = field(repr=False, default=None)
 
 
 def run_case(arrays: dict, xml: str, folder: Path, **options) -> Outcome:
@@ -53,6 +57,9 @@ def run_case(arrays: dict, xml: str, folder: Path, **options) -> Outcome:
         significant_rows=[c.name for c in d.rounds[0] if c.significant] if d.rounds else [],
         seconds=seconds,
         summary=d.summary,
+        scene=scene,
+        log=log,
+        model=d.model,
     )
 
 
