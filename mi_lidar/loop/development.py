@@ -95,24 +95,36 @@ class Step:
 
 
 def development_table(rows: list[Step], title: str):
-    """A rich table of a development path; each row lists the parameters new since the previous row of its model."""
+    """The development path as two rich tables (printable as one): the figures of each step, then the parameters
+    each step adds (those new since the previous row of its model), so that both read whole at 80 columns."""
+    from rich.console import Group
     from rich.table import Table
 
-    table = Table(title=title, caption="samples: one scan sampled at the test beams; |err| = |measured - sampled|")
-    columns = ("model", "added", "test NLL", "calibration NLL", "samples: median |err| m", "hist L1 m", "F1")
-    for column in (*columns, "new parameters"):
-        table.add_column(column)
+    figures = Table(
+        title=title,
+        caption="NLL: nats per beam, on the test and the calibration beams; sample |err|, hist L1, F1: one scan "
+        "sampled at the test beams, median |measured - sampled| (m), distance of the range CDFs (m), hit/miss F1",
+    )
+    parameters = Table(title="parameters each step adds")
+    for table in (figures, parameters):
+        table.add_column("model", overflow="fold")
+        table.add_column("added", overflow="fold")
+    for column in ("test NLL", "calib. NLL", "sample |err|", "hist L1", "F1"):
+        figures.add_column(column, justify="right", min_width=6)  # a header may wrap, a figure keeps its digits
+    parameters.add_column("new parameters", overflow="fold")
     previous, model = {}, None
     for row in rows:
         previous = previous if row.model == model else {}
         fitted = ", ".join(f"{k}={v:.4g}" for k, v in row.fitted.items() if k not in previous)
         s = row.samples
         realism = [f"{s[k]:.3f}" if k in s else "" for k in ("range_error_median", "histogram_l1", "f1")]
-        added = row.added + (f" [not kept: {row.rejected}]" if row.rejected else "")
-        table.add_row(row.model, added, f"{row.nll:.3f}", f"{row.train_nll:.3f}", *realism, fitted)
+        added = row.added + (f" (not kept: {row.rejected})" if row.rejected else "")  # [...] would be rich markup
+        figures.add_row(row.model, added, f"{row.nll:.3f}", f"{row.train_nll:.3f}", *realism)
+        if fitted:
+            parameters.add_row(row.model, added, fitted)
         if not row.rejected:
             previous, model = row.fitted, row.model
-    return table
+    return Group(figures, parameters)
 
 
 def describe_effects(effects: list[Effect]) -> dict:
