@@ -27,7 +27,7 @@ segment: an escaped beam is a miss.
 from __future__ import annotations
 
 import abc
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import drjit as dr
 import mitsuba as mi
@@ -46,6 +46,7 @@ class ReturnDensity(Parametrized, metaclass=abc.ABCMeta):
 
     kind = "density"
     learned: ClassVar[bool] = False  # estimated from traced rays and saved as tables (see from_tables)
+    grid: Any = None  # the StateGrid a learned density conditions on (None: it has none)
 
     @classmethod
     def from_tables(cls, params: dict, grid, tables: dict) -> ReturnDensity:
@@ -60,12 +61,12 @@ class ReturnDensity(Parametrized, metaclass=abc.ABCMeta):
         return {}
 
     def save(self, path, notes: dict | None = None):
-        """Write this density to ``path`` (``.npz``; reference it as ``name(file=...)``): its options and every
-        parameter (a learned density writes its tables too)."""
+        """Write this density to ``path`` (``.npz``; reference it as ``name(file=...)``): its options, every
+        parameter, and a learned density's grid and tables."""
         from mi_lidar.core.densities.tables import save_density
 
         params = {**self.choices, **{k: np.asarray(v, np.float64).tolist() for k, v in self.params.items()}}
-        return save_density(path, self.name, params, None, self.tables(), notes)
+        return save_density(path, self.name, params, self.grid, self.tables(), notes)
 
     def prepare(self, seg: Segment, rays: RayBatch) -> Segment:
         """Set the family's law of each segment from its state (default: the element's own)."""

@@ -124,13 +124,6 @@ class NPRegDensity(ReturnDensity):
     def from_tables(cls, params: dict, grid: StateGrid | None, tables: dict[str, np.ndarray]) -> NPRegDensity:
         return cls(grid=grid, edges=tables["edges"], mass=tables["mass"], p_null=tables["p_null"], **params)
 
-    def save(self, path, notes: dict | None = None):
-        """Write this density to ``path`` (``.npz``; reference it as ``np_reg(file=...)``)."""
-        from mi_lidar.core.densities.tables import save_density
-
-        params = {**self.choices, **{k: float(np.asarray(v)[0]) for k, v in self.params.items()}}
-        return save_density(path, self.name, params, self.grid, self.tables(), notes)
-
     # ------------------------------------------------------------------ state and lookup
     def state(self, seg: Segment, rays: RayBatch) -> mi.UInt32:
         """Flat state index of each lane (the escape state for ``kind == ESCAPE``)."""
@@ -158,6 +151,17 @@ class NPRegDensity(ReturnDensity):
         inside = (e >= dr.gather(mi.Float, self._centres, 0)) & (e <= dr.gather(mi.Float, self._centres, b - 1))
         return dr.select(inside, (d0 + t * (d1 - d0)) / dr.gather(mi.Float, self._norm, state), 0.0)
 
+    def _polygon_piece(self, state: mi.UInt32, j: mi.UInt32) -> tuple[mi.Float, mi.Float, mi.Float, mi.Float]:
+        """Piece ``j`` of the state's polygon: the bin centres it joins (m) and its normalised densities there (1/m)."""
+        b = self._b
+        norm = dr.gather(mi.Float, self._norm, state)
+        return (
+            dr.gather(mi.Float, self._centres, j),
+            dr.gather(mi.Float, self._centres, j + 1),
+            dr.gather(mi.Float, self._density, state * b + j) / norm,
+            dr.gather(mi.Float, self._density, state * b + j + 1) / norm,
+        )
+
     def _shape_cdf(self, state: mi.UInt32, e: mi.Float) -> mi.Float:
         """Mass of the state's histogram or polygon below residual ``e`` (0 below the support, 1 above)."""
         b = self._b
@@ -170,10 +174,7 @@ class NPRegDensity(ReturnDensity):
         m = b - 1
         j = dr.minimum(dr.binary_search(0, m, lambda i: dr.gather(mi.Float, self._centres, i + 1) <= e), m - 1)
         before = dr.select(j > 0, dr.gather(mi.Float, self._cdf_poly, state * m + j - 1), 0.0)
-        c0, c1 = dr.gather(mi.Float, self._centres, j), dr.gather(mi.Float, self._centres, j + 1)
-        norm = dr.gather(mi.Float, self._norm, state)
-        d0 = dr.gather(mi.Float, self._density, state * b + j) / norm
-        d1 = dr.gather(mi.Float, self._density, state * b + j + 1) / norm
+        c0, c1, d0, d1 = self._polygon_piece(state, j)
         t = dr.clip(e - c0, 0.0, c1 - c0)
         return dr.clip(before + d0 * t + 0.5 * (d1 - d0) / (c1 - c0) * t * t, 0.0, 1.0)
 
@@ -232,10 +233,7 @@ class NPRegDensity(ReturnDensity):
                 dr.binary_search(0, m, lambda i: dr.gather(mi.Float, self._cdf_poly, state * m + i) <= v), m - 1
             )
             before = dr.select(j > 0, dr.gather(mi.Float, self._cdf_poly, state * m + j - 1), 0.0)
-            c0, c1 = dr.gather(mi.Float, self._centres, j), dr.gather(mi.Float, self._centres, j + 1)
-            norm = dr.gather(mi.Float, self._norm, state)
-            d0 = dr.gather(mi.Float, self._density, state * b + j) / norm
-            d1 = dr.gather(mi.Float, self._density, state * b + j + 1) / norm
+            c0, c1, d0, d1 = self._polygon_piece(state, j)
             length, target = c1 - c0, (v - before)
             slope = (d1 - d0) / length
             # invert d0 t + slope t^2 / 2 = target on [0, length]

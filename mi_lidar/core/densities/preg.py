@@ -81,13 +81,6 @@ class PRegDensity(UniformEscapeDensity):
     def from_tables(cls, params: dict, grid, tables: dict) -> PRegDensity:
         return cls(**tables, **params)
 
-    def save(self, path, notes: dict | None = None):
-        """Write this density to ``path`` (``.npz``; reference it as ``p_reg(file=...)``)."""
-        from mi_lidar.core.densities.tables import save_density
-
-        params = {k: float(np.asarray(v)[0]) for k, v in self.params.items()}
-        return save_density(path, self.name, params, None, self.tables(), notes)
-
     # ------------------------------------------------------------------ interpolation
     def _locate(self, nodes: mi.Float, count: int, x: mi.Float):
         """Index of the node interval holding ``x`` (clamped) and the fraction within it."""
