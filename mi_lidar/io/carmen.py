@@ -40,7 +40,13 @@ BACKGROUND = 5.0  # m: the readings this far below the codes give the background
 
 def _lines(path: Path) -> list[str]:
     """Decoded text lines of a plain or gzip-compressed file."""
-    raw = path.read_bytes()
+    try:
+        raw = path.read_bytes()
+    except PermissionError as exc:
+        raise LogFormatError(
+            f"{path}: cannot read the log (permission denied); make it readable (chmod a+r {path}) or copy it "
+            "to a file you may read"
+        ) from exc
     if raw[:2] == b"\x1f\x8b":
         try:
             raw = gzip.decompress(raw)
@@ -111,10 +117,13 @@ def read_carmen(
         fields; ``sensor["max_range_m"]`` holds the no-return value used (``inf``: none).
 
     Raises:
-        LogFormatError: Missing/corrupt file, no ``message`` lines, a line with the wrong number
-            of fields or a non-numeric value (line number named), or scans of different ``n``.
+        LogFormatError: Missing, unreadable or corrupt file (or a folder), no ``message`` lines, a line
+            with the wrong number of fields or a non-numeric value (line number named), or scans of
+            different ``n``.
     """
     path = Path(path)
+    if path.is_dir():
+        raise LogFormatError(f"{path}: is a folder; give the CARMEN log file in it (.log or .log.gz)")
     if not path.is_file():
         raise LogFormatError(f"{path}: no such CARMEN log")
     rows, widths, numbers = [], set(), []

@@ -1,4 +1,6 @@
+import errno
 import gzip
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -103,3 +105,21 @@ def test_max_range_detected_or_given(tmp_path):
     assert given.hit[:, 5, 0].all() and np.allclose(given.ranges[:, 5, 0], 50.0)
     with pytest.raises(LogFormatError, match="max_range=-1.0 m must be > 0"):
         read_carmen(tmp_path / "c.log", max_range=-1.0)
+
+
+def test_an_unreadable_file_or_a_folder_says_what_to_do(tmp_path, monkeypatch):
+    """Not the CLI's generic 'permission denied; choose a folder you may write to': the log is read, not written."""
+    path = tmp_path / "locked.log"
+    path.write_text(carmen_text())
+    read_bytes = Path.read_bytes
+
+    def denied(self):
+        if self == path:
+            raise PermissionError(errno.EACCES, "Permission denied", str(self))
+        return read_bytes(self)
+
+    monkeypatch.setattr(Path, "read_bytes", denied)
+    with pytest.raises(LogFormatError, match=r"locked.log: cannot read the log \(permission denied\); make it"):
+        read_carmen(path)
+    with pytest.raises(LogFormatError, match="is a folder; give the CARMEN log file in it"):
+        read_carmen(tmp_path)
