@@ -118,8 +118,8 @@ def read_carmen(
 
     Raises:
         LogFormatError: Missing, unreadable or corrupt file (or a folder), no ``message`` lines, a line
-            with the wrong number of fields or a non-numeric value (line number named), or scans of
-            different ``n``.
+            with the wrong number of fields, a non-numeric or non-finite value (line number and field
+            named), or scans of different ``n``.
     """
     path = Path(path)
     if path.is_dir():
@@ -152,10 +152,18 @@ def read_carmen(
     n = widths.pop()
     table = np.stack(rows)
     # Ranges are stored as float32: a reading beyond its range (3.4e38) is as bad as a NaN.
-    finite = np.isfinite(table).all(axis=1) & (np.abs(table[:, :n]) < np.finfo(np.float32).max).all(axis=1)
+    finite = np.isfinite(table) & (np.abs(table) < np.where(np.arange(n + 7) < n, np.finfo(np.float32).max, np.inf))
     if not finite.all():
-        bad = int(np.argmax(~finite))
-        raise LogFormatError(f"{path}: line {numbers[bad]}: non-finite or out-of-range value in a {message} message")
+        scan, column = (int(i[0]) for i in np.nonzero(~finite))
+        fields = ("x", "y", "theta", "odometry x", "odometry y", "odometry theta", "timestamp")
+        if column < n:
+            field, fix = f"range {column}", "write a no-return as the scanner's no-return value, or delete the line"
+        else:
+            field, fix = ("pose " * (column < n + 3)) + fields[column - n], "repair or delete the line"
+        raise LogFormatError(
+            f"{path}: line {numbers[scan]}: {message} {field} is {table[scan, column]:g}; ranges (below 3.4e38), "
+            f"poses and timestamps must be finite numbers: {fix}"
+        )
     readings, pose, odometry, stamp = table[:, :n], table[:, n : n + 3], table[:, n + 3 : n + 6], table[:, n + 6]
     if max_range is None:
         max_range = detect_max_range(readings)

@@ -54,7 +54,7 @@ def test_beam_layout():
     [
         ("FLASER 3 1 2", "line 2: FLASER with n=3 needs 13 fields"),
         ("FLASER 3 1 2 x 0 0 0 0 0 0 5 host 5", "line 2: malformed FLASER"),
-        ("FLASER 3 1 2 nan 0 0 0 0 0 0 5 host 5", "line 2: non-finite"),
+        ("FLASER 3 1 2 nan 0 0 0 0 0 0 5 host 5", "line 2: FLASER range 2 is nan"),
     ],
 )
 def test_malformed_lines(tmp_path, line, message):
@@ -123,3 +123,24 @@ def test_an_unreadable_file_or_a_folder_says_what_to_do(tmp_path, monkeypatch):
         read_carmen(path)
     with pytest.raises(LogFormatError, match="is a folder; give the CARMEN log file in it"):
         read_carmen(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "column, value, message",
+    [
+        (4, "nan", "line 4: FLASER range 4 is nan; .* write a no-return as the scanner's no-return value"),
+        (180, "inf", "line 4: FLASER pose x is inf; .* repair or delete the line"),
+        (182, "nan", "line 4: FLASER pose theta is nan"),
+        (184, "-inf", "line 4: FLASER odometry y is -inf"),
+        (186, "nan", "line 4: FLASER timestamp is nan"),
+        (7, "1e39", "line 4: FLASER range 7 is 1e[+]39; ranges \\(below 3.4e38\\)"),
+    ],
+)
+def test_a_non_finite_value_is_named_by_field_and_line(tmp_path, column, value, message):
+    lines = carmen_text(scans=2).splitlines()
+    tokens = lines[3].split()
+    tokens[2 + column] = value
+    lines[3] = " ".join(tokens)
+    (tmp_path / "bad.log").write_text("\n".join(lines))
+    with pytest.raises(LogFormatError, match=message):
+        read_carmen(tmp_path / "bad.log")
