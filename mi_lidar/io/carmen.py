@@ -117,19 +117,21 @@ def read_carmen(
         fields; ``sensor["max_range_m"]`` holds the no-return value used (``inf``: none).
 
     Raises:
-        LogFormatError: Missing, unreadable or corrupt file (or a folder), no ``message`` lines, a line
-            with the wrong number of fields, a non-numeric or non-finite value (line number and field
-            named), or scans of different ``n``.
+        LogFormatError: Missing, unreadable or corrupt file (or a folder), no ``message`` lines (other
+            laser messages named), a line with the wrong number of fields, a non-numeric or non-finite
+            value (line number and field named), or scans of different ``n`` (lines named).
     """
     path = Path(path)
     if path.is_dir():
         raise LogFormatError(f"{path}: is a folder; give the CARMEN log file in it (.log or .log.gz)")
     if not path.is_file():
         raise LogFormatError(f"{path}: no such CARMEN log")
-    rows, widths, numbers = [], set(), []
+    rows, widths, numbers, others = [], {}, [], {}
     for number, line in enumerate(_lines(path), start=1):
         tokens = line.split()
         if not tokens or tokens[0] != message:
+            if tokens and "LASER" in tokens[0]:
+                others[tokens[0]] = others.get(tokens[0], 0) + 1
             continue
         try:
             n = int(tokens[1])
@@ -143,13 +145,24 @@ def read_carmen(
                 f"{path}: line {number}: {message} with n={n} needs {n + 10} fields; found {len(tokens)} (truncated?)"
             )
         rows.append(values)
-        widths.add(n)
+        widths.setdefault(n, number)
         numbers.append(number)
+    if not rows and others:
+        found = ", ".join(f"{count} {name}" for name, count in sorted(others.items()))
+        raise LogFormatError(
+            f"{path}: no {message} messages, but {found} lines; mi-lidar reads {message} lines (n ranges, then "
+            f"the laser's corrected pose x y theta): convert the laser lines to {message} lines"
+        )
     if not rows:
         raise LogFormatError(f"{path}: no {message} messages; is this a CARMEN log?")
     if len(widths) != 1:
-        raise LogFormatError(f"{path}: {message} scans have different beam counts {sorted(widths)}")
-    n = widths.pop()
+        (n_a, line_a), (n_b, line_b) = sorted(widths.items(), key=lambda item: item[1])[:2]
+        raise LogFormatError(
+            f"{path}: {message} scans have different beam counts {sorted(widths)} (line {line_a}: {n_a} beams, "
+            f"line {line_b}: {n_b}); a log has one beam count: keep the scans of one count, or resample every "
+            "scan to one count with tools/derive_carmen.py --beams N"
+        )
+    n = next(iter(widths))
     table = np.stack(rows)
     # Ranges are stored as float32: a reading beyond its range (3.4e38) is as bad as a NaN.
     finite = np.isfinite(table) & (np.abs(table) < np.where(np.arange(n + 7) < n, np.finfo(np.float32).max, np.inf))

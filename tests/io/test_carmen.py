@@ -68,7 +68,7 @@ def test_empty_and_mixed_logs(tmp_path):
     with pytest.raises(LogFormatError, match="no FLASER messages"):
         read_carmen(tmp_path / "empty.log")
     (tmp_path / "mixed.log").write_text(carmen_text(1, 180) + carmen_text(1, 181))
-    with pytest.raises(LogFormatError, match=r"different beam counts \[180, 181\]"):
+    with pytest.raises(LogFormatError, match=r"different beam counts \[180, 181\] \(line 4: 180 beams, line 8: 181\)"):
         read_carmen(tmp_path / "mixed.log")
     (tmp_path / "t.log.gz").write_bytes(gzip.compress(carmen_text().encode())[:-20])
     with pytest.raises(LogFormatError, match="corrupt or truncated gzip"):
@@ -144,3 +144,11 @@ def test_a_non_finite_value_is_named_by_field_and_line(tmp_path, column, value, 
     (tmp_path / "bad.log").write_text("\n".join(lines))
     with pytest.raises(LogFormatError, match=message):
         read_carmen(tmp_path / "bad.log")
+
+
+@pytest.mark.parametrize("name", ["ROBOTLASER1", "RAWLASER1", "RLASER"])
+def test_other_laser_messages_are_named(tmp_path, name):
+    """A CARMEN log with another laser message is named as such, not asked 'is this a CARMEN log?'."""
+    (tmp_path / "other.log").write_text(carmen_text(scans=2).replace("FLASER", name))
+    with pytest.raises(LogFormatError, match=f"no FLASER messages, but 2 {name} lines; .* convert the laser lines"):
+        read_carmen(tmp_path / "other.log")
