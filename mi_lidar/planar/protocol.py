@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.errors import LogFormatError, ParameterError
 from mi_lidar.core.log import Log
 from mi_lidar.planar.grid import CountMap, Grid, count_scans, in_threads, planar_beams
 from mi_lidar.planar.raymarch import PlanarTrace, trace_scans
@@ -98,6 +98,12 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None, wor
     protocol = protocol or PlanarProtocol()
     workers = workers or os.cpu_count() or 1
     say = progress or (lambda done, total, label: None)
+    test_scans, train_scans = protocol.split(log.shape[0])
+    if not train_scans.size:
+        raise LogFormatError(
+            f"the log has {log.shape[0]} scan; the benchmark needs a test scan and training scans "
+            f"(every {protocol.test_every}-th scan is a test scan): give a longer log"
+        )
     seconds, start = {}, time.perf_counter()
     origin, direction, z = planar_beams(log)
     ends = (origin + np.nan_to_num(z)[..., None] * direction)[np.isfinite(z) & (z < protocol.reach)]
@@ -109,7 +115,6 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None, wor
     )
     cmap = CountMap(counts)
     seconds["map"] = time.perf_counter() - start
-    test_scans, train_scans = protocol.split(log.shape[0])
     traces = {}
 
     def trace(batch: np.ndarray) -> PlanarTrace:
@@ -126,6 +131,14 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None, wor
             say(done, scans.size, f"tracing {name} beams")
         traces[name] = PlanarTrace.concatenate(parts)
         seconds[name] = time.perf_counter() - start
+    for name, beams in traces.items():
+        if not np.isfinite(beams.nominal).any():
+            raise LogFormatError(
+                f"no {name} beam of the log's {log.shape[0]} scans meets a wall in its map (the map of a scan "
+                f"leaves out the scans within {protocol.radius:g} m and {protocol.window:g} s of it): give a longer "
+                f"log that passes the same places more than {protocol.window:g} s apart, or a smaller radius or "
+                "window (--radius, --window)"
+            )
     return PlanarData(
         log=log, protocol=protocol, grid=grid, counts=cmap, test=traces["test"], train=traces["train"], seconds=seconds
     )
