@@ -107,6 +107,14 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None, wor
     seconds, start = {}, time.perf_counter()
     origin, direction, z = planar_beams(log)
     ends = (origin + np.nan_to_num(z)[..., None] * direction)[np.isfinite(z) & (z < protocol.reach)]
+    if not ends.size:
+        no_return = float(log.sensor.get("max_range_m", np.inf))
+        code = f" and from the no-return value {no_return:g} m up" if np.isfinite(no_return) else ""
+        raise LogFormatError(
+            f"none of the log's {z.size:,} readings is a return closer than {protocol.reach:g} m (readings <= 0"
+            f"{code} are no-returns), so there is no map: check the no-return value (--max-range) and that the "
+            "ranges are in metres"
+        )
     lo, hi = np.percentile(ends, [0.05, 99.95], axis=0)
     inside = np.all((ends >= lo) & (ends <= hi), axis=1)
     grid = Grid.around(np.concatenate([ends[inside], log.poses[:, :2, 3]]), protocol.cell)

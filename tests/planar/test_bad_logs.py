@@ -29,3 +29,15 @@ def test_a_log_too_short_to_leave_scans_out_says_so(tmp_path):
         LogFormatError, match=r"no test beam of the log's 5 scans meets a wall .* 20 m and 30 s .* --window"
     ):
         prepare(room(tmp_path, 5), PlanarProtocol(radius=20.0))
+
+
+@pytest.mark.parametrize("reading, no_return", [("50.000", " and from the no-return value 50 m up"), ("0.000", "")])
+def test_a_log_without_returns_has_no_map(tmp_path, reading, no_return):
+    """Every beam a no-return (the code, or 0): it failed with numpy's 'index -1 is out of bounds for axis 0'."""
+    text = room_log_text(scans=10, beams=5)
+    lines = [" ".join(t[:2] + [reading] * 5 + t[7:]) for t in (line.split() for line in text.splitlines()[1:])]
+    (tmp_path / "misses.log").write_text("\n".join(lines) + "\n")
+    log = read_carmen(tmp_path / "misses.log", max_range=50.0 if no_return else None)
+    match = rf"none of the log's 50 readings is a return closer than 40 m \(readings <= 0{no_return} are no-returns\)"
+    with pytest.raises(LogFormatError, match=match + ".* check the no-return value"):
+        prepare(log)
