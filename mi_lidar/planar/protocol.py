@@ -20,6 +20,8 @@ from mi_lidar.core.log import Log
 from mi_lidar.planar.grid import CountMap, Grid, count_scans, in_threads, planar_beams
 from mi_lidar.planar.raymarch import PlanarTrace, trace_scans
 
+MAX_CELLS = 2**28  # map cells: the count map keeps 24 bytes a cell (6 GB here) and needs twice that to build
+
 
 @dataclass(frozen=True)
 class PlanarProtocol:
@@ -118,6 +120,16 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None, wor
     lo, hi = np.percentile(ends, [0.05, 99.95], axis=0)
     inside = np.all((ends >= lo) & (ends <= hi), axis=1)
     grid = Grid.around(np.concatenate([ends[inside], log.poses[:, :2, 3]]), protocol.cell)
+    if grid.size > MAX_CELLS:
+        xy = log.poses[:, :2, 3]
+        off = np.hypot(*(xy - np.median(xy, axis=0)).T)
+        far = int(np.argmax(off))
+        raise LogFormatError(
+            f"the map would span {grid.shape[0] * grid.cell:,.0f} x {grid.shape[1] * grid.cell:,.0f} m "
+            f"({grid.size:,} cells of {grid.cell:g} m, more than {MAX_CELLS:,}); scan {far + 1} of "
+            f"{log.shape[0]} is at x={xy[far, 0]:g}, y={xy[far, 1]:g} m, {off[far]:,.0f} m from the median pose: "
+            "check the log's poses (in metres?), or give a larger cell (--cell)"
+        )
     counts = count_scans(
         log, grid, protocol.reach, progress=lambda d, n: say(d, n, "counting the map"), workers=workers
     )

@@ -41,3 +41,15 @@ def test_a_log_without_returns_has_no_map(tmp_path, reading, no_return):
     match = rf"none of the log's 50 readings is a return closer than 40 m \(readings <= 0{no_return} are no-returns\)"
     with pytest.raises(LogFormatError, match=match + ".* check the no-return value"):
         prepare(log)
+
+
+def test_a_far_off_pose_is_named_before_the_map_is_allocated(tmp_path):
+    """A pose at x = 1e9 m: it failed with 'MemoryError: Unable to allocate 89.2 TiB' from the count map."""
+    lines = room_log_text(scans=10, beams=5).splitlines()
+    tokens = lines[4].split()
+    tokens[7] = "1e6"  # the corrected pose x of the 4th scan
+    lines[4] = " ".join(tokens)
+    (tmp_path / "far.log").write_text("\n".join(lines) + "\n")
+    match = r"the map would span 1,000,0\d\d x \d+ m .* scan 4 of 10 is at x=1e\+06, .* check the log's poses"
+    with pytest.raises(LogFormatError, match=match):
+        prepare(read_carmen(tmp_path / "far.log"))
