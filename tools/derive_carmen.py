@@ -20,13 +20,40 @@ from __future__ import annotations
 import argparse
 import gzip
 import sys
+import zlib
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from mi_lidar.core.atomic import atomic_write  # noqa: E402
+from mi_lidar.core.errors import LogFormatError  # noqa: E402
 from mi_lidar.io.carmen import beam_angles  # noqa: E402
+
+
+def flaser_tokens(lines: list[str]) -> list[list[str]]:
+    """The tokens of every FLASER line, checked as ``read_carmen`` checks them (LogFormatError naming the line)."""
+    out = []
+    for number, line in enumerate(lines, start=1):
+        tokens = line.split()
+        if tokens[:1] != ["FLASER"]:
+            continue
+        try:
+            n = int(tokens[1])
+            values = np.array(tokens[2 : 2 + n + 7], dtype=np.float64)
+        except (IndexError, ValueError) as exc:
+            raise LogFormatError(f"line {number}: malformed FLASER message ({exc}): repair or delete the line") from exc
+        if n < 2 or len(values) != n + 7 or len(tokens) < n + 10:
+            raise LogFormatError(
+                f"line {number}: FLASER with n={n} needs {n + 10} fields (n >= 2); found {len(tokens)} (truncated?): "
+                "repair or delete the line"
+            )
+        if not np.isfinite(values).all():
+            bad = tokens[2 + int(np.argmin(np.isfinite(values)))]
+            raise LogFormatError(f"line {number}: FLASER value {bad!r} is not finite: repair or delete the line")
+        out.append(tokens)
+    return out
 
 
 def derive(
@@ -42,12 +69,10 @@ def derive(
 ) -> list[str]:
     """The FLASER lines of the derived log (other lines are dropped)."""
     rng = np.random.default_rng(seed)
-    flaser = [line for line in lines if line.split()[:1] == ["FLASER"]]
     out = []
-    for index, line in enumerate(flaser[scans[0] : scans[1]]):
+    for index, tokens in enumerate(flaser_tokens(lines)[scans[0] : scans[1]]):
         if index % every:
             continue
-        tokens = line.split()
         n = int(tokens[1])
         ranges = np.array(tokens[2 : 2 + n], dtype=np.float64)
         rest = tokens[2 + n :]
@@ -83,15 +108,53 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-return", type=float, default=81.83, help="the source's no-return value (m)")
     args = parser.parse_args()
-    raw = args.source.read_bytes()
-    text = gzip.decompress(raw).decode() if raw[:2] == b"\x1f\x8b" else raw.decode()
     first, _, last = args.scans.partition(":")
-    span = (int(first or 0), int(last) if last else None)
-    lines = derive(
-        text.splitlines(), args.every, args.beams, args.clip, args.no_return, span, args.resample, args.noise, args.seed
-    )
-    data = ("\n".join(lines) + "\n").encode()
-    args.target.write_bytes(gzip.compress(data) if args.target.suffix == ".gz" else data)
+    try:
+        span = (int(first or 0), int(last) if last else None)
+    except ValueError:
+        parser.error(f"--scans {args.scans!r}: give A:B, two scan numbers (either may be left out), e.g. 0:200")
+    for name, value, low in (("every", args.every, 1), ("beams", args.beams, 2)):
+        if value is not None and value < low:
+            parser.error(f"--{name} {value}: must be >= {low}")
+    for name, value in (("noise", args.noise), ("clip", args.clip), ("no-return", args.no_return)):
+        if value is not None and not (value >= 0 if name == "noise" else value > 0):
+            parser.error(f"--{name} {value}: must be {'>= 0' if name == 'noise' else '> 0'} (m)")
+    if not args.source.is_file():
+        what = "is a folder" if args.source.is_dir() else "no such file"
+        parser.error(f"{args.source}: {what}; give a CARMEN .log or .log.gz")
+    if args.target.is_dir():
+        parser.error(
+            f"{args.target}: is a folder; give the derived log's file name, e.g. {args.target / 'derived.log.gz'}"
+        )
+    try:
+        raw = args.source.read_bytes()
+        if raw[:2] == b"\x1f\x8b":
+            try:
+                raw = gzip.decompress(raw)
+            except (EOFError, OSError, zlib.error) as exc:
+                raise LogFormatError(f"corrupt or truncated gzip stream ({exc})") from exc
+        text = raw.decode("utf-8", errors="replace")
+        lines = derive(
+            text.splitlines(),
+            args.every,
+            args.beams,
+            args.clip,
+            args.no_return,
+            span,
+            args.resample,
+            args.noise,
+            args.seed,
+        )
+        if not lines:
+            raise LogFormatError(
+                f"no FLASER scans to write (--scans {args.scans}, --every {args.every}); check the log"
+            )
+        data = ("\n".join(lines) + "\n").encode()
+        atomic_write(args.target, lambda f: f.write(gzip.compress(data) if args.target.suffix == ".gz" else data))
+    except OSError as exc:
+        parser.exit(2, f"error: {exc.filename}: {exc.strerror}; check the path and its permissions\n")
+    except LogFormatError as exc:
+        parser.exit(2, f"error: {args.source}: {exc}\n")
     print(f"wrote {args.target}: {len(lines)} scans")
 
 
