@@ -47,6 +47,11 @@ CASES = {
     ),
     "narrow synthetic world": (["synth-world", "--out", "{tmp}/w.npz", "--width", "5"], {}, ["--width", "'5'", "20"]),
     "read-only output folder": (["render", ROOM, "--out", "{read_only}"], {}, ["{read_only}", "folder"]),
+    "output folder is a file": (  # was '[Errno 17] File exists: ...'
+        ["render", ROOM, "--out", "{file}"],
+        {},
+        ["{file}: file exists; a file of that name is in the way of the folder: give another path"],
+    ),
     "unknown variant": (["render", ROOM, "--out", "{tmp}/o"], {"MI_LIDAR_VARIANT": "llvm_nope"}, ["'llvm_nope'"]),
     "cuda without a GPU": (
         ["render", ROOM, "--out", "{tmp}/o"],
@@ -60,6 +65,8 @@ CASES = {
 def test_bad_input_is_one_line_with_exit_code_2(tmp_path, room_log, case):
     args, env, expected = CASES[case]
     values = {"tmp": str(tmp_path), "log": room_log, "read_only": read_only_folder(tmp_path)}
+    values["file"] = str(tmp_path / "a_file")
+    Path(values["file"]).write_text("not a folder")
     if case == "cuda without a GPU" and os.path.exists("/dev/nvidia0"):
         pytest.skip("this machine has a GPU")
     run = subprocess.run(

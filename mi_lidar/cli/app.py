@@ -72,6 +72,7 @@ OS_ERROR_FIXES = {
     errno.EROFS: "the file system is read-only: choose a folder on a writable disk",
     errno.ENOTDIR: "a part of the path is a file, not a folder: choose another path",
     errno.EISDIR: "the path is a folder: give a file name",
+    errno.EEXIST: "a file of that name is in the way of the folder: give another path, or move the file",
     errno.ENOENT: "check the path",
     errno.ENOSPC: "the disk is full: free space or choose another disk",
 }
