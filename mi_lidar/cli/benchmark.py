@@ -39,6 +39,7 @@ def benchmark_planar(
     """
     from mi_lidar.planar.benchmark import MODELS, SAMPLED_SCANS, benchmark_file
     from mi_lidar.planar.protocol import PlanarProtocol
+    from mi_lidar.planar.report import REFERENCE
 
     with progress(f"benchmark {log.name}") as update:
         result = benchmark_file(
@@ -62,18 +63,20 @@ def benchmark_planar(
         caption="|err|: one sampled scan vs the measured one where both returned (m); F1: hit/miss agreement "
         "of that scan; hist L1: distance of the range CDFs (m); CRPS: continuous ranked probability score "
         f"per beam from {SAMPLED_SCANS} sampled scans (m; a no-return counts as {result.no_return:g} m), lowest "
-        "in expectation for the sensor's own law",
+        "in expectation for the sensor's own law; last row: the measured test scans re-paired between beams of "
+        "like nominal range, what a model that samples like the sensor scores (a reference, not a model)",
     )
+
+    def sample_figures(s: dict) -> tuple[str, ...]:
+        keys = ("range_error_median", "range_error_p90", "f1", "histogram_l1", "crps_mean")
+        return (*(figure(s[k]) for k in keys), figure(s["crps_median"], 4))
+
     for r in result.rows:
-        s = r.samples
         scores.add_row(
             r.name, *(figure(v) for v in (r.test_nll, r.train_nll, r.nll_hits, r.nll_misses, r.miss_tuned["f1"]))
         )
-        samples.add_row(
-            r.name,
-            *(figure(s[k]) for k in ("range_error_median", "range_error_p90", "f1", "histogram_l1", "crps_mean")),
-            figure(s["crps_median"], 4),
-        )
+        samples.add_row(r.name, *sample_figures(r.samples), end_section=r is result.rows[-1])
+    samples.add_row(REFERENCE, *sample_figures(result.reference))
     console.print(scores)
     console.print(samples)
     no_return = result.data.log.sensor["max_range_m"]

@@ -11,9 +11,11 @@ F1 of the samples, and the histogram match (L1 distance between the CDFs of meas
 ranges); and, from :data:`SAMPLED_SCANS` sampled scans (the first is that one), the CRPS per test
 beam (mean and median, m; a no-return is the log's no-return value on both sides:
 :func:`~mi_lidar.core.metrics.crps`), a paired measure that, unlike the one-draw errors, does not
-reward a model for sampling less spread than the sensor. Nothing is tuned to a particular log: the
-sensor's no-return value is detected from the log (or given), and bandwidths are chosen on held-out
-training scans.
+reward a model for sampling less spread than the sensor. Beside the models, the same sample metrics
+of a reference, the measured test scans re-paired between beams of like nominal range
+(:mod:`mi_lidar.planar.reference`): what a model that samples like the sensor scores. Nothing is
+tuned to a particular log: the sensor's no-return value is detected from the log (or given), and
+bandwidths are chosen on held-out training scans.
 """
 
 from __future__ import annotations
@@ -30,9 +32,19 @@ from mi_lidar.core.metrics import metrics_of
 from mi_lidar.planar import models as m
 from mi_lidar.planar.beams import EngineBeams, nominal_beams
 from mi_lidar.planar.protocol import PlanarData, PlanarProtocol, prepare
+from mi_lidar.planar.reference import repaired_scans
 
 MODELS = ("M0", "M1", "M2a", "M2b", "M3a", "M3b", "P-Reg", "NP-Reg", "mi-lidar")
 SAMPLED_SCANS = 8  # sampled test scans per model for the CRPS (seeds seed, seed + 1, ...)
+SAMPLE_KEYS = (  # the sample metrics the report keeps (:func:`~mi_lidar.core.metrics.metrics_of`)
+    "range_error_median",
+    "range_error_p90",
+    "f1",
+    "histogram_l1",
+    "hit_rate_simulated",
+    "crps_mean",
+    "crps_median",
+)
 
 
 def miss_scores(p_miss: np.ndarray, miss: np.ndarray, threshold: float) -> dict:
@@ -80,15 +92,6 @@ class ModelRow:
     engine: tuple = field(repr=False, default=None)
 
     def to_json(self) -> dict:
-        keep = (
-            "range_error_median",
-            "range_error_p90",
-            "f1",
-            "histogram_l1",
-            "hit_rate_simulated",
-            "crps_mean",
-            "crps_median",
-        )
         return {
             "model": self.name,
             "test_nll": self.test_nll,
@@ -98,7 +101,7 @@ class ModelRow:
             "miss_at_0.5": self.miss_at_half,
             "miss_tuned": self.miss_tuned,
             "miss_threshold": self.threshold,
-            "samples": {k: self.samples[k] for k in keep},
+            "samples": {k: self.samples[k] for k in SAMPLE_KEYS},
             "fit_seconds": self.seconds,
         }
 
@@ -107,7 +110,8 @@ class ModelRow:
 class PlanarBenchmark:
     """Result of :func:`run_planar_benchmark` (``settings``: what the learned models chose on the training scans;
     ``no_return``: the range (m) that stands for a no-return in the CRPS: the log's no-return value, or its
-    largest reading + 1 m when it has none)."""
+    largest reading + 1 m when it has none; ``reference``: the sample metrics of the measured test scans
+    re-paired, :mod:`mi_lidar.planar.reference`)."""
 
     source: str
     data: PlanarData
@@ -116,6 +120,7 @@ class PlanarBenchmark:
     seconds: dict
     settings: dict = field(default_factory=dict)
     no_return: float = float("nan")
+    reference: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         log = self.data.log
@@ -132,6 +137,7 @@ class PlanarBenchmark:
             "seconds": self.seconds,
             "settings": self.settings,
             "models": [r.to_json() for r in self.rows],
+            "reference_repaired_sensor": {k: self.reference[k] for k in SAMPLE_KEYS if k in self.reference},
         }
 
 
@@ -268,13 +274,23 @@ def run_planar_benchmark(
         "nominal_miss": float(np.mean(~np.isfinite(data.test.nominal))),
         "incidence_known": float(np.mean(np.isfinite(data.test.incidence[np.isfinite(data.test.nominal)]))),
     }
+    ranges, hits = repaired_scans(data.test, SAMPLED_SCANS, seed)
+    no_ll = np.full(data.test.n, np.nan)  # a reference, not a model: no likelihood
+    reference = metrics_of(no_ll, data.test.z, data.test.hit, ranges[0], hits[0], draws=(ranges, hits), no_return=z_max)
     if "np_reg" in settings:
         h_r, h_i, u = settings["np_reg"]
         chosen["NP-Reg"] = {"h_range_m": h_r, "h_incidence_deg": h_i, "uniform_share": u}
     seconds["fit_and_score"] = time.perf_counter() - start - sum(data.seconds.values())
     seconds["total"] = time.perf_counter() - start
     return PlanarBenchmark(
-        source=source, data=data, rows=rows, nominal=nominal, seconds=seconds, settings=chosen, no_return=z_max
+        source=source,
+        data=data,
+        rows=rows,
+        nominal=nominal,
+        seconds=seconds,
+        settings=chosen,
+        no_return=z_max,
+        reference=reference,
     )
 
 

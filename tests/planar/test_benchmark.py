@@ -100,6 +100,11 @@ def test_benchmark_cli_scores_and_reports_the_room(room, tmp_path):
     keys = ("test_nll", "train_nll")
     assert_whole(result.stdout, *(f"{row[k]:.3f}" for row in rows.values() for k in keys))
     assert_whole(result.stdout, *(f"{row['samples']['crps_mean']:.3f}" for row in rows.values()))
+    # The reference row: the measured test scans re-paired, sampled like the sensor (mi_lidar.planar.reference)
+    reference = report["reference_repaired_sensor"]
+    assert 0.9 < reference["f1"] <= 1.0 and reference["range_error_median"] < 0.1, reference
+    assert "sensor, re-paired" in result.stdout and "sensor, re-paired" in (tmp_path / "benchmark.html").read_text()
+    assert_whole(result.stdout, f"{reference['range_error_p90']:.3f}", f"{reference['crps_mean']:.3f}")
     assert (tmp_path / "benchmark.html").stat().st_size > 1000
     assert sorted(p.suffix for p in tmp_path.iterdir()).count(".png") >= 2
 
