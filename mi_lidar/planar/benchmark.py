@@ -36,6 +36,7 @@ from mi_lidar.planar.reference import repaired_scans
 
 MODELS = ("M0", "M1", "M2a", "M2b", "M3a", "M3b", "P-Reg", "NP-Reg", "mi-lidar")
 SAMPLED_SCANS = 8  # sampled test scans per model for the CRPS (seeds seed, seed + 1, ...)
+UNMAPPED_WARNING = 0.2  # above this share of test beams returning where their map has no wall, the map is too sparse
 SAMPLE_KEYS = (  # the sample metrics the report keeps (:func:`~mi_lidar.core.metrics.metrics_of`)
     "range_error_median",
     "range_error_p90",
@@ -272,6 +273,7 @@ def run_planar_benchmark(
         "long": float(np.mean(both & (data.test.z > data.test.nominal + 0.5))),
         "measured_miss": float(np.mean(~data.test.hit)),
         "nominal_miss": float(np.mean(~np.isfinite(data.test.nominal))),
+        "unmapped_returns": float(np.mean(data.test.hit & ~np.isfinite(data.test.nominal))),
         "incidence_known": float(np.mean(np.isfinite(data.test.incidence[np.isfinite(data.test.nominal)]))),
     }
     ranges, hits = repaired_scans(data.test, SAMPLED_SCANS, seed)
@@ -302,9 +304,14 @@ def benchmark_file(
     models: tuple[str, ...] = MODELS,
     progress=None,
 ) -> PlanarBenchmark:
-    """Read a CARMEN log, run the benchmark, and write ``benchmark.json``, ``benchmark.html`` and PNGs to ``out``."""
+    """Read a CARMEN log, run the benchmark, and write ``benchmark.json``, ``benchmark.html`` and PNGs to ``out``.
+
+    The folder ``out`` is made first, so that a path that cannot be a folder fails before the run.
+    """
     from mi_lidar.io.carmen import read_carmen
 
+    if out is not None:
+        Path(out).mkdir(parents=True, exist_ok=True)
     log = read_carmen(path, max_range=max_range)
     result = run_planar_benchmark(log, str(path), protocol, models, progress=progress)
     if out is not None:

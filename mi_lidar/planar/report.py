@@ -193,7 +193,8 @@ td,th{{border:1px solid #ccc;padding:3px 6px;font-size:13px;text-align:right}}th
 <p>Nominal ray cast on test beams: median |z - r| {nominal["median_abs_err"]:.3f} m,
 p90 {nominal["p90_abs_err"]:.3f} m; short (z &lt; r - 0.5 m) {nominal["short"]:.3f},
 long {nominal["long"]:.3f}, measured misses {nominal["measured_miss"]:.3f},
-nominal misses {nominal["nominal_miss"]:.3f}, incidence known for {nominal["incidence_known"]:.2f} of
+nominal misses {nominal["nominal_miss"]:.3f} (of which returned: {nominal["unmapped_returns"]:.3f}),
+incidence known for {nominal["incidence_known"]:.2f} of
 nominal hits.</p>
 {_table(result.rows, result.reference)}
 <p>Sample metrics compare one scan sampled from each model with the measured scan, beam by beam: a model

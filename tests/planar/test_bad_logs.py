@@ -1,5 +1,7 @@
 """Planar logs the benchmark cannot score get a clear error that names the value and the fix."""
 
+import json
+
 import pytest
 
 from mi_lidar.core.errors import LogFormatError
@@ -53,3 +55,36 @@ def test_a_far_off_pose_is_named_before_the_map_is_allocated(tmp_path):
     match = r"the map would span 1,000,0\d\d x \d+ m .* scan 4 of 10 is at x=1e\+06, .* check the log's poses"
     with pytest.raises(LogFormatError, match=match):
         prepare(read_carmen(tmp_path / "far.log"))
+
+
+def test_an_out_path_that_is_a_file_fails_before_the_run(tmp_path, monkeypatch):
+    """It failed only after the whole run (minutes on a real log), when the report was written."""
+    import mi_lidar.planar.benchmark as benchmark
+    from tests.terminal import invoke_at_80
+
+    def must_not_run(*args, **kwargs):
+        raise AssertionError("the benchmark ran although its report folder cannot be made")
+
+    monkeypatch.setattr(benchmark, "run_planar_benchmark", must_not_run)
+    (tmp_path / "room.log").write_text(room_log_text(scans=10))
+    (tmp_path / "report").write_text("in the way")
+    result = invoke_at_80(["benchmark-planar", tmp_path / "room.log", "--out", tmp_path / "report"])
+    assert result.exit_code == 2, result.output
+    assert "file exists" in result.output and "in the way of the folder" in result.output, result.output
+
+
+def test_a_map_too_sparse_for_the_log_is_named(tmp_path):
+    """Leave-out sets of 5 m and 5 s around scans 0.2 s apart leave half the test beams' walls out of their maps
+    (measured: 54 % of the test beams returned where their map has no wall); the figures were printed unremarked."""
+    from tests.terminal import invoke_at_80
+
+    (tmp_path / "room.log").write_text(room_log_text(scans=30))
+    args = ["benchmark-planar", tmp_path / "room.log", "--out", tmp_path / "out", "-m", "M0"]
+    result = invoke_at_80([*args, "--radius", "5", "--window", "5"])
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "out" / "benchmark.json").read_text())
+    unmapped = report["nominal"]["unmapped_returns"]
+    assert unmapped > 0.4
+    assert f"warning: {unmapped:.0%} of the test beams returned where their leave-out map has no wall" in " ".join(
+        result.output.split()
+    )
