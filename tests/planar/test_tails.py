@@ -1,0 +1,65 @@
+"""mi-lidar's permeable map: the tables' far tails, scaled by likelihood after the hard EM (models.fit_tails)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mi_lidar.io.carmen import read_carmen
+from mi_lidar.planar.models import FAR, base_model, fit_permeable_map, fit_tails, with_tails
+from mi_lidar.planar.protocol import PlanarProtocol, prepare
+from tests.planar.world import room_log_text
+
+
+@pytest.fixture(scope="module")
+def room_map(tmp_path_factory):
+    """The simulated room's training beams and a permeable map fitted on them without the tails' fit."""
+    path = tmp_path_factory.mktemp("tails") / "room.log"
+    path.write_text(room_log_text(scans=40))
+    data = prepare(read_carmen(path), PlanarProtocol(window=5.0))
+    z_max = float(np.nanmax(data.log.ranges)) + 1.0
+    return data, z_max, fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01), 1, rounds=1, tails=False)
+
+
+def shares(density) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(states,) share of every state's table short of, near, and long of the surface (0 for an empty table)."""
+    centres = 0.5 * (density.edges[1:] + density.edges[:-1])
+    mass = density.mass / np.maximum(density.mass.sum(axis=1, keepdims=True), 1e-300)
+    return tuple(mass[:, part].sum(axis=1) for part in (centres < -FAR, np.abs(centres) <= FAR, centres > FAR))
+
+
+def test_scaling_the_tails_moves_only_their_mass(room_map):
+    _, _, fitted = room_map
+    density = fitted.model.density
+    same = with_tails(density, 1.0, 1.0)
+    np.testing.assert_array_equal(same.mass, density.mass)
+    scaled = with_tails(density, 0.5, 2.0)
+    (short, near, long), (short2, near2, long2) = shares(density), shares(scaled)
+    used = near > 0.01
+    short, near, long, short2, near2, long2 = (x[used] for x in (short, near, long, short2, near2, long2))
+    total = 0.5 * short + near + 2.0 * long  # the renormalisation of each state
+    np.testing.assert_allclose(near2, near / total, rtol=1e-9)
+    np.testing.assert_allclose(short2, 0.5 * short / total, rtol=1e-9)
+    np.testing.assert_allclose(long2, 2.0 * long / total, rtol=1e-9)
+    np.testing.assert_array_equal(scaled.p_null, density.p_null)
+
+
+def test_an_inflated_tail_is_pulled_back_and_the_score_improves(room_map):
+    """Tables whose tails hold 4x the mass the EM gave them: the fit scales them back (to under half their
+    share of the near mass) and the training score improves; the fitted tails' score is no worse than the
+    EM's own."""
+    data, z_max, fitted = room_map
+    beams = fitted.beams(data.train)
+
+    def nll(density) -> float:
+        return float(-np.mean(beams.log_likelihood(base_model(z_max, density))))
+
+    inflated = with_tails(fitted.model.density, 4.0, 4.0)
+    pulled = fit_tails(beams, inflated, z_max)
+    (short, near, long), (short2, near2, long2) = shares(inflated), shares(pulled)
+    used = (near > 0.01) & (short > 1e-6) & (long > 1e-6)
+    assert used.sum() > 10
+    assert np.all(short2[used] / near2[used] < 0.5 * short[used] / near[used])
+    assert np.all(long2[used] / near2[used] < 0.5 * long[used] / near[used])
+    assert nll(pulled) < nll(inflated) - 0.01, (nll(pulled), nll(inflated))
+    assert nll(fit_tails(beams, fitted.model.density, z_max)) <= nll(fitted.model.density) + 1e-9
