@@ -1,4 +1,5 @@
-"""mi-lidar's permeable map: the tables' far tails, scaled by likelihood after the hard EM (models.fit_tails)."""
+"""mi-lidar's permeable map after the hard EM: the tables' far tails scaled by likelihood (models.fit_tails), their
+no-return probabilities matched to the training beams (models.match_misses)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import numpy as np
 import pytest
 
 from mi_lidar.io.carmen import read_carmen
-from mi_lidar.planar.models import FAR, base_model, fit_permeable_map, fit_tails, with_tails
+from mi_lidar.planar.models import FAR, base_model, fit_permeable_map, fit_tails, match_misses, with_tails
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
 from tests.planar.world import room_log_text
 
@@ -63,3 +64,40 @@ def test_an_inflated_tail_is_pulled_back_and_the_score_improves(room_map):
     assert np.all(long2[used] / near2[used] < 0.5 * long[used] / near[used])
     assert nll(pulled) < nll(inflated) - 0.01, (nll(pulled), nll(inflated))
     assert nll(fit_tails(beams, fitted.model.density, z_max)) <= nll(fitted.model.density) + 1e-9
+
+
+def test_no_returns_are_matched_to_the_training_beams(tmp_path):
+    """A sensor that clips at 7 m in the room: tables whose no-return probabilities are doubled predict far
+    more no-returns than the training beams have; matched, the mean P(miss) equals their rate (within 2e-4,
+    float32 sums) and the training score improves (measured by 0.006 nats per beam). Matching the tables
+    as fitted brings their rate closer and moves the score less than MISS_TOLERANCE."""
+    from mi_lidar.core.densities import NPRegDensity
+    from mi_lidar.planar.models import MISS_TOLERANCE
+
+    path = tmp_path / "clipped.log"
+    path.write_text(room_log_text(scans=30, max_range=7.0))
+    data = prepare(read_carmen(path), PlanarProtocol(window=5.0))
+    z_max = 7.0
+    fitted = fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01), 1, rounds=1, tails=False)
+    beams = fitted.beams(data.train)
+    measured = float(np.mean(~data.train.hit))
+    assert 0.02 < measured < 0.5
+
+    def p_miss(density) -> float:
+        return float(np.mean(beams.p_miss(base_model(z_max, density))))
+
+    def nll(density) -> float:
+        return float(-np.mean(beams.log_likelihood(base_model(z_max, density))))
+
+    density = fitted.model.density
+    params = {**density.choices, **{k: np.asarray(v, np.float64) for k, v in density.params.items()}}
+    doubled = NPRegDensity.from_tables(
+        params, density.grid, {**density.tables(), "p_null": np.minimum(2.0 * density.p_null, 1.0)}
+    )
+    assert p_miss(doubled) > 1.3 * measured
+    matched = match_misses(beams, doubled, z_max)
+    assert p_miss(matched) == pytest.approx(measured, abs=2e-4)
+    assert nll(matched) < nll(doubled) - 0.003, (nll(matched), nll(doubled))
+    again = match_misses(beams, density, z_max)
+    assert abs(p_miss(again) - measured) <= abs(p_miss(density) - measured)  # closer (P(miss) capped at 1)
+    assert nll(again) < nll(density) + MISS_TOLERANCE
