@@ -108,8 +108,9 @@ def read_carmen(
     Args:
         path: ``.log`` or ``.log.gz`` file.
         message: ``"FLASER"`` (front laser) or ``"RLASER"`` (rear laser).
-        max_range: the sensor's no-return value (m); readings ``>= max_range - 1.5 cm`` are misses.
-            None detects it from the log (:func:`detect_max_range`).
+        max_range: the sensor's no-return value (m); readings ``>= max_range - 1.5 cm`` are misses,
+            and so are readings ``<= 0`` (a zero or negative range is how some drivers write "no
+            return"). None detects it from the log (:func:`detect_max_range`).
         sweep_s: Time for the mirror to sweep the 180-degree field (s).
 
     Returns:

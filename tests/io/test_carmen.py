@@ -152,3 +152,12 @@ def test_other_laser_messages_are_named(tmp_path, name):
     (tmp_path / "other.log").write_text(carmen_text(scans=2).replace("FLASER", name))
     with pytest.raises(LogFormatError, match=f"no FLASER messages, but 2 {name} lines; .* convert the laser lines"):
         read_carmen(tmp_path / "other.log")
+
+
+def test_zero_and_negative_readings_are_no_returns(tmp_path):
+    """Some drivers write a no-return as 0 or a negative range: such a beam is a miss, its neighbours are not."""
+    text = carmen_text(scans=2).replace(" 1.10 ", " 0.00 ", 1).replace(" 1.20 ", " -1.00 ", 1)
+    (tmp_path / "z.log").write_text(text)
+    log = read_carmen(tmp_path / "z.log")
+    assert not log.hit[0, 10, 0] and not log.hit[0, 20, 0]
+    assert log.hit[0, [9, 11, 19, 21], 0].all() and log.hit[1, [10, 20], 0].all()
