@@ -1,8 +1,9 @@
 """Outputs of the planar benchmark: ``benchmark.json``, PNG figures and one self-contained ``benchmark.html``.
 
 Figures: the test NLL of every model; the residual ``z - r`` (measured range minus nominal range) of
-the test beams beside that of each model's sampled scan; the test NLL by nominal-range bin. Files are
-written atomically.
+the test beams beside that of each model's sampled scan; the test NLL by nominal-range bin. The files
+are written into a staging folder inside the report folder, then moved in one after the other, so
+that a run that fails or is stopped while writing leaves the previous report whole.
 """
 
 from __future__ import annotations
@@ -10,6 +11,9 @@ from __future__ import annotations
 import base64
 import html
 import json
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -166,8 +170,20 @@ def _shared_errors(settings: dict) -> str:
 
 
 def write_benchmark(result, out: Path) -> dict[str, Path]:
-    """Write the JSON, the figures and the HTML page of ``result`` into ``out``."""
+    """Write the JSON, the figures and the HTML page of ``result`` into ``out`` (see the module docstring)."""
     out.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".benchmark-", dir=out))
+    try:
+        files = _write_report(result, staging)
+        for key, path in files.items():
+            os.replace(path, out / path.name)
+            files[key] = out / path.name
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return files
+
+
+def _write_report(result, out: Path) -> dict[str, Path]:
     files = {
         "json": atomic_write(
             out / "benchmark.json", lambda f: f.write(json.dumps(result.to_json(), indent=1, default=float).encode())

@@ -88,3 +88,30 @@ def test_a_map_too_sparse_for_the_log_is_named(tmp_path):
     assert f"warning: {unmapped:.0%} of the test beams returned where their leave-out map has no wall" in " ".join(
         result.output.split()
     )
+
+
+def test_a_report_that_fails_while_written_leaves_the_previous_one_whole(tmp_path, monkeypatch):
+    """A run stopped while writing left a new benchmark.json beside the old benchmark.html (the input audit)."""
+    import mi_lidar.planar.report as report
+    from mi_lidar.planar.benchmark import run_planar_benchmark
+
+    result = run_planar_benchmark(room(tmp_path, 30), models=("M0",), protocol=PlanarProtocol(window=5.0))
+    out = tmp_path / "report"
+    report.write_benchmark(result, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert set(before) == {"benchmark.json", "benchmark.html", "nll.png", "residuals.png", "nll_by_range.png"}
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(report, "range_figure", stopped)  # after the JSON and two figures are written
+    (out / "benchmark.json").write_bytes(b"{}")  # the old report, as another run left it
+    before["benchmark.json"] = b"{}"
+    with pytest.raises(KeyboardInterrupt):
+        report.write_benchmark(result, out)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # nothing new moved in, no staging left
+    monkeypatch.undo()
+    files = report.write_benchmark(result, out)
+    assert json.loads((out / "benchmark.json").read_text())["models"][0]["model"] == "M0"
+    assert all(path.parent == out and path.exists() for path in files.values())
+    assert sorted(p.name for p in out.iterdir()) == sorted(before)
