@@ -18,9 +18,9 @@ mi-lidar   the permeable map: every cell with leave-out hits is an element at it
            many leave-out hits; whether to tell them apart is chosen held out), range and incidence
            (refined by EM over the segments, its far tails scaled by likelihood); a beam's return
            comes from its own trace or, by a fitted share, from a neighbouring beam's (its angular
-           spread); sampled scans share
-           errors between neighbouring beams as the real training scans do (a Gaussian copula on
-           the sampler's streams, :mod:`~mi_lidar.planar.correlation`; no effect on the NLL)
+           spread); sampled scans share errors between neighbouring beams as the real training
+           scans do (a Gaussian copula on the sampler's streams, :mod:`~mi_lidar.planar.correlation`;
+           no effect on the NLL)
 =========  ===================================================================================
 
 Bandwidths, priors and mi-lidar's evidence classes are chosen on the training scans only: the learned
@@ -324,8 +324,8 @@ def fit_permeable_map(
     (:func:`fit_tails`, on evenly spaced training scans of at most :data:`TAIL_BEAMS` beams) and their
     no-return probabilities (:func:`match_misses`, on all training beams: no-returns come in runs of
     whole scans); neither with ``tails=False``; last, the angular spread (the neighbours' share) by
-    maximum likelihood on the training beams. Its beams are sampled independently until :func:`fit_correlation` sets how
-    much neighbours share their errors.
+    maximum likelihood on the training beams. Its beams are sampled independently until
+    :func:`fit_correlation` sets how much neighbours share their errors.
     """
     h_r, h_i, u = bandwidths
     grid = fine_grid(samples_of(train), labels=2 * classes)
@@ -365,12 +365,17 @@ def fit_permeable_map(
 
     fitted.angular = angular_share()
     if tails:
-        some = fitted.beams(train.take(np.isin(train.scan, correlation_scans(train.scan, TAIL_BEAMS))))
+        some = fitted.beams(train.take(np.isin(train.scan, evenly_spaced_scans(train.scan, TAIL_BEAMS))))
         density = fit_tails(some, density, z_max)
-        mixture.weight = fitted.angular
+        mixture.weight = fitted.angular  # built before the spread was known
         fitted.model = base_model(z_max, match_misses(mixture, density, z_max))
         fitted.angular = angular_share()
     return fitted
+
+
+def training_nll(beams: AngularMixture, density: NPRegDensity, z_max: float) -> float:
+    """Mean score (nats per beam) of ``beams`` under the planar sensor model around ``density``."""
+    return float(-np.mean(beams.log_likelihood(base_model(z_max, density))))
 
 
 FAR = 0.5  # m: a return farther than this from its segment's surface is in the table's short or long tail
@@ -381,8 +386,7 @@ def with_tails(density: NPRegDensity, short: float, long: float) -> NPRegDensity
     and more than :data:`FAR` long by ``long`` (then each state renormalised; P(no return) unchanged)."""
     centres = 0.5 * (density.edges[1:] + density.edges[:-1])
     scale = np.where(centres < -FAR, short, np.where(centres > FAR, long, 1.0))
-    params = {**density.choices, **{k: np.asarray(v, np.float64) for k, v in density.params.items()}}
-    return NPRegDensity.from_tables(params, density.grid, {**density.tables(), "mass": density.mass * scale})
+    return density.with_tables(mass=density.mass * scale)
 
 
 def fit_tails(beams: AngularMixture, density: NPRegDensity, z_max: float, iterations: int = 10) -> NPRegDensity:
@@ -400,7 +404,7 @@ def fit_tails(beams: AngularMixture, density: NPRegDensity, z_max: float, iterat
     """
 
     def nll(short: float, long: float) -> float:
-        return float(-np.mean(beams.log_likelihood(base_model(z_max, with_tails(density, short, long)))))
+        return training_nll(beams, with_tails(density, short, long), z_max)
 
     short = golden_section(lambda x: nll(x, 1.0), 0.02, 2.0, iterations)
     long = golden_section(lambda x: nll(short, x), 0.02, 2.0, iterations)
@@ -426,28 +430,24 @@ def match_misses(beams: AngularMixture, density: NPRegDensity, z_max: float) -> 
     """
 
     def with_factor(factor: float) -> NPRegDensity:
-        params = {**density.choices, **{k: np.asarray(v, np.float64) for k, v in density.params.items()}}
-        p_null = np.minimum(density.p_null * factor, 1.0)
-        return NPRegDensity.from_tables(params, density.grid, {**density.tables(), "p_null": p_null})
+        return density.with_tables(p_null=np.minimum(density.p_null * factor, 1.0))
 
     def p_miss(d: NPRegDensity) -> float:
         return float(np.mean(beams.p_miss(base_model(z_max, d))))
-
-    def nll(d: NPRegDensity) -> float:
-        return float(-np.mean(beams.log_likelihood(base_model(z_max, d))))
 
     p0, p1 = p_miss(with_factor(0.0)), p_miss(density)
     if p1 - p0 < 1e-9:
         return density
     matched = with_factor(max(0.0, (float(np.mean(~beams.hit)) - p0) / (p1 - p0)))
-    return matched if nll(matched) < nll(density) + MISS_TOLERANCE else density
+    kept = training_nll(beams, matched, z_max) < training_nll(beams, density, z_max) + MISS_TOLERANCE
+    return matched if kept else density
 
 
 CORRELATION_BEAMS = 45_000  # at most this many training beams (whole scans) measure the shared errors
 TAIL_BEAMS = 30_000  # at most this many training beams (whole scans) fit the tables' tails
 
 
-def correlation_scans(scan: np.ndarray, beams: int = CORRELATION_BEAMS) -> np.ndarray:
+def evenly_spaced_scans(scan: np.ndarray, beams: int = CORRELATION_BEAMS) -> np.ndarray:
     """Evenly spaced scans (of the scan index of every beam, ``scan``) with at most ``beams`` beams in all."""
     scans = np.unique(scan)
     most = max(1, beams * scans.size // max(scan.size, 1))  # scans of that many beams
@@ -458,7 +458,7 @@ def fit_correlation(fitted: PermeableMap, train: PlanarTrace) -> tuple[BeamCorre
     """How much neighbouring beams share their errors (:func:`~mi_lidar.planar.correlation.fit_beam_correlation`),
     measured on evenly spaced training scans of at most :data:`CORRELATION_BEAMS` beams in all (the cost
     follows the beams, whatever the scanner's resolution)."""
-    part = train.take(np.isin(train.scan, correlation_scans(train.scan)))
+    part = train.take(np.isin(train.scan, evenly_spaced_scans(train.scan)))
     mixture = dataclasses.replace(fitted, correlation=BeamCorrelation()).beams(part)
 
     def sample(correlation: BeamCorrelation, seed: int):

@@ -249,10 +249,10 @@ def test_prepare_gives_the_same_traces_on_any_number_of_threads(room):
 @pytest.mark.parametrize("beams, kept", [(180, 243), (361, 122), (1, 728)])
 def test_the_shared_errors_are_measured_on_a_bounded_number_of_beams(beams, kept):
     """fit_correlation's scans: evenly spaced, at most CORRELATION_BEAMS beams whatever the scanner's resolution."""
-    from mi_lidar.planar.models import CORRELATION_BEAMS, correlation_scans
+    from mi_lidar.planar.models import CORRELATION_BEAMS, evenly_spaced_scans
 
     scan = np.repeat(np.arange(728) * 5 + 1, beams)  # 728 training scans, as in the Intel log
-    chosen = correlation_scans(scan)
+    chosen = evenly_spaced_scans(scan)
     assert chosen.size == kept
     assert chosen.size * beams <= max(CORRELATION_BEAMS, beams)
     assert np.unique(np.diff(chosen)).size == 1  # evenly spaced

@@ -60,13 +60,20 @@ class ReturnDensity(Parametrized, metaclass=abc.ABCMeta):
         """The arrays saved to a density file beside the parameters (none for a parametric density)."""
         return {}
 
+    def settings(self) -> dict:
+        """Its options and every parameter (as lists of floats): what :meth:`from_tables` is built from."""
+        return {**self.choices, **{k: np.asarray(v, np.float64).tolist() for k, v in self.params.items()}}
+
+    def with_tables(self, **tables) -> ReturnDensity:
+        """A copy of this learned density with the tables named in ``tables`` replaced (see :meth:`tables`)."""
+        return type(self).from_tables(self.settings(), self.grid, {**self.tables(), **tables})
+
     def save(self, path, notes: dict | None = None):
         """Write this density to ``path`` (``.npz``; reference it as ``name(file=...)``): its options, every
         parameter, and a learned density's grid and tables."""
         from mi_lidar.core.densities.tables import save_density
 
-        params = {**self.choices, **{k: np.asarray(v, np.float64).tolist() for k, v in self.params.items()}}
-        return save_density(path, self.name, params, self.grid, self.tables(), notes)
+        return save_density(path, self.name, self.settings(), self.grid, self.tables(), notes)
 
     def prepare(self, seg: Segment, rays: RayBatch) -> Segment:
         """Set the family's law of each segment from its state (default: the element's own)."""
