@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import gzip
 import sys
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -29,26 +28,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mi_lidar.core.atomic import atomic_write  # noqa: E402
 from mi_lidar.core.errors import LogFormatError  # noqa: E402
-from mi_lidar.io.carmen import beam_angles  # noqa: E402
+from mi_lidar.io.carmen import beam_angles, parse_message, text_lines  # noqa: E402
 
 
 def flaser_tokens(lines: list[str]) -> list[list[str]]:
-    """The tokens of every FLASER line, checked as ``read_carmen`` checks them (LogFormatError naming the line)."""
+    """The tokens of every FLASER line, parsed as ``read_carmen`` parses them (LogFormatError naming the line)."""
     out = []
     for number, line in enumerate(lines, start=1):
         tokens = line.split()
         if tokens[:1] != ["FLASER"]:
             continue
-        try:
-            n = int(tokens[1])
-            values = np.array(tokens[2 : 2 + n + 7], dtype=np.float64)
-        except (IndexError, ValueError) as exc:
-            raise LogFormatError(f"line {number}: malformed FLASER message ({exc}): repair or delete the line") from exc
-        if n < 2 or len(values) != n + 7 or len(tokens) < n + 10:
-            raise LogFormatError(
-                f"line {number}: FLASER with n={n} needs {n + 10} fields (n >= 2); found {len(tokens)} (truncated?): "
-                "repair or delete the line"
-            )
+        values = parse_message(tokens, number)
         if not np.isfinite(values).all():
             bad = tokens[2 + int(np.argmin(np.isfinite(values)))]
             raise LogFormatError(f"line {number}: FLASER value {bad!r} is not finite: repair or delete the line")
@@ -127,15 +117,12 @@ def main() -> None:
             f"{args.target}: is a folder; give the derived log's file name, e.g. {args.target / 'derived.log.gz'}"
         )
     try:
-        raw = args.source.read_bytes()
-        if raw[:2] == b"\x1f\x8b":
-            try:
-                raw = gzip.decompress(raw)
-            except (EOFError, OSError, zlib.error) as exc:
-                raise LogFormatError(f"corrupt or truncated gzip stream ({exc})") from exc
-        text = raw.decode("utf-8", errors="replace")
+        source = text_lines(args.source)
+    except LogFormatError as exc:  # names the file itself
+        parser.exit(2, f"error: {exc}\n")
+    try:
         lines = derive(
-            text.splitlines(),
+            source,
             args.every,
             args.beams,
             args.clip,

@@ -38,7 +38,7 @@ NO_RETURN_BAND = 0.2  # m: no-return codes of one scanner lie within this band b
 BACKGROUND = 5.0  # m: the readings this far below the codes give the background density of real returns
 
 
-def _lines(path: Path) -> list[str]:
+def text_lines(path: Path) -> list[str]:
     """Decoded text lines of a plain or gzip-compressed file."""
     try:
         raw = path.read_bytes()
@@ -53,6 +53,30 @@ def _lines(path: Path) -> list[str]:
         except (OSError, EOFError, zlib.error) as exc:
             raise LogFormatError(f"{path}: corrupt or truncated gzip stream ({exc})") from exc
     return raw.decode("utf-8", errors="replace").splitlines()
+
+
+def parse_message(tokens: list[str], number: int) -> np.ndarray:
+    """The (n + 7,) values of one laser line's ``tokens`` (``NAME n ranges... x y theta odom_x odom_y
+    odom_theta timestamp host logger_timestamp``): its n ranges, pose, odometry and timestamp.
+
+    Raises:
+        LogFormatError: a beam count below 2, a non-numeric value or too few fields (``number``: the
+            line's number, named in the message).
+    """
+    name = tokens[0]
+    try:
+        n = int(tokens[1])
+        if n <= 1:
+            raise ValueError(f"beam count {n} must be > 1")
+        values = np.array(tokens[2 : 2 + n + 7], dtype=np.float64)
+    except (IndexError, ValueError) as exc:
+        raise LogFormatError(f"line {number}: malformed {name} message ({exc}): repair or delete the line") from exc
+    if len(values) != n + 7 or len(tokens) < n + 10:
+        raise LogFormatError(
+            f"line {number}: {name} with n={n} needs {n + 10} fields (n ranges + 10); found {len(tokens)} "
+            "(truncated?): repair or delete the line"
+        )
+    return values
 
 
 def beam_angles(n: int) -> np.ndarray:
@@ -128,23 +152,17 @@ def read_carmen(
     if not path.is_file():
         raise LogFormatError(f"{path}: no such CARMEN log")
     rows, widths, numbers, others = [], {}, [], {}
-    for number, line in enumerate(_lines(path), start=1):
+    for number, line in enumerate(text_lines(path), start=1):
         tokens = line.split()
         if not tokens or tokens[0] != message:
             if tokens and "LASER" in tokens[0]:
                 others[tokens[0]] = others.get(tokens[0], 0) + 1
             continue
         try:
-            n = int(tokens[1])
-            if n <= 1:
-                raise ValueError(f"beam count {n} must be > 1")
-            values = np.array(tokens[2 : 2 + n + 7], dtype=np.float64)
-        except (IndexError, ValueError) as exc:
-            raise LogFormatError(f"{path}: line {number}: malformed {message} message ({exc})") from exc
-        if len(values) != n + 7 or len(tokens) < n + 10:
-            raise LogFormatError(
-                f"{path}: line {number}: {message} with n={n} needs {n + 10} fields; found {len(tokens)} (truncated?)"
-            )
+            values = parse_message(tokens, number)
+        except LogFormatError as exc:
+            raise LogFormatError(f"{path}: {exc}") from exc
+        n = len(values) - 7
         rows.append(values)
         widths.setdefault(n, number)
         numbers.append(number)
