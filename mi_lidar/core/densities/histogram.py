@@ -192,9 +192,7 @@ class NPRegDensity(ReturnDensity):
         )
 
     def escape(self, rays: RayBatch) -> Segment:
-        return escape_segment(
-            rays, drop=dr.gather(mi.Float, self._p_null, dr.full(mi.UInt32, self.grid.size, rays.width))
-        )
+        return escape_segment(rays)  # prepare() gives it the escape state's P(null), as to any segment
 
     def log_prob(self, seg: Segment, z: mi.Float, rays: RayBatch) -> mi.Float:
         state = self.state(seg, rays)
