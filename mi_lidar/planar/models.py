@@ -425,12 +425,17 @@ def match_misses(beams: AngularMixture, density: NPRegDensity, z_max: float) -> 
     in a common factor on them (Intel: within 1e-4 nats per beam from 0.8 to 1), so the factor is set by
     the training beams' no-return rate instead: P(miss) is linear in it, ``P(miss) = P0 + factor (P1 -
     P0)`` with ``P0`` (no table misses, only escapes) and ``P1`` (the tables as they are) the mean
-    P(miss) of ``beams``; each probability is capped at 1. Kept only if the mean training score
-    loses less than :data:`MISS_TOLERANCE`; otherwise ``density`` is returned unchanged.
+    P(miss) of ``beams``; each probability is capped at 1. The escape state (a beam that met no cell) is
+    left as it is: its P(null) is counted from its own beams, not smoothed across states (scaled with
+    the rest, Edmonton's beams that met no cell were predicted to miss 34 % of the time where 41 % did;
+    left, 40 %, test NLL 4.1754 -> 4.1743). Kept only if the mean training score loses less than
+    :data:`MISS_TOLERANCE`; otherwise ``density`` is returned unchanged.
     """
 
     def with_factor(factor: float) -> NPRegDensity:
-        return density.with_tables(p_null=np.minimum(density.p_null * factor, 1.0))
+        scaled = np.minimum(density.p_null * factor, 1.0)
+        scaled[-1] = density.p_null[-1]  # the escape state
+        return density.with_tables(p_null=scaled)
 
     def p_miss(d: NPRegDensity) -> float:
         return float(np.mean(beams.p_miss(base_model(z_max, d))))

@@ -69,7 +69,8 @@ def test_an_inflated_tail_is_pulled_back_and_the_score_improves(room_map):
 def test_no_returns_are_matched_to_the_training_beams(tmp_path):
     """A sensor that clips at 7 m in the room: tables whose no-return probabilities are doubled predict far
     more no-returns than the training beams have; matched, the mean P(miss) equals their rate (within 2e-4,
-    float32 sums) and the training score improves (measured by 0.006 nats per beam). Matching the tables
+    float32 sums), the escape state (beams that met no cell) keeps its counted P(null), and the training score
+    improves (measured by 0.006 nats per beam). Matching the tables
     as fitted brings their rate closer and moves the score less than MISS_TOLERANCE."""
     from mi_lidar.planar.models import MISS_TOLERANCE
 
@@ -93,6 +94,8 @@ def test_no_returns_are_matched_to_the_training_beams(tmp_path):
     assert p_miss(doubled) > 1.3 * measured
     matched = match_misses(beams, doubled, z_max)
     assert p_miss(matched) == pytest.approx(measured, abs=2e-4)
+    escaping = doubled.with_tables(p_null=np.concatenate([doubled.p_null[:-1], [0.6]]))
+    assert match_misses(beams, escaping, z_max).p_null[-1] == 0.6  # the escape state keeps its counted P(null)
     assert nll(matched) < nll(doubled) - 0.003, (nll(matched), nll(doubled))
     again = match_misses(beams, density, z_max)
     assert abs(p_miss(again) - measured) <= abs(p_miss(density) - measured)  # closer (P(miss) capped at 1)
