@@ -78,6 +78,19 @@ capped at the maximum range) reached at most 1.1-1.3x the raw loop, so short of 
 sampler's own cost above the raw loop is the final draw at the returning element (density sample,
 surface interaction, intensity: about 0.6 first hits).
 
+Tight boxes do not help either (measured 2026-11-26, same rays, same 100k ellipsoids; scripts kept
+out of the repository): the ellipsoids as circumscribed triangle shells (Mitsuba's `ellipsoidsmesh`
+with back faces culled, or one `mi.Mesh` skipping exit faces, 20 to 320 faces each), each shell hit
+checked against the analytic ellipsoid and the nearest analytic entry kept, ran at 0.55-0.6x the
+analytic loop with culling (1.69 against 3.10 Mrays/s for 320 faces on a quiet machine) and 0.3x
+without, for 9-65 s of build and 0.25-2.7 GB more memory. Culled, the shells need no more rounds per
+ray than the analytic loop (1.99), but every restart costs 2-3.5x more (223 against 125 ns per ray in
+round 1, 2,191 against 636 ns in round 8, each round traced alone): the late rounds are dear because
+of where the surviving rays are (deep in clumps, scattered), not because of the boxes. Both loops
+agree on the returning element for all but 0.02 % of rays (entries less than the 1e-4 m restart
+offset apart, and float32 grazing rays). Reaching 10 Mrays/s here needs fewer restarts, not another
+acceleration structure.
+
 Why the terrain rows stay near 1x Open3D on an AVX2 machine (measured 2026-11-26 with Dr.Jit's kernel
 history, 1M rays, opaque terrain): `simulate_rays` is two kernels, the walk (75-98 ms: the coherent
 preliminary trace, 52-62 ms alone, plus the hit probability, one random number and the beam-end state
