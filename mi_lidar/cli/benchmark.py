@@ -37,7 +37,7 @@ def benchmark_planar(
 
         mi-lidar benchmark-planar building.log.gz --out reports/building --max-range 50
     """
-    from mi_lidar.planar.benchmark import MAP_ERROR_WARNING, MODELS, SAMPLED_SCANS, UNMAPPED_WARNING, benchmark_file
+    from mi_lidar.planar.benchmark import MODELS, SAMPLED_SCANS, benchmark_file
     from mi_lidar.planar.protocol import PlanarProtocol
     from mi_lidar.planar.report import REFERENCE
 
@@ -79,20 +79,8 @@ def benchmark_planar(
     samples.add_row(REFERENCE, *sample_figures(result.reference))
     console.print(scores)
     console.print(samples)
-    unmapped = result.nominal["unmapped_returns"]
-    if unmapped > UNMAPPED_WARNING:
-        console.print(
-            f"warning: {unmapped:.0%} of the test beams returned where their leave-out map has no wall, so the "
-            "figures score the map more than the sensor: give a longer log that passes the same places more often, "
-            "or a smaller --radius or --window"
-        )
-    off = result.nominal["median_abs_err"]
-    if off > MAP_ERROR_WARNING:
-        console.print(
-            f"warning: the test returns lie a median {off:.2f} m from their leave-out map's walls (SLAM-corrected "
-            "logs: 5-9 cm), so the figures score the map more than the sensor: check that the poses are "
-            "SLAM-corrected (raw odometry drifts), and that the scene holds still"
-        )
+    for warning in result.warnings():
+        console.print(f"warning: {warning}")
     no_return = result.data.log.sensor["max_range_m"]
     console.print(
         (f"no-return value {no_return:g} m" if no_return < float("inf") else "no no-return value in the log")

@@ -125,6 +125,25 @@ class PlanarBenchmark:
     no_return: float = float("nan")
     reference: dict = field(default_factory=dict)
 
+    def warnings(self) -> list[str]:
+        """What makes this run's figures score the map more than the sensor, one sentence each (the CLI
+        prints them, the report shows them)."""
+        out = []
+        unmapped, off = self.nominal["unmapped_returns"], self.nominal["median_abs_err"]
+        if unmapped > UNMAPPED_WARNING:
+            out.append(
+                f"{unmapped:.0%} of the test beams returned where their leave-out map has no wall, so the figures "
+                "score the map more than the sensor: give a longer log that passes the same places more often, or "
+                "a smaller --radius or --window"
+            )
+        if off > MAP_ERROR_WARNING:
+            out.append(
+                f"the test returns lie a median {off:.2f} m from their leave-out map's walls (SLAM-corrected logs: "
+                "5-9 cm), so the figures score the map more than the sensor: check that the poses are "
+                "SLAM-corrected (raw odometry drifts), and that the scene holds still"
+            )
+        return out
+
     def to_json(self) -> dict:
         log = self.data.log
         return {
@@ -137,6 +156,7 @@ class PlanarBenchmark:
             "test_beams": self.data.test.n,
             "train_beams": self.data.train.n,
             "nominal": self.nominal,
+            "warnings": self.warnings(),
             "seconds": self.seconds,
             "settings": self.settings,
             "models": [r.to_json() for r in self.rows],

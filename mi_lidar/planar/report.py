@@ -212,6 +212,7 @@ long {nominal["long"]:.3f}, measured misses {nominal["measured_miss"]:.3f},
 nominal misses {nominal["nominal_miss"]:.3f} (of which returned: {nominal["unmapped_returns"]:.3f}),
 incidence known for {nominal["incidence_known"]:.2f} of
 nominal hits.</p>
+{"".join(f'<p style="color:#a40"><b>Warning:</b> {html.escape(w)}</p>' for w in info["warnings"])}
 {_table(result.rows, result.reference)}
 <p>Sample metrics compare one scan sampled from each model with the measured scan, beam by beam: a model
 that reproduces the log's share of short and long returns (people, glass, doors) draws them at other

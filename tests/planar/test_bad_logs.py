@@ -124,6 +124,9 @@ def test_poses_that_drift_are_named(tmp_path):
         warned = "warning: the test returns lie a median" in " ".join(result.output.split())
         assert warned == (name == "drift"), (name, off, result.output)
         assert (off > 0.15) == (name == "drift"), (name, off)
+        report = json.loads((tmp_path / name / "benchmark.json").read_text())
+        html = (tmp_path / name / "benchmark.html").read_text()
+        assert (len(report["warnings"]) == 1) == (name == "drift") == ("<b>Warning:</b> the test returns lie" in html)
 
 
 def test_a_report_that_fails_while_written_leaves_the_previous_one_whole(tmp_path, monkeypatch):
