@@ -38,7 +38,7 @@ MODELS = ("M0", "M1", "M2a", "M2b", "M3a", "M3b", "P-Reg", "NP-Reg", "mi-lidar")
 SAMPLED_SCANS = 8  # sampled test scans per model for the CRPS (seeds seed, seed + 1, ...)
 UNMAPPED_WARNING = 0.2  # above this share of test beams returning where their map has no wall, the map is too sparse
 MAP_ERROR_WARNING = 0.15  # m: above this median |z - r| of the test returns, map error outweighs the sensor
-# (SLAM-corrected logs measured 2026-11-26: 0.048-0.089 m; Intel with its odometry's poses: 0.235 m)
+# (ten SLAM-corrected logs measured 2026-11-26: 0.039-0.089 m; Intel with its odometry's poses: 0.235 m)
 SAMPLE_KEYS = (  # the sample metrics the report keeps (:func:`~mi_lidar.core.metrics.metrics_of`)
     "range_error_median",
     "range_error_p90",
@@ -139,7 +139,7 @@ class PlanarBenchmark:
         if off > MAP_ERROR_WARNING:
             out.append(
                 f"the test returns lie a median {off:.2f} m from their leave-out map's walls (SLAM-corrected logs: "
-                "5-9 cm), so the figures score the map more than the sensor: check that the poses are "
+                "4-9 cm), so the figures score the map more than the sensor: check that the poses are "
                 "SLAM-corrected (raw odometry drifts), and that the scene holds still"
             )
         return out
