@@ -434,7 +434,8 @@ def match_misses(beams: AngularMixture, density: NPRegDensity, z_max: float) -> 
 
     def with_factor(factor: float) -> NPRegDensity:
         scaled = np.minimum(density.p_null * factor, 1.0)
-        scaled[-1] = density.p_null[-1]  # the escape state
+        escape = density.grid.size  # the escape state's index (NPRegDensity.state)
+        scaled[escape:] = density.p_null[escape:]
         return density.with_tables(p_null=scaled)
 
     def p_miss(d: NPRegDensity) -> float:
