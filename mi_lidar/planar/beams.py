@@ -300,7 +300,11 @@ def permeability(hits: np.ndarray, passes: np.ndarray, a, b):
 
 
 def fit_permeability(
-    beams: EngineBeams, model, steps: int = 120, tolerance: float | None = PERMEABILITY_TOLERANCE
+    beams: EngineBeams,
+    model,
+    steps: int = 120,
+    tolerance: float | None = PERMEABILITY_TOLERANCE,
+    start: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The Beta priors ``(a, b)`` of the cells' interception probabilities, one per occupancy class, by the one fitter.
 
@@ -312,15 +316,17 @@ def fit_permeability(
     is computed once (:func:`~mi_lidar.core.trace.cache_distributions`) and a step is a few gathers.
     The fit stops after at most ``steps`` steps, or once the mean score improved by less than
     ``tolerance`` (nats per beam; None: never) over 15 steps (on the Intel log after 50-64 of 120
-    steps, within 1e-4 nats per beam of the 120-step loss).
+    steps, within 1e-4 nats per beam of the 120-step loss). ``start``: the ``(a, b)`` to start from
+    (default 0.5 each), e.g. the previous EM round's.
     """
     cache = RayCache.from_rounds(cache_distributions(beams.rounds, beams.table, model, beams.rays, beams.z))
     batch = cache.batch(np.arange(beams.n))
     hits, passes = _f(beams.hits), _f(beams.passes)
     occupied = mi.UInt32(aligned(beams.occupied.astype(np.uint32)))
+    a0, b0 = start if start is not None else ([0.5, 0.5], [0.5, 0.5])
     variables = [
-        FitVariable("a", [0.5, 0.5], lower=1e-3, upper=100.0, scale=0.5, transform="log"),
-        FitVariable("b", [0.5, 0.5], lower=1e-3, upper=100.0, scale=0.5, transform="log"),
+        FitVariable("a", a0, lower=1e-3, upper=100.0, scale=0.5, transform="log"),
+        FitVariable("b", b0, lower=1e-3, upper=100.0, scale=0.5, transform="log"),
     ]
 
     def objective(values, step: int) -> float:

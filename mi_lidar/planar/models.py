@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mi_lidar.core.densities import BeamDensity, NPRegDensity, PhysicsDensity
-from mi_lidar.core.densities.histogram import _finish, count_states, fit_binned_histogram, fit_np_reg, kernel_weights
+from mi_lidar.core.densities.histogram import _finish, count_states, fit_binned_histogram, fit_np_reg, kernel_smooth
 from mi_lidar.core.densities.preg import fit_p_reg
 from mi_lidar.core.densities.samples import StateSamples, protocol_residual_edges
 from mi_lidar.core.densities.tables import StateGrid
@@ -294,14 +294,18 @@ def fit_milidar(
     A log whose cells are seen by many scans gains from telling well-seen walls from cells seen once;
     a sparser log spreads its returns over too many states and keeps occupancy alone.
     """
+    prior = None  # each fit of the Beta priors starts from the last one's
     if len(classes) > 1:
         fit_part, check = train.take(train.scan % 2 == 0), train.take(train.scan % 2 == 1)
-        scores = []
+        scores, priors = [], []
         for k in classes:
-            trial = fit_permeable_map(fit_part, z_max, bandwidths, k, rounds=1, tails=False)
+            trial = fit_permeable_map(fit_part, z_max, bandwidths, k, rounds=1, tails=False, prior=prior)
             scores.append(-float(np.mean(trial.beams(check).log_likelihood(trial.model))))
-        classes = (classes[int(np.argmin(scores))],)
-    fitted = fit_permeable_map(train, z_max, bandwidths, classes[0])
+            prior = (trial.a, trial.b)
+            priors.append(prior)
+        best = int(np.argmin(scores))
+        classes, prior = (classes[best],), priors[best]
+    fitted = fit_permeable_map(train, z_max, bandwidths, classes[0], prior=prior)
     fitted.correlation, fitted.shared_errors = fit_correlation(fitted, train)
     return fitted
 
@@ -314,6 +318,7 @@ def fit_permeable_map(
     rounds: int = 3,
     steps: int = 120,
     tails: bool = True,
+    prior: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> PermeableMap:
     """mi-lidar's permeable map with ``classes`` evidence classes (see the module docstring).
 
@@ -325,12 +330,13 @@ def fit_permeable_map(
     no-return probabilities (:func:`match_misses`, on all training beams: no-returns come in runs of
     whole scans); neither with ``tails=False``; last, the angular spread (the neighbours' share) by
     maximum likelihood on the training beams. Its beams are sampled independently until
-    :func:`fit_correlation` sets how much neighbours share their errors.
+    :func:`fit_correlation` sets how much neighbours share their errors. Every fit of the Beta prior
+    starts from the previous one's, the first from ``prior`` (default 0.5 each): a starting point,
+    not a constraint.
     """
     h_r, h_i, u = bandwidths
     grid = fine_grid(samples_of(train), labels=2 * classes)
     edges = protocol_residual_edges(z_max)
-    weights = kernel_weights(grid, h_r, h_i)
     labels = segment_labels(train.seg_occupied, train.seg_hits, classes)
     first = first_occupied(train)
 
@@ -347,15 +353,15 @@ def fit_permeable_map(
             hit=train.hit,
         )
         counts = count_states(assigned, grid, edges)
-        mass, p_null = _finish(np.concatenate([weights @ counts[:-1], counts[-1:]]), e_kernel=True)
+        mass, p_null = _finish(np.concatenate([kernel_smooth(grid, counts[:-1], h_r, h_i), counts[-1:]]), e_kernel=True)
         return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=z_max)
 
     density = tables(first)
     beams = segment_beams(train, classes)
     for _ in range(rounds):
-        a, b = fit_permeability(beams, base_model(z_max, density), steps)
-        density = tables(_responsibilities(train, density, a, b, classes))
-    a, b = fit_permeability(beams, base_model(z_max, density), steps)
+        prior = fit_permeability(beams, base_model(z_max, density), steps, start=prior)
+        density = tables(_responsibilities(train, density, *prior, classes))
+    a, b = fit_permeability(beams, base_model(z_max, density), steps, start=prior)
     fitted = PermeableMap(model=base_model(z_max, density), a=a, b=b, classes=classes)
     mixture = fitted.beams(train)
 

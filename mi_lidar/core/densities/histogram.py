@@ -313,10 +313,14 @@ def fit_binned_histogram(
     )
 
 
-def kernel_weights(grid: StateGrid, h_range: float, h_incidence: float) -> np.ndarray:
-    """(S, S) Gaussian kernel ``W`` over state centres (range m, incidence deg); beams and labels apart.
+def kernel_smooth(grid: StateGrid, counts: np.ndarray, h_range: float, h_incidence: float) -> np.ndarray:
+    """``W @ counts``: (S, B) per-state counts smoothed across states by the Gaussian kernel ``W``.
 
-    The unknown-incidence bin only mixes with itself (across ranges).
+    ``W`` weighs states by their centres' distance in range (m, bandwidth ``h_range``) and incidence
+    (deg, ``h_incidence``); beams and labels stay apart, and the unknown-incidence bin only mixes with
+    itself (across ranges). The kernel is a product of a range and an incidence factor, so it is
+    applied as two small products along those axes of the (beam x label, incidence, range, B) counts
+    rather than as the dense (S, S) matrix (which took seconds on a fine grid).
     """
     edges = np.asarray(grid.range_edges, np.float64)
     upper = np.where(np.isfinite(edges[1:]) & (edges[1:] < 1e6), edges[1:], edges[:-1] + 1.0)
@@ -332,8 +336,10 @@ def kernel_weights(grid: StateGrid, h_range: float, h_incidence: float) -> np.nd
     w_i = np.where(np.isnan(di), 0.0, np.exp(-0.5 * np.nan_to_num(di) ** 2))
     unknown = np.isnan(inc)
     w_i[np.ix_(unknown, unknown)] = 1.0
-    block = np.kron(w_i, w_r)  # (inc, range) ordering of StateGrid.index
-    return np.kron(np.eye(grid.n_beams * grid.n_labels), block)
+    blocks = counts.reshape(-1, grid.n_incidence, grid.n_range, counts.shape[-1])  # StateGrid.index ordering
+    smoothed = np.einsum("rs,gisb->girb", w_r, blocks)
+    smoothed = np.einsum("ij,gjrb->girb", w_i, smoothed)
+    return smoothed.reshape(counts.shape)
 
 
 def fit_np_reg(
@@ -367,7 +373,7 @@ def fit_np_reg(
     candidates = list(itertools.product(h_ranges, h_incidences if grid.incidence_edges else (1.0,), uniforms))
 
     def build(h_r: float, h_i: float, u: float) -> NPRegDensity:
-        smoothed = np.concatenate([kernel_weights(grid, h_r, h_i) @ counts[:-1], counts[-1:]])
+        smoothed = np.concatenate([kernel_smooth(grid, counts[:-1], h_r, h_i), counts[-1:]])
         mass, p_null = _finish(smoothed, e_kernel=True)
         return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=z_max)
 

@@ -1,0 +1,63 @@
+"""NP-Reg's smoothing across states is the thesis's ``H W`` with the Gaussian kernel ``W``.
+
+``kernel_smooth`` applies ``W`` factor by factor (range, then incidence); the test builds ``W``
+itself, as the dense (S, S) matrix of the definition, and compares.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mi_lidar.core.densities.histogram import kernel_smooth
+from mi_lidar.core.densities.tables import StateGrid
+
+
+def dense_kernel(grid: StateGrid, h_range: float, h_incidence: float) -> np.ndarray:
+    """``W[s, t] = exp(-dr^2 / 2 h_r^2) exp(-di^2 / 2 h_i^2)`` over the states in ``StateGrid.index_np`` order.
+
+    Beams and labels never mix; the unknown-incidence bin mixes only with itself; the open last range
+    bin's centre is 0.5 m past its lower edge.
+    """
+    edges = np.asarray(grid.range_edges, np.float64)
+    upper = np.where(edges[1:] < 1e6, edges[1:], edges[:-1] + 1.0)
+    centres_r = 0.5 * (edges[:-1] + upper)
+    n_known = len(grid.incidence_edges) - 1 if grid.incidence_edges else 1
+    inc_edges = np.asarray(grid.incidence_edges or [0.0, 0.0], np.float64)
+    centres_i = 0.5 * (inc_edges[:-1] + inc_edges[1:])
+
+    def parts(state: int) -> tuple[int, int, int]:
+        """(beam x label group, incidence bin, range bin) of a flat state index."""
+        per_group = grid.n_incidence * grid.n_range
+        return state // per_group, (state // grid.n_range) % grid.n_incidence, state % grid.n_range
+
+    w = np.zeros((grid.size, grid.size))
+    for s in range(grid.size):
+        group_s, i_s, r_s = parts(s)
+        for t in range(grid.size):
+            group_t, i_t, r_t = parts(t)
+            if group_s != group_t:
+                continue
+            unknown_s, unknown_t = i_s >= n_known, i_t >= n_known
+            if unknown_s != unknown_t:
+                continue
+            di = 0.0 if unknown_s else (centres_i[i_s] - centres_i[i_t]) / h_incidence
+            dr = (centres_r[r_s] - centres_r[r_t]) / h_range
+            w[s, t] = np.exp(-0.5 * dr**2) * np.exp(-0.5 * di**2)
+    return w
+
+
+@pytest.mark.parametrize(
+    "grid",
+    [
+        StateGrid(
+            range_edges=[0.0, 1.0, 2.5, 4.0, 1e9], incidence_edges=[0.0, 30.0, 60.0, 90.0], n_beams=2, n_labels=2
+        ),
+        StateGrid(range_edges=[0.0, 0.5, 1.0, 1.5, 1e9], n_labels=3),
+    ],
+    ids=["range-incidence-beams-labels", "range-labels"],
+)
+def test_kernel_smooth_is_the_dense_kernel_product(grid):
+    counts = np.random.default_rng(3).poisson(2.0, (grid.size, 7)).astype(np.float64)
+    expected = dense_kernel(grid, 1.3, 25.0) @ counts
+    np.testing.assert_allclose(kernel_smooth(grid, counts, 1.3, 25.0), expected, rtol=1e-12, atol=1e-12)
