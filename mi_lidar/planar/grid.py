@@ -97,15 +97,22 @@ def planar_beams(log: Log, scans: np.ndarray | None = None):
 def march_cells(
     grid: Grid, origin: np.ndarray, direction: np.ndarray, length: np.ndarray, step: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Cells each ray crosses on ``[0, length)``, sampled every ``step`` m: unique (ray, cell) pairs, sorted."""
+    """Cells each ray crosses on ``[0, length)``, sampled every ``step`` m: unique (ray, cell) pairs.
+
+    Rays come in order, each ray's cells in the order it crosses them. A straight ray never enters a
+    cell again once it has left it (the sampled coordinates are monotone along it), so its samples'
+    cells repeat only in runs, and dropping the repeats of a run leaves every cell once.
+    """
     count = np.maximum(np.ceil(length / step).astype(np.int64), 0)
     ray = np.repeat(np.arange(len(count)), count)
     first = np.repeat(np.cumsum(count) - count, count)
     t = (np.arange(ray.size) - first) * step
     flat = grid.cell_of(origin[ray] + t[:, None] * direction[ray])
     keep = flat >= 0
-    key = np.unique(ray[keep] * grid.size + flat[keep])
-    return key // grid.size, key % grid.size
+    ray, flat = ray[keep], flat[keep]
+    new = np.ones(ray.size, bool)
+    new[1:] = (flat[1:] != flat[:-1]) | (ray[1:] != ray[:-1])
+    return ray[new], flat[new]
 
 
 @dataclass

@@ -30,6 +30,27 @@ def test_march_cells_lists_each_crossed_cell_once():
     assert np.array_equal(cell, np.sort(cell)) and len(np.unique(cell)) == len(cell) == 21
 
 
+def test_march_cells_gives_every_sampled_cell_once_per_ray_in_order():
+    """Any direction, several rays: the pairs are those of every sample, once each, in the order along each ray."""
+    grid = Grid(origin=np.array([0.0, 0.0]), cell=0.05, shape=(80, 80))
+    rng = np.random.default_rng(5)
+    angle = rng.uniform(0.0, 2.0 * np.pi, 40)
+    origin = rng.uniform(1.0, 3.0, (40, 2))
+    direction = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    length = rng.uniform(0.0, 3.0, 40)  # some rays leave the grid
+    ray, cell = march_cells(grid, origin, direction, length, 0.0125)
+    assert np.all(np.diff(ray) >= 0)
+    for k in range(40):
+        t = np.arange(int(np.ceil(length[k] / 0.0125))) * 0.0125
+        sampled = grid.cell_of(origin[k] + t[:, None] * direction[k])
+        sampled = sampled[sampled >= 0]
+        mine = cell[ray == k]
+        assert len(np.unique(mine)) == len(mine)  # once each
+        assert set(mine) == set(sampled)
+        first_seen = sampled[np.sort(np.unique(sampled, return_index=True)[1])]
+        np.testing.assert_array_equal(mine, first_seen)  # in the order the ray crosses them
+
+
 def test_leave_out_drops_the_scans_near_in_space_and_time(room):
     log = read_carmen(room)
     excluded = PROTOCOL.excluded(log, 10)
