@@ -20,6 +20,9 @@ def benchmark_planar(
     cell: float = typer.Option(0.05, min=0.005, max=1.0, help="Map cell (m)."),
     radius: float = typer.Option(1.0, min=0.0, help="A test scan's map leaves out scans within this distance (m) ..."),
     window: float = typer.Option(30.0, min=0.0, help="... and within this time (s) of it."),
+    train_beams: int = typer.Option(
+        300_000, min=0, help="Fit on at most this many training beams (evenly spaced scans of a longer log; 0: all)."
+    ),
     model: list[str] | None = typer.Option(
         None, "--model", "-m", help="Only these models (repeatable): M0 M1 M2a M2b M3a M3b P-Reg NP-Reg mi-lidar."
     ),
@@ -46,7 +49,7 @@ def benchmark_planar(
             log,
             out,
             max_range,
-            PlanarProtocol(cell=cell, test_every=test_every, radius=radius, window=window),
+            PlanarProtocol(cell=cell, test_every=test_every, radius=radius, window=window, train_beams=train_beams),
             tuple(model) if model else MODELS,
             progress=lambda done, total, label: update(done, total, label),
         )
@@ -81,6 +84,11 @@ def benchmark_planar(
     console.print(samples)
     for warning in result.warnings():
         console.print(f"warning: {warning}")
+    if result.data.train.n < result.train_beams_in_log:
+        console.print(
+            f"fitted on {result.data.train.n:,} of the log's {result.train_beams_in_log:,} training beams "
+            "(evenly spaced scans; --train-beams 0 fits on all)"
+        )
     no_return = result.data.log.sensor["max_range_m"]
     console.print(
         (f"no-return value {no_return:g} m" if no_return < float("inf") else "no no-return value in the log")

@@ -144,6 +144,12 @@ class PlanarBenchmark:
             )
         return out
 
+    @property
+    def train_beams_in_log(self) -> int:
+        """Beams of every training scan of the log (``data.train`` has fewer when the protocol thinned them)."""
+        log, every = self.data.log, self.data.protocol.test_every
+        return int(np.count_nonzero(np.arange(log.shape[0]) % every != 0)) * int(log.shape[1])
+
     def to_json(self) -> dict:
         log = self.data.log
         return {
@@ -155,6 +161,7 @@ class PlanarBenchmark:
             "protocol": self.data.protocol.__dict__,
             "test_beams": self.data.test.n,
             "train_beams": self.data.train.n,
+            "train_beams_in_log": self.train_beams_in_log,
             "nominal": self.nominal,
             "warnings": self.warnings(),
             "seconds": self.seconds,

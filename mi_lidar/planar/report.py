@@ -198,12 +198,14 @@ def _write_report(result, out: Path) -> dict[str, Path]:
     )
     info = result.to_json()
     nominal = info["nominal"]
+    every = info["train_beams_in_log"]
+    thinned = f" (of the log's {every:,}: evenly spaced scans)" if info["train_beams"] < every else ""
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>planar benchmark</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto}}table{{border-collapse:collapse}}
 td,th{{border:1px solid #ccc;padding:3px 6px;font-size:13px;text-align:right}}th{{background:#eee}}</style></head><body>
 <h1>Planar benchmark: {html.escape(Path(result.source).name or "log")}</h1>
 <p>{info["scans"]} scans x {info["beams"]} beams; sensor no-return value {info["max_range_m"]:g} m;
-{info["test_beams"]:,} test beams, {info["train_beams"]:,} training beams; protocol
+{info["test_beams"]:,} test beams, {info["train_beams"]:,} training beams{thinned}; protocol
 <code>../shared/protocols/real_planar.md</code> (cell {result.data.protocol.cell} m, occ3 map, leave-out
 {result.data.protocol.radius} m / {result.data.protocol.window} s, scores in 1 cm bins with the 1e-9 floor).</p>
 <p>Nominal ray cast on test beams: median |z - r| {nominal["median_abs_err"]:.3f} m,

@@ -5,6 +5,7 @@ import json
 import numpy as np
 import pytest
 
+from mi_lidar.core.errors import ParameterError
 from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar.benchmark import run_planar_benchmark
 from mi_lidar.planar.grid import Grid, march_cells
@@ -328,3 +329,30 @@ def test_sampled_scans_miss_as_often_as_the_likelihood_predicts(room):
         sampled = float(np.mean([~test.sample(model, seed)[1] for seed in range(20)]))
         se = np.sqrt(predicted * (1 - predicted) / (20 * test.n))
         assert abs(sampled - predicted) < 4 * se + 1e-4, (row.name, sampled, predicted, se)
+
+
+def test_a_long_log_is_fitted_on_evenly_spaced_training_scans():
+    """split keeps every test scan and thins the training scans to the beam budget, evenly, both parities alike."""
+    protocol = PlanarProtocol(train_beams=300_000)
+    test, train = protocol.split(910, 361)  # Intel resampled to 361 beams: 262,808 training beams
+    assert train.size == 728 and test.size == 182  # under the budget: every scan, as before
+    test, train = protocol.split(4791, 360)  # a 4,791-scan log of 360 beams: 1.38 M training beams
+    np.testing.assert_array_equal(test, np.arange(0, 4791, 5))
+    assert train.size * 360 <= 300_000 and train.size >= 300_000 // 360 - 2
+    assert np.all(train % 5 != 0) and np.all(np.diff(train) > 0)
+    assert abs(np.sum(train % 2 == 0) - np.sum(train % 2 == 1)) <= 1  # the held-out halves stay balanced
+    gaps = np.diff(train)
+    assert gaps.max() <= 2 * np.median(gaps) + 2  # spread over the whole log, no long hole
+    assert protocol.split(4791, 360)[1].size < PlanarProtocol(train_beams=0).split(4791, 360)[1].size == 3832
+    with pytest.raises(ParameterError, match="train_beams"):
+        PlanarProtocol(train_beams=-1)
+
+
+def test_benchmark_cli_says_when_it_fitted_on_part_of_the_training_scans(room, tmp_path):
+    args = ["benchmark-planar", room, "--out", tmp_path, "--window", "5", "-m", "M0", "--train-beams", "3620"]
+    result = invoke_at_80(args)
+    assert result.exit_code == 0, result.stdout
+    report = json.loads((tmp_path / "benchmark.json").read_text())
+    assert report["train_beams"] == 3620 and report["train_beams_in_log"] == 48 * 181
+    assert "fitted on 3,620 of the log's 8,688 training beams" in " ".join(result.stdout.split())
+    assert "(of the log's 8,688: evenly spaced scans)" in (tmp_path / "benchmark.html").read_text()
