@@ -13,14 +13,17 @@ of its endpoint hits (where inside the cell the surface is).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.log import Log
 
 REACH = 40.0  # m: returns beyond this add no endpoint hit (the protocol's march limit)
+EMPTY_CAP = 64  # cells: empty radii are counted up to this (3.2 m at 5 cm cells)
 
 
 @dataclass(frozen=True)
@@ -215,6 +218,17 @@ class CountMap:
     Args:
         counts: the per-scan contributions.
     """
+
+    @functools.cached_property
+    def empty_radius(self) -> np.ndarray:
+        """(size,) uint8 per cell: Chebyshev distance (cells, at most :data:`EMPTY_CAP`) to the nearest whole-log hit.
+
+        Outside the grid counts as hits, so every cell within ``radius - 1`` cells of a cell is in the grid
+        and has no hit in any leave-out map (the ray march skips such cells, :mod:`mi_lidar.planar.raymarch`).
+        """
+        free = np.pad((self.hits == 0).reshape(self.counts.grid.shape), 1)  # a border of hits
+        distance = ndimage.distance_transform_cdt(free, metric="chessboard")[1:-1, 1:-1]
+        return np.minimum(distance, EMPTY_CAP).astype(np.uint8).ravel()
 
     def __init__(self, counts: ScanCounts):
         self.counts = counts

@@ -14,6 +14,16 @@ For pass-through models the march also lists every cell with at least one leave-
 beam enters, in order (its segments: entry range, hits, passes, occupancy, incidence, and the range
 of the surface in it, :meth:`CellLines.surface_range`), up to ``max_segments`` per beam and ``beyond`` metres
 past the nominal hit.
+
+The march skips the samples that cannot record anything, and is the same to the bit as the step by step
+march. A cell without a whole-log hit has none in any leave-out map (they only subtract), so it is
+neither occupied nor a segment, nor does it close a corner; and a ray that stays in its cell learns
+nothing new. A ray whose cell is ``R`` cells (Chebyshev) from the nearest cell with a whole-log hit or
+the grid's edge (:attr:`~mi_lidar.planar.grid.CountMap.empty_radius`) only meets such cells until it
+leaves the square of cells within ``R - 1`` of its cell (its own cell when ``R <= 1``): it jumps to
+the last sample before it comes within :data:`SLACK` of that square's edge (far more than rounding
+moves a sample), from the cell of that sample, at the distances the step by step march accumulates
+(``t += step``), never past its stop.
 """
 
 from __future__ import annotations
@@ -26,6 +36,7 @@ import numpy as np
 from mi_lidar.planar.grid import CountMap, Grid, LeaveOut, planar_beams
 
 START = 0.02  # m: the march starts here
+SLACK = 1e-3  # cells: a skip ends this far short of a cell edge (rounding moves a sample < 1e-6 cells)
 SEGMENT_FIELDS = ("seg_range", "seg_hits", "seg_passes", "seg_occupied", "seg_incidence", "seg_surface")
 NEIGHBOURS_REACH = 9  # squared cells: the neighbourhood of a cell is the disc of 3 cells (15 cm at 5 cm cells)
 NEIGHBOURS = np.array([(dx, dy) for dx in range(-3, 4) for dy in range(-3, 4) if dx * dx + dy * dy <= NEIGHBOURS_REACH])
@@ -229,6 +240,41 @@ class CellLines:
         return np.where(line_like & (np.abs(crossing - own) <= self.reach), crossing, own)
 
 
+def march_distances(reach: float, step: float, far: float = np.inf) -> np.ndarray:
+    """The march's sample distances (m) up to ``reach``, accumulated as the step by step march adds them.
+
+    They end at the first past ``far`` (where every ray has left the grid), so an unbounded ``reach`` ends too.
+    """
+    t, out = START, []
+    while t <= reach:
+        out.append(t)
+        if t > far:
+            break
+        t += step
+    return np.array(out)
+
+
+def _counts(leave: LeaveOut, query: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`LeaveOut.counts`, looked up only in cells with a whole-log hit: (0, 0) elsewhere."""
+    hits, passes = np.zeros(cell.shape, np.int64), np.zeros(cell.shape, np.int64)
+    some = np.flatnonzero(leave.totals.hits[cell] > 0)
+    hits[some], passes[some] = leave.counts(query[some], cell[some])
+    return hits, passes
+
+
+def box_exit(grid: Grid, origin: np.ndarray, direction: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Distance (m) along unit rays to where they come within :data:`SLACK` cells of the edge of cells ``[lo, hi)``.
+
+    ``lo``, ``hi``: (N, 2) cell coordinates of the boxes' corners (``hi`` exclusive). Before that
+    distance, a ray's samples lie in the box (with :data:`SLACK` to spare for rounding).
+    """
+    lo_xy = np.asarray(grid.origin) + (lo + SLACK) * grid.cell
+    hi_xy = np.asarray(grid.origin) + (hi - SLACK) * grid.cell
+    with np.errstate(divide="ignore", invalid="ignore"):
+        far = np.where(direction > 0, hi_xy - origin, lo_xy - origin) / direction
+    return np.min(np.where(direction == 0, np.inf, far), axis=1)
+
+
 def trace_scans(
     log,
     grid: Grid,
@@ -257,18 +303,24 @@ def trace_scans(
     query = np.repeat(np.arange(q_count), n_beams)
     b = o.shape[0]
     step = grid.cell / 4
+    corners = np.asarray(grid.origin) + np.array([[0, 0], [0, 1], [1, 0], [1, 1]]) * np.asarray(grid.shape) * grid.cell
+    with np.errstate(divide="ignore"):  # every ray is out of the grid past ``far``
+        far = np.max(np.hypot(*(corners[None] - o[:, None]).T).max(axis=0) / np.hypot(*d.T), initial=0.0) + grid.cell
+    distances = march_distances(reach, step, far)
+    radius = cmap.empty_radius
     nominal = np.full(b, np.nan)
     first_cell = np.full(b, -1, np.int64)
     seg_cell = np.full((b, max_segments), -1, np.int64)
     seg_count = np.zeros(b, np.int64)
     stop_at = np.full(b, reach)
-    alive = np.arange(b)
+    at = np.zeros(b, np.int64)  # each ray's sample: it is at distances[at]
+    alive = np.arange(b) if distances.size else np.zeros(0, np.int64)
     prev_ij = grid.ij(o + START * d)
     # a ray looks at its cell even if it stays in it on the first step, and after a blocked corner
     pending = np.ones(b, bool)
-    t = START
-    while alive.size and t <= reach:
-        ij_all = grid.ij(o[alive] + t * d[alive])
+    while alive.size:
+        t = distances[at[alive]]
+        ij_all = grid.ij(o[alive] + t[:, None] * d[alive])
         moved = np.any(ij_all != prev_ij[alive], axis=1) | pending[alive]
         # a ray that stays in its cell learns nothing new (same cell, same counts): only the moved ones look
         act, ij = alive[moved], ij_all[moved]
@@ -284,11 +336,11 @@ def trace_scans(
             for side in (np.stack([ij[rows, 0], p[:, 1]], -1), np.stack([p[:, 0], ij[rows, 1]], -1)):
                 side_flat = grid.index(side)
                 ok = side_flat >= 0
-                h, n = leave.counts(query[act][rows], np.where(ok, side_flat, 0))
+                h, n = _counts(leave, query[act][rows], np.where(ok, side_flat, 0))
                 occ = ok & occupied(h, n)
                 take = occ & (blocked_cell[rows] < 0)
                 blocked_cell[rows[take]] = side_flat[take]
-        h, n = leave.counts(query[act], cand)
+        h, n = _counts(leave, query[act], cand)
         with_hits = ~outside & (h >= 1)
         occ_here = with_hits & occupied(h, n)
         hit_cell = np.where(blocked_cell >= 0, blocked_cell, np.where(occ_here, cand, -1))
@@ -306,15 +358,31 @@ def trace_scans(
         # ---------------- the nominal hit: the first occupied cell ------------------------------
         rows = act[first]
         first_cell[rows] = hit_cell[first]
-        stop_at[rows] = np.minimum(reach, t + beyond)
+        stop_at[rows] = np.minimum(reach, t[moved][first] + beyond)
         prev_ij[act] = ij
         pending[act] = blocked_cell >= 0
         full = (seg_count[act] >= max_segments) & (first_cell[act] >= 0)
         done = np.zeros(alive.size, bool)
         done[moved] = outside | full
         done |= t + step > stop_at[alive]
-        alive = alive[~done]
-        t += step
+        alive, ij_all = alive[~done], ij_all[~done]
+        # ---------------- the next sample, past the samples that would record nothing --------------
+        # Until it leaves the cells within R - 1 of its cell of empty radius R (at least its own cell), a ray
+        # samples cells without hits, crossing corners between them, or its own cell again: nothing to
+        # record. It skips those samples, up to the last one before its stop, and goes on from the last
+        # skipped sample's cell (a pending ray looks at its cell again first).
+        flat = grid.index(ij_all)
+        go = ~pending[alive] & (flat >= 0)
+        rows, ij = alive[go], ij_all[go]
+        half = np.maximum(radius[flat[go]].astype(np.int64) - 1, 0)[:, None]
+        leaves = box_exit(grid, o[rows], d[rows], ij - half, ij + half + 1)
+        end = np.searchsorted(distances, stop_at[rows], side="right") - 1  # the last sample within the stop
+        to = np.minimum(np.searchsorted(distances, leaves) - 1, end - 1)
+        ahead = to > at[rows]
+        rows, to = rows[ahead], to[ahead]
+        at[rows] = to
+        prev_ij[rows] = grid.ij(o[rows] + distances[to][:, None] * d[rows])
+        at[alive] += 1
     has = first_cell >= 0
     nominal[has] = entry_distance(grid, o[has], d[has], first_cell[has])
     # ---------------- segment arrays (CSR) ------------------------------------------------------
