@@ -20,6 +20,7 @@ bandwidths are chosen on held-out training scans.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -147,8 +148,9 @@ class PlanarBenchmark:
     @property
     def train_beams_in_log(self) -> int:
         """Beams of every training scan of the log (``data.train`` has fewer when the protocol thinned them)."""
-        log, every = self.data.log, self.data.protocol.test_every
-        return int(np.count_nonzero(np.arange(log.shape[0]) % every != 0)) * int(log.shape[1])
+        log = self.data.log
+        every_scan = dataclasses.replace(self.data.protocol, train_beams=0)
+        return every_scan.split(log.shape[0])[1].size * int(log.shape[1])
 
     def to_json(self) -> dict:
         log = self.data.log

@@ -219,6 +219,15 @@ class CountMap:
         counts: the per-scan contributions.
     """
 
+    def __init__(self, counts: ScanCounts):
+        self.counts = counts
+        size = counts.grid.size
+        self.hits = np.bincount(counts.hit_cell, minlength=size).astype(np.int32)
+        self.passes = np.bincount(counts.pass_cell, minlength=size).astype(np.int32)
+        self.hit_sum = np.stack(
+            [np.bincount(counts.hit_cell, weights=counts.hit_xy[:, k], minlength=size) for k in range(2)], axis=1
+        )
+
     @functools.cached_property
     def empty_radius(self) -> np.ndarray:
         """(size,) uint8 per cell: Chebyshev distance (cells, at most :data:`EMPTY_CAP`) to the nearest whole-log hit.
@@ -229,15 +238,6 @@ class CountMap:
         free = np.pad((self.hits == 0).reshape(self.counts.grid.shape), 1)  # a border of hits
         distance = ndimage.distance_transform_cdt(free, metric="chessboard")[1:-1, 1:-1]
         return np.minimum(distance, EMPTY_CAP).astype(np.uint8).ravel()
-
-    def __init__(self, counts: ScanCounts):
-        self.counts = counts
-        size = counts.grid.size
-        self.hits = np.bincount(counts.hit_cell, minlength=size).astype(np.int32)
-        self.passes = np.bincount(counts.pass_cell, minlength=size).astype(np.int32)
-        self.hit_sum = np.stack(
-            [np.bincount(counts.hit_cell, weights=counts.hit_xy[:, k], minlength=size) for k in range(2)], axis=1
-        )
 
     def leave_out(self, excluded: list[np.ndarray]) -> LeaveOut:
         """The sparse corrections of a batch of query scans; ``excluded[q]`` are the scans query ``q`` leaves out.

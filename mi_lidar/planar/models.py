@@ -297,14 +297,13 @@ def fit_milidar(
     prior = None  # each fit of the Beta priors starts from the last one's
     if len(classes) > 1:
         fit_part, check = train.take(train.scan % 2 == 0), train.take(train.scan % 2 == 1)
-        scores, priors = [], []
+        trials, scores = [], []
         for k in classes:
-            trial = fit_permeable_map(fit_part, z_max, bandwidths, k, rounds=1, tails=False, prior=prior)
-            scores.append(-float(np.mean(trial.beams(check).log_likelihood(trial.model))))
-            prior = (trial.a, trial.b)
-            priors.append(prior)
+            start = (trials[-1].a, trials[-1].b) if trials else None
+            trials.append(fit_permeable_map(fit_part, z_max, bandwidths, k, rounds=1, tails=False, prior=start))
+            scores.append(-float(np.mean(trials[-1].beams(check).log_likelihood(trials[-1].model))))
         best = int(np.argmin(scores))
-        classes, prior = (classes[best],), priors[best]
+        classes, prior = (classes[best],), (trials[best].a, trials[best].b)
     fitted = fit_permeable_map(train, z_max, bandwidths, classes[0], prior=prior)
     fitted.correlation, fitted.shared_errors = fit_correlation(fitted, train)
     return fitted

@@ -16,19 +16,10 @@ from mi_lidar.io.carmen import beam_angles, read_carmen
 from mi_lidar.planar.grid import CountMap, Grid, count_scans, planar_beams
 from mi_lidar.planar.protocol import PlanarProtocol
 from mi_lidar.planar.raymarch import START, CellLines, entry_distance, trace_scans
-from tests.planar.world import cast
+from tests.planar.world import cast, pillar
 
-WALLS = np.array(
-    [
-        [0, 0, 10, 0],
-        [0, 0, 0, 6],
-        [12, 2, 16, 8],  # diagonal: corner crossings
-        [5.5, 5.5, 6.5, 5.5],
-        [6.5, 5.5, 6.5, 6.5],
-        [6.5, 6.5, 5.5, 6.5],
-        [5.5, 6.5, 5.5, 5.5],
-    ],
-    float,
+WALLS = np.concatenate(
+    [np.array([[0, 0, 10, 0], [0, 0, 0, 6], [12, 2, 16, 8]], float), pillar(5.5, 5.5)]  # diagonal: corner crossings
 )
 FENCE = np.array([[2.0, 9.0, 9.0, 9.0]])
 PROTOCOL = PlanarProtocol(window=5.0)

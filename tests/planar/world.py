@@ -13,18 +13,15 @@ import numpy as np
 
 from mi_lidar.io.carmen import beam_angles
 
-WALLS = np.array(
-    [
-        [0, 0, 12, 0],
-        [12, 0, 12, 8],
-        [12, 8, 0, 8],
-        [0, 8, 0, 0],
-        [5.5, 3.5, 6.5, 3.5],
-        [6.5, 3.5, 6.5, 4.5],
-        [6.5, 4.5, 5.5, 4.5],
-        [5.5, 4.5, 5.5, 3.5],
-    ],
-    float,
+
+def pillar(x: float, y: float, side: float = 1.0) -> np.ndarray:
+    """(4, 4) wall segments (x0, y0, x1, y1; m) of a square pillar with its lower-left corner at (x, y)."""
+    corners = np.array([[x, y], [x + side, y], [x + side, y + side], [x, y + side]], float)
+    return np.concatenate([corners, np.roll(corners, -1, axis=0)], axis=1)
+
+
+WALLS = np.concatenate(
+    [np.array([[0, 0, 12, 0], [12, 0, 12, 8], [12, 8, 0, 8], [0, 8, 0, 0]], float), pillar(5.5, 3.5)]
 )
 GLASS = np.array([[3.0, 6.0, 3.0, 8.0]])
 
