@@ -23,6 +23,7 @@ import time
 import numpy as np
 
 from mi_lidar.core.metrics import worse_samples
+from mi_lidar.core.resources import peak_resident_mib
 
 N_BEAMS, N_FIRINGS, N_SWEEPS = 128, 1024, 8  # 1,048,576 rays
 N_ELLIPSOIDS = 100_000
@@ -106,13 +107,11 @@ def _child() -> dict:
     result = cal.fit()
     dr.sync_thread()
     total = time.perf_counter() - start
-    with open("/proc/self/status") as status:
-        hwm_kb = next(int(line.split()[1]) for line in status if line.startswith("VmHWM"))
     return {
         "forward_s": min(forward[1:]),
         "fit_s": total,
         "steps": result.steps_run,
-        "peak_gb": hwm_kb / 1024**2,
+        "peak_gb": peak_resident_mib() / 1024,
         "counting_nll": result.counting_nll,
         "fitted_nll": result.fitted_nll,
         "samples": result.samples,

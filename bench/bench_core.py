@@ -375,10 +375,9 @@ def peak_memory_gb(xml: Path) -> tuple[float, float, int]:
 
 def _vm_hwm_gb() -> float:
     """This process's peak resident set size (VmHWM), GB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) * 1024 / 1e9
-    raise RuntimeError("/proc/self/status has no VmHWM line")
+    from mi_lidar.core.resources import peak_resident_mib
+
+    return peak_resident_mib() * 1024**2 / 1e9
 
 
 def _memory_probe(xml: str) -> None:

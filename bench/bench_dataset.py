@@ -7,8 +7,10 @@ each worker's warm-up (the first ``workers`` completions) over the time they too
 runs Dr.Jit on every core, each of 2 workers on one (:mod:`mi_lidar.dataset.workers`); the rows say
 how many threads the workers really had. CPU seconds per frame (the worker process, all threads, from
 the manifest) show the work a frame costs whatever the machine's load; frames per minute and their
-ratio depend on the load (the load average is printed with the rows). Peak memory is each worker
-process's ``ru_maxrss``.
+ratio depend on the load (the load average is printed with the rows). Each configuration runs
+:data:`ROUNDS` times, the rounds interleaved so that they share the machine's load, and its fastest
+round is reported. Peak memory is each worker process's own ``VmHWM``
+(:func:`~mi_lidar.core.resources.peak_resident_mib`).
 Target: 2 workers reach >= 1.6x the frames per minute of 1 worker on this 2-core machine.
 
 Two more rows say what bounds that ratio. A third run puts 1 worker on 1 core (the benchmark's CPU
@@ -29,6 +31,7 @@ from pathlib import Path
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes_xml"
 FRAMES_PER_SCENE = 12
+ROUNDS = 2  # interleaved rounds per configuration; the fastest counts
 TARGET_RATIO = 1.6
 SPEC = """
 name: bench
@@ -107,7 +110,8 @@ def run() -> list[dict]:
             SPEC.format(street=SCENES / "urban_street.xml", offroad=SCENES / "offroad.xml", frames=FRAMES_PER_SCENE)
         )
         spec = load_spec(path)
-        one, two, one_core = measure(spec, 1), measure(spec, 2), measure(spec, 1, cores=1)
+        rounds = [(measure(spec, 1), measure(spec, 2), measure(spec, 1, cores=1)) for _ in range(ROUNDS)]
+    one, two, one_core = (max(runs, key=lambda m: m["per_minute"]) for runs in zip(*rounds))
     ratio = two["per_minute"] / one["per_minute"]
     per_core = two["per_minute"] / one_core["per_minute"]
     ceiling = 2 * one_core["per_minute"] / one["per_minute"]
@@ -119,7 +123,10 @@ def run() -> list[dict]:
         return f"{m['per_minute']:.1f}; {m['cpu_per_frame']:.2f} CPU s/frame; Dr.Jit threads {threads}; {memory} MiB"
 
     return [
-        {"benchmark": f"dataset: {spec.frames} frames, 1 worker (frames/min; {load})", "value": value(one)},
+        {
+            "benchmark": f"dataset: {spec.frames} frames, 1 worker (frames/min, fastest of {ROUNDS} rounds; {load})",
+            "value": value(one),
+        },
         {
             "benchmark": f"dataset: {spec.frames} frames, 2 workers (frames/min, ratio to 1 worker in the same run)",
             "value": f"{value(two)}; {ratio:.2f}x",

@@ -17,7 +17,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import resource
 import threading
 import time
 from collections.abc import Callable
@@ -26,6 +25,7 @@ from pathlib import Path
 
 from mi_lidar.core.atomic import atomic_write
 from mi_lidar.core.errors import SpecError
+from mi_lidar.core.resources import cpu_seconds, peak_resident_mib
 from mi_lidar.dataset.spec import DatasetSpec
 
 MANIFEST = "manifest.json"
@@ -34,12 +34,6 @@ WORKER_WAIT_S = 60.0  # how long a run waits for the first worker of an existing
 FORMAT = "mi-lidar-dataset"
 _WORKER_STATE: dict = {}
 _FRAME_LOCK = threading.Lock()  # Dr.Jit's thread pool and the scene cache serve one frame at a time
-
-
-def cpu_seconds() -> float:
-    """User + system CPU seconds of this process so far (all its threads)."""
-    usage = resource.getrusage(resource.RUSAGE_SELF)
-    return usage.ru_utime + usage.ru_stime
 
 
 def software_versions() -> dict[str, str]:
@@ -292,11 +286,6 @@ def _attempt(spec: DatasetSpec, out: Path, index: int, retries: int) -> tuple[di
     return None, error
 
 
-def peak_memory_mib() -> float:
-    """Peak resident memory of this process, MiB (Linux ``ru_maxrss``)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
 def _run_on_dask(spec, out, todo, scheduler, workers, retries, dashboard_address, finished, announce, report) -> None:
     from distributed import Client, LocalCluster, as_completed
 
@@ -349,7 +338,7 @@ def _run_on_dask(spec, out, todo, scheduler, workers, retries, dashboard_address
                 finished(index, None, f"{type(exc).__name__}: {exc}")
             else:
                 finished(index, record, None)
-        report.worker_peak_mib = client.run(peak_memory_mib)
+        report.worker_peak_mib = client.run(peak_resident_mib)
     finally:
         client.close()
         if cluster is not None:
