@@ -80,3 +80,20 @@ def test_bad_input_is_one_line_with_exit_code_2(tmp_path, room_log, case):
     assert len(lines) == 1 and lines[0].startswith("error: "), lines
     for text in expected:
         assert text.format(**values) in lines[0], lines[0]
+
+
+def test_an_error_is_printed_as_written_not_read_as_markup(tmp_path):
+    """'[x, y]' in a message is text, not a rich style tag (it used to vanish from the line)."""
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(
+        "rig: {lidars: [{pattern: vlp16}], cameras: [{name: c}]}\n"
+        f"scenes: [{{name: s, xml: {ROOM}, frames: 1, trajectory: {{waypoints: [[0, 0, 0, 1], [1, 0]]}}}}]\n"
+    )
+    run = subprocess.run(
+        [MI_LIDAR, "dataset", str(spec), "--out", str(tmp_path / "d")],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "COLUMNS": "400"},
+    )
+    assert run.returncode == 2, run.stdout + run.stderr
+    assert "waypoint 0 has 4 numbers; give [x, y] or [x, y, z] (m)" in run.stdout + run.stderr

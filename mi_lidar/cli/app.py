@@ -15,6 +15,7 @@ import os
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from typer.core import TyperGroup
 
 from mi_lidar.core.errors import MiLidarError
@@ -87,7 +88,7 @@ def os_error_line(exc: OSError) -> str:
 
 def fail(message: str) -> None:
     """Print ``error: <message>`` on one line and exit with code 2."""
-    console.print(f"[bold red]error:[/] {message}", soft_wrap=True, highlight=False, markup=True)
+    console.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True, highlight=False, markup=True)
     raise typer.Exit(code=2) from None
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from mi_lidar.cli.app import app, console
@@ -69,7 +70,7 @@ def dataset(
         table.add_row(name, str(value))
     console.print(table)
     for index, error in sorted(report.failed.items()):
-        console.print(f"[red]frame {index} failed:[/red] {error}")
+        console.print(f"[red]frame {index} failed:[/red] {escape(error)}")
     if report.failed:
         console.print("run the same command again to retry the failed frames")
         raise typer.Exit(1)

@@ -138,7 +138,7 @@ def render_frame(spec: DatasetSpec, rig: Rig, index: int, scenes: dict) -> Frame
     world_to_reference = np.linalg.inv(ego @ rig.lidars[0].to_ego)
     parts = []
     for lidar, seed in zip(rig.lidars, seeds):
-        log = simulate(scene.scene, lidar.spec.pattern, poses=ego @ lidar.to_ego, seed=seed, model=lidar.model)
+        log = simulate(scene.scene, lidar.pattern, poses=ego @ lidar.to_ego, seed=seed, model=lidar.model)
         hit = log.hit[0]
         world = log.points_world()[0][hit]
         labels = np.asarray(log.attributes["label"][0][hit]).astype(np.int64)

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mi_lidar.core.errors import SpecError
+from mi_lidar.core.errors import MiLidarError, SpecError
+from mi_lidar.core.patterns import FiringPattern, get_pattern, is_pattern_file
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.dataset.spec import CameraSpec, DatasetSpec, LidarSpec
 from mi_lidar.io.nuscenes import read_nuscenes_calibration
@@ -54,11 +55,12 @@ class RigCamera:
 
 @dataclass(frozen=True)
 class RigLidar:
-    """A mounted Lidar: its spec, (4, 4) sensor-to-ego transform and sensor model."""
+    """A mounted Lidar: its spec, (4, 4) sensor-to-ego transform, sensor model and firing pattern."""
 
     spec: LidarSpec
     to_ego: np.ndarray
     model: SensorModel
+    pattern: FiringPattern
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,34 @@ class Rig:
         matrices["Tr_velo_to_cam"] = (ego_to_reference @ self.lidars[0].to_ego)[:3, :]
         matrices["Tr_imu_to_velo"] = np.linalg.inv(self.lidars[0].to_ego)[:3, :]
         return matrices
+
+
+def firing_pattern(spec: LidarSpec, resolve) -> FiringPattern:
+    """The firing pattern of a rig Lidar.
+
+    ``spec.pattern`` is a name of :data:`~mi_lidar.core.patterns.PATTERN_NAMES`, or a table or Ouster
+    metadata file (``.csv``/``.npy``/``.json``) resolved by ``resolve(name) -> path`` (relative to the
+    spec's folder).
+    """
+    text = spec.pattern
+    return get_pattern(resolve(text) if is_pattern_file(text) else text)
+
+
+def check_lidars(spec: DatasetSpec) -> list[str]:
+    """What is wrong with the rig's patterns and sensor models, one ``"field: problem"`` line each (empty: nothing).
+
+    The same builders the frames use, run once before any frame, so that a typo fails the run at once
+    instead of failing every frame.
+    """
+    resolve = lambda name: str(spec.resolve(name))  # noqa: E731
+    problems = []
+    for i, lidar in enumerate(spec.rig.lidars):
+        for field, build in (("pattern", firing_pattern), ("density/effects", sensor_model)):
+            try:
+                build(lidar, resolve)
+            except MiLidarError as exc:
+                problems.append(f"rig.lidars.{i}.{field}: {exc}")
+    return problems
 
 
 def sensor_model(spec: LidarSpec, resolve) -> SensorModel:
@@ -147,5 +177,8 @@ def build_rig(spec: DatasetSpec) -> Rig:
                     f"choose from {', '.join(sorted(calibration['cameras']))}"
                 )
             cameras.append(nuscenes_camera(name, calibration["cameras"][name], nuscenes.image_scale))
-    lidars = [RigLidar(s, m, sensor_model(s, resolve)) for s, m in zip(spec.rig.lidars, lidar_mounts)]
+    lidars = [
+        RigLidar(s, m, sensor_model(s, resolve), firing_pattern(s, resolve))
+        for s, m in zip(spec.rig.lidars, lidar_mounts)
+    ]
     return Rig(lidars, cameras)

@@ -16,12 +16,13 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from mi_lidar.core.errors import SpecError
+from mi_lidar.core.patterns import is_pattern_file
 
 
 class Strict(BaseModel):
-    """A spec section: unknown keys are errors (a typo never passes silently)."""
+    """A spec section: unknown keys are errors (a typo never passes silently), and so are NaN and infinite numbers."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 def rotation_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -138,12 +139,15 @@ class Trajectory(Strict):
     waypoint's z (default 0) is the ego height.
     """
 
-    waypoints: list[tuple[float, float] | tuple[float, float, float]] = Field(min_length=2)
+    waypoints: list[tuple[float, ...]] = Field(min_length=2)
     follow_ground: bool = True
 
     @field_validator("waypoints")
     @classmethod
     def _distinct(cls, value):
+        for i, w in enumerate(value):
+            if len(w) not in (2, 3):
+                raise ValueError(f"waypoint {i} has {len(w)} numbers; give [x, y] or [x, y, z] (m)")
         xy = np.asarray([w[:2] for w in value], float)
         if np.any(np.linalg.norm(np.diff(xy, axis=0), axis=1) < 1e-6):
             raise ValueError("consecutive waypoints must differ in x or y")
@@ -317,8 +321,8 @@ def load_spec(path: str | Path, source: dict | None = None) -> DatasetSpec:
         source: the already-read mapping (skips reading ``path``; used to rebuild a spec from a manifest).
 
     Raises:
-        SpecError: missing or unparsable file, unknown or invalid fields (every one is listed), or a
-            referenced file that does not exist.
+        SpecError: missing or unparsable file, unknown or invalid fields (every one is listed), a
+            referenced file that does not exist, or a Lidar pattern or sensor model that cannot be built.
     """
     path = Path(path)
     data = read_spec_file(path) if source is None else source
@@ -331,6 +335,11 @@ def load_spec(path: str | Path, source: dict | None = None) -> DatasetSpec:
         raise SpecError(
             f"{path}: referenced files do not exist (paths are relative to the spec):\n  " + "\n  ".join(missing)
         )
+    from mi_lidar.dataset.rig import check_lidars  # the rig module builds on this one
+
+    problems = check_lidars(spec)
+    if problems:
+        raise SpecError(f"{path}: the rig's Lidars cannot be built:\n  " + "\n  ".join(problems))
     return spec
 
 
@@ -341,6 +350,9 @@ def _referenced_files(spec: DatasetSpec) -> list[tuple[str, Path]]:
             value = getattr(scene, key)
             if value is not None:
                 files.append((f"scenes.{i}.{key}", value))
+    for i, lidar in enumerate(spec.rig.lidars):
+        if is_pattern_file(lidar.pattern):
+            files.append((f"rig.lidars.{i}.pattern", lidar.pattern))
     if spec.rig.nuscenes is not None:
         files.append(("rig.nuscenes.file", spec.rig.nuscenes.file))
     return files

@@ -75,12 +75,30 @@ def test_yaml_and_toml_agree_and_frames_split_into_variants(folder):
         (("classes: [rock]", "classes: [oak]"), r"unknown class 'oak'"),
         (("    library: lib\n", ""), r"random scenes need library"),
         (("rpy_deg: [0, 10, 0]", "matrix: [[1, 0, 0, 0]]"), r"matrix has 1 rows"),
+        (("[[0, 0], [10, 0]]}}", "[[0, 0], [.nan, 0]]}}"), r"scenes\.0\.trajectory\.waypoints\.1\.0: .*finite"),
+        (("[[0, 0], [10, 0]]}}", "[[0, 0, 1, 2], [10, 0]]}}"), r"waypoint 0 has 4 numbers; give \[x, y\]"),
+        (("xyz: [1, 0, 1.5]", "xyz: [1, .inf, 1.5]"), r"rig\.cameras\.0\.mount\.xyz\.1: .*finite"),
+        (("pattern: vlp16", "pattern: vlp17"), r"rig\.lidars\.0\.pattern: unknown firing pattern 'vlp17'"),
+        (("pattern: vlp16", "pattern: beams.csv"), r"rig\.lidars\.0\.pattern: beams\.csv"),  # relative to the spec
+        (("pattern: vlp16", "pattern: vlp16, effects: 'range_nois(k=1)'"), r"rig\.lidars\.0\..*'range_nois'"),
+        (("pattern: vlp16", "pattern: vlp16, density: 'gaussian(sigm=1)'"), r"rig\.lidars\.0\..*sigm"),
     ],
 )
 def test_bad_specs_name_the_field(folder, change, message):
     (folder / "s.yaml").write_text(YAML.replace(*change))
     with pytest.raises(SpecError, match=message):
         load_spec(folder / "s.yaml")
+
+
+def test_a_pattern_table_is_read_from_the_spec_folder(folder, monkeypatch):
+    from mi_lidar.core.patterns import get_pattern, to_table
+    from mi_lidar.dataset.rig import build_rig
+
+    to_table(get_pattern("vlp16"), folder / "beams.csv")
+    (folder / "s.yaml").write_text(YAML.replace("pattern: vlp16", "pattern: beams.csv"))
+    monkeypatch.chdir(folder / "lib")  # not the spec's folder
+    pattern = build_rig(load_spec(folder / "s.yaml")).lidars[0].pattern
+    assert np.allclose(pattern.elevation, get_pattern("vlp16").elevation, rtol=0, atol=1e-15)  # CSV round trip
 
 
 def test_unreadable_specs(folder):

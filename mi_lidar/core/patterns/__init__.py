@@ -33,7 +33,7 @@ Example:
 from mi_lidar.core.patterns.firing import FiringPattern
 from mi_lidar.core.patterns.ouster_sensor import ouster
 from mi_lidar.core.patterns.planar_scanner import planar
-from mi_lidar.core.patterns.registry import PATTERN_NAMES, get_pattern
+from mi_lidar.core.patterns.registry import PATTERN_NAMES, get_pattern, is_pattern_file
 from mi_lidar.core.patterns.solid_state import raster, rosette
 from mi_lidar.core.patterns.table import from_table, to_table
 from mi_lidar.core.patterns.velodyne import packet_32x32, spinning
@@ -43,6 +43,7 @@ __all__ = [
     "FiringPattern",
     "from_table",
     "get_pattern",
+    "is_pattern_file",
     "ouster",
     "packet_32x32",
     "planar",

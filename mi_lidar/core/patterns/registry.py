@@ -34,6 +34,14 @@ PATTERN_NAMES: tuple[str, ...] = tuple(_REGISTRY)
 """Names accepted by :func:`get_pattern`."""
 
 
+PATTERN_FILE_SUFFIXES = (".csv", ".npy", ".json")
+
+
+def is_pattern_file(name_or_path: str | os.PathLike) -> bool:
+    """Whether :func:`get_pattern` reads ``name_or_path`` as a file (a table or Ouster metadata), not a name."""
+    return Path(os.fspath(name_or_path)).suffix.lower() in PATTERN_FILE_SUFFIXES
+
+
 def get_pattern(name_or_path: str | os.PathLike, **kwargs) -> FiringPattern:
     """Build a firing pattern by name or from a file.
 
