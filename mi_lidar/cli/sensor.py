@@ -22,6 +22,7 @@ def fit_sensor_command(
     pool_labels: bool = typer.Option(
         False, "--pool-labels", help="NP-Reg: one state per range and incidence, whatever the element label."
     ),
+    force: bool = typer.Option(False, help="Fit even when the log's sensor does not match the scene's."),
 ):
     """Fit a return density to a log in its scene; print held-out NLL beside sample realism; save it.
 
@@ -42,7 +43,14 @@ def fit_sensor_command(
 
     with progress(f"fitting {model}"):
         result = fit_sensor(
-            read_any(log), scene, model, steps=steps, seed=seed, pool_labels=pool_labels, progress=console.log
+            read_any(log),
+            scene,
+            model,
+            steps=steps,
+            seed=seed,
+            pool_labels=pool_labels,
+            progress=console.log,
+            force=force,
         )
         path = save_sensor(result, out)
     table = figure_table(

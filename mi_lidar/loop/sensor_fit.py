@@ -103,6 +103,7 @@ def fit_sensor(
     seed: int = 0,
     pool_labels: bool = False,
     progress=None,
+    force: bool = False,
 ) -> SensorFit:
     """Fit a return density of ``family`` to ``log`` in ``scene`` (see the module docstring).
 
@@ -116,14 +117,18 @@ def fit_sensor(
         pool_labels: NP-Reg states ignore the element labels (one histogram per range and incidence),
             so the density means the same in scenes whose labels name other classes (P-Reg always pools).
         progress: optional ``progress(message)``.
+        force: fit even when the log's sensor does not match the scene's
+            (:func:`~mi_lidar.scene.sensor_check.check_log_sensor`).
     """
     from mi_lidar.scene.loading import load_scene, scene_sensor_model
+    from mi_lidar.scene.sensor_check import check_log_sensor
 
     if family not in FAMILIES:
         raise ParameterError(f"fit-sensor: unknown model {family!r}; choose one of {', '.join(FAMILIES)}")
     say = progress or (lambda message: None)
     if not hasattr(scene, "shapes"):
         scene = load_scene(scene)
+    check_log_sensor(log, scene, force=force)
     base = scene_sensor_model(scene)[0]
     rays = LogRays.from_log(log)
     train_index, test_index = split_rays(log, max_train, max_test, seed)

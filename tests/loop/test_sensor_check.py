@@ -45,9 +45,10 @@ def planar_log(tmp_path_factory):
     return mi_lidar.simulate(scene, seed=1).save(tmp_path_factory.mktemp("planar") / "room.npz")
 
 
-@pytest.mark.parametrize("verb", ["compare", "diagnose"])
+@pytest.mark.parametrize("verb", ["compare", "diagnose", "fit-sensor"])
 def test_planar_log_in_the_offroad_scene_is_refused_unless_forced(tmp_path, planar_log, verb):
-    args = [verb, str(planar_log), str(SCENES / "offroad.xml"), "--out", str(tmp_path / "out")]
+    out = str(tmp_path / ("out.npz" if verb == "fit-sensor" else "out"))
+    args = [verb, str(planar_log), str(SCENES / "offroad.xml"), "--out", out]
     refused = runner.invoke(app, args)
     text = " ".join(refused.output.split())
     assert refused.exit_code == 2, text
