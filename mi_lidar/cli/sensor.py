@@ -63,5 +63,7 @@ def fit_sensor_command(
     for row in result.rows:
         keys = ("nll", "train_nll", "range_error_median", "range_error_p90", "f1", "histogram_l1")
         table.add_row(row["model"], *(figure(row[key]) for key in keys))
+    for warning in result.warnings:
+        console.print(f"warning: {warning}", highlight=False, markup=False)
     console.print(table)
     console.print(f"wrote {path}")

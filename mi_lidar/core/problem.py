@@ -170,6 +170,25 @@ class Problem:
         """Mean negative scored log-likelihood per ray (nats)."""
         return float(-np.mean(self.log_likelihood(model)))
 
+    def near_surface(self, model, tolerance: float) -> np.ndarray | None:
+        """(N,) True for the measured returns within ``tolerance`` (m) of an element traced along their ray.
+
+        False for misses. None when the model fans beams out into sub-rays (the trace then holds
+        sub-rays, not the log's rays).
+        """
+        self.trace(model)
+        near = []
+        for chunk in self.chunks:
+            z, hit = np.asarray(chunk.z), np.asarray(chunk.hit)
+            if chunk.rounds.width != z.size:
+                return None
+            ok = np.zeros(z.size, bool)
+            for entries in chunk.rounds.rounds:
+                ray, nominal = np.asarray(entries.ray), np.asarray(entries.nominal)
+                ok[ray[np.abs(z[ray] - nominal) <= tolerance]] = True
+            near.append(ok & hit)
+        return np.concatenate(near) if near else np.zeros(0, bool)
+
 
 @dataclass
 class PartsFit:

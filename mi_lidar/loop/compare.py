@@ -47,6 +47,8 @@ class RayTable:
         nominal, cos_incidence: of the first element along the ray (NaN / 0 where none).
         kind, label, shape: of the first element (-1 where none).
         beam, column, scan, azimuth: ray indices and sensor-frame azimuth (deg).
+        on_surface: True for returns within ``SURFACE_TOLERANCE`` of a traced element
+            (:meth:`~mi_lidar.core.problem.Problem.near_surface`; None when not checked).
     """
 
     ll: np.ndarray
@@ -63,6 +65,7 @@ class RayTable:
     column: np.ndarray
     scan: np.ndarray
     azimuth: np.ndarray
+    on_surface: np.ndarray | None = None
 
 
 def first_elements(scene, table: ElementTable, problem: Problem, model: SensorModel) -> dict:
@@ -101,6 +104,8 @@ def simulate_log_rays(
 
 def ray_table(log: Log, scene, model: SensorModel, seed: int = 0) -> RayTable:
     """Score, simulate and describe every ray of ``log`` under ``model``."""
+    from mi_lidar.scene.sensor_check import SURFACE_TOLERANCE
+
     rays = LogRays.from_log(log)
     problem = Problem.build(scene, rays)
     ll = problem.log_likelihood(model)
@@ -119,6 +124,7 @@ def ray_table(log: Log, scene, model: SensorModel, seed: int = 0) -> RayTable:
         column=rays.column,
         scan=rays.scan,
         azimuth=azimuth,
+        on_surface=problem.near_surface(model, SURFACE_TOLERANCE),
         **first,
     )
 
@@ -199,6 +205,7 @@ class Comparison:
             (:class:`~mi_lidar.loop.intensity_residuals.IntensityResiduals`) when the log carries
             intensities, else None.
         files: written report files.
+        warnings: what makes the figures doubtful (e.g. :func:`~mi_lidar.scene.sensor_check.scene_warning`).
     """
 
     headline: dict
@@ -207,9 +214,10 @@ class Comparison:
     table: RayTable = field(repr=False, default=None)
     intensity: object = field(repr=False, default=None)
     files: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
 
     def to_json(self) -> dict:
-        out = {"headline": self.headline, "breakdowns": self.breakdowns, "worst": self.worst}
+        out = {"headline": self.headline, "breakdowns": self.breakdowns, "worst": self.worst, "warnings": self.warnings}
         return out | ({"intensity": self.intensity.to_json()} if self.intensity is not None else {})
 
 
@@ -243,7 +251,7 @@ def compare(
             (:func:`~mi_lidar.scene.sensor_check.check_log_sensor`).
     """
     from mi_lidar.scene.loading import load_scene, scene_sensor_model
-    from mi_lidar.scene.sensor_check import check_log_sensor
+    from mi_lidar.scene.sensor_check import check_log_sensor, scene_warning
 
     if not hasattr(scene, "shapes"):
         scene = load_scene(scene)
@@ -253,6 +261,8 @@ def compare(
     origins, directions = world_rays(log, t.scan, t.beam, t.column)
     headline = metrics_of(t.ll, t.measured, t.hit, t.sim_range, t.sim_hit, origins, directions)
     result = Comparison(headline=headline, breakdowns={b: breakdown(t, b) for b in BREAKDOWNS}, worst=[], table=t)
+    warning = scene_warning(t.on_surface, t.hit)
+    result.warnings = [warning] if warning else []
     groups = [
         dict(row, breakdown=b) for b, rows in result.breakdowns.items() if b != "beam" or len(rows) > 1 for row in rows
     ]

@@ -236,6 +236,7 @@ def write_comparison(result, log, out: Path, title: str, model) -> list[Path]:
         "",
         f"Model: range sigma {model.range_sigma} m, effects: {effects}. {h['rays']} rays.",
         "",
+        *(f"**Warning:** {w}.\n" for w in result.warnings),
         f"**NLL {h['nll']:.3f} nats/ray** (median {h['nll_median']:.3f}); hit/miss F1 {fmt('f1', h['f1'])} "
         f"(precision {fmt('precision', h['precision'])}, recall {fmt('recall', h['recall'])}); "
         f"sampled range error median {fmt('range_error_median', h['range_error_median'])} m, "

@@ -127,3 +127,34 @@ def check_log_sensor(log, scene, pattern=None, force: bool = False) -> None:
             f"({expected.describe('max range')}): {'; '.join(found)}. Use the scene the log was recorded in, set "
             "the scene sensor's pattern to the log's, or pass --force to go on anyway"
         )
+
+
+SURFACE_TOLERANCE = 0.5  # m: a return this close to a traced element lies on the scene's surface
+SURFACE_SHARE_WARNING = 0.25  # below this share of returns on a surface, the scene is probably not the log's
+
+
+def scene_warning(near_surface: np.ndarray | None, hit: np.ndarray) -> str:
+    """A warning when few of a log's returns lie on the scene's surfaces ('' when most do).
+
+    A log in its own scene has most returns within :data:`SURFACE_TOLERANCE` of an element on their
+    beam (measured: 100 % in the indoor room, 98 % on the street, 86 % off-road among permeable
+    ellipsoids); the Intel log in the indoor room has 2.7 %. Below :data:`SURFACE_SHARE_WARNING` the
+    scene or the log's poses are probably wrong, and every figure computed on the pair means little.
+    It catches gross mismatches only: a beam crosses several elements, so small pose errors keep many
+    returns near one of them (the room log with its poses moved 2 / 5 / 30 m: 49 / 28 / 0 %).
+
+    Args:
+        near_surface: (N,) from :meth:`~mi_lidar.core.problem.Problem.near_surface` (None: not checked).
+        hit: (N,) the log's measured return flags.
+    """
+    returns = int(np.count_nonzero(hit))
+    if near_surface is None or returns == 0:
+        return ""
+    share = np.count_nonzero(near_surface) / returns
+    if share >= SURFACE_SHARE_WARNING:
+        return ""
+    return (
+        f"only {share:.1%} of {returns:,} measured returns lie within {SURFACE_TOLERANCE:g} m of a scene element "
+        "along their beam (most do in the log's own scene): check that the scene is the one the log was recorded "
+        "in and that the log's poses are in the scene's frame"
+    )

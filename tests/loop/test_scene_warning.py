@@ -1,0 +1,76 @@
+"""compare, fit-sensor and diagnose warn when few of a log's returns lie on the scene's surfaces."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import mi_lidar
+from mi_lidar.cli import app
+from mi_lidar.core.problem import Problem
+from mi_lidar.core.rays import LogRays
+from mi_lidar.scene.loading import scene_sensor_model
+from mi_lidar.scene.sensor_check import SURFACE_TOLERANCE, scene_warning
+
+from ..conftest import SCENES
+
+ROOM = SCENES / "indoor_planar.xml"
+
+
+@pytest.fixture(scope="module")
+def room():
+    scene = mi_lidar.load_scene(ROOM)
+    poses = np.tile(np.eye(4), (4, 1, 1))
+    poses[:, 0, 3] = [0.0, 0.5, 1.0, -0.5]
+    return scene, mi_lidar.simulate(scene, poses=poses, seed=1)
+
+
+def moved(log, dx: float):
+    """The same scans, their poses moved ``dx`` m along x (the scene no longer where the log saw it)."""
+    poses = log.poses.copy()
+    poses[:, 0, 3] += dx
+    return dataclasses.replace(log, poses=poses)
+
+
+def share_on_surface(scene, log) -> tuple[float, np.ndarray, np.ndarray]:
+    problem = Problem.build(scene, LogRays.from_log(log))
+    near = problem.near_surface(scene_sensor_model(scene)[0], SURFACE_TOLERANCE)
+    hit = LogRays.from_log(log).hit
+    return near[hit].mean(), near, hit
+
+
+def test_a_log_in_its_own_scene_lies_on_its_surfaces(room):
+    scene, log = room
+    share, near, hit = share_on_surface(scene, log)
+    assert share > 0.99 and not near[~hit].any()
+    assert scene_warning(near, hit) == ""
+
+
+def test_a_log_whose_poses_are_off_is_warned_about(room):
+    """Poses 30 m off put the sensor outside the room: its walls are 25-35 m along the beams, not 1-5 m.
+
+    The check catches such gross mismatches, not small offsets: moved 2 m, 49 % of the returns still lie
+    near some wall along their beam (the room is symmetric, and a beam crosses several walls)."""
+    scene, log = room
+    share, near, hit = share_on_surface(scene, moved(log, 30.0))
+    assert share < 0.25, share
+    warning = scene_warning(near, hit)
+    assert f"only {share:.1%} of {hit.sum():,} measured returns" in warning and "poses" in warning
+
+
+@pytest.mark.parametrize("verb", ["compare", "fit-sensor", "diagnose"])
+def test_the_verbs_print_the_warning(tmp_path, room, verb):
+    scene, log = room
+    runner = CliRunner()
+    for dx, warned in ((0.0, False), (30.0, True)):
+        path = moved(log, dx).save(tmp_path / f"log{dx}.npz")
+        out = tmp_path / (f"m{dx}.npz" if verb == "fit-sensor" else f"c{dx}")
+        extra = {"fit-sensor": ["--model", "physics", "--steps", "20"], "diagnose": ["--candidate", "range_scale"]}
+        extra = extra.get(verb, [])
+        run = runner.invoke(app, [verb, str(path), str(ROOM), "--out", str(out), *extra])
+        text = " ".join(run.output.split())
+        assert run.exit_code == 0, text
+        assert ("warning: only" in text.lower()) == warned, text
+        if verb == "compare":
+            assert ("**Warning:** only" in (out / "report.md").read_text()) == warned
