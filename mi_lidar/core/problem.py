@@ -171,21 +171,25 @@ class Problem:
         return float(-np.mean(self.log_likelihood(model)))
 
     def near_surface(self, model, tolerance: float) -> np.ndarray | None:
-        """(N,) True for the measured returns within ``tolerance`` (m) of an element traced along their ray.
+        """(N,) True for the measured returns within ``tolerance`` (m) of an element their beam can reach.
 
-        False for misses. None when the model fans beams out into sub-rays (the trace then holds
-        sub-rays, not the log's rays).
+        A beam reaches the elements traced along its ray up to and including the first opaque one
+        (hit probability 1). False for misses. None when the model fans beams out into sub-rays (the
+        trace then holds sub-rays, not the log's rays).
         """
         self.trace(model)
+        opaque = np.asarray(self.table.p_hit) >= 1.0
         near = []
         for chunk in self.chunks:
             z, hit = np.asarray(chunk.z), np.asarray(chunk.hit)
             if chunk.rounds.width != z.size:
                 return None
-            ok = np.zeros(z.size, bool)
-            for entries in chunk.rounds.rounds:
+            ok, stopped = np.zeros(z.size, bool), np.zeros(z.size, bool)
+            for entries in chunk.rounds.rounds:  # in order along the rays, one entry per ray at most
                 ray, nominal = np.asarray(entries.ray), np.asarray(entries.nominal)
-                ok[ray[np.abs(z[ray] - nominal) <= tolerance]] = True
+                reached = ray[~stopped[ray] & (np.abs(z[ray] - nominal) <= tolerance)]
+                ok[reached] = True
+                stopped[ray[opaque[np.asarray(entries.element)]]] = True
             near.append(ok & hit)
         return np.concatenate(near) if near else np.zeros(0, bool)
 
