@@ -44,14 +44,14 @@ from mi_lidar.core.fitting import adam_fit, constant_schedule
 from mi_lidar.core.likelihood import mixture_log_likelihood, round_segment, score
 from mi_lidar.core.log import Log
 from mi_lidar.core.metrics import metrics_of
-from mi_lidar.core.problem import moves_rays
+from mi_lidar.core.problem import Problem, moves_rays
 from mi_lidar.core.rays import LogRays
 from mi_lidar.core.segment import ELLIPSOID, Segment
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.smoothing import smoothing_at
 from mi_lidar.core.trace import CachedBatch, RayCache, cache_distributions, trace_rounds
 from mi_lidar.scene.loading import scene_sensor_model
-from mi_lidar.scene.sensor_check import check_log_sensor
+from mi_lidar.scene.sensor_check import SURFACE_TOLERANCE, check_log_sensor, scene_warning
 
 
 @dataclass
@@ -109,6 +109,7 @@ class FitResult:
         table, model: the fitted element table and sensor model.
         samples: ``{"initial", "fitted"}``: the held-out NLL beside the realism of a scan sampled at the
             held-out rays by the initial and the fitted model (:func:`~mi_lidar.core.metrics.metrics_of`).
+        warnings: what makes the fit doubtful (e.g. :func:`~mi_lidar.scene.sensor_check.scene_warning`).
     """
 
     names: list
@@ -125,6 +126,7 @@ class FitResult:
     table: object
     model: SensorModel
     samples: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
 
 
 def returned_and_passed(seg: Segment, z: mi.Float, hit: mi.Bool, gate: float) -> tuple[mi.Bool, mi.Bool]:
@@ -416,6 +418,8 @@ class Calibration:
         samples["fitted"] = self.held_out_samples(final)
         if self.geometric:
             self.space.push_geometry(table)
+        on_surface = Problem.build(self.scene, self.rays, self.held_out).near_surface(model, SURFACE_TOLERANCE)
+        warning = scene_warning(on_surface, self.rays.hit[self.held_out])
         return FitResult(
             names=list(self.names),
             initial=initial,
@@ -431,4 +435,5 @@ class Calibration:
             table=table,
             model=model,
             samples=samples,
+            warnings=[warning] if warning else [],
         )

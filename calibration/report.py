@@ -240,6 +240,7 @@ def write_report(out, result: FitResult, scene, units: dict, title: str, pattern
         "held_out_nll": {"initial": result.initial_nll, "counting": result.counting_nll, "fitted": result.fitted_nll},
         "effects": [e.describe() for e in result.model.effects],
         "held_out_samples": result.samples,
+        "warnings": result.warnings,
     }
     files["report"] = atomic_write(
         out / "report.json", lambda stream: stream.write(json.dumps(summary, indent=1).encode())
@@ -260,6 +261,7 @@ def calibration_markdown(summary: dict, rows: list[dict], title: str) -> str:
     lines = [
         f"# {title}",
         "",
+        *(f"**Warning:** {w}.\n" for w in summary.get("warnings", [])),
         f"Held-out NLL (nats/ray): initial **{nll['initial']:.4f}**, counting start {nll['counting']:.4f}, "
         f"fitted **{nll['fitted']:.4f}**; {summary['steps_run']} Adam steps"
         + (" (stopped early: the held-out loss stopped falling)." if summary["stopped_early"] else "."),

@@ -110,6 +110,8 @@ def calibrate(
             pattern=pattern,
             force=force,
         )
+    for warning in result.warnings:
+        console.print(f"warning: {warning}", highlight=False, markup=False)
     console.print(result_table(result))
     for path in files.values():
         console.print(f"wrote {path}")

@@ -1,4 +1,4 @@
-"""compare, fit-sensor and diagnose warn when few of a log's returns lie on the scene's surfaces."""
+"""compare, fit-sensor, diagnose and calibrate warn when few of a log's returns lie on the scene's surfaces."""
 
 import dataclasses
 
@@ -59,21 +59,26 @@ def test_a_log_whose_poses_are_off_is_warned_about(room):
     assert f"only {share:.1%} of {hit.sum():,} measured returns" in warning and "poses" in warning
 
 
-@pytest.mark.parametrize("verb", ["compare", "fit-sensor", "diagnose"])
+@pytest.mark.parametrize("verb", ["compare", "fit-sensor", "diagnose", "calibrate"])
 def test_the_verbs_print_the_warning(tmp_path, room, verb):
     scene, log = room
     runner = CliRunner()
     for dx, warned in ((0.0, False), (30.0, True)):
         path = moved(log, dx).save(tmp_path / f"log{dx}.npz")
         out = tmp_path / (f"m{dx}.npz" if verb == "fit-sensor" else f"c{dx}")
-        extra = {"fit-sensor": ["--model", "physics", "--steps", "20"], "diagnose": ["--candidate", "range_scale"]}
+        extra = {
+            "fit-sensor": ["--model", "physics", "--steps", "20"],
+            "diagnose": ["--candidate", "range_scale"],
+            "calibrate": ["--params", "sensor.range_bias", "--steps", "5"],
+        }
         extra = extra.get(verb, [])
         run = runner.invoke(app, [verb, str(path), str(ROOM), "--out", str(out), *extra])
         text = " ".join(run.output.split())
         assert run.exit_code == 0, text
         assert ("warning: only" in text.lower()) == warned, text
-        if verb == "compare":
-            assert ("**Warning:** only" in (out / "report.md").read_text()) == warned
+        if verb in ("compare", "calibrate"):
+            report = (out / ("report.md" if verb == "compare" else "report.html")).read_text()
+            assert ("Warning:</b> only" in report or "**Warning:** only" in report) == warned
 
 
 def test_a_return_behind_an_opaque_wall_is_not_on_a_surface(room):
