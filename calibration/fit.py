@@ -51,7 +51,7 @@ from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.smoothing import smoothing_at
 from mi_lidar.core.trace import CachedBatch, RayCache, cache_distributions, trace_rounds
 from mi_lidar.scene.loading import scene_sensor_model
-from mi_lidar.scene.sensor_check import SURFACE_TOLERANCE, check_log_sensor, scene_warning
+from mi_lidar.scene.sensor_check import check_log_sensor, scene_warning
 
 
 @dataclass
@@ -418,7 +418,7 @@ class Calibration:
         samples["fitted"] = self.held_out_samples(final)
         if self.geometric:
             self.space.push_geometry(table)
-        on_surface = Problem.build(self.scene, self.rays, self.held_out).near_surface(model, SURFACE_TOLERANCE)
+        on_surface = Problem.build(self.scene, self.rays, self.held_out).near_surface(model)
         warning = scene_warning(on_surface, self.rays.hit[self.held_out])
         return FitResult(
             names=list(self.names),

@@ -29,6 +29,7 @@ from mi_lidar.core.trace import cache_distributions, trace_rounds
 
 BATCH = 1 << 18  # rays scored at once
 LEARNING_RATE = 0.3  # Adam step in units of each parameter's scale (cosine decay to a tenth)
+SURFACE_TOLERANCE = 0.5  # m: a return this close to an element its beam reaches lies on the scene's surface
 
 
 def moves_rays(model) -> bool:
@@ -170,7 +171,7 @@ class Problem:
         """Mean negative scored log-likelihood per ray (nats)."""
         return float(-np.mean(self.log_likelihood(model)))
 
-    def near_surface(self, model, tolerance: float) -> np.ndarray | None:
+    def near_surface(self, model, tolerance: float = SURFACE_TOLERANCE) -> np.ndarray | None:
         """(N,) True for the measured returns within ``tolerance`` (m) of an element their beam can reach.
 
         A beam reaches the elements traced along its ray up to and including the first opaque one

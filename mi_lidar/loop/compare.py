@@ -47,7 +47,7 @@ class RayTable:
         nominal, cos_incidence: of the first element along the ray (NaN / 0 where none).
         kind, label, shape: of the first element (-1 where none).
         beam, column, scan, azimuth: ray indices and sensor-frame azimuth (deg).
-        on_surface: True for returns within ``SURFACE_TOLERANCE`` of a traced element
+        on_surface: True for returns on a scene surface
             (:meth:`~mi_lidar.core.problem.Problem.near_surface`; None when not checked).
     """
 
@@ -104,8 +104,6 @@ def simulate_log_rays(
 
 def ray_table(log: Log, scene, model: SensorModel, seed: int = 0) -> RayTable:
     """Score, simulate and describe every ray of ``log`` under ``model``."""
-    from mi_lidar.scene.sensor_check import SURFACE_TOLERANCE
-
     rays = LogRays.from_log(log)
     problem = Problem.build(scene, rays)
     ll = problem.log_likelihood(model)
@@ -124,7 +122,7 @@ def ray_table(log: Log, scene, model: SensorModel, seed: int = 0) -> RayTable:
         column=rays.column,
         scan=rays.scan,
         azimuth=azimuth,
-        on_surface=problem.near_surface(model, SURFACE_TOLERANCE),
+        on_surface=problem.near_surface(model),
         **first,
     )
 

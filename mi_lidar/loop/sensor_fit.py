@@ -123,7 +123,7 @@ def fit_sensor(
             (:func:`~mi_lidar.scene.sensor_check.check_log_sensor`).
     """
     from mi_lidar.scene.loading import load_scene, scene_sensor_model
-    from mi_lidar.scene.sensor_check import SURFACE_TOLERANCE, check_log_sensor, scene_warning
+    from mi_lidar.scene.sensor_check import check_log_sensor, scene_warning
 
     if family not in FAMILIES:
         raise ParameterError(f"fit-sensor: unknown model {family!r}; choose one of {', '.join(FAMILIES)}")
@@ -139,7 +139,7 @@ def fit_sensor(
     samples = traced_states(train, base)
     say(f"traced {train.n:,} training and {test.n:,} held-out rays")
     result = SensorFit(family=family, model=base, train_rays=train.n, test_rays=test.n)
-    warning = scene_warning(test.near_surface(base, SURFACE_TOLERANCE), rays.hit[test_index])
+    warning = scene_warning(test.near_surface(base), rays.hit[test_index])
     result.warnings = [warning] if warning else []
 
     def held_out(density) -> float:

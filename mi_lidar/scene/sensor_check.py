@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mi_lidar.core.errors import SensorMismatchError
+from mi_lidar.core.problem import SURFACE_TOLERANCE
 
 RANGE_SCALE_LIMIT = 1.5  # log p99 range / scene max range beyond which the scales disagree
 
@@ -129,7 +130,6 @@ def check_log_sensor(log, scene, pattern=None, force: bool = False) -> None:
         )
 
 
-SURFACE_TOLERANCE = 0.5  # m: a return this close to a traced element lies on the scene's surface
 SURFACE_SHARE_WARNING = 0.25  # below this share of returns on a surface, the scene is probably not the log's
 
 
