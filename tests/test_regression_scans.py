@@ -2,10 +2,14 @@
 
 Ranges may differ in the last bits on another CPU (Dr.Jit compiles for the host's vector width and
 pass-through restarts accumulate those bits: up to 2.6e-6 relative measured between two EPYC
-hosts), so float channels are compared to 1e-5 m plus 1e-5 relative (0.1 mm at 10 m; any change of
-the model moves ranges by millimetres or more); flags, labels and segment counts exactly. A ray
-that grazes an element's edge can land on the neighbour on another CPU, so at most one ray in a
-thousand may differ per channel (one in 3840 measured; a change of the model moves most rays).
+hosts, 8.1e-6 between an EPYC (AVX2) and a Xeon (AVX-512)), so float channels are compared to
+1e-5 m plus 1e-5 relative (0.1 mm at 10 m; any change of the model moves ranges by millimetres or
+more); flags, labels and segment counts exactly. The cosine of incidence is compared to 1e-3: on a
+curved element it follows the hit point (1e-5 m on a 0.1 m ellipsoid turns the normal by 1e-4
+rad), and grazing hits amplify that (3.6e-4 measured between the EPYC and the Xeon); it depends on
+the geometry only, which a change of the model leaves alone. A ray that grazes an element's edge
+can land on the neighbour on another CPU, so at most one ray in a thousand may differ per channel
+(one in 3840 measured; a change of the model moves most rays).
 """
 
 from pathlib import Path
@@ -16,6 +20,7 @@ import pytest
 from tests.regression_cases import CASES, simulate_case
 
 MAX_DIFFERING = 1e-3  # fraction of values allowed to differ (edge rays; see the module docstring)
+TOLERANCE = {"cos_incidence": (1e-3, 0.0)}  # (absolute, relative) where not 1e-5 m and 1e-5 (module docstring)
 REFERENCE = Path(__file__).resolve().parent / "data" / "regression_scans.npz"
 
 
@@ -29,7 +34,8 @@ def test_scans_match_the_stored_reference(name):
         value = got[channel]
         assert value.shape == expected.shape, channel
         if value.dtype.kind == "f":
-            same = np.isclose(value, expected, atol=1e-5, rtol=1e-5, equal_nan=True)
+            atol, rtol = TOLERANCE.get(channel, (1e-5, 1e-5))
+            same = np.isclose(value, expected, atol=atol, rtol=rtol, equal_nan=True)
         else:
             same = value == expected
         differing = np.argwhere(~same)
