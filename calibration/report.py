@@ -16,7 +16,7 @@ import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mi_lidar.calibration.fit import FitResult  # noqa: E402
-from mi_lidar.core.atomic import atomic_path, atomic_write  # noqa: E402
+from mi_lidar.core.atomic import atomic_path, atomic_write, atomic_write_text  # noqa: E402
 from mi_lidar.core.elements import ELLIPSOID_STRIDE, ordered_shapes  # noqa: E402
 from mi_lidar.core.errors import CalibrationError, PatternError  # noqa: E402
 from mi_lidar.core.patterns import get_pattern, to_table  # noqa: E402
@@ -242,11 +242,9 @@ def write_report(out, result: FitResult, scene, units: dict, title: str, pattern
         "held_out_samples": result.samples,
         "warnings": result.warnings,
     }
-    files["report"] = atomic_write(
-        out / "report.json", lambda stream: stream.write(json.dumps(summary, indent=1).encode())
-    )
-    page = markdown_to_html(calibration_markdown(summary, rows, title), title).encode()
-    files["html"] = atomic_write(out / "report.html", lambda stream: stream.write(page))
+    files["report"] = atomic_write_text(out / "report.json", json.dumps(summary, indent=1))
+    page = markdown_to_html(calibration_markdown(summary, rows, title), title)
+    files["html"] = atomic_write_text(out / "report.html", page)
     return files
 
 
@@ -321,4 +319,4 @@ def _write_csv(path: Path, header: list, rows) -> Path:
     writer = csv.writer(text)
     writer.writerow(header)
     writer.writerows(rows)
-    return atomic_write(path, lambda stream: stream.write(text.getvalue().encode()))
+    return atomic_write_text(path, text.getvalue())

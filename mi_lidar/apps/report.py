@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from mi_lidar.apps.risk import WITHIN, AppResult, alpha_key, standard_error  # noqa: E402
-from mi_lidar.core.atomic import atomic_write  # noqa: E402
+from mi_lidar.core.atomic import atomic_write_text  # noqa: E402
 from mi_lidar.loop.report import save_figure  # noqa: E402
 
 SAMPLE_KEYS = ("range_error_median", "range_error_p90", "f1", "histogram_l1")  # benchmark columns shown
@@ -244,9 +244,7 @@ def write_report(evaluation, out: Path) -> dict[str, Path]:
     """Write the JSON, the figures and the HTML page of an :class:`~mi_lidar.apps.evaluate.AppsEvaluation`."""
     out.mkdir(parents=True, exist_ok=True)
     info = evaluation.to_json()
-    files = {
-        "json": atomic_write(out / "apps.json", lambda f: f.write(json.dumps(info, indent=1, default=float).encode()))
-    }
+    files = {"json": atomic_write_text(out / "apps.json", json.dumps(info, indent=1, default=float))}
     sections = []
     for r in evaluation.results:
         files[f"{r.name}_loss"] = loss_figure(r, out / f"{r.name}_loss.png")
@@ -295,5 +293,5 @@ length of the runs of no-return, short and long beams.</p>{_scans_table(evaluati
 {"".join(sections)}
 <p>Seconds: {html.escape(json.dumps({k: round(v, 1) for k, v in evaluation.seconds.items()}))}</p>
 </body></html>"""
-    files["html"] = atomic_write(out / "apps.html", lambda f: f.write(page.encode()))
+    files["html"] = atomic_write_text(out / "apps.html", page)
     return files

@@ -17,7 +17,7 @@ import numpy as np
 from mi_lidar.apps.matching3d import scan_cloud
 from mi_lidar.apps.report import _colors, _image, _pick_table, _save, loss_figure, path_figure
 from mi_lidar.apps.risk import alpha_key
-from mi_lidar.core.atomic import atomic_write
+from mi_lidar.core.atomic import atomic_write_text
 
 BENCHMARK_KEYS = (
     ("nll", "test NLL (nats/ray)", "{:.3f}"),
@@ -85,9 +85,7 @@ def write_report(evaluation, out: Path, ranges: dict | None = None) -> dict[str,
     """
     out.mkdir(parents=True, exist_ok=True)
     info = evaluation.to_json()
-    files = {
-        "json": atomic_write(out / "apps3d.json", lambda f: f.write(json.dumps(info, indent=1, default=float).encode()))
-    }
+    files = {"json": atomic_write_text(out / "apps3d.json", json.dumps(info, indent=1, default=float))}
     if ranges is None:
         with np.load(out / "cache" / "frame.npz") as z:
             ranges = {str(name): z[f"ranges/{name}"] for name in z["sources"]}
@@ -121,5 +119,5 @@ spreading its mass shows it here.</p>{_benchmark_table(evaluation.benchmark)}
 {"".join(sections)}
 <p>Seconds: {html.escape(json.dumps({k: round(v, 1) for k, v in evaluation.seconds.items()}))}</p>
 </body></html>"""
-    files["html"] = atomic_write(out / "apps3d.html", lambda f: f.write(page.encode()))
+    files["html"] = atomic_write_text(out / "apps3d.html", page)
     return files

@@ -31,7 +31,7 @@ from typing import Protocol
 
 import numpy as np
 
-from mi_lidar.core.atomic import atomic_write
+from mi_lidar.core.atomic import atomic_write_text
 from mi_lidar.core.errors import ParameterError
 
 WITHIN = 0.10  # a simulator's pick is good when its real J is within 10 % of the best real J found
@@ -144,8 +144,7 @@ class Objectives:
 
     def save(self) -> None:
         if self.path is not None:
-            text = json.dumps({"key": self.key, "values": self.values}, default=float)
-            atomic_write(self.path, lambda f: f.write(text.encode()))
+            atomic_write_text(self.path, json.dumps({"key": self.key, "values": self.values}, default=float))
 
 
 @dataclass

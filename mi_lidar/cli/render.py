@@ -205,7 +205,7 @@ def camera_lidar(
     """
     import json
 
-    from mi_lidar.core.atomic import atomic_write
+    from mi_lidar.core.atomic import atomic_write_text
     from mi_lidar.io import write_exr, write_ply
     from mi_lidar.io.preview import overlay_png, rgb_png
     from mi_lidar.scene import load_scene
@@ -238,7 +238,7 @@ def camera_lidar(
         "width": width,
         "height": height,
     }
-    files.append(atomic_write(out / "calib.json", lambda stream: stream.write(json.dumps(calib, indent=1).encode())))
+    files.append(atomic_write_text(out / "calib.json", json.dumps(calib, indent=1)))
     console.print(f"{int(frame['visible'].sum()):,} of {len(frame['points']):,} Lidar returns fall in the image")
     for path in files:
         console.print(f"wrote {path}")

@@ -48,3 +48,18 @@ def atomic_write(path: str | os.PathLike, write) -> Path:
     with atomic_path(path) as tmp, open(tmp, "wb") as stream:
         write(stream)
     return Path(path)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` to ``path`` as UTF-8, atomically.
+
+    Returns:
+        ``path`` as a Path.
+
+    Raises:
+        TypeError: ``text`` is not a str.
+        UnicodeEncodeError: ``text`` holds a lone surrogate; the previous file stays.
+    """
+    if not isinstance(text, str):
+        raise TypeError(f"{os.fspath(path)}: text must be a str, not {type(text).__name__}")
+    return atomic_write(path, lambda stream: stream.write(text.encode("utf-8")))

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_lidar.core.atomic import atomic_write_text
 from mi_lidar.hybrid.baselines import NeighborSimulator, box_surface_scene, mesh_model_scene
 from mi_lidar.hybrid.blocks import SceneSensor, write_scene
 from mi_lidar.hybrid.classes import GROUND_CLASSES, OBJECT_CLASSES
@@ -197,7 +198,7 @@ def run(
             "auto_segments": len(scored),
             "auto_classification_accuracy": float(np.mean([p == t for p, t in scored])) if scored else float("nan"),
         }
-    (out / "results.json").write_text(json.dumps(results, indent=1, default=float))
+    atomic_write_text(out / "results.json", json.dumps(results, indent=1, default=float))
     return results
 
 

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import SceneError
 from mi_lidar.hybrid.classes import CLASS_NAMES, OBJECT_CLASSES, class_id
 from mi_lidar.hybrid.primitives import closest_extents, rotation_z
@@ -158,8 +159,7 @@ class MeshModelLibrary:
                 ax.tick_params(labelsize=6)
             for ax in row[len(models) :]:
                 ax.axis("off")
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=80)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=80)
         plt.close(fig)
-        return path
+        return Path(path)

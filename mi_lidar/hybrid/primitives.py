@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_lidar.core.atomic import atomic_path, atomic_write_text
 from mi_lidar.core.errors import SceneError
 from mi_lidar.hybrid.classes import CLASS_NAMES, class_id
 from mi_lidar.hybrid.model import EllipsoidSet, HybridModel
@@ -178,15 +179,14 @@ class PrimitiveLibrary:
         index = []
         for p in self.primitives:
             e = p.ellipsoids
-            np.savez_compressed(
-                folder / f"{p.id}.npz", means=e.means, covs=e.covs, p_hit=e.p_hit, box_lo=p.box_lo, box_hi=p.box_hi
-            )
+            with atomic_path(folder / f"{p.id}.npz") as tmp:
+                np.savez_compressed(tmp, means=e.means, covs=e.covs, p_hit=e.p_hit, box_lo=p.box_lo, box_hi=p.box_hi)
             index.append(
                 {"id": p.id, "label": int(p.label), "class": p.class_name, "file": f"{p.id}.npz", "source": p.source}
             )
-        path = folder / "library.json"
-        path.write_text(json.dumps({"format": "mi-lidar-primitives", "version": 1, "primitives": index}, indent=1))
-        return path
+        # the index last, so that it only ever names whole files
+        text = json.dumps({"format": "mi-lidar-primitives", "version": 1, "primitives": index}, indent=1)
+        return atomic_write_text(folder / "library.json", text)
 
     @classmethod
     def load(cls, folder) -> PrimitiveLibrary:
@@ -255,8 +255,7 @@ class PrimitiveLibrary:
         for ax in axes.ravel()[len(chosen) :]:
             ax.axis("off")
         fig.colorbar(plt.cm.ScalarMappable(cmap=cmap), ax=axes, label="p_hit", shrink=0.6)
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=90)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=90)
         plt.close(fig)
-        return path
+        return Path(path)

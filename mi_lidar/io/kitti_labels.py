@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.atomic import atomic_path, atomic_write
+from mi_lidar.core.atomic import atomic_path, atomic_write_text
 from mi_lidar.core.errors import LogFormatError
 
 LABEL_FIELDS = (
@@ -41,7 +41,7 @@ LABEL_FIELDS = (
 def write_kitti_calib(path: str | os.PathLike, matrices: dict[str, np.ndarray]) -> Path:
     """Write calibration matrices as ``KEY: values`` lines (row-major, ``%.12e``), atomically."""
     text = "".join(f"{key}: {' '.join(f'{v:.12e}' for v in np.ravel(value))}\n" for key, value in matrices.items())
-    return atomic_write(path, lambda stream: stream.write(text.encode()))
+    return atomic_write_text(path, text)
 
 
 def read_kitti_calib(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -75,7 +75,7 @@ def write_kitti_labels(path: str | os.PathLike, objects: list[dict]) -> Path:
         values = [str(obj["type"]), f"{obj['truncated']:.2f}", str(int(obj["occluded"]))]
         values += [f"{obj[k]:.2f}" for k in LABEL_FIELDS[3:]]
         lines.append(" ".join(values) + "\n")
-    return atomic_write(path, lambda stream: stream.write("".join(lines).encode()))
+    return atomic_write_text(path, "".join(lines))
 
 
 def read_kitti_labels(path: str | os.PathLike) -> list[dict]:

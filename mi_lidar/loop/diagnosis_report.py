@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.atomic import atomic_write
+from mi_lidar.core.atomic import atomic_write_text
 from mi_lidar.io.markdown import markdown_to_html
 from mi_lidar.loop.residuals import UNITS, group_index, plot_structure, residual_structure, structure_verdict
 from mi_lidar.loop.selection import DROPPED, JOINED, LOST, MIN_GAIN, REPLACED
@@ -253,12 +253,10 @@ def write_report(d, out: Path, appendix: str = "") -> None:
     ``appendix``: Markdown sections added after the diagnosis (e.g. the intensity section).
     """
     out.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(d.to_json(), indent=1, default=float).encode()
-    atomic_write(out / "diagnosis.json", lambda stream: stream.write(text))
+    atomic_write_text(out / "diagnosis.json", json.dumps(d.to_json(), indent=1, default=float))
     markdown = diagnosis_markdown(d) + appendix
-    atomic_write(out / "diagnosis.md", lambda stream: stream.write(markdown.encode()))
-    html = markdown_to_html(markdown, "mi-lidar diagnosis").encode()
-    atomic_write(out / "diagnosis.html", lambda stream: stream.write(html))
+    atomic_write_text(out / "diagnosis.md", markdown)
+    atomic_write_text(out / "diagnosis.html", markdown_to_html(markdown, "mi-lidar diagnosis"))
     plot_structure(d.structure, out / "residual_structure.png")
     for k in range(len(d.evidence)):
         plot_before_after(d, k, out / f"before_after_{k + 1}.png")

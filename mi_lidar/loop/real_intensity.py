@@ -284,7 +284,7 @@ def intensity_figure(scores: list[IntensityScores], path: str | Path) -> Path:
 def write_intensity_report(scores: list[IntensityScores], out: str | Path) -> Path:
     """``report.md``, ``report.html`` and ``intensity.png`` in ``out``: the scores of every channel, the chosen
     prior widths and the calibrated models; returns the HTML page."""
-    from mi_lidar.core.atomic import atomic_write
+    from mi_lidar.core.atomic import atomic_write_text
     from mi_lidar.io.markdown import markdown_to_html
     from mi_lidar.loop.report import table_cell
 
@@ -321,7 +321,6 @@ def write_intensity_report(scores: list[IntensityScores], out: str | Path) -> Pa
             "",
         ]
     markdown = "\n".join(lines)
-    atomic_write(out / "report.md", lambda stream: stream.write(markdown.encode()))
-    page = markdown_to_html(markdown, "mi-lidar: intensity on real frames").encode()
-    atomic_write(out / "report.html", lambda stream: stream.write(page))
+    atomic_write_text(out / "report.md", markdown)
+    atomic_write_text(out / "report.html", markdown_to_html(markdown, "mi-lidar: intensity on real frames"))
     return out / "report.html"

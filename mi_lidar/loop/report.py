@@ -11,7 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mi_lidar.core.atomic import atomic_path  # noqa: E402
+from mi_lidar.core.atomic import atomic_path, atomic_write_text  # noqa: E402
 from mi_lidar.io.markdown import markdown_to_html  # noqa: E402
 
 
@@ -216,8 +216,7 @@ def write_comparison(result, log, out: Path, title: str, model) -> list[Path]:
     ]
     if t.hit.any():
         files.append(write_residual_ply(t, log, out / "residuals.ply"))
-    (out / "comparison.json").write_text(json.dumps(result.to_json(), indent=1, default=float))
-    files.append(out / "comparison.json")
+    files.append(atomic_write_text(out / "comparison.json", json.dumps(result.to_json(), indent=1, default=float)))
     h = result.headline
     keys = [
         "group",
@@ -263,7 +262,9 @@ def write_comparison(result, log, out: Path, title: str, model) -> list[Path]:
         lines += ["", f"### By {name}", "", markdown_table(rows, keys[:1] + keys[2:])]
     lines += ["", "`residuals.ply`: measured points coloured by measured - nominal range (red long, blue short)."]
     md = "\n".join(lines) + "\n" + intensity_section(result.intensity, out)
-    (out / "report.md").write_text(md)
-    (out / "report.html").write_text(markdown_to_html(md, title))
+    report = [
+        atomic_write_text(out / "report.md", md),
+        atomic_write_text(out / "report.html", markdown_to_html(md, title)),
+    ]
     files += [out / FIGURE] if result.intensity is not None else []
-    return files + [out / "report.md", out / "report.html"]
+    return files + report

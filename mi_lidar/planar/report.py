@@ -22,7 +22,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mi_lidar.core.atomic import atomic_path, atomic_write  # noqa: E402
+from mi_lidar.core.atomic import atomic_path, atomic_write_text  # noqa: E402
 from mi_lidar.planar.benchmark import SAMPLED_SCANS  # noqa: E402
 
 BINS = np.linspace(-1.5, 1.5, 121)
@@ -185,9 +185,7 @@ def write_benchmark(result, out: Path) -> dict[str, Path]:
 
 def _write_report(result, out: Path) -> dict[str, Path]:
     files = {
-        "json": atomic_write(
-            out / "benchmark.json", lambda f: f.write(json.dumps(result.to_json(), indent=1, default=float).encode())
-        ),
+        "json": atomic_write_text(out / "benchmark.json", json.dumps(result.to_json(), indent=1, default=float)),
         "nll": nll_figure(result, out / "nll.png"),
         "residuals": residual_figure(result, out / "residuals.png"),
         "ranges": range_figure(result, out / "nll_by_range.png"),
@@ -232,5 +230,5 @@ for the sensor's own distribution, and for a model that never varies it is the p
 <p>Chosen on the training scans: {html.escape(json.dumps(info["settings"]))}</p>
 <p>Seconds: {html.escape(json.dumps({k: round(v, 1) for k, v in result.seconds.items()}))}</p>
 </body></html>"""
-    files["html"] = atomic_write(out / "benchmark.html", lambda f: f.write(page.encode()))
+    files["html"] = atomic_write_text(out / "benchmark.html", page)
     return files

@@ -25,7 +25,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 from plyfile import PlyData, PlyElement
 
-from mi_lidar.core.atomic import atomic_write
+from mi_lidar.core.atomic import atomic_write, atomic_write_text
 from mi_lidar.core.errors import ParameterError
 
 ELEMENT_ATTRIBUTES = ("p_hit", "range_sigma", "label", "reflectivity")
@@ -181,8 +181,7 @@ def write_scene_xml(path, shapes: list[ShapeEntry], header_comment: str = "", ex
     if extra_xml:
         body.append(extra_xml)
     body.append("</scene>\n")
-    text = "\n".join(body).encode()
-    return atomic_write(path, lambda stream: stream.write(text))
+    return atomic_write_text(path, "\n".join(body))
 
 
 def scene_with_effects(source: str | Path, effects: str, path: str | Path, density: str | None = None) -> Path:
@@ -229,5 +228,4 @@ def scene_with_effects(source: str | Path, effects: str, path: str | Path, densi
             body = text[opening.end() : close]
             body = existing.sub(line, body) if existing.search(body) else f"\n        {line}" + body
             text = text[: opening.end()] + body + text[close:]
-    data = text.encode("utf-8")
-    return atomic_write(Path(path), lambda stream: stream.write(data))
+    return atomic_write_text(path, text)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_lidar.core.atomic import atomic_path, atomic_write
 from mi_lidar.core.errors import PatternError
 from mi_lidar.core.patterns.firing import FiringPattern, positive_float
 
@@ -115,11 +116,11 @@ def to_table(pattern: FiringPattern, path: str | os.PathLike) -> Path:
     stack = np.stack([np.degrees(pattern.elevation), np.degrees(pattern.azimuth), pattern.time], axis=-1)
     suffix = p.suffix.lower()
     if suffix == ".npy":
-        np.save(p, stack)
+        atomic_write(p, lambda stream: np.save(stream, stack))
     elif suffix == ".csv":
         h, w = pattern.shape
         rows, cols = np.divmod(np.arange(h * w), w)
-        with p.open("w", newline="") as f:
+        with atomic_path(p) as tmp, tmp.open("w", newline="") as f:
             out = csv.writer(f)
             out.writerow([*_CSV_ANGLES, "time_s", *_CSV_GRID])
             for (el, az, t), r, c in zip(stack.reshape(-1, 3), rows, cols):

@@ -1,0 +1,68 @@
+"""atomic_write_text: UTF-8 text written through a temporary file; a failed write leaves the old file and no litter."""
+
+import os
+
+import pytest
+
+from mi_lidar.core import atomic
+from mi_lidar.core.atomic import atomic_write_text
+
+
+@pytest.fixture
+def temporaries(monkeypatch):
+    """The temporary files atomic_path creates, in order."""
+    made = []
+    mkstemp = atomic.tempfile.mkstemp
+
+    def spy(*args, **kwargs):
+        fd, name = mkstemp(*args, **kwargs)
+        made.append(name)
+        return fd, name
+
+    monkeypatch.setattr(atomic.tempfile, "mkstemp", spy)
+    return made
+
+
+def test_text_round_trips_as_utf8_and_replaces_the_old_file(tmp_path, temporaries):
+    path = tmp_path / "note.txt"
+    path.write_bytes(b"old")
+    assert atomic_write_text(path, "range \u00b5 m\n") == path
+    assert path.read_bytes() == "range \u00b5 m\n".encode("utf-8")
+    assert path.read_text(encoding="utf-8") == "range \u00b5 m\n"
+    assert len(temporaries) == 1 and os.path.dirname(temporaries[0]) == str(tmp_path)
+    assert [p.name for p in tmp_path.iterdir()] == ["note.txt"]
+
+
+def test_text_that_cannot_be_encoded_leaves_the_old_file_and_no_temporary(tmp_path, temporaries):
+    """A lone surrogate fails to encode inside the atomic block, after the temporary file exists."""
+    path = tmp_path / "note.txt"
+    path.write_text("old", encoding="utf-8")
+    with pytest.raises(UnicodeEncodeError):
+        atomic_write_text(path, "half \ud800 written")
+    assert len(temporaries) == 1 and not os.path.exists(temporaries[0])
+    assert path.read_text(encoding="utf-8") == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["note.txt"]
+
+
+def test_a_failed_rename_leaves_the_old_file_and_no_temporary(tmp_path, temporaries, monkeypatch):
+    path = tmp_path / "note.json"
+    path.write_text("{}", encoding="utf-8")
+
+    def refuse(src, dst):
+        raise PermissionError(13, "Permission denied", os.fspath(dst))
+
+    monkeypatch.setattr(atomic.os, "replace", refuse)
+    with pytest.raises(PermissionError):
+        atomic_write_text(path, '{"new": 1}')
+    assert len(temporaries) == 1 and not os.path.exists(temporaries[0])
+    assert path.read_text(encoding="utf-8") == "{}"
+    assert [p.name for p in tmp_path.iterdir()] == ["note.json"]
+
+
+def test_bytes_are_refused_and_the_old_file_stays(tmp_path):
+    path = tmp_path / "note.txt"
+    path.write_text("old", encoding="utf-8")
+    with pytest.raises(TypeError, match="note.txt.*str"):
+        atomic_write_text(path, b"new")
+    assert path.read_text(encoding="utf-8") == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["note.txt"]
