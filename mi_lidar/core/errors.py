@@ -44,3 +44,20 @@ class SpecError(MiLidarError, ValueError):
 
 class SensorMismatchError(MiLidarError, ValueError):
     """A log was recorded by another sensor than the scene's (beam count, field of view or range scale)."""
+
+
+def describe_invalid(items: list[dict], header: str, footer: str = "") -> str:
+    """One message listing every problem of a validated document, one line each.
+
+    Args:
+        items: pydantic's ``ValidationError.errors()``: dicts with ``loc``, ``msg`` and ``input``.
+        header: the first line (the file and what it should be).
+        footer: a last line saying where the fields are documented ("" for none).
+    """
+    lines = [header]
+    for item in items:
+        where = ".".join(str(p) for p in item["loc"]) or "(top level)"
+        got = item.get("input")
+        shown = "" if isinstance(got, (dict, list)) else f" (got {got!r})"
+        lines.append(f"  {where}: {item['msg']}{shown}")
+    return "\n".join(lines + ([footer] if footer else []))

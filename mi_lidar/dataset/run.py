@@ -23,7 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mi_lidar.core.atomic import atomic_write
+from mi_lidar.core.atomic import atomic_write_text
 from mi_lidar.core.errors import SpecError
 from mi_lidar.core.resources import cpu_seconds, peak_resident_mib
 from mi_lidar.dataset.spec import DatasetSpec
@@ -158,7 +158,7 @@ class Manifest:
         if throttled and start - self.saved_at < MANIFEST_SAVE_RATIO * self.save_cost:
             return None
         text = json.dumps(self.data, indent=1, sort_keys=True)
-        path = atomic_write(self.out / MANIFEST, lambda stream: stream.write(text.encode()))
+        path = atomic_write_text(self.out / MANIFEST, text)
         self.saved_at = time.monotonic()
         self.save_cost = self.saved_at - start
         return path
@@ -212,8 +212,10 @@ def run_dataset(
     """Render every frame of ``spec`` not already in ``out``'s manifest.
 
     Raises:
-        SpecError: the spec does not fit ``out``'s manifest, or a frame found the spec inconsistent
-            (unknown shape, class or label); other frame errors are retried, then reported.
+        SpecError: the spec does not fit ``out``'s manifest, or a scene is inconsistent with it
+            (unknown shape, class or label: found before the first frame by
+            :func:`~mi_lidar.dataset.scenes.check_scenes`); other frame errors are retried, then reported.
+        SceneError: a scene, annotation or library to render cannot be read.
 
     Args:
         spec: the dataset spec. out: output folder (on a file system every worker can write).
@@ -230,6 +232,7 @@ def run_dataset(
         The run's report; failed frames are also listed in the manifest.
     """
     from mi_lidar.dataset.frame import INTENSITY_NOTE, semantic_table
+    from mi_lidar.dataset.scenes import check_scenes
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -239,6 +242,7 @@ def run_dataset(
     intact = {k: r for k, r in manifest.frames.items() if verify_frame(out, r)}
     manifest.data["frames"] = intact
     todo = [k for k in range(spec.frames) if str(k) not in intact]
+    check_scenes(spec, sorted({spec.locate(k)[0] for k in todo}))  # a bad scene fails here, not in every frame
     report.skipped = spec.frames - len(todo)
     if report.skipped or report.removed_partial:
         announce(

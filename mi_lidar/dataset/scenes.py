@@ -163,6 +163,16 @@ def path_frame(waypoints: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.nda
     return xy[segment] + t[:, None] * steps[segment], steps[segment] / lengths[segment, None]
 
 
+def check_classes(scene_spec: SceneSpec, library: PrimitiveLibrary) -> None:
+    """Raise :class:`SpecError` when a random scene's class has no primitive in its library."""
+    missing = [c for c in scene_spec.random.classes if not library.of_class(c)]
+    if missing:
+        raise SpecError(
+            f"scene {scene_spec.name!r}: the library {scene_spec.library} has no primitive of class {missing}; "
+            f"it has {sorted({p.class_name for p in library.primitives})}"
+        )
+
+
 def random_objects(scene_spec: SceneSpec, library: PrimitiveLibrary, height: Callable, rng) -> list[dict]:
     """Annotation objects drawn along the trajectory: class uniform, primitive uniform within it, yaw uniform.
 
@@ -170,12 +180,7 @@ def random_objects(scene_spec: SceneSpec, library: PrimitiveLibrary, height: Cal
     ``lateral`` bounds from the path on either side, and do not overlap (horizontal box circles).
     """
     options = scene_spec.random
-    missing = [c for c in options.classes if not library.of_class(c)]
-    if missing:
-        raise SpecError(
-            f"scene {scene_spec.name!r}: the library {scene_spec.library} has no primitive of class {missing}; "
-            f"it has {sorted({p.class_name for p in library.primitives})}"
-        )
+    check_classes(scene_spec, library)
     waypoints = np.asarray([w[:2] for w in scene_spec.trajectory.waypoints], float)
     length = float(np.linalg.norm(np.diff(waypoints, axis=0), axis=1).sum())
     placed: list[tuple[np.ndarray, float]] = []
@@ -268,9 +273,32 @@ def build_scene(spec: DatasetSpec, scene_index: int, variant: int) -> SceneInsta
     unnamed = sorted(set(np.unique(np.asarray(table.label)).tolist()) - set(instance.label_names))
     if unnamed:
         raise SpecError(
-            f"scene {scene_spec.name!r}: element labels {unnamed} have no class name; "
-            f"add them under labels:, e.g. labels: {{{unnamed[0]}: vegetation}}"
+            f"scene {scene_spec.name!r}: element labels {unnamed} have no class name; add each under the "
+            f"scene's labels: with the class its elements belong to, e.g. labels: {{{unnamed[0]}: vegetation}}"
         )
     if not instance.scene.shapes():
         raise SceneError(f"scene {scene_spec.name!r} has no shapes")
     return instance
+
+
+def check_scenes(spec: DatasetSpec, scene_indices: list[int]) -> None:
+    """Find, before any frame is rendered, what would make every frame of a scene fail.
+
+    XML scenes are loaded and checked as :func:`build_scene` does (object shapes, named labels);
+    annotation files are read; random scenes' classes are looked up in their library. Hybrid scenes
+    are not composed here: that is each frame's work.
+
+    Raises:
+        SpecError: as :func:`build_scene`, or a random class the library lacks.
+        SceneError: an XML scene, annotation or library that cannot be read.
+    """
+    for index in scene_indices:
+        scene_spec = spec.scenes[index]
+        if scene_spec.xml is not None:
+            build_scene(spec, index, 0)
+            continue
+        library = _library(str(spec.resolve(scene_spec.library)))
+        if scene_spec.annotation is not None:
+            load_annotation(spec.resolve(scene_spec.annotation))
+        else:
+            check_classes(scene_spec, library)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from mi_lidar.core.errors import SpecError
+from mi_lidar.core.errors import SpecError, describe_invalid
 from mi_lidar.core.patterns import is_pattern_file
 
 
@@ -275,16 +275,6 @@ class DatasetSpec(Strict):
         raise AssertionError("unreachable")
 
 
-def _describe(error: ValidationError, path: Path) -> str:
-    lines = []
-    for item in error.errors():
-        where = ".".join(str(p) for p in item["loc"]) or "(top level)"
-        got = item.get("input")
-        shown = "" if isinstance(got, (dict, list)) else f" (got {got!r})"
-        lines.append(f"  {where}: {item['msg']}{shown}")
-    return f"{path}: invalid dataset spec:\n" + "\n".join(lines) + "\nSee docs/datasets.md for every field."
-
-
 def read_spec_file(path: Path) -> dict:
     """The raw mapping of a YAML or TOML spec file."""
     if not path.is_file():
@@ -329,7 +319,9 @@ def load_spec(path: str | Path, source: dict | None = None) -> DatasetSpec:
     try:
         spec = DatasetSpec.model_validate({**data, "base_dir": path.resolve().parent, "source": data})
     except ValidationError as exc:
-        raise SpecError(_describe(exc, path)) from None
+        raise SpecError(
+            describe_invalid(exc.errors(), f"{path}: invalid dataset spec:", "See docs/datasets.md for every field.")
+        ) from None
     missing = [f"{where}: {file}" for where, file in _referenced_files(spec) if not spec.resolve(file).exists()]
     if missing:
         raise SpecError(

@@ -131,19 +131,34 @@ def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneS
 
 
 def read_mesh_ply(path) -> GroundMesh:
-    """A triangle mesh PLY written by :func:`mi_lidar.scene.files.write_mesh_ply`."""
-    ply = PlyData.read(str(path))
-    v, f = ply["vertex"].data, ply["face"].data
-    names = f.dtype.names
-    get = lambda n: np.asarray(f[f"{n}_0"]) if f"{n}_0" in names else None
-    label = get("label")
-    return GroundMesh(
-        np.c_[v["x"], v["y"], v["z"]],
-        np.stack(f["vertex_indices"]),
-        get("p_hit"),
-        get("range_sigma"),
-        None if label is None else label.astype(np.int32),
-    )
+    """A triangle mesh PLY written by :func:`mi_lidar.scene.files.write_mesh_ply`.
+
+    Raises:
+        SceneError: the file is missing, or not a PLY with ``x y z`` vertices and triangle faces.
+    """
+    try:
+        ply = PlyData.read(str(path))
+        v, f = ply["vertex"].data, ply["face"].data
+        names = f.dtype.names
+        get = lambda n: np.asarray(f[f"{n}_0"]) if f"{n}_0" in names else None
+        label = get("label")
+        faces = np.stack(f["vertex_indices"]) if len(f) else np.zeros((0, 3), np.int64)
+        if faces.ndim != 2 or faces.shape[1] != 3 or (faces.size and not 0 <= faces.min() <= faces.max() < len(v)):
+            raise ValueError("faces must be triangles indexing the vertices")
+        return GroundMesh(
+            np.c_[v["x"], v["y"], v["z"]],
+            faces,
+            get("p_hit"),
+            get("range_sigma"),
+            None if label is None else label.astype(np.int32),
+        )
+    except FileNotFoundError:
+        raise SceneError(f"{path}: no such triangle mesh file") from None
+    except Exception as exc:  # plyfile raises many types on malformed files; name the file either way
+        raise SceneError(
+            f"{path}: not a triangle mesh PLY ({type(exc).__name__}: {exc}); "
+            "write one with mi_lidar.scene.files.write_mesh_ply or mi-lidar fit-scene"
+        ) from None
 
 
 def read_ellipsoids_ply(path) -> EllipsoidSet:

@@ -18,13 +18,17 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, PositiveFloat, ValidationError, field_validator
 
-from mi_lidar.core.errors import SceneError
+from mi_lidar.core.atomic import atomic_write_text
+from mi_lidar.core.errors import PoseError, SceneError, describe_invalid
 from mi_lidar.core.log import Log
 from mi_lidar.core.patterns import to_table
 from mi_lidar.core.patterns.from_log import pattern_from_log
+from mi_lidar.core.poses import validate_poses
 from mi_lidar.hybrid.blocks import SceneSensor, read_mesh_ply
 from mi_lidar.hybrid.classes import CLASS_NAMES, class_id
 from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
@@ -83,42 +87,120 @@ def save_annotation(path, objects: list[dict], ground: GroundMesh | None = None,
             "min_range": float(log.sensor.get("min_range", 0.0)),
             "max_range": float(log.sensor.get("max_range", 120.0)),
         }
-    path.write_text(json.dumps(doc, indent=1))
-    return path
+    return atomic_write_text(path, json.dumps(doc, indent=1))
 
 
-def load_annotation(path) -> tuple[list[dict], GroundMesh | None]:
-    """Objects and optional ground mesh of an annotation file; errors name the bad entry."""
+class _AnnotationPart(BaseModel):
+    """A part of an annotation file: NaN and infinite numbers are errors; keys of other tools are kept."""
+
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
+
+
+class AnnotatedObject(_AnnotationPart):
+    """One object: its class, centroid (m), heading (rad) and box extents (m)."""
+
+    class_name: str = Field(alias="class")
+    center: tuple[float, float, float]
+    yaw: float
+    extents: tuple[NonNegativeFloat, NonNegativeFloat, NonNegativeFloat]
+
+    @field_validator("class_name")
+    @classmethod
+    def _known(cls, value):
+        class_id(value)
+        return value
+
+
+class AnnotatedSensor(_AnnotationPart):
+    """The sensor of the log an annotation came from: pattern, row-major 4x4 poses, range limits (m)."""
+
+    pattern: str
+    poses: list[tuple[float, ...]] = Field([tuple(np.eye(4).ravel())], min_length=1)
+    min_range: NonNegativeFloat = 0.0
+    max_range: PositiveFloat = 120.0
+
+    @field_validator("poses")
+    @classmethod
+    def _sixteen(cls, value):
+        for i, pose in enumerate(value):
+            if len(pose) != 16:
+                raise ValueError(f"pose {i} has {len(pose)} numbers; give the 16 of a row-major 4x4 matrix")
+        return value
+
+
+class AnnotationFile(_AnnotationPart):
+    """A whole annotation file (see the module docstring)."""
+
+    format: Literal["mi-lidar-annotation"]
+    version: int = 1
+    ground: str | None = None
+    objects: list[AnnotatedObject] = []
+    sensor: AnnotatedSensor | None = None
+
+
+def read_annotation(path) -> AnnotationFile:
+    """The validated contents of an annotation file.
+
+    Raises:
+        SceneError: the file is missing, unreadable, not JSON, or any field is invalid (every one is
+            listed with its place, e.g. ``objects.3.center``).
+    """
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"{path}: no such annotation file")
-    doc = json.loads(path.read_text())
-    if doc.get("format") != "mi-lidar-annotation":
-        raise SceneError(f"{path}: format {doc.get('format')!r}; expected 'mi-lidar-annotation'")
-    for i, obj in enumerate(doc.get("objects", [])):
-        missing = [k for k in ("class", "center", "yaw", "extents") if k not in obj]
-        if missing:
-            raise SceneError(f"{path}: object {i} lacks {missing}")
-        class_id(obj["class"])
-    ground = read_mesh_ply(path.parent / doc["ground"]) if doc.get("ground") else None
-    return doc.get("objects", []), ground
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SceneError(f"{path}: cannot read the annotation: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise SceneError(
+            f"{path}: not JSON ({exc}); see docs/hybrid_scenes.md (Annotation files) for the format"
+        ) from None
+    try:
+        return AnnotationFile.model_validate(doc)
+    except ValidationError as exc:
+        header = f"{path}: invalid annotation:"
+        raise SceneError(
+            describe_invalid(exc.errors(), header, "See docs/hybrid_scenes.md (Annotation files) for the format.")
+        ) from None
+
+
+def load_annotation(path) -> tuple[list[dict], GroundMesh | None]:
+    """Objects (dicts with ``class``, ``center``, ``yaw``, ``extents``) and optional ground mesh of an annotation.
+
+    Raises:
+        SceneError: as :func:`read_annotation`, or the ground mesh cannot be read.
+    """
+    path = Path(path)
+    annotation = read_annotation(path)
+    objects = [obj.model_dump(by_alias=True) for obj in annotation.objects]
+    try:
+        ground = read_mesh_ply(path.parent / annotation.ground) if annotation.ground else None
+    except SceneError as exc:
+        raise SceneError(f"{path}: ground: {exc}") from None
+    return objects, ground
 
 
 def annotation_sensor(path) -> tuple[SceneSensor, np.ndarray] | None:
     """The sensor stored in an annotation file and its (S, 4, 4) poses, or None if it has none.
 
     The sensor sits at the first pose; a pattern given as a file is resolved next to the annotation.
+
+    Raises:
+        SceneError: as :func:`read_annotation`, or a pose is not a rigid transform.
     """
     path = Path(path)
-    info = json.loads(path.read_text()).get("sensor")
+    info = read_annotation(path).sensor
     if info is None:
         return None
-    poses = np.asarray(info.get("poses", [np.eye(4).ravel().tolist()]), float).reshape(-1, 4, 4)
-    pattern = str(info["pattern"])
+    try:
+        poses = validate_poses(np.asarray(info.poses, float).reshape(-1, 4, 4), f"{path}: sensor.poses")
+    except PoseError as exc:
+        raise SceneError(str(exc)) from None
+    pattern = info.pattern
     if Path(pattern).suffix.lower() in (".npy", ".csv", ".json"):
         pattern = str((path.parent / pattern).resolve())
-    sensor = SceneSensor(pattern, poses[0], float(info.get("min_range", 0.0)), float(info.get("max_range", 120.0)))
-    return sensor, poses
+    return SceneSensor(pattern, poses[0], info.min_range, info.max_range), poses
 
 
 def compose_scene(

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mi_lidar.core.errors import SpecError
+from mi_lidar.core.errors import SceneError, SpecError
 from mi_lidar.dataset import load_spec, run_dataset
 from mi_lidar.dataset.workers import host_cores, worker_threads, workers_per_host
 from mi_lidar.hybrid.classes import CLASS_ID
@@ -195,6 +195,43 @@ def test_other_spec_in_the_same_folder_is_refused(serial, spec_path, tmp_path):
     (tmp_path / "library").symlink_to(spec_path.parent / "library")
     with pytest.raises(SpecError, match="different spec"):
         run_dataset(load_spec(changed), serial, serial=True)
+
+
+@pytest.mark.parametrize(
+    "change, error, message",
+    [
+        # the forest scene made from an annotation file that is not JSON
+        (
+            ("random: {classes: [small_tree, rock], count: 10, lateral: [3, 10]}", "annotation: bad.json"),
+            SceneError,
+            "not JSON",
+        ),
+        (("3: pole, 4: car, 6: vegetation", "3: pole"), SpecError, r"element labels \[4, 6\] have no class name"),
+        (("shapes: [pole_a]", "shapes: [pole_z]"), SpecError, r"object 1 names shapes \['pole_z'\]"),
+        (("classes: [small_tree, rock]", "classes: [small_tree, large_tree]"), SpecError, r"no primitive.*large_tree"),
+    ],
+)
+@pytest.mark.parametrize("serial_run", [False, True])
+def test_a_scene_that_would_fail_every_frame_stops_the_run_before_any_frame(
+    spec_path, tmp_path, monkeypatch, change, error, message, serial_run
+):
+    """Both scenes are checked first: no cluster starts and not even the good scene's frames are rendered."""
+    import mi_lidar.dataset.frame
+    import mi_lidar.dataset.run
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a frame was started")
+
+    monkeypatch.setattr(mi_lidar.dataset.run, "_run_on_dask", refuse)
+    monkeypatch.setattr(mi_lidar.dataset.frame, "render_frame", refuse)
+    changed = tmp_path / "changed.yaml"
+    text = spec_path.read_text().replace(*change)
+    changed.write_text(text.replace("    variants: 2\n", "") if "annotation:" in text else text)  # one fixed scene
+    (tmp_path / "bad.json").write_text('{"format": "mi-lidar-annotation", "objects": [')
+    (tmp_path / "library").symlink_to(spec_path.parent / "library")
+    with pytest.raises(error, match=message):
+        run_dataset(load_spec(changed), tmp_path / "out", serial=serial_run)
+    assert not (tmp_path / "out" / "velodyne").exists()
 
 
 def test_workers_share_their_hosts_cores():
