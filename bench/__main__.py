@@ -91,8 +91,13 @@ agree on the returning element for all but 0.02 % of rays (entries less than the
 offset apart, and float32 grazing rays). Reaching 10 Mrays/s here needs fewer restarts, not another
 acceleration structure.
 
-Why the terrain rows stay near 1x Open3D on an AVX2 machine (measured 2026-11-26 with Dr.Jit's kernel
-history, 1M rays, opaque terrain): `simulate_rays` is two kernels, the walk (75-98 ms: the coherent
+The terrain rows depend on the machine's SIMD width more than on mi-lidar. Two full runs on the
+same day, same code: on a Xeon with AVX-512 (2026-11-26 19:43) `simulate_rays`, `mi_lidar.simulate`
+and `mi.render` ran at 2.76x, 1.77x and 2.12x Open3D (every terrain target met), on an EPYC with
+AVX2 (17:32) at 1.06x, 0.87x and 0.90x (all three missed); vegetation 5.3 and 2.2 Mrays/s. What
+moves is the raw trace's lead over Open3D (6.4x against 2.5x); `simulate_rays` runs at 0.43-0.49x
+the raw trace on both. Where the time goes on the AVX2 machine (Dr.Jit's kernel history, 1M rays,
+opaque terrain): `simulate_rays` is two kernels, the walk (75-98 ms: the coherent
 preliminary trace, 52-62 ms alone, plus the hit probability, one random number and the beam-end state
 it keeps for the draw; carrying only range, element and outcome instead would save about 11 ms but
 not the bits of the surface interaction) and the draw at the returning element (42-50 ms: surface
@@ -100,10 +105,7 @@ interaction 11-15 ms, element lookups 3-5, range sample 3, intensity 10, the eig
 11). Fusing the two into one kernel for the rays that end at their first element left
 `simulate_rays` as fast as before (113 against 111 ms) and slowed `mi.render` (which writes its
 tensor in the draw's kernel), so the costs are arithmetic and lookups, not memory traffic; the 2x
-target would need the whole sensor model in about 5 ms per million rays on top of the raw trace.
-`simulate_rays` runs at 0.44-0.49x the raw trace on both machines measured; what moves the ratio to
-Open3D is the raw trace's lead over Open3D: 5.4x on the AVX-512 machine of the first runs (where every
-terrain target was met), 2.3-2.4x on this AVX2 one.
+target there would need the whole sensor model in about 5 ms per million rays on top of the raw trace.
 """
 
 
