@@ -4,6 +4,10 @@ Every error names the offending value and says what to do about it. All derive f
 :class:`MiLidarError` so callers can catch the family at once.
 """
 
+import tokenize
+import zipfile
+import zlib
+
 
 class MiLidarError(Exception):
     """Base class of every error raised by mi-lidar."""
@@ -61,3 +65,20 @@ def describe_invalid(items: list[dict], header: str, footer: str = "") -> str:
         shown = "" if isinstance(got, (dict, list)) else f" (got {got!r})"
         lines.append(f"  {where}: {item['msg']}{shown}")
     return "\n".join(lines + ([footer] if footer else []))
+
+
+# What numpy's .npy / .npz parsing raises on damaged files (a mangled header reaches ``ast`` and
+# ``tokenize``, a huge shape overflows; a damaged deflate stream raises ``zlib.error``, a damaged zip
+# directory can claim a zip version or compression that ``zipfile`` does not implement).
+NUMPY_FILE_ERRORS = (
+    zipfile.BadZipFile,
+    zlib.error,
+    ValueError,
+    OSError,
+    EOFError,
+    OverflowError,
+    UnicodeDecodeError,
+    SyntaxError,
+    tokenize.TokenError,
+    NotImplementedError,
+)

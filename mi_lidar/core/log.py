@@ -30,9 +30,6 @@ from __future__ import annotations
 
 import json
 import os
-import tokenize
-import zipfile
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,23 +37,10 @@ from typing import Any
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_write
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import NUMPY_FILE_ERRORS, LogFormatError
 
 FORMAT_NAME = "mi-lidar-log"
 FORMAT_VERSION = 1
-# What numpy's .npy / .npz parsing raises on damaged files (a mangled header reaches ``ast`` and
-# ``tokenize``, a huge shape overflows; a damaged deflate stream raises ``zlib.error``).
-NUMPY_FILE_ERRORS = (
-    zipfile.BadZipFile,
-    zlib.error,
-    ValueError,
-    OSError,
-    EOFError,
-    OverflowError,
-    UnicodeDecodeError,
-    SyntaxError,
-    tokenize.TokenError,
-)
 
 
 @dataclass

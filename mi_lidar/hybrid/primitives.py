@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_path, atomic_write_text
-from mi_lidar.core.errors import SceneError
+from mi_lidar.core.errors import NUMPY_FILE_ERRORS, SceneError
 from mi_lidar.hybrid.classes import CLASS_NAMES, class_id
 from mi_lidar.hybrid.model import EllipsoidSet, HybridModel
 from mi_lidar.hybrid.segments import Segment
@@ -190,19 +190,27 @@ class PrimitiveLibrary:
 
     @classmethod
     def load(cls, folder) -> PrimitiveLibrary:
-        """Read a library written by :meth:`save`."""
-        path = Path(folder) / "library.json"
+        """Read a library written by :meth:`save`.
+
+        Raises:
+            SceneError: naming the file: no or unreadable ``library.json``, an index entry without
+                ``id``/``label``/``file``, or a primitive file that is missing, damaged or holds
+                arrays of the wrong shapes or non-finite values.
+        """
+        folder = Path(folder)
+        path = folder / "library.json"
         if not path.is_file():
-            raise SceneError(f"{folder}: no library.json; create a library with primitives_extract")
-        index = json.loads(path.read_text())
-        prims = []
-        for item in index["primitives"]:
-            with np.load(Path(folder) / item["file"]) as d:
-                ell = EllipsoidSet(d["means"], d["covs"], d["p_hit"], label=item["label"])
-                prims.append(
-                    Primitive(item["id"], item["label"], ell, d["box_lo"], d["box_hi"], item.get("source", {}))
-                )
-        return cls(prims)
+            raise SceneError(f"{folder}: no library.json; create a library with mi-lidar primitives extract")
+        try:
+            index = json.loads(path.read_text())
+            items = index["primitives"]
+            entries = [(str(item["id"]), class_id(int(item["label"])), str(item["file"]), item) for item in items]
+        except (OSError, ValueError, KeyError, TypeError) as exc:  # JSON and Unicode errors are ValueErrors
+            raise SceneError(
+                f"{path}: not a primitive library index ({type(exc).__name__}: {exc}); "
+                "write it with mi-lidar primitives extract"
+            ) from None
+        return cls([_load_primitive(folder / file, id_, label, item) for id_, label, file, item in entries])
 
     def preview(self, path, per_class: int = 4, ids: list[str] | None = None) -> Path:
         """Save a PNG of side views (x-z) of primitives: 1-sigma ellipses coloured by p_hit, and boxes.
@@ -259,3 +267,25 @@ class PrimitiveLibrary:
             fig.savefig(tmp, dpi=90)
         plt.close(fig)
         return Path(path)
+
+
+def _load_primitive(path: Path, id_: str, label: int, item: dict) -> Primitive:
+    """One primitive's ``.npz`` (see :meth:`PrimitiveLibrary.save`); SceneError naming the file when damaged."""
+    try:
+        with np.load(path, allow_pickle=False) as d:
+            arrays = {k: np.asarray(d[k], np.float64) for k in ("means", "covs", "p_hit", "box_lo", "box_hi")}
+    except (*NUMPY_FILE_ERRORS, KeyError) as exc:
+        raise SceneError(
+            f"{path}: not a primitive file ({type(exc).__name__}: {exc}); extract the library again"
+        ) from None
+    n = len(arrays["means"])
+    shapes = {"means": (n, 3), "covs": (n, 3, 3), "p_hit": (n,), "box_lo": (3,), "box_hi": (3,)}
+    wrong = [f"{k} {arrays[k].shape} (expected {shape})" for k, shape in shapes.items() if arrays[k].shape != shape]
+    if wrong or not all(np.isfinite(a).all() for a in arrays.values()):
+        what = ", ".join(wrong) if wrong else "non-finite values"
+        raise SceneError(f"{path}: damaged primitive: {what}; extract the library again")
+    ellipsoids = EllipsoidSet(arrays["means"], arrays["covs"], arrays["p_hit"], label=label)
+    source = item.get("source", {})
+    return Primitive(
+        id_, label, ellipsoids, arrays["box_lo"], arrays["box_hi"], source if isinstance(source, dict) else {}
+    )

@@ -13,8 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_path
-from mi_lidar.core.errors import LogFormatError
-from mi_lidar.core.log import NUMPY_FILE_ERRORS
+from mi_lidar.core.errors import NUMPY_FILE_ERRORS, LogFormatError
 from mi_lidar.core.poses import validate_poses
 
 

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError, PoseError, SceneError
+from mi_lidar.core.errors import LogFormatError, ParameterError, PatternError, PoseError, SceneError
 
 HANG_SECONDS = 5.0
 WARMUP_SECONDS = 300.0
@@ -65,12 +65,37 @@ def _load_npz(mutant: Path, folder: Path):
     return Log.load(mutant)
 
 
+def _load_density(mutant: Path, folder: Path):
+    from mi_lidar.core.densities.tables import load_density
+
+    return load_density(mutant)
+
+
+def _load_pattern(mutant: Path, folder: Path):
+    from mi_lidar.core.patterns import from_table
+
+    return from_table(mutant)
+
+
+def _load_annotation(mutant: Path, folder: Path):
+    from mi_lidar.hybrid.compose import annotation_sensor, load_annotation
+
+    return load_annotation(mutant), annotation_sensor(mutant)
+
+
+def _load_library(mutant: Path, folder: Path):
+    from mi_lidar.hybrid.primitives import PrimitiveLibrary
+
+    return PrimitiveLibrary.load(mutant.parent)
+
+
 def _load_scene(mutant: Path, folder: Path):
     from mi_lidar.scene import load_scene
 
     return load_scene(mutant)
 
 
+DENSITY_FAMILIES = ("np-reg", "p-reg", "beam")  # the learned families and a parametric one, as fit-sensor saves them
 OUSTER_PROFILES = {
     "ouster-legacy": "LEGACY",
     "ouster-rng19": "RNG19_RFL8_SIG16_NIR16",
@@ -104,6 +129,15 @@ READERS: dict[str, Reader] = {
     "poses-npy": Reader("poses.npy", lambda m, f: _io().read_pose_matrices(m), (LogFormatError, PoseError)),
     "poses-matrix": Reader("matrices.txt", lambda m, f: _io().read_pose_matrices(m), (LogFormatError, PoseError)),
     "scene-xml": Reader("scene.xml", _load_scene, (SceneError,)),
+    **{
+        f"density-{family}": Reader(f"{family}.npz", _load_density, (LogFormatError, ParameterError))
+        for family in DENSITY_FAMILIES
+    },
+    "pattern-npy": Reader("pattern.npy", _load_pattern, (PatternError,)),
+    "pattern-csv": Reader("pattern.csv", _load_pattern, (PatternError,)),
+    "annotation": Reader("annotation.json", _load_annotation, (SceneError,)),
+    "library-index": Reader("lib/library.json", _load_library, (SceneError,), bag=True),
+    "library-primitive": Reader("lib/rock.npz", _load_library, (SceneError,), bag=True),
 }
 
 SCENE_XML = """<?xml version="1.0" encoding="utf-8"?>
@@ -168,9 +202,38 @@ def build_seeds(folder: Path) -> Path:
     np.save(folder / "poses.npy", poses)
     np.savetxt(folder / "matrices.txt", poses.reshape(4, 16))
     (folder / "scene.xml").write_text(SCENE_XML)
+    _write_model_seeds(folder)
     missing = [name for name, reader in READERS.items() if not (folder / reader.seed).is_file()]
     assert not missing, f"seeds not built: {missing}"
     return folder
+
+
+def _write_model_seeds(folder: Path) -> None:
+    """Seeds of the files a user feeds the models: fitted densities, pattern tables, an annotation, a library."""
+    import mi_lidar
+    from mi_lidar.core.patterns import get_pattern, to_table
+    from mi_lidar.hybrid.compose import save_annotation
+    from mi_lidar.loop.sensor_fit import fit_sensor
+    from mi_lidar.scene import load_scene
+    from mi_lidar.scene.files import write_mesh_ply
+    from tests.conftest import SCENES
+    from tests.dataset.test_dataset_run import small_library
+
+    scene = load_scene(SCENES / "indoor_planar.xml")
+    log = mi_lidar.simulate(scene, seed=1)
+    for family in DENSITY_FAMILIES:
+        fit_sensor(log, scene, family, steps=20).model.density.save(folder / f"{family}.npz")
+    pattern = get_pattern("vlp16", n_firings=8)
+    to_table(pattern, folder / "pattern.npy")
+    to_table(pattern, folder / "pattern.csv")
+    write_mesh_ply(folder / "ground.ply", np.array([[0, 0, 0], [4, 0, 0], [0, 4, 0.0]]), np.array([[0, 1, 2]]))
+    objects = [{"class": "small_tree", "center": [1.0, 1.0, 1.5], "yaw": 0.3, "extents": [1.0, 1.2, 3.0]}]
+    annotation = save_annotation(folder / "annotation.json", objects)
+    doc = json.loads(annotation.read_text())
+    doc["ground"] = "ground.ply"
+    doc["sensor"] = {"pattern": "vlp16", "poses": [np.eye(4).ravel().tolist()], "min_range": 1.0, "max_range": 80.0}
+    annotation.write_text(json.dumps(doc))
+    small_library(folder / "lib")
 
 
 _EXTREMES = (0, 1, 0x7F, 0x80, 0xFF, 0x7FFF, 0x8000, 0xFFFF, 0x7FFFFFFF, 0x80000000, 0xFFFFFFFF, 2**63 - 1, 2**64 - 1)

@@ -8,6 +8,7 @@ process that detects hangs (a read longer than 5 s) and crashes.
 import numpy as np
 import pytest
 
+from mi_lidar.core.densities.base import ReturnDensity
 from mi_lidar.core.log import Log
 
 from .fuzzing import READERS, Worker, build_seeds, failure_report, fuzz, table
@@ -33,6 +34,15 @@ def test_seeds_read_cleanly(seeds):
         result = reader.read(seeds / reader.seed, seeds)
         if name.startswith("poses"):
             assert result.shape == (4, 4, 4), name
+        elif name.startswith("density"):
+            assert isinstance(result, ReturnDensity) and result.name == name.split("-", 1)[1].replace("-", "_"), name
+        elif name.startswith("pattern"):
+            assert result.shape == (16, 8), name
+        elif name == "annotation":
+            (objects, ground), (sensor, poses) = result
+            assert len(objects) == 1 and len(ground.faces) == 1 and sensor.pattern == "vlp16" and len(poses) == 1
+        elif name.startswith("library"):
+            assert sorted(p.id for p in result.primitives) == ["rock", "tree"], name
         elif name != "scene-xml":
             assert isinstance(result, Log) and result.n_rays > 0, name
 

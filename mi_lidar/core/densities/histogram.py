@@ -39,7 +39,7 @@ import numpy as np
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.densities.base import ESCAPE, ReturnDensity, escape_segment, register_density
 from mi_lidar.core.densities.samples import StateSamples, choose_by_held_out, protocol_residual_edges
-from mi_lidar.core.densities.tables import StateGrid
+from mi_lidar.core.densities.tables import StateGrid, check_table
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
@@ -96,6 +96,9 @@ class NPRegDensity(ReturnDensity):
                 f"np_reg: tables of shapes {self.mass.shape} and {self.p_null.shape} for {n_states} states "
                 f"(grid + escape) and {n_bins} bins"
             )
+        check_table("np_reg", "edges", self.edges, increasing=True)
+        check_table("np_reg", "mass", self.mass, lower=0.0)
+        check_table("np_reg", "p_null", self.p_null, lower=0.0, upper=1.0)
         self._upload()
 
     # ------------------------------------------------------------------ tables

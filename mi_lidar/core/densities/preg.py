@@ -28,6 +28,7 @@ import numpy as np
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.densities.base import ESCAPE, UniformEscapeDensity, escape_segment, register_density
 from mi_lidar.core.densities.samples import StateSamples, choose_by_held_out
+from mi_lidar.core.densities.tables import check_table
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
@@ -62,8 +63,16 @@ class PRegDensity(UniformEscapeDensity):
         self.mu = np.asarray(np.zeros(shape) if mu is None else mu, np.float64)
         self.sigma = np.asarray(np.full(shape, 0.02) if sigma is None else sigma, np.float64)
         for name, table in (("p_null", self.p_null), ("mu", self.mu), ("sigma", self.sigma)):
-            if table.shape[-2:] != shape:
-                raise ParameterError(f"p_reg: table {name} has shape {table.shape}; expected (..., {shape})")
+            if table.shape[-2:] != shape or table.shape != self.p_null.shape or table.ndim not in (2, 3):
+                raise ParameterError(
+                    f"p_reg: table {name} has shape {table.shape}; expected {shape} or "
+                    f"(beams, {shape[0]}, {shape[1]}), the shape of p_null {self.p_null.shape}"
+                )
+        check_table("p_reg", "range_nodes", self.range_nodes, increasing=True)
+        check_table("p_reg", "incidence_nodes", self.incidence_nodes, increasing=True)
+        check_table("p_reg", "p_null", self.p_null, lower=0.0, upper=1.0)
+        check_table("p_reg", "mu", self.mu)
+        check_table("p_reg", "sigma", self.sigma, lower=1e-9)
         self._tables = {k: _f(getattr(self, k)) for k in ("p_null", "mu", "sigma")}
         self._r, self._d = _f(self.range_nodes), _f(self.incidence_nodes)
         self.n_beams = 1 if self.p_null.ndim == 2 else self.p_null.shape[0]

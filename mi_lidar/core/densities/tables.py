@@ -23,7 +23,7 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.atomic import atomic_write
-from mi_lidar.core.errors import LogFormatError, ParameterError
+from mi_lidar.core.errors import NUMPY_FILE_ERRORS, LogFormatError, ParameterError
 
 FORMAT_NAME = "mi-lidar-density"
 FORMAT_VERSION = 1
@@ -45,6 +45,16 @@ class StateGrid:
     incidence_edges: list = field(default_factory=list)
     n_beams: int = 1
     n_labels: int = 1
+
+    def __post_init__(self):
+        """Refuse a grid no density could be tabulated on (ParameterError naming the field)."""
+        check_table("state grid", "range_edges", self.range_edges, increasing=True)
+        if len(self.incidence_edges):
+            check_table("state grid", "incidence_edges", self.incidence_edges, increasing=True)
+        for name in ("n_beams", "n_labels"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ParameterError(f"state grid: {name}={value!r} must be an integer >= 1")
 
     @property
     def n_range(self) -> int:
@@ -99,6 +109,26 @@ class StateGrid:
         return mi.UInt32(((lab * self.n_beams + b) * self.n_incidence + i) * n_r + r)
 
 
+def check_table(
+    owner: str, name: str, table, lower: float = -math.inf, upper: float = math.inf, increasing: bool = False
+) -> None:
+    """Refuse a table with values that are not finite or outside ``[lower, upper]``, or, with
+    ``increasing``, bin edges or nodes that are not 1-D, at least two and strictly increasing.
+
+    Raises:
+        ParameterError: naming ``owner`` (the density or grid), the table and the first bad value.
+    """
+    values = np.asarray(table, np.float64)
+    bad = ~np.isfinite(values) | (values < lower) | (values > upper)
+    if bad.any():
+        raise ParameterError(
+            f"{owner}: table {name} holds {float(values[bad].flat[0])!r}; "
+            f"its values must be finite and in [{lower}, {upper}]"
+        )
+    if increasing and (values.ndim != 1 or values.size < 2 or np.any(np.diff(values) <= 0)):
+        raise ParameterError(f"{owner}: {name} {values.tolist()!r} must be at least 2 strictly increasing values")
+
+
 def save_density(
     path: str | os.PathLike,
     name: str,
@@ -133,24 +163,39 @@ def save_density(
 def read_density(path: str | os.PathLike) -> tuple[dict, dict[str, np.ndarray]]:
     """``(meta, tables)`` of a density file; :class:`LogFormatError` naming the file when it is not one."""
     path = Path(path)
+    if not path.is_file():
+        raise LogFormatError(f"{path}: no such density file; write one with `mi-lidar fit-sensor`")
     try:
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(bytes(data["meta"]).decode())
             tables = {k.split("/", 1)[1]: np.asarray(data[k]) for k in data.files if k.startswith("table/")}
-    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
+    except (*NUMPY_FILE_ERRORS, KeyError) as exc:  # json's and unicode's errors are ValueErrors
         raise LogFormatError(
-            f"{path}: not a mi-lidar density file ({exc}); write one with `mi-lidar fit-sensor`"
-        ) from exc
+            f"{path}: not a mi-lidar density file ({type(exc).__name__}: {exc}); write one with `mi-lidar fit-sensor`"
+        ) from None
+    if not isinstance(meta, dict):
+        raise LogFormatError(f"{path}: the density file's header is not a mapping; write it with `mi-lidar fit-sensor`")
     if meta.get("format") != FORMAT_NAME or meta.get("version") != FORMAT_VERSION:
         raise LogFormatError(
             f"{path}: format {meta.get('format')!r} version {meta.get('version')!r}; expected "
             f"{FORMAT_NAME!r} version {FORMAT_VERSION}"
         )
+    damaged = [k for k, v in tables.items() if v.dtype.kind not in "biuf" or not np.isfinite(v).all()]
+    if damaged or not isinstance(meta.get("params"), dict) or not isinstance(meta.get("grid"), (dict, type(None))):
+        what = (
+            f"tables {damaged} hold non-numeric or non-finite values" if damaged else "its header lacks params or grid"
+        )
+        raise LogFormatError(f"{path}: damaged density file: {what}; fit it again with `mi-lidar fit-sensor`")
     return meta, tables
 
 
 def load_density(path: str | os.PathLike, expected: str | None = None, **overrides):
-    """The density saved in ``path`` (its class's ``from_tables``), optionally checking its name."""
+    """The density saved in ``path`` (its class's ``from_tables``), optionally checking its name.
+
+    Raises:
+        LogFormatError: the file is missing, damaged or not a density file.
+        ParameterError: a parameter, override or table out of its range (the message names the file).
+    """
     from mi_lidar.core.densities.base import DENSITIES
 
     meta, tables = read_density(path)
@@ -159,5 +204,13 @@ def load_density(path: str | os.PathLike, expected: str | None = None, **overrid
         raise ParameterError(f"{path}: holds a {name!r} density, not {expected!r}; write {name}(file=...) instead")
     if name not in DENSITIES:
         raise ParameterError(f"{path}: density {name!r} is not in the catalog ({', '.join(sorted(DENSITIES))})")
-    grid = None if meta["grid"] is None else StateGrid(**meta["grid"])
-    return DENSITIES[name].from_tables({**meta["params"], **overrides}, grid, tables)
+    try:
+        grid = None if meta["grid"] is None else StateGrid(**meta["grid"])
+    except (TypeError, ParameterError) as exc:
+        raise LogFormatError(f"{path}: damaged density file: {exc}; fit it again with `mi-lidar fit-sensor`") from None
+    try:
+        return DENSITIES[name].from_tables({**meta["params"], **overrides}, grid, tables)
+    except TypeError as exc:  # a table the density does not know
+        raise LogFormatError(f"{path}: damaged density file: {exc}; fit it again with `mi-lidar fit-sensor`") from None
+    except ParameterError as exc:  # a parameter or table out of range: name the file too
+        raise ParameterError(f"{path}: {exc}") from None

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_path, atomic_write
-from mi_lidar.core.errors import PatternError
+from mi_lidar.core.errors import NUMPY_FILE_ERRORS, PatternError
 from mi_lidar.core.patterns.firing import FiringPattern, positive_float
 
 _CSV_ANGLES = ("elevation_deg", "azimuth_deg")
@@ -85,13 +85,16 @@ def from_table(path: str | os.PathLike, period: float | None = None) -> FiringPa
         out[cell] = values
         return out.reshape(shape)
 
-    return FiringPattern(
-        name=p.stem,
-        elevation=grid(np.radians(columns["elevation_deg"])),
-        azimuth=grid(np.radians(columns["azimuth_deg"])),
-        time=grid(times),
-        period=period,
-    )
+    try:
+        return FiringPattern(
+            name=p.stem,
+            elevation=grid(np.radians(columns["elevation_deg"])),
+            azimuth=grid(np.radians(columns["azimuth_deg"])),
+            time=grid(times),
+            period=period,
+        )
+    except PatternError as exc:  # name the file, not only the pattern's name (its stem)
+        raise PatternError(f"{where}: {exc}") from None
 
 
 def to_table(pattern: FiringPattern, path: str | os.PathLike) -> Path:
@@ -135,9 +138,9 @@ def _read_csv_columns(path: Path) -> dict[str, np.ndarray]:
     where = f"table {os.fspath(path)}"
     try:
         with path.open(newline="") as f:
-            reader = csv.DictReader(f)
-            header = [name.strip() for name in reader.fieldnames or []]
-            records = [[(v or "").strip() for v in rec.values()] for rec in reader]
+            reader = csv.reader(f)
+            header = [name.strip() for name in next(reader, [])]
+            records = [(reader.line_num, [v.strip() for v in row]) for row in reader if row]  # blank lines skipped
     except OSError as exc:
         raise PatternError(f"cannot read {where} ({exc.strerror}); check the path") from exc
     except (UnicodeDecodeError, csv.Error) as exc:
@@ -152,19 +155,24 @@ def _read_csv_columns(path: Path) -> dict[str, np.ndarray]:
         raise PatternError(f"{where}: header {header!r} has only one of row/col; give both or none")
     if not records:
         raise PatternError(f"{where} holds a header but no rays; add one line per ray")
+    longer = next(((line, len(rec)) for line, rec in records if len(rec) > len(header)), None)
+    if longer is not None:
+        raise PatternError(
+            f"{where}, line {longer[0]}: {longer[1]} fields under a header of {len(header)}; one value per column"
+        )
     wanted = [key for key in (*_CSV_ANGLES, "time_s", *_CSV_GRID) if key in header]
     columns = {}
     for key in wanted:
         j = header.index(key)
         values = np.empty(len(records))
-        for i, rec in enumerate(records):
+        for i, (line, rec) in enumerate(records):
             try:
                 values[i] = float(rec[j])
-            except (ValueError, IndexError) as exc:
+            except (ValueError, IndexError):
                 text = rec[j] if j < len(rec) else ""
                 raise PatternError(
-                    f"{where}, line {i + 2}: {key} is {text!r}, not a number; fill every column"
-                ) from exc
+                    f"{where}, line {line}: {key} is {text!r}, not a number; fill every column"
+                ) from None
         columns[key] = values
     return columns
 
@@ -172,12 +180,12 @@ def _read_csv_columns(path: Path) -> dict[str, np.ndarray]:
 def _read_npy_columns(path: Path) -> dict[str, np.ndarray]:
     """Columns of a pattern NPY as flat arrays in row-major grid order, with the grid shape."""
     where = f"table {os.fspath(path)}"
+    if not path.is_file():
+        raise PatternError(f"cannot read {where} (no such file); check the path")
     try:
         array = np.load(path, allow_pickle=False)
-    except OSError as exc:
-        raise PatternError(f"cannot read {where} ({exc}); check the path") from exc
-    except ValueError as exc:
-        raise PatternError(f"{where} is not a plain numeric NPY array ({exc})") from exc
+    except NUMPY_FILE_ERRORS as exc:
+        raise PatternError(f"{where} is not a plain numeric NPY array ({type(exc).__name__}: {exc})") from None
     if array.ndim not in (2, 3) or array.shape[-1] not in (2, 3) or 0 in array.shape:
         raise PatternError(
             f"{where}: array of shape {array.shape}; expected (N, 2|3) or (H, W, 2|3) with "
@@ -218,6 +226,12 @@ def _grid_cells(where: str, columns: dict[str, np.ndarray]) -> tuple[tuple[int, 
         raise PatternError(
             f"{where}: ray {ray} has row, col = {index[0, ray]!r}, {index[1, ray]!r}; grid "
             "indices must be integers >= 0"
+        )
+    if index.max() >= n:  # every cell appears once, so H * W == n and no index reaches n
+        ray = int(np.argmax(index.max(axis=0)))
+        raise PatternError(
+            f"{where}: ray {ray} has row, col = {index[0, ray]!r}, {index[1, ray]!r}, beyond a grid of "
+            f"{n} rays; list every cell of the grid exactly once"
         )
     rows, cols = index.astype(np.int64)
     shape = (int(rows.max()) + 1, int(cols.max()) + 1)
