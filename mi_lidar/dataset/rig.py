@@ -109,12 +109,11 @@ def check_lidars(spec: DatasetSpec) -> list[str]:
     The same builders the frames use, run once before any frame, so that a typo fails the run at once
     instead of failing every frame.
     """
-    resolve = lambda name: str(spec.resolve(name))  # noqa: E731
     problems = []
     for i, lidar in enumerate(spec.rig.lidars):
         for field, build in (("pattern", firing_pattern), ("density/effects", sensor_model)):
             try:
-                build(lidar, resolve)
+                build(lidar, spec.resolve)
             except MiLidarError as exc:
                 problems.append(f"rig.lidars.{i}.{field}: {exc}")
     return problems
@@ -160,7 +159,6 @@ def build_rig(spec: DatasetSpec) -> Rig:
 
     A Lidar whose mount is left at the default takes nuScenes' ``lidar2ego`` when a nuScenes file is given.
     """
-    resolve = lambda name: str(spec.resolve(name))  # noqa: E731
     cameras = [camera_from_spec(c) for c in spec.rig.cameras]
     lidar_mounts = [s.mount.to_matrix() for s in spec.rig.lidars]
     nuscenes = spec.rig.nuscenes
@@ -178,7 +176,7 @@ def build_rig(spec: DatasetSpec) -> Rig:
                 )
             cameras.append(nuscenes_camera(name, calibration["cameras"][name], nuscenes.image_scale))
     lidars = [
-        RigLidar(s, m, sensor_model(s, resolve), firing_pattern(s, resolve))
+        RigLidar(s, m, sensor_model(s, spec.resolve), firing_pattern(s, spec.resolve))
         for s, m in zip(spec.rig.lidars, lidar_mounts)
     ]
     return Rig(lidars, cameras)
