@@ -176,6 +176,12 @@ class Calibration:
         self.options = options or FitOptions()
         if not 0 < self.options.holdout < 1:
             raise CalibrationError(f"holdout={self.options.holdout} must lie in (0, 1), e.g. 0.2")
+        for what, rate in [("lr_scale", self.options.lr_scale), *self.options.learning_rates.items()]:
+            if not 0 < rate < math.inf:
+                raise CalibrationError(
+                    f"{what}={rate}: learning rates and their factor lr_scale must be finite numbers > 0, e.g. "
+                    "lr_scale=0.1 for smaller steps"
+                )
         if not (self.options.smoothing == 0 or self.options.smoothing >= self.options.smoothing_final > 0):
             raise CalibrationError(
                 f"smoothing={self.options.smoothing}, smoothing_final={self.options.smoothing_final}: "

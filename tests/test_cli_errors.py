@@ -5,6 +5,7 @@ imported, before the command's own error handler exists).
 """
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -14,10 +15,13 @@ import pytest
 
 import mi_lidar
 
-from .conftest import SCENES
+from .conftest import REPO, SCENES
+from .planar.world import room_log_text
 
 MI_LIDAR = str(Path(sys.executable).with_name("mi-lidar"))
 ROOM = str(SCENES / "indoor_planar.xml")
+HUGE = "1000000000000"  # a count of 10**12: a typo that would allocate terabytes or run for years
+PROGRESS = re.compile(r".+: (\d+/\d+|done) \(\d+ s\)$")  # the plain progress lines of work done before the error
 
 
 @pytest.fixture(scope="module")
@@ -26,6 +30,23 @@ def room_log(tmp_path_factory) -> str:
     poses[:, 2, 3] = 0.5
     scene = mi_lidar.load_scene(ROOM)
     return str(mi_lidar.simulate(scene, poses=poses, seed=1).save(tmp_path_factory.mktemp("room") / "room.npz"))
+
+
+@pytest.fixture(scope="module")
+def street_frame(tmp_path_factory) -> str:
+    """One VLP-16 scan of the urban street: a frame `evaluate-apps-3d` reads."""
+    pose = np.eye(4)[None].copy()
+    pose[:, 2, 3] = 1.8
+    scene = mi_lidar.load_scene(SCENES / "urban_street.xml")
+    return str(mi_lidar.simulate(scene, poses=pose, seed=1).save(tmp_path_factory.mktemp("street") / "frame.npz"))
+
+
+@pytest.fixture(scope="module")
+def carmen_log(tmp_path_factory) -> str:
+    """A planar CARMEN log: 60 scans of the test room, 12 s in all."""
+    path = tmp_path_factory.mktemp("carmen") / "room.log"
+    path.write_text(room_log_text())
+    return str(path)
 
 
 def read_only_folder(tmp_path: Path) -> str:
@@ -52,6 +73,90 @@ CASES = {
         {},
         ["{file}: file exists; a file of that name is in the way of the folder: give another path"],
     ),
+    "repeated option": (["render", ROOM, "--seed", "1", "--seed", "-1", "--out", "{tmp}/o"], {}, ["(got '-1')"]),
+    # numbers a typo makes huge, each refused before any work (were tracebacks, terabyte allocations or endless runs)
+    "render seed beyond 32 bits": (
+        ["render", ROOM, "--seed", "4294967296", "--out", "{tmp}/o"],
+        {},
+        ["--seed", "4294967295"],
+    ),
+    "demo seed beyond 32 bits": (
+        ["demo", "--seed", HUGE, "--out", "{tmp}/o"],
+        {},
+        ["--seed", f"'{HUGE}'", "4294967295"],
+    ),
+    "huge image width": (
+        ["camera-lidar", ROOM, "--out", "{tmp}/o", "--width", HUGE],
+        {},
+        ["--width", f"'{HUGE}'", "8192"],
+    ),
+    "huge image height": (["camera-lidar", ROOM, "--out", "{tmp}/o", "--height", HUGE], {}, ["--height", "8192"]),
+    "huge samples per pixel": (["camera-lidar", ROOM, "--out", "{tmp}/o", "--spp", HUGE], {}, ["--spp", "4096"]),
+    "fit-sensor steps": (
+        ["fit-sensor", "{log}", ROOM, "-m", "beam", "--out", "{tmp}/s.npz", "--steps", HUGE],
+        {},
+        ["--steps", "100000"],
+    ),
+    "calibrate steps": (
+        ["calibrate", "{log}", ROOM, "-p", "sensor.*", "--out", "{tmp}/c", "--steps", HUGE, "--patience", HUGE],
+        {},
+        ["--steps", "100000"],
+    ),
+    "3D draws": (["evaluate-apps-3d", "{frame}", "--out", "{tmp}/a", "--draws", HUGE], {}, ["--draws", "1000"]),
+    "3D starts": (["evaluate-apps-3d", "{frame}", "--out", "{tmp}/a", "--starts", HUGE], {}, ["--starts", "100"]),
+    "3D negative seed": (["evaluate-apps-3d", "{frame}", "--out", "{tmp}/a", "--seed", "-1"], {}, ["--seed", "'-1'"]),
+    "planar draws": (["evaluate-apps", "{carmen}", "--out", "{tmp}/a", "--draws", HUGE], {}, ["--draws", "1000"]),
+    "planar runs": (["evaluate-apps", "{carmen}", "--out", "{tmp}/a", "--runs", HUGE], {}, ["--runs", "32"]),
+    "planar workers": (["evaluate-apps", "{carmen}", "--out", "{tmp}/a", "--workers", HUGE], {}, ["--workers", "3"]),
+    "max range beyond 10 km": (
+        ["benchmark-planar", "{carmen}", "--out", "{tmp}/b", "--max-range", "1e12"],
+        {},
+        ["--max-range", "10000"],
+    ),
+    "dataset workers": (
+        ["dataset", str(REPO / "examples" / "datasets" / "street_quick.yaml"), "--out", "{tmp}/d", "--workers", HUGE],
+        {},
+        ["--workers", f"'{HUGE}'"],
+    ),
+    # values refused by the library with the option's name (were NaN in the calibrated scene, or numpy's words)
+    "infinite learning-rate factor": (
+        ["calibrate", "{log}", ROOM, "-p", "sensor.range_bias", "--out", "{tmp}/c", "--lr-scale", "inf"],
+        {},
+        ["lr_scale=inf", "finite numbers > 0"],
+    ),
+    "negative learning-rate factor": (
+        ["calibrate", "{log}", ROOM, "-p", "sensor.range_bias", "--out", "{tmp}/c", "--lr-scale", "-1"],
+        {},
+        ["lr_scale=-1.0", "finite numbers > 0"],
+    ),
+    "infinite learning rate": (
+        ["calibrate", "{log}", ROOM, "-p", "sensor.range_bias", "--out", "{tmp}/c", "--lr", "sensor.*=inf"],
+        {},
+        ["sensor.*=inf", "learning rates"],
+    ),
+    "camera looking straight up": (
+        ["camera-lidar", ROOM, "--out", "{tmp}/o", "--from", "0,0,1", "--to", "0,0,5"],
+        {},
+        ["[0.0, 0.0, 1.0]", "[0.0, 0.0, 5.0]", "move the target"],
+    ),
+    "no map left for the applications": (  # 60 scans in 12 s, one group: every scan is left out of its map
+        [
+            "evaluate-apps",
+            "{carmen}",
+            "--out",
+            "{tmp}/a",
+            "-s",
+            "M0",
+            "--draws",
+            "2",
+            "--runs",
+            "1",
+            "--test-every",
+            "100",
+        ],
+        {},
+        ["test_every=100", "--test-every", "--window"],
+    ),
     "unknown variant": (["render", ROOM, "--out", "{tmp}/o"], {"MI_LIDAR_VARIANT": "llvm_nope"}, ["'llvm_nope'"]),
     "cuda without a GPU": (
         ["render", ROOM, "--out", "{tmp}/o"],
@@ -62,9 +167,10 @@ CASES = {
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
-def test_bad_input_is_one_line_with_exit_code_2(tmp_path, room_log, case):
+def test_bad_input_is_one_line_with_exit_code_2(tmp_path, room_log, street_frame, carmen_log, case):
     args, env, expected = CASES[case]
-    values = {"tmp": str(tmp_path), "log": room_log, "read_only": read_only_folder(tmp_path)}
+    values = {"tmp": str(tmp_path), "log": room_log, "frame": street_frame, "carmen": carmen_log}
+    values["read_only"] = read_only_folder(tmp_path)
     values["file"] = str(tmp_path / "a_file")
     Path(values["file"]).write_text("not a folder")
     if case == "cuda without a GPU" and os.path.exists("/dev/nvidia0"):
@@ -75,7 +181,7 @@ def test_bad_input_is_one_line_with_exit_code_2(tmp_path, room_log, case):
         text=True,
         env={**os.environ, **env, "COLUMNS": "400"},
     )
-    lines = [line for line in (run.stdout + run.stderr).splitlines() if line.strip()]
+    lines = [line for line in (run.stdout + run.stderr).splitlines() if line.strip() and not PROGRESS.match(line)]
     assert run.returncode == 2, lines
     assert len(lines) == 1 and lines[0].startswith("error: "), lines
     for text in expected:

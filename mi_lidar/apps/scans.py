@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mi_lidar.apps.walls import map_walls
+from mi_lidar.core.errors import ParameterError
 from mi_lidar.planar.grid import Grid
 from mi_lidar.planar.protocol import PlanarData
 from mi_lidar.planar.raymarch import occupied
@@ -210,6 +211,14 @@ def planar_datasets(benchmark, samples: int = 8, seed: int = 0) -> tuple[PlanarS
     test = scans % protocol.test_every == 0
     groups = np.cumsum(test) - 1
     start, cells = leave_out_maps(data, [scans[groups == g] for g in range(int(groups.max()) + 1)])
+    empty = np.flatnonzero(np.diff(start) == 0)
+    if empty.size:
+        group = scans[groups == empty[0]]
+        raise ParameterError(
+            f"test_every={protocol.test_every}: the map of scans {group[0]} to {group[-1]} is empty: together they "
+            f"leave out every scan within {protocol.radius:g} m and {protocol.window:g} s of one of them; lower "
+            "test_every (--test-every) or the window (--window)"
+        )
     whole = occupied(data.counts.hits, data.counts.passes).reshape(data.grid.shape)
     states = PlanarStates(
         scans=scans,

@@ -25,8 +25,11 @@ USER_ERRORS = (MiLidarError, ValueError, OSError)
 
 
 def given_value(args: list[str], param) -> str | None:
-    """The text given for option ``param`` in the command line ``args`` (``--seed -1`` or ``--seed=-1``), or None."""
-    for i, token in enumerate(args):
+    """The text given for option ``param`` in the command line ``args`` (``--seed -1`` or ``--seed=-1``), or None.
+
+    The last one when the option is repeated: the value click keeps.
+    """
+    for i, token in reversed(list(enumerate(args))):
         for opt in getattr(param, "opts", ()):
             if token == opt and i + 1 < len(args):
                 return args[i + 1]
@@ -103,6 +106,9 @@ app = typer.Typer(
 )
 
 
+MAX_STEPS = 100_000  # the most Adam steps a verb takes: minutes to hours; more is a typo, not a plan
+
+
 def density_option():
     """The ``--density`` option of the verbs that simulate or score a scene (see :func:`mi_lidar.scene.use_density`)."""
     return typer.Option(
@@ -123,7 +129,12 @@ def carmen_log_argument():
 def max_range_option():
     """The ``--max-range`` option of the verbs that read a planar CARMEN log."""
     return typer.Option(
-        None, "--max-range", min=0.1, help="The sensor's no-return value (m); default: detected from the log."
+        None,
+        "--max-range",
+        min=0.1,
+        max=10_000.0,
+        help="The sensor's no-return value (m, at most 10 km: the longest range the models take); default: detected "
+        "from the log.",
     )
 
 

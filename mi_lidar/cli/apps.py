@@ -14,6 +14,8 @@ from mi_lidar.cli.app import app, carmen_log_argument, console, max_range_option
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import FIGURE_WIDTH
 
+MAX_DRAWS = 1000  # prior draws of the risk: its standard error shrinks as 1 / sqrt(draws), the run time grows with them
+
 
 @app.command("evaluate-apps", rich_help_panel="The loop")
 def evaluate_apps(
@@ -23,15 +25,21 @@ def evaluate_apps(
     simulator: list[str] | None = typer.Option(
         None, "--simulator", "-s", help="Only these simulators (repeatable): M0 M1 P-Reg NP-Reg mi-lidar (default)."
     ),
-    draws: int = typer.Option(16, min=2, help="Prior draws of each application's parameters for the risk."),
+    draws: int = typer.Option(
+        16, min=2, max=MAX_DRAWS, help="Prior draws of each application's parameters for the risk."
+    ),
     runs: int = typer.Option(
         8,
         min=1,
-        help="Runs of the trackers (EKF, particle filter) per setting, paired across sources; also the scans each "
-        "simulator samples per state.",
+        max=32,
+        help="Runs of the trackers (EKF, particle filter) per setting, paired across sources (at most 32, the most "
+        "a tracker runs per setting); also the scans each simulator samples per state.",
     ),
     workers: int | None = typer.Option(
-        None, min=1, help="Processes running the three applications side by side (default: one per core, up to 3)."
+        None,
+        min=1,
+        max=3,
+        help="Processes running the three applications side by side (default: one per core, up to 3).",
     ),
     test_every: int = typer.Option(5, min=2, help="Every k-th scan is a test state (the planar protocol)."),
     window: float = typer.Option(30.0, min=0.0, help="A state's map leaves out the scans within 1 m and this many s."),

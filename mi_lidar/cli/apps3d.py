@@ -6,8 +6,8 @@ from pathlib import Path
 
 import typer
 
-from mi_lidar.cli.app import app, console
-from mi_lidar.cli.apps import risk_table
+from mi_lidar.cli.app import MAX_STEPS, app, console
+from mi_lidar.cli.apps import MAX_DRAWS, risk_table
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import figure, figure_table
 
@@ -24,10 +24,12 @@ def evaluate_apps_3d(
         "-s",
         help="Only these simulators (repeatable): gaussian physics beam P-Reg NP-Reg mi-lidar (default: all).",
     ),
-    draws: int = typer.Option(16, min=2, help="Prior draws of the registration parameters for the risk."),
-    starts: int = typer.Option(8, min=2, help="Seeded initial-pose errors each registration starts from."),
-    steps: int = typer.Option(1500, min=10, help="Adam steps per fit of the mi-lidar development path."),
-    seed: int = typer.Option(0, help="Seed of the sampled scans, the starts and the prior draws."),
+    draws: int = typer.Option(
+        16, min=2, max=MAX_DRAWS, help="Prior draws of the registration parameters for the risk."
+    ),
+    starts: int = typer.Option(8, min=2, max=100, help="Seeded initial-pose errors each registration starts from."),
+    steps: int = typer.Option(1500, min=10, max=MAX_STEPS, help="Adam steps per fit of the mi-lidar development path."),
+    seed: int = typer.Option(0, min=0, help="Seed of the sampled scans, the starts and the prior draws."),
 ):
     """Register the real scan and every simulator's scan of the same rays to the same real map (small_gicp,
     from the same perturbed starts); print the application-level risk of each simulator.

@@ -10,7 +10,7 @@ from rich.table import Table
 
 from mi_lidar.calibration.commands import calibrate_command
 from mi_lidar.calibration.fit import FitResult
-from mi_lidar.cli.app import app, console
+from mi_lidar.cli.app import MAX_STEPS, app, console
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import FIGURE_WIDTH, figure, figure_table
 
@@ -54,7 +54,7 @@ def calibrate(
         ..., "--params", "-p", help="Parameter glob; repeat for more, e.g. `elements.*.p_hit`, `sensor.*`."
     ),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
-    steps: int = typer.Option(200, min=1, help="Maximum Adam steps."),
+    steps: int = typer.Option(200, min=1, max=MAX_STEPS, help="Maximum Adam steps."),
     batch_size: int = typer.Option(1 << 16, min=1, help="Training rays per step."),
     holdout: float = typer.Option(0.2, help="Fraction of rays held out for validation and early stopping."),
     seed: int = typer.Option(0, min=0, help="Seed of the split and of the mini-batch draws."),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import typer
@@ -18,7 +19,9 @@ def dataset(
     scheduler: str | None = typer.Option(
         None, help="Address of an existing Dask scheduler, e.g. tcp://10.0.0.5:8786 (default: a LocalCluster)."
     ),
-    workers: int | None = typer.Option(None, min=1, help="LocalCluster worker processes (default: one per core)."),
+    workers: int | None = typer.Option(
+        None, min=1, max=os.cpu_count(), help="LocalCluster worker processes (default and most: one per core)."
+    ),
     serial: bool = typer.Option(False, "--serial", help="Render in this process, in frame order, without Dask."),
     retries: int = typer.Option(2, min=0, help="Extra attempts of a failing frame before it is reported."),
     dashboard: str = typer.Option(":8787", help="LocalCluster dashboard address ('' for none)."),

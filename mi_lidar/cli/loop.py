@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from mi_lidar.cli.app import app, console, density_option
+from mi_lidar.cli.app import MAX_STEPS, app, console, density_option
 from mi_lidar.cli.progress import progress
 
 
@@ -67,7 +67,7 @@ def diagnose_command(
         help="Only try these effects or learned densities (np_reg, p_reg) (repeatable); default: the whole catalog.",
     ),
     steps: int = typer.Option(
-        60, min=1, help="Adam steps per candidate fit at most (a fit stops once it stops gaining)."
+        60, min=1, max=MAX_STEPS, help="Adam steps per candidate fit at most (a fit stops once it stops gaining)."
     ),
     force: bool = typer.Option(False, help="Diagnose even when the log's sensor does not match the scene's."),
     density: str | None = density_option(),

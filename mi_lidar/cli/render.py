@@ -13,6 +13,8 @@ from mi_lidar.cli.app import app, console, density_option
 from mi_lidar.cli.progress import progress
 from mi_lidar.core.errors import MiLidarError, ParameterError
 
+MAX_SEED = 2**32 - 1  # Mitsuba's render seed is a 32-bit unsigned integer
+
 
 def scan_summary(log, title: str, elapsed: float | None = None) -> Table:
     """A rich table summarising a log: rays, hit fraction, range quantiles, returns per label."""
@@ -69,7 +71,7 @@ def write_scan_outputs(log, out: Path, scene_name: str) -> list[Path]:
 def render(
     scene: Path = typer.Argument(..., help="Scene XML with a `lidar` sensor.", exists=True, dir_okay=False),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
-    seed: int = typer.Option(0, min=0, help="Random seed (same seed, same scan)."),
+    seed: int = typer.Option(0, min=0, max=MAX_SEED, help="Random seed (same seed, same scan)."),
     pattern: str | None = typer.Option(
         None, help="Override the firing pattern, e.g. `hdl32e`, `os1-32`, `planar-360`."
     ),
@@ -188,10 +190,10 @@ def camera_lidar(
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
     camera_from: str = typer.Option("0,0,1.8", "--from", help="Camera position x,y,z (m)."),
     camera_to: str = typer.Option("10,0,1.5", "--to", help="Point the camera looks at x,y,z (m)."),
-    width: int = typer.Option(640, min=1, help="Image width (pixels)."),
-    height: int = typer.Option(400, min=1, help="Image height (pixels)."),
+    width: int = typer.Option(640, min=1, max=8192, help="Image width (pixels)."),
+    height: int = typer.Option(400, min=1, max=8192, help="Image height (pixels)."),
     fov: float = typer.Option(70.0, min=1.0, max=179.0, help="Horizontal field of view (deg)."),
-    spp: int = typer.Option(64, min=1, help="Camera samples per pixel."),
+    spp: int = typer.Option(64, min=1, max=4096, help="Camera samples per pixel (one render pass each)."),
     seed: int = typer.Option(0, min=0, help="Random seed."),
 ):
     """Synthetic camera + Lidar data from one scene: image, scan, projection and calibration (KITTI-style).
@@ -247,7 +249,7 @@ def camera_lidar(
 @app.command(rich_help_panel="Make scans")
 def demo(
     out: Path = typer.Option(Path("demo_out"), "--out", "-o", help="Output folder."),
-    seed: int = typer.Option(0, min=0, help="Random seed."),
+    seed: int = typer.Option(0, min=0, max=MAX_SEED, help="Random seed."),
 ):
     """The main job of `make demo`: render the bundled off-road scene, then run the loop on a log with a hidden effect.
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from mi_lidar.cli.app import app, console
+from mi_lidar.cli.app import MAX_STEPS, app, console
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import figure, figure_table
 
@@ -17,7 +17,7 @@ def fit_sensor_command(
     scene: Path = typer.Argument(..., help="Scene XML the log was recorded in.", exists=True, dir_okay=False),
     model: str = typer.Option("np-reg", "--model", "-m", help="Family: np-reg, p-reg, beam or physics."),
     out: Path = typer.Option(..., "--out", "-o", help="Output density file (`.npz`)."),
-    steps: int = typer.Option(200, min=1, help="Adam steps (beam, physics)."),
+    steps: int = typer.Option(200, min=1, max=MAX_STEPS, help="Adam steps (beam, physics)."),
     seed: int = typer.Option(0, min=0, help="Seed of the split and of the sampled scan."),
     pool_labels: bool = typer.Option(
         False, "--pool-labels", help="NP-Reg: one state per range and incidence, whatever the element label."

@@ -54,10 +54,14 @@ class PinholeCamera:
     @classmethod
     def look_at(cls, origin, target, up=(0.0, 0.0, 1.0), **kwargs) -> PinholeCamera:
         """A camera at ``origin`` (m) looking at ``target`` (m)."""
-        transform = mi.ScalarTransform4f().look_at(
-            origin=list(map(float, origin)), target=list(map(float, target)), up=list(map(float, up))
-        )
-        return cls(to_world=np.array(transform.matrix, dtype=np.float64), **kwargs)
+        origin, target, up = (list(map(float, v)) for v in (origin, target, up))
+        to_world = np.array(mi.ScalarTransform4f().look_at(origin=origin, target=target, up=up).matrix, np.float64)
+        if not np.isfinite(to_world).all():
+            raise ParameterError(
+                f"camera at {origin} looking at {target}: the target must differ from the position and not lie "
+                f"straight along the image's up {up}; move the target"
+            )
+        return cls(to_world=to_world, **kwargs)
 
     @property
     def intrinsics(self) -> np.ndarray:
