@@ -89,6 +89,12 @@ def os_error_line(exc: OSError) -> str:
     return f"{exc.filename}: {exc.strerror.lower()}; {OS_ERROR_FIXES[exc.errno]}"
 
 
+def warn(messages: list[str]) -> None:
+    """Print each message as one ``warning: <message>`` line (its text as written, never read as markup)."""
+    for message in messages:
+        console.print(f"warning: {message}", highlight=False, markup=False)
+
+
 def fail(message: str) -> None:
     """Print ``error: <message>`` on one line and exit with code 2."""
     console.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True, highlight=False, markup=True)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from mi_lidar.cli.app import app, carmen_log_argument, console, max_range_option
+from mi_lidar.cli.app import app, carmen_log_argument, console, max_range_option, warn
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import figure, figure_table
 
@@ -82,8 +82,7 @@ def benchmark_planar(
     samples.add_row(REFERENCE, *sample_figures(result.reference))
     console.print(scores)
     console.print(samples)
-    for warning in result.warnings():
-        console.print(f"warning: {warning}")
+    warn(result.warnings())
     if result.data.train.n < result.train_beams_in_log:
         console.print(
             f"fitted on {result.data.train.n:,} of the log's {result.train_beams_in_log:,} training beams "

@@ -10,7 +10,7 @@ from rich.table import Table
 
 from mi_lidar.calibration.commands import calibrate_command
 from mi_lidar.calibration.fit import FitResult
-from mi_lidar.cli.app import MAX_STEPS, app, console
+from mi_lidar.cli.app import MAX_STEPS, app, console, warn
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import FIGURE_WIDTH, figure, figure_table
 
@@ -110,8 +110,7 @@ def calibrate(
             pattern=pattern,
             force=force,
         )
-    for warning in result.warnings:
-        console.print(f"warning: {warning}", highlight=False, markup=False)
+    warn(result.warnings)
     console.print(result_table(result))
     for path in files.values():
         console.print(f"wrote {path}")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from mi_lidar.cli.app import MAX_STEPS, app, console, density_option
+from mi_lidar.cli.app import MAX_STEPS, app, console, density_option, warn
 from mi_lidar.cli.progress import progress
 
 
@@ -40,8 +40,7 @@ def compare_command(
     with progress("simulating the log's rays and comparing"):
         result = run(read_any(log), use_density(load_scene(scene), density), out=out, seed=seed, force=force)
     head = result.headline
-    for warning in result.warnings:
-        console.print(f"warning: {warning}", highlight=False, markup=False)
+    warn(result.warnings)
     console.print(
         f"NLL {head['nll']:.3f} nats/ray, hit/miss F1 {head['f1']:.3f}; worst: "
         f"{result.worst[0]['breakdown']} {result.worst[0]['group']} ({result.worst[0]['nll']:.2f} nats/ray)"

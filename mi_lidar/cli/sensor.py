@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from mi_lidar.cli.app import MAX_STEPS, app, console
+from mi_lidar.cli.app import MAX_STEPS, app, console, warn
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import figure, figure_table
 
@@ -63,7 +63,6 @@ def fit_sensor_command(
     for row in result.rows:
         keys = ("nll", "train_nll", "range_error_median", "range_error_p90", "f1", "histogram_l1")
         table.add_row(row["model"], *(figure(row[key]) for key in keys))
-    for warning in result.warnings:
-        console.print(f"warning: {warning}", highlight=False, markup=False)
+    warn(result.warnings)
     console.print(table)
     console.print(f"wrote {path}")

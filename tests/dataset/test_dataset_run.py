@@ -20,12 +20,10 @@ import pytest
 from mi_lidar.core.errors import SceneError, SpecError
 from mi_lidar.dataset import load_spec, run_dataset
 from mi_lidar.dataset.workers import host_cores, worker_threads, workers_per_host
-from mi_lidar.hybrid.classes import CLASS_ID
-from mi_lidar.hybrid.model import EllipsoidSet
-from mi_lidar.hybrid.primitives import Primitive, PrimitiveLibrary
 from mi_lidar.io.kitti import read_kitti_bin
 from mi_lidar.io.kitti_labels import read_kitti_calib, read_kitti_labels, read_semantic_labels
 from tests.conftest import SCENES
+from tests.hybrid.libraries import small_library
 
 SPEC = """
 name: ci-dataset
@@ -56,21 +54,6 @@ scenes:
     trajectory: {{waypoints: [[0, 0], [20, 2]]}}
 output: {{spp: 2, overlays: true}}
 """
-
-
-def small_library(folder: Path) -> None:
-    def primitive(name, label, means, sigma, p_hit):
-        means = np.asarray(means, float)
-        covs = np.tile(np.diag([sigma**2, (0.8 * sigma) ** 2, (1.3 * sigma) ** 2]), (len(means), 1, 1))
-        ellipsoids = EllipsoidSet(means, covs, np.full(len(means), p_hit), label=label)
-        return Primitive(name, label, ellipsoids, means.min(0) - 3 * sigma, means.max(0) + 3 * sigma)
-
-    PrimitiveLibrary(
-        [
-            primitive("tree", CLASS_ID["small_tree"], [[0, 0, -1.0], [0, 0, 0.2], [0.3, 0.2, 1.2]], 0.4, 0.5),
-            primitive("rock", CLASS_ID["rock"], [[0, 0, 0], [0.4, 0, 0.1]], 0.25, 0.9),
-        ]
-    ).save(folder)
 
 
 @pytest.fixture(scope="module")

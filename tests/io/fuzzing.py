@@ -217,7 +217,7 @@ def _write_model_seeds(folder: Path) -> None:
     from mi_lidar.scene import load_scene
     from mi_lidar.scene.files import write_mesh_ply
     from tests.conftest import SCENES
-    from tests.dataset.test_dataset_run import small_library
+    from tests.hybrid.libraries import small_library
 
     scene = load_scene(SCENES / "indoor_planar.xml")
     log = mi_lidar.simulate(scene, seed=1)
