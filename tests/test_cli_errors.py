@@ -118,6 +118,11 @@ CASES = {
         {},
         ["--workers", f"'{HUGE}'"],
     ),
+    "dataset retries": (
+        ["dataset", str(REPO / "examples" / "datasets" / "street_quick.yaml"), "--out", "{tmp}/d", "--retries", HUGE],
+        {},
+        ["--retries", "100"],
+    ),
     # values refused by the library with the option's name (were NaN in the calibrated scene, or numpy's words)
     "infinite learning-rate factor": (
         ["calibrate", "{log}", ROOM, "-p", "sensor.range_bias", "--out", "{tmp}/c", "--lr-scale", "inf"],

@@ -10,6 +10,9 @@ from rich.markup import escape
 from rich.table import Table
 
 from mi_lidar.cli.app import app, console
+from mi_lidar.cli.progress import progress
+
+MAX_RETRIES = 100  # extra attempts of a failing frame: a frame that fails 100 times will not pass on the 101st
 
 
 @app.command(rich_help_panel="Make scans")
@@ -23,7 +26,9 @@ def dataset(
         None, min=1, max=os.cpu_count(), help="LocalCluster worker processes (default and most: one per core)."
     ),
     serial: bool = typer.Option(False, "--serial", help="Render in this process, in frame order, without Dask."),
-    retries: int = typer.Option(2, min=0, help="Extra attempts of a failing frame before it is reported."),
+    retries: int = typer.Option(
+        2, min=0, max=MAX_RETRIES, help="Extra attempts of a failing frame before it is reported."
+    ),
     dashboard: str = typer.Option(":8787", help="LocalCluster dashboard address ('' for none)."),
 ):
     """Render a camera + Lidar dataset: KITTI layout, SemanticKITTI labels, manifest with digests; resumable.
@@ -37,15 +42,11 @@ def dataset(
 
         mi-lidar dataset spec.yaml --out /shared/ds --scheduler tcp://10.0.0.5:8786
     """
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
     from mi_lidar.dataset import load_spec, run_dataset
 
     loaded = load_spec(spec)
     console.print(f"{loaded.name}: {loaded.frames} frames from {len(loaded.scenes)} scenes -> {out}")
-    columns = (TextColumn("frames"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-    with Progress(*columns, console=console) as bar:
-        task = bar.add_task("frames", total=loaded.frames)
+    with progress("frames", total=loaded.frames) as update:
         report = run_dataset(
             loaded,
             out,
@@ -54,8 +55,8 @@ def dataset(
             serial=serial,
             retries=retries,
             dashboard_address=dashboard or None,
-            progress=lambda done, total: bar.update(task, completed=done),
-            announce=lambda message: bar.console.print(message),
+            progress=lambda done, total: update(done),
+            announce=lambda message: console.print(message, highlight=False, markup=False),
         )
     table = Table(title=f"{loaded.name} in {out}")
     table.add_column("quantity")

@@ -1,6 +1,7 @@
 """The one progress helper of the command line: rich bars on a terminal, plain lines in logs.
 
-On a terminal a transient rich bar shows the task; when stdout is not a terminal (CI logs, files,
+On a terminal a transient rich bar shows the task (with ``done/total`` and the time left when the
+total is known); when stdout is not a terminal (CI logs, files,
 pipes) the same updates print plain lines ``label: done/total (elapsed s)`` at most every
 :data:`PLAIN_EVERY_S` seconds, plus the first and the last, and ``label: done (elapsed s)`` at the
 end, so a log shows that work goes on and how long it took.
@@ -12,7 +13,7 @@ import contextlib
 import time
 from collections.abc import Callable, Iterator
 
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from mi_lidar.cli.app import console
 
@@ -29,7 +30,8 @@ def progress(label: str, total: int | None = None) -> Iterator[Callable[..., Non
     """
     start = time.perf_counter()
     if console.is_terminal:
-        columns = (TextColumn("[bold]{task.description}"), BarColumn(), TimeElapsedColumn())
+        counts = (MofNCompleteColumn(), TimeRemainingColumn()) if total else ()
+        columns = (TextColumn("[bold]{task.description}"), BarColumn(), *counts, TimeElapsedColumn())
         with Progress(*columns, console=console, transient=True) as bar:
             task = bar.add_task(label, total=total)
 
