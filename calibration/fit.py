@@ -51,7 +51,7 @@ from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.smoothing import smoothing_at
 from mi_lidar.core.trace import CachedBatch, RayCache, cache_distributions, trace_rounds
 from mi_lidar.scene.loading import scene_sensor_model
-from mi_lidar.scene.sensor_check import check_log_sensor, scene_warning
+from mi_lidar.scene.sensor_check import check_log_sensor, scene_warnings
 
 
 @dataclass
@@ -109,7 +109,7 @@ class FitResult:
         table, model: the fitted element table and sensor model.
         samples: ``{"initial", "fitted"}``: the held-out NLL beside the realism of a scan sampled at the
             held-out rays by the initial and the fitted model (:func:`~mi_lidar.core.metrics.metrics_of`).
-        warnings: what makes the fit doubtful (e.g. :func:`~mi_lidar.scene.sensor_check.scene_warning`).
+        warnings: what makes the fit doubtful (e.g. :func:`~mi_lidar.scene.sensor_check.scene_warnings`).
     """
 
     names: list
@@ -425,7 +425,6 @@ class Calibration:
         if self.geometric:
             self.space.push_geometry(table)
         on_surface = Problem.build(self.scene, self.rays, self.held_out).near_surface(model)
-        warning = scene_warning(on_surface, self.rays.hit[self.held_out])
         return FitResult(
             names=list(self.names),
             initial=initial,
@@ -441,5 +440,5 @@ class Calibration:
             table=table,
             model=model,
             samples=samples,
-            warnings=[warning] if warning else [],
+            warnings=scene_warnings(on_surface, self.rays.hit[self.held_out]),
         )

@@ -82,3 +82,5 @@ NUMPY_FILE_ERRORS = (
     tokenize.TokenError,
     NotImplementedError,
 )
+# ... and what reading a named member of an ``.npz`` archive adds: ``KeyError`` when the member is missing.
+NPZ_MEMBER_ERRORS = (*NUMPY_FILE_ERRORS, KeyError)

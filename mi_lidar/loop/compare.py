@@ -203,7 +203,7 @@ class Comparison:
             (:class:`~mi_lidar.loop.intensity_residuals.IntensityResiduals`) when the log carries
             intensities, else None.
         files: written report files.
-        warnings: what makes the figures doubtful (e.g. :func:`~mi_lidar.scene.sensor_check.scene_warning`).
+        warnings: what makes the figures doubtful (e.g. :func:`~mi_lidar.scene.sensor_check.scene_warnings`).
     """
 
     headline: dict
@@ -249,7 +249,7 @@ def compare(
             (:func:`~mi_lidar.scene.sensor_check.check_log_sensor`).
     """
     from mi_lidar.scene.loading import load_scene, scene_sensor_model
-    from mi_lidar.scene.sensor_check import check_log_sensor, scene_warning
+    from mi_lidar.scene.sensor_check import check_log_sensor, scene_warnings
 
     if not hasattr(scene, "shapes"):
         scene = load_scene(scene)
@@ -259,8 +259,7 @@ def compare(
     origins, directions = world_rays(log, t.scan, t.beam, t.column)
     headline = metrics_of(t.ll, t.measured, t.hit, t.sim_range, t.sim_hit, origins, directions)
     result = Comparison(headline=headline, breakdowns={b: breakdown(t, b) for b in BREAKDOWNS}, worst=[], table=t)
-    warning = scene_warning(t.on_surface, t.hit)
-    result.warnings = [warning] if warning else []
+    result.warnings = scene_warnings(t.on_surface, t.hit)
     groups = [
         dict(row, breakdown=b) for b, rows in result.breakdowns.items() if b != "beam" or len(rows) > 1 for row in rows
     ]

@@ -325,7 +325,7 @@ def diagnose(
     """
     from mi_lidar.loop.diagnosis_report import verdict, write_report
     from mi_lidar.scene.loading import load_scene, scene_sensor_model
-    from mi_lidar.scene.sensor_check import check_log_sensor, scene_warning
+    from mi_lidar.scene.sensor_check import check_log_sensor, scene_warnings
 
     if not hasattr(scene, "shapes"):
         scene = load_scene(scene)
@@ -427,8 +427,7 @@ def diagnose(
         density=next((c.effect for r in all_rounds for c in r if c.kind == "density" and c.status == JOINED), None),
     )
     result.summary = verdict(result)
-    warning = scene_warning(data.test.near_surface(base), data.rays.hit[data.test.index])
-    if warning:
+    for warning in scene_warnings(data.test.near_surface(base), data.rays.hit[data.test.index]):
         result.summary = f"Warning: {warning}. {result.summary}"
     if too_few:
         result.summary += (

@@ -52,7 +52,7 @@ class SensorFit:
         rows: per model (the scene's, the fitted one), held-out NLL and sample metrics.
         candidates: bandwidth candidates and their held-out NLL (learned families).
         train_rays, test_rays: rays used.
-        warnings: what makes the fit doubtful (e.g. :func:`~mi_lidar.scene.sensor_check.scene_warning`).
+        warnings: what makes the fit doubtful (e.g. :func:`~mi_lidar.scene.sensor_check.scene_warnings`).
     """
 
     family: str
@@ -123,7 +123,7 @@ def fit_sensor(
             (:func:`~mi_lidar.scene.sensor_check.check_log_sensor`).
     """
     from mi_lidar.scene.loading import load_scene, scene_sensor_model
-    from mi_lidar.scene.sensor_check import check_log_sensor, scene_warning
+    from mi_lidar.scene.sensor_check import check_log_sensor, scene_warnings
 
     if family not in FAMILIES:
         raise ParameterError(f"fit-sensor: unknown model {family!r}; choose one of {', '.join(FAMILIES)}")
@@ -139,8 +139,7 @@ def fit_sensor(
     samples = traced_states(train, base)
     say(f"traced {train.n:,} training and {test.n:,} held-out rays")
     result = SensorFit(family=family, model=base, train_rays=train.n, test_rays=test.n)
-    warning = scene_warning(test.near_surface(base), rays.hit[test_index])
-    result.warnings = [warning] if warning else []
+    result.warnings = scene_warnings(test.near_surface(base), rays.hit[test_index])
 
     def held_out(density) -> float:
         return test.nll(dataclasses.replace(base, density=density))

@@ -11,7 +11,7 @@ from mi_lidar.cli import app
 from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import LogRays
 from mi_lidar.scene.loading import scene_sensor_model
-from mi_lidar.scene.sensor_check import SURFACE_TOLERANCE, scene_warning
+from mi_lidar.scene.sensor_check import SURFACE_TOLERANCE, scene_warnings
 
 from ..conftest import SCENES
 
@@ -44,7 +44,7 @@ def test_a_log_in_its_own_scene_lies_on_its_surfaces(room):
     scene, log = room
     share, near, hit = share_on_surface(scene, log)
     assert share > 0.99 and not near[~hit].any()
-    assert scene_warning(near, hit) == ""
+    assert scene_warnings(near, hit) == []
 
 
 def test_a_log_whose_poses_are_off_is_warned_about(room):
@@ -55,7 +55,7 @@ def test_a_log_whose_poses_are_off_is_warned_about(room):
     scene, log = room
     share, near, hit = share_on_surface(scene, moved(log, 30.0))
     assert share < 0.25, share
-    warning = scene_warning(near, hit)
+    (warning,) = scene_warnings(near, hit)
     assert f"only {share:.1%} of {hit.sum():,} measured returns" in warning and "poses" in warning
 
 
