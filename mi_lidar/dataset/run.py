@@ -30,7 +30,7 @@ from mi_lidar.dataset.spec import DatasetSpec
 
 MANIFEST = "manifest.json"
 MANIFEST_SAVE_RATIO = 20.0  # throttled manifest writes take at most 1/20 of the run's time (Manifest.save)
-WORKER_WAIT_S = 60.0  # how long a run waits for the first worker of an existing Dask cluster
+WORKER_WAIT_S = 60.0  # how long a run waits for its LocalCluster's workers, or an existing cluster's first
 FORMAT = "mi-lidar-dataset"
 _WORKER_STATE: dict = {}
 _FRAME_LOCK = threading.Lock()  # Dr.Jit's thread pool and the scene cache serve one frame at a time
@@ -306,8 +306,16 @@ def _run_on_dask(spec, out, todo, scheduler, workers, retries, dashboard_address
         client = Client(cluster)
     try:
         try:
-            client.wait_for_workers(1, timeout=WORKER_WAIT_S)
+            # every LocalCluster worker, so that each learns how many share its host's cores (a worker
+            # registering late was counted out, and both then ran Dr.Jit on every core); a remote
+            # scheduler's workers may come and go: one is enough to start
+            client.wait_for_workers(1 if cluster is None else workers, timeout=WORKER_WAIT_S)
         except TimeoutError:
+            if cluster is not None:
+                raise SetupError(
+                    f"the LocalCluster's {workers} workers did not all start within {WORKER_WAIT_S:.0f} s; "
+                    "try fewer --workers, or --serial"
+                ) from None
             raise SetupError(
                 f"the Dask scheduler {scheduler} has had no worker for {WORKER_WAIT_S:.0f} s; "
                 f"start some: dask worker {scheduler} --nthreads 1"

@@ -93,7 +93,18 @@ def resumed(spec_path, tmp_path_factory):
     process.wait()
     before = frames_of(out)
     kept = {name: (out / name).stat().st_mtime_ns for record in before.values() for name in record["files"]}
-    report = run_dataset(load_spec(spec_path), out, workers=2, dashboard_address=None)
+    from distributed import Client
+
+    waited, wait = [], Client.wait_for_workers
+
+    def spy(self, n_workers, *args, **kwargs):
+        waited.append(n_workers)
+        return wait(self, n_workers, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Client, "wait_for_workers", spy)
+        report = run_dataset(load_spec(spec_path), out, workers=2, dashboard_address=None)
+    assert waited == [2], "the run must wait for both workers before counting them per host"
     return out, before, kept, report
 
 
