@@ -3,16 +3,20 @@
 For a segment at nominal range ``r`` and incidence ``delta`` the sensor loses the beam with
 probability ``P_null(r, delta)`` and otherwise reports ``N(r + mu(r, delta), sigma(r, delta)^2)``.
 The three functions are local linear kernel regressions (Gaussian kernels of bandwidths ``h_r``, m,
-and ``h_delta``, deg) of the no-return indicator, the residual ``z - r`` and its squared deviation,
-tabulated on a grid of nodes and interpolated bilinearly; segments of unknown incidence use a
-regression on range alone. A beam that met nothing misses with probability ``P_null`` of the escape
-state and otherwise returns uniformly on ``[0, z_max]``.
+and ``h_delta``, deg) of the no-return indicator and the residual ``z - r`` (sigma^2: the residual's
+scatter about the local line), tabulated on a grid of nodes and interpolated bilinearly; segments
+of unknown incidence use a regression on range alone (of the training segments of unknown
+incidence, or of all when there are none). A beam that met nothing misses with probability
+``P_null`` of the escape state and otherwise returns uniformly on ``[0, z_max]``.
 
-Choices where the thesis leaves room (documented and tested): the regressions pool the beams (a
-per-beam table is kept when a log has few beams, ``per_beam=True``); the mean and sigma are fitted on
-returns within ``inlier`` (1 m) of the nominal range, so that the 5-10 % of real returns from objects
-the map lacks do not inflate sigma to metres; bandwidths are chosen by held-out likelihood from a
-candidate set (:func:`fit_p_reg`). Ellipsoid elements keep their own Gaussian.
+Choices where the thesis leaves room (documented and tested): the regressions pool the beams (the
+density also reads per-beam tables, (beams, rows, nodes), which :func:`fit_p_reg` does not build);
+the mean and sigma are fitted on returns within ``inlier`` (1 m) of the nominal range, so that the
+5-10 % of real returns from objects the map lacks do not inflate sigma to metres; bandwidths are
+chosen by held-out likelihood from a candidate set (:func:`fit_p_reg`); every node's estimates are
+shrunk to the global ones with the weight of :data:`PSEUDO_SAMPLES` samples (as the protocol's
+binned histograms are), and a local line is not followed beyond the range of its responses, so
+sparse and empty nodes stay sane (:func:`_local_linear`). Ellipsoid elements keep their own Gaussian.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import ELLIPSOID, Segment
 
 MIN_SIGMA = 1e-3  # m
+PSEUDO_SAMPLES = 30.0  # every node's estimates are shrunk to the global ones with this many samples' weight
 
 
 def _f(values) -> mi.Float:
@@ -138,31 +143,59 @@ class PRegDensity(UniformEscapeDensity):
 
 # ---------------------------------------------------------------------- fitting
 def _local_linear(
-    x: np.ndarray, y: np.ndarray, w: np.ndarray, nodes: list[np.ndarray], bandwidths: list[float]
-) -> np.ndarray:
+    x: np.ndarray,
+    y: np.ndarray,
+    w: np.ndarray,
+    nodes: list[np.ndarray],
+    bandwidths: list[float],
+    y2: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Local linear kernel regression of ``y`` on ``x`` (N, D) with sample weights ``w``, at a node grid.
 
-    Returns an array of the grid's shape (product of the node counts); nodes where the local system
-    is singular fall back to the local weighted mean, and nodes without weight to the global mean.
+    At every node the weighted least-squares line's value there is the estimate, kept within the range
+    of the responses that carry the node's kernel weight (a local line may not leave its data far from
+    them, where a node outside the data would otherwise extrapolate a slope to metres). The scatter
+    about that line, ``sum k (y2 - 2 y line + line^2) / sum k``, is the local variance: never negative,
+    unlike the difference of two separately regressed moments, which at sparse nodes collapsed sigma to
+    its 1 mm floor.
+
+    Args:
+        x, y, w: (N, D) states, (N,) responses and (N,) weights (binned samples: cell means and counts).
+        nodes, bandwidths: the node coordinates per dimension and the Gaussian kernel's bandwidths.
+        y2: (N,) mean of the squared response per sample (its cell); default ``y ** 2``.
+
+    Returns:
+        (estimate, local variance), each of the grid's shape (product of the node counts); nodes
+        without weight get the global mean and variance, nodes where the system is singular the local mean.
     """
+    y2 = y * y if y2 is None else y2
     grid = np.stack(np.meshgrid(*nodes, indexing="ij"), axis=-1).reshape(-1, len(nodes))
-    out = np.empty(len(grid))
-    fallback = float(np.average(y, weights=w)) if w.sum() > 0 else 0.0
+    out, variance = np.empty(len(grid)), np.empty(len(grid))
+    global_mean = float(np.average(y, weights=w)) if w.sum() > 0 else 0.0
+    global_variance = max(float(np.average(y2, weights=w)) - global_mean**2, 0.0) if w.sum() > 0 else 0.0
     for g, node in enumerate(grid):
         d = (x - node) / np.asarray(bandwidths)
         k = w * np.exp(-0.5 * np.sum(d * d, axis=1))
         total = k.sum()
         if total < 1e-9:
-            out[g] = fallback
+            out[g], variance[g] = global_mean, global_variance
             continue
         design = np.concatenate([np.ones((len(x), 1)), x - node], axis=1)
         a = design.T @ (design * k[:, None])
         b = design.T @ (k * y)
         try:
-            out[g] = np.linalg.solve(a + 1e-9 * np.eye(len(a)) * total, b)[0]
+            coef = np.linalg.solve(a + 1e-9 * np.eye(len(a)) * total, b)
         except np.linalg.LinAlgError:
-            out[g] = float(np.dot(k, y) / total)
-    return out.reshape([len(n) for n in nodes])
+            coef = np.zeros(len(a))
+            coef[0] = float(np.dot(k, y) / total)
+        weighty = k >= 1e-3 * k.max()
+        coef[0] = np.clip(coef[0], y[weighty].min(), y[weighty].max())
+        line = design @ coef
+        local_variance = max(float(np.dot(k, y2 - 2.0 * y * line + line * line) / total), 0.0)
+        out[g] = (total * coef[0] + PSEUDO_SAMPLES * global_mean) / (total + PSEUDO_SAMPLES)
+        variance[g] = (total * local_variance + PSEUDO_SAMPLES * global_variance) / (total + PSEUDO_SAMPLES)
+    shape = [len(n) for n in nodes]
+    return out.reshape(shape), variance.reshape(shape)
 
 
 def fit_p_reg(
@@ -207,12 +240,13 @@ def fit_p_reg(
         tables = {k: np.zeros(shape) for k in ("p_null", "mu", "sigma")}
         for row, mask, x, nodes, bws in (
             ("known", known, np.stack([d, r], 1), [d_nodes, r_nodes], [h_d, h_r]),
-            ("unknown", ~known, r[:, None], [r_nodes], [h_r]),
+            ("unknown", ~known if np.any(~known) else known, r[:, None], [r_nodes], [h_r]),
         ):
-            p_null = _local_linear(*_binned(x[mask], (~hit[mask]).astype(float), nodes), nodes, bws)
-            mu = _local_linear(*_binned(x[mask & inl], e[mask & inl], nodes), nodes, bws)
-            second = _local_linear(*_binned(x[mask & inl], e[mask & inl] ** 2, nodes), nodes, bws)
-            sigma = np.sqrt(np.maximum(second - mu * mu, MIN_SIGMA**2))
+            xm, missed, counts, _ = _binned(x[mask], (~hit[mask]).astype(float), nodes)
+            p_null, _ = _local_linear(xm, missed, counts, nodes, bws)
+            xm, em, counts, e2m = _binned(x[mask & inl], e[mask & inl], nodes)
+            mu, variance = _local_linear(xm, em, counts, nodes, bws, y2=e2m)
+            sigma = np.sqrt(np.maximum(variance, MIN_SIGMA**2))
             target = slice(0, d_nodes.size) if row == "known" else slice(d_nodes.size, d_nodes.size + 1)
             for name, values in (("p_null", p_null), ("mu", mu), ("sigma", sigma)):
                 tables[name][target] = values.reshape(-1, r_nodes.size)
@@ -229,14 +263,15 @@ def fit_p_reg(
     return choose_by_held_out(candidates, build, held_out_score, progress)
 
 
-def _binned(x: np.ndarray, y: np.ndarray, nodes: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Aggregate samples into cells of half the node spacing: (cell means of x, cell means of y, counts)."""
+def _binned(
+    x: np.ndarray, y: np.ndarray, nodes: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Aggregate samples into cells of half the node spacing: cell means of x and y, counts, cell means of y^2."""
     if len(x) == 0:
-        return np.zeros((0, len(nodes))), np.zeros(0), np.zeros(0)
+        return np.zeros((0, len(nodes))), np.zeros(0), np.zeros(0), np.zeros(0)
     steps = [max(float(np.median(np.diff(n))) / 2.0, 1e-6) if n.size > 1 else 1.0 for n in nodes]
     keys = np.stack([np.floor(x[:, k] / steps[k]) for k in range(len(nodes))], 1).astype(np.int64)
     _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.ravel()
     xm = np.stack([np.bincount(inverse, x[:, k]) / counts for k in range(len(nodes))], 1)
-    ym = np.bincount(inverse, y) / counts
-    return xm, ym, counts.astype(float)
+    return xm, np.bincount(inverse, y) / counts, counts.astype(float), np.bincount(inverse, y * y) / counts
