@@ -1,4 +1,4 @@
-"""Progress on non-terminal output: plain lines at a bounded rate, and the time taken at the end."""
+"""Progress on non-terminal output: plain lines on stderr at a bounded rate, and the time taken at the end."""
 
 import numpy as np
 from typer.testing import CliRunner
@@ -17,9 +17,10 @@ def test_simulate_prints_plain_progress_lines_when_not_a_terminal(tmp_path, monk
     args = ["simulate", str(SCENES / "indoor_planar.xml"), "--poses", str(tmp_path / "poses.npy")]
     result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "room.npz")])
     assert result.exit_code == 0, result.output
-    lines = result.output.splitlines()
+    lines = result.stderr.splitlines()
     assert "simulating scans: 3/3" in " ".join(lines)
     assert any(line.startswith("simulating scans: done (") for line in lines)
+    assert "simulating scans" not in result.stdout  # progress is not a result
     assert "\x1b[" not in result.output  # no terminal control codes in a log
 
 
@@ -29,7 +30,7 @@ def test_plain_lines_are_rate_limited(monkeypatch, capsys):
     with progress_module.progress("work", total=40) as update:
         for done in range(1, 41):
             update(done)
-    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("work")]
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("work")]
     # First update, then every 10 s (10 calls), the last one, and the closing line.
     assert (
         lines[0].startswith("work: 1/40") and lines[-2].startswith("work: 40/40") and lines[-1].startswith("work: done")

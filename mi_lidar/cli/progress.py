@@ -1,10 +1,12 @@
 """The one progress helper of the command line: rich bars on a terminal, plain lines in logs.
 
+Progress is not a result: the bar and the lines go to stderr, so a verb's stdout carries only its
+results (``diagnose --json | python -c 'import json, sys; json.load(sys.stdin)'`` parses).
 On a terminal a transient rich bar shows the task (with ``done/total`` and the time left when the
-total is known); when stdout is not a terminal (CI logs, files,
-pipes) the same updates print plain lines ``label: done/total (elapsed s)`` at most every
-:data:`PLAIN_EVERY_S` seconds, plus the first and the last, and ``label: done (elapsed s)`` at the
-end, so a log shows that work goes on and how long it took.
+total is known); when stderr is not a terminal (CI logs, files, pipes) the same updates print plain
+lines ``label: done/total (elapsed s)`` at most every :data:`PLAIN_EVERY_S` seconds, plus the first
+and the last, and ``label: done (elapsed s)`` at the end, so a log shows that work goes on and how
+long it took.
 """
 
 from __future__ import annotations
@@ -13,11 +15,11 @@ import contextlib
 import time
 from collections.abc import Callable, Iterator
 
+from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from mi_lidar.cli.app import console
-
 PLAIN_EVERY_S = 10.0
+console = Console(stderr=True)  # progress, never results: stdout stays for what a verb prints as its result
 
 
 @contextlib.contextmanager

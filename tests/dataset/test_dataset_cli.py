@@ -1,4 +1,5 @@
-"""The ``dataset`` verb's output in a log (not a terminal): plain progress lines, none before the scene check."""
+"""The ``dataset`` verb's output in a log (not a terminal): plain progress lines on stderr, none before the scene
+check."""
 
 from typer.testing import CliRunner
 
@@ -33,7 +34,8 @@ def test_a_run_in_a_log_prints_frame_counts_and_the_time_taken(tmp_path, monkeyp
     monkeypatch.setattr(progress_module, "PLAIN_EVERY_S", 0.0)  # every update prints
     result = run(tmp_path, LABELS)
     assert result.exit_code == 0, result.output
-    lines = result.output.splitlines()
+    assert not [line for line in result.stdout.splitlines() if line.startswith("frames")]  # progress is not a result
+    lines = result.stderr.splitlines()
     assert [line.split(" (")[0] for line in lines if line.startswith("frames: ")] == [
         "frames: 0/2",
         "frames: 1/2",

@@ -96,3 +96,18 @@ def test_a_log_too_short_for_a_learned_density_is_diagnosed_without_it():
     d = diagnose(log, scene, candidates=["range_bias", "np_reg"], rounds=1)
     assert [c.name for r in d.rounds for c in r] == ["range_bias"]
     assert "learned densities were not tried" in d.summary and "longer log" in d.summary
+
+
+def test_diagnose_json_on_stdout_parses_with_the_progress_on_stderr(tmp_path, monkeypatch):
+    """``diagnose --json | json.load``: stdout carries the ranking only; the progress lines go to stderr."""
+    from mi_lidar.cli import progress as progress_module
+
+    monkeypatch.setattr(progress_module, "PLAIN_EVERY_S", 0.0)  # every update prints
+    scene, model, poses = room(2)
+    log, _ = hidden_log(scene, model, poses, "range_bias(bias=0.05)")
+    log.save(tmp_path / "room.npz")
+    arguments = ["diagnose", tmp_path / "room.npz", SCENES / "indoor_planar.xml", "--out", tmp_path / "d", "--json"]
+    result = invoke_at_80([*arguments, "--candidate", "range_bias"])
+    assert result.exit_code == 0, result.output
+    assert [row["name"] for row in json.loads(result.stdout)] == ["range_bias"]
+    assert "diagnose: done (" in result.stderr
