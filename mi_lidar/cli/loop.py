@@ -35,6 +35,7 @@ def compare_command(
     """
     from mi_lidar.io import read_any
     from mi_lidar.loop import compare as run
+    from mi_lidar.loop.compare import group_name
     from mi_lidar.scene import load_scene, use_density
 
     with progress("simulating the log's rays and comparing"):
@@ -43,7 +44,7 @@ def compare_command(
     warn(result.warnings)
     console.print(
         f"NLL {head['nll']:.3f} nats/ray, hit/miss F1 {head['f1']:.3f}; worst: "
-        f"{result.worst[0]['breakdown']} {result.worst[0]['group']} ({result.worst[0]['nll']:.2f} nats/ray)"
+        f"{group_name(result.worst[0])} ({result.worst[0]['nll']:.2f} nats/ray)"
     )
     if result.intensity is not None:
         i = result.intensity.metrics()

@@ -34,6 +34,7 @@ from mi_lidar.core.sensor_model import SensorModel
 
 BREAKDOWNS = ("range", "incidence", "beam", "azimuth", "time", "element_type", "label", "shape")
 NO_ELEMENT_GROUP = "none"
+NAMED_GROUPS = ("beam ", "label ", "shape ", "scans ")  # group labels that start with what they count
 
 
 @dataclass
@@ -161,10 +162,21 @@ def group_keys(t: RayTable, by: str) -> np.ndarray:
     return np.where(t.shape < 0, NO_ELEMENT_GROUP, np.char.add("shape ", t.shape.astype(str)))
 
 
+def group_name(row: dict) -> str:
+    """A breakdown group as a reader names it: ``label 2``, ``range 2-5 m``, ``incidence none``.
+
+    Args:
+        row: a row of :attr:`Comparison.worst` (its ``breakdown`` and ``group``); the breakdown's name
+            is written once (the labels of the beam, label, shape and time groups already say it).
+    """
+    group = row["group"]
+    return group if group.startswith(NAMED_GROUPS) else f"{row['breakdown']} {group}"
+
+
 def group_order(key: str) -> tuple:
     """Sort key of a group label: by its leading number where it has one (``-30..+000 deg`` before
     ``+000..+030 deg``, ``2-5 m`` before ``10-20 m``), then as text; ``none`` last."""
-    head = key.split(" ")[-1] if key.startswith(("beam", "label", "shape", "scans")) else key.split(" ")[0]
+    head = key.split(" ")[-1] if key.startswith(NAMED_GROUPS) else key.split(" ")[0]
     number = head.split("..")[0].split("-")[0] if not head.startswith("-") else "-" + head[1:].split("..")[0]
     try:
         return (0, float(number), key)

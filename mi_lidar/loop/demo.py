@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.effects import parse_effects
-from mi_lidar.loop.compare import compare
+from mi_lidar.loop.compare import compare, group_name
 from mi_lidar.loop.diagnose import diagnose
 from mi_lidar.scene.loading import bundled_scene, load_scene, scene_sensor_model
 from mi_lidar.scene.simulation import simulate
@@ -58,7 +58,7 @@ def run_demo(
     before = compare(log, scene, model, out=None if out is None else out / "before", title="Before: the default model")
     echo(
         f"Hidden in the log: {hidden}. The default model scores {before.headline['nll']:.3f} nats/ray; "
-        f"worst group: {before.worst[0]['breakdown']} {before.worst[0]['group']} "
+        f"worst group: {group_name(before.worst[0])} "
         f"({before.worst[0]['nll']:.2f} nats/ray)."
     )
     d = diagnose(log, scene, model, out=out, candidates=candidates, rounds=1, steps=100)

@@ -41,3 +41,16 @@ def test_azimuth_and_beam_groups_sort_numerically():
 def test_relative_gain_only_away_from_zero_nll():
     assert relative_gain(0.5, -2.0) == 25.0
     assert math.isnan(relative_gain(0.5, 0.3))
+
+
+def test_a_group_is_named_with_its_breakdown_once():
+    """``compare`` printed ``worst: label label 2``: the label, beam, shape and time groups already say what they
+    count; the others take the breakdown's name."""
+    from mi_lidar.loop.compare import BREAKDOWNS, group_keys, group_name
+
+    t = table(np.linspace(-179, 179, 24))
+    names = {by: group_name({"breakdown": by, "group": str(group_keys(t, by)[0])}) for by in BREAKDOWNS}
+    assert names["label"] == "label 0" and names["beam"] == "beam 000" and names["shape"] == "shape 0"
+    assert names["time"] == "scans 00000" and names["range"] == "range 5-10 m"
+    assert names["incidence"] == "incidence 00-15 deg" and names["element_type"] == "element_type surface"
+    assert group_name({"breakdown": "label", "group": "none"}) == "label none"
