@@ -66,6 +66,16 @@ CASES = {
         {},
         ["'no_such_effect'", "outliers"],
     ),
+    "density parameter not a number": (  # was 'could not convert string to float: 'abc''
+        ["compare", "{log}", ROOM, "--out", "{tmp}/c", "--density", "physics(k=abc)"],
+        {},
+        ["density 'physics': k='abc' is not a number"],
+    ),
+    "density list with a word": (
+        ["compare", "{log}", ROOM, "--out", "{tmp}/c", "--density", "physics(k=[1 x])"],
+        {},
+        ["density 'physics': k=['1', 'x'] is not a number"],
+    ),
     "narrow synthetic world": (["synth-world", "--out", "{tmp}/w.npz", "--width", "5"], {}, ["--width", "'5'", "20"]),
     "read-only output folder": (["render", ROOM, "--out", "{read_only}"], {}, ["{read_only}", "folder"]),
     "output folder is a file": (  # was '[Errno 17] File exists: ...'

@@ -113,7 +113,12 @@ class Parametrized:
                 raise ParameterError(
                     f"{self.kind} {self.name!r}: parameter {key!r} ({spec.doc}, {spec.unit}) is required"
                 )
-            array = np.atleast_1d(np.asarray(raw, dtype=np.float64))
+            try:
+                array = np.atleast_1d(np.asarray(raw, dtype=np.float64))
+            except ValueError:
+                raise ParameterError(
+                    f"{self.kind} {self.name!r}: {key}={raw!r} is not a number ({spec.doc}, {spec.unit})"
+                ) from None
             bad = ~np.isfinite(array) | (array < spec.lower) | (array > spec.upper)
             if np.any(bad):
                 raise ParameterError(
@@ -250,7 +255,11 @@ def parse_calls(spec: str, make: Callable[..., Any], what: str) -> list:
 def _parse_value(text: str):
     text = text.strip()
     if text.startswith("[") and text.endswith("]"):
-        return [float(x) for x in text[1:-1].replace(",", " ").split()]
+        items = text[1:-1].replace(",", " ").split()
+        try:
+            return [float(x) for x in items]
+        except ValueError:
+            return items  # the object that takes it names the parameter in its error
     try:
         return float(text)
     except ValueError:
