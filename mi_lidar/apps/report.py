@@ -43,15 +43,20 @@ def _save(figure, path: Path) -> Path:
     return save_figure(figure, path)
 
 
-def loss_figure(result: AppResult, path: Path) -> Path:
-    """``l(alpha_k)`` per simulator at the prior draws (sorted by real J), and simulated vs real J."""
+def loss_figure(result: AppResult, path: Path, risk_se: dict[str, float] | None = None) -> Path:
+    """``l(alpha_k)`` per simulator at the prior draws (sorted by real J), and simulated vs real J.
+
+    ``risk_se``: the risk's standard error per simulator shown in the legend, when the report's table
+    gives another one than ``result.risk_se`` (over the draws), e.g. a bootstrap over the starts.
+    """
+    risk_se = result.risk_se if risk_se is None else risk_se
     order = np.argsort(result.J["real"])
     colors = _colors(result.risk)
     figure, (left, right) = plt.subplots(1, 2, figsize=(11, 3.4))
     real_se = _run_errors(result, "real")
     for name in result.risk:
         style = {"linewidth": 2.2 if name == "mi-lidar" else 1.0, "color": colors[name], "marker": "o", "markersize": 3}
-        label = f"{name} (risk {result.risk[name]:.3g} ± {result.risk_se.get(name, 0.0):.2g})"
+        label = f"{name} (risk {result.risk[name]:.3g} ± {risk_se.get(name, 0.0):.2g})"
         left.plot(result.loss(name)[order], label=label, **style)
         right.errorbar(
             result.J["real"],

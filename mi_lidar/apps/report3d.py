@@ -92,7 +92,7 @@ def write_report(evaluation, out: Path, ranges: dict | None = None) -> dict[str,
     files["scans"] = scans_figure(evaluation, ranges, out / "scans.png")
     sections = []
     for r in evaluation.results:
-        files[f"{r.name}_loss"] = loss_figure(r, out / f"{r.name}_loss.png")
+        files[f"{r.name}_loss"] = loss_figure(r, out / f"{r.name}_loss.png", evaluation.risk_se[r.name])
         files[f"{r.name}_paths"] = path_figure(r, out / f"{r.name}_paths.png")
         params = ", ".join(f"{p['name']} in {p['values']} {p['unit']}".strip() for p in r.parameters)
         sections.append(

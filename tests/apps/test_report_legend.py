@@ -1,0 +1,45 @@
+"""The loss figure's legend quotes the risk's standard error the report's table quotes."""
+
+import numpy as np
+
+from mi_lidar.apps import report
+from mi_lidar.apps.risk import AppResult
+
+
+def result() -> AppResult:
+    J = {
+        "real": np.array([1.0, 2.0, 3.0]),
+        "gaussian": np.array([1.5, 2.5, 2.0]),
+        "mi-lidar": np.array([1.1, 2.2, 2.9]),
+    }
+    risk = {name: float(np.mean(np.abs(J[name] - J["real"]))) for name in ("gaussian", "mi-lidar")}
+    return AppResult(
+        name="matching",
+        objective="error (m)",
+        parameters=[],
+        alphas=[{}, {}, {}],
+        J=J,
+        risk=risk,
+        paths={},
+        path_J={},
+        best_real=(1.0, {}),
+        picks={},
+        risk_se={"gaussian": 0.111, "mi-lidar": 0.0222},  # over the draws
+    )
+
+
+def legend_of(monkeypatch, tmp_path, **options) -> list[str]:
+    saved = {}
+    monkeypatch.setattr(report, "_save", lambda figure, path: saved.setdefault("figure", figure) and path)
+    report.loss_figure(result(), tmp_path / "loss.png", **options)
+    return [text.get_text() for text in saved["figure"].axes[0].get_legend().get_texts()]
+
+
+def test_the_legend_quotes_the_draws_standard_error_by_default(monkeypatch, tmp_path):
+    assert legend_of(monkeypatch, tmp_path) == ["gaussian (risk 0.667 ± 0.11)", "mi-lidar (risk 0.133 ± 0.022)"]
+
+
+def test_the_legend_quotes_the_standard_error_it_is_given(monkeypatch, tmp_path):
+    """The 3D report's table gives a bootstrap over the starts: its figure must quote the same."""
+    labels = legend_of(monkeypatch, tmp_path, risk_se={"gaussian": 0.02, "mi-lidar": 0.014})
+    assert labels == ["gaussian (risk 0.667 ± 0.02)", "mi-lidar (risk 0.133 ± 0.014)"]
