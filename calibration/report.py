@@ -314,9 +314,9 @@ def _samples_table(samples: dict) -> list[str]:
 
 
 def _write_csv(path: Path, header: list, rows) -> Path:
-    """A CSV file with ``header`` and ``rows``, written atomically."""
+    """A CSV file with ``header`` and ``rows``, written atomically; a NaN (a value not evaluated) is an empty cell."""
     text = io.StringIO()
     writer = csv.writer(text)
     writer.writerow(header)
-    writer.writerows(rows)
+    writer.writerows(["" if isinstance(v, float) and np.isnan(v) else v for v in row] for row in rows)
     return atomic_write_text(path, text.getvalue())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import typer
@@ -86,12 +87,12 @@ def calibrate(
         mi-lidar calibrate building.log.gz building.xml -p 'elements.*.p_hit' --pattern log --out out/building
     """
     with progress("calibrating", total=steps) as update:
-        held = {"value": float("nan")}
+        held = {"text": ""}  # the held-out NLL is evaluated every few steps: show the last one, none before the first
 
         def report(step, total, train, held_out):
-            if held_out == held_out:
-                held["value"] = held_out
-            update(step, total, f"calibrating: loss {train:.4f} | held-out {held['value']:.4f} nats/ray")
+            if math.isfinite(held_out):
+                held["text"] = f" | held-out {held_out:.4f} nats/ray"
+            update(step, total, f"calibrating: loss {train:.4f}{held['text']}")
 
         result, files = calibrate_command(
             log,

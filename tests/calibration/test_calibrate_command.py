@@ -109,6 +109,12 @@ def test_cli_prints_table(files):
     )
     assert run.exit_code == 0, run.output
     assert "held-out NLL" in run.output and (tmp / "cli" / "scene.xml").is_file()
+    # The held-out NLL is evaluated every few steps: the progress lines and history.csv leave the
+    # other steps out (they printed and wrote 'nan').
+    assert "nan" not in run.output.lower() and "calibrating: loss" in run.output
+    history = (tmp / "cli" / "history.csv").read_text().splitlines()
+    assert history[0] == "step,train_nll,held_out_nll" and len(history) == 7
+    assert "nan" not in "".join(history).lower() and history[2].endswith(",")
     fitted = json.loads((tmp / "cli" / "report.json").read_text())["held_out_nll"]["fitted"]
     assert_whole(run.stdout, "elements.terrain.range_sigma", f"{fitted:.5f}")
     bad = CliRunner().invoke(
