@@ -92,6 +92,11 @@ def info(
     rows.append(("time span (s)", f"{summary['time_span_s']:.3f}"))
     if summary["scan_period_s"] is not None:
         rows.append(("scan period (s)", f"{summary['scan_period_s']:.3f}"))
+    elif s > 1:
+        rows.append(("scan period (s)", "unknown (no whole scan)"))
+    if summary["simulated"] is not None:
+        effects = ", ".join(summary["simulated"]["effects"]) or "none"
+        rows.append(("simulated with", f"seed {summary['simulated']['seed']}; effects: {effects}"))
     rows.append(("trajectory length (m)", f"{summary['trajectory_length_m']:.2f}"))
     rows.append(("attributes", ", ".join(summary["attributes"]) or "-"))
     for row in rows:

@@ -7,6 +7,7 @@ from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.patterns import FiringPattern
 from mi_lidar.core.patterns.from_log import pattern_from_log
 from mi_lidar.io import convert, info, read_any, read_velodyne, write_any
+from mi_lidar.io.commands import scan_period
 from mi_lidar.io.dispatch import detect_format
 
 from .conftest import data_file
@@ -71,6 +72,25 @@ def test_convert_and_info(tmp_path):
     assert png.read_bytes()[:4] == b"\x89PNG"
     npz = convert(tmp_path / "lab.log", tmp_path / "lab.npz")
     np.testing.assert_array_equal(read_any(npz).hit, read_any(tmp_path / "lab.log").hit)
+
+
+def test_info_names_a_simulated_logs_pattern_and_seed(tmp_path):
+    log = synthetic_log(scans=2)
+    log.sensor = {"pattern": "vlp16", "seed": 3, "effects": ["range_bias(bias=0.05)"]}
+    summary = info(log.save(tmp_path / "drive.npz"))
+    assert summary["sensor"] == "vlp16"  # it said 'unknown': only a reader's 'name' was looked up
+    assert summary["simulated"] == {"seed": 3, "effects": ["range_bias(bias=0.05)"]}
+    assert summary["scan_period_s"] == pytest.approx(0.1)  # simulated scans are whole
+    assert info(convert(tmp_path / "drive.npz", tmp_path / "one.ply", scan=0))["simulated"] is None
+
+
+def test_scan_period_counts_whole_scans_of_a_capture():
+    log = synthetic_log(scans=4)
+    log.times[0] += 0.07  # a capture that starts mid-revolution: the first scan is its last 30 %
+    assert scan_period(log, streamed=True) == pytest.approx(0.1)
+    assert scan_period(log.select(slice(0, 2)), streamed=True) is None
+    velodyne = info(data_file("velodyne/velodyne_vlp16.pcap"))  # 552 then 1464 of about 1808 columns
+    assert velodyne["shape"] == [2, 16, 1464] and velodyne["scan_period_s"] is None  # it said 0.031 s
 
 
 def test_pattern_from_real_ouster_frame():
