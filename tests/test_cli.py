@@ -64,6 +64,63 @@ def test_simulate_writes_a_log_per_pose(tmp_path):
     np.testing.assert_allclose(log.ranges[:, forward, 0], [5.0, 4.0, 3.0], atol=0.05)
 
 
+def room_poses(tmp_path, count: int):
+    """``count`` poses of the room's scanner (0.5 m high) along x, as a KITTI file."""
+    lines = [f"1 0 0 {0.5 * k} 0 1 0 0 0 0 1 0.5" for k in range(count)]
+    (tmp_path / "poses.txt").write_text("\n".join(lines) + "\n")
+    return str(tmp_path / "poses.txt")
+
+
+@pytest.mark.parametrize(
+    "name, poses, message",
+    [
+        ("x.ply", 2, "cannot write 2 scan(s) as '.ply'; use .npz or .bag (a ROS 2 bag folder)"),
+        ("x", 2, "cannot write 2 scan(s) as 'no extension'"),
+        ("x.txt", 1, "use .npz or .bag (a ROS 2 bag folder); one scan also .ply, .pcd, .bin, .las, .exr"),
+        ("x.png", 1, "as '.png'"),
+    ],
+)
+def test_simulate_refuses_an_extension_it_cannot_write(tmp_path, name, poses, message):
+    """It wrote an .npz archive under any name (x.ply, x)."""
+    out = tmp_path / "out" / name
+    result = runner.invoke(
+        app,
+        ["simulate", str(SCENES / "indoor_planar.xml"), "--poses", room_poses(tmp_path, poses)] + ["--out", str(out)],
+    )
+    assert result.exit_code == 2 and message in " ".join(result.stdout.split()), result.stdout
+    assert not out.parent.exists()
+
+
+def test_simulate_writes_the_format_the_extension_names(tmp_path):
+    out = tmp_path / "scan.ply"
+    result = runner.invoke(
+        app, ["simulate", str(SCENES / "indoor_planar.xml"), "--poses", room_poses(tmp_path, 1)] + ["--out", str(out)]
+    )
+    assert result.exit_code == 0, result.stdout
+    points, attributes = read_ply(out)
+    assert out.read_bytes().startswith(b"ply") and 300 < len(points) <= 360 and "intensity" in attributes
+
+
+def test_simulate_adds_the_effect_the_scene_lacks(tmp_path):
+    def run(*extra):
+        out = tmp_path / f"room{len(extra)}.npz"
+        command = ["simulate", str(SCENES / "indoor_planar.xml"), "--poses", room_poses(tmp_path, 3), "--out", str(out)]
+        assert runner.invoke(app, [*command, *extra]).exit_code == 0
+        return Log.load(out)
+
+    plain, dropped = run(), run("--effect", "incidence_dropout(gamma=2)", "--seed", "1")
+    assert (
+        dropped.sensor["effects"] == ["incidence_dropout(law=cos, mode=stop, gamma=2)"] and dropped.sensor["seed"] == 1
+    )
+    assert plain.sensor["effects"] == [] and dropped.hit.mean() < plain.hit.mean() - 0.1
+    bad = runner.invoke(
+        app,
+        ["simulate", str(SCENES / "indoor_planar.xml"), "--poses", str(tmp_path / "poses.txt")]
+        + ["--out", str(tmp_path / "x.npz"), "--effect", "no_such_effect(a=1)"],
+    )
+    assert bad.exit_code == 2 and "no_such_effect" in bad.stdout
+
+
 def test_simulate_rejects_non_rigid_pose_file(tmp_path):
     (tmp_path / "poses.txt").write_text(
         " ".join(["2"] + ["0"] * 4 + ["1"] + ["0"] * 4 + ["1"] + ["0"] * 4 + ["1"]) + "\n"

@@ -129,33 +129,94 @@ def read_poses(path: Path) -> np.ndarray:
     return read_kitti_poses(path) if len(first) == 12 else read_pose_matrices(path)
 
 
+MULTI_SCAN_FORMATS = ("npz", "rosbag2")  # the formats of mi_lidar.io that hold every scan of a log
+
+
+def output_format(out: Path, n_scans: int) -> str:
+    """The format ``simulate`` writes to ``out``, from its extension (see :mod:`mi_lidar.io.dispatch`).
+
+    Raises:
+        ParameterError: no extension, one no writer of :mod:`mi_lidar.io` writes, or a one-scan format
+            for several poses; the message names the extensions that fit.
+    """
+    from mi_lidar.io.dispatch import WRITE_FORMATS, detect_format
+
+    one_scan = ".ply, .pcd, .bin, .las, .exr"
+    fits = f".npz or .bag (a ROS 2 bag folder){'' if n_scans > 1 else f'; one scan also {one_scan}'}"
+    try:
+        fmt = detect_format(out, for_writing=True) if out.suffix else None
+    except MiLidarError:
+        fmt = None
+    if fmt not in WRITE_FORMATS or fmt == "png" or (n_scans > 1 and fmt not in MULTI_SCAN_FORMATS):
+        raise ParameterError(
+            f"--out {out}: cannot write {n_scans} scan(s) as {out.suffix or 'no extension'!r}; use {fits}"
+        )
+    return fmt
+
+
+def with_effects(scene, spec: str | None):
+    """The scene's sensor model with the effects ``spec`` (catalog syntax) added to its own; None when ``spec`` is.
+
+    Raises:
+        ParameterError: ``spec`` names no effect of the catalog, or a bad setting (named).
+    """
+    if spec is None:
+        return None
+    import dataclasses
+
+    from mi_lidar.core.effects import parse_effects
+    from mi_lidar.scene import scene_sensor_model
+
+    model, _ = scene_sensor_model(scene)
+    return dataclasses.replace(model, effects=[*model.effects, *parse_effects(spec)])
+
+
 @app.command(rich_help_panel="Make scans")
 def simulate(
     scene: Path = typer.Argument(..., help="Scene XML.", exists=True, dir_okay=False),
     poses: Path = typer.Option(
         ...,
-        help="Sensor poses: `.npy` (S, 4, 4), text with 16 numbers per line, or a KITTI poses file (12 per line).",
+        help="Sensor-to-world poses: `.npy` (S, 4, 4), text with 16 numbers per line, or a KITTI poses file (12 per "
+        "line). They replace the scene sensor's pose, its height included (offroad.xml mounts the VLP-16 at z = 2 m).",
         exists=True,
         dir_okay=False,
     ),
-    out: Path = typer.Option(..., "--out", "-o", help="Output log (`.npz`)."),
+    out: Path = typer.Option(
+        ...,
+        "--out",
+        "-o",
+        help="Output log: `.npz` (every scan) or a ROS 2 bag (`.bag` folder); with one pose also `.ply`, `.pcd`, "
+        "`.bin`, `.las`, `.exr`.",
+    ),
     seed: int = typer.Option(0, min=0, help="Random seed."),
     pattern: str | None = typer.Option(None, help="Firing pattern (default: the scene sensor's)."),
     density: str | None = density_option(),
+    effect: str | None = typer.Option(
+        None,
+        "--effect",
+        help="Effects to add to the scene's, e.g. `incidence_dropout(gamma=2)`: a log with an effect the scene's "
+        "model lacks, for `compare` and `diagnose` to find.",
+    ),
 ):
-    """Simulate one scan per pose and write a log (`.npz`, see `mi_lidar.core.log`).
+    """Simulate one scan per pose and write a log (`.npz`, see `mi_lidar.core.log`, or another format by extension).
+
+    The poses replace the scene sensor's pose (give them at the sensor's mounting height).
 
     Examples:
 
         mi-lidar simulate scenes_xml/offroad.xml --poses poses.txt --out drive.npz
 
+        mi-lidar simulate scenes_xml/offroad.xml --poses poses.txt --out biased.npz --effect "range_bias(bias=0.05)"
+
         mi-lidar simulate scenes_xml/indoor_planar.xml --poses kitti_poses.txt --out room.npz --pattern planar-180
     """
+    from mi_lidar.io import write_any
     from mi_lidar.scene import load_scene, use_density
     from mi_lidar.scene.simulation import simulate as run
 
     loaded = use_density(load_scene(scene), density)
     pose_array = read_poses(poses)
+    fmt = output_format(out, len(pose_array))
     start = time.perf_counter()
     with progress("simulating scans", total=len(pose_array)) as update:
         log = run(
@@ -163,10 +224,11 @@ def simulate(
             pattern,
             poses=pose_array,
             seed=seed,
+            model=with_effects(loaded, effect),
             progress=lambda done, total: update(done, total),
         )
     elapsed = time.perf_counter() - start
-    path = log.save(out)
+    path = write_any(log, out, fmt=fmt)
     console.print(scan_summary(log, f"{scene.name}: {len(pose_array)} scans (seed {seed})", elapsed))
     console.print(f"wrote {path}")
 
