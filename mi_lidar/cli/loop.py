@@ -64,7 +64,8 @@ def diagnose_command(
     candidate: list[str] | None = typer.Option(
         None,
         "--candidate",
-        help="Only try these effects or learned densities (np_reg, p_reg) (repeatable); default: the whole catalog.",
+        help="Only try these effects or learned densities (np-reg, p-reg) (repeatable), by name or as the ranking "
+        "prints them, e.g. `incidence_dropout(law=cos)`; default: the whole catalog.",
     ),
     steps: int = typer.Option(
         60, min=1, max=MAX_STEPS, help="Adam steps per candidate fit at most (a fit stops once it stops gaining)."

@@ -206,10 +206,20 @@ class Catalog(dict):
         return cls
 
     def cls(self, name: str):
-        """The class registered as ``name``; a ParameterError listing the catalog otherwise."""
-        if name not in self:
+        """The class registered as ``name`` (either spelling, :func:`catalog_name`); a ParameterError listing the
+        catalog otherwise."""
+        if catalog_name(name) not in self:
             raise ParameterError(f"unknown {self.what} {name!r}; the catalog has: {', '.join(sorted(self)) or 'none'}")
-        return self[name]
+        return self[catalog_name(name)]
+
+
+def catalog_name(name: str) -> str:
+    """The catalog's spelling of an effect or density name: ``np-reg`` and ``np_reg`` are both ``np_reg``.
+
+    Catalog names are written with underscores; ``fit-sensor --model`` names its families with dashes,
+    so a user may write either anywhere a name is taken.
+    """
+    return name.strip().replace("-", "_")
 
 
 def parse_calls(spec: str, make: Callable[..., Any], what: str) -> list:

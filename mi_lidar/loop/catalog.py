@@ -31,6 +31,7 @@ import numpy as np
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.effects.base import EFFECTS, Effect, FootprintEffect
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.params import catalog_name, parse_calls
 from mi_lidar.core.problem import PartsFit, Problem, fit_parts, make_opaque
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop.sensor_fit import fit_density
@@ -64,19 +65,77 @@ def candidate(name: str, n_beams: int, n_labels: int, **options) -> Effect:
     return effect.widen(n_beams, n_labels)
 
 
-def variants(name: str) -> list[dict]:
+def variants(name: str, given: dict | None = None) -> list[dict]:
     """Option settings to try for effect ``name``: every combination of its ``variant_options``.
 
     Choices scored with another choice's likelihood are left out (:data:`SCORED_AS`): their row would
     repeat the other's.
+
+    Args:
+        name: catalog name.
+        given: option choices (and starting values) the user fixed (:func:`parse_candidate`): a fixed
+            option is not varied, and every setting carries them.
     """
+    given = given or {}
     if name in DENSITY_CANDIDATES:
         return [{}]
     cls = EFFECTS[name]
     settings: list[dict] = [{}]
     for option in cls.variant_options:
         choices = [c for c in cls.options[option] if (name, option, c) not in SCORED_AS]
+        choices = [given[option]] if option in given else choices
         settings = [{**s, option: choice} for s in settings for choice in choices]
+    return [{**s, **given} for s in settings]
+
+
+def parse_candidate(text: str) -> tuple[str, dict]:
+    """A candidate as the user names it: ``np-reg`` or ``np_reg``, or as diagnose prints it.
+
+    ``incidence_dropout(law=cos)`` is the candidate with that option fixed; a parameter's value, e.g.
+    ``range_bias(bias=0.05)``, is where its fit starts.
+
+    Returns:
+        ``(catalog name, given options and starting values)``.
+
+    Raises:
+        ParameterError: the name is in neither catalog (the message lists both), or an option or value is not one of
+            the effect's (the message lists the allowed ones).
+    """
+    calls = parse_calls(text, lambda name, **values: (catalog_name(name), values), "candidate")
+    if len(calls) != 1:
+        raise ParameterError(
+            f"candidate {text!r}: give one effect or learned density, e.g. 'incidence_dropout(law=cos)'"
+        )
+    name, given = calls[0]
+    if name in DENSITY_CANDIDATES:
+        if given:
+            raise ParameterError(f"candidate {text!r}: a learned density takes no options here; write {name}")
+        return name, given
+    try:
+        cls = EFFECTS.cls(name)
+    except ParameterError as error:
+        raise ParameterError(f"{error}; or a learned density: {', '.join(DENSITY_CANDIDATES)}") from None
+    cls(**given)  # an unknown option or a bad value: the effect's own message names the allowed ones
+    return cls.name, given
+
+
+def candidate_settings(
+    present: list[Effect], include: list[str] | None = None, densities: bool = True
+) -> list[tuple[str, dict]]:
+    """The ``(name, options)`` of every candidate to screen: :func:`candidate_names`, each with its :func:`variants`.
+
+    Args:
+        present: the model's effects.
+        include: candidates as the user names them (:func:`parse_candidate`); None: the whole catalog.
+        densities: offer the learned densities when ``include`` is None.
+    """
+    parsed = [parse_candidate(text) for text in include] if include is not None else None
+    names = candidate_names(present, None if parsed is None else [n for n, _ in parsed], densities)
+    settings = []
+    for name, given in parsed or [(n, {}) for n in names]:
+        for variant in variants(name, given) if name in names else []:
+            if (name, variant) not in settings:
+                settings.append((name, variant))
     return settings
 
 
@@ -88,8 +147,8 @@ def candidate_names(present: list[Effect], include: list[str] | None = None, den
 
     Args:
         present: the model's effects.
-        include: names to try (effects or :data:`DENSITY_CANDIDATES`); None: every effect and, with
-            ``densities``, every learned density.
+        include: names to try (effects or :data:`DENSITY_CANDIDATES`, either spelling, :func:`catalog_name`);
+            None: every effect and, with ``densities``, every learned density.
         densities: offer the learned densities when ``include`` is None.
 
     Raises:
@@ -100,15 +159,7 @@ def candidate_names(present: list[Effect], include: list[str] | None = None, den
     if include is None:
         names = sorted(EFFECTS) + (list(DENSITY_CANDIDATES) if densities else [])
     else:
-        names = []
-        for n in include:
-            if n in DENSITY_CANDIDATES:
-                names.append(n)
-                continue
-            try:
-                names.append(EFFECTS.cls(n).name)
-            except ParameterError as error:
-                raise ParameterError(f"{error}; or a learned density: {', '.join(DENSITY_CANDIDATES)}") from None
+        names = [parse_candidate(n)[0] for n in include]
     return [n for n in names if n not in have and not (fanned and fans_out(n))]
 
 

@@ -58,9 +58,9 @@ from mi_lidar.loop.catalog import (
     SCREEN_TOLERANCE,
     candidate,
     candidate_names,
+    candidate_settings,
     fit_density_candidate,
     refit,
-    variants,
 )
 from mi_lidar.loop.compare import BREAKDOWNS, RayTable, first_elements, group_keys
 from mi_lidar.loop.intensity_residuals import intensity_residuals, intensity_section
@@ -305,8 +305,9 @@ def diagnose(
         out: folder for ``diagnosis.json``, ``diagnosis.md``, ``diagnosis.html`` and the figures
             (nothing written when None).
         candidates: effects (or learned densities, :data:`~mi_lidar.loop.catalog.DENSITY_CANDIDATES`)
-            to try (default: every registered effect not in the model, and the learned densities when
-            the model has no effects).
+            to try, named with dashes or underscores, or as the ranking prints them
+            (``incidence_dropout(law=cos)``, :func:`~mi_lidar.loop.catalog.parse_candidate`) (default:
+            every registered effect not in the model, and the learned densities when the model has no effects).
         steps: Adam steps per fit at most (screening fits stop once they stop gaining; the final joint
             refit takes twice as many).
         rounds: selection rounds (candidates joined at most).
@@ -339,7 +340,7 @@ def diagnose(
     realism = [data.realism(base, "given model", stream)]
     before_test = realism[0].ll
     nll_before = float(-before_test.mean())
-    names = [(n, v) for n in candidate_names(base.effects, candidates, not base.effects) for v in variants(n)]
+    names = candidate_settings(base.effects, candidates, not base.effects)
     densities = [n for n, _ in names if n in DENSITY_CANDIDATES] if not base.effects else []
     too_few = bool(densities) and data.estimation.n < MIN_ESTIMATION_RAYS
     if too_few:  # a learned density is estimated on training rays the screening fits do not use

@@ -69,3 +69,35 @@ def test_candidate_names_keep_one_footprint_effect_and_name_both_catalogs_in_err
     assert "np_reg" not in candidate_names([], None, densities=False)
     with pytest.raises(ParameterError, match="np_reg"):
         candidate_names([], ["no_such_effect"])
+
+
+@pytest.mark.parametrize(
+    ("given", "expected"),
+    [
+        (["np-reg", "p_reg"], [("np_reg", {}), ("p_reg", {})]),
+        (["range-bias"], [("range_bias", {})]),
+        (["incidence_dropout(law=cos)"], [("incidence_dropout", {"law": "cos"})]),  # as the ranking prints it
+        (["range_bias(bias=0.05)"], [("range_bias", {"bias": 0.05})]),  # a value: where the fit starts
+        (["incidence_dropout"], [("incidence_dropout", {"law": law}) for law in ("cos", "logistic")]),
+    ],
+)
+def test_a_candidate_is_named_either_way_or_as_diagnose_prints_it(given, expected):
+    from mi_lidar.loop.catalog import candidate_settings
+
+    assert candidate_settings([], given) == expected
+
+
+@pytest.mark.parametrize(
+    ("given", "message"),
+    [
+        ("incidence_dropout(law=tan)", r"law='tan'; choose one of \['cos', 'logistic'\]"),
+        ("incidence_dropout(slope=2)", r"unknown parameter\(s\) \['slope'\]; allowed: \[.*'law'"),
+        ("np-reg(h=2)", "a learned density takes no options here; write np_reg"),
+        ("no-such-effect", "or a learned density: np_reg, p_reg"),
+    ],
+)
+def test_a_wrong_option_of_a_candidate_names_the_allowed_ones(given, message):
+    from mi_lidar.loop.catalog import candidate_settings
+
+    with pytest.raises(ParameterError, match=message):
+        candidate_settings([], [given])

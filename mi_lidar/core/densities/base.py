@@ -146,7 +146,7 @@ def make_density(name: str, resolve=None, **values) -> ReturnDensity:
         from mi_lidar.core.densities.tables import load_density
 
         path = values.pop("file")
-        return load_density(resolve(path) if resolve else path, expected=name, **values)
+        return load_density(resolve(path) if resolve else path, expected=cls.name, **values)
     return cls(**values)
 
 
