@@ -434,8 +434,8 @@ def diagnose(
         result.summary += (
             f" The learned densities were not tried: they are estimated on the training rays beyond the "
             f"{data.fitting.n:,} the screening fits use, and this log has {data.estimation.n:,} of them "
-            f"(at least {MIN_ESTIMATION_RAYS:,} needed); record a longer log (or pass a smaller max_fit to "
-            "mi_lidar.loop.diagnose)."
+            f"(at least {MIN_ESTIMATION_RAYS:,} needed): record a longer log (more scans), or, from Python, pass "
+            "mi_lidar.loop.diagnose a smaller max_fit."
         )
     if out is not None:
         out = Path(out)

@@ -95,7 +95,8 @@ def test_a_log_too_short_for_a_learned_density_is_diagnosed_without_it():
     log, _ = hidden_log(scene, model, poses, "range_bias(bias=0.05)")
     d = diagnose(log, scene, candidates=["range_bias", "np_reg"], rounds=1)
     assert [c.name for r in d.rounds for c in r] == ["range_bias"]
-    assert "learned densities were not tried" in d.summary and "longer log" in d.summary
+    assert "learned densities were not tried" in d.summary and "record a longer log (more scans)" in d.summary
+    assert "or, from Python, pass mi_lidar.loop.diagnose a smaller max_fit" in d.summary  # no CLI option has it
 
 
 def test_diagnose_json_on_stdout_parses_with_the_progress_on_stderr(tmp_path, monkeypatch):
