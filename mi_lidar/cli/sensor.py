@@ -20,7 +20,7 @@ def fit_sensor_command(
     steps: int = typer.Option(200, min=1, max=MAX_STEPS, help="Adam steps (beam, physics)."),
     seed: int = typer.Option(0, min=0, help="Seed of the split and of the sampled scan."),
     pool_labels: bool = typer.Option(
-        False, "--pool-labels", help="NP-Reg: one state per range and incidence, whatever the element label."
+        False, "--pool-labels", help="NP-Reg and P-Reg: one law per range and incidence, whatever the element label."
     ),
     force: bool = typer.Option(False, help="Fit even when the log's sensor does not match the scene's."),
 ):
@@ -35,7 +35,7 @@ def fit_sensor_command(
 
         mi-lidar fit-sensor drive.npz scenes_xml/urban_street.xml -m p-reg -o p_reg.npz
 
-    With --pool-labels an NP-Reg density applies to scenes whose labels mean other classes (a density
+    With --pool-labels an NP-Reg or P-Reg density applies to scenes whose labels mean other classes (a density
     fitted off-road, used in a street).
     """
     from mi_lidar.io import read_any

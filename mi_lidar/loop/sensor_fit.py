@@ -40,6 +40,7 @@ from mi_lidar.loop.compare import simulate_log_rays
 from mi_lidar.loop.split import split_rays
 
 FAMILIES = ("np-reg", "p-reg", "beam", "physics")
+MAX_LABEL_GROUPS = 16  # labels a learned density keeps apart (higher labels share the last group)
 
 
 @dataclass
@@ -78,8 +79,13 @@ def default_grid(
     return StateGrid(
         range_edges=[float(e) for e in edges],
         incidence_edges=[float(e) for e in np.arange(0.0, 90.0 + 1e-9, incidence_step)],
-        n_labels=max(1, min(n_labels, 16)),
+        n_labels=label_groups(n_labels),
     )
+
+
+def label_groups(n_labels: int) -> int:
+    """Labels a learned density keeps apart: at most :data:`MAX_LABEL_GROUPS` (higher labels share the last)."""
+    return max(1, min(n_labels, MAX_LABEL_GROUPS))
 
 
 def traced_states(problem: Problem, model: SensorModel) -> StateSamples:
@@ -116,8 +122,9 @@ def fit_sensor(
         max_train, max_test: rays per split (random subsample beyond).
         steps: Adam steps for the parametric families.
         seed: subsampling and sampling seed.
-        pool_labels: NP-Reg states ignore the element labels (one histogram per range and incidence),
-            so the density means the same in scenes whose labels name other classes (P-Reg always pools).
+        pool_labels: the learned densities ignore the element labels (NP-Reg: one histogram per range
+            and incidence; P-Reg: one regression), so the density means the same in scenes whose labels
+            name other classes.
         progress: optional ``progress(message)``.
         force: fit even when the log's sensor does not match the scene's
             (:func:`~mi_lidar.scene.sensor_check.check_log_sensor`).
@@ -189,7 +196,7 @@ def fit_density(
     if family == "np-reg":
         return fit_np_reg(samples, default_grid(samples, n_labels), held_out, z_max=base.max_range, **options)
     if family == "p-reg":
-        return fit_p_reg(samples, held_out, z_max=base.max_range, **options)
+        return fit_p_reg(samples, held_out, z_max=base.max_range, n_labels=label_groups(n_labels), **options)
     density = BeamDensity(z_max=base.max_range) if family == "beam" else PhysicsDensity()
     fit_parts(dataclasses.replace(base, density=density), train, [density], steps=steps)
     return density, []

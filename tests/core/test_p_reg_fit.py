@@ -9,10 +9,16 @@ earlier fit (mean and second moment regressed apart, sigma = sqrt(second - mu^2)
 * a node fed by one cell of identical residuals: a zero local variance.
 """
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.densities.preg import MIN_SIGMA, _local_linear, fit_p_reg
 from mi_lidar.core.densities.samples import StateSamples
+from mi_lidar.core.densities.tables import load_density
+from mi_lidar.core.segment import Segment
+
+from ..conftest import rays_along_x
 
 RNG = np.random.default_rng(11)
 
@@ -73,3 +79,55 @@ def test_an_extrapolating_line_stays_within_its_responses():
     y = np.array([0.0, 0.5])
     mean, _ = _local_linear(x, y, np.array([1e6, 1e6]), [np.array([6.0])], [2.0])
     assert 0.0 <= mean[0] <= 0.5, mean  # the plain local line gives 3.0 m here
+
+
+def labelled_samples(n: int = 60_000) -> StateSamples:
+    """Label 1 (walls): sigma 1 cm, no bias; label 2 (foliage): sigma 6 cm, +5 cm bias, 20 % no-returns;
+    label 3: 40 samples of label 1's law (too few to stand alone: it must keep the pooled law)."""
+    r = RNG.uniform(1.0, 20.0, n)
+    label = np.where(np.arange(n) < 40, 3, 1 + (RNG.random(n) < 0.5))
+    sigma = np.where(label == 2, 0.06, 0.01)
+    hit = RNG.random(n) >= np.where(label == 2, 0.2, 0.01)
+    z = np.where(hit, r + np.where(label == 2, 0.05, 0.0) + sigma * RNG.standard_normal(n), np.nan)
+    return StateSamples(r, RNG.uniform(0.0, 60.0, n), np.zeros(n, int), label, z, hit)
+
+
+def test_labels_kept_apart_recover_each_law_and_a_rare_label_keeps_the_pooled_one(tmp_path):
+    s = labelled_samples()
+    nodes = np.arange(0.0, 20.5, 0.5)
+    density, _ = fit_p_reg(
+        s, lambda d: 0.0, h_ranges=(1.0,), h_incidences=(20.0,), range_nodes=nodes, z_max=80.0, n_labels=4
+    )
+    assert density.mu.shape == (4, 20, nodes.size) and density.grid.n_labels == 4
+    inside = (nodes >= 3.0) & (nodes <= 18.0)
+    wall, foliage, rare = (density.sigma[k, 6, inside] for k in (1, 2, 3))
+    # a few thousand samples per node and label: sigma within 10 %, mean within 5 mm, P(null) within 0.03
+    assert np.all(np.abs(wall / 0.01 - 1) < 0.1) and np.all(np.abs(foliage / 0.06 - 1) < 0.1)
+    assert np.all(np.abs(density.mu[2, 6, inside] - 0.05) < 0.005) and np.all(np.abs(density.mu[1, 6, inside]) < 0.005)
+    assert np.all(np.abs(density.p_null[2, 6, inside] - 0.2) < 0.03)
+    pooled, _ = fit_p_reg(s, lambda d: 0.0, h_ranges=(1.0,), h_incidences=(20.0,), range_nodes=nodes, z_max=80.0)
+    # 40 samples over 20 m and 60 degrees (a few per node): label 3 moves at most a quarter of the way
+    # (in log sigma) from the pooled law towards its own 1 cm
+    moved = np.log(rare / pooled.sigma[6, inside]) / np.log(0.01 / pooled.sigma[6, inside])
+    assert np.all((moved > 0) & (moved < 0.25)), moved
+    # the grid and the tables survive a file, and each segment reads its label's tables
+    path = density.save(tmp_path / "p_reg.npz")
+    loaded = load_density(path)
+    assert loaded.grid.n_labels == 4 and np.array_equal(loaded.sigma, density.sigma)
+    n = 3
+    seg = Segment(
+        valid=dr.full(mi.Bool, True, n),
+        nominal=mi.Float(10.0, 10.0, 10.0),
+        p=dr.full(mi.Float, 1.0, n),
+        mean=mi.Float(10.0, 10.0, 10.0),
+        sigma=dr.full(mi.Float, 0.02, n),
+        lo=dr.full(mi.Float, -np.inf, n),
+        hi=dr.full(mi.Float, np.inf, n),
+        cos_incidence=mi.Float(1.0, 1.0, 1.0),
+        element=dr.zeros(mi.UInt32, n),
+        shape=dr.zeros(mi.UInt32, n),
+        label=mi.UInt32(1, 2, 9),  # label 9 is beyond the groups: it shares the last (label 3)
+        kind=dr.zeros(mi.UInt32, n),
+    )
+    _, _, sigma = loaded.values(seg, rays_along_x(n))
+    np.testing.assert_allclose(np.asarray(sigma), density.sigma[[1, 2, 3], 0, 20], rtol=1e-5)

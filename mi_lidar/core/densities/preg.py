@@ -9,14 +9,16 @@ of unknown incidence use a regression on range alone (of the training segments o
 incidence, or of all when there are none). A beam that met nothing misses with probability
 ``P_null`` of the escape state and otherwise returns uniformly on ``[0, z_max]``.
 
-Choices where the thesis leaves room (documented and tested): the regressions pool the beams (the
-density also reads per-beam tables, (beams, rows, nodes), which :func:`fit_p_reg` does not build);
-the mean and sigma are fitted on returns within ``inlier`` (1 m) of the nominal range, so that the
-5-10 % of real returns from objects the map lacks do not inflate sigma to metres; bandwidths are
-chosen by held-out likelihood from a candidate set (:func:`fit_p_reg`); every node's estimates are
-shrunk to the global ones with the weight of :data:`PSEUDO_SAMPLES` samples (as the protocol's
-binned histograms are), and a local line is not followed beyond the range of its responses, so
-sparse and empty nodes stay sane (:func:`_local_linear`). Ellipsoid elements keep their own Gaussian.
+Choices where the thesis leaves room (documented and tested): the regressions pool the beams and,
+unless told to keep ``n_labels`` element labels apart, the labels (each label's regressions are then
+shrunk to the pooled ones; the density reads tables per group of its :class:`StateGrid`, label x
+beam, though :func:`fit_p_reg` builds no per-beam group); the mean and sigma are fitted on returns
+within ``inlier`` (1 m) of the nominal range, so that the 5-10 % of real returns from objects the
+map lacks do not inflate sigma to metres; bandwidths are chosen by held-out likelihood from a
+candidate set (:func:`fit_p_reg`); every node's estimates are shrunk to the global (or pooled) ones
+with the weight of :data:`PSEUDO_SAMPLES` samples (as the protocol's binned histograms are), and a
+local line is not followed far beyond its data, so sparse and empty nodes stay sane
+(:func:`_local_linear`). Ellipsoid elements keep their own Gaussian.
 """
 
 from __future__ import annotations
@@ -32,14 +34,15 @@ import numpy as np
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.densities.base import ESCAPE, UniformEscapeDensity, escape_segment, register_density
 from mi_lidar.core.densities.samples import StateSamples, choose_by_held_out
-from mi_lidar.core.densities.tables import check_table
+from mi_lidar.core.densities.tables import StateGrid, check_table
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import ELLIPSOID, Segment
 
 MIN_SIGMA = 1e-3  # m
-PSEUDO_SAMPLES = 30.0  # every node's estimates are shrunk to the global ones with this many samples' weight
+PSEUDO_SAMPLES = 30.0  # every node's estimates are shrunk to the prior's with this many samples' weight
+REACH = 2.0  # a local line is followed at most this many weighted standard deviations beyond its data's mean
 
 
 def _f(values) -> mi.Float:
@@ -59,7 +62,7 @@ class PRegDensity(UniformEscapeDensity):
         ),
     }
 
-    def __init__(self, range_nodes=None, incidence_nodes=None, p_null=None, mu=None, sigma=None, **values):
+    def __init__(self, range_nodes=None, incidence_nodes=None, p_null=None, mu=None, sigma=None, grid=None, **values):
         super().__init__(**values)
         self.range_nodes = np.asarray([0.0, 100.0] if range_nodes is None else range_nodes, np.float64)
         self.incidence_nodes = np.asarray([0.0, 90.0] if incidence_nodes is None else incidence_nodes, np.float64)
@@ -67,11 +70,16 @@ class PRegDensity(UniformEscapeDensity):
         self.p_null = np.asarray(np.zeros(shape) if p_null is None else p_null, np.float64)
         self.mu = np.asarray(np.zeros(shape) if mu is None else mu, np.float64)
         self.sigma = np.asarray(np.full(shape, 0.02) if sigma is None else sigma, np.float64)
+        if grid is None:  # a file written before the grid was saved: per-beam tables, or one group
+            grid = StateGrid(n_beams=self.p_null.shape[0] if self.p_null.ndim == 3 else 1)
+        self.grid = grid
+        groups = grid.n_labels * grid.n_beams
         for name, table in (("p_null", self.p_null), ("mu", self.mu), ("sigma", self.sigma)):
-            if table.shape[-2:] != shape or table.shape != self.p_null.shape or table.ndim not in (2, 3):
+            expected = (groups, *shape) if groups > 1 else shape
+            if table.shape != expected:
                 raise ParameterError(
-                    f"p_reg: table {name} has shape {table.shape}; expected {shape} or "
-                    f"(beams, {shape[0]}, {shape[1]}), the shape of p_null {self.p_null.shape}"
+                    f"p_reg: table {name} has shape {table.shape}; expected {expected} "
+                    f"({grid.n_labels} label(s) x {grid.n_beams} beam(s) of incidence x range nodes)"
                 )
         check_table("p_reg", "range_nodes", self.range_nodes, increasing=True)
         check_table("p_reg", "incidence_nodes", self.incidence_nodes, increasing=True)
@@ -80,7 +88,7 @@ class PRegDensity(UniformEscapeDensity):
         check_table("p_reg", "sigma", self.sigma, lower=1e-9)
         self._tables = {k: _f(getattr(self, k)) for k in ("p_null", "mu", "sigma")}
         self._r, self._d = _f(self.range_nodes), _f(self.incidence_nodes)
-        self.n_beams = 1 if self.p_null.ndim == 2 else self.p_null.shape[0]
+        self.groups = groups
 
     def tables(self) -> dict[str, np.ndarray]:
         return {
@@ -93,7 +101,7 @@ class PRegDensity(UniformEscapeDensity):
 
     @classmethod
     def from_tables(cls, params: dict, grid, tables: dict) -> PRegDensity:
-        return cls(**tables, **params)
+        return cls(**tables, **params, grid=grid)
 
     # ------------------------------------------------------------------ interpolation
     def _locate(self, nodes: mi.Float, count: int, x: mi.Float):
@@ -103,7 +111,8 @@ class PRegDensity(UniformEscapeDensity):
         return i, dr.clip((x - x0) / (x1 - x0), 0.0, 1.0)
 
     def values(self, seg: Segment, rays: RayBatch) -> tuple[mi.Float, mi.Float, mi.Float]:
-        """``(P_null, mu, sigma)`` of each lane, bilinear in (range, incidence); range only when unknown."""
+        """``(P_null, mu, sigma)`` of each lane, bilinear in (range, incidence); range only when unknown; from
+        the tables of the lane's group (label and beam, as :attr:`grid` counts them)."""
         n_r, n_d = self.range_nodes.size, self.incidence_nodes.size
         i, t = self._locate(self._r, n_r, seg.nominal)
         delta = dr.acos(dr.clip(seg.cos_incidence, 0.0, 1.0)) * (180.0 / math.pi)
@@ -112,8 +121,8 @@ class PRegDensity(UniformEscapeDensity):
         j = dr.select(unknown, n_d, j)
         s = dr.select(unknown, 0.0, s)
         j1 = dr.select(unknown, n_d, j + 1)
-        beam = dr.minimum(rays.beam, self.n_beams - 1) if self.n_beams > 1 else 0
-        base = beam * (n_d + 1) * n_r
+        group = self.grid.index(seg.nominal, seg.cos_incidence, rays.beam, seg.label) if self.groups > 1 else 0
+        base = group * (n_d + 1) * n_r
 
         def at(table, row, col):
             return dr.gather(mi.Float, self._tables[table], base + row * n_r + col)
@@ -142,6 +151,17 @@ class PRegDensity(UniformEscapeDensity):
 
 
 # ---------------------------------------------------------------------- fitting
+def _node_moments(x: np.ndarray, features: np.ndarray, nodes: list[np.ndarray], bandwidths: list[float]) -> np.ndarray:
+    """``sum_i k(x_i - g) f_i`` for every feature row of ``features`` (F, N) at every node ``g`` of the
+    product grid of ``nodes`` (one or two dimensions; Gaussian kernel, separable): (F, G)."""
+    kernels = [
+        np.exp(-0.5 * ((x[:, k][None, :] - n[:, None]) / h) ** 2) for k, (n, h) in enumerate(zip(nodes, bandwidths))
+    ]
+    if len(kernels) == 1:
+        return features @ kernels[0].T
+    return np.einsum("fn,an,bn->fab", features, kernels[0], kernels[1], optimize=True).reshape(len(features), -1)
+
+
 def _local_linear(
     x: np.ndarray,
     y: np.ndarray,
@@ -149,53 +169,77 @@ def _local_linear(
     nodes: list[np.ndarray],
     bandwidths: list[float],
     y2: np.ndarray | None = None,
+    prior: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Local linear kernel regression of ``y`` on ``x`` (N, D) with sample weights ``w``, at a node grid.
 
-    At every node the weighted least-squares line's value there is the estimate, kept within the range
-    of the responses that carry the node's kernel weight (a local line may not leave its data far from
-    them, where a node outside the data would otherwise extrapolate a slope to metres). The scatter
-    about that line, ``sum k (y2 - 2 y line + line^2) / sum k``, is the local variance: never negative,
-    unlike the difference of two separately regressed moments, which at sparse nodes collapsed sigma to
-    its 1 mm floor.
+    At every node the weighted least-squares line (all nodes at once, from kernel-weighted moments)
+    gives the estimate; the scatter about that line, ``sum k (y2 - 2 y line + line^2) / sum k``, is
+    the local variance, never negative (the difference of two separately regressed moments went
+    negative at sparse nodes and collapsed sigma to its floor). Two guards keep nodes beyond the data
+    sane: the line is followed at most :data:`REACH` weighted standard deviations from its data's
+    weighted mean, and no estimate leaves the range of the responses (a slope extrapolated to a far
+    node once gave a mean of -21 m). Every node is then shrunk to ``prior`` with the weight of
+    :data:`PSEUDO_SAMPLES` samples: the estimate arithmetically, the variance geometrically (its log;
+    variances floored at ``MIN_SIGMA**2``), as a scale should be.
 
     Args:
         x, y, w: (N, D) states, (N,) responses and (N,) weights (binned samples: cell means and counts).
-        nodes, bandwidths: the node coordinates per dimension and the Gaussian kernel's bandwidths.
+        nodes, bandwidths: the node coordinates per dimension (D of them) and the kernel's bandwidths.
         y2: (N,) mean of the squared response per sample (its cell); default ``y ** 2``.
+        prior: (mean, variance) at the nodes, each of the grid's shape; default: the global ones.
 
     Returns:
-        (estimate, local variance), each of the grid's shape (product of the node counts); nodes
-        without weight get the global mean and variance, nodes where the system is singular the local mean.
+        (estimate, local variance), each of the grid's shape (product of the node counts).
     """
     y2 = y * y if y2 is None else y2
-    grid = np.stack(np.meshgrid(*nodes, indexing="ij"), axis=-1).reshape(-1, len(nodes))
-    out, variance = np.empty(len(grid)), np.empty(len(grid))
-    global_mean = float(np.average(y, weights=w)) if w.sum() > 0 else 0.0
-    global_variance = max(float(np.average(y2, weights=w)) - global_mean**2, 0.0) if w.sum() > 0 else 0.0
-    for g, node in enumerate(grid):
-        d = (x - node) / np.asarray(bandwidths)
-        k = w * np.exp(-0.5 * np.sum(d * d, axis=1))
-        total = k.sum()
-        if total < 1e-9:
-            out[g], variance[g] = global_mean, global_variance
-            continue
-        design = np.concatenate([np.ones((len(x), 1)), x - node], axis=1)
-        a = design.T @ (design * k[:, None])
-        b = design.T @ (k * y)
-        try:
-            coef = np.linalg.solve(a + 1e-9 * np.eye(len(a)) * total, b)
-        except np.linalg.LinAlgError:
-            coef = np.zeros(len(a))
-            coef[0] = float(np.dot(k, y) / total)
-        weighty = k >= 1e-3 * k.max()
-        coef[0] = np.clip(coef[0], y[weighty].min(), y[weighty].max())
-        line = design @ coef
-        local_variance = max(float(np.dot(k, y2 - 2.0 * y * line + line * line) / total), 0.0)
-        out[g] = (total * coef[0] + PSEUDO_SAMPLES * global_mean) / (total + PSEUDO_SAMPLES)
-        variance[g] = (total * local_variance + PSEUDO_SAMPLES * global_variance) / (total + PSEUDO_SAMPLES)
-    shape = [len(n) for n in nodes]
-    return out.reshape(shape), variance.reshape(shape)
+    shape, dims = tuple(len(n) for n in nodes), len(nodes)
+    if prior is None:
+        total = float(w.sum())
+        global_mean = float(np.dot(w, y)) / total if total > 0 else 0.0
+        global_variance = max(float(np.dot(w, y2)) / total - global_mean**2, 0.0) if total > 0 else 0.0
+        prior = (np.full(shape, global_mean), np.full(shape, global_variance))
+    if len(y) == 0:
+        return prior[0].copy(), prior[1].copy()
+    pairs = [(k, m) for k in range(dims) for m in range(k, dims)]
+    features = [np.ones_like(y), *x.T, *(x[:, k] * x[:, m] for k, m in pairs), y, *(y * x.T), y2]
+    moment = _node_moments(x, np.stack(features) * w, nodes, bandwidths)
+    s0, mx, my, my2 = moment[0], moment[1 : 1 + dims].T, moment[1 + dims + len(pairs)], moment[-1]
+    myx = moment[2 + dims + len(pairs) : -1].T
+    mxx = np.empty((len(s0), dims, dims))
+    for j, (k, m) in enumerate(pairs):
+        mxx[:, k, m] = mxx[:, m, k] = moment[1 + dims + j]
+    # moments about each node g (u = x - g) and the normal equations of the line c0 + c . u
+    g = np.stack(np.meshgrid(*nodes, indexing="ij"), axis=-1).reshape(-1, dims)
+    s1 = mx - g * s0[:, None]
+    s2 = (
+        mxx
+        - g[:, :, None] * mx[:, None, :]
+        - mx[:, :, None] * g[:, None, :]
+        + g[:, :, None] * g[:, None, :] * s0[:, None, None]
+    )
+    syu = myx - g * my[:, None]
+    live = s0 >= 1e-9
+    a = np.empty((len(s0), dims + 1, dims + 1))
+    a[:, 0, 0], a[:, 0, 1:], a[:, 1:, 0], a[:, 1:, 1:] = s0, s1, s1, s2
+    a[~live] = np.eye(dims + 1)
+    a += 1e-9 * np.maximum(s0, 1e-9)[:, None, None] * np.eye(dims + 1)
+    coef = np.linalg.solve(a, np.concatenate([my[:, None], syu], axis=1)[:, :, None])[:, :, 0]
+    c0, c = coef[:, 0], coef[:, 1:]
+    safe = np.where(live, s0, 1.0)
+    scatter = my2 - 2 * (c0 * my + np.sum(c * syu, 1)) + c0 * c0 * s0 + 2 * c0 * np.sum(c * s1, 1)
+    local_variance = np.maximum((scatter + np.einsum("gk,gkl,gl->g", c, s2, c)) / safe, 0.0)
+    centre = mx / safe[:, None]
+    spread = np.sqrt(np.maximum(np.einsum("gkk->gk", mxx) / safe[:, None] - centre**2, 0.0))
+    at = np.clip(g, centre - REACH * spread, centre + REACH * spread)
+    estimate = np.clip(c0 + np.sum(c * (at - g), 1), y.min(), y.max())
+    weight = np.where(live, s0, 0.0)
+    mean = (weight * np.where(live, estimate, 0.0) + PSEUDO_SAMPLES * prior[0].ravel()) / (weight + PSEUDO_SAMPLES)
+    # a scale shrinks multiplicatively: a 1 cm wall beside 6 cm foliage keeps its 1 cm
+    log_local = np.log(np.maximum(np.where(live, local_variance, 1.0), MIN_SIGMA**2))
+    log_prior = np.log(np.maximum(prior[1].ravel(), MIN_SIGMA**2))
+    var = np.exp((weight * log_local + PSEUDO_SAMPLES * log_prior) / (weight + PSEUDO_SAMPLES))
+    return mean.reshape(shape), var.reshape(shape)
 
 
 def fit_p_reg(
@@ -207,6 +251,7 @@ def fit_p_reg(
     z_max: float = 80.0,
     range_nodes: np.ndarray | None = None,
     incidence_nodes: np.ndarray | None = None,
+    n_labels: int = 1,
     progress=None,
 ) -> tuple[PRegDensity, list]:
     """P-Reg: local linear regressions of P_null, mu and sigma; bandwidths chosen by held-out likelihood.
@@ -219,6 +264,9 @@ def fit_p_reg(
         z_max: largest reported range, m.
         range_nodes, incidence_nodes: tabulation nodes (default: every 0.5 m to the farthest
             nominal range, every 5 deg).
+        n_labels: element labels kept apart (labels from ``n_labels - 1`` up share the last group).
+            With more than one, each label's regressions are shrunk to the pooled ones (the prior of
+            :func:`_local_linear`), so a label with few samples keeps the pooled law.
         progress: optional ``progress(done, total)``.
 
     Returns:
@@ -226,36 +274,51 @@ def fit_p_reg(
     """
     met = samples.met
     r, d, hit, e = samples.nominal[met], samples.incidence[met], samples.hit[met], samples.residual[met]
+    group = np.minimum(samples.label[met], n_labels - 1)
     far = float(np.nanmax(r)) if r.size else 10.0
     r_nodes = np.arange(0.0, far + 0.5, 0.5) if range_nodes is None else np.asarray(range_nodes)
     d_nodes = np.arange(0.0, 90.0 + 1e-9, 5.0) if incidence_nodes is None else np.asarray(incidence_nodes)
-    # fine bins keep the regression cheap: per bin, the mean state and the mean of each response
     known = ~np.isnan(d)
     inl = hit & (np.abs(np.nan_to_num(e, nan=np.inf)) <= inlier)
     escape_null = float(np.mean(~samples.hit[~met])) if np.any(~met) else 0.99
     candidates = list(itertools.product(h_ranges, h_incidences))
 
-    def build(h_r: float, h_d: float) -> PRegDensity:
-        shape = (d_nodes.size + 1, r_nodes.size)
-        tables = {k: np.zeros(shape) for k in ("p_null", "mu", "sigma")}
-        for row, mask, x, nodes, bws in (
-            ("known", known, np.stack([d, r], 1), [d_nodes, r_nodes], [h_d, h_r]),
-            ("unknown", ~known if np.any(~known) else known, r[:, None], [r_nodes], [h_r]),
+    def regress(chosen: np.ndarray, h_r: float, h_d: float, prior: dict | None) -> dict[str, np.ndarray]:
+        """P_null, mu and sigma^2 tables (rows: incidence nodes, then unknown) of the ``chosen`` samples."""
+        tables = {k: np.zeros((d_nodes.size + 1, r_nodes.size)) for k in ("p_null", "mu", "variance")}
+        unknown = chosen & ~known
+        if prior is None and not unknown.any():
+            unknown = chosen  # no sample of unknown incidence: that row regresses on range over all
+        for rows, mask, x, nodes, bws in (
+            (slice(0, d_nodes.size), chosen & known, np.stack([d, r], 1), [d_nodes, r_nodes], [h_d, h_r]),
+            (slice(d_nodes.size, None), unknown, r[:, None], [r_nodes], [h_r]),
         ):
+            shape = tuple(len(n) for n in nodes)
+            p_null_prior, mu_prior = None, None
+            if prior is not None:
+                p_null_prior = (prior["p_null"][rows].reshape(shape), np.zeros(shape))
+                mu_prior = (prior["mu"][rows].reshape(shape), prior["variance"][rows].reshape(shape))
+            # fine bins keep the regression cheap: per bin, the mean state and the mean of each response
             xm, missed, counts, _ = _binned(x[mask], (~hit[mask]).astype(float), nodes)
-            p_null, _ = _local_linear(xm, missed, counts, nodes, bws)
+            p_null, _ = _local_linear(xm, missed, counts, nodes, bws, prior=p_null_prior)
             xm, em, counts, e2m = _binned(x[mask & inl], e[mask & inl], nodes)
-            mu, variance = _local_linear(xm, em, counts, nodes, bws, y2=e2m)
-            sigma = np.sqrt(np.maximum(variance, MIN_SIGMA**2))
-            target = slice(0, d_nodes.size) if row == "known" else slice(d_nodes.size, d_nodes.size + 1)
-            for name, values in (("p_null", p_null), ("mu", mu), ("sigma", sigma)):
-                tables[name][target] = values.reshape(-1, r_nodes.size)
+            mu, variance = _local_linear(xm, em, counts, nodes, bws, y2=e2m, prior=mu_prior)
+            for name, values in (("p_null", p_null), ("mu", mu), ("variance", variance)):
+                tables[name][rows] = values.reshape(-1, r_nodes.size)
+        return tables
+
+    def build(h_r: float, h_d: float) -> PRegDensity:
+        everything = np.ones(r.size, bool)
+        pooled = regress(everything, h_r, h_d, None)
+        parts = [regress(group == label, h_r, h_d, pooled) for label in range(n_labels)] if n_labels > 1 else [pooled]
+        tables = {k: np.stack([part[k] for part in parts]) if n_labels > 1 else pooled[k] for k in pooled}
         return PRegDensity(
             range_nodes=r_nodes,
             incidence_nodes=d_nodes,
             p_null=np.clip(tables["p_null"], 0, 1),
             mu=tables["mu"],
-            sigma=tables["sigma"],
+            sigma=np.sqrt(np.maximum(tables["variance"], MIN_SIGMA**2)),
+            grid=StateGrid(n_labels=n_labels),
             z_max=z_max,
             escape_null=escape_null,
         )
