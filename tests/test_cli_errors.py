@@ -76,6 +76,16 @@ CASES = {
         {},
         ["density 'physics': k=['1', 'x'] is not a number"],
     ),
+    "log given as an annotation": (  # was the 'utf-8' codec's words
+        ["compose", "{log}", "--library", "{tmp}", "--out", "{tmp}/x.xml"],
+        {},
+        ["room.npz: a binary file, not an annotation", "`mi-lidar annotate LOG.npz --out annotation.json`"],
+    ),
+    "annotate a log without instances": (  # the advice was a Python function
+        ["annotate", "{log}", "--out", "{tmp}/a.json"],
+        {},
+        ["room.npz: the log has no per-ray instance", "`mi-lidar synth-world --out train.npz`"],
+    ),
     "narrow synthetic world": (["synth-world", "--out", "{tmp}/w.npz", "--width", "5"], {}, ["--width", "'5'", "20"]),
     "read-only output folder": (["render", ROOM, "--out", "{read_only}"], {}, ["{read_only}", "folder"]),
     "output folder is a file": (  # was '[Errno 17] File exists: ...'

@@ -71,8 +71,9 @@ def _require_labels(log: Log, path) -> None:
     missing = [k for k in ("label", "instance") if k not in log.attributes]
     if missing:
         raise LogFormatError(
-            f"{path}: the log has no {missing} attributes; primitives and annotations need a "
-            "labelled log (e.g. a synthetic log from mi_lidar.hybrid.true_sensor.render_log)"
+            f"{path}: the log has no per-ray {' and '.join(missing)}; primitives and annotations need a labelled log "
+            "(a ground-truth label and instance per ray), e.g. `mi-lidar synth-world --out train.npz` (from Python: "
+            "mi_lidar.hybrid.true_sensor.render_log)"
         )
 
 

@@ -150,7 +150,13 @@ def read_annotation(path) -> AnnotationFile:
         raise SceneError(f"{path}: no such annotation file")
     try:
         doc = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError:
+        raise SceneError(
+            f"{path}: a binary file, not an annotation: an annotation is a JSON text file (class, pose and box per "
+            "object), e.g. from `mi-lidar annotate LOG.npz --out annotation.json`; see docs/hybrid_scenes.md "
+            "(Annotation files)"
+        ) from None
+    except OSError as exc:
         raise SceneError(f"{path}: cannot read the annotation: {exc}") from None
     except json.JSONDecodeError as exc:
         raise SceneError(
