@@ -91,6 +91,26 @@ class FitOptions:
     smoothing_final: float = 0.01
 
 
+def no_gain_warnings(initial_nll: float, counting_nll: float, fitted_nll: float) -> list[str]:
+    """A warning when the fitted model scores the held-out rays worse than the initial one (nats per ray).
+
+    It happens when the initial values already explain the log and the training rays pull the fit off
+    them (a log simulated from the scene itself, a parameter the log says little about); the counting
+    start can add to it by starting from noisy per-element estimates.
+    """
+    if not fitted_nll > initial_nll:
+        return []
+    start = (
+        f"; the fit started from the counting estimate, which scored {counting_nll:.5f} (try --no-counting-start)"
+        if counting_nll > initial_nll
+        else ""
+    )
+    return [
+        f"the fitted values score the held-out rays worse than the initial ones ({fitted_nll:.5f} against "
+        f"{initial_nll:.5f} nats/ray): the initial values explain this log at least as well{start}"
+    ]
+
+
 @dataclass
 class FitResult:
     """What a calibration run produced.
@@ -440,5 +460,6 @@ class Calibration:
             table=table,
             model=model,
             samples=samples,
-            warnings=scene_warnings(on_surface, self.rays.hit[self.held_out]),
+            warnings=scene_warnings(on_surface, self.rays.hit[self.held_out])
+            + no_gain_warnings(initial_nll, counting_nll, result.best_loss),
         )
