@@ -86,6 +86,16 @@ CASES = {
         {},
         ["room.npz: the log has no per-ray instance", "`mi-lidar synth-world --out train.npz`"],
     ),
+    "compare's arguments swapped": (  # was 'unknown extension '.xml''
+        ["compare", ROOM, "{log}", "--out", "{tmp}/c"],
+        {},
+        ["indoor_planar.xml is a scene XML: the first argument is the log, the second the scene"],
+    ),
+    "diagnose's arguments swapped": (
+        ["diagnose", ROOM, "{log}", "--out", "{tmp}/d"],
+        {},
+        ["the first argument is the log", "`mi-lidar diagnose LOG SCENE.xml ...`"],
+    ),
     "narrow synthetic world": (["synth-world", "--out", "{tmp}/w.npz", "--width", "5"], {}, ["--width", "'5'", "20"]),
     "read-only output folder": (["render", ROOM, "--out", "{read_only}"], {}, ["{read_only}", "folder"]),
     "output folder is a file": (  # was '[Errno 17] File exists: ...'

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+from pathlib import Path
 
 import typer
 from rich.console import Console
@@ -123,6 +124,21 @@ def density_option():
         help="Return density to use instead of the scene's, e.g. `np_reg(file=sensor.npz)` from `fit-sensor`, "
         "or `physics(k=1e-4)`.",
     )
+
+
+def log_argument():
+    """The LOG argument of the verbs that take ``LOG SCENE`` (``compare``, ``diagnose``): a scene XML given first
+    is refused saying which argument is which (the reader only knew the extension '.xml' was not a log's)."""
+
+    def not_a_scene(ctx: typer.Context, log: Path) -> Path:
+        if log.suffix.lower() == ".xml":
+            raise typer.BadParameter(
+                f"{log} is a scene XML: the first argument is the log, the second the scene "
+                f"(`{ctx.command_path} LOG SCENE.xml ...`)"
+            )
+        return log
+
+    return typer.Argument(..., help="Measured log (any format `convert` reads).", exists=True, callback=not_a_scene)
 
 
 def carmen_log_argument():

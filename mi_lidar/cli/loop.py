@@ -6,13 +6,13 @@ from pathlib import Path
 
 import typer
 
-from mi_lidar.cli.app import MAX_STEPS, app, console, density_option, warn
+from mi_lidar.cli.app import MAX_STEPS, app, console, density_option, log_argument, warn
 from mi_lidar.cli.progress import progress
 
 
 @app.command("compare", rich_help_panel="The loop")
 def compare_command(
-    log: Path = typer.Argument(..., help="Measured log (any format `convert` reads).", exists=True),
+    log: Path = log_argument(),
     scene: Path = typer.Argument(
         ...,
         help="Scene XML of the model (its sensor and integrator settings and effects).",
@@ -57,7 +57,7 @@ def compare_command(
 
 @app.command("diagnose", rich_help_panel="The loop")
 def diagnose_command(
-    log: Path = typer.Argument(..., help="Measured log (any format `convert` reads).", exists=True),
+    log: Path = log_argument(),
     scene: Path = typer.Argument(..., help="Scene XML of the current model.", exists=True, dir_okay=False),
     out: Path = typer.Option(..., "--out", "-o", help="Report folder."),
     as_json: bool = typer.Option(False, "--json", help="Print the ranking as JSON (for scripts)."),
