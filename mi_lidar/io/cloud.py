@@ -101,7 +101,8 @@ def log_from_points(
 
     Args:
         points: (N, 3) points (m) in the sensor frame.
-        attributes: Name -> (N,) per-point values, copied into the grid (0 where no point).
+        attributes: Name -> (N,) per-point values, copied into the grid (0 where no point); a
+            ``valid`` attribute (a cloud written from a log) marks its False points invalid as well.
         ring: Optional (N,) ring ids (non-negative integers).
         column: Optional (N,) column indices within each ring (needs ``ring``).
         times: Optional (N,) absolute point times (s); grid cells without a point get the
@@ -170,7 +171,7 @@ def log_from_points(
     if ring is not None:
         ring_grid = np.broadcast_to(np.arange(height, dtype=np.uint16)[:, None], (height, width))
         grid_attributes["ring"] = ring_grid.copy()
-    grid_attributes["valid"] = valid
+    grid_attributes["valid"] = valid & grid_attributes["valid"].astype(bool) if "valid" in grid_attributes else valid
     if flip:
         ranges, hit, directions, cell_times = ranges[::-1], hit[::-1], directions[::-1], cell_times[::-1]
         grid_attributes = {k: v[::-1] for k, v in grid_attributes.items()}

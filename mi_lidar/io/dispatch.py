@@ -15,8 +15,8 @@ extension                              read                 write
 ``.pcd``                               PCD                  PCD (organized H x W, NaN misses)
 ``.las``, ``.laz``                     LAS                  LAS 1.4 (hits, extra dims)
 ``.bag``; ROS 2 bag folder             ROS 1/2 bag          ROS 2 bag folder (``fmt="rosbag2"``, all
-(``metadata.yaml``), ``.db3``,                              scans, organized PointCloud2)
-``.mcap``
+(``metadata.yaml``), ``.db3``,                              scans, organized PointCloud2 with a
+``.mcap``                                                   field per attribute, poses on ``/tf``)
 ``.exr``                               EXR range image      EXR range image (float32 channels)
 ``.png``                               -                    range-image preview
 =====================================  ===================  =========================================

@@ -4,15 +4,20 @@ via the ``rosbags`` package.
 Reading: every message of one PointCloud2 topic becomes a scan (``times`` = header stamp + the
 ``time``/``t`` field when present). Organized clouds (``height > 1``) keep their grid; otherwise a
 ``ring`` field builds one (see :mod:`mi_lidar.io.cloud`). Scans of different sizes are padded with
-invalid cells (``attributes['valid']`` False).
+invalid cells (``attributes['valid']`` False). Fields beyond the standard ones become attributes.
+A scan's pose is its cloud's ``frame_id`` resolved through ``/tf_static`` and ``/tf`` (the latest
+transform at or before the cloud's stamp) up to the root frame; identity when the bag has none.
 
 Writing: a ROS 2 bag (sqlite3 storage, Humble message definitions) with one organized ``H x W``
 PointCloud2 per scan on ``topic``: fields ``x y z intensity`` (FLOAT32), ``ring`` (UINT16, 0 =
-lowest beam), ``column`` (UINT32) and ``time`` (FLOAT32, s since the scan's first ray), misses
+lowest beam), ``column`` (UINT32) and ``time`` (FLOAT32, s since the scan's first ray), then one
+field per other attribute of the log (``label``, ``element_id``, ``valid``...: its own type;
+booleans as UINT8, 64-bit integers as INT32/UINT32 when they fit, else FLOAT64), misses
 as NaN points with ``is_dense`` False, which RViz and Open3D accept. Poses go on ``/tf``: one
 ``tf2_msgs/TFMessage`` per scan at the scan's stamp with ``world_frame -> base_frame`` = the scan's
 sensor-to-world pose, and ``/tf_static`` holds the identity ``base_frame -> frame_id`` (the log's
-poses are the sensor's own), so RViz with fixed frame ``map`` places every scan.
+poses are the sensor's own), so RViz with fixed frame ``map`` places every scan, and
+:func:`read_rosbag_log` reads them back. The log's sensor metadata is not carried.
 """
 
 from __future__ import annotations
@@ -26,12 +31,14 @@ import numpy as np
 
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
-from mi_lidar.io.cloud import cloud_from_log, log_from_fields, stack_scans
+from mi_lidar.io.cloud import STANDARD_FIELDS, cloud_from_log, log_from_fields, stack_scans
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 _WRITE_FIELDS = (("x", 7), ("y", 7), ("z", 7), ("intensity", 7), ("ring", 4), ("column", 6), ("time", 7))
+_FIELD_TYPES = {np.dtype(code): datatype for datatype, code in _DATATYPES.items()}
+MAX_TF_DEPTH = 16  # frames walked from a cloud's frame_id towards the root of the tf tree
 
 
 def _typestore():
@@ -90,9 +97,10 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
         path = path.parent
     if not path.exists():
         raise LogFormatError(f"{path}: no such ROS bag")
-    logs = []
+    logs, poses = [], []
     try:
         with AnyReader([path], default_typestore=_typestore()) as reader:
+            tree = _read_tf(reader)
             clouds = sorted({c.topic for c in reader.connections if c.msgtype == POINTCLOUD2})
             if topic is None and len(clouds) != 1:
                 raise LogFormatError(f"{path}: PointCloud2 topics {clouds}; pass topic= to choose exactly one")
@@ -110,6 +118,9 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
                     rows, cols = np.indices((height, width))
                     fields.update(ring=(height - 1 - rows).ravel(), column=cols.ravel())
                 stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+                poses.append(
+                    _frame_pose(tree, msg.header.frame_id, msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
+                )
                 logs.append(
                     log_from_fields(
                         fields,
@@ -124,7 +135,58 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
         raise LogFormatError(f"{path}: not a readable ROS bag ({type(exc).__name__}: {exc})") from exc
     if not logs:
         raise LogFormatError(f"{path}: topic {chosen!r} has no messages")
-    return stack_scans(logs)
+    log = stack_scans(logs)
+    log.poses = np.stack(poses)
+    return log
+
+
+def _matrix(transform) -> np.ndarray:
+    """The (4, 4) matrix of a ``geometry_msgs/Transform``."""
+    from scipy.spatial.transform import Rotation
+
+    q, v = transform.rotation, transform.translation
+    matrix = np.eye(4)
+    matrix[:3, :3] = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+    matrix[:3, 3] = v.x, v.y, v.z
+    return matrix
+
+
+def _read_tf(reader) -> dict[str, list[tuple[int, str, np.ndarray]]]:
+    """Every transform of ``/tf`` and ``/tf_static``: child frame -> ``(stamp ns, parent, (4, 4))`` by stamp.
+
+    A static transform holds at every time (stamp -1).
+    """
+    tree: dict[str, list[tuple[int, str, np.ndarray]]] = {}
+    connections = [c for c in reader.connections if c.topic in ("/tf", "/tf_static") and c.msgtype == TF_MESSAGE]
+    if not connections:
+        return tree  # (an empty list would read every message)
+    for connection, _, raw in reader.messages(connections=connections):
+        static = connection.topic == "/tf_static"
+        for stamped in reader.deserialize(raw, connection.msgtype).transforms:
+            stamp = -1 if static else stamped.header.stamp.sec * 10**9 + stamped.header.stamp.nanosec
+            tree.setdefault(stamped.child_frame_id, []).append(
+                (stamp, stamped.header.frame_id, _matrix(stamped.transform))
+            )
+    for entries in tree.values():
+        entries.sort(key=lambda entry: entry[0])
+    return tree
+
+
+def _frame_pose(tree: dict, frame: str, stamp: int) -> np.ndarray:
+    """The (4, 4) pose of ``frame`` in the root frame of ``tree`` at ``stamp`` (ns); identity without transforms.
+
+    Each step up the tree takes the latest transform at or before ``stamp`` (the earliest when all
+    are later).
+    """
+    pose = np.eye(4)
+    for _ in range(MAX_TF_DEPTH):
+        entries = tree.get(frame)
+        if not entries:
+            break
+        before = [entry for entry in entries if entry[0] <= stamp]
+        _, frame, matrix = before[-1] if before else entries[0]
+        pose = matrix @ pose
+    return pose
 
 
 def _latched_qos() -> list:
@@ -161,6 +223,23 @@ def _tf_message(types, stamp, parent: str, child: str, pose: np.ndarray):
     return types[TF_MESSAGE](transforms=[stamped])
 
 
+def _attribute_fields(log: Log) -> list[tuple[str, int]]:
+    """``(name, PointField datatype)`` of the log's attributes beyond the standard fields."""
+    fields = []
+    for name, values in sorted(log.attributes.items()):
+        if name in STANDARD_FIELDS:
+            continue
+        dtype = np.dtype(values.dtype)
+        if dtype.kind == "b":
+            dtype = np.dtype("u1")
+        elif dtype.kind in "iu" and dtype.itemsize == 8:
+            small = np.dtype(dtype.kind + "4")
+            fits = values.size == 0 or (np.iinfo(small).min <= values.min() and values.max() <= np.iinfo(small).max)
+            dtype = small if fits else np.dtype("f8")
+        fields.append((name, _FIELD_TYPES.get(dtype, 8)))  # another type (float16...) as FLOAT64
+    return fields
+
+
 def write_rosbag_log(
     log: Log,
     path: str | os.PathLike,
@@ -187,13 +266,14 @@ def write_rosbag_log(
     types = store.types
     point_field = types["sensor_msgs/msg/PointField"]
     layout, offset = [], 0
-    for name, datatype in _WRITE_FIELDS:
+    fields = [*_WRITE_FIELDS, *_attribute_fields(log)]
+    for name, datatype in fields:
         layout.append(point_field(name=name, offset=offset, datatype=datatype, count=1))
         offset += np.dtype(_DATATYPES[datatype]).itemsize
     record = np.dtype(
         {
-            "names": [n for n, _ in _WRITE_FIELDS],
-            "formats": ["<" + _DATATYPES[d] for _, d in _WRITE_FIELDS],
+            "names": [n for n, _ in fields],
+            "formats": ["<" + _DATATYPES[d] for _, d in fields],
             "offsets": [f.offset for f in layout],
             "itemsize": offset,
         }
@@ -210,6 +290,7 @@ def write_rosbag_log(
             )
             for index in range(log.n_scans):
                 cloud = cloud_from_log(log, index, organized=True)
+                cloud.update({name: log.attributes[name][index].ravel() for name, _ in fields[len(_WRITE_FIELDS) :]})
                 table = np.empty(height * width, dtype=record)
                 for name in record.names:
                     table[name] = cloud[name]

@@ -166,6 +166,39 @@ def test_rosbag_carries_the_poses_on_tf(tmp_path):
     assert mount.transform.rotation.w == 1.0
 
 
+def test_rosbag_round_trip_keeps_poses_and_attributes(tmp_path):
+    """Our reader gives back what the bag carries: poses (from /tf), every attribute, invalid cells.
+
+    It dropped both: read back, a scan 2 m along x was placed at the origin, and label, element_id... were gone.
+    """
+    from scipy.spatial.transform import Rotation
+
+    log = synthetic_log(scans=3)
+    log.poses[:, :3, :3] = Rotation.from_euler("z", [[0.0], [0.4], [-1.1]]).as_matrix()
+    log.poses[:, :3, 3] = [[0, 0, 2], [2, 0, 2], [4, 1, 2.5]]
+    rng = np.random.default_rng(3)
+    log.attributes["label"] = rng.integers(0, 7, log.shape).astype(np.int32)
+    log.attributes["element_id"] = rng.integers(-1, 2**40, log.shape)  # int64 beyond int32: FLOAT64 on the wire
+    log.attributes["cos_incidence"] = rng.random(log.shape).astype(np.float32)
+    log.attributes["valid"] = rng.random(log.shape) > 0.1
+    back = read_rosbag_log(write_any(log, tmp_path / "bag"))
+    np.testing.assert_allclose(back.poses, log.poses, atol=1e-12)
+    np.testing.assert_allclose(back.points_world()[log.hit], log.points_world()[log.hit], atol=1e-4)
+    for name in ("label", "element_id", "cos_incidence", "intensity", "valid"):
+        np.testing.assert_array_equal(back.attributes[name], log.attributes[name], err_msg=name)
+    assert back.attributes["label"].dtype == np.int32 and back.attributes["valid"].dtype == bool
+
+
+def test_rosbag_poses_resolve_a_tf_chain_at_the_cloud_stamp(tmp_path):
+    from mi_lidar.io.rosbag import _frame_pose
+
+    shift = lambda x: np.array([[1, 0, 0, x], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+    tree = {"base": [(10, "odom", shift(1.0)), (20, "odom", shift(2.0))], "lidar": [(-1, "base", shift(0.5))]}
+    assert _frame_pose(tree, "lidar", 15)[0, 3] == 1.5  # the latest transform at or before the stamp
+    assert _frame_pose(tree, "lidar", 25)[0, 3] == 2.5 and _frame_pose(tree, "lidar", 5)[0, 3] == 1.5
+    np.testing.assert_array_equal(_frame_pose(tree, "camera", 15), np.eye(4))  # no transform: identity
+
+
 def test_open3d_reads_our_point_clouds(tmp_path):
     o3d = pytest.importorskip("open3d")
     log = synthetic_log()
