@@ -16,6 +16,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import textwrap
 from pathlib import Path
 
 import matplotlib
@@ -163,8 +164,9 @@ def path_figure(result: AppResult, path: Path) -> Path:
         axis.axhspan(best, best + WITHIN * abs(best), color="tab:blue", alpha=0.1)
         axis.set_title(f"developed on {name}", fontsize=9)
         axis.set_xlabel("development step")
+        axis.set_xlim(-0.4, max(len(sim) - 1, 1) + 0.4)  # a path of one step: integer ticks, not +-0.05
         axis.xaxis.set_major_locator(MaxNLocator(integer=True))
-    axes[0][0].set_ylabel(result.objective, fontsize=8)
+    axes[0][0].set_ylabel(textwrap.fill(result.objective, 45), fontsize=8)
     axes[0][-1].legend(fontsize=7)
     return _save(figure, path)
 

@@ -43,3 +43,21 @@ def test_the_legend_quotes_the_standard_error_it_is_given(monkeypatch, tmp_path)
     """The 3D report's table gives a bootstrap over the starts: its figure must quote the same."""
     labels = legend_of(monkeypatch, tmp_path, risk_se={"gaussian": 0.02, "mi-lidar": 0.014})
     assert labels == ["gaussian (risk 0.667 ± 0.02)", "mi-lidar (risk 0.133 ± 0.014)"]
+
+
+def test_a_path_of_one_step_has_integer_ticks_and_a_whole_y_label(monkeypatch, tmp_path):
+    """Developed on a simulator whose first step was its last: one point (its ticks were -0.04 ... 0.04)."""
+    r = result()
+    r.objective = "pose error over the starts: translation (m) + 10 m x rotation (rad), mean over the frames"
+    r.paths = {"real": [{}], "mi-lidar": [{}, {}, {}]}
+    r.path_J = {"real": ([0.01], [0.01]), "mi-lidar": ([0.03, 0.02, 0.015], [0.01, 0.012, 0.011])}
+    saved = {}
+    monkeypatch.setattr(report, "_save", lambda figure, path: saved.setdefault("figure", figure) and path)
+    report.path_figure(r, tmp_path / "paths.png")
+    figure = saved["figure"]
+    figure.canvas.draw()
+    single = figure.axes[0]
+    ticks = [t for t in single.get_xticks() if single.get_xlim()[0] <= t <= single.get_xlim()[1]]
+    assert ticks == [0.0, 1.0], ticks
+    label = single.yaxis.label.get_window_extent()
+    assert label.height <= figure.bbox.height, "the y label runs off the figure"
