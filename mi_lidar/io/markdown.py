@@ -36,9 +36,11 @@ def markdown_to_html(md: str, title: str) -> str:
         if line.startswith("#"):
             level = len(line) - len(line.lstrip("#"))
             body.append(f"<h{level}>{html.escape(line.lstrip('#').strip())}</h{level}>")
-        elif line.startswith("!["):
-            src = line[line.index("(") + 1 : line.rindex(")")]
-            body.append(f'<p><img src="{html.escape(src)}" style="max-width:100%"></p>')
+        elif line.startswith("![") and "](" in line and line.rstrip().endswith(")"):
+            # the alt text may hold brackets and parentheses (an effect's name and options): the link
+            # is what follows the last "](" up to the closing parenthesis
+            alt, src = line.rstrip()[2:-1].rsplit("](", 1)
+            body.append(f'<p><img src="{html.escape(src)}" alt="{html.escape(alt)}" style="max-width:100%"></p>')
         elif line.strip():
             text = html.escape(line)
             parts = text.split("**")

@@ -14,3 +14,13 @@ def test_pipes_in_headers_and_cells_are_escaped():
     page = markdown_to_html(md, "t")
     assert "<th>mean |range error| (m)</th>" in page and "<td>label a|b</td>" in page
     assert page.count("<td>") == 4
+
+
+def test_an_image_whose_alt_text_names_an_effect_with_options_keeps_its_link():
+    """diagnosis.html showed `<img src="law=cos)](before_after_1.png">`: the link was read from the first '('."""
+    md = "![before and after incidence_dropout(law=cos), range_bias(bias=[0.1])](before_after_1.png)"
+    page = markdown_to_html(md, "t")
+    assert (
+        '<img src="before_after_1.png" alt="before and after incidence_dropout(law=cos), range_bias(bias=[0.1])"'
+        in page
+    )
