@@ -96,6 +96,11 @@ CASES = {
         {},
         ["the first argument is the log", "`mi-lidar diagnose LOG SCENE.xml ...`"],
     ),
+    "fit-sensor's arguments swapped": (
+        ["fit-sensor", ROOM, "{log}", "--out", "{tmp}/m.npz"],
+        {},
+        ["the first argument is the log", "`mi-lidar fit-sensor LOG SCENE.xml ...`"],
+    ),
     "narrow synthetic world": (["synth-world", "--out", "{tmp}/w.npz", "--width", "5"], {}, ["--width", "'5'", "20"]),
     "read-only output folder": (["render", ROOM, "--out", "{read_only}"], {}, ["{read_only}", "folder"]),
     "output folder is a file": (  # was '[Errno 17] File exists: ...'

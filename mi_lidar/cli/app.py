@@ -127,8 +127,8 @@ def density_option():
 
 
 def log_argument():
-    """The LOG argument of the verbs that take ``LOG SCENE`` (``compare``, ``diagnose``): a scene XML given first
-    is refused saying which argument is which (the reader only knew the extension '.xml' was not a log's)."""
+    """The LOG argument of the verbs that take ``LOG SCENE`` (``compare``, ``diagnose``, ``fit-sensor``): a scene
+    XML given first is refused saying which argument is which (the reader only knew '.xml' was not a log's)."""
 
     def not_a_scene(ctx: typer.Context, log: Path) -> Path:
         if log.suffix.lower() == ".xml":

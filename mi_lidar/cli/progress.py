@@ -22,6 +22,11 @@ PLAIN_EVERY_S = 10.0
 console = Console(stderr=True)  # progress, never results: stdout stays for what a verb prints as its result
 
 
+def note(message: str) -> None:
+    """Print one progress message (a step done, a count traced) where progress goes: stderr, as written."""
+    console.print(message, highlight=False, markup=False, soft_wrap=True)
+
+
 @contextlib.contextmanager
 def progress(label: str, total: int | None = None) -> Iterator[Callable[..., None]]:
     """Yield ``update(done, total=None, label=None)`` that reports progress of a long verb.

@@ -6,14 +6,14 @@ from pathlib import Path
 
 import typer
 
-from mi_lidar.cli.app import MAX_STEPS, app, console, warn
-from mi_lidar.cli.progress import progress
+from mi_lidar.cli.app import MAX_STEPS, app, console, log_argument, warn
+from mi_lidar.cli.progress import note, progress
 from mi_lidar.cli.tables import figure, figure_table
 
 
 @app.command("fit-sensor", rich_help_panel="The loop")
 def fit_sensor_command(
-    log: Path = typer.Argument(..., help="Measured log (any format `convert` reads).", exists=True),
+    log: Path = log_argument(),
     scene: Path = typer.Argument(..., help="Scene XML the log was recorded in.", exists=True, dir_okay=False),
     model: str = typer.Option("np-reg", "--model", "-m", help="Family: np-reg, p-reg, beam or physics."),
     out: Path = typer.Option(..., "--out", "-o", help="Output density file (`.npz`)."),
@@ -49,7 +49,7 @@ def fit_sensor_command(
             steps=steps,
             seed=seed,
             pool_labels=pool_labels,
-            progress=console.log,
+            progress=note,
             force=force,
         )
         path = save_sensor(result, out)

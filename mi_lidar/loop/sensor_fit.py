@@ -33,6 +33,7 @@ from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.log import Log
 from mi_lidar.core.metrics import metrics_of
+from mi_lidar.core.params import catalog_name
 from mi_lidar.core.problem import Problem, fit_parts
 from mi_lidar.core.rays import LogRays
 from mi_lidar.core.sensor_model import SensorModel
@@ -132,6 +133,7 @@ def fit_sensor(
     from mi_lidar.scene.loading import load_scene, scene_sensor_model
     from mi_lidar.scene.sensor_check import check_log_sensor, scene_warnings
 
+    family = next((f for f in FAMILIES if catalog_name(f) == catalog_name(family)), family)  # np_reg or np-reg
     if family not in FAMILIES:
         raise ParameterError(f"fit-sensor: unknown model {family!r}; choose one of {', '.join(FAMILIES)}")
     say = progress or (lambda message: None)
