@@ -26,12 +26,13 @@ if __name__ == "__main__":
     out = Path(sys.argv[1] if len(sys.argv) > 1 else "reports/intensity_real")
     ouster = read_any(DATA / "ouster" / "OS-1-32-G_v2.1.1_1024x10.pcap")
     velodyne = read_any(DATA / "velodyne" / "velodyne_vlp16.pcap")
-    full = velodyne.scan(int(np.argmax(velodyne.hit.sum(axis=(1, 2)))))  # the capture's one full revolution
+    # the capture's longest scan: 1,464 columns, about 0.81 of a revolution (no scan of it is whole)
+    longest = velodyne.scan(int(np.argmax(velodyne.hit.sum(axis=(1, 2)))))
     scores = []
     for log, attribute, law in (
         (ouster, "reflectivity", "reflectivity"),
         (ouster, "signal", "signal"),
-        (full, "intensity", "reflectivity"),
+        (longest, "intensity", "reflectivity"),
     ):
         with console.status(f"calibrating {log.sensor['name']} {attribute}"):
             scores.append(intensity_experiment(log, attribute, law))
