@@ -96,6 +96,13 @@ def warn(messages: list[str]) -> None:
         console.print(f"warning: {message}", highlight=False, markup=False)
 
 
+def say(text: str) -> None:
+    """Print a verdict written in the reports' Markdown: ``**name**`` in bold on a terminal (plain in a log),
+    everything else as written (never read as rich markup)."""
+    parts = escape(text).split("**")
+    console.print("".join(f"[bold]{p}[/bold]" if i % 2 else p for i, p in enumerate(parts)), highlight=False)
+
+
 def fail(message: str) -> None:
     """Print ``error: <message>`` on one line and exit with code 2."""
     console.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True, highlight=False, markup=True)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from mi_lidar.cli.app import MAX_STEPS, app, console, density_option, log_argument, warn
+from mi_lidar.cli.app import MAX_STEPS, app, console, density_option, log_argument, say, warn
 from mi_lidar.cli.progress import progress
 
 
@@ -112,5 +112,5 @@ def diagnose_command(
     if as_json:
         typer.echo(json.dumps(result.ranking(), indent=1, default=float))
     else:
-        console.print(result.summary)
+        say(result.summary)
         console.print(f"report: {out / 'diagnosis.html'}; the scene with the model's effects: {found}")

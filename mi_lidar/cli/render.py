@@ -9,7 +9,7 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from mi_lidar.cli.app import app, console, density_option
+from mi_lidar.cli.app import app, console, density_option, say
 from mi_lidar.cli.progress import progress
 from mi_lidar.core.errors import MiLidarError, ParameterError
 
@@ -324,4 +324,4 @@ def demo(
 
     render(bundled_scene("offroad.xml"), out, seed=seed, pattern=None, density=None)
     console.rule("The loop: a log with a hidden effect, its diagnosis, the error before and after")
-    run_demo(out=out / "loop", echo=console.print)
+    run_demo(out=out / "loop", echo=say)

@@ -65,8 +65,8 @@ def run_demo(
     echo("Ranking (held-out NLL gain per ray, k added parameters, BIC change):")
     for i, c in enumerate(d.rounds[0]):
         echo(
-            f"  {i + 1}. {c.name:28s} gain {c.test_gain:+8.4f}  k={c.k:<3d} dBIC {c.delta_bic:+10.1f}  "
-            f"{'significant' if c.significant else '-'}"
+            f"  {i + 1}. {c.name:26s} gain {c.test_gain:+7.4f}  k={c.k:<2d} dBIC {c.delta_bic:+8.1f}  "
+            f"{'significant' if c.significant else '-'}"  # 77 columns for names up to 26 characters
         )
     echo(d.summary)
     after = compare(log, scene, d.model, out=None if out is None else out / "after", title="After: the diagnosed model")

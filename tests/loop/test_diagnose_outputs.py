@@ -112,3 +112,15 @@ def test_diagnose_json_on_stdout_parses_with_the_progress_on_stderr(tmp_path, mo
     assert result.exit_code == 0, result.output
     assert [row["name"] for row in json.loads(result.stdout)] == ["range_bias"]
     assert "diagnose: done (" in result.stderr
+
+
+def test_diagnose_prints_its_verdict_without_markdown_asterisks(tmp_path):
+    """The verdict is written in the reports' Markdown (``**range_bias**``): the terminal shows the name (bold on a
+    terminal, plain in a log), not the asterisks."""
+    scene, model, poses = room(2)
+    log, _ = hidden_log(scene, model, poses, "range_bias(bias=0.05)")
+    log.save(tmp_path / "room.npz")
+    arguments = ["diagnose", tmp_path / "room.npz", SCENES / "indoor_planar.xml", "--out", tmp_path / "d"]
+    result = invoke_at_80([*arguments, "--candidate", "range_bias"])
+    assert result.exit_code == 0, result.output
+    assert "The model is missing range_bias" in " ".join(result.stdout.split()) and "**" not in result.stdout
