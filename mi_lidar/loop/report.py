@@ -153,6 +153,8 @@ def plot_residual_image(t, shape: tuple, path: Path) -> Path:
     simulated = image(np.where(t.sim_hit[m], t.sim_range[m], np.nan))
     res = image(np.where(t.hit[m], t.measured[m] - t.nominal[m], np.nan))
     nll = image(-t.ll[m])
+    if w == 1:  # a planar scan (N beams x 1 firing): curves over the beams, not images one pixel wide
+        return _plot_beam_curves(scan, measured[:, 0], simulated[:, 0], res[:, 0], nll[:, 0], path)
     lim = max(float(np.nanpercentile(np.abs(res), 95)), 1e-3) if np.isfinite(res).any() else 1
     both = np.concatenate([measured[np.isfinite(measured)], simulated[np.isfinite(simulated)]])
     scale = dict(vmin=float(np.percentile(both, 1)), vmax=float(np.percentile(both, 99))) if both.size else {}
@@ -175,6 +177,32 @@ def plot_residual_image(t, shape: tuple, path: Path) -> Path:
         ax.set_xlabel("firing (column)")
         ax.set_ylabel("beam" if h > 1 else "")
     axes[0].set_title(f"scan {scan}: measured and simulated (one draw) range images, residual, NLL (black: no return)")
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def _plot_beam_curves(
+    scan: int, measured: np.ndarray, simulated: np.ndarray, res: np.ndarray, nll: np.ndarray, path: Path
+) -> Path:
+    """:func:`plot_residual_image` of a scan of one firing: (beams,) ranges (m; NaN: no return), residual
+    (m) and NLL (nats) drawn against the beam index, no-returns marked at the bottom of the range panel."""
+    beams = np.arange(len(measured))
+    fig, axes = plt.subplots(3, 1, figsize=(13, 7), sharex=True)
+    top, middle, bottom = axes
+    top.plot(beams, measured, ".", ms=3, color="black", label="measured")
+    top.plot(beams, simulated, ".", ms=3, color="tab:red", alpha=0.6, label="simulated (one draw)")
+    for values, colour, name in ((measured, "black", "measured"), (simulated, "tab:red", "simulated")):
+        missed = ~np.isfinite(values)
+        top.plot(beams[missed], np.zeros(missed.sum()), "|", ms=8, color=colour, label=f"{name}: no return")
+    top.set_ylabel("range (m)")
+    top.legend(fontsize=8, ncol=4, loc="upper right")
+    middle.plot(beams, res, ".", ms=3, color="tab:purple")
+    middle.axhline(0.0, color="grey", lw=0.6)
+    middle.set_ylabel("measured - nominal (m)")
+    bottom.plot(beams, nll, ".", ms=3, color="tab:orange")
+    bottom.set_ylabel("NLL (nats)")
+    bottom.set_xlabel("beam")
+    top.set_title(f"scan {scan}: measured and simulated (one draw) ranges, residual and NLL per beam")
     fig.tight_layout()
     return save_figure(fig, path)
 

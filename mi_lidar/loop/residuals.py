@@ -189,13 +189,15 @@ def plot_structure(found: list[Structure], path: Path) -> Path:
 
     from mi_lidar.loop.report import save_figure
 
-    fig, axes = plt.subplots(2, len(DIMENSIONS), figsize=(3.2 * len(DIMENSIONS), 5.2), squeeze=False)
-    by_key = {(s.channel, s.dimension): s for s in found}
+    by_key = {(s.channel, s.dimension): s for s in found if s.difference.size}
+    shown = [d for d in DIMENSIONS if any((channel, d) in by_key for channel in ("range", "returns"))]
+    shown = shown or [DIMENSIONS[0]]  # nothing grouped: one panel, hidden
+    fig, axes = plt.subplots(2, len(shown), figsize=(3.2 * len(shown) + 1.0, 5.2), squeeze=False)
     for row, channel in enumerate(("range", "returns")):
-        for col, dimension in enumerate(DIMENSIONS):
+        for col, dimension in enumerate(shown):
             ax = axes[row, col]
             s = by_key.get((channel, dimension))
-            if s is None or s.difference.size == 0:
+            if s is None:
                 ax.set_visible(False)
                 continue
             scale = 100.0  # cm or percentage points
