@@ -31,9 +31,9 @@ def fit_sensor_command(
 
     Examples:
 
-        mi-lidar fit-sensor drive.npz scenes_xml/urban_street.xml --model np-reg --out sensor.npz
+        mi-lidar fit-sensor drive.npz scenes_xml/offroad.xml --model np-reg --out sensor.npz
 
-        mi-lidar fit-sensor drive.npz scenes_xml/urban_street.xml -m p-reg -o p_reg.npz
+        mi-lidar fit-sensor drive.npz scenes_xml/offroad.xml -m p-reg -o p_reg.npz
 
     With --pool-labels an NP-Reg or P-Reg density applies to scenes whose labels mean other classes (a density
     fitted off-road, used in a street).

@@ -231,6 +231,29 @@ class Comparison:
         return out | ({"intensity": self.intensity.to_json()} if self.intensity is not None else {})
 
 
+def same_draw_warnings(t, log_seed, seed: int) -> list[str]:
+    """A warning when the sampled scan is the log itself, ray for ray (an empty list otherwise).
+
+    It is when the log was simulated by this very model with this seed: every realism figure is then
+    0 (or F1 1) by construction and says nothing of the model.
+
+    Args:
+        t: the ray table (:func:`ray_table`).
+        log_seed: the seed the log records having been simulated with (None for a measured log).
+        seed: the seed compare sampled with.
+    """
+    if t.hit.size == 0 or not np.array_equal(t.hit, t.sim_hit):
+        return []
+    if not np.allclose(t.measured[t.hit], t.sim_range[t.hit], rtol=0.0, atol=1e-6):
+        return []
+    recorded = f" (the log records seed {log_seed})" if log_seed is not None else ""
+    return [
+        f"the sampled scan equals the log ray for ray: the log was simulated by this model with seed {seed}"
+        f"{recorded}, so the sample figures are perfect by construction; compare with another --seed, or a "
+        "log that holds something the model lacks"
+    ]
+
+
 def compare(
     log: Log,
     scene,
@@ -271,7 +294,7 @@ def compare(
     origins, directions = world_rays(log, t.scan, t.beam, t.column)
     headline = metrics_of(t.ll, t.measured, t.hit, t.sim_range, t.sim_hit, origins, directions)
     result = Comparison(headline=headline, breakdowns={b: breakdown(t, b) for b in BREAKDOWNS}, worst=[], table=t)
-    result.warnings = scene_warnings(t.on_surface, t.hit)
+    result.warnings = scene_warnings(t.on_surface, t.hit) + same_draw_warnings(t, log.sensor.get("seed"), seed)
     groups = [
         dict(row, breakdown=b) for b, rows in result.breakdowns.items() if b != "beam" or len(rows) > 1 for row in rows
     ]
