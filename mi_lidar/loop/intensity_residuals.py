@@ -34,7 +34,7 @@ from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.trace import next_intersection
 from mi_lidar.io.cloud import INTENSITY_SOURCES
 from mi_lidar.loop.compare import group_keys, group_order
-from mi_lidar.loop.report import markdown_table
+from mi_lidar.loop.report import label_groups, markdown_table
 from mi_lidar.loop.residuals import NEAR
 
 BREAKDOWNS = ("range", "incidence", "beam", "label")
@@ -199,7 +199,7 @@ def plot_intensity_residuals(res: IntensityResiduals, path: Path) -> Path:
 
     from mi_lidar.core.atomic import atomic_path
 
-    ticks = matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:.2g}")
+    ticks = matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:.3g}")  # log minor ticks 1.05, 1.07: apart
     fig, axes = plt.subplots(2, 3, figsize=(15, 8))
     ax = axes[0, 0]
     top = float(max(res.measured.max(), res.expected.max())) + 1.0
@@ -225,7 +225,7 @@ def plot_intensity_residuals(res: IntensityResiduals, path: Path) -> Path:
         ax.set_yscale("log")
         ax.yaxis.set_major_formatter(ticks)
         ax.yaxis.set_minor_formatter(ticks)
-        ax.set_xticks(x, [r["group"] for r in rows], rotation=60, ha="right", fontsize=7)
+        label_groups(ax, [r["group"] for r in rows])
         ax.set(ylabel="(measured + 1) / (expected + 1)", title=f"by {by} (median, quartiles)")
     fig.suptitle(f"Intensity ({res.attribute}): returns whose range the first element explains")
     fig.tight_layout()

@@ -54,3 +54,17 @@ def test_a_planar_scan_is_drawn_as_curves_over_the_beams(monkeypatch, tmp_path):
     assert len(axes) == 3 and axes[-1].get_xlabel() == "beam"
     drawn = axes[0].lines[0].get_xdata()
     assert len(drawn) == beams and drawn.max() == beams - 1  # one point per beam, not a one-pixel column
+
+
+def test_a_breakdown_of_many_groups_names_at_most_twenty():
+    """40 beams on a 5-inch panel: every label was drawn and they overlapped; now every second one."""
+    import matplotlib.pyplot as plt
+
+    figure, ax = plt.subplots()
+    names = [f"beam {i:03d}" for i in range(40)]
+    report.label_groups(ax, names)
+    shown = [t.get_text() for t in ax.get_xticklabels()]
+    assert len(shown) == 20 and shown[:2] == ["beam 000", "beam 002"] and list(ax.get_xticks()[:2]) == [0, 2]
+    report.label_groups(ax, names[:7])
+    assert [t.get_text() for t in ax.get_xticklabels()] == names[:7]
+    plt.close(figure)
