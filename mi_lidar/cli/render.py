@@ -119,16 +119,6 @@ def render(
         console.print(f"wrote {path}")
 
 
-def read_poses(path: Path) -> np.ndarray:
-    """Sensor poses from ``.npy`` (S, 4, 4), text with 16 numbers per line, or a KITTI poses file."""
-    from mi_lidar.io import read_kitti_poses, read_pose_matrices
-
-    if path.suffix == ".npy":
-        return read_pose_matrices(path)
-    first = next((line.split() for line in path.read_text().splitlines() if line.strip()), [])
-    return read_kitti_poses(path) if len(first) == 12 else read_pose_matrices(path)
-
-
 MULTI_SCAN_FORMATS = ("npz", "rosbag2")  # the formats of mi_lidar.io that hold every scan of a log
 
 
@@ -176,8 +166,9 @@ def simulate(
     scene: Path = typer.Argument(..., help="Scene XML.", exists=True, dir_okay=False),
     poses: Path = typer.Option(
         ...,
-        help="Sensor-to-world poses: `.npy` (S, 4, 4), text with 16 numbers per line, or a KITTI poses file (12 per "
-        "line). They replace the scene sensor's pose, its height included (offroad.xml mounts the VLP-16 at z = 2 m).",
+        help="Sensor-to-world poses: `.npy` (S, 4, 4), a saved log (`.npz`: its poses), text with 16 numbers per "
+        "line, or a KITTI poses file (12 per line). They replace the scene sensor's pose, its height included "
+        "(offroad.xml mounts the VLP-16 at z = 2 m).",
         exists=True,
         dir_okay=False,
     ),
@@ -210,7 +201,7 @@ def simulate(
 
         mi-lidar simulate scenes_xml/indoor_planar.xml --poses kitti_poses.txt --out room.npz --pattern planar-180
     """
-    from mi_lidar.io import write_any
+    from mi_lidar.io import read_poses, write_any
     from mi_lidar.scene import load_scene, use_density
     from mi_lidar.scene.simulation import simulate as run
 

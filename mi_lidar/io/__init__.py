@@ -34,7 +34,7 @@ from mi_lidar.io.las import read_las, read_las_log, write_las_log
 from mi_lidar.io.ouster import range_digest, read_ouster
 from mi_lidar.io.pcd import read_pcd, read_pcd_log, write_pcd, write_pcd_log
 from mi_lidar.io.ply import read_ply, read_ply_log, write_ply, write_ply_log
-from mi_lidar.io.poses import read_kitti_poses, read_pose_matrices, write_kitti_poses
+from mi_lidar.io.poses import read_kitti_poses, read_pose_matrices, read_poses, write_kitti_poses
 from mi_lidar.io.preview import birds_eye_png, range_image_png
 from mi_lidar.io.rosbag import read_rosbag_log, write_rosbag_log
 from mi_lidar.io.velodyne import read_velodyne
@@ -62,6 +62,7 @@ __all__ = [
     "read_ply",
     "read_ply_log",
     "read_pose_matrices",
+    "read_poses",
     "read_rosbag_log",
     "read_velodyne",
     "write_any",

@@ -68,7 +68,12 @@ def detect_format(path: str | os.PathLike, for_writing: bool = False) -> str:
     if for_writing and suffix in ("", ".bag"):
         return "rosbag2"
     if not for_writing and path.is_dir():
-        return "rosbag"
+        if (path / "metadata.yaml").is_file():
+            return "rosbag"
+        known = ", ".join(sorted(set(_SUFFIX_FORMATS) | {".pcap"}))
+        raise LogFormatError(
+            f"{path}: a folder without metadata.yaml, so not a ROS 2 bag; give a ROS 2 bag folder or a file: {known}"
+        )
     if suffix == ".pcap" and not for_writing:
         return "pcap"
     if suffix not in _SUFFIX_FORMATS:

@@ -2,7 +2,8 @@
 
 A KITTI pose file has one pose per line: 12 numbers, the row-major top 3x4 of a 4x4
 sensor-to-world transform. A matrix file is an ``.npy`` of shape (S, 4, 4) or a text file with 16
-numbers per line (row-major 4x4). Every pose read is validated as a rigid transform.
+numbers per line (row-major 4x4). :func:`read_poses` reads any of them, or the poses of a saved log
+(``.npz``). Every pose read is validated as a rigid transform.
 """
 
 from __future__ import annotations
@@ -56,6 +57,37 @@ def read_kitti_poses(path: str | os.PathLike) -> np.ndarray:
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     poses[:, :3, :] = rows.reshape(-1, 3, 4)
     return validate_poses(poses, path)
+
+
+POSE_FILES = ".npy (S, 4, 4), a saved log (.npz: its poses), or text with 12 (KITTI) or 16 numbers per line"
+
+
+def read_poses(path: str | os.PathLike) -> np.ndarray:
+    """Sensor poses from any pose file: see :data:`POSE_FILES` (the text kind from its first line).
+
+    Returns:
+        (S, 4, 4) float64 sensor-to-world transforms.
+
+    Raises:
+        LogFormatError: a missing file, a binary file that is none of these, or a malformed one.
+        PoseError: a pose that is not a finite rigid transform.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise LogFormatError(f"{path}: no such pose file; give {POSE_FILES}")
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        return read_pose_matrices(path)
+    if suffix == ".npz":
+        from mi_lidar.core.log import Log
+
+        return validate_poses(Log.load(path).poses, path)
+    with open(path, "rb") as stream:
+        head = stream.read(4096)
+    if b"\0" in head:
+        raise LogFormatError(f"{path}: a binary file, not a pose file; give {POSE_FILES}")
+    first = next((line.split() for line in head.decode("utf-8", "replace").splitlines() if line.strip()), [])
+    return read_kitti_poses(path) if len(first) == 12 else read_pose_matrices(path)
 
 
 def write_kitti_poses(path: str | os.PathLike, poses: np.ndarray) -> Path:

@@ -128,6 +128,8 @@ READERS: dict[str, Reader] = {
     "poses-kitti": Reader("poses.txt", lambda m, f: _io().read_kitti_poses(m), (LogFormatError, PoseError)),
     "poses-npy": Reader("poses.npy", lambda m, f: _io().read_pose_matrices(m), (LogFormatError, PoseError)),
     "poses-matrix": Reader("matrices.txt", lambda m, f: _io().read_pose_matrices(m), (LogFormatError, PoseError)),
+    "poses-any-text": Reader("poses.txt", lambda m, f: _io().read_poses(m), (LogFormatError, PoseError)),
+    "poses-any-npy": Reader("poses.npy", lambda m, f: _io().read_poses(m), (LogFormatError, PoseError)),
     "scene-xml": Reader("scene.xml", _load_scene, (SceneError,)),
     **{
         f"density-{family}": Reader(f"{family}.npz", _load_density, (LogFormatError, ParameterError))

@@ -44,6 +44,10 @@ def test_write_formats_and_errors(tmp_path):
         read_any(tmp_path / "a.xyz")
     with pytest.raises(LogFormatError, match="unknown compressed format"):
         read_any(tmp_path / "a.tar.gz")
+    (tmp_path / "images").mkdir()  # a folder of something else (e.g. a dataset's): not a ROS 2 bag
+    with pytest.raises(LogFormatError, match="images: a folder without metadata.yaml, so not a ROS 2 bag"):
+        read_any(tmp_path / "images")
+    (tmp_path / "images").rmdir()
     log = synthetic_log(scans=3)
     with pytest.raises(LogFormatError, match="holds 3 scans and pcd holds one; pass scan="):
         write_any(log, tmp_path / "a.pcd")

@@ -59,3 +59,23 @@ def test_malformed_text(tmp_path):
     with pytest.raises(PoseError, match="pose 0"):
         write_kitti_poses(tmp_path / "o.txt", np.zeros((1, 4, 4)))
     assert not (tmp_path / "o.txt").exists()
+
+
+def test_read_poses_takes_every_pose_file_and_a_saved_log(tmp_path):
+    """`simulate --poses drive.npz` gave "'utf-8' codec can't decode byte ...": a log's poses are poses."""
+    from mi_lidar.core.log import Log
+    from mi_lidar.io import read_poses
+
+    poses = _poses(3)
+    write_kitti_poses(tmp_path / "k.txt", poses)
+    np.save(tmp_path / "m.npy", poses)
+    np.savetxt(tmp_path / "m.txt", poses.reshape(3, 16))
+    for name in ("k.txt", "m.npy", "m.txt"):
+        np.testing.assert_allclose(read_poses(tmp_path / name), poses, atol=1e-9)
+    directions = np.tile(np.array([1.0, 0.0, 0.0]), (1, 2, 1, 1))
+    ones = np.ones((3, 2, 1))
+    log = Log(poses=poses, directions=directions, ranges=ones, hit=ones > 0, times=np.zeros((3, 2, 1)))
+    np.testing.assert_allclose(read_poses(log.save(tmp_path / "drive.npz")), poses)
+    (tmp_path / "junk.bin").write_bytes(b"\0\x89PNG" * 100)
+    with pytest.raises(LogFormatError, match=r"junk\.bin: a binary file, not a pose file; give \.npy"):
+        read_poses(tmp_path / "junk.bin")
