@@ -39,6 +39,18 @@ def make_hidden_log(hidden: str = HIDDEN, n_scans: int = 24, seed: int = 1):
     return scene, model, simulate(scene, poses=poses, model=true, seed=seed)
 
 
+def ranking_lines(candidates) -> list[str]:
+    """The ranking of diagnose's first round as text: one line per candidate (name, held-out gain in nats
+    per ray, added parameters, BIC change, significance), names in one column; 80 columns for names of
+    up to 32 characters."""
+    width = max((len(c.name) for c in candidates), default=0)
+    return ["Ranking (held-out NLL gain per ray, k added parameters, BIC change):"] + [
+        f"  {i + 1}. {c.name:{width}s} {c.test_gain:+7.4f} k={c.k:<2d} dBIC {c.delta_bic:+8.1f} "
+        f"{'significant' if c.significant else '-'}"
+        for i, c in enumerate(candidates)
+    ]
+
+
 def run_demo(
     out: str | Path | None = None, hidden: str = HIDDEN, candidates: list[str] | None = CANDIDATES, echo=print
 ) -> dict:
@@ -62,12 +74,8 @@ def run_demo(
         f"({before.worst[0]['nll']:.2f} nats/ray)."
     )
     d = diagnose(log, scene, model, out=out, candidates=candidates, rounds=1, steps=100)
-    echo("Ranking (held-out NLL gain per ray, k added parameters, BIC change):")
-    for i, c in enumerate(d.rounds[0]):
-        echo(
-            f"  {i + 1}. {c.name:26s} gain {c.test_gain:+7.4f}  k={c.k:<2d} dBIC {c.delta_bic:+8.1f}  "
-            f"{'significant' if c.significant else '-'}"  # 77 columns for names up to 26 characters
-        )
+    for line in ranking_lines(d.rounds[0]):
+        echo(line)
     echo(d.summary)
     after = compare(log, scene, d.model, out=None if out is None else out / "after", title="After: the diagnosed model")
     echo(
