@@ -205,7 +205,9 @@ def test_hybrid_scene_flow_from_the_command_line(tmp_path):
     run("synth-world", "--out", tmp_path / "train.npz", "--seed", 11, "--length", 40, "--width", 30)
     run("synth-world", "--out", tmp_path / "test.npz", "--seed", 22, "--length", 40, "--width", 30)
     run("fit-scene", tmp_path / "train.npz", "--out", tmp_path / "fitted")
-    run("primitives", "extract", tmp_path / "train.npz", "--library", tmp_path / "lib")
+    extracted = run("primitives", "extract", tmp_path / "train.npz", "--library", tmp_path / "lib")
+    said = "".join((extracted.stdout + extracted.stderr).split())  # the path may wrap the line anywhere
+    assert said.count("primitives") == 1 and "lib:" in said, said  # it said so twice, in two wordings
     assert "shrub" in run("primitives", "list", tmp_path / "lib").stdout
     run("annotate", tmp_path / "test.npz", "--out", tmp_path / "ann.json")
     run("compose", tmp_path / "ann.json", "--library", tmp_path / "lib", "--out", tmp_path / "composed.xml")

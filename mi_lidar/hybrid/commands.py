@@ -149,7 +149,6 @@ def primitives_extract(log_path, library_dir, params: FitParams | None = None) -
     )
     library.add(extract_primitives(result.model, result.points, segs, log.poses, source=Path(log_path).stem))
     library.save(library_dir)
-    console.print(f"{len(library)} primitives in {library_dir}")
     return library
 
 
