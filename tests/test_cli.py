@@ -204,7 +204,9 @@ def test_hybrid_scene_flow_from_the_command_line(tmp_path):
 
     run("synth-world", "--out", tmp_path / "train.npz", "--seed", 11, "--length", 40, "--width", 30)
     run("synth-world", "--out", tmp_path / "test.npz", "--seed", 22, "--length", 40, "--width", 30)
-    run("fit-scene", tmp_path / "train.npz", "--out", tmp_path / "fitted")
+    fitted = run("fit-scene", tmp_path / "train.npz", "--out", tmp_path / "fitted")
+    said = "".join((fitted.stdout + fitted.stderr).split())
+    assert "scene_range.png" in said and "scene_top.png" in said and "planar" not in said  # a 3D log, previews named
     extracted = run("primitives", "extract", tmp_path / "train.npz", "--library", tmp_path / "lib")
     said = "".join((extracted.stdout + extracted.stderr).split())  # the path may wrap the line anywhere
     assert said.count("primitives") == 1 and "lib:" in said, said  # it said so twice, in two wordings

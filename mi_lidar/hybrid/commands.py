@@ -43,6 +43,7 @@ from mi_lidar.scene.loading import load_scene
 from mi_lidar.scene.simulation import simulate
 
 console = Console(stderr=True)
+PLANAR_SPREAD = 1e-3  # spread of the beams' direction z (unit vectors, sensor frame) below which a log is planar
 
 DEFAULT_PATTERN = "hdl32e"  # composed scenes without a sensor in their annotation
 MOUNT_HEIGHT = 1.8  # m, sensor height above the ground for such scenes
@@ -114,6 +115,14 @@ def fit_scene(log_path, out_dir, params: FitParams | None = None, name: str = "s
     first pose. With ``preview``, ``<name>_range.png`` and ``<name>_top.png`` are rendered.
     """
     log = Log.load(log_path)
+    elevation = log.directions[..., 2]
+    if float(np.nanmax(elevation) - np.nanmin(elevation)) < PLANAR_SPREAD:
+        console.print(
+            f"warning: {log_path} is a planar log (every beam in one plane): a hybrid scene's ground and "
+            "vegetation need a 3D scan, so the scene fitted here is a guess outside that plane",
+            highlight=False,
+            markup=False,
+        )
     result = _fit(log, params, "fit")
     assets = Path(out_dir) / f"{name}_assets"
     assets.mkdir(parents=True, exist_ok=True)
@@ -132,7 +141,8 @@ def fit_scene(log_path, out_dir, params: FitParams | None = None, name: str = "s
     )
     console.print(table)
     if preview:
-        render_previews(xml, log.poses)
+        for png in render_previews(xml, log.poses):
+            console.print(f"wrote {png}", highlight=False, markup=False)
     return xml
 
 
