@@ -216,3 +216,29 @@ def test_hybrid_scene_flow_from_the_command_line(tmp_path):
     for xml in (tmp_path / "fitted" / "scene.xml", tmp_path / "composed.xml"):
         image = np.asarray(mi.render(mi_lidar.load_scene(xml)))
         assert np.mean(image[..., 1]) > 0.2  # the scene returns beams
+
+
+def test_the_scan_summary_keeps_each_label_beside_its_count():
+    """'returns per label' wrapped between a label and its count ('5:' at a line's end, '9,894' on the next)."""
+    from rich.console import Console
+
+    from mi_lidar.cli.render import scan_summary
+
+    rng = np.random.default_rng(0)
+    shape = (1, 16, 2000)
+    directions = np.broadcast_to(np.array([1.0, 0.0, 0.0]), (*shape, 3)).copy()
+    log = Log(
+        poses=np.eye(4)[None],
+        directions=directions,
+        ranges=np.full(shape, 5.0),
+        hit=np.ones(shape, bool),
+        times=np.zeros(shape),
+        attributes={"label": rng.integers(1, 10, shape).astype(np.int32)},
+    )
+    console = Console(width=60, record=True)
+    console.print(scan_summary(log, "labels"))
+    rows = console.export_text().splitlines()
+    start = next(i for i, row in enumerate(rows) if "returns per label" in row)
+    cells = [row.split("│")[2].strip() for row in rows[start:] if row.count("│") >= 3][:6]
+    assert len(cells) > 1, cells  # the row wraps at this width ...
+    assert not any(cell.endswith(":") for cell in cells), cells  # ... but never between a label and its count

@@ -34,7 +34,8 @@ def scan_summary(log, title: str, elapsed: float | None = None) -> Table:
         table.add_row("rays passing >= 1 element", f"{np.mean(log.attributes['segments'] > 1):.1%}")
     if "label" in log.attributes and ranges.size:
         labels, counts = np.unique(log.attributes["label"][hits], return_counts=True)
-        table.add_row("returns per label", ", ".join(f"{lab}: {c:,}" for lab, c in zip(labels, counts)))
+        pairs = (f"{lab}:{c:,}" for lab, c in zip(labels, counts))  # no space, so no line ends with '5:'
+        table.add_row("returns per label", ", ".join(pairs))
     if elapsed is not None:
         table.add_row("time (s)", f"{elapsed:.2f} ({log.n_rays / max(elapsed, 1e-9) / 1e6:.1f} M rays/s)")
     return table
