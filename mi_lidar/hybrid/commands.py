@@ -122,6 +122,7 @@ def fit_scene(log_path, out_dir, params: FitParams | None = None, name: str = "s
             "vegetation need a 3D scan, so the scene fitted here is a guess outside that plane",
             highlight=False,
             markup=False,
+            soft_wrap=True,
         )
     result = _fit(log, params, "fit")
     assets = Path(out_dir) / f"{name}_assets"
