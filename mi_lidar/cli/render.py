@@ -120,48 +120,6 @@ def render(
         console.print(f"wrote {path}")
 
 
-MULTI_SCAN_FORMATS = ("npz", "rosbag2")  # the formats of mi_lidar.io that hold every scan of a log
-
-
-def output_format(out: Path, n_scans: int) -> str:
-    """The format ``simulate`` writes to ``out``, from its extension (see :mod:`mi_lidar.io.dispatch`).
-
-    Raises:
-        ParameterError: no extension, one no writer of :mod:`mi_lidar.io` writes, or a one-scan format
-            for several poses; the message names the extensions that fit.
-    """
-    from mi_lidar.io.dispatch import WRITE_FORMATS, detect_format
-
-    one_scan = ".ply, .pcd, .bin, .las, .exr"
-    fits = f".npz or .bag (a ROS 2 bag folder){'' if n_scans > 1 else f'; one scan also {one_scan}'}"
-    try:
-        fmt = detect_format(out, for_writing=True) if out.suffix else None
-    except MiLidarError:
-        fmt = None
-    if fmt not in WRITE_FORMATS or fmt == "png" or (n_scans > 1 and fmt not in MULTI_SCAN_FORMATS):
-        raise ParameterError(
-            f"--out {out}: cannot write {n_scans} scan(s) as {out.suffix or 'no extension'!r}; use {fits}"
-        )
-    return fmt
-
-
-def with_effects(scene, spec: str | None):
-    """The scene's sensor model with the effects ``spec`` (catalog syntax) added to its own; None when ``spec`` is.
-
-    Raises:
-        ParameterError: ``spec`` names no effect of the catalog, or a bad setting (named).
-    """
-    if spec is None:
-        return None
-    import dataclasses
-
-    from mi_lidar.core.effects import parse_effects
-    from mi_lidar.scene import scene_sensor_model
-
-    model, _ = scene_sensor_model(scene)
-    return dataclasses.replace(model, effects=[*model.effects, *parse_effects(spec)])
-
-
 @app.command(rich_help_panel="Make scans")
 def simulate(
     scene: Path = typer.Argument(..., help="Scene XML.", exists=True, dir_okay=False),
@@ -203,12 +161,13 @@ def simulate(
         mi-lidar simulate scenes_xml/indoor_planar.xml --poses kitti_poses.txt --out room.npz --pattern planar-180
     """
     from mi_lidar.io import read_poses, write_any
-    from mi_lidar.scene import load_scene, use_density
+    from mi_lidar.io.dispatch import log_output_format
+    from mi_lidar.scene import load_scene, use_density, use_effects
     from mi_lidar.scene.simulation import simulate as run
 
-    loaded = use_density(load_scene(scene), density)
+    loaded = use_effects(use_density(load_scene(scene), density), effect)
     pose_array = read_poses(poses)
-    fmt = output_format(out, len(pose_array))
+    fmt = log_output_format(out, len(pose_array))
     start = time.perf_counter()
     with progress("simulating scans", total=len(pose_array)) as update:
         log = run(
@@ -216,7 +175,6 @@ def simulate(
             pattern,
             poses=pose_array,
             seed=seed,
-            model=with_effects(loaded, effect),
             progress=lambda done, total: update(done, total),
         )
     elapsed = time.perf_counter() - start

@@ -37,6 +37,7 @@ from mi_lidar.io.preview import range_image_png
 
 READ_FORMATS = ("npz", "carmen", "ouster", "velodyne", "bin", "ply", "pcd", "las", "rosbag", "exr")
 WRITE_FORMATS = ("npz", "bin", "ply", "pcd", "las", "rosbag2", "exr", "png")
+MULTI_SCAN_FORMATS = ("npz", "rosbag2")  # the written formats that hold every scan of a log; the others hold one
 _SUFFIX_FORMATS = {
     ".npz": "npz",
     ".log": "carmen",
@@ -137,6 +138,27 @@ def read_any(path: str | os.PathLike, **options) -> Log:
     if fmt == "pcap":
         return _read_pcap(path, **options)
     return readers[fmt](path, **options)
+
+
+def log_output_format(path: str | os.PathLike, n_scans: int) -> str:
+    """The format a log of ``n_scans`` scans is written in at ``path`` (from its extension), checked before
+    the log is made: every scan is kept (a one-scan format only for a one-scan log), and a range image
+    (``.png``) is a preview, not a log.
+
+    Raises:
+        LogFormatError: no extension, one no writer takes, or a one-scan format for several scans; the
+            message names the extensions that fit.
+    """
+    path = Path(path)
+    try:
+        fmt = detect_format(path, for_writing=True) if path.suffix else None
+    except LogFormatError:
+        fmt = None
+    if fmt in MULTI_SCAN_FORMATS or (n_scans == 1 and fmt in WRITE_FORMATS and fmt != "png"):
+        return fmt
+    one_scan = ".ply, .pcd, .bin, .las, .exr"  # the one-scan log writers of write_any (.png is a preview)
+    fits = f".npz or .bag (a ROS 2 bag folder){'' if n_scans > 1 else f'; one scan also {one_scan}'}"
+    raise LogFormatError(f"{path}: cannot write {n_scans} scan(s) as {path.suffix or 'no extension'!r}; use {fits}")
 
 
 def write_any(log: Log, path: str | os.PathLike, fmt: str | None = None, scan: int | None = None) -> Path:

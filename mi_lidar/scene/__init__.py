@@ -8,6 +8,13 @@
 * :mod:`.camera`: a pinhole camera and synchronized camera + Lidar frames.
 """
 
-from mi_lidar.scene.loading import bundled_scene, load_scene, scene_lidar_sensor, scene_sensor_model, use_density
+from mi_lidar.scene.loading import (
+    bundled_scene,
+    load_scene,
+    scene_lidar_sensor,
+    scene_sensor_model,
+    use_density,
+    use_effects,
+)
 
-__all__ = ["bundled_scene", "load_scene", "scene_lidar_sensor", "scene_sensor_model", "use_density"]
+__all__ = ["bundled_scene", "load_scene", "scene_lidar_sensor", "scene_sensor_model", "use_density", "use_effects"]

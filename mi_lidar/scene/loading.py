@@ -90,16 +90,50 @@ def use_density(scene, spec: str | None):
     if spec is None:
         return scene
     from mi_lidar.core.densities import parse_density
+
+    integrator = _lidar_integrator(scene, f"--density {spec!r}")
+    integrator.density = parse_density(spec, resolve=lambda name: os.fspath(Path(name).resolve()))
+    return scene
+
+
+def use_effects(scene, spec: str | None):
+    """Add the effects ``spec`` to those of ``scene``'s ``lidar_integrator`` (None leaves the scene as it is).
+
+    The same as appending them to the integrator's ``effects`` string in the XML: every path that
+    renders, simulates or scores the scene then applies them (``mi-lidar simulate --effect``: a log
+    with an effect the scene's model lacks).
+
+    Args:
+        scene: a loaded scene.
+        spec: effects of the catalog with their settings, e.g. ``"incidence_dropout(gamma=2)"``.
+
+    Returns:
+        ``scene``.
+
+    Raises:
+        SceneError: the scene has no ``lidar_integrator`` to carry the effects.
+        ParameterError: ``spec`` names no effect of the catalog, or a bad setting (named).
+    """
+    if spec is None:
+        return scene
+    from mi_lidar.core.effects import parse_effects
+
+    integrator = _lidar_integrator(scene, f"--effect {spec!r}")
+    integrator.effects = [*integrator.effects, *parse_effects(spec)]
+    return scene
+
+
+def _lidar_integrator(scene, what: str):
+    """The scene's ``lidar_integrator``; SceneError naming ``what`` needed it when the scene has another."""
     from mi_lidar.plugins.lidar_integrator import LidarIntegrator
 
     integrator = scene.integrator()
     if not isinstance(integrator, LidarIntegrator):
         raise SceneError(
-            f"--density {spec!r}: the scene's integrator is {type(integrator).__name__}, not a lidar_integrator; "
+            f"{what}: the scene's integrator is {type(integrator).__name__}, not a lidar_integrator; "
             'add <integrator type="lidar_integrator"/> to the scene'
         )
-    integrator.density = parse_density(spec, resolve=lambda name: os.fspath(Path(name).resolve()))
-    return scene
+    return integrator
 
 
 def scene_lidar_sensor(scene):
