@@ -5,8 +5,9 @@ blocks of a single scan, as ``diagnose`` does) and traced once in the scene. The
 family of :mod:`mi_lidar.core.densities`:
 
 * ``np-reg`` and ``p-reg`` are estimated in closed form from the first element of every training ray
-  (:class:`~mi_lidar.core.densities.samples.StateSamples`), their bandwidths chosen by the held-out
-  NLL of the one likelihood;
+  (:class:`~mi_lidar.core.densities.samples.StateSamples`), conditioned on range, incidence, label
+  and, where that scores better held out, beam; their bandwidths chosen by the held-out NLL of the
+  one likelihood (:func:`fit_learned_density`);
 * ``beam`` and ``physics`` are fitted by the one Adam fitter on the training rays.
 
 Every figure is reported on the held-out rays, beside the scene's own model: the NLL (nats per ray,
@@ -27,7 +28,7 @@ import numpy as np
 from mi_lidar.core.densities import BeamDensity, PhysicsDensity
 from mi_lidar.core.densities.histogram import fit_np_reg
 from mi_lidar.core.densities.preg import fit_p_reg
-from mi_lidar.core.densities.samples import StateSamples
+from mi_lidar.core.densities.samples import StateSamples, protocol_residual_edges
 from mi_lidar.core.densities.tables import StateGrid
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import ParameterError
@@ -42,6 +43,8 @@ from mi_lidar.loop.split import split_rays
 
 FAMILIES = ("np-reg", "p-reg", "beam", "physics")
 MAX_LABEL_GROUPS = 16  # labels a learned density keeps apart (higher labels share the last group)
+MAX_TABLE_ENTRIES = 30_000_000  # NP-Reg tables (states x residual bins) beyond which beams stay pooled (240 MB)
+BANDWIDTHS = {"np-reg": ("h_ranges", "h_incidences", "uniforms"), "p-reg": ("h_ranges", "h_incidences")}
 
 
 @dataclass
@@ -74,7 +77,8 @@ def default_grid(
     samples: StateSamples, n_labels: int, range_step: float = 1.0, incidence_step: float = 10.0
 ) -> StateGrid:
     """A fine state grid for a log: ranges every ``range_step`` m to the farthest nominal range,
-    incidence every ``incidence_step`` deg (plus the unknown bin), labels kept apart, beams pooled."""
+    incidence every ``incidence_step`` deg (plus the unknown bin), labels kept apart, beams pooled
+    (:func:`fit_learned_density` decides whether to keep them apart)."""
     far = float(np.nanmax(samples.nominal)) if np.any(samples.met) else 10.0
     edges = list(np.arange(0.0, far + range_step, range_step)) + [1.0e9]
     return StateGrid(
@@ -195,13 +199,46 @@ def fit_density(
     Returns:
         The density and its bandwidth table (empty for the parametric families).
     """
-    if family == "np-reg":
-        return fit_np_reg(samples, default_grid(samples, n_labels), held_out, z_max=base.max_range, **options)
-    if family == "p-reg":
-        return fit_p_reg(samples, held_out, z_max=base.max_range, n_labels=label_groups(n_labels), **options)
+    if family in ("np-reg", "p-reg"):
+        return fit_learned_density(family, base, samples, held_out, n_labels, **options)
     density = BeamDensity(z_max=base.max_range) if family == "beam" else PhysicsDensity()
     fit_parts(dataclasses.replace(base, density=density), train, [density], steps=steps)
     return density, []
+
+
+def fit_learned_density(
+    family: str, base: SensorModel, samples: StateSamples, held_out, n_labels: int, **options
+) -> tuple:
+    """NP-Reg or P-Reg conditioned on range, incidence, label and, where the held-out rays say so, beam.
+
+    The bandwidths are chosen with the beams pooled; on a log of several beams the chosen setting is
+    then fitted again with every beam kept apart (each beam's law shrunk to its label's) and kept only
+    when it scores better held out, so a sensor whose beams differ (per-laser bias, noise or dropout)
+    gets per-beam laws and one whose beams agree is not fragmented. NP-Reg keeps beams pooled when its
+    tables would exceed :data:`MAX_TABLE_ENTRIES`.
+
+    Returns:
+        The density and its candidate table: rows ``(*bandwidths, beams, held-out NLL)``.
+    """
+    grid = default_grid(samples, n_labels)
+    z_max = base.max_range
+
+    def fit(n_beams: int, **setting):
+        chosen = {**options, **setting}
+        if family == "np-reg":
+            return fit_np_reg(samples, dataclasses.replace(grid, n_beams=n_beams), held_out, z_max=z_max, **chosen)
+        return fit_p_reg(samples, held_out, z_max=z_max, n_labels=label_groups(n_labels), n_beams=n_beams, **chosen)
+
+    density, rows = fit(1)
+    table = [(*row[:-1], 1, row[-1]) for row in rows]
+    n_beams = int(samples.beam.max()) + 1 if samples.n else 1
+    bins = len(options.get("edges", protocol_residual_edges(z_max)))
+    if n_beams == 1 or (family == "np-reg" and grid.size * n_beams * bins > MAX_TABLE_ENTRIES):
+        return density, table
+    best = min(table, key=lambda row: row[-1])
+    apart, rows = fit(n_beams, **{name: (value,) for name, value in zip(BANDWIDTHS[family], best)})
+    table.append((*rows[0][:-1], n_beams, rows[0][-1]))
+    return (apart, table) if rows[0][-1] < best[-1] else (density, table)
 
 
 def sample_metrics(scene, table, rays: LogRays, problem: Problem, model: SensorModel, seed: int) -> dict:

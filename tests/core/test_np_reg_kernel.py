@@ -1,7 +1,8 @@
 """NP-Reg's smoothing across states is the thesis's ``H W`` with the Gaussian kernel ``W``.
 
 ``kernel_smooth`` applies ``W`` factor by factor (range, then incidence); the test builds ``W``
-itself, as the dense (S, S) matrix of the definition, and compares.
+itself, as the dense (S, S) matrix of the definition, and compares. With beams kept apart, each
+beam's counts are then shrunk to its label's (``shrink_beams``).
 """
 
 from __future__ import annotations
@@ -9,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mi_lidar.core.densities.histogram import kernel_smooth
-from mi_lidar.core.densities.tables import StateGrid
+from mi_lidar.core.densities.histogram import kernel_smooth, shrink_beams
+from mi_lidar.core.densities.tables import PSEUDO_SAMPLES, StateGrid
 
 
 def dense_kernel(grid: StateGrid, h_range: float, h_incidence: float) -> np.ndarray:
@@ -61,3 +62,24 @@ def test_kernel_smooth_is_the_dense_kernel_product(grid):
     counts = np.random.default_rng(3).poisson(2.0, (grid.size, 7)).astype(np.float64)
     expected = dense_kernel(grid, 1.3, 25.0) @ counts
     np.testing.assert_allclose(kernel_smooth(grid, counts, 1.3, 25.0), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_each_beam_is_shrunk_to_its_labels_law_with_the_pseudo_samples_weight():
+    """Two labels x three beams x two states, four bins (the last: no returns). Beam 2 of label 1 has no
+    data: it gets exactly its label's law with the pseudo samples' weight; a beam with 10,000 samples
+    keeps its own law to 0.3 %; pooled beams are left alone."""
+    grid = StateGrid(range_edges=[0.0, 5.0, 1e9], n_beams=3, n_labels=2)
+    counts = np.zeros((2, 3, 2, 4))
+    counts[1, 0] = [[10_000, 0, 0, 0], [0, 5, 5, 0]]
+    counts[1, 1] = [[0, 0, 9, 1], [0, 0, 10, 0]]
+    counts[0] = np.random.default_rng(5).poisson(3.0, (3, 2, 4))
+    shrunk = shrink_beams(grid, counts.reshape(grid.size, 4)).reshape(counts.shape)
+    label = counts[1].sum(axis=0)
+    np.testing.assert_allclose(shrunk[1, 2], PSEUDO_SAMPLES * label / label.sum(axis=-1, keepdims=True))
+    own = shrunk[1, 0, 0] / shrunk[1, 0, 0].sum()
+    assert abs(own[0] - 1.0) < 0.003 and np.isclose(shrunk[1, 0, 0].sum(), 10_000 + PSEUDO_SAMPLES)
+    # label 0's beams are shrunk to label 0's own sum, not to label 1's
+    np.testing.assert_allclose(shrunk[0].sum(axis=(0, -1)), counts[0].sum(axis=(0, -1)) + 3 * PSEUDO_SAMPLES)
+    pooled = StateGrid(range_edges=[0.0, 5.0, 1e9], n_labels=2)
+    flat = counts.sum(axis=1).reshape(pooled.size, 4)
+    assert shrink_beams(pooled, flat) is flat

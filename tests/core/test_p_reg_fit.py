@@ -131,3 +131,55 @@ def test_labels_kept_apart_recover_each_law_and_a_rare_label_keeps_the_pooled_on
     )
     _, _, sigma = loaded.values(seg, rays_along_x(n))
     np.testing.assert_allclose(np.asarray(sigma), density.sigma[[1, 2, 3], 0, 20], rtol=1e-5)
+
+
+BEAM_BIAS = np.array([-0.04, 0.0, 0.03, 0.06])  # m, per beam; beam 3 is rare (40 samples)
+
+
+def beam_samples(n: int = 60_000) -> StateSamples:
+    """Label 1 everywhere; four beams whose residuals differ only in their mean (sigma 1 cm, P(null) 0.02)."""
+    beam = RNG.integers(0, 3, n)
+    beam[:40] = 3
+    r = RNG.uniform(1.0, 20.0, n)
+    hit = RNG.random(n) >= 0.02
+    z = np.where(hit, r + BEAM_BIAS[beam] + 0.01 * RNG.standard_normal(n), np.nan)
+    return StateSamples(r, RNG.uniform(0.0, 60.0, n), beam, np.ones(n, int), z, hit)
+
+
+def test_beams_kept_apart_recover_each_beams_bias_and_a_rare_beam_keeps_its_labels_law():
+    s = beam_samples()
+    nodes = np.arange(0.0, 20.5, 0.5)
+    options = dict(h_ranges=(1.0,), h_incidences=(20.0,), range_nodes=nodes, z_max=80.0, n_labels=2)
+    density, _ = fit_p_reg(s, lambda d: 0.0, n_beams=4, **options)
+    label_only, _ = fit_p_reg(s, lambda d: 0.0, **options)
+    # groups are label-major, as StateGrid.index counts them: label 1's beams are groups 4-7
+    assert density.mu.shape == (8, 20, nodes.size) and (density.grid.n_labels, density.grid.n_beams) == (2, 4)
+    inside = (nodes >= 3.0) & (nodes <= 18.0)
+    for b in range(3):  # ~20k samples per beam: every node's mean within 3 mm of its beam's bias
+        assert np.all(np.abs(density.mu[4 + b, 6, inside] - BEAM_BIAS[b]) < 0.003), (b, density.mu[4 + b, 6, inside])
+        assert np.all(density.sigma[4 + b, 6, inside] < 0.015)  # the label's law is wider: the biases spread it
+    assert np.all(label_only.sigma[1, 6, inside] > 0.02)
+    # 40 samples over 20 m and 60 degrees: the rare beam stays within a quarter of the way from its
+    # label's mean to its own bias
+    moved = (density.mu[7, 6, inside] - label_only.mu[1, 6, inside]) / (0.06 - label_only.mu[1, 6, inside])
+    assert np.all((moved > 0) & (moved < 0.25)), moved
+    # each segment reads its own beam's tables (a beam beyond the groups shares the last)
+    n = 4
+    seg = Segment(
+        valid=dr.full(mi.Bool, True, n),
+        nominal=dr.full(mi.Float, 10.0, n),
+        p=dr.full(mi.Float, 1.0, n),
+        mean=dr.full(mi.Float, 10.0, n),
+        sigma=dr.full(mi.Float, 0.02, n),
+        lo=dr.full(mi.Float, -np.inf, n),
+        hi=dr.full(mi.Float, np.inf, n),
+        cos_incidence=dr.full(mi.Float, 1.0, n),
+        element=dr.zeros(mi.UInt32, n),
+        shape=dr.zeros(mi.UInt32, n),
+        label=dr.full(mi.UInt32, 1, n),
+        kind=dr.zeros(mi.UInt32, n),
+    )
+    rays = rays_along_x(n)
+    rays.beam = mi.UInt32(0, 1, 2, 9)
+    _, mu, _ = density.values(seg, rays)
+    np.testing.assert_allclose(np.asarray(mu), density.mu[[4, 5, 6, 7], 0, 20], rtol=1e-5)

@@ -22,16 +22,25 @@ from tests.terminal import assert_whole, invoke_at_80
 from ..conftest import SCENES
 
 HIDDEN = "range_noise(law=proportional, sigma0=0.01, k=0.002), outliers(p_near=0.03, p_uniform=0.02, uniform_max=60)"
+BEAM_BIAS = (  # m, one per VLP-16 laser: normal, SD 5 cm, seed 7, rounded to 1 mm
+    "range_bias(bias=[0.0 0.015 -0.014 -0.045 -0.023 -0.05 0.064 0.047"
+    " -0.094 0.031 0.002 0.015 -0.1 0.045 -0.016 0.015])"
+)
 
 
-@pytest.fixture(scope="module")
-def street_log():
+def street_log_with(hidden: str):
+    """The urban street seen from 4 poses by a VLP-16 (150 firings) whose returns carry ``hidden``."""
     scene = mi_lidar.load_scene(SCENES / "urban_street.xml")
     model, pose = scene_sensor_model(scene)
     poses = np.repeat(pose[None], 4, 0)
     poses[:, 0, 3] += np.linspace(-4, 4, 4)
-    true = dataclasses.replace(model, effects=parse_effects(HIDDEN))
+    true = dataclasses.replace(model, effects=parse_effects(hidden))
     return scene, mi_lidar.simulate(scene, get_pattern("vlp16", n_firings=150), poses=poses, seed=3, model=true)
+
+
+@pytest.fixture(scope="module")
+def street_log():
+    return street_log_with(HIDDEN)
 
 
 @pytest.mark.parametrize("family", ["np-reg", "p-reg", "beam", "physics"])
@@ -123,10 +132,12 @@ def test_pooled_labels_give_one_state_per_range_and_incidence(street_log, family
     held out. Kept apart, P-Reg has one set of tables per label (it pooled them always before)."""
     scene, log = street_log
     labelled, pooled = fit_sensor(log, scene, family), fit_sensor(log, scene, family, pool_labels=True)
-    assert labelled.density.grid.n_labels > 1 and pooled.density.grid.n_labels == 1
-    assert pooled.density.grid.size * labelled.density.grid.n_labels == labelled.density.grid.size
+    kept, merged = labelled.density.grid, pooled.density.grid
+    assert kept.n_labels > 1 and merged.n_labels == 1
+    assert merged.size // merged.n_beams * kept.n_labels * kept.n_beams == kept.size
     if family == "p-reg":
-        assert labelled.density.mu.shape == (labelled.density.grid.n_labels, *pooled.density.mu.shape)
+        assert labelled.density.mu.shape[0] == kept.n_labels * kept.n_beams
+        assert labelled.density.mu.shape[1:] == pooled.density.mu.shape[-2:]
     assert pooled.rows[1]["nll"] < pooled.rows[0]["nll"] - 1.0
 
 
@@ -165,3 +176,19 @@ def test_fit_sensor_takes_either_spelling_and_keeps_its_progress_off_stdout(stre
     assert "traced" in result.stderr and "traced" not in result.stdout
     written = "".join(result.stdout.split())  # the path may be folded anywhere at 80 columns
     assert "p-reg" in result.stdout and f"wrote{tmp_path / 'p.npz'}" in written
+
+
+@pytest.mark.parametrize("family", ["np-reg", "p-reg"])
+def test_learned_densities_keep_beams_apart_when_the_held_out_rays_say_so(family):
+    """A VLP-16 whose 16 lasers have their own range bias (SD 5 cm, seeded values): both learned families
+    keep the beams apart (each beam's law shrunk to its label's), because that scores better held out
+    than the same bandwidths with the beams pooled (measured: P-Reg 3.250 -> 3.117, NP-Reg 2.994 -> 2.882
+    nats/ray; asserted margin 0.05). The candidate table records both."""
+    scene, log = street_log_with(HIDDEN + ", " + BEAM_BIAS)
+    result = fit_sensor(log, scene, family)
+    assert result.density.grid.n_beams == 16
+    apart = [row for row in result.candidates if row[-2] == 16]
+    pooled = min((row for row in result.candidates if row[-2] == 1), key=lambda row: row[-1])
+    assert len(apart) == 1 and apart[0][-1] < pooled[-1] - 0.05, (apart, pooled)
+    assert apart[0][:-2] == pooled[:-2]  # the same bandwidths
+    assert result.rows[1]["nll"] == pytest.approx(apart[0][-1], abs=1e-6)

@@ -39,7 +39,7 @@ import numpy as np
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.densities.base import ESCAPE, ReturnDensity, escape_segment, register_density
 from mi_lidar.core.densities.samples import StateSamples, choose_by_held_out, protocol_residual_edges
-from mi_lidar.core.densities.tables import StateGrid, check_table
+from mi_lidar.core.densities.tables import PSEUDO_SAMPLES, StateGrid, check_table
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
@@ -285,7 +285,7 @@ def fit_binned_histogram(
     grid: StateGrid,
     edges: np.ndarray | None = None,
     neighbour: float = 0.5,
-    pseudo: float = 30.0,
+    pseudo: float = PSEUDO_SAMPLES,
     uniform: float = 1e-3,
     z_max: float = 80.0,
 ) -> NPRegDensity:
@@ -345,6 +345,22 @@ def kernel_smooth(grid: StateGrid, counts: np.ndarray, h_range: float, h_inciden
     return smoothed.reshape(counts.shape)
 
 
+def shrink_beams(grid: StateGrid, counts: np.ndarray, pseudo: float = PSEUDO_SAMPLES) -> np.ndarray:
+    """Per-beam counts (S, B + 1) shrunk to their label's: each beam's state gains ``pseudo`` samples
+    distributed as the sum over its label's beams at the same range and incidence (no-returns included).
+
+    A beam with few samples at a state thus keeps its label's law there; with beams pooled
+    (``grid.n_beams == 1``) the counts are returned unchanged.
+    """
+    if grid.n_beams == 1:
+        return counts
+    blocks = counts.reshape(grid.n_labels, grid.n_beams, -1, counts.shape[-1])  # StateGrid.index ordering
+    parent = blocks.sum(axis=1, keepdims=True)
+    total = parent.sum(axis=-1, keepdims=True)
+    share = np.divide(parent, total, out=np.zeros_like(parent), where=total > 0)
+    return (blocks + pseudo * share).reshape(counts.shape)
+
+
 def fit_np_reg(
     samples: StateSamples,
     grid: StateGrid,
@@ -357,6 +373,9 @@ def fit_np_reg(
     progress=None,
 ) -> tuple[NPRegDensity, list]:
     """NP-Reg: per-state counts smoothed by the kernel ``W`` (``H W``), bandwidths chosen by held-out likelihood.
+
+    With beams kept apart (``grid.n_beams > 1``) each beam's smoothed counts are shrunk to its label's
+    (:func:`shrink_beams`).
 
     Args:
         samples: training states and measurements.
@@ -376,7 +395,7 @@ def fit_np_reg(
     candidates = list(itertools.product(h_ranges, h_incidences if grid.incidence_edges else (1.0,), uniforms))
 
     def build(h_r: float, h_i: float, u: float) -> NPRegDensity:
-        smoothed = np.concatenate([kernel_smooth(grid, counts[:-1], h_r, h_i), counts[-1:]])
+        smoothed = np.concatenate([shrink_beams(grid, kernel_smooth(grid, counts[:-1], h_r, h_i)), counts[-1:]])
         mass, p_null = _finish(smoothed, e_kernel=True)
         return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=z_max)
 

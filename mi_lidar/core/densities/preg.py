@@ -9,10 +9,11 @@ of unknown incidence use a regression on range alone (of the training segments o
 incidence, or of all when there are none). A beam that met nothing misses with probability
 ``P_null`` of the escape state and otherwise returns uniformly on ``[0, z_max]``.
 
-Choices where the thesis leaves room (documented and tested): the regressions pool the beams and,
-unless told to keep ``n_labels`` element labels apart, the labels (each label's regressions are then
-shrunk to the pooled ones; the density reads tables per group of its :class:`StateGrid`, label x
-beam, though :func:`fit_p_reg` builds no per-beam group); the mean and sigma are fitted on returns
+Choices where the thesis leaves room (documented and tested): the regressions pool the beams and
+the labels unless told to keep ``n_labels`` labels and ``n_beams`` beams apart; then the groups form
+a hierarchy, each label's regressions shrunk to the pooled ones and each beam's (within its label) to
+its label's, and the density reads the tables of a segment's group (label x beam, its
+:class:`StateGrid`); the mean and sigma are fitted on returns
 within ``inlier`` (1 m) of the nominal range, so that the 5-10 % of real returns from objects the
 map lacks do not inflate sigma to metres; bandwidths are chosen by held-out likelihood from a
 candidate set (:func:`fit_p_reg`); every node's estimates are shrunk to the global (or pooled) ones
@@ -34,14 +35,13 @@ import numpy as np
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.densities.base import ESCAPE, UniformEscapeDensity, escape_segment, register_density
 from mi_lidar.core.densities.samples import StateSamples, choose_by_held_out
-from mi_lidar.core.densities.tables import StateGrid, check_table
+from mi_lidar.core.densities.tables import PSEUDO_SAMPLES, StateGrid, check_table
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import ELLIPSOID, Segment
 
 MIN_SIGMA = 1e-3  # m
-PSEUDO_SAMPLES = 30.0  # every node's estimates are shrunk to the prior's with this many samples' weight
 REACH = 2.0  # a local line is followed at most this many weighted standard deviations beyond its data's mean
 
 
@@ -252,6 +252,7 @@ def fit_p_reg(
     range_nodes: np.ndarray | None = None,
     incidence_nodes: np.ndarray | None = None,
     n_labels: int = 1,
+    n_beams: int = 1,
     progress=None,
 ) -> tuple[PRegDensity, list]:
     """P-Reg: local linear regressions of P_null, mu and sigma; bandwidths chosen by held-out likelihood.
@@ -267,6 +268,8 @@ def fit_p_reg(
         n_labels: element labels kept apart (labels from ``n_labels - 1`` up share the last group).
             With more than one, each label's regressions are shrunk to the pooled ones (the prior of
             :func:`_local_linear`), so a label with few samples keeps the pooled law.
+        n_beams: beams kept apart (beams from ``n_beams - 1`` up share the last group); each beam's
+            regressions are shrunk to its label's (or the pooled ones), as a label's are to the pooled.
         progress: optional ``progress(done, total)``.
 
     Returns:
@@ -274,7 +277,8 @@ def fit_p_reg(
     """
     met = samples.met
     r, d, hit, e = samples.nominal[met], samples.incidence[met], samples.hit[met], samples.residual[met]
-    group = np.minimum(samples.label[met], n_labels - 1)
+    label = np.minimum(samples.label[met], n_labels - 1)
+    beam = np.minimum(samples.beam[met], n_beams - 1)
     far = float(np.nanmax(r)) if r.size else 10.0
     r_nodes = np.arange(0.0, far + 0.5, 0.5) if range_nodes is None else np.asarray(range_nodes)
     d_nodes = np.arange(0.0, 90.0 + 1e-9, 5.0) if incidence_nodes is None else np.asarray(incidence_nodes)
@@ -308,17 +312,21 @@ def fit_p_reg(
         return tables
 
     def build(h_r: float, h_d: float) -> PRegDensity:
-        everything = np.ones(r.size, bool)
-        pooled = regress(everything, h_r, h_d, None)
-        parts = [regress(group == label, h_r, h_d, pooled) for label in range(n_labels)] if n_labels > 1 else [pooled]
-        tables = {k: np.stack([part[k] for part in parts]) if n_labels > 1 else pooled[k] for k in pooled}
+        pooled = regress(np.ones(r.size, bool), h_r, h_d, None)
+        labels = [regress(label == k, h_r, h_d, pooled) for k in range(n_labels)] if n_labels > 1 else [pooled]
+        parts = [
+            regress((label == k) & (beam == b), h_r, h_d, labels[k]) if n_beams > 1 else labels[k]
+            for k in range(n_labels)
+            for b in range(n_beams)
+        ]  # the order of StateGrid.index: label-major
+        tables = {k: np.stack([part[k] for part in parts]) if len(parts) > 1 else pooled[k] for k in pooled}
         return PRegDensity(
             range_nodes=r_nodes,
             incidence_nodes=d_nodes,
             p_null=np.clip(tables["p_null"], 0, 1),
             mu=tables["mu"],
             sigma=np.sqrt(np.maximum(tables["variance"], MIN_SIGMA**2)),
-            grid=StateGrid(n_labels=n_labels),
+            grid=StateGrid(n_labels=n_labels, n_beams=n_beams),
             z_max=z_max,
             escape_null=escape_null,
         )

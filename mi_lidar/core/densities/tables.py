@@ -27,6 +27,7 @@ from mi_lidar.core.errors import NPZ_MEMBER_ERRORS, LogFormatError, ParameterErr
 
 FORMAT_NAME = "mi-lidar-density"
 FORMAT_VERSION = 1
+PSEUDO_SAMPLES = 30.0  # a state group's estimates are shrunk to its parent's with this many samples' weight
 
 
 @dataclass
