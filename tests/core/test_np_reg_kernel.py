@@ -73,7 +73,7 @@ def test_each_beam_is_shrunk_to_its_labels_law_with_the_pseudo_samples_weight():
     counts[1, 0] = [[10_000, 0, 0, 0], [0, 5, 5, 0]]
     counts[1, 1] = [[0, 0, 9, 1], [0, 0, 10, 0]]
     counts[0] = np.random.default_rng(5).poisson(3.0, (3, 2, 4))
-    shrunk = shrink_beams(grid, counts.reshape(grid.size, 4)).reshape(counts.shape)
+    shrunk = shrink_beams(grid, counts.reshape(grid.size, 4).copy()).reshape(counts.shape)
     label = counts[1].sum(axis=0)
     np.testing.assert_allclose(shrunk[1, 2], PSEUDO_SAMPLES * label / label.sum(axis=-1, keepdims=True))
     own = shrunk[1, 0, 0] / shrunk[1, 0, 0].sum()

@@ -346,8 +346,9 @@ def kernel_smooth(grid: StateGrid, counts: np.ndarray, h_range: float, h_inciden
 
 
 def shrink_beams(grid: StateGrid, counts: np.ndarray, pseudo: float = PSEUDO_SAMPLES) -> np.ndarray:
-    """Per-beam counts (S, B + 1) shrunk to their label's: each beam's state gains ``pseudo`` samples
-    distributed as the sum over its label's beams at the same range and incidence (no-returns included).
+    """Per-beam counts (S, B + 1) shrunk, in place, to their label's: each beam's state gains ``pseudo``
+    samples distributed as the sum over its label's beams at the same range and incidence (no-returns
+    included).
 
     A beam with few samples at a state thus keeps its label's law there; with beams pooled
     (``grid.n_beams == 1``) the counts are returned unchanged.
@@ -358,7 +359,8 @@ def shrink_beams(grid: StateGrid, counts: np.ndarray, pseudo: float = PSEUDO_SAM
     parent = blocks.sum(axis=1, keepdims=True)
     total = parent.sum(axis=-1, keepdims=True)
     share = np.divide(parent, total, out=np.zeros_like(parent), where=total > 0)
-    return (blocks + pseudo * share).reshape(counts.shape)
+    blocks += pseudo * share  # in place where the reshape is a view: the tables can hold tens of millions of entries
+    return blocks.reshape(counts.shape)
 
 
 def fit_np_reg(
