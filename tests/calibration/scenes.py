@@ -56,6 +56,13 @@ def sensor_pose(x: float = 0.0, y: float = 0.0, yaw: float = 0.0) -> np.ndarray:
     return pose
 
 
+def circle_poses(n: int) -> np.ndarray:
+    """(n, 4, 4) sensor poses on a circle of 0.4 m around the bowl's centre, each turned by its angle on the circle."""
+    return np.stack(
+        [sensor_pose(0.4 * np.cos(a), 0.4 * np.sin(a), a) for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
+    )
+
+
 def pattern(firings: int = 250):
     """A VLP-16 (16 beams) with ``firings`` firings per sweep."""
     return get_pattern("vlp16", n_firings=firings)

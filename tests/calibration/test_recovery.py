@@ -12,16 +12,10 @@ from mi_lidar.core.effects import parse_effects
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.scene.dicts import scene_dict
 
-from .scenes import bowl, pattern, sensor_pose, shrubs
+from .scenes import bowl, circle_poses, pattern, shrubs
 
 P_SHRUBS = [0.25, 0.45, 0.65, 0.35, 0.55, 0.75]
 P_GROUND = 0.8
-
-
-def poses(n: int) -> np.ndarray:
-    return np.stack(
-        [sensor_pose(0.4 * np.cos(a), 0.4 * np.sin(a), a) for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
-    )
 
 
 def test_hit_probabilities_recovered_and_autodiff_matches_counting():
@@ -29,7 +23,7 @@ def test_hit_probabilities_recovered_and_autodiff_matches_counting():
     truth = {"terrain": bowl(n=9, p_hit=P_GROUND), "shrubs": shrubs(P_SHRUBS)}
     scene = mi_lidar.load_scene(scene_dict(truth))
     model = SensorModel(range_sigma=0.02)
-    log = mi_lidar.simulate(scene, pattern(800), poses=poses(8), seed=5, model=model)
+    log = mi_lidar.simulate(scene, pattern(800), poses=circle_poses(8), seed=5, model=model)
     start = {"terrain": bowl(n=9, p_hit=0.5), "shrubs": shrubs([0.5] * 6)}
     fitted_scene = mi_lidar.load_scene(scene_dict(start))
     cal = Calibration(
@@ -55,32 +49,6 @@ def test_hit_probabilities_recovered_and_autodiff_matches_counting():
     assert result.counting_nll < result.initial_nll - 0.05
 
 
-def test_beam_elevation_offsets_recovered():
-    truth_offsets = np.radians(np.random.default_rng(2).uniform(-0.3, 0.3, 16))
-    scene = mi_lidar.load_scene(scene_dict({"terrain": bowl(n=33, half=16.0)}))
-    effect = " ".join(f"{v:.8f}" for v in truth_offsets)
-    true_model = SensorModel(range_sigma=0.01, effects=parse_effects(f"beam_offsets(elevation=[{effect}])"))
-    log = mi_lidar.simulate(scene, pattern(500), poses=poses(4), seed=7, model=true_model)
-    cal = Calibration(
-        scene,
-        log,
-        ["sensor.elevation_offset"],
-        model=SensorModel(range_sigma=0.01),
-        options=FitOptions(
-            steps=150,
-            batch_size=1 << 14,
-            eval_every=10,
-            patience=4,
-            seed=2,
-            learning_rates={"sensor.elevation_offset": 5e-4},
-        ),
-    )
-    result = cal.fit()
-    error_deg = np.degrees(np.abs(result.fitted["sensor.elevation_offset"] - truth_offsets))
-    assert error_deg.max() < 0.05, f"elevation errors (deg): {np.round(error_deg, 4)}"
-    assert result.fitted_nll < result.initial_nll
-
-
 def test_range_bias_and_scale_recovered():
     bias = np.random.default_rng(4).uniform(-0.03, 0.03, 16)
     scene = mi_lidar.load_scene(scene_dict({"terrain": bowl(n=17)}))
@@ -88,7 +56,7 @@ def test_range_bias_and_scale_recovered():
     true_model = SensorModel(
         range_sigma=0.01, effects=parse_effects(f"range_scale(scale=1.003), range_bias(bias=[{text}])")
     )
-    log = mi_lidar.simulate(scene, pattern(500), poses=poses(4), seed=9, model=true_model)
+    log = mi_lidar.simulate(scene, pattern(500), poses=circle_poses(4), seed=9, model=true_model)
     cal = Calibration(
         scene,
         log,

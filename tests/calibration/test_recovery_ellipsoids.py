@@ -23,16 +23,10 @@ from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.scene.dicts import EllipsoidElements, scene_dict
 
-from .scenes import bowl, bushes, pattern, sensor_pose
+from .scenes import bowl, bushes, circle_poses, pattern
 
 MODEL = SensorModel(range_sigma=0.02)
 SEEN = 100  # returns of the log an element needs to be scored
-
-
-def poses(n: int) -> np.ndarray:
-    return np.stack(
-        [sensor_pose(0.4 * np.cos(a), 0.4 * np.sin(a), a) for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
-    )
 
 
 def perturbed(truth: EllipsoidElements, centers: float, scales: float) -> EllipsoidElements:
@@ -53,7 +47,7 @@ def perturbed(truth: EllipsoidElements, centers: float, scales: float) -> Ellips
 def truth_and_log():
     truth = bushes()
     scene = mi_lidar.load_scene(scene_dict({"terrain": bowl(n=9), "bushes": truth}))
-    log = mi_lidar.simulate(scene, pattern(500), poses=poses(4), seed=5, model=MODEL)
+    log = mi_lidar.simulate(scene, pattern(500), poses=circle_poses(4), seed=5, model=MODEL)
     table = ElementTable.from_scene(scene)
     k = table.shape_ids.index("bushes")
     first = sum(table.element_counts[:k])

@@ -1,8 +1,8 @@
 """Recovery of parameters that move rays or geometry (the scene is re-traced at every step).
 
-Each test simulates a log with known values, fits from a perturbed start (or from the effect at
-identity) and checks the recovered values against stated tolerances. Seeds are fixed. The
-extrinsics fit (200 steps) is marked slow.
+Each test simulates a log with known values (the beam offsets of both axes, the extrinsics, the terrain
+heights), fits from a perturbed start (or from the effect at identity) and checks the recovered values
+against stated tolerances. Seeds are fixed. The extrinsics fit (200 steps) is marked slow.
 """
 
 import numpy as np
@@ -14,14 +14,7 @@ from mi_lidar.core.effects import parse_effects
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.scene.dicts import scene_dict
 
-from .scenes import bowl, pattern, sensor_pose
-
-
-def poses(n: int, radius: float = 0.4) -> np.ndarray:
-    """``n`` sensor poses on a circle of ``radius`` m, each turned by its angle on the circle."""
-    return np.stack(
-        [sensor_pose(radius * np.cos(a), radius * np.sin(a), a) for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
-    )
+from .scenes import bowl, circle_poses, pattern
 
 
 @pytest.mark.slow
@@ -30,7 +23,11 @@ def test_extrinsics_recovered():
     effect = "extrinsics(" + ", ".join(f"{k}={v}" for k, v in zip(("rx", "ry", "rz", "tx", "ty", "tz"), truth)) + ")"
     scene = mi_lidar.load_scene(scene_dict({"terrain": bowl(n=33, half=16.0)}))
     log = mi_lidar.simulate(
-        scene, pattern(500), poses=poses(4), seed=11, model=SensorModel(range_sigma=0.01, effects=parse_effects(effect))
+        scene,
+        pattern(500),
+        poses=circle_poses(4),
+        seed=11,
+        model=SensorModel(range_sigma=0.01, effects=parse_effects(effect)),
     )
     cal = Calibration(
         scene,
@@ -47,34 +44,39 @@ def test_extrinsics_recovered():
     assert result.fitted_nll < result.initial_nll
 
 
-def test_beam_azimuth_offsets_recovered():
-    truth = np.radians(np.random.default_rng(3).uniform(-0.4, 0.4, 16))
+@pytest.mark.parametrize(
+    "axis,spread_deg,seeds,rate,max_deg,median_deg",
+    [("elevation", 0.3, (2, 7), 5e-4, 0.05, 0.05), ("azimuth", 0.4, (3, 12), 1e-3, 0.1, 0.02)],
+    ids=("elevation", "azimuth"),
+)
+def test_beam_offsets_recovered(axis, spread_deg, seeds, rate, max_deg, median_deg):
+    """Per-beam offsets drawn in +-``spread_deg`` (seeded by ``seeds[0]``, log seed ``seeds[1]``) are fitted
+    back from zero at learning rate ``rate`` to ``max_deg`` at most and ``median_deg`` in the median (deg)."""
+    truth = np.radians(np.random.default_rng(seeds[0]).uniform(-spread_deg, spread_deg, 16))
     scene = mi_lidar.load_scene(scene_dict({"terrain": bowl(n=33, half=16.0)}))
     text = " ".join(f"{v:.8f}" for v in truth)
     log = mi_lidar.simulate(
         scene,
         pattern(500),
-        poses=poses(4),
-        seed=12,
-        model=SensorModel(range_sigma=0.01, effects=parse_effects(f"beam_offsets(azimuth=[{text}])")),
+        poses=circle_poses(4),
+        seed=seeds[1],
+        model=SensorModel(range_sigma=0.01, effects=parse_effects(f"beam_offsets({axis}=[{text}])")),
     )
+    name = f"sensor.{axis}_offset"
     cal = Calibration(
         scene,
         log,
-        ["sensor.azimuth_offset"],
+        [name],
         model=SensorModel(range_sigma=0.01),
         options=FitOptions(
-            steps=150,
-            batch_size=1 << 14,
-            eval_every=10,
-            patience=4,
-            seed=2,
-            learning_rates={"sensor.azimuth_offset": 1e-3},
+            steps=150, batch_size=1 << 14, eval_every=10, patience=4, seed=2, learning_rates={name: rate}
         ),
     )
     result = cal.fit()
-    error_deg = np.degrees(np.abs(result.fitted["sensor.azimuth_offset"] - truth))
-    assert error_deg.max() < 0.1 and np.median(error_deg) < 0.02, f"azimuth errors (deg): {np.round(error_deg, 4)}"
+    error_deg = np.degrees(np.abs(result.fitted[name] - truth))
+    assert error_deg.max() < max_deg and np.median(error_deg) < median_deg, (
+        f"{axis} errors (deg): {np.round(error_deg, 4)}"
+    )
     assert result.fitted_nll < result.initial_nll
 
 
@@ -85,7 +87,7 @@ def test_terrain_heights_recovered():
     log = mi_lidar.simulate(
         mi_lidar.load_scene(scene_dict({"terrain": truth_sets})),
         pattern(500),
-        poses=poses(4),
+        poses=circle_poses(4),
         seed=13,
         model=SensorModel(range_sigma=0.01),
     )
