@@ -7,28 +7,14 @@ tracing), and differ from the unturned beam's range.
 
 import numpy as np
 
-import mi_lidar
-from mi_lidar.core.effects import BeamOffsets, parse_effects
-from mi_lidar.core.sensor_model import SensorModel
-from mi_lidar.scene.dicts import scene_dict
+from mi_lidar.core.effects import BeamOffsets
 
-from .calibration.scenes import analytic_ranges, floor_and_wall, pattern, unit_directions
-
-HEIGHT = 2.0  # m
+from .calibration.scenes import SCAN_HEIGHT, analytic_ranges, floor_and_wall_scan, pattern, unit_directions
 
 
 def simulate(effects: str):
-    pose = np.eye(4)
-    pose[2, 3] = HEIGHT
-    p = pattern(360)
-    log = mi_lidar.simulate(
-        mi_lidar.load_scene(scene_dict(floor_and_wall())),
-        p,
-        poses=pose,
-        seed=0,
-        model=SensorModel(range_sigma=0.0, effects=parse_effects(effects)),
-    )
-    return p, log.ranges[0], log.hit[0]
+    """The pattern, (16, 360) ranges (m) and hit flags of a noiseless scan with the effects ``effects``."""
+    return pattern(360), *floor_and_wall_scan(effects, seed=0, range_sigma=0.0, firings=360)
 
 
 def test_offsets_move_hits_where_geometry_says():
@@ -37,8 +23,8 @@ def test_offsets_move_hits_where_geometry_says():
     text = lambda a: " ".join(f"{x:.8f}" for x in a)  # noqa: E731
     p, ranges, hit = simulate(f"beam_offsets(elevation=[{text(elevation)}], azimuth=[{text(azimuth)}])")
     turned = unit_directions(p.elevation + elevation[:, None], p.azimuth + azimuth[:, None])
-    expected = analytic_ranges(np.array([0, 0, HEIGHT]), turned)
-    nominal = analytic_ranges(np.array([0, 0, HEIGHT]), unit_directions(p.elevation, p.azimuth))
+    expected = analytic_ranges(np.array([0, 0, SCAN_HEIGHT]), turned)
+    nominal = analytic_ranges(np.array([0, 0, SCAN_HEIGHT]), unit_directions(p.elevation, p.azimuth))
     finite = np.isfinite(expected) & (expected < 100)
     assert finite.sum() > 2000 and np.array_equal(hit[finite], np.ones(finite.sum(), bool))
     np.testing.assert_allclose(ranges[finite], expected[finite], rtol=1e-4)

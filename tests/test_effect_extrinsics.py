@@ -10,15 +10,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-import mi_lidar
-from mi_lidar.core.effects import parse_effects
 from mi_lidar.core.effects.extrinsics import rotate_vector
-from mi_lidar.core.sensor_model import SensorModel
-from mi_lidar.scene.dicts import scene_dict
 
-from .calibration.scenes import analytic_ranges, floor_and_wall, pattern, unit_directions
-
-HEIGHT = 2.0  # m
+from .calibration.scenes import SCAN_HEIGHT, analytic_ranges, floor_and_wall_scan, pattern, unit_directions
 
 
 @pytest.mark.parametrize(
@@ -31,22 +25,16 @@ def test_pose_offset_moves_hits_where_geometry_says(rotation, translation):
     yaw = 0.4  # rad: the offsets act in the sensor frame, not the world's
     pose = np.eye(4)
     pose[:3, :3] = Rotation.from_rotvec([0, 0, yaw]).as_matrix()
-    pose[2, 3] = HEIGHT
+    pose[2, 3] = SCAN_HEIGHT
     p = pattern(360)
-    log = mi_lidar.simulate(
-        mi_lidar.load_scene(scene_dict(floor_and_wall())),
-        p,
-        poses=pose,
-        seed=0,
-        model=SensorModel(range_sigma=0.0, effects=parse_effects(effect)),
-    )
+    ranges, hit = floor_and_wall_scan(effect, seed=0, range_sigma=0.0, firings=360, pose=pose)
     rotation_matrix = pose[:3, :3] @ Rotation.from_rotvec(rotation).as_matrix()
     directions = unit_directions(p.elevation, p.azimuth) @ rotation_matrix.T
     origin = pose[:3, 3] + pose[:3, :3] @ np.asarray(translation, float)
     expected = analytic_ranges(origin, directions)
     finite = np.isfinite(expected) & (expected < 100)
-    assert finite.sum() > 2000 and log.hit[0][finite].all()
-    np.testing.assert_allclose(log.ranges[0][finite], expected[finite], rtol=1e-4)
+    assert finite.sum() > 2000 and hit[finite].all()
+    np.testing.assert_allclose(ranges[finite], expected[finite], rtol=1e-4)
 
 
 def test_rotation_vector_matches_rodrigues():

@@ -91,17 +91,30 @@ def floor_and_wall() -> dict:
     }
 
 
-def floor_and_wall_scan(effects: str, seed: int, range_sigma: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
-    """One VLP-16 scan (300 firings) 2 m above floor_and_wall() with the effects ``effects``.
+SCAN_HEIGHT = 2.0  # m: floor_and_wall_scan()'s default sensor stands this high above the floor, at the origin
+
+
+def floor_and_wall_scan(
+    effects: str, seed: int, range_sigma: float = 0.03, firings: int = 300, pose: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """One VLP-16 scan of ``firings`` firings above floor_and_wall() with the effects ``effects``.
+
+    Args:
+        effects: the effects of the sensor model, as ``--effect`` takes them ("" for none).
+        seed: simulation seed.
+        range_sigma: the elements' range noise (m).
+        firings: firings of the sweep.
+        pose: (4, 4) sensor pose (default: upright, :data:`SCAN_HEIGHT` m above the origin).
 
     Returns:
-        (16, 300) ranges (m) and hit flags.
+        (16, firings) ranges (m) and hit flags.
     """
-    pose = np.eye(4)
-    pose[2, 3] = 2.0
+    if pose is None:
+        pose = np.eye(4)
+        pose[2, 3] = SCAN_HEIGHT
     model = SensorModel(range_sigma=range_sigma, effects=parse_effects(effects))
     log = mi_lidar.simulate(
-        mi_lidar.load_scene(scene_dict(floor_and_wall())), pattern(300), poses=pose, seed=seed, model=model
+        mi_lidar.load_scene(scene_dict(floor_and_wall())), pattern(firings), poses=pose, seed=seed, model=model
     )
     return log.ranges[0], log.hit[0]
 
