@@ -5,23 +5,23 @@ import pytest
 
 from mi_lidar.core.effects import make_effect, parse_effects
 
-from .loop.helpers import finite_difference_check, hidden_log, mean_ll, recover, room
+from .loop.helpers import assert_keep_law, finite_difference_check, hidden_log, mean_ll, recover, room
 
 
 def test_keep_fraction_follows_cos_power():
     """Rate at which the first element returns, per incidence bin matches cos(delta)^gamma within 3 sigma of the
     binomial noise."""
     scene, model, poses = room(20)
-    log, _ = hidden_log(scene, model, poses, "incidence_dropout(gamma=2)")
-    clean, _ = hidden_log(scene, model, poses, "incidence_dropout(gamma=0)")
-    cos = clean.attributes["cos_incidence"][clean.hit]
-    kept = (log.hit & (log.attributes["element_id"] == clean.attributes["element_id"]))[
-        clean.hit
-    ]  # first element returned
-    for lo, hi in ((0.9, 1.0), (0.6, 0.7), (0.3, 0.4)):
-        m = (cos >= lo) & (cos < hi)
-        expect = np.mean(cos[m] ** 2)
-        assert abs(kept[m].mean() - expect) < 3 * np.sqrt(expect * (1 - expect) / m.sum()) + 0.02
+    assert_keep_law(
+        scene,
+        model,
+        poses,
+        "incidence_dropout(gamma=2)",
+        "incidence_dropout(gamma=0)",
+        "cos_incidence",
+        ((0.9, 1.0), (0.6, 0.7), (0.3, 0.4)),
+        lambda cos: cos**2,
+    )
 
 
 @pytest.mark.slow

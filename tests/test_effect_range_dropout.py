@@ -3,23 +3,23 @@
 import numpy as np
 import pytest
 
-from .loop.helpers import hidden_log, mean_ll, recover, room
+from .loop.helpers import assert_keep_law, hidden_log, mean_ll, recover, room
 
 
 def test_keep_fraction_follows_law():
     """Rate at which the first element returns, per range bin matches exp(-rate (r/10)^power) within 3 binomial sigma +
     0.02."""
     scene, model, poses = room(20)
-    log, _ = hidden_log(scene, model, poses, "range_dropout(rate=2, power=1)")
-    clean, _ = hidden_log(scene, model, poses, "range_dropout(rate=0)")
-    r = clean.attributes["nominal_range"][clean.hit]
-    kept = (log.hit & (log.attributes["element_id"] == clean.attributes["element_id"]))[
-        clean.hit
-    ]  # first element returned
-    for lo, hi in ((0.5, 1.5), (3, 4), (6, 8)):
-        m = (r >= lo) & (r < hi)
-        expect = np.mean(np.exp(-2 * r[m] / 10))
-        assert abs(kept[m].mean() - expect) < 3 * np.sqrt(expect * (1 - expect) / m.sum()) + 0.02
+    assert_keep_law(
+        scene,
+        model,
+        poses,
+        "range_dropout(rate=2, power=1)",
+        "range_dropout(rate=0)",
+        "nominal_range",
+        ((0.5, 1.5), (3, 4), (6, 8)),
+        lambda r: np.exp(-2 * r / 10),
+    )
 
 
 @pytest.mark.slow

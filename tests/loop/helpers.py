@@ -44,6 +44,32 @@ def hidden_log(scene, model, poses, hidden: str, seed: int = 1):
     return simulate(scene, poses=poses, model=true, seed=seed), true
 
 
+def first_kept(log, clean) -> np.ndarray:
+    """(S, B, F) True where ``log`` returned the element that ``clean`` (same rays and seed, no dropout) met first."""
+    return log.hit & (log.attributes["element_id"] == clean.attributes["element_id"])
+
+
+def assert_keep_law(scene, model, poses, hidden: str, clean: str, attribute: str, bins, law) -> None:
+    """Assert that a dropout ``hidden`` keeps the first element at the rate ``law`` of a clean-log ``attribute``.
+
+    Args:
+        hidden, clean: the effects of the log with the dropout and of the log without it (same seed).
+        attribute: the clean log's attribute the law reads (``cos_incidence``, ``nominal_range``).
+        bins: ``(lo, hi)`` ranges of the attribute; in each, among the clean log's hits, the share
+            whose first element still returns must be the mean of ``law(attribute)`` within 3
+            binomial sigma + 0.02.
+        law: the keep probability, a function of (n,) attribute values.
+    """
+    log, _ = hidden_log(scene, model, poses, hidden)
+    reference, _ = hidden_log(scene, model, poses, clean)
+    x = reference.attributes[attribute][reference.hit]
+    kept = first_kept(log, reference)[reference.hit]
+    for lo, hi in bins:
+        m = (x >= lo) & (x < hi)
+        expect = np.mean(law(x[m]))
+        assert abs(kept[m].mean() - expect) < 3 * np.sqrt(expect * (1 - expect) / m.sum()) + 0.02
+
+
 def recover(scene, model, log, name: str, steps: int = 120, **start):
     """Fit effect ``name`` (from its fitting start) on ``log``; return the fitted effect and model."""
     effect = candidate(name, log.shape[1], 8, **start)
