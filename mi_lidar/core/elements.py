@@ -36,6 +36,7 @@ from mi_lidar.core.segment import (
     DEFAULT_REFLECTIVITY,
     ELLIPSOID,
     SURFACE,
+    ElementValues,
     Segment,
     corners,
     element_segment,
@@ -315,11 +316,11 @@ class ElementTable:
         return dr.gather(mi.UInt32, self.element_offset, rid, si.is_valid()) + si.prim_index
 
     # ------------------------------------------------------------------ shared per-element values
-    def _properties(self, element: mi.UInt32, valid: mi.Bool, default_sigma: float):
-        """Hit probability, range sigma (m, the sensor's where unset), kind, shape, label and reflectivity of
-        ``element``."""
+    def _properties(self, element: mi.UInt32, valid: mi.Bool, default_sigma: float) -> ElementValues:
+        """The values of ``element``: hit probability, range sigma (m, the sensor's where unset), kind, shape,
+        label and reflectivity."""
         sigma = dr.gather(mi.Float, self.range_sigma, element, valid)
-        return (
+        return ElementValues(
             dr.gather(mi.Float, self.p_hit, element, valid),
             dr.select(dr.isnan(sigma), default_sigma, sigma),
             dr.gather(mi.UInt32, self.kind, element, valid),
@@ -352,32 +353,20 @@ class ElementTable:
             default_sigma: the sensor's range sigma (m), used where an element has none.
         """
         nominal = dr.dot(si.p - origin, direction)
-        p, sigma, kind, shape, label, rho = self._properties(element, valid, default_sigma)
-        is_ellipsoid = valid & (kind == ELLIPSOID)
+        values = self._properties(element, valid, default_sigma)
+        is_ellipsoid = valid & (values.kind == ELLIPSOID)
         if self.has_ellipsoids:
             center, scale, quat, extent = self._ellipsoid(element, is_ellipsoid)
             restricted = ray_restricted_gaussian(center, scale, quat, extent, origin, direction)
         else:  # no lane is an ellipsoid: skip their gathers (every lane selects the surface values)
-            restricted = (nominal, sigma, nominal, nominal)
+            restricted = (nominal, values.sigma, nominal, nominal)
         corner = (None, None)
         if self.has_triangles:
             triangle = valid & dr.gather(mi.Bool, self.is_triangle, element, valid)
             v0, v1, v2 = (self._vertex(element, c, triangle) for c in range(3))
             corner = corners(v0, v1, v2, triangle, origin, direction, nominal)
         return element_segment(
-            valid,
-            element,
-            p,
-            sigma,
-            kind,
-            shape,
-            label,
-            rho,
-            is_ellipsoid,
-            nominal,
-            restricted,
-            dr.abs(dr.dot(si.n, direction)),
-            corner,
+            valid, element, values, is_ellipsoid, nominal, restricted, dr.abs(dr.dot(si.n, direction)), corner
         )
 
     def _vertex(self, element: mi.UInt32, corner: int, active: mi.Bool) -> mi.Point3f:
@@ -403,7 +392,7 @@ class ElementTable:
         """
         from mi_lidar.core.smoothing import presence
 
-        p, sigma, kind, shape, label, rho = self._properties(element, valid, default_sigma)
+        values = self._properties(element, valid, default_sigma)
         triangle = valid & dr.gather(mi.Bool, self.is_triangle, element, valid)
 
         # ---------------- Triangles: plane of the face; other surfaces: traced tangent plane ----
@@ -415,7 +404,7 @@ class ElementTable:
         t_plane = dr.dot(anchor - origin, normal) / safe_d_n
 
         # ---------------- Ellipsoids: Gaussian restricted to the ray, entry at the chord --------
-        is_ellipsoid = valid & (kind == ELLIPSOID)
+        is_ellipsoid = valid & (values.kind == ELLIPSOID)
         center, scale, quat, extent = self._ellipsoid(element, is_ellipsoid)
         e_mean, e_sigma, e_lo, e_hi = ray_restricted_gaussian(center, scale, quat, extent, origin, direction)
         point = origin + e_lo * direction
@@ -425,17 +414,12 @@ class ElementTable:
         if self.smoothing > 0:
             a, b, c = ray_quadratic(center, scale, quat, origin, direction)
             soft = presence(a, b, c, extent, self.smoothing)
-            p = dr.select(is_ellipsoid, p * soft, p)
+            values = values._replace(p=dr.select(is_ellipsoid, values.p * soft, values.p))
 
         return element_segment(
             valid,
             element,
-            p,
-            sigma,
-            kind,
-            shape,
-            label,
-            rho,
+            values,
             is_ellipsoid,
             dr.select(is_ellipsoid, e_lo, t_plane),
             (e_mean, e_sigma, e_lo, e_hi),
@@ -459,21 +443,21 @@ class ElementTable:
         """
         mean, e_sigma, lo, hi = entry.cached[:4]
         corner = entry.cached[4:]
-        p, sigma, kind, shape, label, rho = self._properties(entry.element, valid, default_sigma)
+        values = self._properties(entry.element, valid, default_sigma)
         return Segment(
             valid=valid,
             nominal=entry.nominal,
-            p=p,
+            p=values.p,
             mean=mean,
-            sigma=dr.select(kind == ELLIPSOID, e_sigma, sigma),
+            sigma=dr.select(values.kind == ELLIPSOID, e_sigma, values.sigma),
             lo=lo,
             hi=hi,
             cos_incidence=entry.cos_incidence,
             element=entry.element,
-            shape=shape,
-            label=label,
-            kind=kind,
-            reflectivity=rho,
+            shape=values.shape,
+            label=values.label,
+            kind=values.kind,
+            reflectivity=values.reflectivity,
             corner_offset=mi.Vector3f(*corner[:3]) if corner else None,
             corner_weight=mi.Vector3f(*corner[3:]) if corner else None,
         )

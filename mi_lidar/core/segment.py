@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import drjit as dr
 import mitsuba as mi
@@ -264,12 +265,24 @@ def corners(v0, v1, v2, triangle: mi.Bool, origin, direction, t) -> tuple[mi.Vec
     return dr.select(triangle, offset, 0.0), weight
 
 
+class ElementValues(NamedTuple):
+    """The values of each lane's element that a :class:`Segment` carries (one lane per ray)."""
+
+    p: mi.Float  # probability that the element intercepts the beam
+    sigma: mi.Float  # range sigma (m; the sensor's where the element has none)
+    kind: mi.UInt32  # SURFACE or ELLIPSOID
+    shape: mi.UInt32  # shape index in the element table
+    label: mi.UInt32  # class label
+    reflectivity: mi.Float  # Lambertian reflectivity
+
+
 def element_segment(
-    valid, element, p, sigma, kind, shape, label, reflectivity, is_ellipsoid, nominal, restricted, cos_incidence, corner
+    valid, element, values: ElementValues, is_ellipsoid, nominal, restricted, cos_incidence, corner
 ) -> Segment:
     """A :class:`Segment`: a surface returns around its nominal range; an ellipsoid its restricted Gaussian.
 
     Args:
+        values: the element's values (its ``sigma`` is used for surfaces).
         restricted: ``(mean, sigma, lo, hi)`` of the ellipsoid Gaussian restricted to the ray (m).
         corner: ``(offset, weight)`` of :func:`corners`.
     """
@@ -277,17 +290,17 @@ def element_segment(
     return Segment(
         valid=valid,
         nominal=nominal,
-        p=p,
+        p=values.p,
         mean=dr.select(is_ellipsoid, e_mean, nominal),
-        sigma=dr.select(is_ellipsoid, e_sigma, sigma),
+        sigma=dr.select(is_ellipsoid, e_sigma, values.sigma),
         lo=dr.select(is_ellipsoid, e_lo, -dr.inf),
         hi=dr.select(is_ellipsoid, e_hi, dr.inf),
         cos_incidence=cos_incidence,
         element=element,
-        shape=shape,
-        label=label,
-        kind=kind,
-        reflectivity=reflectivity,
+        shape=values.shape,
+        label=values.label,
+        kind=values.kind,
+        reflectivity=values.reflectivity,
         corner_offset=corner[0],
         corner_weight=corner[1],
     )
