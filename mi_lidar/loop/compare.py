@@ -283,12 +283,10 @@ def compare(
         SensorMismatchError: the log was recorded by another sensor than the scene's
             (:func:`~mi_lidar.scene.sensor_check.check_log_sensor`).
     """
-    from mi_lidar.scene.loading import load_scene, scene_sensor_model
-    from mi_lidar.scene.sensor_check import check_log_sensor, scene_warnings
+    from mi_lidar.scene.loading import scene_sensor_model
+    from mi_lidar.scene.sensor_check import log_scene, scene_warnings
 
-    if not hasattr(scene, "shapes"):
-        scene = load_scene(scene)
-    check_log_sensor(log, scene, force=force)
+    scene = log_scene(log, scene, force)
     model = model or scene_sensor_model(scene)[0]
     t = ray_table(log, scene, model, seed)
     origins, directions = world_rays(log, t.scan, t.beam, t.column)

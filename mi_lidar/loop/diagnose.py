@@ -325,12 +325,10 @@ def diagnose(
             (:func:`~mi_lidar.scene.sensor_check.check_log_sensor`).
     """
     from mi_lidar.loop.diagnosis_report import verdict, write_report
-    from mi_lidar.scene.loading import load_scene, scene_sensor_model
-    from mi_lidar.scene.sensor_check import check_log_sensor, scene_warnings
+    from mi_lidar.scene.loading import scene_sensor_model
+    from mi_lidar.scene.sensor_check import log_scene, scene_warnings
 
-    if not hasattr(scene, "shapes"):
-        scene = load_scene(scene)
-    check_log_sensor(log, scene, force=force)
+    scene = log_scene(log, scene, force)
     base = copy.deepcopy(model or scene_sensor_model(scene)[0])
     data = Splits.build(log, scene, max_train, max_test, max_fit, seed)
     if base.effects:

@@ -130,6 +130,20 @@ def check_log_sensor(log, scene, pattern=None, force: bool = False) -> None:
         )
 
 
+def log_scene(log, scene, force: bool = False):
+    """The scene to score ``log`` in: ``scene``, loaded when it is an XML path, checked by :func:`check_log_sensor`.
+
+    Raises:
+        SensorMismatchError: ``log`` was not recorded by the scene's sensor (unless ``force``).
+    """
+    from mi_lidar.scene.loading import load_scene
+
+    if not hasattr(scene, "shapes"):
+        scene = load_scene(scene)
+    check_log_sensor(log, scene, force=force)
+    return scene
+
+
 SURFACE_SHARE_WARNING = 0.25  # below this share of returns on a surface, the scene is probably not the log's
 
 
