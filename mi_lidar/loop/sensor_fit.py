@@ -134,16 +134,14 @@ def fit_sensor(
         force: fit even when the log's sensor does not match the scene's
             (:func:`~mi_lidar.scene.sensor_check.check_log_sensor`).
     """
-    from mi_lidar.scene.loading import load_scene, scene_sensor_model
-    from mi_lidar.scene.sensor_check import check_log_sensor, scene_warnings
+    from mi_lidar.scene.loading import scene_sensor_model
+    from mi_lidar.scene.sensor_check import log_scene, scene_warnings
 
     family = next((f for f in FAMILIES if catalog_name(f) == catalog_name(family)), family)  # np_reg or np-reg
     if family not in FAMILIES:
         raise ParameterError(f"fit-sensor: unknown model {family!r}; choose one of {', '.join(FAMILIES)}")
     say = progress or (lambda message: None)
-    if not hasattr(scene, "shapes"):
-        scene = load_scene(scene)
-    check_log_sensor(log, scene, force=force)
+    scene = log_scene(log, scene, force=force)
     base = scene_sensor_model(scene)[0]
     rays = LogRays.from_log(log)
     train_index, test_index = split_rays(log, max_train, max_test, seed)
