@@ -50,6 +50,19 @@ class SensorMismatchError(MiLidarError, ValueError):
     """A log was recorded by another sensor than the scene's (beam count, field of view or range scale)."""
 
 
+def unreadable(path, what: str = "file") -> LogFormatError:
+    """The error for a file the process may not read: what happened and the two ways out.
+
+    Args:
+        path: The file.
+        what: Its role in the message ("log", "file").
+    """
+    return LogFormatError(
+        f"{path}: cannot read the {what} (permission denied); make it readable (chmod a+r {path}) or copy it to a "
+        "file you may read"
+    )
+
+
 def describe_invalid(items: list[dict], header: str, footer: str = "") -> str:
     """One message listing every problem of a validated document, one line each.
 

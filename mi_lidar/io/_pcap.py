@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, unreadable
 
-_MAGIC = {
+PCAP_MAGIC = {
     b"\xd4\xc3\xb2\xa1": ("<", 1e-6),
     b"\xa1\xb2\xc3\xd4": (">", 1e-6),
     b"\x4d\x3c\xb2\xa1": ("<", 1e-9),
@@ -125,13 +125,16 @@ def read_udp(path: str | Path) -> UdpPackets:
     path = Path(path)
     if not path.is_file():
         raise LogFormatError(f"{path}: no such pcap file")
-    data = path.read_bytes()
+    try:
+        data = path.read_bytes()
+    except PermissionError as exc:
+        raise unreadable(path) from exc
     if len(data) < 24:
         raise LogFormatError(f"{path}: {len(data)} bytes is shorter than the 24-byte pcap global header")
-    if data[:4] not in _MAGIC:
+    if data[:4] not in PCAP_MAGIC:
         hint = " (this looks like pcapng; convert it with `editcap -F pcap`)" if data[:4] == b"\x0a\x0d\x0d\x0a" else ""
         raise LogFormatError(f"{path}: byte 0: unknown pcap magic {data[:4].hex()}{hint}")
-    order, tick = _MAGIC[data[:4]]
+    order, tick = PCAP_MAGIC[data[:4]]
     link = struct.unpack_from(order + "I", data, 20)[0] & 0x0FFFFFFF
     if link not in _LINK_HEADER:
         raise LogFormatError(f"{path}: byte 20: link type {link}; expected Ethernet (1), raw IP (101) or Linux SLL")

@@ -34,6 +34,7 @@ from mi_lidar.core.log import Log
 from mi_lidar.io import carmen, exr, kitti, las, ouster, pcd, ply, rosbag, velodyne
 from mi_lidar.io._pcap import read_udp
 from mi_lidar.io.preview import range_image_png
+from mi_lidar.io.signature import check_signature
 
 READ_FORMATS = ("npz", "carmen", "ouster", "velodyne", "bin", "ply", "pcd", "las", "rosbag", "exr")
 WRITE_FORMATS = ("npz", "bin", "ply", "pcd", "las", "rosbag2", "exr", "png")
@@ -71,6 +72,12 @@ def detect_format(path: str | os.PathLike, for_writing: bool = False) -> str:
     if not for_writing and path.is_dir():
         if (path / "metadata.yaml").is_file():
             return "rosbag"
+        storage = sorted(p.name for p in path.iterdir() if p.suffix in (".db3", ".mcap"))
+        if storage:
+            raise LogFormatError(
+                f"{path}: a ROS 2 bag folder without metadata.yaml (it holds {', '.join(storage)}); rebuild the "
+                f"metadata with `ros2 bag reindex {path}`"
+            )
         known = ", ".join(sorted(set(_SUFFIX_FORMATS) | {".pcap"}))
         raise LogFormatError(
             f"{path}: a folder without metadata.yaml, so not a ROS 2 bag; give a ROS 2 bag folder or a file: {known}"
@@ -119,7 +126,9 @@ def read_any(path: str | os.PathLike, **options) -> Log:
             (bags), ``columns=`` (``.bin``), ``message=`` (CARMEN).
 
     Raises:
-        LogFormatError: Unknown format, or any defect the format's reader reports.
+        LogFormatError: Unknown format, a file whose first bytes say it is not of the format its extension
+            names (empty, another format's, damaged: :func:`mi_lidar.io.signature.check_signature`), or any
+            defect the format's reader reports.
     """
     path = Path(path)
     fmt = detect_format(path)
@@ -135,6 +144,8 @@ def read_any(path: str | os.PathLike, **options) -> Log:
         "rosbag": rosbag.read_rosbag_log,
         "exr": exr.read_exr_log,
     }
+    if path.is_file():
+        check_signature(path, fmt)
     if fmt == "pcap":
         return _read_pcap(path, **options)
     return readers[fmt](path, **options)

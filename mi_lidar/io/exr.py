@@ -17,7 +17,7 @@ import numpy as np
 import OpenEXR
 
 from mi_lidar.core.atomic import atomic_path
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, unreadable
 from mi_lidar.core.log import Log
 
 _UINT_MAX = np.iinfo(np.uint32).max
@@ -96,7 +96,11 @@ def read_exr(path: str | os.PathLike, with_metadata: bool = False):
             channels = {name: np.array(channel.pixels) for name, channel in exr.channels().items()}
             metadata = {k: v for k, v in exr.header().items() if isinstance(v, str)}
     except Exception as exc:  # OpenEXR raises plain RuntimeError/Exception subclasses.
-        raise LogFormatError(f"{path}: not a readable EXR image ({exc})") from exc
+        if not os.access(path, os.R_OK):
+            raise unreadable(path) from exc
+        raise LogFormatError(
+            f"{path}: not a readable EXR image ({exc}); the file is damaged or cut short: re-create or copy it again"
+        ) from exc
     return (channels, metadata) if with_metadata else channels
 
 

@@ -16,6 +16,7 @@ import numpy as np
 from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import NUMPY_FILE_ERRORS, LogFormatError
 from mi_lidar.core.poses import validate_poses
+from mi_lidar.io.signature import check_signature, read_head, sniff
 
 
 def _read_text_rows(path: Path, width: int) -> np.ndarray:
@@ -81,11 +82,14 @@ def read_poses(path: str | os.PathLike) -> np.ndarray:
     if suffix == ".npz":
         from mi_lidar.core.log import Log
 
+        check_signature(path, "npz")
         return validate_poses(Log.load(path).poses, path)
-    with open(path, "rb") as stream:
-        head = stream.read(4096)
-    if b"\0" in head:
-        raise LogFormatError(f"{path}: a binary file, not a pose file; give {POSE_FILES}")
+    head = read_head(path, 4096)
+    found = sniff(head)
+    if found is not None or b"\0" in head:
+        raise LogFormatError(
+            f"{path}: {found[0].kind if found else 'a binary file'}, not a pose file; give {POSE_FILES}"
+        )
     first = next((line.split() for line in head.decode("utf-8", "replace").splitlines() if line.strip()), [])
     return read_kitti_poses(path) if len(first) == 12 else read_pose_matrices(path)
 
@@ -109,17 +113,21 @@ def read_pose_matrices(path: str | os.PathLike) -> np.ndarray:
         (S, 4, 4) float64 sensor-to-world transforms.
 
     Raises:
-        LogFormatError: Missing or unreadable file, or wrong shape.
+        LogFormatError: Missing or unreadable file (an ``.npy`` that is empty, another format or damaged), values
+            that are not real numbers, or a wrong shape.
         PoseError: A pose that is not a finite rigid transform.
     """
     path = Path(path)
     if not path.is_file():
         raise LogFormatError(f"{path}: no such pose file")
     if path.suffix.lower() == ".npy":
+        check_signature(path, "npy")
         try:
             poses = np.load(path, allow_pickle=False)
         except NUMPY_FILE_ERRORS as exc:
             raise LogFormatError(f"{path}: not a readable .npy array ({type(exc).__name__}: {exc})") from exc
+        if poses.dtype.kind not in "iuf":
+            raise LogFormatError(f"{path}: array of {poses.dtype} values; expected real numbers (float64 poses)")
         if poses.ndim == 2 and poses.shape == (4, 4):
             poses = poses[None]
         if poses.ndim != 3 or poses.shape[1:] != (4, 4):

@@ -1,0 +1,183 @@
+"""Bad files are refused by ``read_any`` (and so by every command that reads them) with a LogFormatError that
+names the file and what to do: empty files, files cut short, random bytes, files of one format under another's
+extension. Each case failed on the previous code with a reader's raw message (or read garbage as a scan)."""
+
+import gzip
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from mi_lidar.cli import app
+from mi_lidar.core.errors import LogFormatError
+from mi_lidar.io import read_any, read_ouster, read_poses, write_any, write_kitti_poses
+
+from .synth import carmen_text, write_ouster
+from .test_clouds import synthetic_log
+
+# seed file -> (what the error calls such a file, the extension the fix names)
+SIGNED = {
+    "s.ply": ("a PLY point cloud", ".ply"),
+    "s.las": ("a LAS/LAZ point cloud", ".las"),
+    "log.npz": ("a zip archive", ".npz"),
+    "s.exr": ("an OpenEXR image", ".exr"),
+    "synth.pcap": ("a pcap capture", ".pcap"),
+    "s.pcd": ("a PCD point cloud", ".pcd"),
+    "poses.npy": ("a numpy .npy array", ".npy"),
+}
+REQUIRED = [name for name in SIGNED if name != "s.pcd"]  # a PCD may open with other comment lines
+UNSIGNED = ("c.log", "k.bin")  # formats without a signature of their own
+TARGETS = ("x.bin", "x.log", "x.npz", "x.ply", "x.pcd", "x.las", "x.exr", "x.pcap")
+
+
+@pytest.fixture(scope="module")
+def seeds(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("seeds")
+    log = synthetic_log(height=4, width=16)
+    for name in ("s.ply", "s.las", "s.exr", "s.pcd", "k.bin"):
+        write_any(log, folder / name)
+    synthetic_log(height=4, width=16, scans=2).save(folder / "log.npz")
+    write_ouster(folder, np.full((8, 32), 5000, dtype=np.uint32))
+    np.save(folder / "poses.npy", np.tile(np.eye(4), (2, 1, 1)))
+    write_kitti_poses(folder / "poses.txt", np.tile(np.eye(4), (2, 1, 1)))
+    (folder / "c.log").write_text(carmen_text(3))
+    (folder / "c.log.gz").write_bytes(gzip.compress(carmen_text(3).encode()))
+    return folder
+
+
+def read(path):
+    return read_poses(path) if path.suffix == ".npy" else read_any(path)
+
+
+@pytest.mark.parametrize("name", [*SIGNED, *UNSIGNED, "c.log.gz", "n.pcd.bin"])
+def test_an_empty_file_is_named_empty(tmp_path, name):
+    path = tmp_path / name
+    path.write_bytes(b"")
+    with pytest.raises(LogFormatError, match=rf"{name}: empty file \(0 bytes\), not .*; re-create or copy it again"):
+        read(path)
+
+
+@pytest.mark.parametrize("name", REQUIRED)
+@pytest.mark.parametrize("keep", [1, 3])
+def test_a_file_cut_inside_its_signature_is_called_truncated(seeds, tmp_path, name, keep):
+    path = tmp_path / name
+    path.write_bytes((seeds / name).read_bytes()[:keep])
+    with pytest.raises(LogFormatError, match=rf"{name}: {keep} byte\(s\), cut off inside the signature .*truncated"):
+        read(path)
+
+
+@pytest.mark.parametrize("name", REQUIRED)
+def test_random_bytes_under_a_signed_extension_are_refused(tmp_path, name):
+    path = tmp_path / name
+    path.write_bytes(np.random.default_rng(7).integers(0, 256, 2000, dtype=np.uint8).tobytes())
+    with pytest.raises(LogFormatError, match=rf"{name}: not .*: such a file starts with .*damaged, or another format"):
+        read(path)
+
+
+@pytest.mark.parametrize("source", [*SIGNED, "c.log.gz"])
+@pytest.mark.parametrize("target", TARGETS)
+def test_a_file_of_another_format_is_named_with_the_extension_to_give_it(seeds, tmp_path, source, target):
+    """E.g. a PLY saved as scan.bin was read as 1e30 m points, a LAS as .npz said 'pickled (object) data'."""
+    kind, suffix = SIGNED.get(source, ("a gzip file", ".log.gz"))
+    if target.endswith(suffix) or (source == "c.log.gz" and target in ("x.log", "x.bin")):
+        pytest.skip("the file's own format, or a 3-byte signature a float file matches by chance")
+    path = tmp_path / target
+    path.write_bytes((seeds / source).read_bytes())
+    with pytest.raises(LogFormatError, match=rf"{target}: {re.escape(kind)}.* \(it starts with .*\), not .*{suffix}"):
+        read(path)
+
+
+def test_an_npz_under_npy_is_refused_not_a_traceback(seeds, tmp_path):
+    """read_poses raised AttributeError ('NpzFile' object has no attribute 'ndim') for a log saved as .npy."""
+    path = tmp_path / "poses.npy"
+    path.write_bytes((seeds / "log.npz").read_bytes())
+    with pytest.raises(LogFormatError, match=r"poses.npy: a zip archive .* rename it to .npz"):
+        read_poses(path)
+
+
+@pytest.mark.parametrize("dtype", ["U8", "complex128"])
+def test_pose_arrays_of_text_or_complex_numbers_are_refused(tmp_path, dtype):
+    """Strings were parsed and complex numbers silently lost their imaginary part."""
+    path = tmp_path / "poses.npy"
+    np.save(path, np.tile(np.eye(4), (2, 1, 1)).astype(dtype))
+    with pytest.raises(LogFormatError, match=rf"poses.npy: array of {np.dtype(dtype)} values; expected real numbers"):
+        read_poses(path)
+
+
+def test_a_bag_folder_without_metadata_says_reindex(tmp_path):
+    bag = write_any(synthetic_log(height=4, width=16, scans=2), tmp_path / "bag")
+    (bag / "metadata.yaml").unlink()
+    with pytest.raises(LogFormatError, match=r"bag: a ROS 2 bag folder without metadata.yaml .*ros2 bag reindex"):
+        read_any(bag)
+
+
+def deny(monkeypatch, path):
+    """Make reading ``path`` raise PermissionError, as a chmod 000 file does (tests may run as root, whom chmod
+    does not stop): through open, Path.read_bytes and numpy.fromfile."""
+    import builtins
+
+    def refuse(real):
+        def call(file, *args, **kwargs):
+            if str(file) == str(path):
+                raise PermissionError(13, "Permission denied", str(file))
+            return real(file, *args, **kwargs)
+
+        return call
+
+    monkeypatch.setattr(builtins, "open", refuse(builtins.open))
+    monkeypatch.setattr(np, "fromfile", refuse(np.fromfile))
+    monkeypatch.setattr(Path, "read_bytes", lambda self, real=Path.read_bytes: refuse(real)(self))
+
+
+READERS = {  # the readers a user calls directly, by the seed they read
+    "s.ply": read_any,
+    "poses.npy": read_poses,
+    "poses.txt": read_poses,
+    "synth.pcap": lambda path: read_ouster(path, metadata=path.with_suffix(".json")),
+}
+
+
+@pytest.mark.parametrize("name", list(READERS))
+def test_a_file_the_user_may_not_read_says_so(seeds, tmp_path, monkeypatch, name):
+    """It was a bare PermissionError, which the CLI words as a fix for writing ('choose a folder you may write to')."""
+    path = tmp_path / f"locked{Path(name).suffix}"
+    path.write_bytes((seeds / name).read_bytes())
+    if name == "synth.pcap":
+        path.with_suffix(".json").write_bytes((seeds / "synth.json").read_bytes())
+    deny(monkeypatch, path)
+    with pytest.raises(LogFormatError, match=rf"{path.name}: cannot read the file \(permission denied\); .*chmod a\+r"):
+        READERS[name](path)
+
+
+def test_an_exr_the_user_may_not_read_says_so(seeds, tmp_path, monkeypatch):
+    """OpenEXR opens the file itself and says only 'Unable to open ... for read'."""
+    import mi_lidar.io.exr as exr
+
+    path = tmp_path / "locked.exr"
+    path.write_bytes((seeds / "s.exr").read_bytes())
+    monkeypatch.setattr(exr.OpenEXR, "File", lambda *args, **kwargs: (_ for _ in ()).throw(RuntimeError("no")))
+    monkeypatch.setattr(exr.os, "access", lambda *args: False)
+    with pytest.raises(LogFormatError, match=r"locked.exr: cannot read the file \(permission denied\)"):
+        exr.read_exr(path)
+
+
+def test_a_damaged_exr_says_what_to_do(seeds, tmp_path):
+    path = tmp_path / "cut.exr"
+    path.write_bytes((seeds / "s.exr").read_bytes()[:-1])
+    with pytest.raises(LogFormatError, match=r"cut.exr: not a readable EXR image .*damaged or cut short"):
+        read_any(path)
+
+
+@pytest.mark.parametrize("command", ["info", "convert"])
+@pytest.mark.parametrize("source, target", [("s.ply", "scan.bin"), ("s.las", "scan.npz"), ("log.npz", "scan.exr")])
+def test_the_commands_print_one_line_naming_the_file(seeds, tmp_path, command, source, target):
+    path = tmp_path / target
+    path.write_bytes((seeds / source).read_bytes())
+    args = [command, str(path)] + ([str(tmp_path / "out.npz")] if command == "convert" else [])
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2 and isinstance(result.exception, SystemExit), result.output
+    (line,) = result.output.strip().splitlines()
+    assert line.startswith("error: ") and target in line and "rename it to" in line
+    assert not (tmp_path / "out.npz").exists()
