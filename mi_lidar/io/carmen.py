@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, unreadable
 from mi_lidar.core.log import Log
 
 SICK_SWEEP_S = 1.0 / 150.0
@@ -43,10 +43,7 @@ def text_lines(path: Path) -> list[str]:
     try:
         raw = path.read_bytes()
     except PermissionError as exc:
-        raise LogFormatError(
-            f"{path}: cannot read the log (permission denied); make it readable (chmod a+r {path}) or copy it "
-            "to a file you may read"
-        ) from exc
+        raise unreadable(path, "log") from exc
     if raw[:2] == b"\x1f\x8b":
         try:
             raw = gzip.decompress(raw)
@@ -60,8 +57,8 @@ def parse_message(tokens: list[str], number: int) -> np.ndarray:
     odom_theta timestamp host logger_timestamp``): its n ranges, pose, odometry and timestamp.
 
     Raises:
-        LogFormatError: a beam count below 2, a non-numeric value or too few fields (``number``: the
-            line's number, named in the message).
+        LogFormatError: a beam count below 2, a non-numeric value, too few fields, or more than the count
+            allows (``n`` smaller than the ranges given) (``number``: the line's number, named in the message).
     """
     name = tokens[0]
     try:
@@ -76,7 +73,22 @@ def parse_message(tokens: list[str], number: int) -> np.ndarray:
             f"line {number}: {name} with n={n} needs {n + 10} fields (n ranges + 10); found {len(tokens)} "
             "(truncated?): repair or delete the line"
         )
+    if len(tokens) > n + 11 or (len(tokens) == n + 11 and not _is_number(tokens[-1])):
+        raise LogFormatError(
+            f"line {number}: {name} with n={n} has {len(tokens)} fields, where n ranges + 10 (or 11 with the logger "
+            f"timestamp) make {n + 10} or {n + 11}: the beam count {n} is smaller than the ranges on the line; repair "
+            "the count or delete the line"
+        )
     return values
+
+
+def _is_number(token: str) -> bool:
+    """Whether ``token`` reads as a float."""
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
 
 
 def beam_angles(n: int) -> np.ndarray:

@@ -55,12 +55,25 @@ def test_beam_layout():
         ("FLASER 3 1 2", "line 2: FLASER with n=3 needs 13 fields"),
         ("FLASER 3 1 2 x 0 0 0 0 0 0 5 host 5", "line 2: malformed FLASER"),
         ("FLASER 3 1 2 nan 0 0 0 0 0 0 5 host 5", "line 2: FLASER range 2 is nan"),
+        # a count smaller than the ranges read the surplus ranges as the pose, silently
+        (
+            "FLASER 2 1 2 3 0 0 0 0 0 0 5 host 5",
+            r"line 2: FLASER with n=2 has 14 fields, .* make 12 or 13: the beam count",
+        ),
+        ("FLASER 2 1 2 3 0 0 0 0 0 0 5 host", r"line 2: FLASER with n=2 has 13 fields, .* count 2 is smaller than"),
     ],
 )
 def test_malformed_lines(tmp_path, line, message):
     (tmp_path / "bad.log").write_text("# header\n" + line + "\n")
     with pytest.raises(LogFormatError, match=message):
         read_carmen(tmp_path / "bad.log")
+
+
+def test_a_line_without_the_logger_timestamp_reads(tmp_path):
+    (tmp_path / "short.log").write_text("FLASER 3 1 2 3 0.5 0 0 0 0 0 5 host\n")
+    log = read_carmen(tmp_path / "short.log", max_range=80.0)
+    np.testing.assert_allclose(log.ranges[0, :, 0], [1, 2, 3])
+    np.testing.assert_allclose(log.poses[0, 0, 3], 0.5)
 
 
 def test_empty_and_mixed_logs(tmp_path):
