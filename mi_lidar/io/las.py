@@ -18,7 +18,7 @@ import laspy
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_path
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, unreadable
 from mi_lidar.core.log import Log
 from mi_lidar.io.cloud import cloud_from_log, log_from_fields
 
@@ -55,6 +55,27 @@ def _check_record_counts(path: Path, head: bytes, size: int) -> None:
                 f"{path}: header fields start_of_first_evlr = {start} and number_of_evlrs = {evlrs} do not fit "
                 f"the {size}-byte file (corrupt header)"
             )
+
+
+def _check_header_values(path: Path, header, need: int, size: int) -> None:
+    """Refuse non-finite or zero coordinate scales, non-finite offsets, and (uncompressed) whole point records
+    after the ``point_count`` the header counts, before the extended VLRs or waveform data (a count too small)."""
+    scales, offsets = np.asarray(header.scales, dtype=float), np.asarray(header.offsets, dtype=float)
+    if not (np.isfinite(scales).all() and np.all(scales != 0) and np.isfinite(offsets).all()):
+        raise LogFormatError(
+            f"{path}: header fields scale {scales.tolist()} and offset {offsets.tolist()} must be finite, scales "
+            "non-zero (corrupt header); export the file again"
+        )
+    if header.are_points_compressed:
+        return
+    starts = (header.start_of_first_evlr if header.number_of_evlrs else 0, header.start_of_waveform_data_packet_record)
+    end = min([size, *(int(start) for start in starts if start and start >= need)])
+    if end - need >= header.point_format.size:
+        raise LogFormatError(
+            f"{path}: {(end - need) // header.point_format.size} whole point records follow the point_count = "
+            f"{header.point_count} the header counts: the count is too small or data was appended; correct the "
+            "header or export the file again"
+        )
 
 
 def write_las_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
@@ -96,13 +117,16 @@ def read_las(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, np.ndarray]
         since ``start``, the earliest ``gps_time``) when the points have a ``gps_time``.
 
     Raises:
-        LogFormatError: Missing, truncated or malformed file, or LAZ without a backend.
+        LogFormatError: Missing, unreadable, truncated or malformed file (a header whose point count, scale or
+            offset disagrees with the data), or LAZ without a backend.
     """
     path = Path(path)
     try:
         stream = open(path, "rb")  # closed by the with block below
     except (FileNotFoundError, IsADirectoryError) as exc:
         raise LogFormatError(f"{path}: no such LAS file") from exc
+    except PermissionError as exc:
+        raise unreadable(path) from exc
     with stream:
         size = os.fstat(stream.fileno()).st_size
         _check_record_counts(path, stream.read(247), size)
@@ -117,6 +141,7 @@ def read_las(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, np.ndarray]
                         f"{header.point_format.size}-byte records from byte {header.offset_to_point_data}; "
                         f"the file has {size} (truncated or corrupt header)"
                     )
+                _check_header_values(path, header, need, size)
                 las = reader.read()
             names = set(las.point_format.dimension_names)
             points = _coordinates(las)

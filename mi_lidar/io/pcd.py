@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_path
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, unreadable
 from mi_lidar.core.log import Log
 from mi_lidar.io.cloud import cloud_from_log, log_from_fields
 
@@ -70,6 +70,17 @@ def _lzf_decompress(data: bytes, size: int, path: Path) -> bytes:
     return bytes(out)
 
 
+_TOO_MANY = "the header's WIDTH/HEIGHT/POINTS are too small or data was appended; correct the header or export again"
+
+
+def _check_end(path: Path, body: bytes, used: int, what: str) -> None:
+    """Refuse a data section with more than whitespace after the ``used`` bytes the header accounts for."""
+    if len(body) > used and body[used : used + 64].strip():
+        raise LogFormatError(
+            f"{path}: {len(body) - used} bytes follow the data the header declares ({what}): {_TOO_MANY}"
+        )
+
+
 def _parse_header(raw: bytes, path: Path) -> tuple[dict, int]:
     """The header keywords and the byte offset of the data section."""
     header, offset = {}, 0
@@ -102,12 +113,15 @@ def read_pcd(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], int, int]:
 
     Raises:
         LogFormatError: Missing/truncated file, inconsistent header (named keyword), unknown
-            TYPE/SIZE, or a data section shorter than the header promises.
+            TYPE/SIZE, or a data section shorter or longer than the header promises.
     """
     path = Path(path)
     if not path.is_file():
         raise LogFormatError(f"{path}: no such PCD file")
-    raw = path.read_bytes()
+    try:
+        raw = path.read_bytes()
+    except PermissionError as exc:
+        raise unreadable(path) from exc
     header, offset = _parse_header(raw, path)
     try:
         names = header["FIELDS"]
@@ -139,8 +153,11 @@ def read_pcd(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], int, int]:
     body = raw[offset:]
     if mode == "ascii":
         rows = body.decode("ascii", errors="replace").split()
-        if len(rows) < points * len(unique):
-            raise LogFormatError(f"{path}: ascii data holds {len(rows)} values; header promises {points * len(unique)}")
+        if len(rows) != points * len(unique):
+            raise LogFormatError(
+                f"{path}: ascii data holds {len(rows)} values; the header promises {points * len(unique)} (POINTS "
+                f"{points} x {len(unique)} fields): {'truncated?' if len(rows) < points * len(unique) else _TOO_MANY}"
+            )
         try:
             table = np.array(rows[: points * len(unique)], dtype=np.float64).reshape(points, len(unique))
         except ValueError as exc:
@@ -151,6 +168,7 @@ def read_pcd(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], int, int]:
             raise LogFormatError(
                 f"{path}: binary data is {len(body)} bytes from byte {offset}; expected {points * record.itemsize}"
             )
+        _check_end(path, body, points * record.itemsize, f"POINTS {points} x {record.itemsize}-byte records")
         data = np.frombuffer(body, dtype=record, count=points)
         fields = {n: data[n].astype(record[n].newbyteorder("=")) for n in record.names}
     elif mode == "binary_compressed":
@@ -162,6 +180,7 @@ def read_pcd(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], int, int]:
                 f"{path}: compressed block claims {compressed} -> {size} bytes; expected {points * record.itemsize} "
                 f"uncompressed and at most {len(body) - 8} compressed"
             )
+        _check_end(path, body, 8 + int(compressed), f"a compressed block of {compressed} bytes")
         data = _lzf_decompress(body[8 : 8 + int(compressed)], int(size), path)
         fields, start = {}, 0
         for name in record.names:

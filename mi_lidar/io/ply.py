@@ -15,7 +15,7 @@ import numpy as np
 import plyfile
 
 from mi_lidar.core.atomic import atomic_path
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, unreadable
 from mi_lidar.core.log import Log
 from mi_lidar.io.cloud import cloud_from_log, log_from_fields
 
@@ -88,12 +88,21 @@ def write_ply(
 def _load(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
     """Points, attributes and header comments of a PLY file (see :func:`read_ply`)."""
     try:
-        data = plyfile.PlyData.read(str(path))
-        vertex = data["vertex"].data
+        with open(path, "rb") as stream:
+            data = plyfile.PlyData.read(stream)
+            vertex = data["vertex"].data
+            if not data.text:
+                _check_binary_end(path, stream, data)
+        if data.text:
+            _check_text_end(path, data)
     except (FileNotFoundError, IsADirectoryError) as exc:
         raise LogFormatError(f"{path}: no such PLY file") from exc
+    except PermissionError as exc:
+        raise unreadable(path) from exc
     except KeyError as exc:
         raise LogFormatError(f"{path}: no 'vertex' element; expected a point cloud") from exc
+    except LogFormatError:
+        raise
     except Exception as exc:  # plyfile raises PlyParseError, ValueError, struct errors, ...
         raise LogFormatError(f"{path}: not a readable PLY file ({type(exc).__name__}: {exc})") from exc
     names = vertex.dtype.names or ()
@@ -109,6 +118,36 @@ def _load(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
     return points, attributes, data.comments
 
 
+def _element_counts(data: plyfile.PlyData) -> str:
+    """The header's element counts as written there ("element vertex 54")."""
+    return ", ".join(f"'element {element.name} {element.count}'" for element in data.elements)
+
+
+def _check_binary_end(path: Path, stream, data: plyfile.PlyData) -> None:
+    """Refuse bytes after the elements a binary PLY's header declares (a count too small drops points)."""
+    end, size = stream.tell(), os.fstat(stream.fileno()).st_size
+    if size > end and stream.read(min(size - end, 64)).strip():
+        raise LogFormatError(
+            f"{path}: {size - end} bytes follow the data its header declares ({_element_counts(data)}): the count is "
+            "too small or data was appended; correct the header or export the file again"
+        )
+
+
+def _check_text_end(path: Path, data: plyfile.PlyData) -> None:
+    """Refuse values after the elements an ASCII PLY's header declares (when no element has list properties)."""
+    if any(isinstance(p, plyfile.PlyListProperty) for element in data.elements for p in element.properties):
+        return
+    raw = path.read_bytes()
+    body = raw[raw.index(b"\n", raw.index(b"end_header")) + 1 :]
+    found = len(body.split())
+    declared = sum(element.count * len(element.properties) for element in data.elements)
+    if found > declared:
+        raise LogFormatError(
+            f"{path}: {found} values follow the header, which declares {declared} ({_element_counts(data)}): the "
+            "count is too small or data was appended; correct the header or export the file again"
+        )
+
+
 def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Read the ``vertex`` element of a PLY file.
 
@@ -120,8 +159,8 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, np.ndarray]
         stored dtypes (native byte order).
 
     Raises:
-        LogFormatError: Missing, truncated or malformed file, or no ``vertex`` element with
-            ``x y z`` properties.
+        LogFormatError: Missing, unreadable, truncated or malformed file, data beyond what the header
+            declares, or no ``vertex`` element with ``x y z`` properties.
     """
     points, attributes, _ = _load(Path(path))
     return points, attributes

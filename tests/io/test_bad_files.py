@@ -4,6 +4,7 @@ extension. Each case failed on the previous code with a reader's raw message (or
 
 import gzip
 import re
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,18 @@ from typer.testing import CliRunner
 
 from mi_lidar.cli import app
 from mi_lidar.core.errors import LogFormatError
-from mi_lidar.io import read_any, read_ouster, read_poses, write_any, write_kitti_poses
+from mi_lidar.io import (
+    read_any,
+    read_las_log,
+    read_ouster,
+    read_pcd_log,
+    read_ply_log,
+    read_poses,
+    write_any,
+    write_kitti_poses,
+    write_pcd_log,
+    write_ply_log,
+)
 
 from .synth import carmen_text, write_ouster
 from .test_clouds import synthetic_log
@@ -38,6 +50,8 @@ def seeds(tmp_path_factory):
     log = synthetic_log(height=4, width=16)
     for name in ("s.ply", "s.las", "s.exr", "s.pcd", "k.bin"):
         write_any(log, folder / name)
+    write_ply_log(log, folder / "a.ply", binary=False)
+    write_pcd_log(log, folder / "a.pcd", binary=False)
     synthetic_log(height=4, width=16, scans=2).save(folder / "log.npz")
     write_ouster(folder, np.full((8, 32), 5000, dtype=np.uint32))
     np.save(folder / "poses.npy", np.tile(np.eye(4), (2, 1, 1)))
@@ -132,7 +146,9 @@ def deny(monkeypatch, path):
 
 
 READERS = {  # the readers a user calls directly, by the seed they read
-    "s.ply": read_any,
+    "s.ply": read_ply_log,
+    "s.pcd": read_pcd_log,
+    "s.las": read_las_log,
     "poses.npy": read_poses,
     "poses.txt": read_poses,
     "synth.pcap": lambda path: read_ouster(path, metadata=path.with_suffix(".json")),
@@ -181,3 +197,63 @@ def test_the_commands_print_one_line_naming_the_file(seeds, tmp_path, command, s
     (line,) = result.output.strip().splitlines()
     assert line.startswith("error: ") and target in line and "rename it to" in line
     assert not (tmp_path / "out.npz").exists()
+
+
+def with_header(data: bytes, old: bytes, new: bytes) -> bytes:
+    """``data`` with the first ``old`` of its header replaced by ``new``."""
+    assert old in data[:2000]
+    return data.replace(old, new, 1)
+
+
+def las_count(data: bytes, count: int) -> bytes:
+    """A LAS 1.4 file with its point count (legacy u32 at byte 107, u64 at 247) set to ``count``."""
+    out = bytearray(data)
+    struct.pack_into("<I", out, 107, count)
+    struct.pack_into("<Q", out, 247, count)
+    return bytes(out)
+
+
+# a header counting fewer points than the data holds: the rest were dropped without a word
+SHORT_COUNTS = {
+    "ply-count": ("s.ply", lambda d: with_header(d, b"vertex 54", b"vertex 44"), r"260 bytes follow .*vertex 44'\)"),
+    "ply-appended": ("s.ply", lambda d: d + d[-100:], r"100 bytes follow the data its header declares"),
+    "ply-ascii-count": (
+        "a.ply",
+        lambda d: with_header(d, b"vertex 54", b"vertex 50"),
+        r"378 values follow the header, which declares 350",
+    ),
+    "pcd-count": (
+        "s.pcd",
+        lambda d: with_header(with_header(d, b"WIDTH 16", b"WIDTH 12"), b"POINTS 64", b"POINTS 48"),
+        r"416 bytes follow the data the header declares \(POINTS 48 x 26-byte records\)",
+    ),
+    "pcd-appended": ("s.pcd", lambda d: d + b"\x01" * 30, r"30 bytes follow the data"),
+    "pcd-ascii-extra": ("a.pcd", lambda d: d + b"1 2 3 4 5 6 7\n", r"ascii data holds 455 values; .* promises 448"),
+    "las-count": ("s.las", lambda d: las_count(d, 44), r"10 whole point records follow the point_count = 44"),
+    "las-appended": ("s.las", lambda d: d + d[-80:], r"2 whole point records follow the point_count = 54"),
+}
+
+
+@pytest.mark.parametrize("case", list(SHORT_COUNTS))
+def test_data_beyond_the_header_count_is_refused(seeds, tmp_path, case):
+    seed, damage, message = SHORT_COUNTS[case]
+    path = tmp_path / seed
+    path.write_bytes(damage((seeds / seed).read_bytes()))
+    with pytest.raises(LogFormatError, match=rf"{seed}: {message}.*correct the header or export"):
+        read_any(path)
+
+
+@pytest.mark.parametrize("seed", ["s.ply", "s.pcd"])
+def test_a_trailing_newline_is_not_data(seeds, tmp_path, seed):
+    path = tmp_path / seed
+    path.write_bytes((seeds / seed).read_bytes() + b"\n")
+    assert read_any(path).hit.sum() == read_any(seeds / seed).hit.sum()
+
+
+def test_a_las_with_a_non_finite_scale_is_refused(seeds, tmp_path):
+    """Every coordinate was NaN: the scan read as 54 misses."""
+    data = bytearray((seeds / "s.las").read_bytes())
+    struct.pack_into("<d", data, 131, float("nan"))
+    (tmp_path / "s.las").write_bytes(bytes(data))
+    with pytest.raises(LogFormatError, match=r"s.las: header fields scale \[nan, .*\] and offset .* must be finite"):
+        read_any(tmp_path / "s.las")
