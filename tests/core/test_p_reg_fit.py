@@ -92,7 +92,7 @@ def labelled_samples(n: int = 60_000) -> StateSamples:
     return StateSamples(r, RNG.uniform(0.0, 60.0, n), np.zeros(n, int), label, z, hit)
 
 
-def test_labels_kept_apart_recover_each_law_and_a_rare_label_keeps_the_pooled_one(tmp_path):
+def test_labels_kept_apart_recover_each_law_and_a_rare_label_is_partly_shrunk_to_the_pooled_one(tmp_path):
     s = labelled_samples()
     nodes = np.arange(0.0, 20.5, 0.5)
     density, _ = fit_p_reg(
@@ -106,10 +106,11 @@ def test_labels_kept_apart_recover_each_law_and_a_rare_label_keeps_the_pooled_on
     assert np.all(np.abs(density.mu[2, 6, inside] - 0.05) < 0.005) and np.all(np.abs(density.mu[1, 6, inside]) < 0.005)
     assert np.all(np.abs(density.p_null[2, 6, inside] - 0.2) < 0.03)
     pooled, _ = fit_p_reg(s, lambda d: 0.0, h_ranges=(1.0,), h_incidences=(20.0,), range_nodes=nodes, z_max=80.0)
-    # 40 samples over 20 m and 60 degrees (a few per node): label 3 moves at most a quarter of the way
-    # (in log sigma) from the pooled law towards its own 1 cm
+    # 40 samples over 20 m and 60 degrees (a few per node): label 3 keeps the pooled law's shape and takes
+    # its own level with the weight n / (n + 30) = 0.57 (in log sigma; measured 0.51-0.53): part of the
+    # way from the pooled law towards its own 1 cm, neither stuck at the pooled law nor all the way
     moved = np.log(rare / pooled.sigma[6, inside]) / np.log(0.01 / pooled.sigma[6, inside])
-    assert np.all((moved > 0) & (moved < 0.25)), moved
+    assert np.all((moved > 0.4) & (moved < 0.7)), moved
     # the grid and the tables survive a file, and each segment reads its label's tables
     path = density.save(tmp_path / "p_reg.npz")
     loaded = load_density(path)
@@ -146,7 +147,7 @@ def beam_samples(n: int = 60_000) -> StateSamples:
     return StateSamples(r, RNG.uniform(0.0, 60.0, n), beam, np.ones(n, int), z, hit)
 
 
-def test_beams_kept_apart_recover_each_beams_bias_and_a_rare_beam_keeps_its_labels_law():
+def test_beams_kept_apart_recover_each_beams_bias_and_a_rare_beam_is_partly_shrunk_to_its_label():
     s = beam_samples()
     nodes = np.arange(0.0, 20.5, 0.5)
     options = dict(h_ranges=(1.0,), h_incidences=(20.0,), range_nodes=nodes, z_max=80.0, n_labels=2)
@@ -159,10 +160,10 @@ def test_beams_kept_apart_recover_each_beams_bias_and_a_rare_beam_keeps_its_labe
         assert np.all(np.abs(density.mu[4 + b, 6, inside] - BEAM_BIAS[b]) < 0.003), (b, density.mu[4 + b, 6, inside])
         assert np.all(density.sigma[4 + b, 6, inside] < 0.015)  # the label's law is wider: the biases spread it
     assert np.all(label_only.sigma[1, 6, inside] > 0.02)
-    # 40 samples over 20 m and 60 degrees: the rare beam stays within a quarter of the way from its
-    # label's mean to its own bias
+    # 40 samples over 20 m and 60 degrees: the rare beam takes its own level with the weight 40 / 70
+    # (measured 0.58-0.61 of the way from its label's mean to its own bias)
     moved = (density.mu[7, 6, inside] - label_only.mu[1, 6, inside]) / (0.06 - label_only.mu[1, 6, inside])
-    assert np.all((moved > 0) & (moved < 0.25)), moved
+    assert np.all((moved > 0.4) & (moved < 0.7)), moved
     # each segment reads its own beam's tables (a beam beyond the groups shares the last)
     n = 4
     seg = Segment(
@@ -183,3 +184,26 @@ def test_beams_kept_apart_recover_each_beams_bias_and_a_rare_beam_keeps_its_labe
     rays.beam = mi.UInt32(0, 1, 2, 9)
     _, mu, _ = density.values(seg, rays)
     np.testing.assert_allclose(np.asarray(mu), density.mu[[4, 5, 6, 7], 0, 20], rtol=1e-5)
+
+
+def test_a_label_far_from_the_pooled_law_keeps_its_own_level_where_its_samples_are_thin():
+    """The VLP-16 frame's mesh faces that close holes return 5 % of the time where the pooled law returns
+    85 %: with 1,500 such samples over 20 m and 60 degrees (a few dozen per node), shrinking each node to
+    the pooled law itself pulled their P(null) from 0.95 to 0.70-0.82 and P-Reg sampled 3-8x the real
+    returns there; the label's prior is now the pooled shape moved to the label's level."""
+    rng, n, rare = np.random.default_rng(2), 60_000, 1_500
+    label = np.ones(n, int)
+    label[:rare] = 2
+    r = rng.uniform(1.0, 20.0, n)
+    hit = rng.random(n) >= np.where(label == 2, 0.95, 0.1)
+    z = np.where(hit, r + 0.01 * rng.standard_normal(n), np.nan)
+    s = StateSamples(r, rng.uniform(0.0, 60.0, n), np.zeros(n, int), label, z, hit)
+    nodes = np.arange(0.0, 20.5, 0.5)
+    density, _ = fit_p_reg(
+        s, lambda d: 0.0, h_ranges=(1.0,), h_incidences=(20.0,), range_nodes=nodes, z_max=80.0, n_labels=3
+    )
+    inside = (nodes >= 3.0) & (nodes <= 18.0)
+    # a few dozen samples per 1 m x 20 deg kernel (binomial SE about 0.04 at 0.95): P(null) within 0.08 of
+    # 0.95 at every inside node of 0-50 deg (each node shrunk to the pooled law itself gave 0.70-0.82)
+    assert np.all(np.abs(density.p_null[2, :11, inside] - 0.95) < 0.08), density.p_null[2, :11, inside].min()
+    assert np.all(np.abs(density.p_null[1, :11, inside] - 0.1) < 0.02)

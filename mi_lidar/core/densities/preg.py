@@ -12,7 +12,8 @@ incidence, or of all when there are none). A beam that met nothing misses with p
 Choices where the thesis leaves room (documented and tested): the regressions pool the beams and
 the labels unless told to keep ``n_labels`` labels and ``n_beams`` beams apart; then the groups form
 a hierarchy, each label's regressions shrunk to the pooled ones and each beam's (within its label) to
-its label's, and the density reads the tables of a segment's group (label x beam, its
+its label's, every group's prior being its parent's tables moved to the group's own level
+(:func:`_level_prior`), and the density reads the tables of a segment's group (label x beam, its
 :class:`StateGrid`); the mean and sigma are fitted on returns
 within ``inlier`` (1 m) of the nominal range, so that the 5-10 % of real returns from objects the
 map lacks do not inflate sigma to metres; bandwidths are chosen by held-out likelihood from a
@@ -31,6 +32,7 @@ from collections.abc import Callable
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from scipy.interpolate import RegularGridInterpolator
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.densities.base import ESCAPE, UniformEscapeDensity, escape_segment, register_density
@@ -298,14 +300,19 @@ def fit_p_reg(
             (slice(d_nodes.size, None), unknown, r[:, None], [r_nodes], [h_r]),
         ):
             shape = tuple(len(n) for n in nodes)
-            p_null_prior, mu_prior = None, None
-            if prior is not None:
-                p_null_prior = (prior["p_null"][rows].reshape(shape), np.zeros(shape))
-                mu_prior = (prior["mu"][rows].reshape(shape), prior["variance"][rows].reshape(shape))
             # fine bins keep the regression cheap: per bin, the mean state and the mean of each response
             xm, missed, counts, _ = _binned(x[mask], (~hit[mask]).astype(float), nodes)
+            p_null_prior = None
+            if prior is not None:
+                level = _level_prior(prior["p_null"][rows].reshape(shape), nodes, xm, missed, counts)
+                p_null_prior = (np.clip(level, 0.0, 1.0), np.zeros(shape))
             p_null, _ = _local_linear(xm, missed, counts, nodes, bws, prior=p_null_prior)
             xm, em, counts, e2m = _binned(x[mask & inl], e[mask & inl], nodes)
+            mu_prior = None
+            if prior is not None:
+                mu_prior = _level_prior_moments(
+                    prior["mu"][rows].reshape(shape), prior["variance"][rows].reshape(shape), nodes, xm, em, e2m, counts
+                )
             mu, variance = _local_linear(xm, em, counts, nodes, bws, y2=e2m, prior=mu_prior)
             for name, values in (("p_null", p_null), ("mu", mu), ("variance", variance)):
                 tables[name][rows] = values.reshape(-1, r_nodes.size)
@@ -332,6 +339,43 @@ def fit_p_reg(
         )
 
     return choose_by_held_out(candidates, build, held_out_score, progress)
+
+
+def _at_nodes(table: np.ndarray, nodes: list[np.ndarray], x: np.ndarray) -> np.ndarray:
+    """``table`` (on the product grid of ``nodes``) interpolated (multi-)linearly at ``x`` (N, D), clamped
+    to the grid, as :meth:`PRegDensity.values` reads it."""
+    return RegularGridInterpolator(nodes, table)(np.clip(x, [n[0] for n in nodes], [n[-1] for n in nodes]))
+
+
+def _level_prior(prior: np.ndarray, nodes, x: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``prior`` moved by the group's mean deviation from it, shrunk with :data:`PSEUDO_SAMPLES` samples.
+
+    A group (a label, or a beam within its label) keeps its parent's shape over range and incidence but
+    takes its own level where it has the samples to show it: a label whose returns drop 95 % of the time
+    where the pooled law drops 10 % is shrunk at each node to a prior near 95 %, not to 10 %.
+
+    Args:
+        prior: the parent's table on the grid of ``nodes``.
+        x, y, w: the group's binned states (N, D), responses (N,) and weights (N,).
+    """
+    if len(y) == 0:
+        return prior
+    return prior + float(np.dot(w, y - _at_nodes(prior, nodes, x))) / (float(w.sum()) + PSEUDO_SAMPLES)
+
+
+def _level_prior_moments(mu, variance, nodes, x, y, y2, w) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, variance) priors of a group: the parent's mean moved as :func:`_level_prior`, its variance
+    scaled by the shrunk log ratio of the group's squared deviations about that mean to the parent's
+    variance at the same states (a ratio of sums: the log of each bin's few samples would be biased)."""
+    if len(y) == 0:
+        return mu, variance
+    mean = _level_prior(mu, nodes, x, y, w)
+    m = _at_nodes(mean, nodes, x)
+    spread = float(np.dot(w, y2 - 2.0 * y * m + m * m))
+    parent = float(np.dot(w, _at_nodes(variance, nodes, x)))
+    n = float(w.sum())
+    ratio = math.log(max(spread, n * MIN_SIGMA**2) / max(parent, n * MIN_SIGMA**2))
+    return mean, variance * math.exp(ratio * n / (n + PSEUDO_SAMPLES))
 
 
 def _binned(
