@@ -30,6 +30,7 @@ from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
 
 MAX_EMPTY_CELLS = 1 << 20  # a damaged ring or column field cannot make a huge grid (and a slow read)
+MAX_COORDINATE_M = 1e8  # beyond any Lidar's range and any Earth-fixed coordinate: a larger one is a misread number
 INTENSITY_SOURCES = ("intensity", "reflectivity", "signal")
 STANDARD_FIELDS = ("x", "y", "z", "intensity", "ring", "column", "time")
 
@@ -87,6 +88,29 @@ def estimated_directions(directions: np.ndarray, hit: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(omega) * np.cos(alpha), np.cos(omega) * np.sin(alpha), np.sin(omega)], axis=-1)
 
 
+def check_coordinates(
+    points: np.ndarray, source, hint: str = "a damaged file, or a wrong scale or offset: export it again"
+) -> None:
+    """Refuse a cloud with a finite coordinate beyond :data:`MAX_COORDINATE_M` (non-finite points are misses).
+
+    Args:
+        points: (N, 3) coordinates (m).
+        source: The file, named in the message.
+        hint: What such a number says about the file, and what to do.
+
+    Raises:
+        LogFormatError: naming the first such point, its axis and value.
+    """
+    points = np.asarray(points)
+    bad = np.abs(np.where(np.isfinite(points), points, 0.0)) > MAX_COORDINATE_M
+    if bad.any():
+        index, axis = np.unravel_index(int(np.argmax(bad)), bad.shape)
+        raise LogFormatError(
+            f"{source}: point {index} has {'xyz'[axis]} = {points[index, axis]:.3g} m, beyond {MAX_COORDINATE_M:.0e} "
+            f"m: {hint}"
+        )
+
+
 def log_from_points(
     points: np.ndarray,
     attributes: dict[str, np.ndarray] | None = None,
@@ -115,14 +139,15 @@ def log_from_points(
         A log with ``S = 1``.
 
     Raises:
-        LogFormatError: No points, or ring/column fields that are not non-negative integers,
-            collide, or describe a grid far larger than the cloud.
+        LogFormatError: No points, a coordinate beyond :data:`MAX_COORDINATE_M`, or ring/column fields that
+            are not non-negative integers, collide, or describe a grid far larger than the cloud.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     count = len(points)
     source = (sensor or {}).get("source", "point cloud")
     if count == 0:
         raise LogFormatError(f"{source}: the point cloud is empty; a log needs at least one point")
+    check_coordinates(points, source)
     for name, values in (("ring", ring), ("column", column)):
         if values is not None and count:
             values = np.asarray(values)

@@ -1,7 +1,9 @@
 """KITTI / nuScenes ``.bin`` point files: flat little-endian float32 records.
 
 KITTI stores ``x y z intensity`` (4 columns); nuScenes ``LIDAR_TOP`` files store
-``x y z intensity ring`` (5 columns). Coordinates are metres in the sensor frame.
+``x y z intensity ring`` (5 columns). Coordinates are metres in the sensor frame. The format has no
+header: a file cut at a record boundary reads as a smaller scan (a cut inside a record, a size of the
+wrong record length, or bytes that are not such records are refused).
 """
 
 from __future__ import annotations
@@ -12,9 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_path
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, unreadable
 from mi_lidar.core.log import Log
-from mi_lidar.io.cloud import cloud_from_log, log_from_points
+from mi_lidar.io.cloud import check_coordinates, cloud_from_log, log_from_points
 
 
 def write_kitti_bin(path: str | os.PathLike, points: np.ndarray, intensity: np.ndarray | None = None) -> Path:
@@ -54,7 +56,8 @@ def read_kitti_bin(path: str | os.PathLike, columns: int = 4) -> np.ndarray:
         (N, columns) float32 array.
 
     Raises:
-        LogFormatError: Missing file, or a size that is not a whole number of records.
+        LogFormatError: Missing or unreadable file, a size that is not a whole number of records, or only
+            zero bytes.
     """
     if columns not in (4, 5):
         raise ValueError(f"read_kitti_bin: columns={columns}; expected 4 (KITTI) or 5 (nuScenes)")
@@ -68,7 +71,16 @@ def read_kitti_bin(path: str | os.PathLike, columns: int = 4) -> np.ndarray:
             f"{path}: {size} bytes is not a whole number of {columns}-float32 records ({record} bytes); "
             f"the file is truncated at byte {size - size % record} or has a different column count"
         )
-    return np.fromfile(path, dtype="<f4").reshape(-1, columns).astype(np.float32)
+    try:
+        records = np.fromfile(path, dtype="<f4").reshape(-1, columns).astype(np.float32)
+    except PermissionError as exc:
+        raise unreadable(path) from exc
+    if size and not records.any():
+        raise LogFormatError(
+            f"{path}: all {size} bytes are zero, no point data (a file allocated but never written?); re-create or "
+            "copy it again"
+        )
+    return records
 
 
 NUSCENES_MIN_RANGE = 1.0
@@ -89,7 +101,8 @@ def read_bin_log(path: str | os.PathLike, columns: int | None = None, min_range:
         columns in firing order. ``attributes['intensity']`` holds the intensity column.
 
     Raises:
-        LogFormatError: As :func:`read_kitti_bin`, or ring ids that are not small integers.
+        LogFormatError: As :func:`read_kitti_bin`, a coordinate beyond :data:`~mi_lidar.io.cloud.MAX_COORDINATE_M`
+            (the bytes are not such records), or ring ids that are not small integers.
     """
     path = Path(path)
     if columns is None:
@@ -97,14 +110,22 @@ def read_bin_log(path: str | os.PathLike, columns: int | None = None, min_range:
         nuscenes = path.name.endswith(".pcd.bin") or (size % 20 == 0 and size % 16 != 0)
         columns = 5 if nuscenes else 4
     records = read_kitti_bin(path, columns)
+    check_coordinates(
+        records[:, :3],
+        path,
+        f"not {columns}-column float32 records (another format, another column count: columns=, or a damaged file)",
+    )
     if min_range is None:
         min_range = NUSCENES_MIN_RANGE if columns == 5 else 0.0
     ring = None
     if columns == 5:
         ring = records[:, 4]
-        if len(ring) and not (np.all(ring == np.round(ring)) and ring.min() >= 0 and ring.max() < 1024):
+        bad = ~((ring == np.round(ring)) & (ring >= 0) & (ring < 1024))
+        if bad.any():
+            index = int(np.argmax(bad))
             raise LogFormatError(
-                f"{path}: column 5 (ring) holds non-integer or out-of-range values; not a nuScenes scan?"
+                f"{path}: point {index} has ring (column 5) {ring[index]:g}; ring ids are integers 0..1023: not a "
+                "nuScenes scan (a KITTI file: columns=4), or a damaged file"
             )
     return log_from_points(
         records[:, :3],

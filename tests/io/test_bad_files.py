@@ -15,6 +15,7 @@ from mi_lidar.cli import app
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.io import (
     read_any,
+    read_bin_log,
     read_las_log,
     read_ouster,
     read_pcd_log,
@@ -23,6 +24,7 @@ from mi_lidar.io import (
     write_any,
     write_kitti_poses,
     write_pcd_log,
+    write_ply,
     write_ply_log,
 )
 
@@ -146,6 +148,7 @@ def deny(monkeypatch, path):
 
 
 READERS = {  # the readers a user calls directly, by the seed they read
+    "k.bin": read_bin_log,
     "s.ply": read_ply_log,
     "s.pcd": read_pcd_log,
     "s.las": read_las_log,
@@ -257,3 +260,58 @@ def test_a_las_with_a_non_finite_scale_is_refused(seeds, tmp_path):
     (tmp_path / "s.las").write_bytes(bytes(data))
     with pytest.raises(LogFormatError, match=r"s.las: header fields scale \[nan, .*\] and offset .* must be finite"):
         read_any(tmp_path / "s.las")
+
+
+def kitti_records(seeds) -> np.ndarray:
+    return np.fromfile(seeds / "k.bin", dtype="<f4").reshape(-1, 4)
+
+
+# a headerless .bin whose bytes are not float32 records of points: read as a scan of absurd points
+NOT_RECORDS = {
+    "random": (lambda r: np.random.default_rng(3).integers(0, 256, r.nbytes, dtype=np.uint8).tobytes(), "4-column"),
+    "float64": (lambda r: r.astype("<f8").tobytes(), "4-column"),
+    "text": (lambda r: b"hello world, this is not a scan\n" * 20, "4-column"),
+}
+
+
+@pytest.mark.parametrize("case", list(NOT_RECORDS))
+def test_bytes_that_are_not_point_records_are_refused(seeds, tmp_path, case):
+    make, columns = NOT_RECORDS[case]
+    path = tmp_path / "k.bin"
+    path.write_bytes(make(kitti_records(seeds)))
+    with pytest.raises(LogFormatError, match=rf"k.bin: point \d+ has [xyz] = \S+ m, beyond 1e\+08 m: not {columns}"):
+        read_any(path)
+
+
+def test_a_bin_of_zero_bytes_is_refused(seeds, tmp_path):
+    """It read as a scan of misses (a file allocated but never written)."""
+    path = tmp_path / "k.bin"
+    path.write_bytes(bytes(kitti_records(seeds).nbytes))
+    with pytest.raises(LogFormatError, match=r"k.bin: all 864 bytes are zero, no point data"):
+        read_any(path)
+
+
+def test_non_finite_points_of_a_bin_are_misses(seeds, tmp_path):
+    records = kitti_records(seeds).copy()
+    records[:3, 0], records[3, 1] = np.nan, np.inf
+    records.tofile(tmp_path / "k.bin")
+    log = read_any(tmp_path / "k.bin")
+    assert log.n_rays == len(records) and not log.hit[0, 0, :4].any() and log.hit[0, 0, 4:].all()
+
+
+def test_a_nuscenes_ring_that_is_not_an_integer_is_named(tmp_path):
+    records = np.zeros((8, 5), dtype="<f4")
+    records[:, :3], records[:, 4] = 5.0, np.arange(8) % 2
+    records[6, 4] = 2.5
+    records.tofile(tmp_path / "n.pcd.bin")
+    with pytest.raises(LogFormatError, match=r"n.pcd.bin: point 6 has ring \(column 5\) 2.5; ring ids are integers"):
+        read_any(tmp_path / "n.pcd.bin")
+
+
+def test_a_cloud_point_beyond_any_range_is_refused(tmp_path):
+    """A flipped exponent in a PLY coordinate read as a return 1e30 m away."""
+    points = np.full((10, 3), 2.0, dtype=np.float32)
+    points[4, 1] = 1e30
+    write_ply(tmp_path / "s.ply", points)
+    with pytest.raises(LogFormatError, match=r"s.ply: point 4 has y = 1e\+30 m, beyond 1e\+08 m: a damaged file"):
+        read_any(tmp_path / "s.ply")
