@@ -5,6 +5,11 @@ registers its commands on :data:`app`. A command raises; it never prints an erro
 application's group catches :class:`~mi_lidar.core.errors.MiLidarError`, ``ValueError`` and
 ``OSError`` from any command, prints one line ``error: <message>`` and exits with code 2, the
 code of click's own usage errors. Messages say what was wrong and what to do.
+
+Help stays readable in an 80-column terminal (``tests/test_cli_help.py``): a number option's metavar is
+``N`` (integer) or ``X`` (real) so the type column stays narrow, a flag has one name (``--force``, not
+``--force/--no-force``), a verb with many options groups them in panels (``rich_help_panel``), and the
+examples are fenced blocks whose lines fit 76 columns.
 """
 
 from __future__ import annotations
@@ -133,6 +138,11 @@ def density_option():
     )
 
 
+def force_option(verb: str):
+    """The ``--force`` flag of the verbs that refuse a log whose sensor does not match the scene's."""
+    return typer.Option(False, "--force", help=f"{verb} even when the log's sensor does not match the scene's.")
+
+
 def log_argument():
     """The LOG argument of the verbs that take ``LOG SCENE`` (``compare``, ``diagnose``, ``fit-sensor``): a scene
     XML given first is refused saying which argument is which (the reader only knew '.xml' was not a log's)."""
@@ -160,6 +170,7 @@ def max_range_option():
     return typer.Option(
         None,
         "--max-range",
+        metavar="X",
         min=0.1,
         max=10_000.0,
         help="The sensor's no-return value (m, at most 10 km: the longest range the models take); default: detected "

@@ -26,10 +26,11 @@ def evaluate_apps(
         None, "--simulator", "-s", help="Only these simulators (repeatable): M0 M1 P-Reg NP-Reg mi-lidar (default)."
     ),
     draws: int = typer.Option(
-        16, min=2, max=MAX_DRAWS, help="Prior draws of each application's parameters for the risk."
+        16, metavar="N", min=2, max=MAX_DRAWS, help="Prior draws of each application's parameters for the risk."
     ),
     runs: int = typer.Option(
         8,
+        metavar="N",
         min=1,
         max=32,
         help="Runs of the trackers (EKF, particle filter) per setting, paired across sources (at most 32, the most "
@@ -37,12 +38,17 @@ def evaluate_apps(
     ),
     workers: int | None = typer.Option(
         None,
+        metavar="N",
         min=1,
         max=3,
         help="Processes running the three applications side by side (default: one per core, up to 3).",
     ),
-    test_every: int = typer.Option(5, min=2, help="Every k-th scan is a test state (the planar protocol)."),
-    window: float = typer.Option(30.0, min=0.0, help="A state's map leaves out the scans within 1 m and this many s."),
+    test_every: int = typer.Option(
+        5, metavar="N", min=2, help="Every k-th scan is a test state (the planar protocol)."
+    ),
+    window: float = typer.Option(
+        30.0, metavar="X", min=0.0, help="A state's map leaves out the scans within 1 m and this many s."
+    ),
 ):
     """Run scan-to-map registration (EKF) and particle-filter localization along the whole log, and line
     detection on its test scans, on the real scans and on scans simulated at the same states by each
@@ -54,9 +60,13 @@ def evaluate_apps(
 
     Examples:
 
-        mi-lidar evaluate-apps ../shared/data/carmen/intel-corrected.log.gz --out reports/intel-apps
+    ```
+    mi-lidar evaluate-apps ../shared/data/carmen/intel-corrected.log.gz \\
+        --out reports/intel-apps
 
-        mi-lidar evaluate-apps building.log.gz --out reports/building -s M0 -s mi-lidar --draws 8
+    mi-lidar evaluate-apps building.log.gz --out reports/building -s M0 \\
+        -s mi-lidar --draws 8
+    ```
     """
     from mi_lidar.apps.evaluate import SIMULATORS, evaluate_log
     from mi_lidar.planar.protocol import PlanarProtocol

@@ -25,11 +25,15 @@ def evaluate_apps_3d(
         help="Only these simulators (repeatable): gaussian physics beam P-Reg NP-Reg mi-lidar (default: all).",
     ),
     draws: int = typer.Option(
-        16, min=2, max=MAX_DRAWS, help="Prior draws of the registration parameters for the risk."
+        16, metavar="N", min=2, max=MAX_DRAWS, help="Prior draws of the registration parameters for the risk."
     ),
-    starts: int = typer.Option(8, min=2, max=100, help="Seeded initial-pose errors each registration starts from."),
-    steps: int = typer.Option(1500, min=10, max=MAX_STEPS, help="Adam steps per fit of the mi-lidar development path."),
-    seed: int = typer.Option(0, min=0, help="Seed of the sampled scans, the starts and the prior draws."),
+    starts: int = typer.Option(
+        8, metavar="N", min=2, max=100, help="Seeded initial-pose errors each registration starts from."
+    ),
+    steps: int = typer.Option(
+        1500, metavar="N", min=10, max=MAX_STEPS, help="Adam steps per fit of the mi-lidar development path."
+    ),
+    seed: int = typer.Option(0, metavar="N", min=0, help="Seed of the sampled scans, the starts and the prior draws."),
 ):
     """Register the real scan and every simulator's scan of the same rays to the same real map (small_gicp,
     from the same perturbed starts); print the application-level risk of each simulator.
@@ -41,9 +45,14 @@ def evaluate_apps_3d(
 
     Examples:
 
-        mi-lidar evaluate-apps-3d ../shared/data/ouster/OS-1-32-G_v2.1.1_1024x10.pcap --out reports/ouster-apps
+    ```
+    mi-lidar evaluate-apps-3d \\
+        ../shared/data/ouster/OS-1-32-G_v2.1.1_1024x10.pcap \\
+        --out reports/ouster-apps
 
-        mi-lidar evaluate-apps-3d capture.pcap --out reports/vlp -s gaussian -s mi-lidar --draws 8
+    mi-lidar evaluate-apps-3d capture.pcap --out reports/vlp -s gaussian \\
+        -s mi-lidar --draws 8
+    ```
     """
     from mi_lidar.apps.evaluate3d import evaluate_frame
     from mi_lidar.apps.frames import SIMULATORS

@@ -16,12 +16,17 @@ def benchmark_planar(
     log: Path = carmen_log_argument(),
     out: Path = typer.Option(..., "--out", "-o", help="Report folder: benchmark.json, benchmark.html, PNGs."),
     max_range: float | None = max_range_option(),
-    test_every: int = typer.Option(5, min=2, help="Every k-th scan is a test scan."),
-    cell: float = typer.Option(0.05, min=0.005, max=1.0, help="Map cell (m)."),
-    radius: float = typer.Option(1.0, min=0.0, help="A test scan's map leaves out scans within this distance (m) ..."),
-    window: float = typer.Option(30.0, min=0.0, help="... and within this time (s) of it."),
+    test_every: int = typer.Option(5, metavar="N", min=2, help="Every k-th scan is a test scan."),
+    cell: float = typer.Option(0.05, metavar="X", min=0.005, max=1.0, help="Map cell (m)."),
+    radius: float = typer.Option(
+        1.0, metavar="X", min=0.0, help="A test scan's map leaves out scans within this distance (m) ..."
+    ),
+    window: float = typer.Option(30.0, metavar="X", min=0.0, help="... and within this time (s) of it."),
     train_beams: int = typer.Option(
-        300_000, min=0, help="Fit on at most this many training beams (evenly spaced scans of a longer log; 0: all)."
+        300_000,
+        metavar="N",
+        min=0,
+        help="Fit on at most this many training beams (evenly spaced scans of a longer log; 0: all).",
     ),
     model: list[str] | None = typer.Option(
         None, "--model", "-m", help="Only these models (repeatable): M0 M1 M2a M2b M3a M3b P-Reg NP-Reg mi-lidar."
@@ -36,9 +41,13 @@ def benchmark_planar(
 
     Examples:
 
-        mi-lidar benchmark-planar ../shared/data/carmen/intel-corrected.log.gz --out reports/intel
+    ```
+    mi-lidar benchmark-planar ../shared/data/carmen/intel-corrected.log.gz \\
+        --out reports/intel
 
-        mi-lidar benchmark-planar building.log.gz --out reports/building --max-range 50
+    mi-lidar benchmark-planar building.log.gz --out reports/building \\
+        --max-range 50
+    ```
     """
     from mi_lidar.planar.benchmark import MODELS, SAMPLED_SCANS, benchmark_file
     from mi_lidar.planar.protocol import PlanarProtocol

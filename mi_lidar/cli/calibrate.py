@@ -11,9 +11,11 @@ from rich.table import Table
 
 from mi_lidar.calibration.commands import calibrate_command
 from mi_lidar.calibration.fit import FitResult
-from mi_lidar.cli.app import MAX_STEPS, app, console, warn
+from mi_lidar.cli.app import MAX_STEPS, app, console, force_option, warn
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import FIGURE_WIDTH, figure, figure_table
+
+FIT = "Fit"  # the options of the optimisation, a panel of their own: the option column stays narrow
 
 
 def result_table(result: FitResult) -> Group:
@@ -55,22 +57,37 @@ def calibrate(
         ..., "--params", "-p", help="Parameter glob; repeat for more, e.g. `elements.*.p_hit`, `sensor.*`."
     ),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
-    steps: int = typer.Option(200, min=1, max=MAX_STEPS, help="Maximum Adam steps."),
-    batch_size: int = typer.Option(1 << 16, min=1, help="Training rays per step."),
-    holdout: float = typer.Option(0.2, help="Fraction of rays held out for validation and early stopping."),
-    seed: int = typer.Option(0, min=0, help="Seed of the split and of the mini-batch draws."),
-    lr: list[str] | None = typer.Option(None, "--lr", help="Learning rate override GLOB=RATE; repeatable."),
-    lr_scale: float = typer.Option(1.0, help="Factor on every learning rate."),
-    patience: int = typer.Option(5, min=1, help="Held-out evaluations without improvement before stopping."),
-    counting_start: bool = typer.Option(
-        True, help="Start hit probabilities from the counting estimate hits/(hits+pass-throughs)."
+    steps: int = typer.Option(200, metavar="N", min=1, max=MAX_STEPS, help="Maximum Adam steps.", rich_help_panel=FIT),
+    batch_size: int = typer.Option(1 << 16, metavar="N", min=1, help="Training rays per step.", rich_help_panel=FIT),
+    holdout: float = typer.Option(
+        0.2, help="Fraction of rays held out for validation and early stopping.", rich_help_panel=FIT
+    ),
+    seed: int = typer.Option(
+        0, metavar="N", min=0, help="Seed of the split and of the mini-batch draws.", rich_help_panel=FIT
+    ),
+    lr: list[str] | None = typer.Option(
+        None, "--lr", metavar="GLOB=RATE", help="Learning rate override; repeatable.", rich_help_panel=FIT
+    ),
+    lr_scale: float = typer.Option(1.0, help="Factor on every learning rate.", rich_help_panel=FIT),
+    patience: int = typer.Option(
+        5,
+        metavar="N",
+        min=1,
+        help="Held-out evaluations without improvement before stopping.",
+        rich_help_panel=FIT,
+    ),
+    no_counting_start: bool = typer.Option(
+        False,
+        "--no-counting-start",
+        help="Start hit probabilities from the scene's, not from the counting estimate hits/(hits+pass-throughs).",
+        rich_help_panel=FIT,
     ),
     pattern: str | None = typer.Option(
         None,
         help="Firing pattern of the log's sensor when it is not the scene sensor's: `log` (the log's own rays, "
         "e.g. a planar CARMEN log), a pattern name or a .csv/.npy table. The calibrated scene fires it.",
     ),
-    force: bool = typer.Option(False, help="Calibrate even when the log's sensor does not match the scene's."),
+    force: bool = force_option("Calibrate"),
 ):
     """Fit scene and sensor parameters to a log by Dr.Jit autodiff; write the calibrated scene and a report.
 
@@ -80,11 +97,16 @@ def calibrate(
 
     Examples:
 
-        mi-lidar calibrate drive.npz scenes_xml/offroad.xml --params 'elements.*.p_hit' --out out/cal
+    ```
+    mi-lidar calibrate drive.npz scenes_xml/offroad.xml \\
+        --params 'elements.*.p_hit' --out out/cal
 
-        mi-lidar calibrate drive.npz scene.xml -p 'sensor.elevation_offset' -p 'sensor.range_bias' --out out/intrinsics
+    mi-lidar calibrate drive.npz scene.xml -p 'sensor.elevation_offset' \\
+        -p 'sensor.range_bias' --out out/intrinsics
 
-        mi-lidar calibrate building.log.gz building.xml -p 'elements.*.p_hit' --pattern log --out out/building
+    mi-lidar calibrate building.log.gz building.xml -p 'elements.*.p_hit' \\
+        --pattern log --out out/building
+    ```
     """
     with progress("calibrating", total=steps) as update:
         held = {"text": ""}  # the held-out NLL is evaluated every few steps: show the last one, none before the first
@@ -107,7 +129,7 @@ def calibrate(
             lr_scale=lr_scale,
             patience=patience,
             progress=report,
-            counting_start=counting_start,
+            counting_start=not no_counting_start,
             pattern=pattern,
             force=force,
         )

@@ -31,7 +31,7 @@ def convert(
     target: Path = typer.Argument(..., help="Output file; its extension picks the format unless --to is given."),
     to: str | None = typer.Option(None, help="Output format: npz, bin, ply, pcd, las, rosbag2, exr, png."),
     scan: int | None = typer.Option(
-        None, min=0, help="Scan to write when the output holds one scan (required for multi-scan logs)."
+        None, metavar="N", min=0, help="Scan to write when the output holds one scan (required for multi-scan logs)."
     ),
     metadata: Path | None = typer.Option(None, help="Ouster metadata JSON (default: next to the pcap)."),
     calibration: Path | None = typer.Option(None, help="Velodyne calibration YAML (default: next to the pcap)."),
@@ -41,11 +41,14 @@ def convert(
 
     Examples:
 
-        mi-lidar convert ../shared/data/carmen/intel-corrected.log.gz intel.npz
+    ```
+    mi-lidar convert ../shared/data/carmen/intel-corrected.log.gz intel.npz
 
-        mi-lidar convert ../shared/data/ouster/OS-1-32-G_v2.1.1_1024x10.pcap frame.pcd --scan 0
+    mi-lidar convert ../shared/data/ouster/OS-1-32-G_v2.1.1_1024x10.pcap \\
+        frame.pcd --scan 0
 
-        mi-lidar convert drive.npz drive_bag --to rosbag2
+    mi-lidar convert drive.npz drive_bag --to rosbag2
+    ```
     """
     from mi_lidar.io import convert as run
 
@@ -65,11 +68,13 @@ def info(
 
     Examples:
 
-        mi-lidar info ../shared/data/velodyne/velodyne_vlp16.pcap
+    ```
+    mi-lidar info ../shared/data/velodyne/velodyne_vlp16.pcap
 
-        mi-lidar info capture.pcap --model HDL-32E --calibration 32db.yaml
+    mi-lidar info capture.pcap --model HDL-32E --calibration 32db.yaml
 
-        mi-lidar info drive.npz
+    mi-lidar info drive.npz
+    ```
     """
     from mi_lidar.io import info as run
 

@@ -23,11 +23,15 @@ def dataset(
         None, help="Address of an existing Dask scheduler, e.g. tcp://10.0.0.5:8786 (default: a LocalCluster)."
     ),
     workers: int | None = typer.Option(
-        None, min=1, max=os.cpu_count(), help="LocalCluster worker processes (default and most: one per core)."
+        None,
+        metavar="N",
+        min=1,
+        max=os.cpu_count(),
+        help="LocalCluster worker processes (default and most: one per core).",
     ),
     serial: bool = typer.Option(False, "--serial", help="Render in this process, in frame order, without Dask."),
     retries: int = typer.Option(
-        2, min=0, max=MAX_RETRIES, help="Extra attempts of a failing frame before it is reported."
+        2, metavar="N", min=0, max=MAX_RETRIES, help="Extra attempts of a failing frame before it is reported."
     ),
     dashboard: str = typer.Option(":8787", help="LocalCluster dashboard address ('' for none)."),
 ):
@@ -40,11 +44,16 @@ def dataset(
 
     Examples:
 
-        mi-lidar dataset examples/datasets/street_quick.yaml --out out/street_quick
+    ```
+    mi-lidar dataset examples/datasets/street_quick.yaml \\
+        --out out/street_quick
 
-        mi-lidar dataset examples/datasets/street_and_forest.yaml --out out/street_forest
+    mi-lidar dataset examples/datasets/street_and_forest.yaml \\
+        --out out/street_forest
 
-        mi-lidar dataset spec.yaml --out /shared/ds --scheduler tcp://10.0.0.5:8786
+    mi-lidar dataset spec.yaml --out /shared/ds \\
+        --scheduler tcp://10.0.0.5:8786
+    ```
     """
     from mi_lidar.dataset import load_spec, run_dataset
 

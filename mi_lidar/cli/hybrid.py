@@ -17,19 +17,25 @@ def synth_world(
     out: Path = typer.Option(
         ..., "--out", "-o", help="Output log (`.npz`) with ground-truth `label` and `instance` per ray."
     ),
-    seed: int = typer.Option(11, min=0, help="World seed (layout, objects, noise)."),
-    length: float = typer.Option(100.0, min=20.0, max=10_000.0, help="World length along the vehicle path (m)."),
-    width: float = typer.Option(50.0, min=20.0, max=10_000.0, help="World width (m; trees need 20 m at least)."),
-    spacing: float = typer.Option(1.5, min=0.1, help="Distance between scans along the path (m)."),
+    seed: int = typer.Option(11, metavar="N", min=0, help="World seed (layout, objects, noise)."),
+    length: float = typer.Option(
+        100.0, metavar="X", min=20.0, max=10_000.0, help="World length along the vehicle path (m)."
+    ),
+    width: float = typer.Option(
+        50.0, metavar="X", min=20.0, max=10_000.0, help="World width (m; trees need 20 m at least)."
+    ),
+    spacing: float = typer.Option(1.5, metavar="X", min=0.1, help="Distance between scans along the path (m)."),
 ):
     """Generate a synthetic off-road world (terrain, trees and shrubs of leaf triangles, grass, rocks) and log a drive
     through it with a true sensor (beam divergence, mixed pixels, dropouts).
 
     Examples:
 
-        mi-lidar synth-world --out train.npz --seed 11
+    ```
+    mi-lidar synth-world --out train.npz --seed 11
 
-        mi-lidar synth-world --out test.npz --seed 22 --length 120
+    mi-lidar synth-world --out test.npz --seed 22 --length 120
+    ```
     """
     from mi_lidar.hybrid.true_sensor import path_poses, render_log
     from mi_lidar.hybrid.world import WorldSpec, make_world
@@ -54,7 +60,9 @@ def fit_scene(
 
     Example:
 
-        mi-lidar fit-scene train.npz --out fitted/
+    ```
+    mi-lidar fit-scene train.npz --out fitted/
+    ```
     """
     from mi_lidar.hybrid.commands import fit_scene as run
 
@@ -76,7 +84,9 @@ def primitives_extract(
 
     Example:
 
-        mi-lidar primitives extract train.npz --library lib/
+    ```
+    mi-lidar primitives extract train.npz --library lib/
+    ```
     """
     from mi_lidar.hybrid.commands import primitives_extract as run
 
@@ -89,7 +99,9 @@ def primitives_list(library: Path = typer.Argument(..., help="Library folder.", 
 
     Example:
 
-        mi-lidar primitives list lib/
+    ```
+    mi-lidar primitives list lib/
+    ```
     """
     from mi_lidar.hybrid.commands import primitives_list as run
 
@@ -100,13 +112,15 @@ def primitives_list(library: Path = typer.Argument(..., help="Library folder.", 
 def primitives_show(
     library: Path = typer.Argument(..., help="Library folder.", exists=True, file_okay=False),
     out: Path = typer.Option(..., "--out", "-o", help="Output PNG."),
-    per_class: int = typer.Option(4, min=1, help="Primitives shown per class."),
+    per_class: int = typer.Option(4, metavar="N", min=1, help="Primitives shown per class."),
 ):
     """Draw primitives of every class into one PNG.
 
     Example:
 
-        mi-lidar primitives show lib/ --out lib.png
+    ```
+    mi-lidar primitives show lib/ --out lib.png
+    ```
     """
     from mi_lidar.hybrid.commands import primitives_show as run
 
@@ -122,7 +136,9 @@ def annotate(
 
     Example:
 
-        mi-lidar annotate test.npz --out test_annotation.json
+    ```
+    mi-lidar annotate test.npz --out test_annotation.json
+    ```
     """
     from mi_lidar.hybrid.commands import annotate as run
 
@@ -144,7 +160,9 @@ def compose(
 
     Example:
 
-        mi-lidar compose test_annotation.json --library lib/ --out composed.xml
+    ```
+    mi-lidar compose test_annotation.json --library lib/ --out composed.xml
+    ```
     """
     from mi_lidar.hybrid.commands import compose as run
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from mi_lidar.cli.app import MAX_STEPS, app, console, density_option, log_argument, say, warn
+from mi_lidar.cli.app import MAX_STEPS, app, console, density_option, force_option, log_argument, say, warn
 from mi_lidar.cli.progress import progress
 
 
@@ -22,8 +22,8 @@ def compare_command(
     out: Path = typer.Option(
         ..., "--out", "-o", help="Report folder: report.md/.html, PNG plots, residual image, residuals.ply."
     ),
-    seed: int = typer.Option(0, min=0, help="Seed of the simulated scan."),
-    force: bool = typer.Option(False, help="Compare even when the log's sensor does not match the scene's."),
+    seed: int = typer.Option(0, metavar="N", min=0, help="Seed of the simulated scan."),
+    force: bool = force_option("Compare"),
     density: str | None = density_option(),
 ):
     """Compare the model with a measured log ray by ray: NLL, range error, hit/miss F1, histogram match, and where it
@@ -31,7 +31,10 @@ def compare_command(
 
     Examples:
 
-        mi-lidar compare room.npz scenes_xml/indoor_planar.xml --out reports/before
+    ```
+    mi-lidar compare room.npz scenes_xml/indoor_planar.xml \\
+        --out reports/before
+    ```
     """
     from mi_lidar.io import read_any
     from mi_lidar.loop import compare as run
@@ -68,9 +71,13 @@ def diagnose_command(
         "prints them, e.g. `incidence_dropout(law=cos)`; default: the whole catalog.",
     ),
     steps: int = typer.Option(
-        60, min=1, max=MAX_STEPS, help="Adam steps per candidate fit at most (a fit stops once it stops gaining)."
+        60,
+        metavar="N",
+        min=1,
+        max=MAX_STEPS,
+        help="Adam steps per candidate fit at most (a fit stops once it stops gaining).",
     ),
-    force: bool = typer.Option(False, help="Diagnose even when the log's sensor does not match the scene's."),
+    force: bool = force_option("Diagnose"),
     density: str | None = density_option(),
 ):
     """Find the physical effects the model lacks: fit every candidate on training rays, rank and confirm them by a
@@ -80,10 +87,13 @@ def diagnose_command(
 
     Examples:
 
-        mi-lidar diagnose room.npz scenes_xml/indoor_planar.xml --out reports/diagnosis
+    ```
+    mi-lidar diagnose room.npz scenes_xml/indoor_planar.xml \\
+        --out reports/diagnosis
 
-        mi-lidar diagnose room.npz scenes_xml/indoor_planar.xml --out d --json \\
-            --candidate incidence_dropout --candidate outliers
+    mi-lidar diagnose room.npz scenes_xml/indoor_planar.xml --out d --json \\
+        --candidate incidence_dropout --candidate outliers
+    ```
     """
     import json
 

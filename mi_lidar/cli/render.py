@@ -72,7 +72,7 @@ def write_scan_outputs(log, out: Path, scene_name: str) -> list[Path]:
 def render(
     scene: Path = typer.Argument(..., help="Scene XML with a `lidar` sensor.", exists=True, dir_okay=False),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
-    seed: int = typer.Option(0, min=0, max=MAX_SEED, help="Random seed (same seed, same scan)."),
+    seed: int = typer.Option(0, metavar="N", min=0, max=MAX_SEED, help="Random seed (same seed, same scan)."),
     pattern: str | None = typer.Option(
         None, help="Override the firing pattern, e.g. `hdl32e`, `os1-32`, `planar-360`."
     ),
@@ -82,9 +82,12 @@ def render(
 
     Examples:
 
-        mi-lidar render scenes_xml/offroad.xml --out out/offroad
+    ```
+    mi-lidar render scenes_xml/offroad.xml --out out/offroad
 
-        mi-lidar render scenes_xml/urban_street.xml --out out/street --pattern hdl64e --seed 3
+    mi-lidar render scenes_xml/urban_street.xml --out out/street \\
+        --pattern hdl64e --seed 3
+    ```
     """
     import mitsuba as mi
 
@@ -138,7 +141,7 @@ def simulate(
         help="Output log: `.npz` (every scan) or a ROS 2 bag (`.bag` folder); with one pose also `.ply`, `.pcd`, "
         "`.bin`, `.las`, `.exr`.",
     ),
-    seed: int = typer.Option(0, min=0, help="Random seed."),
+    seed: int = typer.Option(0, metavar="N", min=0, help="Random seed."),
     pattern: str | None = typer.Option(None, help="Firing pattern (default: the scene sensor's)."),
     density: str | None = density_option(),
     effect: str | None = typer.Option(
@@ -154,11 +157,15 @@ def simulate(
 
     Examples:
 
-        mi-lidar simulate scenes_xml/offroad.xml --poses poses.txt --out drive.npz
+    ```
+    mi-lidar simulate scenes_xml/offroad.xml --poses poses.txt --out drive.npz
 
-        mi-lidar simulate scenes_xml/offroad.xml --poses poses.txt --out biased.npz --effect "range_bias(bias=0.05)"
+    mi-lidar simulate scenes_xml/offroad.xml --poses poses.txt \\
+        --out biased.npz --effect "range_bias(bias=0.05)"
 
-        mi-lidar simulate scenes_xml/indoor_planar.xml --poses kitti_poses.txt --out room.npz --pattern planar-180
+    mi-lidar simulate scenes_xml/indoor_planar.xml --poses kitti_poses.txt \\
+        --out room.npz --pattern planar-180
+    ```
     """
     from mi_lidar.io import read_poses, write_any
     from mi_lidar.io.dispatch import log_output_format
@@ -202,11 +209,11 @@ def camera_lidar(
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
     camera_from: str = typer.Option("0,0,1.8", "--from", help="Camera position x,y,z (m)."),
     camera_to: str = typer.Option("10,0,1.5", "--to", help="Point the camera looks at x,y,z (m)."),
-    width: int = typer.Option(640, min=1, max=8192, help="Image width (pixels)."),
-    height: int = typer.Option(400, min=1, max=8192, help="Image height (pixels)."),
-    fov: float = typer.Option(70.0, min=1.0, max=179.0, help="Horizontal field of view (deg)."),
-    spp: int = typer.Option(64, min=1, max=4096, help="Camera samples per pixel (one render pass each)."),
-    seed: int = typer.Option(0, min=0, help="Random seed."),
+    width: int = typer.Option(640, metavar="N", min=1, max=8192, help="Image width (pixels)."),
+    height: int = typer.Option(400, metavar="N", min=1, max=8192, help="Image height (pixels)."),
+    fov: float = typer.Option(70.0, metavar="X", min=1.0, max=179.0, help="Horizontal field of view (deg)."),
+    spp: int = typer.Option(64, metavar="N", min=1, max=4096, help="Camera samples per pixel (one render pass each)."),
+    seed: int = typer.Option(0, metavar="N", min=0, help="Random seed."),
 ):
     """Synthetic camera + Lidar data from one scene: image, scan, projection and calibration (KITTI-style).
 
@@ -215,7 +222,10 @@ def camera_lidar(
 
     Example:
 
-        mi-lidar camera-lidar scenes_xml/urban_street.xml --out out/frame --from 0,0,1.8 --to 10,2,1.5
+    ```
+    mi-lidar camera-lidar scenes_xml/urban_street.xml --out out/frame \\
+        --from 0,0,1.8 --to 10,2,1.5
+    ```
     """
     import json
 
@@ -261,13 +271,15 @@ def camera_lidar(
 @app.command(rich_help_panel="Make scans")
 def demo(
     out: Path = typer.Option(Path("demo_out"), "--out", "-o", help="Output folder."),
-    seed: int = typer.Option(0, min=0, max=MAX_SEED, help="Random seed."),
+    seed: int = typer.Option(0, metavar="N", min=0, max=MAX_SEED, help="Random seed."),
 ):
     """The main job of `make demo`: render the bundled off-road scene, then run the loop on a log with a hidden effect.
 
     Example:
 
-        mi-lidar demo --out demo_out
+    ```
+    mi-lidar demo --out demo_out
+    ```
     """
     from mi_lidar.loop.demo import run_demo
     from mi_lidar.scene import bundled_scene

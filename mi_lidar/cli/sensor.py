@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from mi_lidar.cli.app import MAX_STEPS, app, console, log_argument, warn
+from mi_lidar.cli.app import MAX_STEPS, app, console, force_option, log_argument, warn
 from mi_lidar.cli.progress import note, progress
 from mi_lidar.cli.tables import figure, figure_table
 
@@ -17,12 +17,12 @@ def fit_sensor_command(
     scene: Path = typer.Argument(..., help="Scene XML the log was recorded in.", exists=True, dir_okay=False),
     model: str = typer.Option("np-reg", "--model", "-m", help="Family: np-reg, p-reg, beam or physics."),
     out: Path = typer.Option(..., "--out", "-o", help="Output density file (`.npz`)."),
-    steps: int = typer.Option(200, min=1, max=MAX_STEPS, help="Adam steps (beam, physics)."),
-    seed: int = typer.Option(0, min=0, help="Seed of the split and of the sampled scan."),
+    steps: int = typer.Option(200, metavar="N", min=1, max=MAX_STEPS, help="Adam steps (beam, physics)."),
+    seed: int = typer.Option(0, metavar="N", min=0, help="Seed of the split and of the sampled scan."),
     pool_labels: bool = typer.Option(
         False, "--pool-labels", help="NP-Reg and P-Reg: one law per range and incidence, whatever the element label."
     ),
-    force: bool = typer.Option(False, help="Fit even when the log's sensor does not match the scene's."),
+    force: bool = force_option("Fit"),
 ):
     """Fit a return density to a log in its scene; print held-out NLL beside sample realism; save it.
 
@@ -31,9 +31,12 @@ def fit_sensor_command(
 
     Examples:
 
-        mi-lidar fit-sensor drive.npz scenes_xml/offroad.xml --model np-reg --out sensor.npz
+    ```
+    mi-lidar fit-sensor drive.npz scenes_xml/offroad.xml --model np-reg \\
+        --out sensor.npz
 
-        mi-lidar fit-sensor drive.npz scenes_xml/offroad.xml -m p-reg -o p_reg.npz
+    mi-lidar fit-sensor drive.npz scenes_xml/offroad.xml -m p-reg -o p_reg.npz
+    ```
 
     With --pool-labels an NP-Reg or P-Reg density applies to scenes whose labels mean other classes (a density
     fitted off-road, used in a street).

@@ -1,0 +1,48 @@
+"""Every command's ``--help`` as a user reads it in an 80-column terminal: no option name split or cut,
+no help text cut short, and the examples on lines a user can copy."""
+
+import re
+
+import pytest
+import typer.main
+
+from mi_lidar.cli import app
+
+from .terminal import assert_whole, invoke_at_80
+
+
+def commands(group, path=()):
+    """``(words, command)`` of every command under ``group``, groups included (``primitives``, ``primitives list``)."""
+    for name, command in group.commands.items():
+        yield (*path, name), command
+        if hasattr(command, "commands"):
+            yield from commands(command, (*path, name))
+
+
+ROOT = typer.main.get_command(app)
+COMMANDS = [((), ROOT), *commands(ROOT)]
+FENCE = re.compile(r"^```\n(.*?)^```", re.S | re.M)
+
+
+def example_lines(command) -> list[str]:
+    """The lines of the fenced example blocks of a command's docstring, as written (continuations included)."""
+    text = "\n".join(line.strip() for line in (command.help or "").splitlines())
+    return [line for block in FENCE.findall(text) for line in block.splitlines() if line]
+
+
+@pytest.mark.parametrize("words, command", COMMANDS, ids=[" ".join(w) or "mi-lidar" for w, _ in COMMANDS])
+def test_help_is_readable_at_80_columns(words, command):
+    result = invoke_at_80([*words, "--help"])
+    assert result.exit_code == 0, result.stdout
+    text = result.stdout
+    names = [name for param in command.params for name in (*param.opts, *param.secondary_opts) if name[0] == "-"]
+    split = [n for n in names if not re.search(rf"(?<![\w-]){re.escape(n)}(?![\w-])", text)]
+    assert not split, f"option names split across lines or cut: {split}\n{text}"
+    assert_whole(text, "Show this message and exit.", *example_lines(command))
+
+
+def test_every_verb_has_examples_that_fit():
+    verbs = [(words, command) for words, command in COMMANDS if words and not hasattr(command, "commands")]
+    assert verbs and all(example_lines(command) for _, command in verbs)
+    too_long = [line for _, command in verbs for line in example_lines(command) if len(line) > 76]
+    assert not too_long, too_long
