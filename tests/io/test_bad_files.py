@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from mi_lidar.cli import app
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, PoseError
 from mi_lidar.io import (
     read_any,
     read_bin_log,
@@ -315,3 +315,65 @@ def test_a_cloud_point_beyond_any_range_is_refused(tmp_path):
     write_ply(tmp_path / "s.ply", points)
     with pytest.raises(LogFormatError, match=r"s.ply: point 4 has y = 1e\+30 m, beyond 1e\+08 m: a damaged file"):
         read_any(tmp_path / "s.ply")
+
+
+def damaged_log(seeds, tmp_path, name: str, change) -> Path:
+    """The seed log with one array changed by ``change(arrays)``, saved as ``name``."""
+    arrays = dict(np.load(seeds / "log.npz"))
+    change(arrays)
+    np.savez(tmp_path / name, **arrays)
+    return tmp_path / name
+
+
+def set_value(key: str, index: tuple, value: float):
+    def change(arrays):
+        arrays[key] = arrays[key].copy()
+        arrays[key][index] = value
+
+    return change
+
+
+# values no measurement has, in a log whose arrays have the right shapes: read without a word before
+BAD_VALUES = {
+    "nan-pose": (set_value("poses", (1, 0, 3), np.nan), PoseError, r"pose 1 is not a rigid transform: has non-finite"),
+    "scaled-pose": (set_value("poses", (0, 0, 0), 2.0), PoseError, r"pose 0 is not a rigid transform: rotation"),
+    "nan-time": (set_value("times", (1, 2, 3), np.nan), LogFormatError, r"ray \[1, 2, 3\] has time nan s"),
+    "nan-direction": (set_value("directions", (0, 1, 2, 0), np.nan), LogFormatError, r"ray \[0, 1, 2\] has direction"),
+    "long-direction": (
+        lambda a: a.update(directions=a["directions"] * 3),
+        LogFormatError,
+        r"ray \[0, 0, 0\] has direction length 3.0 \(a unit vector has 1\)",
+    ),
+    "inf-origin": (
+        set_value("origins", (0, 3, 1, 2), np.inf),
+        LogFormatError,
+        r"ray \[0, 3, 1\] has origin \[0.0, 0.0",
+    ),
+    "negative-range": (
+        lambda a: a.update(ranges=np.where(a["hit"], -1.5, a["ranges"])),
+        LogFormatError,
+        r"ray \[0, 0, \d+\] has range of a hit -1.5 m \(ranges are >= 0\)",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_VALUES))
+def test_a_log_with_values_no_measurement_has_is_refused(seeds, tmp_path, case):
+    change, error, message = BAD_VALUES[case]
+    path = damaged_log(seeds, tmp_path, "log.npz", change)
+    with pytest.raises(error, match=rf"log.npz: {message}"):
+        read_any(path)
+
+
+def test_compare_names_the_log_with_a_nan_direction(tmp_path):
+    """compare plotted it and failed with matplotlib's \"'x' must be finite, check for nan or inf values\"."""
+    import mi_lidar
+    from tests.conftest import SCENES
+
+    log = mi_lidar.simulate(mi_lidar.load_scene(SCENES / "indoor_planar.xml"), seed=1)
+    log.directions = log.directions.copy()
+    log.directions[0, 7, 0] = np.nan
+    path = log.save(tmp_path / "room.npz")
+    result = CliRunner().invoke(app, ["compare", str(path), str(SCENES / "indoor_planar.xml"), "--out", str(tmp_path)])
+    assert result.exit_code == 2, result.output
+    assert "room.npz: ray [0, 7, 0] has direction length nan" in result.output.replace("\n", "")
