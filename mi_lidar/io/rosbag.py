@@ -87,8 +87,8 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
         min_range: Points closer than this are misses (m).
 
     Raises:
-        LogFormatError: Unreadable bag, no (or several, without ``topic``) PointCloud2 topics,
-            or a message whose layout is inconsistent.
+        LogFormatError: Unreadable bag, no (or several, without ``topic``) PointCloud2 topics, fewer
+            messages than the bag's metadata counts, or a message whose layout is inconsistent.
     """
     from rosbags.highlevel import AnyReader
 
@@ -132,9 +132,19 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
     except LogFormatError:
         raise
     except Exception as exc:  # rosbags raises many reader/deserializer error types.
-        raise LogFormatError(f"{path}: not a readable ROS bag ({type(exc).__name__}: {exc})") from exc
+        raise LogFormatError(
+            f"{path}: not a readable ROS bag ({type(exc).__name__}: {exc}); the bag is damaged or incomplete: copy it "
+            "again or record it again"
+        ) from exc
     if not logs:
         raise LogFormatError(f"{path}: topic {chosen!r} has no messages")
+    counted = sum(c.msgcount for c in connections)
+    if len(logs) < counted:
+        raise LogFormatError(
+            f"{path}: its metadata counts {counted} messages on {chosen}, its storage holds {len(logs)}: the bag is "
+            f"incomplete (a recording cut short, a storage file replaced?); if the storage is what you have, rebuild "
+            f"the metadata from it with `ros2 bag reindex {path}`"
+        )
     log = stack_scans(logs)
     log.poses = np.stack(poses)
     return log

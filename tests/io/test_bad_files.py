@@ -377,3 +377,21 @@ def test_compare_names_the_log_with_a_nan_direction(tmp_path):
     result = CliRunner().invoke(app, ["compare", str(path), str(SCENES / "indoor_planar.xml"), "--out", str(tmp_path)])
     assert result.exit_code == 2, result.output
     assert "room.npz: ray [0, 7, 0] has direction length nan" in result.output.replace("\n", "")
+
+
+def test_a_bag_missing_messages_its_metadata_counts_is_refused(tmp_path):
+    """A storage file holding 2 of the 20 clouds metadata.yaml counts read as a 2-scan log."""
+    bag = write_any(synthetic_log(height=4, width=16, scans=2), tmp_path / "bag")
+    meta = bag / "metadata.yaml"
+    text = meta.read_text()
+    meta.write_text(re.sub(r"message_count: 2(\n\s+topic_metadata:\n\s+name: /points)", r"message_count: 20\1", text))
+    with pytest.raises(LogFormatError, match=r"bag: its metadata counts 20 messages on /points, its storage holds 2"):
+        read_any(bag)
+
+
+def test_a_damaged_bag_says_what_to_do(tmp_path):
+    bag = write_any(synthetic_log(height=4, width=16, scans=2), tmp_path / "bag")
+    storage = next(bag.glob("*.db3"))
+    storage.write_bytes(storage.read_bytes()[: storage.stat().st_size // 2])
+    with pytest.raises(LogFormatError, match=r"bag: not a readable ROS bag .*; the bag is damaged or incomplete: copy"):
+        read_any(bag)
