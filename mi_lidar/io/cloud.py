@@ -10,11 +10,13 @@ not rays. :func:`log_from_points` rebuilds the ray grid:
   ``attributes['valid']`` False;
 - without a ring field: one row, ``H = 1`` and ``W = N``, in file order.
 
-The sensor sits at the origin; the range is the point's distance and its direction the unit
-vector to it. Points that are not finite or closer than ``min_range`` are misses (``hit`` False,
-range NaN) kept in the grid, never dropped. A miss has no trustworthy direction, so it gets the
-estimated pattern direction: its row's median elevation and its column's mean azimuth (columns
-without any return are interpolated from their neighbours).
+The rays start at the sensor's origin, or at the per-point ``origin_x origin_y origin_z`` fields
+(m, sensor frame) when a cloud has them (:data:`ORIGIN_FIELDS`, written by the ROS 2 bag writer for
+logs with non-zero ray origins); the range is the point's distance from its ray's origin and its
+direction the unit vector from there to it. Points that are not finite or closer than
+``min_range`` are misses (``hit`` False, range NaN) kept in the grid, never dropped. A miss has no
+trustworthy direction, so it gets the estimated pattern direction: its row's median elevation and
+its column's mean azimuth (columns without any return are interpolated from their neighbours).
 
 :func:`cloud_from_log` goes the other way and defines the standard fields every writer uses:
 ``x y z`` (float32, m, sensor frame), ``intensity`` (float32, from the ``intensity``,
@@ -33,6 +35,7 @@ MAX_EMPTY_CELLS = 1 << 20  # a damaged ring or column field cannot make a huge g
 MAX_COORDINATE_M = 1e8  # beyond any Lidar's range and any Earth-fixed coordinate: a larger one is a misread number
 INTENSITY_SOURCES = ("intensity", "reflectivity", "signal")
 STANDARD_FIELDS = ("x", "y", "z", "intensity", "ring", "column", "time")
+ORIGIN_FIELDS = ("origin_x", "origin_y", "origin_z")  # per-point ray origins (m, sensor frame), when not all zero
 
 
 def _grid_indices(
@@ -120,6 +123,7 @@ def log_from_points(
     min_range: float = 0.0,
     sensor: dict | None = None,
     pose: np.ndarray | None = None,
+    origins: np.ndarray | None = None,
 ) -> Log:
     """Build a one-scan log from a point cloud (see the module docstring for the layout).
 
@@ -134,6 +138,7 @@ def log_from_points(
         min_range: Points closer than this (m) are misses (e.g. 1.0 for nuScenes).
         sensor: Metadata stored in ``Log.sensor``.
         pose: (4, 4) sensor-to-world pose; identity when None.
+        origins: Optional (N, 3) ray origins (m, sensor frame) of the points; the sensor's origin when None.
 
     Returns:
         A log with ``S = 1``.
@@ -160,15 +165,19 @@ def log_from_points(
         )
     if ring is not None and len(np.unique(row * width + col)) != count:
         raise LogFormatError(f"{source}: two points share a (ring, column) cell; ring/column fields are inconsistent")
-    distance = np.linalg.norm(points, axis=1)
+    origins = np.zeros_like(points) if origins is None else np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    rays = points - origins
+    distance = np.linalg.norm(rays, axis=1)
     finite = np.isfinite(distance)
     point_hit = finite & (distance >= min_range) & (distance > 0)
-    point_dir = np.where(point_hit[:, None], points / np.where(point_hit, distance, 1.0)[:, None], 0.0)
+    point_dir = np.where(point_hit[:, None], rays / np.where(point_hit, distance, 1.0)[:, None], 0.0)
 
     valid = np.zeros((height, width), dtype=bool)
     hit = np.zeros((height, width), dtype=bool)
     ranges = np.full((height, width), np.nan)
     directions = np.zeros((height, width, 3))
+    cell_origins = np.zeros((height, width, 3))
+    cell_origins[row, col] = origins
     valid[row, col] = True
     hit[row, col] = point_hit
     ranges[row, col] = np.where(point_hit, distance, np.nan)
@@ -199,10 +208,12 @@ def log_from_points(
     grid_attributes["valid"] = valid & grid_attributes["valid"].astype(bool) if "valid" in grid_attributes else valid
     if flip:
         ranges, hit, directions, cell_times = ranges[::-1], hit[::-1], directions[::-1], cell_times[::-1]
+        cell_origins = cell_origins[::-1]
         grid_attributes = {k: v[::-1] for k, v in grid_attributes.items()}
     return Log(
         poses=(np.eye(4) if pose is None else np.asarray(pose))[None],
         directions=directions[None],
+        origins=cell_origins[None],
         ranges=ranges[None],
         hit=hit[None],
         times=cell_times[None],
@@ -248,8 +259,8 @@ def log_from_fields(
     """A one-scan log from named point fields (``x y z`` plus optional standard fields).
 
     ``ring`` and ``column`` fields select the grid layout; a ``time``/``t``/``timestamp`` field
-    (s, relative to ``start_time``) becomes the ray times; ``intensity`` and any other numeric
-    field become attributes.
+    (s, relative to ``start_time``) becomes the ray times; :data:`ORIGIN_FIELDS` become the ray
+    origins; ``intensity`` and any other numeric field become attributes.
     """
     points = np.stack([np.asarray(fields[c], dtype=np.float64) for c in ("x", "y", "z")], axis=1)
     ring = fields.get("ring")
@@ -259,10 +270,11 @@ def log_from_fields(
         times = np.full(len(points), start_time)
     else:
         times = start_time + np.asarray(fields[time_name], dtype=np.float64)
-    skip = {"x", "y", "z", "ring", "column", time_name}
+    origins = np.stack([fields[c] for c in ORIGIN_FIELDS], axis=1) if set(ORIGIN_FIELDS) <= set(fields) else None
+    skip = {"x", "y", "z", "ring", "column", time_name, *ORIGIN_FIELDS}
     attributes = {k: np.asarray(v) for k, v in fields.items() if k not in skip and np.asarray(v).dtype.kind in "biuf"}
     return log_from_points(
-        points, attributes, ring=ring, column=column, times=times, min_range=min_range, sensor=sensor
+        points, attributes, ring=ring, column=column, times=times, min_range=min_range, sensor=sensor, origins=origins
     )
 
 

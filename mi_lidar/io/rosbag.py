@@ -17,11 +17,21 @@ as NaN points with ``is_dense`` False, which RViz and Open3D accept. Poses go on
 ``tf2_msgs/TFMessage`` per scan at the scan's stamp with ``world_frame -> base_frame`` = the scan's
 sensor-to-world pose, and ``/tf_static`` holds the identity ``base_frame -> frame_id`` (the log's
 poses are the sensor's own), so RViz with fixed frame ``map`` places every scan, and
-:func:`read_rosbag_log` reads them back. The log's sensor metadata is not carried.
+:func:`read_rosbag_log` reads them back.
+
+The log's sensor metadata (``log.sensor``: name, pattern, ranges...) goes on ``<topic>/sensor_info``
+(``/points/sensor_info``): one ``std_msgs/String`` holding it as a JSON object, latched (transient
+local, as ``/tf_static``) and stamped with the first scan, so ``ros2 topic echo`` shows it during
+``ros2 bag play``. Per-ray origins (m, sensor frame), when any is non-zero (a sensor whose beams
+leave from an offset, e.g. Ouster's beam origins), have no place in a PointCloud2: they go as three
+more FLOAT32 fields ``origin_x origin_y origin_z`` per point, while ``x y z`` stay the return point
+(origin + range x direction) that viewers draw. Read back, both make the log the one written:
+``log.sensor`` is the JSON object as written and every ray keeps its origin.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import tempfile
@@ -31,10 +41,12 @@ import numpy as np
 
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
-from mi_lidar.io.cloud import STANDARD_FIELDS, cloud_from_log, log_from_fields, stack_scans
+from mi_lidar.io.cloud import ORIGIN_FIELDS, STANDARD_FIELDS, cloud_from_log, log_from_fields, stack_scans
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+STRING = "std_msgs/msg/String"
+SENSOR_INFO = "/sensor_info"  # the sensor metadata topic: the cloud topic plus this suffix
 _DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 _WRITE_FIELDS = (("x", 7), ("y", 7), ("z", 7), ("intensity", 7), ("ring", 4), ("column", 6), ("time", 7))
 _FIELD_TYPES = {np.dtype(code): datatype for datatype, code in _DATATYPES.items()}
@@ -86,9 +98,15 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
         topic: The PointCloud2 topic; may be omitted when the bag has exactly one.
         min_range: Points closer than this are misses (m).
 
+    Returns:
+        A log of one scan per message (padded to the largest grid). ``sensor`` is the JSON object of the
+        topic's ``sensor_info`` when the bag has one (a bag :func:`write_rosbag_log` wrote), else the topic,
+        the bag and the cloud's frame; ray origins come from ``origin_x/y/z`` fields when present.
+
     Raises:
         LogFormatError: Unreadable bag, no (or several, without ``topic``) PointCloud2 topics, fewer
-            messages than the bag's metadata counts, or a message whose layout is inconsistent.
+            messages than the bag's metadata counts, a message whose layout is inconsistent, or a
+            ``sensor_info`` that is not a JSON object.
     """
     from rosbags.highlevel import AnyReader
 
@@ -129,6 +147,7 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
                         sensor={"name": f"rosbag:{chosen}", "source": str(path), "frame_id": msg.header.frame_id},
                     )
                 )
+            sensor = _read_sensor_info(reader, path, chosen)
     except LogFormatError:
         raise
     except Exception as exc:  # rosbags raises many reader/deserializer error types.
@@ -147,7 +166,31 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
         )
     log = stack_scans(logs)
     log.poses = np.stack(poses)
+    if sensor is not None:
+        log.sensor = sensor
     return log
+
+
+def _read_sensor_info(reader, path: Path, topic: str) -> dict | None:
+    """The sensor metadata on ``topic`` + :data:`SENSOR_INFO` (a JSON object in a ``std_msgs/String``), or None
+    when the bag has none.
+
+    Raises:
+        LogFormatError: the message is not a JSON object (the bag and topic named).
+    """
+    connections = [c for c in reader.connections if c.topic == topic + SENSOR_INFO and c.msgtype == STRING]
+    if not connections:
+        return None
+    for connection, _, raw in reader.messages(connections=connections):
+        text = reader.deserialize(raw, connection.msgtype).data
+        try:
+            sensor = json.loads(text)
+        except ValueError as exc:
+            raise LogFormatError(f"{path}: {topic + SENSOR_INFO} is not JSON ({exc}); record the bag again") from exc
+        if not isinstance(sensor, dict):
+            raise LogFormatError(f"{path}: {topic + SENSOR_INFO} holds a {type(sensor).__name__}; expected an object")
+        return sensor
+    return None
 
 
 def _matrix(transform) -> np.ndarray:
@@ -237,7 +280,7 @@ def _attribute_fields(log: Log) -> list[tuple[str, int]]:
     """``(name, PointField datatype)`` of the log's attributes beyond the standard fields."""
     fields = []
     for name, values in sorted(log.attributes.items()):
-        if name in STANDARD_FIELDS:
+        if name in STANDARD_FIELDS or name in ORIGIN_FIELDS:
             continue
         dtype = np.dtype(values.dtype)
         if dtype.kind == "b":
@@ -259,7 +302,8 @@ def write_rosbag_log(
     base_frame: str = "base_link",
 ) -> Path:
     """Write every scan of ``log`` as a PointCloud2 message into a new ROS 2 bag directory, with the
-    poses on ``/tf`` and ``/tf_static`` (see the module docstring).
+    poses on ``/tf`` and ``/tf_static``, the sensor metadata on ``<topic>/sensor_info`` and non-zero ray
+    origins as ``origin_x origin_y origin_z`` fields (see the module docstring).
 
     The bag is written to a temporary directory next to ``path`` and renamed when complete.
 
@@ -276,7 +320,9 @@ def write_rosbag_log(
     types = store.types
     point_field = types["sensor_msgs/msg/PointField"]
     layout, offset = [], 0
-    fields = [*_WRITE_FIELDS, *_attribute_fields(log)]
+    with_origins = bool(np.any(log.origins != 0))
+    attribute_fields = _attribute_fields(log)
+    fields = [*_WRITE_FIELDS, *attribute_fields, *((name, 7) for name in ORIGIN_FIELDS if with_origins)]
     for name, datatype in fields:
         layout.append(point_field(name=name, offset=offset, datatype=datatype, count=1))
         offset += np.dtype(_DATATYPES[datatype]).itemsize
@@ -298,9 +344,14 @@ def write_rosbag_log(
             tf_static = writer.add_connection(
                 "/tf_static", TF_MESSAGE, typestore=store, offered_qos_profiles=_latched_qos()
             )
+            sensor_info = writer.add_connection(
+                topic + SENSOR_INFO, STRING, typestore=store, offered_qos_profiles=_latched_qos()
+            )
             for index in range(log.n_scans):
                 cloud = cloud_from_log(log, index, organized=True)
-                cloud.update({name: log.attributes[name][index].ravel() for name, _ in fields[len(_WRITE_FIELDS) :]})
+                cloud.update({name: log.attributes[name][index].ravel() for name, _ in attribute_fields})
+                origins = log.origins[index if len(log.origins) > 1 else 0].reshape(-1, 3)
+                cloud.update({name: origins[:, axis] for axis, name in enumerate(ORIGIN_FIELDS) if with_origins})
                 table = np.empty(height * width, dtype=record)
                 for name in record.names:
                     table[name] = cloud[name]
@@ -323,6 +374,8 @@ def write_rosbag_log(
                 if index == 0:
                     mount = _tf_message(types, stamp, base_frame, frame_id, np.eye(4))
                     writer.write(tf_static, nanoseconds, store.serialize_cdr(mount, TF_MESSAGE))
+                    info = types[STRING](data=json.dumps(log.sensor))
+                    writer.write(sensor_info, nanoseconds, store.serialize_cdr(info, STRING))
                 pose = _tf_message(types, stamp, world_frame, base_frame, log.poses[index])
                 writer.write(tf, nanoseconds, store.serialize_cdr(pose, TF_MESSAGE))
                 writer.write(connection, nanoseconds, store.serialize_cdr(msg, POINTCLOUD2))

@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import pytest
 
@@ -187,6 +189,64 @@ def test_rosbag_round_trip_keeps_poses_and_attributes(tmp_path):
     for name in ("label", "element_id", "cos_incidence", "intensity", "valid"):
         np.testing.assert_array_equal(back.attributes[name], log.attributes[name], err_msg=name)
     assert back.attributes["label"].dtype == np.int32 and back.attributes["valid"].dtype == bool
+
+
+@pytest.mark.parametrize("per_scan", [False, True])
+def test_rosbag_round_trip_keeps_the_sensor_metadata_and_ray_origins(tmp_path, per_scan):
+    """The bag carried neither: read back, ``sensor`` was only the topic, bag and frame, and every ray started at
+    the sensor's origin (ranges and directions measured from there)."""
+    from rosbags.highlevel import AnyReader
+
+    log = synthetic_log(scans=3)
+    log.sensor = {
+        "name": "os1-32",
+        "pattern": "os1-32",
+        "max_range_m": 120.0,
+        "min_range_m": float("inf"),
+        "beam_angles_rad": [0.1, -0.2],
+        "effects": ["range_bias(bias=0.05)"],
+        "seed": 3,
+    }
+    rng = np.random.default_rng(5)
+    log.origins = rng.normal(scale=0.02, size=(3 if per_scan else 1, 8, 64, 3)).astype(np.float32)
+    path = write_any(log, tmp_path / "bag")
+    back = read_rosbag_log(path)
+    assert back.sensor == log.sensor
+    shape = (*log.shape, 3)
+    np.testing.assert_array_equal(np.broadcast_to(back.origins, shape), np.broadcast_to(log.origins, shape))
+    np.testing.assert_array_equal(back.hit, log.hit)
+    np.testing.assert_allclose(back.ranges[log.hit], log.ranges[log.hit], atol=1e-5)
+    directions = np.broadcast_to(log.directions, shape)
+    np.testing.assert_allclose(back.directions[log.hit], directions[log.hit], atol=1e-5)
+    np.testing.assert_allclose(back.points_sensor()[log.hit], log.points_sensor()[log.hit], atol=1e-5)
+    with AnyReader([path]) as reader:  # what a ROS user finds: a latched JSON string and three more fields
+        topics = {c.topic: c for c in reader.connections}
+        info = topics["/points/sensor_info"]
+        assert info.msgtype == "std_msgs/msg/String" and "transient_local" in str(info.ext.offered_qos_profiles).lower()
+        (text,) = [reader.deserialize(raw, c.msgtype).data for c, _, raw in reader.messages([info])]
+        cloud = reader.deserialize(next(reader.messages([topics["/points"]]))[2], "sensor_msgs/msg/PointCloud2")
+    assert json.loads(text)["max_range_m"] == 120.0
+    assert [f.name for f in cloud.fields][-3:] == ["origin_x", "origin_y", "origin_z"]
+
+
+def test_rosbag_without_ray_origins_has_no_origin_fields(tmp_path):
+    from rosbags.highlevel import AnyReader
+
+    path = write_any(synthetic_log(scans=2), tmp_path / "bag")
+    with AnyReader([path]) as reader:
+        (points,) = [c for c in reader.connections if c.topic == "/points"]
+        cloud = reader.deserialize(next(reader.messages([points]))[2], points.msgtype)
+    assert not {f.name for f in cloud.fields} & {"origin_x", "origin_y", "origin_z"}
+    assert read_rosbag_log(path).sensor == {"name": "synthetic"}
+
+
+def test_rosbag_sensor_info_that_is_not_an_object_is_refused(tmp_path, monkeypatch):
+    import mi_lidar.io.rosbag as rosbag
+
+    monkeypatch.setattr(rosbag.json, "dumps", lambda sensor: "[1, 2]")
+    path = write_any(synthetic_log(scans=2), tmp_path / "bag")
+    with pytest.raises(LogFormatError, match=r"bag: /points/sensor_info holds a list; expected an object"):
+        read_rosbag_log(path)
 
 
 def test_rosbag_poses_resolve_a_tf_chain_at_the_cloud_stamp(tmp_path):
