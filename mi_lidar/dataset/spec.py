@@ -322,10 +322,13 @@ def load_spec(path: str | Path, source: dict | None = None) -> DatasetSpec:
         raise SpecError(
             describe_invalid(exc.errors(), f"{path}: invalid dataset spec:", "See docs/datasets.md for every field.")
         ) from None
-    missing = [f"{where}: {file}" for where, file in _referenced_files(spec) if not spec.resolve(file).exists()]
+    missing = [(where, file) for where, file in _referenced_files(spec) if not spec.resolve(file).exists()]
     if missing:
+        lines = [f"{where}: {file} ({spec.resolve(file)}){_what(spec, where)}" for where, file in missing]
         raise SpecError(
-            f"{path}: referenced files do not exist (paths are relative to the spec):\n  " + "\n  ".join(missing)
+            f"{path}: referenced files do not exist (paths are relative to the spec):\n  "
+            + "\n  ".join(lines)
+            + _how_to_make(path, spec, missing)
         )
     from mi_lidar.dataset.rig import check_lidars  # the rig module builds on this one
 
@@ -348,3 +351,57 @@ def _referenced_files(spec: DatasetSpec) -> list[tuple[str, Path]]:
     if spec.rig.nuscenes is not None:
         files.append(("rig.nuscenes.file", spec.rig.nuscenes.file))
     return files
+
+
+SCENE_FILES = {"xml": "scene XML", "annotation": "annotation", "library": "primitive library", "ground": "ground mesh"}
+
+
+def _what(spec: DatasetSpec, where: str) -> str:
+    """``", the primitive library of scene 'forest'"`` for ``scenes.1.library``; ``""`` for the rig's files."""
+    parts = where.split(".")
+    if parts[0] != "scenes":
+        return ""
+    return f", the {SCENE_FILES[parts[2]]} of scene {spec.scenes[int(parts[1])].name!r}"
+
+
+def _header_setup(path: Path) -> tuple[str, list[str]]:
+    """The setup note of a spec's header comment: its sentence and its ``mi-lidar`` commands, in order.
+
+    The header is the comment block that opens the file; its commands are the comment lines that start
+    with ``mi-lidar`` (the spec's own ``mi-lidar dataset`` line left out), and its sentence is the comment
+    line just above the first of them. ``("", [])`` when the file has no such header or cannot be read.
+    """
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return "", []
+    header = []
+    for line in text.splitlines():
+        if not line.startswith("#"):
+            break
+        header.append(line.lstrip("#").strip())
+    first = next((i for i, line in enumerate(header) if line.startswith("mi-lidar ")), None)
+    if first is None:
+        return "", []
+    commands = [line for line in header[first:] if line.startswith("mi-lidar ") and line.split()[1] != "dataset"]
+    return (header[first - 1] if first else ""), commands
+
+
+def _names(command: str, target: Path) -> bool:
+    """Whether a header command names ``target``: one of its relative paths is the tail of ``target``."""
+    return any(
+        not word.startswith("-") and "/" in word and target.parts[-len(Path(word).parts) :] == Path(word).parts
+        for word in command.split()
+    )
+
+
+def _how_to_make(path: Path, spec: DatasetSpec, missing: list[tuple[str, Path]]) -> str:
+    """What to run to make the missing files: the setup commands of the spec's header when one of them names a
+    missing file, else for a missing primitive library the verb that makes one; "" otherwise."""
+    note, commands = _header_setup(path)
+    if any(_names(c, spec.resolve(file)) for c in commands for _, file in missing):
+        return f"\nThe spec's header says: {note or 'make them with'}\n  " + "\n  ".join(commands)
+    libraries = [spec.resolve(file) for where, file in missing if where.endswith(".library")]
+    if libraries:
+        return f"\nMake a primitive library with `mi-lidar primitives extract LOG --library {libraries[0]}`."
+    return ""

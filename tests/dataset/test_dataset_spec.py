@@ -90,6 +90,39 @@ def test_bad_specs_name_the_field(folder, change, message):
         load_spec(folder / "s.yaml")
 
 
+HEADER = """# A forest from a library made first, from the repository root:
+#   mi-lidar synth-world --out out/world.npz --seed 11
+#   mi-lidar primitives extract out/world.npz --library out/library
+#   mi-lidar dataset specs/s.yaml --out out/forest
+"""
+
+
+def test_a_missing_library_is_named_with_the_commands_of_the_spec_header(tmp_path):
+    (tmp_path / "specs").mkdir()
+    spec = tmp_path / "specs" / "s.yaml"
+    spec.write_text(HEADER + YAML.replace("library: lib", "library: ../out/library"))
+    with pytest.raises(SpecError) as raised:
+        load_spec(spec)
+    message = str(raised.value)
+    assert f"scenes.1.library: ../out/library ({tmp_path / 'out' / 'library'}), the primitive library of scene 'b'" in (
+        message
+    )
+    assert message.endswith(
+        "The spec's header says: A forest from a library made first, from the repository root:\n"
+        "  mi-lidar synth-world --out out/world.npz --seed 11\n"
+        "  mi-lidar primitives extract out/world.npz --library out/library"
+    ), message  # the spec's own `mi-lidar dataset` line is not a step to make the library
+
+
+def test_a_missing_library_without_a_header_names_the_verb_that_makes_one(folder):
+    (folder / "s.yaml").write_text(YAML.replace("library: lib", "library: nowhere"))
+    with pytest.raises(SpecError) as raised:
+        load_spec(folder / "s.yaml")
+    assert str(raised.value).endswith(
+        f"Make a primitive library with `mi-lidar primitives extract LOG --library {folder / 'nowhere'}`."
+    )
+
+
 def test_a_pattern_table_is_read_from_the_spec_folder(folder, monkeypatch):
     from mi_lidar.core.patterns import get_pattern, to_table
     from mi_lidar.dataset.rig import build_rig
