@@ -63,6 +63,15 @@ def unreadable(path, what: str = "file") -> LogFormatError:
     )
 
 
+def parser_message(exc: Exception) -> str:
+    """A parser's error on one line: ``line L, column C: problem`` for YAML parsers' marked errors (ruamel spreads
+    them over several lines with a drawing of the spot), else the message with its line breaks folded."""
+    mark, problem = getattr(exc, "problem_mark", None), getattr(exc, "problem", None)
+    if mark is not None and problem:
+        return f"line {mark.line + 1}, column {mark.column + 1}: {problem}"
+    return " ".join(str(exc).split())
+
+
 def describe_invalid(items: list[dict], header: str, footer: str = "") -> str:
     """One message listing every problem of a validated document, one line each.
 

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, parser_message
 from mi_lidar.core.log import Log
 from mi_lidar.core.patterns.vendor import HDL32E, VLP16, VLP32C, SpinningTable
 from mi_lidar.io._pcap import read_udp
@@ -149,7 +149,9 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
     try:
         table = YAML(typ="safe", pure=True).load(path.read_text(encoding="utf-8"))
     except (YAMLError, UnicodeDecodeError, ValueError) as exc:
-        raise LogFormatError(f"{path}: not readable YAML ({exc})") from exc
+        raise LogFormatError(
+            f"{path}: not readable YAML ({parser_message(exc)}); repair the file or export it again"
+        ) from exc
     lasers = table.get("lasers") if isinstance(table, dict) else None
     if not isinstance(lasers, list) or not lasers:
         raise LogFormatError(f"{path}: no 'lasers' list; expected a velodyne_pointcloud calibration")
@@ -176,8 +178,13 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
                     columns[key][laser_id] = float(laser[key])
         except (KeyError, TypeError, ValueError) as exc:
             raise LogFormatError(f"{path}: lasers[{index}]: bad or missing field ({exc})") from exc
-    if not (np.isfinite(columns["vert_correction"]).all() and np.abs(columns["vert_correction"]).max() < np.pi / 2):
-        raise LogFormatError(f"{path}: vert_correction must be finite angles in radians within +-pi/2")
+    bad = ~(np.abs(columns["vert_correction"]) < np.pi / 2)
+    if bad.any():
+        laser = int(np.argmax(bad))
+        raise LogFormatError(
+            f"{path}: laser {laser}: vert_correction is {columns['vert_correction'][laser]:g}; it must be a finite "
+            "angle in radians within +-pi/2 (degrees given by mistake?)"
+        )
     try:
         resolution = float(table.get("distance_resolution", 0.0))
     except (TypeError, ValueError) as exc:

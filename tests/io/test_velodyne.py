@@ -165,3 +165,24 @@ def test_cli_model_and_calibration_options(tmp_path):
     result = runner.invoke(app, ["convert", str(hdl), str(tmp_path / "hdl.npz"), "--model", "HDL-32E"])
     assert result.exit_code == 0, result.output
     assert read_any(tmp_path / "hdl.npz").sensor["name"] == "velodyne:HDL-32E"
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        # ruamel's message spread over several lines with a drawing of the spot; the CLI prints one line
+        (lambda text: text[: len(text) // 2], r"t.yaml: not readable YAML \(line \d+, column \d+: expected ',' or '}'"),
+        # only 'vert_correction must be finite angles ...', without the laser or the value
+        (lambda text: text.replace("vert_correction: -0.261799", "vert_correction: .nan"), r"laser 0: .* is nan; it"),
+        (lambda text: text.replace("vert_correction: 0.000000", "vert_correction: 15.0", 1), r"laser 7: .* is 15;"),
+    ],
+)
+def test_a_damaged_calibration_table_is_named_on_one_line(tmp_path, damage, message):
+    text = "lasers:\n" + "".join(
+        f"- {{laser_id: {i}, rot_correction: 0.0, vert_correction: {np.radians(2 * i - 15) if i != 7 else 0:.6f}}}\n"
+        for i in range(16)
+    )
+    (tmp_path / "t.yaml").write_text(damage(text))
+    with pytest.raises(LogFormatError, match=message) as caught:
+        read_velodyne(_capture(tmp_path), tmp_path / "t.yaml")
+    assert "\n" not in str(caught.value)
