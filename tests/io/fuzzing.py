@@ -103,6 +103,14 @@ OUSTER_PROFILES = {
     "ouster-rng15": "RNG15_RFL8_NIR8",
 }
 
+READ_ANY_SEEDS = {
+    "npz": "log.npz",
+    "kitti-bin": "k.bin",
+    "ply": "s.ply",
+    "pcd": "s.pcd",
+    "las": "s.las",
+    "exr": "s.exr",
+}
 READERS: dict[str, Reader] = {
     "carmen": Reader("c.log", lambda m, f: _io().read_carmen(m)),
     "carmen-gz": Reader("c.log.gz", lambda m, f: _io().read_carmen(m)),
@@ -123,6 +131,10 @@ READERS: dict[str, Reader] = {
     "pcd-ascii": Reader("a.pcd", lambda m, f: _io().read_pcd_log(m)),
     "las": Reader("s.las", lambda m, f: _io().read_las_log(m)),
     "exr": Reader("s.exr", lambda m, f: _io().read_exr_log(m)),
+    **{  # the dispatch users and commands go through: signature and value checks before and after the reader
+        f"read-any-{name}": Reader(seed, lambda m, f: _io().read_any(m), (LogFormatError, PoseError))
+        for name, seed in READ_ANY_SEEDS.items()
+    },
     "rosbag2-db3": Reader("bag/bag.db3", lambda m, f: _io().read_rosbag_log(m.parent), bag=True),
     "rosbag2-yaml": Reader("bag/metadata.yaml", lambda m, f: _io().read_rosbag_log(m.parent), bag=True),
     "poses-kitti": Reader("poses.txt", lambda m, f: _io().read_kitti_poses(m), (LogFormatError, PoseError)),
