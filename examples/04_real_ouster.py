@@ -19,13 +19,15 @@ from pathlib import Path
 
 import mitsuba as mi
 import numpy as np
-from rich.console import Console
+from rich.console import Console, Group
+from rich.text import Text
 
 import mi_lidar
+from mi_lidar.cli.tables import figure, figure_table
 from mi_lidar.core.effects import make_effect
 from mi_lidar.io import read_any
 from mi_lidar.loop.compare import compare
-from mi_lidar.loop.development import development_table
+from mi_lidar.loop.development import Step
 from mi_lidar.loop.diagnose import diagnose
 from mi_lidar.loop.diagnosis_report import verdict
 from mi_lidar.loop.real_ouster import MESH_EVERY, column_log, ouster_development_path, range_image_mesh
@@ -50,11 +52,49 @@ def report(name: str, mesh, model, test_log, out: Path, say) -> None:
     )
 
 
+def path_tables(rows: list[Step], title: str) -> Group:
+    """The development path as two tables that read whole at 80 columns, and why a step was not kept.
+
+    The first table has a row per step, named by the effect it adds (``+ corner_returns``; the law or
+    the faces it acts on go in the caption), beside its test and calibration NLL and the realism of its
+    samples; the second the parameters each step adds, with their fitted values.
+    """
+    figures, parameters, notes, details = [], [], [], []
+    kept: dict = {}
+    for row in rows:
+        effect = row.added.removeprefix("+ ")  # "+ label_dropout (faces closing holes)", or "(mesh only)"
+        name = effect.partition(" (")[0]
+        not_kept = " (not kept)" if row.rejected else ""
+        label = "mesh only" if effect == "(mesh only)" else f"+ {name}{not_kept}"
+        if name != effect:
+            details.append(effect)
+        if row.rejected:
+            notes.append(Text(f"{name} not kept: {row.rejected}"))  # as written: a [...] would be read as markup
+        s = row.samples
+        realism = [figure(s.get(k, float("nan"))) for k in ("range_error_median", "histogram_l1", "f1")]
+        figures.append((label, figure(row.nll), figure(row.train_nll), *realism))
+        parameters += [(k + not_kept, f"{v:.4g}") for k, v in row.fitted.items() if k not in kept]
+        kept = kept if row.rejected else row.fitted
+    steps = figure_table(
+        title,
+        "step",
+        ("test\nNLL", "calib.\nNLL", "sample\n|err|", "hist\nL1", "F1"),
+        caption="NLL: nats per beam on the test and the calibration beams. One scan sampled at the test beams: "
+        "sample |err| median |measured - sampled| (m), hist L1 distance of the range CDFs (m), F1 hit/miss F1."
+        + (f" Added as: {', '.join(details)}." if details else ""),
+    )
+    added = figure_table("parameters each step adds", "parameter", ("value",))
+    for table, table_rows in ((steps, figures), (added, parameters)):
+        for table_row in table_rows:
+            table.add_row(*table_row)
+    return Group(steps, *notes, added)
+
+
 if __name__ == "__main__":
     console = Console()
     out = Path(sys.argv[1] if len(sys.argv) > 1 else "reports/ouster_loop")
     start = time.perf_counter()
-    say = lambda message: console.log(f"[{time.perf_counter() - start:6.1f} s] {message}")  # noqa: E731
+    say = lambda message: console.print(f"[{time.perf_counter() - start:6.1f} s] {message}", markup=False)  # noqa: E731
     log = read_any(DATA)
     columns = np.arange(log.shape[2])
     test_log = column_log(log, columns[columns % 2 == 1])
@@ -78,7 +118,7 @@ if __name__ == "__main__":
 
     # 3. add effects, watch the error fall
     path = ouster_development_path(log, progress=say)
-    console.print(development_table(path.rows, "Ouster OS-1-32 frame, nats per test ray (odd columns, 1 cm bins)"))
+    console.print(path_tables(path.rows, "Ouster OS-1-32 frame: test rays (odd columns), 1 cm bins"))
     console.print("final model: " + ", ".join(effect.describe() for effect in path.model.effects))  # kept steps only
 
     # 4. compare again
