@@ -191,6 +191,29 @@ def test_primitives_list_prints_one_table_that_fits_80_columns(tmp_path):
     assert result.output.count("train_medium_shrub_1001007") == 1  # one table, not one on stderr and one on stdout
 
 
+def test_annotate_and_compose_name_every_file_they_write(tmp_path):
+    """They wrote a ground PLY, a pattern table, PLY assets and two PNG previews and named only the JSON or XML."""
+
+    def files():
+        return {p for p in tmp_path.rglob("*") if p.is_file()}
+
+    def run_and_name(*args):
+        before = files()
+        result = invoke_at_80(args)
+        assert result.exit_code == 0, result.output
+        said = "".join((result.stdout + result.stderr).split())  # a long path may wrap anywhere at 80 columns
+        written = files() - before
+        assert written and all(f"wrote{p}" in said for p in written), (sorted(written), said)
+        return {p.name for p in written}
+
+    log = tmp_path / "world.npz"
+    assert invoke_at_80(["synth-world", "--out", log, "--seed", 11, "--length", 20, "--width", 20]).exit_code == 0
+    assert invoke_at_80(["primitives", "extract", log, "--library", tmp_path / "lib"]).exit_code == 0
+    assert run_and_name("annotate", log, "--out", tmp_path / "a.json") == {"a.json", "a_ground.ply", "a_pattern.npy"}
+    composed = run_and_name("compose", tmp_path / "a.json", "--library", tmp_path / "lib", "--out", tmp_path / "c.xml")
+    assert {"c.xml", "c_range.png", "c_top.png"} < composed and any(n.endswith(".ply") for n in composed)
+
+
 @pytest.mark.slow
 def test_hybrid_scene_flow_from_the_command_line(tmp_path):
     import mitsuba as mi

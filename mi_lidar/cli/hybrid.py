@@ -3,13 +3,30 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from xml.etree import ElementTree
 
 import typer
 
 from mi_lidar.cli.app import FriendlyGroup, app, console
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.render import scan_summary
+
+
+def written_files(path: Path) -> list[Path]:
+    """``path`` and the files beside it that it references by a relative name, as the verb wrote them.
+
+    An annotation JSON names its ground mesh (``ground``) and firing pattern (``sensor.pattern``); a
+    scene XML its shapes' PLY assets (``<string name="filename">``). Absolute references are files the
+    verb read (a composed scene fires the annotation's pattern), not files it wrote.
+    """
+    if path.suffix == ".json":
+        doc = json.loads(path.read_text())
+        names = [doc.get("ground"), (doc.get("sensor") or {}).get("pattern")]
+    else:
+        names = [e.get("value") for e in ElementTree.parse(path).iter("string") if e.get("name") == "filename"]
+    return [path, *(path.parent / name for name in names if name and not Path(name).is_absolute())]
 
 
 @app.command("synth-world", rich_help_panel="Hybrid scenes")
@@ -142,7 +159,8 @@ def annotate(
     """
     from mi_lidar.hybrid.commands import annotate as run
 
-    console.print(f"wrote {run(log, out)}")
+    for path in written_files(run(log, out)):
+        console.print(f"wrote {path}")
 
 
 @app.command(rich_help_panel="Hybrid scenes")
@@ -166,4 +184,5 @@ def compose(
     """
     from mi_lidar.hybrid.commands import compose as run
 
-    console.print(f"wrote {run(annotation, library, out)}")
+    for path in written_files(run(annotation, library, out)):  # the previews are named as they are written
+        console.print(f"wrote {path}")

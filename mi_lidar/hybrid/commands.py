@@ -246,5 +246,6 @@ def compose(annotation, library, out_xml, extent: float = 3.5, preview: bool = T
         f"{len(model.ellipsoids)} ellipsoids, {len(model.ground)} ground triangles -> {xml}"
     )
     if preview:
-        render_previews(xml, poses)
+        for png in render_previews(xml, poses):
+            console.print(f"wrote {png}", highlight=False, markup=False)
     return xml
