@@ -1,6 +1,9 @@
 """Progress on non-terminal output: plain lines on stderr at a bounded rate, and the time taken at the end."""
 
+import io
+
 import numpy as np
+from rich.console import Console
 from typer.testing import CliRunner
 
 from mi_lidar.cli import app
@@ -36,3 +39,27 @@ def test_plain_lines_are_rate_limited(monkeypatch, capsys):
         lines[0].startswith("work: 1/40") and lines[-2].startswith("work: 40/40") and lines[-1].startswith("work: done")
     )
     assert 5 <= len(lines) <= 7
+
+
+def short_run(update, estimate: int = 532) -> None:
+    """Work whose total was an estimate (evaluate-apps-3d's (draws + 60) * sources) and that ends at 174."""
+    for done in range(1, 175):
+        update(done, estimate, "evaluating")
+
+
+def test_a_plain_count_that_ends_short_of_its_total_ends_at_what_it_reached(monkeypatch, capsys):
+    monkeypatch.setattr(progress_module, "PLAIN_EVERY_S", 1e9)  # only the first and the closing lines print
+    with progress_module.progress("evaluate-apps-3d frame.pcap") as update:
+        short_run(update)
+    lines = [line for line in capsys.readouterr().err.splitlines() if line]
+    assert lines[0].startswith("evaluating: 1/532 (")
+    assert lines[-2].startswith("evaluating: 174/174 (")  # it said 174/532, then done
+    assert lines[-1].startswith("evaluate-apps-3d frame.pcap: done (")
+
+
+def test_a_bar_that_ends_short_of_its_total_ends_full(monkeypatch):
+    out = io.StringIO()
+    monkeypatch.setattr(progress_module, "console", Console(file=out, force_terminal=True, width=80))
+    with progress_module.progress("calibrating", total=532) as update:  # an early stop at step 174
+        short_run(update)
+    assert "174/174" in out.getvalue()  # the bar's last frame: full, at the count it reached

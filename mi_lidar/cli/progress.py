@@ -7,6 +7,10 @@ total is known); when stderr is not a terminal (CI logs, files, pipes) the same 
 lines ``label: done/total (elapsed s)`` at most every :data:`PLAIN_EVERY_S` seconds, plus the first
 and the last, and ``label: done (elapsed s)`` at the end, so a log shows that work goes on and how
 long it took.
+
+A bar always ends at its total: when the work ends short of the declared total (an early stop, a
+cached or skipped step, a total that was only an estimate), the count it reached becomes the total,
+so the last count line reads ``174/174``, not ``174/532`` followed by ``done``.
 """
 
 from __future__ import annotations
@@ -51,11 +55,14 @@ def progress(label: str, total: int | None = None) -> Iterator[Callable[..., Non
                 )
 
             yield update
+            reached = bar.tasks[0]
+            if reached.total and reached.completed < reached.total:  # ended short: what it reached was the total
+                bar.update(task, total=reached.completed)
         return
-    state = {"last": -float("inf"), "label": label, "total": total}
+    state = {"last": -float("inf"), "label": label, "total": total, "done": None}
 
     def plain(done: int, total: int | None = None, label: str | None = None) -> None:
-        state["label"], state["total"] = label or state["label"], total or state["total"]
+        state["label"], state["total"], state["done"] = label or state["label"], total or state["total"], done
         now = time.perf_counter()
         if now - state["last"] >= PLAIN_EVERY_S or (state["total"] and done >= state["total"]):
             count = f"{done}/{state['total']}" if state["total"] else f"{done}"
@@ -63,4 +70,7 @@ def progress(label: str, total: int | None = None) -> Iterator[Callable[..., Non
             state["last"] = now
 
     yield plain
-    console.print(f"{label}: done ({time.perf_counter() - start:.0f} s)", highlight=False)
+    reached, elapsed = state["done"], time.perf_counter() - start
+    if state["total"] and reached is not None and reached < state["total"]:  # ended short: it reached its total
+        console.print(f"{state['label']}: {reached}/{reached} ({elapsed:.0f} s)", highlight=False)
+    console.print(f"{label}: done ({elapsed:.0f} s)", highlight=False)
