@@ -186,7 +186,8 @@ def log_from_points(
         elevation = np.where(hit, np.arcsin(np.clip(directions[..., 2], -1, 1)), np.nan)
         known = hit.any(axis=1)
         medians = np.nanmedian(np.where(known[:, None], elevation, 0.0), axis=1)[known]
-        flip = len(medians) > 1 and np.corrcoef(np.flatnonzero(known), medians)[0, 1] > 0
+        # (equal medians, a planar scanner's rings: no order to follow, and corrcoef would divide by zero)
+        flip = len(medians) > 1 and np.ptp(medians) > 0 and np.corrcoef(np.flatnonzero(known), medians)[0, 1] > 0
     else:
         flip = False
     estimate = estimated_directions(directions, hit)

@@ -9,8 +9,12 @@ value exactly, and rejected otherwise.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +78,31 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], metadata
     return Path(path)
 
 
+@contextlib.contextmanager
+def _captured(said: list[str]):
+    """Keep what OpenEXR prints about a damaged file off the terminal (a Python-level 'Warning: Exception raised
+    reading pixel data' and the C library's '(EXR_ERR_BAD_CHUNK_LEADER) ...' on file descriptor 2): descriptors
+    1 and 2 point to a temporary file for the read, whose lines are appended to ``said`` at the end, so the
+    LogFormatError raised can say the library's reason once, on one line."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(fd) for fd in (1, 2)]
+    with tempfile.TemporaryFile() as sink:
+        python = io.StringIO()
+        try:
+            for fd in (1, 2):
+                os.dup2(sink.fileno(), fd)
+            with contextlib.redirect_stdout(python), contextlib.redirect_stderr(python):
+                yield
+        finally:
+            for fd, copy in zip((1, 2), saved):
+                os.dup2(copy, fd)
+                os.close(copy)
+            sink.seek(0)
+            text = python.getvalue() + sink.read().decode("utf-8", "replace")
+            said.extend(line.strip() for line in text.splitlines() if line.strip())
+
+
 def read_exr(path: str | os.PathLike, with_metadata: bool = False):
     """Read every channel of an EXR file.
 
@@ -91,15 +120,17 @@ def read_exr(path: str | os.PathLike, with_metadata: bool = False):
     path = Path(path)
     if not path.is_file():
         raise LogFormatError(f"{path}: no such EXR file")
+    said: list[str] = []
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as exr:
+        with _captured(said), OpenEXR.File(str(path), separate_channels=True) as exr:
             channels = {name: np.array(channel.pixels) for name, channel in exr.channels().items()}
             metadata = {k: v for k, v in exr.header().items() if isinstance(v, str)}
     except Exception as exc:  # OpenEXR raises plain RuntimeError/Exception subclasses.
         if not os.access(path, os.R_OK):
             raise unreadable(path) from exc
+        reason = next((line.replace(f"{path}: ", "") for line in said if line.startswith(f"{path}: ")), str(exc))
         raise LogFormatError(
-            f"{path}: not a readable EXR image ({exc}); the file is damaged or cut short: re-create or copy it again"
+            f"{path}: not a readable EXR image ({reason}); the file is damaged or cut short: re-create or copy it again"
         ) from exc
     return (channels, metadata) if with_metadata else channels
 

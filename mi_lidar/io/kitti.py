@@ -75,7 +75,7 @@ def read_kitti_bin(path: str | os.PathLike, columns: int = 4) -> np.ndarray:
         records = np.fromfile(path, dtype="<f4").reshape(-1, columns).astype(np.float32)
     except PermissionError as exc:
         raise unreadable(path) from exc
-    if size and not records.any():
+    if size and not records.view(np.uint32).any():  # (integers: a signalling NaN in random bytes warns)
         raise LogFormatError(
             f"{path}: all {size} bytes are zero, no point data (a file allocated but never written?); re-create or "
             "copy it again"

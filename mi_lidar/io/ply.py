@@ -89,11 +89,13 @@ def _load(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
     """Points, attributes and header comments of a PLY file (see :func:`read_ply`)."""
     try:
         with open(path, "rb") as stream:
-            data = plyfile.PlyData.read(stream)
+            text = b"format ascii" in stream.read(64)  # (plyfile wraps an ASCII stream in a reader left open)
+            stream.seek(0)
+            data = plyfile.PlyData.read(str(path) if text else stream)
             vertex = data["vertex"].data
-            if not data.text:
+            if not text:
                 _check_binary_end(path, stream, data)
-        if data.text:
+        if text:
             _check_text_end(path, data)
     except (FileNotFoundError, IsADirectoryError) as exc:
         raise LogFormatError(f"{path}: no such PLY file") from exc

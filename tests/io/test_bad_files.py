@@ -395,3 +395,32 @@ def test_a_damaged_bag_says_what_to_do(tmp_path):
     storage.write_bytes(storage.read_bytes()[: storage.stat().st_size // 2])
     with pytest.raises(LogFormatError, match=r"bag: not a readable ROS bag .*; the bag is damaged or incomplete: copy"):
         read_any(bag)
+
+
+def test_a_cut_exr_says_the_library_reason_once_and_prints_nothing(seeds, tmp_path, capfd):
+    """OpenEXR printed 'Warning: Exception raised reading pixel data ...' and '(EXR_ERR_BAD_CHUNK_LEADER) ...'
+    around the error line, which said only 'Invalid part index '0': file has 0 parts.'."""
+    data = (seeds / "s.exr").read_bytes()
+    (tmp_path / "cut.exr").write_bytes(data[: len(data) // 2])
+    capfd.readouterr()
+    with pytest.raises(LogFormatError, match=r"cut.exr: not a readable EXR image \(\(EXR_ERR_BAD_CHUNK_LEADER\) .*"):
+        read_any(tmp_path / "cut.exr")
+    assert capfd.readouterr() == ("", "")
+    print("descriptors restored")
+    assert capfd.readouterr().out == "descriptors restored\n"
+
+
+def test_reading_warns_nothing(seeds, tmp_path):
+    """Random bytes under .bin printed numpy's 'invalid value encountered in reduce' (a signalling NaN) after the
+    error; a planar scan saved as PLY printed two 'invalid value encountered in divide' (corrcoef of equal ring
+    elevations) before info's table."""
+    import warnings
+
+    (tmp_path / "k.bin").write_bytes(np.random.default_rng(3).integers(0, 256, 864, dtype=np.uint8).tobytes())
+    planar = write_any(read_any(seeds / "c.log").scan(1), tmp_path / "planar.ply")  # hits only: 179 of 180 beams
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(LogFormatError, match="k.bin: point"):
+            read_any(tmp_path / "k.bin")
+        log = read_any(planar)
+    assert log.shape == (1, 180, 1) and log.attributes["valid"].sum() == 179
