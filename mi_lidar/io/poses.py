@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_path
-from mi_lidar.core.errors import NUMPY_FILE_ERRORS, LogFormatError
+from mi_lidar.core.errors import NUMPY_FILE_ERRORS, LogFormatError, unreadable
 from mi_lidar.core.poses import validate_poses
 from mi_lidar.io.signature import check_signature, read_head, sniff
 
@@ -22,13 +22,25 @@ from mi_lidar.io.signature import check_signature, read_head, sniff
 def _read_text_rows(path: Path, width: int) -> np.ndarray:
     """Rows of ``width`` numbers from a whitespace-separated text file (blank lines skipped)."""
     rows = []
-    with open(path, encoding="utf-8", errors="replace") as stream:
+    try:
+        stream = open(path, encoding="utf-8", errors="replace")
+    except PermissionError as exc:
+        raise unreadable(path) from exc
+    with stream:
         for number, line in enumerate(stream, start=1):
             fields = line.split()
             if not fields:
                 continue
             if len(fields) != width:
-                raise LogFormatError(f"{path}: line {number} has {len(fields)} numbers; expected {width}")
+                if "," in line:
+                    raise LogFormatError(
+                        f"{path}: line {number}: numbers separated by commas; pose files separate them by spaces: "
+                        "replace the commas by spaces"
+                    )
+                cut = " (the file is cut short?)" if not line.endswith("\n") else ""
+                raise LogFormatError(
+                    f"{path}: line {number} has {len(fields)} numbers; expected {width}{cut}: repair or delete the line"
+                )
             try:
                 rows.append([float(f) for f in fields])
             except ValueError as exc:

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from mi_lidar.core.errors import LogFormatError, PoseError
-from mi_lidar.io import read_kitti_poses, read_pose_matrices, write_kitti_poses
+from mi_lidar.io import read_kitti_poses, read_pose_matrices, read_poses, write_kitti_poses
 
 
 def _poses(n=5):
@@ -79,3 +79,35 @@ def test_read_poses_takes_every_pose_file_and_a_saved_log(tmp_path):
     (tmp_path / "junk.bin").write_bytes(b"\0\x89PNG" * 100)
     with pytest.raises(LogFormatError, match=r"junk\.bin: a binary file, not a pose file; give \.npy"):
         read_poses(tmp_path / "junk.bin")
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        # read as a 16-number matrix file: 'line 1 has 1 numbers; expected 16'
+        ("1,0,0,0,0,1,0,0,0,0,1,0\n", r"p.txt: line 1: numbers separated by commas; .* replace the commas by spaces"),
+        # a file cut inside its last line: 'line 2 has 3 numbers; expected 12' without a word of why
+        ("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0", r"p.txt: line 2 has 3 numbers; expected 12 \(the file is cut short\?\)"),
+    ],
+)
+def test_text_pose_files_say_what_is_wrong(tmp_path, text, message):
+    (tmp_path / "p.txt").write_text(text)
+    with pytest.raises(LogFormatError, match=message):
+        read_poses(tmp_path / "p.txt")
+
+
+def test_an_unreadable_kitti_pose_file_says_so(tmp_path, monkeypatch):
+    """A bare PermissionError before (simulated: tests may run as root)."""
+    import builtins
+
+    path = write_kitti_poses(tmp_path / "p.txt", _poses())
+    real_open = builtins.open
+
+    def refuse(file, *args, **kwargs):
+        if str(file) == str(path):
+            raise PermissionError(13, "Permission denied", str(file))
+        return real_open(file, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "open", refuse)
+    with pytest.raises(LogFormatError, match=r"p.txt: cannot read the file \(permission denied\)"):
+        read_kitti_poses(path)
