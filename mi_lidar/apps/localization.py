@@ -39,10 +39,10 @@ from mi_lidar.apps.scans import (
     CAP,
     REACH,
     PlanarStates,
+    Tracker,
     compose,
     motion_sigma,
     noisy_runs,
-    paired_runs,
     run_ranges,
     stretch_mask,
     stretches,
@@ -89,26 +89,14 @@ def low_variance_resample(weights: np.ndarray, offsets: np.ndarray) -> np.ndarra
 
 
 @dataclass
-class ParticleFilter:
-    """The localization application (see the module docstring).
+class ParticleFilter(Tracker):
+    """The localization application (see the module docstring; run settings: :class:`~mi_lidar.apps.scans.Tracker`).
 
     Attributes:
-        runs: filter runs per batch (each with its own noise, the same on every dataset).
-        max_runs: most runs per evaluation: batches are added while the standard error of J exceeds
-            ``target_se`` (:func:`~mi_lidar.apps.scans.paired_runs`).
-        target_se: standard error of J (m) that stops adding runs.
-        stretch: travel (m) of one filter run: the log is cut into stretches of about this length
-            (:func:`~mi_lidar.apps.scans.stretches`), each filtered from its own noisy start.
-        max_states: on a longer log, evenly spaced stretches holding at most this many states are run.
         beams: beams used per update (evenly spread; the likelihood field's usual subsampling).
         seed: seed of the runs' noise.
     """
 
-    runs: int = 8
-    max_runs: int = 32
-    target_se: float = 0.01
-    stretch: float = 20.0
-    max_states: int = 1000
     beams: int = 60
     seed: int = 0
     sweep: ClassVar[str] = "particles"  # the parameter swept at the best real setting (thesis fig. 3.20)
@@ -179,9 +167,7 @@ class ParticleFilter:
 
     def evaluate(self, alpha: dict, states: PlanarStates, ranges: np.ndarray) -> dict:
         """Run the filter along the states on ``ranges`` ((S, T, N) or (T, N)) with setting ``alpha``."""
-        done = paired_runs(
-            lambda runs: self.filter(alpha, states, ranges, runs), self.runs, self.max_runs, self.target_se
-        )
+        done = self.filter_runs(alpha, states, ranges)
         return {
             **tracker_metrics(done),
             "error_median": float(np.median(done["errors"])),

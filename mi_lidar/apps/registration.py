@@ -40,10 +40,10 @@ from mi_lidar.apps.scans import (
     REACH,
     START_NOISE,
     PlanarStates,
+    Tracker,
     compose,
     motion_sigma,
     noisy_runs,
-    paired_runs,
     run_ranges,
     stretch_mask,
     stretches,
@@ -212,25 +212,13 @@ def _update(mean: np.ndarray, cov: np.ndarray, registered: Registration) -> tupl
 
 
 @dataclass
-class ScanToMapEKF:
-    """The registration application (see the module docstring).
+class ScanToMapEKF(Tracker):
+    """The registration application (see the module docstring; run settings: :class:`~mi_lidar.apps.scans.Tracker`).
 
     Attributes:
-        runs: filter runs per batch (each with its own noisy start and odometry, the same on every dataset).
-        max_runs: most runs per evaluation: batches are added while the standard error of J exceeds
-            ``target_se`` (:func:`~mi_lidar.apps.scans.paired_runs`).
-        target_se: standard error of J (m) that stops adding runs.
-        stretch: travel (m) of one filter run: the log is cut into stretches of about this length
-            (:func:`~mi_lidar.apps.scans.stretches`), each filtered from its own noisy start pose.
-        max_states: on a longer log, evenly spaced stretches holding at most this many states are run.
-        seed: seed of the runs' noise.
+        seed: seed of the runs' noise (noisy start and odometry).
     """
 
-    runs: int = 8
-    max_runs: int = 32
-    target_se: float = 0.01
-    stretch: float = 20.0
-    max_states: int = 1000
     seed: int = 0
     sweep: ClassVar[str] = "iterations"  # the parameter swept at the best real setting (thesis fig. 3.20)
     effort: ClassVar[str] = "icp_iterations"  # the metric shown beside J along the sweep
@@ -284,9 +272,7 @@ class ScanToMapEKF:
 
     def evaluate(self, alpha: dict, states: PlanarStates, ranges: np.ndarray) -> dict:
         """Run the filter along the states on ``ranges`` ((S, T, N) or (T, N)) with setting ``alpha``."""
-        done = paired_runs(
-            lambda runs: self.filter(alpha, states, ranges, runs), self.runs, self.max_runs, self.target_se
-        )
+        done = self.filter_runs(alpha, states, ranges)
         return {
             **tracker_metrics(done),
             "icp_iterations": float(done["iterations"].mean()),

@@ -19,6 +19,7 @@ Poses are planar ``(x, y, theta)`` (m, m, rad) of the laser in the map frame.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -349,6 +350,43 @@ def tracker_metrics(done: dict[str, np.ndarray]) -> dict:
         "divergence": float(np.mean(done["errors"] > 1.0)),
         "heading_error_deg": float(np.degrees(done["headings"].mean())),
     }
+
+
+@dataclass
+class Tracker(ABC):
+    """A tracker (registration, localization): a filter run along the log's stretches, and its run settings.
+
+    Attributes:
+        runs: filter runs per batch (each with its own noise, the same on every dataset).
+        max_runs: most runs per evaluation: batches are added while the standard error of J exceeds
+            ``target_se`` (:func:`paired_runs`).
+        target_se: standard error of J (m) that stops adding runs.
+        stretch: travel (m) of one filter run: the log is cut into stretches of about this length
+            (:func:`stretches`), each filtered from its own noisy start pose.
+        max_states: on a longer log, evenly spaced stretches holding at most this many states are run.
+    """
+
+    runs: int = 8
+    max_runs: int = 32
+    target_se: float = 0.01
+    stretch: float = 20.0
+    max_states: int = 1000
+
+    @abstractmethod
+    def filter(self, alpha: dict, states: PlanarStates, ranges: np.ndarray, runs: np.ndarray) -> dict:
+        """Run the filter along every stretch for run indices ``runs`` (R,) with setting ``alpha``.
+
+        Returns:
+            Per-run arrays (leading axis R): ``"objective"`` (R,), the state errors ``"errors"`` (m) and
+            ``"headings"`` (rad), and what else the tracker reports.
+        """
+
+    def filter_runs(self, alpha: dict, states: PlanarStates, ranges: np.ndarray) -> dict[str, np.ndarray]:
+        """:meth:`filter` on ``ranges`` ((S, T, N) or (T, N)), batch after batch until J is known to
+        ``target_se`` (:func:`paired_runs`); the per-run arrays of every run."""
+        return paired_runs(
+            lambda runs: self.filter(alpha, states, ranges, runs), self.runs, self.max_runs, self.target_se
+        )
 
 
 def scan_statistics(states: PlanarStates, ranges: np.ndarray) -> dict:
