@@ -9,7 +9,7 @@ import typer
 from mi_lidar.cli.app import MAX_STEPS, app, console
 from mi_lidar.cli.apps import MAX_DRAWS, risk_table
 from mi_lidar.cli.progress import progress
-from mi_lidar.cli.tables import figure, figure_table
+from mi_lidar.cli.tables import rows_table
 
 
 @app.command("evaluate-apps-3d", rich_help_panel="The loop")
@@ -76,16 +76,21 @@ def evaluate_apps_3d(
             [(r.name, r.risk, result.risk_se[r.name], r.picks) for r in result.results],
         )
     )
-    samples = figure_table(
+    samples = rows_table(
         "the simulators on the test rays: NLL and the realism of their samples",
         "simulator",
-        ("NLL", "median |err|", "p90 |err|", "F1", "hist L1", "Chamfer"),
+        (
+            ("NLL", "nll"),
+            ("median |err|", "range_error_median"),
+            ("p90 |err|", "range_error_p90"),
+            ("F1", "f1"),
+            ("hist L1", "histogram_l1"),
+            ("Chamfer", "chamfer"),
+        ),
+        result.benchmark,
         caption="NLL: nats per ray; |err|: the sampled scan vs the measured one where both returned (m); F1: "
         "hit/miss agreement; hist L1: distance of the range CDFs (m); Chamfer: distance of the point clouds (m)",
     )
-    for row in result.benchmark:
-        keys = ("nll", "range_error_median", "range_error_p90", "f1", "histogram_l1", "chamfer")
-        samples.add_row(row["model"], *(figure(row[k]) for k in keys))
     console.print(samples)
     for r in result.results:
         console.print(f"{r.name}: J = {r.objective}; best real J found {r.best_real[0]:.4g}")

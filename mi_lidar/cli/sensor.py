@@ -8,7 +8,7 @@ import typer
 
 from mi_lidar.cli.app import MAX_STEPS, app, console, force_option, log_argument, warn
 from mi_lidar.cli.progress import note, progress
-from mi_lidar.cli.tables import figure, figure_table
+from mi_lidar.cli.tables import rows_table
 
 
 @app.command("fit-sensor", rich_help_panel="The loop")
@@ -56,16 +56,21 @@ def fit_sensor_command(
             force=force,
         )
         path = save_sensor(result, out)
-    table = figure_table(
+    table = rows_table(
         f"{log.name}: {result.test_rays:,} held-out rays",
         "model",
-        ("test NLL", "train NLL", "median |err|", "p90 |err|", "F1", "hist L1"),
+        (
+            ("test NLL", "nll"),
+            ("train NLL", "train_nll"),
+            ("median |err|", "range_error_median"),
+            ("p90 |err|", "range_error_p90"),
+            ("F1", "f1"),
+            ("hist L1", "histogram_l1"),
+        ),
+        result.rows,
         caption="NLL: nats per ray; |err|: a sampled scan vs the measured one where both returned (m); F1: "
         "hit/miss agreement of that scan; hist L1: distance of the range CDFs (m)",
     )
-    for row in result.rows:
-        keys = ("nll", "train_nll", "range_error_median", "range_error_p90", "f1", "histogram_l1")
-        table.add_row(row["model"], *(figure(row[key]) for key in keys))
     warn(result.warnings)
     console.print(table)
     console.print(f"wrote {path}")

@@ -32,3 +32,19 @@ def figure_table(title: str, label: str, columns, caption: str | None = None) ->
     for column in columns:
         table.add_column(column, justify="right", min_width=FIGURE_WIDTH)
     return table
+
+
+def rows_table(title: str, label: str, columns, rows, caption: str | None = None) -> Table:
+    """A :func:`figure_table` with one row per dict of ``rows``: its ``"model"``, then a figure per column.
+
+    Args:
+        title: the table's title.
+        label: header of the first column.
+        columns: ``(header, key)`` of each figure column: the figure is the row's value at ``key``.
+        rows: dicts holding ``"model"`` and every column's key (a benchmark's rows).
+        caption: what the headers abbreviate, their units.
+    """
+    table = figure_table(title, label, [header for header, _ in columns], caption)
+    for row in rows:
+        table.add_row(row["model"], *(figure(row[key]) for _, key in columns))
+    return table
