@@ -447,19 +447,14 @@ class ElementTable:
         return Segment(
             valid=valid,
             nominal=entry.nominal,
-            p=values.p,
             mean=mean,
-            sigma=dr.select(values.kind == ELLIPSOID, e_sigma, values.sigma),
             lo=lo,
             hi=hi,
             cos_incidence=entry.cos_incidence,
             element=entry.element,
-            shape=values.shape,
-            label=values.label,
-            kind=values.kind,
-            reflectivity=values.reflectivity,
             corner_offset=mi.Vector3f(*corner[:3]) if corner else None,
             corner_weight=mi.Vector3f(*corner[3:]) if corner else None,
+            **values._replace(sigma=dr.select(values.kind == ELLIPSOID, e_sigma, values.sigma))._asdict(),
         )
 
 

@@ -266,7 +266,7 @@ def corners(v0, v1, v2, triangle: mi.Bool, origin, direction, t) -> tuple[mi.Vec
 
 
 class ElementValues(NamedTuple):
-    """The values of each lane's element that a :class:`Segment` carries (one lane per ray)."""
+    """The values of each lane's element that a :class:`Segment` carries, in its fields of the same names."""
 
     p: mi.Float  # probability that the element intercepts the beam
     sigma: mi.Float  # range sigma (m; the sensor's where the element has none)
@@ -290,17 +290,12 @@ def element_segment(
     return Segment(
         valid=valid,
         nominal=nominal,
-        p=values.p,
         mean=dr.select(is_ellipsoid, e_mean, nominal),
-        sigma=dr.select(is_ellipsoid, e_sigma, values.sigma),
         lo=dr.select(is_ellipsoid, e_lo, -dr.inf),
         hi=dr.select(is_ellipsoid, e_hi, dr.inf),
         cos_incidence=cos_incidence,
         element=element,
-        shape=values.shape,
-        label=values.label,
-        kind=values.kind,
-        reflectivity=values.reflectivity,
         corner_offset=corner[0],
         corner_weight=corner[1],
+        **values._replace(sigma=dr.select(is_ellipsoid, e_sigma, values.sigma))._asdict(),
     )
