@@ -23,6 +23,7 @@ from rich.console import Console, Group
 from rich.text import Text
 
 import mi_lidar
+from mi_lidar.cli.app import say as print_verdict
 from mi_lidar.cli.tables import figure, figure_table
 from mi_lidar.core.effects import make_effect
 from mi_lidar.io import read_any
@@ -114,7 +115,7 @@ if __name__ == "__main__":
         start_model,
         out=out / "diagnosis",
     )
-    console.print(verdict(found))
+    print_verdict(verdict(found))  # its **name** in bold, as the CLI prints it
 
     # 3. add effects, watch the error fall
     path = ouster_development_path(log, progress=say)

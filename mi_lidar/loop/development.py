@@ -1,7 +1,7 @@
 """A development path on measured rays: effects added one by one, each fitted on calibration rays, scored on test rays.
 
 :class:`Scored` holds a scene traced once with its rays; :func:`effect_step` refits a model's effects
-and scores it, giving one :class:`Step` (a row of :func:`development_table`): the NLL beside the
+and scores it, giving one :class:`Step` (a row of the path's table): the NLL beside the
 realism of a scan sampled at the same rays (:func:`~mi_lidar.core.metrics.metrics_of`). With a
 *realism guard*, an effect is kept only when it lowers the calibration NLL without making the
 calibration samples less realistic (:func:`~mi_lidar.core.metrics.worse_samples`: histogram match,
@@ -92,39 +92,6 @@ class Step:
     fitted: dict
     samples: dict = field(default_factory=dict)
     rejected: str = ""
-
-
-def development_table(rows: list[Step], title: str):
-    """The development path as two rich tables (printable as one): the figures of each step, then the parameters
-    each step adds (those new since the previous row of its model), so that both read whole at 80 columns."""
-    from rich.console import Group
-    from rich.table import Table
-
-    figures = Table(
-        title=title,
-        caption="NLL: nats per beam, on the test and the calibration beams; sample |err|, hist L1, F1: one scan "
-        "sampled at the test beams, median |measured - sampled| (m), distance of the range CDFs (m), hit/miss F1",
-    )
-    parameters = Table(title="parameters each step adds")
-    for table in (figures, parameters):
-        table.add_column("model", overflow="fold")
-        table.add_column("added", overflow="fold")
-    for column in ("test NLL", "calib. NLL", "sample |err|", "hist L1", "F1"):
-        figures.add_column(column, justify="right", min_width=6)  # a header may wrap, a figure keeps its digits
-    parameters.add_column("new parameters", overflow="fold")
-    previous, model = {}, None
-    for row in rows:
-        previous = previous if row.model == model else {}
-        fitted = ", ".join(f"{k}={v:.4g}" for k, v in row.fitted.items() if k not in previous)
-        s = row.samples
-        realism = [f"{s[k]:.3f}" if k in s else "" for k in ("range_error_median", "histogram_l1", "f1")]
-        added = row.added + (f" (not kept: {row.rejected})" if row.rejected else "")  # [...] would be rich markup
-        figures.add_row(row.model, added, f"{row.nll:.3f}", f"{row.train_nll:.3f}", *realism)
-        if fitted:
-            parameters.add_row(row.model, added, fitted)
-        if not row.rejected:
-            previous, model = row.fitted, row.model
-    return Group(figures, parameters)
 
 
 def describe_effects(effects: list[Effect]) -> dict:
