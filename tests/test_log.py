@@ -91,3 +91,24 @@ def test_select_keeps_the_chosen_scans_in_order():
         np.testing.assert_array_equal(part.attributes["label"], log.attributes["label"][expected])
         assert part.directions.shape[0] == 1 and part.sensor == log.sensor
     np.testing.assert_array_equal(log.scan(2).hit, log.hit[2:3])
+
+
+def test_load_refuses_values_no_measurement_has(tmp_path):
+    """Log.load read a NaN pose or a negative hit range silently (only read_any checked the values)."""
+    from mi_lidar.core.errors import PoseError
+
+    log = small_log()
+    log.poses[1, 0, 3] = np.nan
+    with pytest.raises(PoseError, match=r"nan.npz: pose 1 is not a rigid transform: has non-finite"):
+        Log.load(log.save(tmp_path / "nan.npz"))
+    log = small_log()
+    log.ranges[log.hit] = -2.0
+    with pytest.raises(LogFormatError, match=r"neg.npz: ray \[0, 0, \d\] has range of a hit -2.0 m"):
+        Log.load(log.save(tmp_path / "neg.npz"))
+
+
+def test_check_values_names_the_source():
+    log = small_log()
+    log.times[0, 1, 2] = np.inf
+    with pytest.raises(LogFormatError, match=r"^scan A: ray \[0, 1, 2\] has time inf s"):
+        log.check_values("scan A")

@@ -38,9 +38,11 @@ import numpy as np
 
 from mi_lidar.core.atomic import atomic_write
 from mi_lidar.core.errors import NUMPY_FILE_ERRORS, LogFormatError
+from mi_lidar.core.poses import validate_poses
 
 FORMAT_NAME = "mi-lidar-log"
 FORMAT_VERSION = 1
+UNIT_TOLERANCE = 1e-3  # |norm - 1| a ray direction may show (float32 storage, estimated miss directions)
 
 
 @dataclass
@@ -108,6 +110,38 @@ class Log:
         if np.any(self.hit & ~np.isfinite(self.ranges)):
             raise LogFormatError("a ray flagged as hit has a non-finite range; set hit=False for misses")
 
+    def check_values(self, source: str | os.PathLike = "log") -> None:
+        """Refuse numbers no measurement has: a pose that is not a finite rigid transform, a non-finite time or
+        origin, a ray direction that is not a finite unit vector, a negative range of a hit.
+
+        Shapes are :meth:`validate`'s; these are the values (one vectorized pass, the first bad ray named as
+        ``[scan, beam, firing]``).
+
+        Args:
+            source: Name starting every message (usually the file).
+
+        Raises:
+            PoseError: a bad pose (index named).
+            LogFormatError: any other bad value, named with its ray and value.
+        """
+        validate_poses(self.poses, source)
+        norm = np.linalg.norm(self.directions, axis=-1)
+        origins = np.asarray(self.origins)  # set by __post_init__
+        checks = (
+            ("time", self.times, ~np.isfinite(self.times), "s"),
+            ("origin", origins, ~np.isfinite(origins).all(axis=-1), "m"),
+            ("direction length", norm, ~(np.abs(norm - 1.0) <= UNIT_TOLERANCE), "(a unit vector has 1)"),
+            ("range of a hit", self.ranges, self.hit & (self.ranges < 0), "m (ranges are >= 0)"),
+        )
+        for name, values, bad, unit in checks:
+            if bad.any():
+                ray = np.unravel_index(int(np.argmax(bad)), bad.shape)
+                value = values[ray]
+                raise LogFormatError(
+                    f"{source}: ray {list(map(int, ray))} has {name} {np.round(value, 6).tolist()} {unit}; the file "
+                    "is damaged or was written wrongly: re-create it"
+                )
+
     # --------------------------------------------------------------- helpers
     def scan(self, index: int) -> Log:
         """The ``index``-th scan as a one-scan log (arrays are views where possible)."""
@@ -167,7 +201,12 @@ class Log:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Log:
-        """Read a log written by :meth:`save`; raise :class:`LogFormatError` on any defect."""
+        """Read a log written by :meth:`save`.
+
+        Raises:
+            LogFormatError: any defect of the file, its shapes or its values (:meth:`check_values`).
+            PoseError: a pose that is not a finite rigid transform.
+        """
         path = Path(path)
         if not path.is_file():
             raise LogFormatError(f"{path}: no such log file")
@@ -198,7 +237,7 @@ class Log:
             raise LogFormatError(f"{path}: meta 'sensor' is a {type(sensor).__name__}; expected a JSON object")
         attributes = {k[len("attr/") :]: v for k, v in arrays.items() if k.startswith("attr/")}
         try:
-            return cls(
+            log = cls(
                 poses=arrays["poses"],
                 directions=arrays["directions"],
                 origins=arrays["origins"],
@@ -212,3 +251,5 @@ class Log:
             raise LogFormatError(f"{path}: {exc}") from exc
         except (ValueError, TypeError) as exc:
             raise LogFormatError(f"{path}: an array has values of the wrong type ({exc})") from exc
+        log.check_values(path)
+        return log

@@ -29,11 +29,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import numpy as np
-
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
-from mi_lidar.core.poses import validate_poses
 from mi_lidar.io import carmen, exr, kitti, las, ouster, pcd, ply, rosbag, velodyne
 from mi_lidar.io._pcap import read_udp
 from mi_lidar.io.preview import range_image_png
@@ -131,7 +128,7 @@ def read_any(path: str | os.PathLike, **options) -> Log:
     Raises:
         LogFormatError: Unknown format, a file whose first bytes say it is not of the format its extension
             names (empty, another format's, damaged: :func:`mi_lidar.io.signature.check_signature`), any
-            defect the format's reader reports, or values no measurement has (:func:`check_values`).
+            defect the format's reader reports, or values no measurement has (:meth:`Log.check_values`).
         PoseError: a pose that is not a finite rigid transform.
     """
     path = Path(path)
@@ -151,40 +148,9 @@ def read_any(path: str | os.PathLike, **options) -> Log:
     if path.is_file():
         check_signature(path, fmt)
     log = _read_pcap(path, **options) if fmt == "pcap" else readers[fmt](path, **options)
-    check_values(log, path)
+    if fmt != "npz":  # Log.load checks its values
+        log.check_values(path)
     return log
-
-
-UNIT_TOLERANCE = 1e-3  # |norm - 1| a ray direction may show (float32 storage, estimated miss directions)
-
-
-def check_values(log: Log, source) -> None:
-    """Refuse a log whose numbers cannot be a measurement: a pose that is not a finite rigid transform, a
-    non-finite time or origin, a ray direction that is not a finite unit vector, a negative range of a hit.
-
-    Shapes are :class:`Log`'s own check; these are its values (one vectorized pass, the first bad ray named as
-    ``[scan, beam, firing]``).
-
-    Raises:
-        PoseError: a bad pose (index named).
-        LogFormatError: any other bad value, named with its ray and value.
-    """
-    validate_poses(log.poses, source)
-    norm = np.linalg.norm(log.directions, axis=-1)
-    checks = (
-        ("time", log.times, ~np.isfinite(log.times), "s"),
-        ("origin", log.origins, ~np.isfinite(log.origins).all(axis=-1), "m"),
-        ("direction length", norm, ~(np.abs(norm - 1.0) <= UNIT_TOLERANCE), "(a unit vector has 1)"),
-        ("range of a hit", log.ranges, log.hit & (log.ranges < 0), "m (ranges are >= 0)"),
-    )
-    for name, values, bad, unit in checks:
-        if bad.any():
-            ray = np.unravel_index(int(np.argmax(bad)), bad.shape)
-            value = values[ray]
-            raise LogFormatError(
-                f"{source}: ray {list(map(int, ray))} has {name} {np.round(value, 6).tolist()} {unit}; the file is "
-                "damaged or was written wrongly: re-create it"
-            )
 
 
 def log_output_format(path: str | os.PathLike, n_scans: int) -> str:
