@@ -38,6 +38,7 @@ from mi_lidar.hybrid.fit import FitParams, FitResult, fit_model
 from mi_lidar.hybrid.model import HybridModel
 from mi_lidar.hybrid.primitives import PrimitiveLibrary, extract_primitives
 from mi_lidar.hybrid.segments import segments_from_labels
+from mi_lidar.io.dispatch import read_any
 from mi_lidar.io.preview import birds_eye_png, range_image_png
 from mi_lidar.scene.loading import load_scene
 from mi_lidar.scene.simulation import simulate
@@ -114,7 +115,7 @@ def fit_scene(log_path, out_dir, params: FitParams | None = None, name: str = "s
     The scene's sensor fires the log's scan-0 pattern (``<name>_assets/pattern.npy``) from its
     first pose. With ``preview``, ``<name>_range.png`` and ``<name>_top.png`` are rendered.
     """
-    log = Log.load(log_path)
+    log = read_any(log_path)
     elevation = log.directions[..., 2]
     if float(np.nanmax(elevation) - np.nanmin(elevation)) < PLANAR_SPREAD:
         console.print(
@@ -149,7 +150,7 @@ def fit_scene(log_path, out_dir, params: FitParams | None = None, name: str = "s
 
 def primitives_extract(log_path, library_dir, params: FitParams | None = None) -> PrimitiveLibrary:
     """Fit the labelled log, cut its objects into primitives and add them to ``library_dir``."""
-    log = Log.load(log_path)
+    log = read_any(log_path)
     _require_labels(log, log_path)
     result = _fit(log, params, "extract")
     labels = log.attributes["label"].ravel()[result.ray_index]
@@ -207,7 +208,7 @@ def primitives_show(library_dir, out_png, ids: list[str] | None = None, per_clas
 def annotate(log_path, out_json, params: FitParams | None = None) -> Path:
     """Annotation of a labelled log: objects from its labels, ground mesh fitted to its ground
     points, and its sensor (pattern, poses, range limits); return the JSON path."""
-    log = Log.load(log_path)
+    log = read_any(log_path)
     _require_labels(log, log_path)
     result = _fit(log, params, "annotate", ground_only=True)
     labels = log.attributes["label"].ravel()[result.ray_index]

@@ -1,11 +1,15 @@
 """fit-scene says what it wrote, and warns that a planar log cannot show a hybrid scene's ground and vegetation."""
 
 import numpy as np
+import pytest
+from typer.testing import CliRunner
 
 import mi_lidar
+from mi_lidar.cli import app
 from mi_lidar.hybrid.commands import fit_scene
 
 from ..conftest import SCENES
+from ..io.test_clouds import synthetic_log
 
 
 def test_a_planar_log_is_warned_about(tmp_path, capsys):
@@ -18,3 +22,29 @@ def test_a_planar_log_is_warned_about(tmp_path, capsys):
     xml = fit_scene(path, tmp_path / "fitted", preview=False)
     said = capsys.readouterr().err
     assert xml.is_file() and f"warning: {path} is a planar log (every beam in one plane)" in said  # one line
+
+
+def nan_pose_log(path):
+    log = synthetic_log(scans=2)
+    log.poses[1, 0, 3] = np.nan
+    return log.save(path)
+
+
+@pytest.mark.parametrize(
+    "make, said",
+    [
+        (nan_pose_log, "log.npz: pose 1 is not a rigid transform: has non-finite entries"),
+        (lambda path: path.write_bytes(b""), "log.ply: empty file (0 bytes), not a PLY point cloud"),
+    ],
+    ids=["nan-pose", "empty-ply"],
+)
+def test_a_bad_log_is_one_error_line_naming_the_file(tmp_path, make, said):
+    """A NaN pose said matplotlib's 'data must be finite, check for nan or inf values'; any file but a .npz was
+    'not a readable mi-lidar log' (fit-scene read with Log.load, not read_any)."""
+    path = tmp_path / ("log.npz" if make is nan_pose_log else "log.ply")
+    make(path)
+    result = CliRunner().invoke(app, ["fit-scene", str(path), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert said in " ".join(result.output.split()) and lines[0].startswith("error:"), result.output
+    assert not (tmp_path / "out").exists()
