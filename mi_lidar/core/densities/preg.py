@@ -32,7 +32,6 @@ from collections.abc import Callable
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from scipy.interpolate import RegularGridInterpolator
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.densities.base import ESCAPE, UniformEscapeDensity, escape_segment, register_density
@@ -344,6 +343,8 @@ def fit_p_reg(
 def _at_nodes(table: np.ndarray, nodes: list[np.ndarray], x: np.ndarray) -> np.ndarray:
     """``table`` (on the product grid of ``nodes``) interpolated (multi-)linearly at ``x`` (N, D), clamped
     to the grid, as :meth:`PRegDensity.values` reads it."""
+    from scipy.interpolate import RegularGridInterpolator  # only when fitting: importing mi_lidar stays light
+
     return RegularGridInterpolator(nodes, table)(np.clip(x, [n[0] for n in nodes], [n[-1] for n in nodes]))
 
 
