@@ -255,7 +255,7 @@ def evaluate_log(
         workers: processes running the applications side by side.
         progress: optional ``progress(done, total, label)``.
     """
-    from mi_lidar.io.carmen import read_carmen
+    from mi_lidar.io.dispatch import read_any
     from mi_lidar.planar.benchmark import run_planar_benchmark
 
     unknown = sorted(set(simulators) - set(MODELS))
@@ -268,7 +268,7 @@ def evaluate_log(
     key = _key(path, protocol, tuple(simulators), runs, seed, max_range)
     loaded = load_datasets(out / "cache" / "datasets.npz", key)
     if loaded is None:
-        log = read_carmen(path, max_range=max_range)
+        log = read_any(path, formats=("carmen",), max_range=max_range)
         result = run_planar_benchmark(log, str(path), protocol, tuple(simulators), seed=seed, progress=progress)
         states, ranges = planar_datasets(result, samples=runs, seed=seed)
         benchmark = [r.to_json() for r in result.rows]

@@ -56,6 +56,19 @@ _SUFFIX_FORMATS = {
     ".png": "png",
 }
 
+FORMAT_NAMES = {
+    "npz": "mi-lidar log (.npz)",
+    "carmen": "CARMEN log (.log, .log.gz, .clf)",
+    "pcap": "packet capture (.pcap)",
+    "bin": "KITTI / nuScenes point cloud (.bin)",
+    "ply": "PLY point cloud (.ply)",
+    "pcd": "PCD point cloud (.pcd)",
+    "las": "LAS point cloud (.las, .laz)",
+    "rosbag": "ROS bag",
+    "exr": "EXR range image (.exr)",
+    "png": "PNG preview (.png)",
+}  # what detect_format's names are, for messages
+
 
 def detect_format(path: str | os.PathLike, for_writing: bool = False) -> str:
     """The format name of ``path`` from its extension (and, for ``.pcap``, its packets).
@@ -116,23 +129,29 @@ def _read_pcap(path: Path, metadata=None, calibration=None, model=None, **option
     )
 
 
-def read_any(path: str | os.PathLike, **options) -> Log:
+def read_any(path: str | os.PathLike, formats: tuple[str, ...] | None = None, **options) -> Log:
     """Read any supported file into a :class:`Log` (see the module table).
 
     Args:
         path: The file (or ROS 2 bag folder).
+        formats: The formats (names :func:`detect_format` gives) the caller takes, e.g. ``("carmen",)``;
+            a file of another format is refused, saying what it is. None: any.
         **options: Passed to the format's reader, e.g. ``metadata=`` (Ouster), ``calibration=``,
             ``model=``, ``return_mode=`` (Velodyne), ``min_range=`` (point clouds), ``topic=``
             (bags), ``columns=`` (``.bin``), ``message=`` (CARMEN).
 
     Raises:
-        LogFormatError: Unknown format, a file whose first bytes say it is not of the format its extension
-            names (empty, another format's, damaged: :func:`mi_lidar.io.signature.check_signature`), any
-            defect the format's reader reports, or values no measurement has (:meth:`Log.check_values`).
+        LogFormatError: Unknown format or one not in ``formats``, a file whose first bytes say it is not of the
+            format its extension names (empty, another format's, damaged:
+            :func:`mi_lidar.io.signature.check_signature`), any defect the format's reader reports, or values no
+            measurement has (:meth:`Log.check_values`).
         PoseError: a pose that is not a finite rigid transform.
     """
     path = Path(path)
     fmt = detect_format(path)
+    if formats is not None and fmt not in formats:
+        wanted = " or ".join(FORMAT_NAMES[name] for name in formats)
+        raise LogFormatError(f"{path}: a {FORMAT_NAMES[fmt]} by its extension; expected a {wanted}")
     if fmt == "png":
         raise LogFormatError(f"{path}: PNG previews cannot be read back; read the scan's source file")
     readers = {

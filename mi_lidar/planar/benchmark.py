@@ -339,11 +339,11 @@ def benchmark_file(
 
     The folder ``out`` is made first, so that a path that cannot be a folder fails before the run.
     """
-    from mi_lidar.io.carmen import read_carmen
+    from mi_lidar.io.dispatch import read_any
 
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
-    log = read_carmen(path, max_range=max_range)
+    log = read_any(path, formats=("carmen",), max_range=max_range)
     result = run_planar_benchmark(log, str(path), protocol, models, progress=progress)
     if out is not None:
         from mi_lidar.planar.report import write_benchmark

@@ -154,3 +154,17 @@ def test_a_report_that_fails_while_written_leaves_the_previous_one_whole(tmp_pat
     assert json.loads((out / "benchmark.json").read_text())["models"][0]["model"] == "M0"
     assert all(path.parent == out and path.exists() for path in files.values())
     assert sorted(p.name for p in out.iterdir()) == sorted(before)
+
+
+@pytest.mark.parametrize("verb", ["benchmark-planar", "evaluate-apps"])
+def test_a_point_cloud_is_named_as_one(tmp_path, verb):
+    """A PLY point cloud was read as CARMEN text: 'scan.ply: no FLASER messages; is this a CARMEN log?'."""
+    from mi_lidar.io.dispatch import write_any
+    from tests.io.test_clouds import synthetic_log
+    from tests.terminal import invoke_at_80
+
+    path = write_any(synthetic_log(), tmp_path / "scan.ply")
+    result = invoke_at_80([verb, path, "--out", tmp_path / "out"])
+    assert result.exit_code == 2, result.output
+    said = " ".join(result.output.split())
+    assert "scan.ply: a PLY point cloud (.ply) by its extension; expected a CARMEN log (.log, .log.gz, .clf)" in said
