@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from mi_lidar.core.errors import SpecError, describe_invalid
+from mi_lidar.core.errors import SpecError, describe_invalid, parser_message
 from mi_lidar.core.patterns import is_pattern_file
 
 
@@ -296,7 +296,7 @@ def read_spec_file(path: Path) -> dict:
     except SpecError:
         raise
     except Exception as exc:
-        raise SpecError(f"{path}: cannot parse the spec: {exc}") from exc
+        raise SpecError(f"{path}: cannot parse the spec: {parser_message(exc)}") from exc
     if not isinstance(data, dict):
         raise SpecError(f"{path}: the spec must be a mapping of fields (name, seed, rig, scenes, output)")
     return data

@@ -51,3 +51,16 @@ def test_a_scene_refused_by_the_check_prints_no_frame_count(tmp_path, monkeypatc
     assert result.exit_code == 2, result.output
     assert "have no class name" in result.output
     assert not [line for line in result.output.splitlines() if line.startswith("frames")], result.output
+
+
+def test_a_cut_spec_is_one_error_line_naming_line_and_column(tmp_path):
+    """ruamel's error spread over five lines with a drawing of the spot ('while parsing a flow node ... ^')."""
+    spec = tmp_path / "spec.yaml"
+    text = SPEC.replace("XML", str(SCENES / "urban_street.xml")).replace("LABELS", LABELS)
+    spec.write_text(text[: text.index("[4, 0]]") + 3])  # cut inside the trajectory
+    result = CliRunner().invoke(app, ["dataset", str(spec), "--out", str(tmp_path / "out"), "--serial"])
+    assert result.exit_code == 2, result.output
+    said = " ".join(result.output.split())
+    problem = "line 12, column 42: expected the node content, but found '<stream end>'"
+    assert f"spec.yaml: cannot parse the spec: {problem}" in said, said
+    assert result.output.count("error:") == 1 and "^" not in result.output and "while" not in said, result.output
