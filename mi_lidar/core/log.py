@@ -16,6 +16,7 @@ field                     shape, dtype           meaning
 ``times``                 (S, H, W) float64      absolute timestamp of each ray (s)
 ``attributes[name]``      (S, H, W) any          per-ray extras (element_id, label, ...)
 ``sensor``                dict                   JSON-able metadata (name, pattern, ranges)
+``source``                str or None            the file the log was read from (not saved)
 ========================  =====================  =========================================
 
 A leading axis of 1 in ``directions``/``origins`` means that every scan shares the pattern.
@@ -57,6 +58,7 @@ class Log:
     origins: np.ndarray | None = None
     attributes: dict[str, np.ndarray] = field(default_factory=dict)
     sensor: dict = field(default_factory=dict)
+    source: str | None = field(default=None, compare=False)  # the file it was read from (None: made in memory)
 
     def __post_init__(self):
         self.poses = np.asarray(self.poses, dtype=np.float64)
@@ -163,6 +165,7 @@ class Log:
             times=self.times[scans],
             attributes={k: v[scans] for k, v in self.attributes.items()},
             sensor=dict(self.sensor),
+            source=self.source,
         )
 
     def points_sensor(self) -> np.ndarray:
@@ -246,6 +249,7 @@ class Log:
                 times=arrays["times"],
                 attributes=attributes,
                 sensor=sensor,
+                source=str(path),
             )
         except LogFormatError as exc:
             raise LogFormatError(f"{path}: {exc}") from exc

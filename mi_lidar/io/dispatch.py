@@ -169,6 +169,7 @@ def read_any(path: str | os.PathLike, formats: tuple[str, ...] | None = None, **
     log = _read_pcap(path, **options) if fmt == "pcap" else readers[fmt](path, **options)
     if fmt != "npz":  # Log.load checks its values
         log.check_values(path)
+    log.source = str(path)
     return log
 
 

@@ -108,7 +108,7 @@ def check_log_sensor(log, scene, pattern=None, force: bool = False) -> None:
     """Raise :class:`SensorMismatchError` when ``log`` was not recorded by the scene's sensor.
 
     Args:
-        log: the measured :class:`~mi_lidar.core.log.Log`.
+        log: the measured :class:`~mi_lidar.core.log.Log` (its ``source``, when known, starts the message).
         scene: the loaded scene; a scene without a ``lidar`` sensor is not checked (unless
             ``pattern`` is given).
         pattern: the firing pattern to compare with instead of the scene sensor's.
@@ -123,8 +123,9 @@ def check_log_sensor(log, scene, pattern=None, force: bool = False) -> None:
     measured = log_summary(log)
     found = mismatches(measured, expected, str(log.sensor.get("range_unit", "m")))
     if found:
+        named = f"{log.source}: the" if log.source else "the"
         raise SensorMismatchError(
-            f"the log's sensor ({measured.describe('returns up to')}) does not match the scene's `lidar` sensor "
+            f"{named} log's sensor ({measured.describe('returns up to')}) does not match the scene's `lidar` sensor "
             f"({expected.describe('max range')}): {'; '.join(found)}. Use the scene the log was recorded in, set "
             "the scene sensor's pattern to the log's, or pass --force to go on anyway"
         )

@@ -1,5 +1,7 @@
 """compare and diagnose refuse a log from another sensor than the scene's, unless forced."""
 
+import re
+
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -52,9 +54,26 @@ def test_planar_log_in_the_offroad_scene_is_refused_unless_forced(tmp_path, plan
     refused = runner.invoke(app, args)
     text = " ".join(refused.output.split())
     assert refused.exit_code == 2, text
+    assert f"error: {planar_log}: the log's sensor (planar-360" in text  # it did not name the file
     assert "planar-360: 360 beams" in text and "vlp16: 16 beams" in text and "360 beams vs 16" in text
     assert "--force" in text and "Traceback" not in text
     if verb == "compare":
         forced = runner.invoke(app, [*args, "--force"])
         assert forced.exit_code == 0, forced.output
         assert np.isfinite(float(forced.output.split("NLL ")[1].split()[0]))
+
+
+def test_the_mismatch_names_the_log_file_when_it_was_read_from_one(planar_log):
+    """The message began "the log's sensor" whichever file the log came from."""
+    from mi_lidar.core.errors import SensorMismatchError
+    from mi_lidar.io.dispatch import read_any
+    from mi_lidar.scene.sensor_check import check_log_sensor
+
+    scene = mi_lidar.load_scene(SCENES / "offroad.xml")
+    log = read_any(planar_log)
+    assert log.source == str(planar_log) and log.scan(0).source == str(planar_log)
+    with pytest.raises(SensorMismatchError, match=rf"^{re.escape(str(planar_log))}: the log's sensor \(planar-360"):
+        check_log_sensor(log, scene)
+    log.source = None  # made in memory
+    with pytest.raises(SensorMismatchError, match=r"^the log's sensor \(planar-360"):
+        check_log_sensor(log, scene)
