@@ -135,7 +135,8 @@ def read_any(path: str | os.PathLike, formats: tuple[str, ...] | None = None, **
     Args:
         path: The file (or ROS 2 bag folder).
         formats: The formats (names :func:`detect_format` gives) the caller takes, e.g. ``("carmen",)``;
-            a file of another format is refused, saying what it is. None: any.
+            a file of another format is refused, saying what it is; a file whose extension no format claims
+            is read as the caller's only format. None: any.
         **options: Passed to the format's reader, e.g. ``metadata=`` (Ouster), ``calibration=``,
             ``model=``, ``return_mode=`` (Velodyne), ``min_range=`` (point clouds), ``topic=``
             (bags), ``columns=`` (``.bin``), ``message=`` (CARMEN).
@@ -148,7 +149,12 @@ def read_any(path: str | os.PathLike, formats: tuple[str, ...] | None = None, **
         PoseError: a pose that is not a finite rigid transform.
     """
     path = Path(path)
-    fmt = detect_format(path)
+    try:
+        fmt = detect_format(path)
+    except LogFormatError:
+        if formats is None or len(formats) != 1 or path.is_dir():
+            raise
+        fmt = formats[0]  # a name no format claims (e.g. intel.txt, aces.gz): read it as the one the caller takes
     if formats is not None and fmt not in formats:
         wanted = " or ".join(FORMAT_NAMES[name] for name in formats)
         raise LogFormatError(f"{path}: a {FORMAT_NAMES[fmt]} by its extension; expected a {wanted}")

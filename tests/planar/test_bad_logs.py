@@ -168,3 +168,23 @@ def test_a_point_cloud_is_named_as_one(tmp_path, verb):
     assert result.exit_code == 2, result.output
     said = " ".join(result.output.split())
     assert "scan.ply: a PLY point cloud (.ply) by its extension; expected a CARMEN log (.log, .log.gz, .clf)" in said
+
+
+@pytest.mark.parametrize("name", ["room.txt", "room.gz", "room"])
+def test_a_carmen_log_under_any_other_name_is_read_as_one(tmp_path, name):
+    """Real CARMEN logs travel as .log, .gfs.log, .clf, .txt or bare names: benchmark-planar and evaluate-apps read
+    the one format they take whatever the name (5b77732 refused every name but .log, .log.gz, .clf), and still
+    refuse a file that names another format."""
+    import gzip
+
+    from mi_lidar.io.dispatch import read_any
+
+    text = room_log_text(scans=6)
+    path = tmp_path / name
+    path.write_bytes(gzip.compress(text.encode()) if name.endswith(".gz") else text.encode())
+    log = read_any(path, formats=("carmen",))
+    assert log.ranges.shape[0] == 6
+    np.testing.assert_array_equal(log.ranges, room(tmp_path, 6).ranges)
+    (tmp_path / "scan.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
+    with pytest.raises(LogFormatError, match="PLY point cloud"):
+        read_any(tmp_path / "scan.ply", formats=("carmen",))
