@@ -12,8 +12,8 @@ incidence, or of all when there are none). A beam that met nothing misses with p
 Choices where the thesis leaves room (documented and tested): the regressions pool the beams and
 the labels unless told to keep ``n_labels`` labels and ``n_beams`` beams apart; then the groups form
 a hierarchy, each label's regressions shrunk to the pooled ones and each beam's (within its label) to
-its label's, every group's prior being its parent's tables moved to the group's own level
-(:func:`_level_prior`), and the density reads the tables of a segment's group (label x beam, its
+its label's, every group's prior being its own level shrunk to its parent's (:func:`_level_prior`),
+and the density reads the tables of a segment's group (label x beam, its
 :class:`StateGrid`); the mean and sigma are fitted on returns
 within ``inlier`` (1 m) of the nominal range, so that the 5-10 % of real returns from objects the
 map lacks do not inflate sigma to metres; bandwidths are chosen by held-out likelihood from a
@@ -349,11 +349,14 @@ def _at_nodes(table: np.ndarray, nodes: list[np.ndarray], x: np.ndarray) -> np.n
 
 
 def _level_prior(prior: np.ndarray, nodes, x: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """``prior`` moved by the group's mean deviation from it, shrunk with :data:`PSEUDO_SAMPLES` samples.
+    """A group's prior: its own mean response, shrunk to its parent's mean at its samples with
+    :data:`PSEUDO_SAMPLES` samples, flat over the nodes.
 
-    A group (a label, or a beam within its label) keeps its parent's shape over range and incidence but
-    takes its own level where it has the samples to show it: a label whose returns drop 95 % of the time
-    where the pooled law drops 10 % is shrunk at each node to a prior near 95 %, not to 10 %.
+    A group (a label, or a beam within its label) is shrunk node by node to this level rather than to
+    its parent's law: a label whose returns drop 95 % of the time where the pooled law drops 10 % keeps
+    about 95 % where its samples are thin, and the pooled law's shape over range, which comes from the
+    mix of labels at each range, is not imposed on a label that does not share it (measured on the real
+    Ouster and VLP-16 frames: lower held-out NLL than the parent's shape moved to the group's level).
 
     Args:
         prior: the parent's table on the grid of ``nodes``.
@@ -361,11 +364,12 @@ def _level_prior(prior: np.ndarray, nodes, x: np.ndarray, y: np.ndarray, w: np.n
     """
     if len(y) == 0:
         return prior
-    return prior + float(np.dot(w, y - _at_nodes(prior, nodes, x))) / (float(w.sum()) + PSEUDO_SAMPLES)
+    n, parent = float(w.sum()), float(np.dot(w, _at_nodes(prior, nodes, x)))
+    return np.full_like(prior, (float(np.dot(w, y)) + PSEUDO_SAMPLES * parent / n) / (n + PSEUDO_SAMPLES))
 
 
 def _level_prior_moments(mu, variance, nodes, x, y, y2, w) -> tuple[np.ndarray, np.ndarray]:
-    """(mean, variance) priors of a group: the parent's mean moved as :func:`_level_prior`, its variance
+    """(mean, variance) priors of a group: its level as :func:`_level_prior`, its parent's variance
     scaled by the shrunk log ratio of the group's squared deviations about that mean to the parent's
     variance at the same states (a ratio of sums: the log of each bin's few samples would be biased)."""
     if len(y) == 0:
