@@ -34,7 +34,7 @@ from mi_lidar.core.log import Log
 from mi_lidar.io import carmen, exr, kitti, las, ouster, pcd, ply, rosbag, velodyne
 from mi_lidar.io._pcap import read_udp
 from mi_lidar.io.preview import range_image_png
-from mi_lidar.io.signature import check_signature
+from mi_lidar.io.signature import KINDS, check_signature
 
 READ_FORMATS = ("npz", "carmen", "ouster", "velodyne", "bin", "ply", "pcd", "las", "rosbag", "exr")
 WRITE_FORMATS = ("npz", "bin", "ply", "pcd", "las", "rosbag2", "exr", "png")
@@ -56,18 +56,17 @@ _SUFFIX_FORMATS = {
     ".png": "png",
 }
 
-FORMAT_NAMES = {
-    "npz": "mi-lidar log (.npz)",
-    "carmen": "CARMEN log (.log, .log.gz, .clf)",
-    "pcap": "packet capture (.pcap)",
-    "bin": "KITTI / nuScenes point cloud (.bin)",
-    "ply": "PLY point cloud (.ply)",
-    "pcd": "PCD point cloud (.pcd)",
-    "las": "LAS point cloud (.las, .laz)",
-    "rosbag": "ROS bag",
-    "exr": "EXR range image (.exr)",
-    "png": "PNG preview (.png)",
-}  # what detect_format's names are, for messages
+EXTENSIONS = {  # the extensions of each read format, for messages beside signature.KINDS' nouns
+    "npz": ".npz",
+    "carmen": ".log, .log.gz, .clf",
+    "pcap": ".pcap",
+    "bin": ".bin",
+    "ply": ".ply",
+    "pcd": ".pcd",
+    "las": ".las, .laz",
+    "exr": ".exr",
+    "png": ".png",
+}
 
 
 def detect_format(path: str | os.PathLike, for_writing: bool = False) -> str:
@@ -129,6 +128,11 @@ def _read_pcap(path: Path, metadata=None, calibration=None, model=None, **option
     )
 
 
+def _format_name(fmt: str) -> str:
+    """What a read format is, with its extensions: ``a CARMEN log (.log, .log.gz, .clf)``."""
+    return f"{KINDS[fmt]} ({EXTENSIONS[fmt]})" if fmt in EXTENSIONS else KINDS[fmt]
+
+
 def read_any(path: str | os.PathLike, formats: tuple[str, ...] | None = None, **options) -> Log:
     """Read any supported file into a :class:`Log` (see the module table).
 
@@ -156,8 +160,8 @@ def read_any(path: str | os.PathLike, formats: tuple[str, ...] | None = None, **
             raise
         fmt = formats[0]  # a name no format claims (e.g. intel.txt, aces.gz): read it as the one the caller takes
     if formats is not None and fmt not in formats:
-        wanted = " or ".join(FORMAT_NAMES[name] for name in formats)
-        raise LogFormatError(f"{path}: a {FORMAT_NAMES[fmt]} by its extension; expected a {wanted}")
+        wanted = " or ".join(_format_name(name) for name in formats)
+        raise LogFormatError(f"{path}: {_format_name(fmt)} by its extension; expected {wanted}")
     if fmt == "png":
         raise LogFormatError(f"{path}: PNG previews cannot be read back; read the scan's source file")
     readers = {

@@ -73,6 +73,7 @@ KINDS = {  # what each read format of the dispatch table is, for messages
     "exr": "an EXR range image",
     "pcap": "a pcap capture",
     "npy": "a numpy .npy array",
+    "png": "a PNG preview",
 }
 OPTIONAL = {"carmen": ("gzip",), "pcd": (), "bin": ()}  # formats without a signature: the others they may look like
 SHORTEST_HEADLESS_MAGIC = 4  # a headerless float file matches a signature of 2 or 3 bytes by chance: ignore those
