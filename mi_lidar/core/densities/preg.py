@@ -303,8 +303,9 @@ def fit_p_reg(
             xm, missed, counts, _ = _binned(x[mask], (~hit[mask]).astype(float), nodes)
             p_null_prior = None
             if prior is not None:
+                # a mix of the group's and its parent's no-return shares: in [0, 1]
                 level = _level_prior(prior["p_null"][rows].reshape(shape), nodes, xm, missed, counts)
-                p_null_prior = (np.clip(level, 0.0, 1.0), np.zeros(shape))
+                p_null_prior = (level, np.zeros(shape))
             p_null, _ = _local_linear(xm, missed, counts, nodes, bws, prior=p_null_prior)
             xm, em, counts, e2m = _binned(x[mask & inl], e[mask & inl], nodes)
             mu_prior = None
@@ -370,15 +371,14 @@ def _level_prior(prior: np.ndarray, nodes, x: np.ndarray, y: np.ndarray, w: np.n
 
 def _level_prior_moments(mu, variance, nodes, x, y, y2, w) -> tuple[np.ndarray, np.ndarray]:
     """(mean, variance) priors of a group: its level as :func:`_level_prior`, its parent's variance
-    scaled by the shrunk log ratio of the group's squared deviations about that mean to the parent's
+    scaled by the shrunk log ratio of the group's squared deviations about that level to the parent's
     variance at the same states (a ratio of sums: the log of each bin's few samples would be biased)."""
     if len(y) == 0:
         return mu, variance
     mean = _level_prior(mu, nodes, x, y, w)
-    m = _at_nodes(mean, nodes, x)
-    spread = float(np.dot(w, y2 - 2.0 * y * m + m * m))
+    level, n = float(mean.flat[0]), float(w.sum())  # the level is flat over the nodes
+    spread = float(np.dot(w, y2 - 2.0 * y * level + level * level))
     parent = float(np.dot(w, _at_nodes(variance, nodes, x)))
-    n = float(w.sum())
     ratio = math.log(max(spread, n * MIN_SIGMA**2) / max(parent, n * MIN_SIGMA**2))
     return mean, variance * math.exp(ratio * n / (n + PSEUDO_SAMPLES))
 
