@@ -243,3 +243,26 @@ def test_an_error_is_printed_as_written_not_read_as_markup(tmp_path):
     )
     assert run.returncode == 2, run.stdout + run.stderr
     assert "waypoint 0 has 4 numbers; give [x, y] or [x, y, z] (m)" in run.stdout + run.stderr
+
+
+def test_a_denied_read_and_a_denied_write_both_get_the_fix_for_what_was_done(tmp_path):
+    """The handler cannot tell a read from a write: the line names the file and the access each one needs
+    (it told a user who could not read a file to choose a folder they may write to)."""
+    from mi_lidar.cli.app import os_error_line
+
+    secret = tmp_path / "secret.txt"
+    secret.write_text("x")
+    secret.chmod(0)
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    if os.access(secret, os.R_OK) or os.access(locked, os.W_OK):
+        pytest.skip("file modes do not bind this process (root)")
+    with pytest.raises(PermissionError) as read:
+        secret.read_text()
+    with pytest.raises(PermissionError) as write:
+        (locked / "out.txt").write_text("x")
+    for exc, path in ((read.value, secret), (write.value, locked / "out.txt")):
+        line = os_error_line(exc)
+        assert line.startswith(f"{path}: permission denied; "), line
+        assert "reading a file needs read access to it, writing one needs write access to its folder" in line, line

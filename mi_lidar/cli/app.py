@@ -76,9 +76,14 @@ class FriendlyGroup(TyperGroup):
             fail(str(exc))
 
 
+# The handler sees the error, not the operation that raised it: a denied access is worded for a read and a write alike.
+PERMISSION_FIX = (
+    "check the permissions: reading a file needs read access to it, writing one needs write access to its folder; "
+    "or choose another path"
+)
 OS_ERROR_FIXES = {
-    errno.EACCES: "choose a folder you may write to, or change its permissions",
-    errno.EPERM: "choose a folder you may write to, or change its permissions",
+    errno.EACCES: PERMISSION_FIX,
+    errno.EPERM: PERMISSION_FIX,
     errno.EROFS: "the file system is read-only: choose a folder on a writable disk",
     errno.ENOTDIR: "a part of the path is a file, not a folder: choose another path",
     errno.EISDIR: "the path is a folder: give a file name",
