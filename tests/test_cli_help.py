@@ -1,5 +1,6 @@
 """Every command's ``--help`` as a user reads it in an 80-column terminal: no option name split or cut,
-no help text cut short, and the examples on lines a user can copy."""
+no help text cut short, no type or default beside a flag (``--force``, not ``--force <bool>``), and the
+examples on lines a user can copy."""
 
 import re
 
@@ -39,6 +40,7 @@ def test_help_is_readable_at_80_columns(words, command):
     split = [n for n in names if not re.search(rf"(?<![\w-]){re.escape(n)}(?![\w-])", text)]
     assert not split, f"option names split across lines or cut: {split}\n{text}"
     assert_whole(text, "Show this message and exit.", *example_lines(command))
+    assert "<bool>" not in text and "[default: False]" not in text, f"a flag shows a type or default\n{text}"
 
 
 def test_every_verb_has_examples_that_fit():

@@ -55,12 +55,35 @@ def usage_error_line(exc, args: list[str]) -> str:
     return f"{message}; see `{command} --help`"
 
 
+def quiet_flags(params: list) -> list:
+    """``params`` with the type column of every flag left blank in ``--help``; returns them.
+
+    Typer's rich help writes a type for each option, ``<bool>`` for a flag that takes no value
+    (``--force``, ``--help``); its plain help writes none. An empty metavar is what the rich help
+    prints instead.
+    """
+    for param in params:
+        if getattr(param, "is_flag", False) and param.metavar is None:
+            param.metavar = ""
+    return params
+
+
 class FriendlyGroup(TyperGroup):
     """A command group that turns user errors raised by any of its commands into one-line messages.
 
     Bad command-line values (click's usage errors: a value out of range, a missing option) and the
     errors a command raises (:data:`USER_ERRORS`) both print ``error: <message>`` and exit with 2.
+    Its own flags and its commands' show no type in ``--help`` (:func:`quiet_flags`).
     """
+
+    def get_params(self, ctx):
+        return quiet_flags(super().get_params(ctx))
+
+    def get_command(self, ctx, cmd_name):
+        command = super().get_command(ctx, cmd_name)
+        if command is not None:
+            quiet_flags(command.get_params(ctx))
+        return command
 
     def invoke(self, ctx):
         args = list(ctx.args)
