@@ -9,9 +9,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
+from mi_lidar.core.densities import ReturnDensity, parse_density
+from mi_lidar.core.effects import Effect, parse_effects
 from mi_lidar.core.errors import MiLidarError, SpecError
 from mi_lidar.core.patterns import FiringPattern, get_pattern, is_pattern_file
 from mi_lidar.core.sensor_model import SensorModel
@@ -104,34 +107,48 @@ def firing_pattern(spec: LidarSpec, resolve) -> FiringPattern:
 
 
 def check_lidars(spec: DatasetSpec) -> list[str]:
-    """What is wrong with the rig's patterns and sensor models, one ``"field: problem"`` line each (empty: nothing).
+    """What is wrong with the rig's patterns and sensor models, one ``"key: problem"`` line each (empty: nothing).
 
     The same builders the frames use, run once before any frame, so that a typo fails the run at once
-    instead of failing every frame.
+    instead of failing every frame. The key is the entry at fault (``rig.lidars.0.density``), or the Lidar
+    (``rig.lidars.0``) for limits that disagree (``max_range`` not above ``min_range``).
     """
     problems = []
     for i, lidar in enumerate(spec.rig.lidars):
-        for field, build in (("pattern", firing_pattern), ("density/effects", sensor_model)):
+        builders = {
+            "pattern": partial(firing_pattern, lidar, spec.resolve),
+            "effects": partial(parse_effects, lidar.effects),
+            "density": partial(parse_density, lidar.density, resolve=spec.resolve),
+        }
+        parts = {}
+        for key, build in builders.items():
             try:
-                build(lidar, spec.resolve)
+                parts[key] = build()
             except MiLidarError as exc:
-                problems.append(f"rig.lidars.{i}.{field}: {exc}")
+                problems.append(f"rig.lidars.{i}.{key}: {exc}")
+        if len(parts) == len(builders):
+            try:
+                model_of(lidar, parts["effects"], parts["density"])
+            except MiLidarError as exc:
+                problems.append(f"rig.lidars.{i}: {exc}")
     return problems
 
 
-def sensor_model(spec: LidarSpec, resolve) -> SensorModel:
-    """The sensor model of a rig Lidar (density files resolved by ``resolve(name) -> path``)."""
-    from mi_lidar.core.densities import parse_density
-    from mi_lidar.core.effects import parse_effects
-
+def model_of(spec: LidarSpec, effects: list[Effect], density: ReturnDensity) -> SensorModel:
+    """The sensor model of a rig Lidar from its built effects and return density."""
     return SensorModel(
         range_sigma=spec.range_sigma,
         min_range=spec.min_range,
         max_range=spec.max_range,
         max_segments=spec.max_segments,
-        effects=parse_effects(spec.effects),
-        density=parse_density(spec.density, resolve=resolve),
+        effects=effects,
+        density=density,
     )
+
+
+def sensor_model(spec: LidarSpec, resolve) -> SensorModel:
+    """The sensor model of a rig Lidar (density files resolved by ``resolve(name) -> path``)."""
+    return model_of(spec, parse_effects(spec.effects), parse_density(spec.density, resolve=resolve))
 
 
 def camera_from_spec(spec: CameraSpec) -> RigCamera:

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from mi_lidar.core.errors import SpecError, describe_invalid, parser_message
+from mi_lidar.core.errors import MiLidarError, SpecError, describe_invalid, parser_message
+from mi_lidar.core.params import parse_calls
 from mi_lidar.core.patterns import is_pattern_file
 
 
@@ -326,7 +327,7 @@ def load_spec(path: str | Path, source: dict | None = None) -> DatasetSpec:
     if missing:
         lines = [f"{where}: {file} ({spec.resolve(file)}){_what(spec, where)}" for where, file in missing]
         raise SpecError(
-            f"{path}: referenced files do not exist (paths are relative to the spec):\n  "
+            f"{path}: referenced files do not exist (paths in a spec are relative to its folder, {spec.base_dir}):\n  "
             + "\n  ".join(lines)
             + _how_to_make(path, spec, missing)
         )
@@ -348,20 +349,42 @@ def _referenced_files(spec: DatasetSpec) -> list[tuple[str, Path]]:
     for i, lidar in enumerate(spec.rig.lidars):
         if is_pattern_file(lidar.pattern):
             files.append((f"rig.lidars.{i}.pattern", lidar.pattern))
+        files.extend((f"rig.lidars.{i}.density", file) for file in density_files(lidar.density))
     if spec.rig.nuscenes is not None:
         files.append(("rig.nuscenes.file", spec.rig.nuscenes.file))
     return files
 
 
+def density_files(density: str) -> list[str]:
+    """The ``file=`` names of a return density in the integrator's syntax: ``["sensor.npz"]`` for
+    ``np_reg(file=sensor.npz)``; empty when the text does not parse (building the density names that mistake).
+    """
+    files = []
+
+    def note(name: str, **values) -> None:
+        if "file" in values:
+            files.append(str(values["file"]))
+
+    try:
+        parse_calls(density, note, "density")
+    except MiLidarError:
+        return []
+    return files
+
+
 SCENE_FILES = {"xml": "scene XML", "annotation": "annotation", "library": "primitive library", "ground": "ground mesh"}
+LIDAR_FILES = {"pattern": "firing pattern", "density": "density file"}
 
 
 def _what(spec: DatasetSpec, where: str) -> str:
-    """``", the primitive library of scene 'forest'"`` for ``scenes.1.library``; ``""`` for the rig's files."""
+    """``", the primitive library of scene 'forest'"`` for ``scenes.1.library``, ``", the density file of Lidar
+    'top'"`` for ``rig.lidars.0.density``; ``""`` for the nuScenes file."""
     parts = where.split(".")
-    if parts[0] != "scenes":
-        return ""
-    return f", the {SCENE_FILES[parts[2]]} of scene {spec.scenes[int(parts[1])].name!r}"
+    if parts[0] == "scenes":
+        return f", the {SCENE_FILES[parts[2]]} of scene {spec.scenes[int(parts[1])].name!r}"
+    if parts[:2] == ["rig", "lidars"]:
+        return f", the {LIDAR_FILES[parts[3]]} of Lidar {spec.rig.lidars[int(parts[2])].name!r}"
+    return ""
 
 
 def _header_setup(path: Path) -> tuple[str, list[str]]:
@@ -397,11 +420,15 @@ def _names(command: str, target: Path) -> bool:
 
 def _how_to_make(path: Path, spec: DatasetSpec, missing: list[tuple[str, Path]]) -> str:
     """What to run to make the missing files: the setup commands of the spec's header when one of them names a
-    missing file, else for a missing primitive library the verb that makes one; "" otherwise."""
+    missing file, else for a missing primitive library or density file the verb that makes one; "" otherwise."""
     note, commands = _header_setup(path)
     if any(_names(c, spec.resolve(file)) for c in commands for _, file in missing):
         return f"\nThe spec's header says: {note or 'make them with'}\n  " + "\n  ".join(commands)
     libraries = [spec.resolve(file) for where, file in missing if where.endswith(".library")]
+    densities = [spec.resolve(file) for where, file in missing if where.endswith(".density")]
+    verbs = []
     if libraries:
-        return f"\nMake a primitive library with `mi-lidar primitives extract LOG --library {libraries[0]}`."
-    return ""
+        verbs.append(f"Make a primitive library with `mi-lidar primitives extract LOG --library {libraries[0]}`.")
+    if densities:
+        verbs.append(f"Fit a density file with `mi-lidar fit-sensor LOG SCENE.xml --out {densities[0]}`.")
+    return "".join(f"\n{verb}" for verb in verbs)

@@ -80,8 +80,9 @@ def test_yaml_and_toml_agree_and_frames_split_into_variants(folder):
         (("xyz: [1, 0, 1.5]", "xyz: [1, .inf, 1.5]"), r"rig\.cameras\.0\.mount\.xyz\.1: .*finite"),
         (("pattern: vlp16", "pattern: vlp17"), r"rig\.lidars\.0\.pattern: unknown firing pattern 'vlp17'"),
         (("pattern: vlp16", "pattern: beams.csv"), r"rig\.lidars\.0\.pattern: beams\.csv"),  # relative to the spec
-        (("pattern: vlp16", "pattern: vlp16, effects: 'range_nois(k=1)'"), r"rig\.lidars\.0\..*'range_nois'"),
-        (("pattern: vlp16", "pattern: vlp16, density: 'gaussian(sigm=1)'"), r"rig\.lidars\.0\..*sigm"),
+        (("pattern: vlp16", "pattern: vlp16, effects: 'range_nois(k=1)'"), r"rig\.lidars\.0\.effects: .*'range_nois'"),
+        (("pattern: vlp16", "pattern: vlp16, density: 'gaussian(sigm=1)'"), r"rig\.lidars\.0\.density: .*sigm"),
+        (("pattern: vlp16", "pattern: vlp16, max_range: 0.2"), r"rig\.lidars\.0: sensor model: max_range=0\.2"),
     ],
 )
 def test_bad_specs_name_the_field(folder, change, message):
@@ -120,6 +121,23 @@ def test_a_missing_library_without_a_header_names_the_verb_that_makes_one(folder
         load_spec(folder / "s.yaml")
     assert str(raised.value).endswith(
         f"Make a primitive library with `mi-lidar primitives extract LOG --library {folder / 'nowhere'}`."
+    )
+
+
+def test_a_missing_density_file_is_named_with_its_entry_its_folder_and_the_verb_that_fits_one(tmp_path):
+    """It was 'rig.lidars.0.density/effects: /abs/path: no such density file': neither the path as written
+    nor the folder it is taken from."""
+    (tmp_path / "specs").mkdir()
+    spec = tmp_path / "specs" / "s.yaml"
+    spec.write_text(YAML.replace("{pattern: vlp16}", "{name: top, density: 'np_reg(file=models/sensor.npz)'}"))
+    (tmp_path / "specs" / "lib").mkdir()
+    with pytest.raises(SpecError) as raised:
+        load_spec(spec)
+    resolved = tmp_path / "specs" / "models" / "sensor.npz"
+    assert str(raised.value) == (
+        f"{spec}: referenced files do not exist (paths in a spec are relative to its folder, {tmp_path / 'specs'}):\n"
+        f"  rig.lidars.0.density: models/sensor.npz ({resolved}), the density file of Lidar 'top'\n"
+        f"Fit a density file with `mi-lidar fit-sensor LOG SCENE.xml --out {resolved}`."
     )
 
 
