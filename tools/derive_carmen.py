@@ -1,7 +1,7 @@
 """Derive a CARMEN log from another, to check that the planar benchmark runs unchanged on other sensors.
 
     python tools/derive_carmen.py IN.log.gz OUT.log.gz [--every K] [--scans A:B] [--beams N]
-        [--resample linear|nearest] [--noise S] [--clip C] [--seed N]
+        [--resample linear|nearest] [--noise S] [--clip C] [--seed N] [--message FLASER|ROBOTLASER1]
 
 * ``--every K``: keep every K-th scan (a sparser log);
 * ``--scans A:B``: keep only the scans A to B-1 of the source (a part of the trajectory), before ``--every``;
@@ -10,7 +10,11 @@
   new beam between a return and a no-return is a no-return; between two walls it lands in between,
   as a mixed pixel would), ``nearest`` copies the nearest source beam (no invented ranges);
 * ``--noise S``: add Gaussian noise of S metres to every return (seeded by ``--seed``);
-* ``--clip C``: a scanner that clips at C metres: readings at or beyond C, and no-returns, become C.
+* ``--clip C``: a scanner that clips at C metres: readings at or beyond C, and no-returns, become C;
+* ``--message ROBOTLASER1``: write robot laser lines instead of FLASER lines (the same scans: start
+  angle and angular resolution of the 180-degree fan to full float precision, the FLASER pose as the
+  laser pose, the odometry as the robot pose, ``--no-return`` as the maximum range, no remissions,
+  zero velocities), to check the ROBOTLASER1 path of ``read_carmen`` and the benchmark.
 
 Poses, odometry and timestamps are kept. The output is gzip-compressed when its name ends in ``.gz``.
 """
@@ -28,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mi_lidar.core.atomic import atomic_write  # noqa: E402
 from mi_lidar.core.errors import LogFormatError  # noqa: E402
-from mi_lidar.io.carmen import beam_angles, parse_message, text_lines  # noqa: E402
+from mi_lidar.io.carmen import beam_angles, beam_step, parse_message, text_lines  # noqa: E402
 
 
 def flaser_tokens(lines: list[str]) -> list[list[str]]:
@@ -46,6 +50,16 @@ def flaser_tokens(lines: list[str]) -> list[list[str]]:
     return out
 
 
+def robot_laser_line(ranges: list[str], rest: list[str], no_return: float) -> str:
+    """The ROBOTLASER1 line of a FLASER scan: its ``ranges`` (formatted, m) and ``rest`` (the tokens after them:
+    laser pose, odometry, timestamp, host and logger timestamp)."""
+    n = len(ranges)
+    step = beam_step(n)
+    angles = (repr(-np.pi / 2), repr(step * (n - 1)), repr(step))  # start_angle, field_of_view, angular_resolution
+    config = ["0", *angles, f"{no_return:g}", "0.01", "0", str(n)]
+    return " ".join(["ROBOTLASER1", *config, *ranges, "0", *rest[:6], "0 0 0 0 0", *rest[6:]])
+
+
 def derive(
     lines: list[str],
     every: int,
@@ -56,8 +70,9 @@ def derive(
     resample: str = "linear",
     noise: float = 0.0,
     seed: int = 0,
+    message: str = "FLASER",
 ) -> list[str]:
-    """The FLASER lines of the derived log (other lines are dropped)."""
+    """The ``message`` (FLASER or ROBOTLASER1) lines of the derived log (other lines are dropped)."""
     rng = np.random.default_rng(seed)
     out = []
     for index, tokens in enumerate(flaser_tokens(lines)[scans[0] : scans[1]]):
@@ -81,7 +96,12 @@ def derive(
             ranges = np.where(miss, ranges, np.maximum(ranges + rng.normal(0.0, noise, n), 0.01))
         if clip is not None:
             ranges = np.where(miss | (ranges >= clip), clip, ranges)
-        out.append(" ".join(["FLASER", str(n)] + [f"{r:.2f}" for r in ranges] + rest))
+        text = [f"{r:.2f}" for r in ranges]
+        out.append(
+            robot_laser_line(text, rest, no_return)
+            if message == "ROBOTLASER1"
+            else " ".join(["FLASER", str(n), *text, *rest])
+        )
     return out
 
 
@@ -97,6 +117,7 @@ def main() -> None:
     parser.add_argument("--noise", type=float, default=0.0, help="Gaussian range noise added to returns (m)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-return", type=float, default=81.83, help="the source's no-return value (m)")
+    parser.add_argument("--message", choices=("FLASER", "ROBOTLASER1"), default="FLASER", help="the lines to write")
     args = parser.parse_args()
     first, _, last = args.scans.partition(":")
     try:
@@ -131,6 +152,7 @@ def main() -> None:
             args.resample,
             args.noise,
             args.seed,
+            args.message,
         )
         if not lines:
             raise LogFormatError(

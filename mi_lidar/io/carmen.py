@@ -1,33 +1,49 @@
-"""CARMEN planar laser logs (``FLASER`` / ``RLASER`` messages, plain or gzip) -> :class:`~mi_lidar.core.log.Log`.
+"""CARMEN planar laser logs (``FLASER`` / ``RLASER`` or ``ROBOTLASER1`` / ``ROBOTLASER2`` messages, plain or gzip)
+-> :class:`~mi_lidar.core.log.Log`.
 
-A message line is ``FLASER n r_0 .. r_{n-1} x y theta odom_x odom_y odom_theta ipc_timestamp host
-logger_timestamp``; ``x y theta`` is the (in corrected logs, SLAM-corrected) laser pose in the
-map frame (m, rad). Each message becomes one scan of ``H = n`` beams by ``W = 1`` firing, so that
-per-beam quantities (bias, angle offsets) are per row, as for every other sensor:
+Two message layouts carry a scan with its pose (angles in rad, lengths in m, times in s):
 
-- beam ``i`` points at ``-pi/2 + i * pi / n`` in the laser frame (``pi / (n - 1)`` when ``n`` is
-  odd, e.g. 181 or 361 beams covering 180 deg inclusive), in the horizontal plane;
-- the pose is the planar transform (rotation ``theta`` about z, translation ``(x, y, 0)``);
-- a reading at or above the sensor's no-return value (less 1.5 cm) is a miss. That value is detected
-  from the log (:func:`detect_max_range`: the spike of readings at the top of the range scale: the
-  SICK maximum 81.83 m in the Intel log, 50 m in logs that clip there, a band of codes such as
-  51.05-51.16 m or 81.83 and 81.91 m in others) or given as ``max_range``;
-- beam ``i`` is timed ``ipc_timestamp + i * sweep_s / n`` (SICK LMS 2xx: 180 deg of a 75 Hz
-  mirror revolution, ``sweep_s = 1 / 150`` s).
+- old laser, ``FLASER n r_0 .. r_{n-1} x y theta odom_x odom_y odom_theta ipc_timestamp host logger_timestamp``:
+  ``x y theta`` is the (in corrected logs, SLAM-corrected) laser pose in the map frame; beam ``i``
+  points at ``-pi/2 + i * pi / n`` in the laser frame (``pi / (n - 1)`` when ``n`` is odd, e.g. 181
+  or 361 beams covering 180 deg inclusive) and is timed ``ipc_timestamp + i * sweep_s / n``;
+- robot laser, ``ROBOTLASER1 laser_type start_angle field_of_view angular_resolution maximum_range accuracy
+  remission_mode n r_0 .. r_{n-1} m rem_0 .. rem_{m-1} laser_x laser_y laser_theta robot_x robot_y
+  robot_theta tv rv forward_safety_dist side_safety_dist turn_axis ipc_timestamp host logger_timestamp``
+  (GMapping ``.gfs.log`` outputs, Freiburg ``.clf`` logs): the laser pose is the scan's pose; beam ``i``
+  points at ``start_angle + i * angular_resolution`` and is timed ``ipc_timestamp + i * |angular_resolution| *
+  sweep_s / pi`` (the mirror turns at the rate of a SICK's 180 degrees in ``sweep_s``).
 
-The raw odometry poses are kept in ``sensor['odometry']`` (an (S, 3) list of x, y, theta).
+Each message becomes one scan of ``H = n`` beams by ``W = 1`` firing, so that per-beam quantities
+(bias, angle offsets) are per row, as for every other sensor. The pose is the planar transform
+(rotation ``theta`` about z, translation ``(x, y, 0)``). A reading at or above the sensor's
+no-return value (less 1.5 cm) is a miss. That value is detected from the log
+(:func:`detect_max_range`: the spike of readings at the top of the range scale: the SICK maximum
+81.83 m in the Intel log, 50 m in logs that clip there, a band of codes such as 51.05-51.16 m or
+81.83 and 81.91 m in others) or given as ``max_range``; the ``maximum_range`` field of a robot laser
+line is the configured maximum, not necessarily that code, and is only kept in
+``sensor['configured_max_range_m']``.
+
+An old laser log keeps its raw odometry poses in ``sensor['odometry']`` (an (S, 3) list of x, y, theta).
+A robot laser log keeps its robot poses in ``sensor['robot_pose']`` ((S, 3), x y theta) and no
+``odometry`` (they are the robot's, not the laser's, and corrected or raw depending on the log), and
+its remissions as ``attributes['intensity']`` ((S, n, 1) float32, the scanner's units) when every scan
+carries one per beam; otherwise (none, or a count other than ``n`` on a line) they are dropped and
+``sensor['remissions']`` says why.
 """
 
 from __future__ import annotations
 
 import gzip
 import os
+import re
 import zlib
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError, unreadable
+from mi_lidar.core.errors import LogFormatError, ParameterError, unreadable
 from mi_lidar.core.log import Log
 
 SICK_SWEEP_S = 1.0 / 150.0
@@ -36,6 +52,21 @@ MIN_SHARE_AT_MAX = 1e-3  # share of all readings a 1 cm bin must hold to be a no
 SPIKE_RATIO = 20.0  # a no-return code holds this many times the readings of a 1 cm bin just below it
 NO_RETURN_BAND = 0.2  # m: no-return codes of one scanner lie within this band below the largest one
 BACKGROUND = 5.0  # m: the readings this far below the codes give the background density of real returns
+BEAM_ANGLE_TOLERANCE = 1e-3  # rad: robot laser scans whose beams point this close to the first scan's share its pattern
+FLOAT32_MAX = float(np.finfo(np.float32).max)  # ranges and remissions are stored as float32
+
+OLD_LASER = ("FLASER", "RLASER")  # n ranges, then the laser pose, the odometry and the timestamp
+ROBOT_LASER = ("ROBOTLASER1", "ROBOTLASER2")  # the laser's configuration, ranges, remissions, laser and robot poses
+OLD_COLUMNS = ("pose x", "pose y", "pose theta", "odometry x", "odometry y", "odometry theta", "timestamp")
+ROBOT_COLUMNS = tuple(  # the fields of a robot laser line a scan keeps besides its ranges
+    "laser_pose_x laser_pose_y laser_pose_theta robot_pose_x robot_pose_y robot_pose_theta timestamp".split()
+)
+ROBOT_HEAD = tuple(  # the fields of a robot laser line before its ranges
+    "laser_type start_angle field_of_view angular_resolution maximum_range accuracy remission_mode num_readings".split()
+)
+ROBOT_TAIL = ROBOT_COLUMNS[:6] + tuple(  # the fields after its remissions
+    "laser_tv laser_rv forward_safety_dist side_safety_dist turn_axis timestamp host logger_timestamp".split()
+)
 
 
 def text_lines(path: Path) -> list[str]:
@@ -68,18 +99,129 @@ def parse_message(tokens: list[str], number: int) -> np.ndarray:
         values = np.array(tokens[2 : 2 + n + 7], dtype=np.float64)
     except (IndexError, ValueError) as exc:
         raise LogFormatError(f"line {number}: malformed {name} message ({exc}): repair or delete the line") from exc
-    if len(values) != n + 7 or len(tokens) < n + 10:
-        raise LogFormatError(
-            f"line {number}: {name} with n={n} needs {n + 10} fields (n ranges + 10); found {len(tokens)} "
-            "(truncated?): repair or delete the line"
-        )
-    if len(tokens) > n + 11 or (len(tokens) == n + 11 and not _is_number(tokens[-1])):
-        raise LogFormatError(
-            f"line {number}: {name} with n={n} has {len(tokens)} fields, where n ranges + 10 (or 11 with the logger "
-            f"timestamp) make {n + 10} or {n + 11}: the beam count {n} is smaller than the ranges on the line; repair "
-            "the count or delete the line"
-        )
+    _check_length(tokens, number, n + 10, f"n={n}", "n ranges + 10", f"the beam count {n}")
     return values
+
+
+def _check_length(tokens: list[str], number: int, need: int, counts: str, rule: str, count: str) -> None:
+    """Refuse line ``number`` when its ``tokens`` are fewer than ``need`` or more than ``need`` and a logger
+    timestamp (``counts``: the counts read, ``rule``: how they make ``need``, ``count``: the count to repair)."""
+    name = tokens[0]
+    if len(tokens) < need:
+        raise LogFormatError(
+            f"line {number}: {name} with {counts} needs {need} fields ({rule}); found {len(tokens)} (truncated?): "
+            "repair or delete the line"
+        )
+    if len(tokens) > need + 1 or (len(tokens) == need + 1 and not _is_number(tokens[-1])):
+        raise LogFormatError(
+            f"line {number}: {name} with {counts} has {len(tokens)} fields, where {rule} (one more with the logger "
+            f"timestamp) make {need} or {need + 1}: {count} is smaller than the values on the line; repair the count "
+            "or delete the line"
+        )
+
+
+class RobotLaser(NamedTuple):
+    """The fields of one ``ROBOTLASER1`` line that a scan needs."""
+
+    start: float  # rad: angle of beam 0 in the laser frame
+    step: float  # rad: angle between neighbouring beams (the angular_resolution field)
+    configured_max_range: float  # m: the maximum_range field (not necessarily the no-return code)
+    values: np.ndarray  # (n + 7,): n ranges, laser pose x y theta, robot pose x y theta, timestamp
+    remissions: np.ndarray  # (m,): the m remissions (m = 0 when the line has none)
+
+
+def robot_field(k: int, n: int, m: int) -> str:
+    """The name of token ``k`` (1: the first after the message name) of a robot laser line of n ranges, m remissions."""
+    if k <= len(ROBOT_HEAD):
+        return ROBOT_HEAD[k - 1]
+    if k < 9 + n:
+        return f"range {k - 9}"
+    if k == 9 + n:
+        return "num_remissions"
+    if k < 10 + n + m:
+        return f"remission {k - 10 - n}"
+    return ROBOT_TAIL[k - 10 - n - m]
+
+
+def _count(tokens: list[str], k: int, n: int, low: int, number: int) -> int:
+    """The whole number in token ``k`` (num_readings or num_remissions) of a robot laser line, at least ``low``."""
+    name, field = tokens[0], robot_field(k, n, 0)
+    if k >= len(tokens):
+        raise LogFormatError(
+            f"line {number}: {name} ends before {field} (field {k}; the line has {len(tokens)}): truncated"
+            + (f", or num_readings {n} is larger than the ranges on the line" if k > 8 else "")
+            + ": repair or delete the line"
+        )
+    try:
+        count = int(tokens[k])
+    except ValueError:
+        raise LogFormatError(
+            f"line {number}: malformed {name} message: {field} is {tokens[k]!r}, not a whole number: repair or "
+            "delete the line"
+        ) from None
+    if count < low:
+        raise LogFormatError(
+            f"line {number}: {name} {field} is {count}; it must be >= {low}: repair or delete the line"
+        )
+    return count
+
+
+def parse_robot_laser(tokens: list[str], number: int) -> RobotLaser:
+    """The fields of one robot laser line's ``tokens`` (``ROBOTLASER1 laser_type start_angle ... num_readings
+    ranges... num_remissions remissions... laser pose, robot pose, tv rv safety distances turn_axis timestamp host
+    logger_timestamp``; the logger timestamp may be missing).
+
+    Raises:
+        LogFormatError: a beam count below 2 or a negative remission count, a non-numeric value (field named), too
+            few fields (truncated, or a num_remissions that overruns the line), more than the counts allow, or a
+            beam pattern that is not one (non-finite start angle or resolution, a zero step, beams spanning more
+            than a turn) (``number``: the line's number, named in the message).
+    """
+    name = tokens[0]
+    n = _count(tokens, 8, 0, 2, number)
+    m = _count(tokens, 9 + n, n, 0, number)
+    need = n + m + 23  # the name, 8 config fields, n ranges, num_remissions, m remissions, 13 fields after them
+    counts = f"num_readings={n}, num_remissions={m}"
+    if m and need - m <= len(tokens) < need:
+        raise LogFormatError(
+            f"line {number}: {name} num_remissions {m} overruns the line: with {counts} it needs {need} fields "
+            f"(13 after the remissions), found {len(tokens)}: a wrong remission count or a line cut short: repair "
+            "num_remissions (0 when the line has no remissions) or delete the line"
+        )
+    _check_length(
+        tokens, number, need, counts, "n ranges + m remissions + 23", f"num_readings {n} or num_remissions {m}"
+    )
+    numeric = tokens[1 : need - 1]  # all but the host (and the logger timestamp)
+    try:
+        values = np.array(numeric, dtype=np.float64)
+    except ValueError:
+        k = next(k for k, token in enumerate(numeric, start=1) if not _is_number(token))
+        raise LogFormatError(
+            f"line {number}: malformed {name} message: {robot_field(k, n, m)} is {tokens[k]!r}, not a number: "
+            "repair or delete the line"
+        ) from None
+    start, step, configured = values[1], values[3], values[4]
+    for field, value in (("start_angle", start), ("angular_resolution", step)):
+        if not np.isfinite(value):
+            raise LogFormatError(
+                f"line {number}: {name} {field} is {value:g}; beam angles need finite numbers (rad): repair or "
+                "delete the line"
+            )
+    span = abs(step) * (n - 1)
+    if step == 0 or span > 2 * np.pi + BEAM_ANGLE_TOLERANCE:
+        raise LogFormatError(
+            f"line {number}: {name} angular_resolution {step:g} rad puts its {n} beams over {np.degrees(span):g} "
+            f"deg; the beams need distinct angles within one turn (angles in degrees where radians belong?): "
+            "repair or delete the line"
+        )
+    tail = values[9 + n + m :]  # laser pose, robot pose, tv rv forward/side safety distances turn_axis, timestamp
+    return RobotLaser(
+        start=float(start),
+        step=float(step),
+        configured_max_range=float(configured),
+        values=np.concatenate([values[8 : 8 + n], tail[:6], tail[11:12]]),
+        remissions=values[9 + n : 9 + n + m],
+    )
 
 
 def _is_number(token: str) -> bool:
@@ -91,10 +233,14 @@ def _is_number(token: str) -> bool:
     return True
 
 
+def beam_step(n: int) -> float:
+    """The angle (rad) between neighbouring beams of an ``n``-beam 180-degree CARMEN scan (``FLASER``)."""
+    return np.pi / (n - 1) if n % 2 else np.pi / n
+
+
 def beam_angles(n: int) -> np.ndarray:
-    """(n,) beam angles (rad) in the laser frame for an ``n``-beam 180-degree CARMEN scan."""
-    step = np.pi / (n - 1) if n % 2 else np.pi / n
-    return -np.pi / 2 + np.arange(n) * step
+    """(n,) beam angles (rad) in the laser frame for an ``n``-beam 180-degree CARMEN scan, from -pi/2."""
+    return -np.pi / 2 + np.arange(n) * beam_step(n)
 
 
 def detect_max_range(readings: np.ndarray) -> float:
@@ -133,45 +279,70 @@ def detect_max_range(readings: np.ndarray) -> float:
     return float(levels[codes].min()) / 100.0
 
 
+def default_message(lines: list[str]) -> str:
+    """``FLASER`` when a line holds one (the scoring protocol reads them), else ``ROBOTLASER1`` when a line does,
+    else ``FLASER`` (named in the refusal)."""
+    for name in ("FLASER", "ROBOTLASER1"):
+        if any(map(re.compile(rf"\s*{name}\s").match, lines)):  # stops at the first such line
+            return name
+    return "FLASER"
+
+
 def read_carmen(
     path: str | os.PathLike,
-    message: str = "FLASER",
+    message: str | None = None,
     max_range: float | None = None,
     sweep_s: float = SICK_SWEEP_S,
 ) -> Log:
     """Read every ``message`` line of a CARMEN log.
 
     Args:
-        path: ``.log`` or ``.log.gz`` file.
-        message: ``"FLASER"`` (front laser) or ``"RLASER"`` (rear laser).
+        path: ``.log``, ``.clf`` or ``.log.gz`` file.
+        message: ``"FLASER"`` (front laser), ``"RLASER"`` (rear laser), ``"ROBOTLASER1"`` or ``"ROBOTLASER2"``
+            (robot laser messages of the first and second laser). None: ``FLASER`` when the log has any,
+            else ``ROBOTLASER1``.
         max_range: the sensor's no-return value (m); readings ``>= max_range - 1.5 cm`` are misses,
             and so are readings ``<= 0`` (a zero or negative range is how some drivers write "no
             return"). None detects it from the log (:func:`detect_max_range`).
-        sweep_s: Time for the mirror to sweep the 180-degree field (s).
+        sweep_s: Time for the mirror to sweep 180 degrees (s).
 
     Returns:
-        A log of S scans of ``H = n`` beams x ``W = 1`` firing, world poses from the corrected pose
-        fields; ``sensor["max_range_m"]`` holds the no-return value used (``inf``: none).
+        A log of S scans of ``H = n`` beams x ``W = 1`` firing, world poses from the corrected (laser) pose
+        fields; ``sensor["max_range_m"]`` holds the no-return value used (``inf``: none) and
+        ``sensor["beam_angles_rad"]`` the n beam angles in the laser frame (see the module docstring for
+        the rest of ``sensor`` and the remissions).
 
     Raises:
+        ParameterError: a ``message`` mi-lidar does not read.
         LogFormatError: Missing, unreadable or corrupt file (or a folder), no ``message`` lines (other
             laser messages named), a line with the wrong number of fields, a non-numeric or non-finite
-            value (line number and field named), or scans of different ``n`` (lines named).
+            value (line number and field named), or scans of different ``n`` or, for robot laser lines,
+            of different beam angles (lines named).
     """
     path = Path(path)
     if path.is_dir():
         raise LogFormatError(f"{path}: is a folder; give the CARMEN log file in it (.log or .log.gz)")
     if not path.is_file():
         raise LogFormatError(f"{path}: no such CARMEN log")
-    rows, widths, numbers, others = [], {}, [], {}
-    for number, line in enumerate(text_lines(path), start=1):
+    lines = text_lines(path)
+    wanted = message or "FLASER or ROBOTLASER1"
+    message = message or default_message(lines)
+    if message not in OLD_LASER + ROBOT_LASER:
+        raise ParameterError(
+            f"message={message!r}: mi-lidar reads the laser messages with a pose, {', '.join(OLD_LASER + ROBOT_LASER)}"
+        )
+    robot = message in ROBOT_LASER
+    rows, widths, numbers, others, scans = [], {}, [], {}, []
+    for number, line in enumerate(lines, start=1):
         tokens = line.split()
         if not tokens or tokens[0] != message:
             if tokens and "LASER" in tokens[0]:
                 others[tokens[0]] = others.get(tokens[0], 0) + 1
             continue
         try:
-            values = parse_message(tokens, number)
+            if robot:
+                scans.append(parse_robot_laser(tokens, number))
+            values = scans[-1].values if robot else parse_message(tokens, number)
         except LogFormatError as exc:
             raise LogFormatError(f"{path}: {exc}") from exc
         n = len(values) - 7
@@ -180,59 +351,115 @@ def read_carmen(
         numbers.append(number)
     if not rows and others:
         found = ", ".join(f"{count} {name}" for name, count in sorted(others.items()))
+        readable = [name for name in sorted(others) if name in OLD_LASER + ROBOT_LASER]
+        fix = f"read them with message={readable[0]!r}" if readable else f"convert the laser lines to {wanted} lines"
         raise LogFormatError(
-            f"{path}: no {message} messages, but {found} lines; mi-lidar reads {message} lines (n ranges, then "
-            f"the laser's corrected pose x y theta): convert the laser lines to {message} lines"
+            f"{path}: no {wanted} messages, but {found} lines; mi-lidar reads the laser lines that carry the laser's "
+            f"corrected pose (FLASER, RLASER, ROBOTLASER1, ROBOTLASER2): {fix}"
         )
     if not rows:
-        raise LogFormatError(f"{path}: no {message} messages; is this a CARMEN log?")
+        raise LogFormatError(f"{path}: no {wanted} messages; is this a CARMEN log?")
     if len(widths) != 1:
         (n_a, line_a), (n_b, line_b) = sorted(widths.items(), key=lambda item: item[1])[:2]
+        fix = "split the log" if robot else "resample every scan to one count with tools/derive_carmen.py --beams N"
         raise LogFormatError(
             f"{path}: {message} scans have different beam counts {sorted(widths)} (line {line_a}: {n_a} beams, "
-            f"line {line_b}: {n_b}); a log has one beam count: keep the scans of one count, or resample every "
-            "scan to one count with tools/derive_carmen.py --beams N"
+            f"line {line_b}: {n_b}); a log has one beam count: keep the scans of one count, or {fix}"
         )
     n = next(iter(widths))
     table = np.stack(rows)
-    # Ranges are stored as float32: a reading beyond its range (3.4e38) is as bad as a NaN.
-    finite = np.isfinite(table) & (np.abs(table) < np.where(np.arange(n + 7) < n, np.finfo(np.float32).max, np.inf))
-    if not finite.all():
-        scan, column = (int(i[0]) for i in np.nonzero(~finite))
-        fields = ("x", "y", "theta", "odometry x", "odometry y", "odometry theta", "timestamp")
-        if column < n:
-            field, fix = f"range {column}", "write a no-return as the scanner's no-return value, or delete the line"
-        else:
-            field, fix = ("pose " * (column < n + 3)) + fields[column - n], "repair or delete the line"
-        raise LogFormatError(
-            f"{path}: line {numbers[scan]}: {message} {field} is {table[scan, column]:g}; ranges (below 3.4e38), "
-            f"poses and timestamps must be finite numbers: {fix}"
-        )
-    readings, pose, odometry, stamp = table[:, :n], table[:, n : n + 3], table[:, n + 3 : n + 6], table[:, n + 6]
+    _check_finite(path, message, table, numbers, ROBOT_COLUMNS if robot else OLD_COLUMNS)
+    readings, pose, other_pose, stamp = table[:, :n], table[:, n : n + 3], table[:, n + 3 : n + 6], table[:, n + 6]
     if max_range is None:
         max_range = detect_max_range(readings)
     elif not max_range > 0:
         raise LogFormatError(f"{path}: max_range={max_range} m must be > 0 (the sensor's no-return value)")
     hit = (readings < max_range - MISS_MARGIN) & (readings > 0)
-    angles = beam_angles(n)
+    sensor = {"name": f"carmen:{message}", "source": str(path), "max_range_m": float(max_range)}
+    attributes = {}
+    if robot:
+        angles = _robot_angles(path, message, scans, numbers)
+        offsets = np.arange(n) * abs(scans[0].step) * sweep_s / np.pi
+        intensity, sensor["remissions"] = _intensity(path, message, scans, numbers)
+        if intensity is not None:
+            attributes["intensity"] = intensity[:, :, None]
+        sensor["configured_max_range_m"] = scans[0].configured_max_range
+        sensor["robot_pose"] = other_pose.tolist()
+    else:
+        angles, offsets = beam_angles(n), np.arange(n) * sweep_s / n
+        sensor["odometry"] = other_pose.tolist()
     directions = np.stack([np.cos(angles), np.sin(angles), np.zeros(n)], axis=-1)[None, :, None]
     poses = np.tile(np.eye(4), (len(table), 1, 1))
     c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
     poses[:, 0, 0], poses[:, 0, 1], poses[:, 1, 0], poses[:, 1, 1] = c, -s, s, c
     poses[:, :2, 3] = pose[:, :2]
-    times = stamp[:, None, None] + (np.arange(n) * sweep_s / n)[None, :, None]
     return Log(
         poses=poses,
         directions=directions,
         ranges=np.where(hit, readings, np.nan)[:, :, None],
         hit=hit[:, :, None],
-        times=times,
-        sensor={
-            "name": f"carmen:{message}",
-            "source": str(path),
-            "max_range_m": float(max_range),
-            "beam_angles_rad": angles.tolist(),
-            "odometry": odometry.tolist(),
-            "range_unit": "m",
-        },
+        times=stamp[:, None, None] + offsets[None, :, None],
+        attributes=attributes,
+        sensor={**sensor, "beam_angles_rad": angles.tolist(), "range_unit": "m"},
     )
+
+
+def _check_finite(path: Path, message: str, table: np.ndarray, numbers: list[int], columns: tuple[str, ...]) -> None:
+    """Refuse a non-finite value of the (S, n + 7) ``table`` of ranges, poses and timestamps, naming its line (from
+    ``numbers``) and its field (``range i`` or one of the 7 ``columns``)."""
+    n = table.shape[1] - len(columns)
+    # Ranges are stored as float32: a reading beyond its range (3.4e38) is as bad as a NaN.
+    finite = np.isfinite(table) & (np.abs(table) < np.where(np.arange(table.shape[1]) < n, FLOAT32_MAX, np.inf))
+    if finite.all():
+        return
+    scan, column = (int(i[0]) for i in np.nonzero(~finite))
+    if column < n:
+        field, fix = f"range {column}", "write a no-return as the scanner's no-return value, or delete the line"
+    else:
+        field, fix = columns[column - n], "repair or delete the line"
+    raise LogFormatError(
+        f"{path}: line {numbers[scan]}: {message} {field} is {table[scan, column]:g}; ranges (below 3.4e38), "
+        f"poses and timestamps must be finite numbers: {fix}"
+    )
+
+
+def _robot_angles(path: Path, message: str, scans: list[RobotLaser], numbers: list[int]) -> np.ndarray:
+    """(n,) beam angles (rad) of robot laser ``scans`` of n beams, refusing (lines named) scans whose beams point
+    more than :data:`BEAM_ANGLE_TOLERANCE` away from the first scan's."""
+    n = len(scans[0].values) - 7
+    starts, steps = np.array([(scan.start, scan.step) for scan in scans]).T
+    apart = np.abs(starts - starts[0]) + (n - 1) * np.abs(steps - steps[0])  # the largest angle between two beams
+    if (apart > BEAM_ANGLE_TOLERANCE).any():
+        k = int(np.argmax(apart > BEAM_ANGLE_TOLERANCE))
+
+        def pattern(i: int) -> str:
+            return f"line {numbers[i]}: start_angle {starts[i]:g} rad, angular_resolution {steps[i]:g} rad"
+
+        raise LogFormatError(
+            f"{path}: {message} scans have different beam angles ({pattern(0)}; {pattern(k)}); a log has one beam "
+            "pattern: keep the scans of one pattern (split the log)"
+        )
+    return starts[0] + np.arange(n) * steps[0]
+
+
+def _intensity(path: Path, message: str, scans: list[RobotLaser], numbers: list[int]) -> tuple[np.ndarray | None, str]:
+    """The (S, n) remissions of robot laser ``scans`` when each carries one per beam (else None), and a word on them.
+
+    Raises:
+        LogFormatError: a kept remission that is not a finite float32 (line and remission named).
+    """
+    n = len(scans[0].values) - 7
+    odd = next((i for i, scan in enumerate(scans) if len(scan.remissions) != n), None)
+    if odd is not None:
+        m = len(scans[odd].remissions)
+        none = all(len(scan.remissions) == 0 for scan in scans)
+        return None, "none in the log" if none else f"dropped: line {numbers[odd]} has {m} for {n} beams"
+    table = np.stack([scan.remissions for scan in scans])
+    bad = ~(np.abs(table) < FLOAT32_MAX)
+    if bad.any():
+        scan, beam = (int(i) for i in np.argwhere(bad)[0])
+        raise LogFormatError(
+            f"{path}: line {numbers[scan]}: {message} remission {beam} is {table[scan, beam]:g}; remissions must be "
+            "finite numbers (below 3.4e38): repair or delete the line"
+        )
+    return table.astype(np.float32), "kept as attributes['intensity']"

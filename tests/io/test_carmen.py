@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, ParameterError
 from mi_lidar.io import read_any, read_carmen
 from mi_lidar.io.carmen import beam_angles, detect_max_range
 
@@ -78,8 +78,10 @@ def test_a_line_without_the_logger_timestamp_reads(tmp_path):
 
 def test_empty_and_mixed_logs(tmp_path):
     (tmp_path / "empty.log").write_text("ODOM 0 0 0 0 0 0 1 host 1\n")
-    with pytest.raises(LogFormatError, match="no FLASER messages"):
+    with pytest.raises(LogFormatError, match="no FLASER or ROBOTLASER1 messages; is this a CARMEN log"):
         read_carmen(tmp_path / "empty.log")
+    with pytest.raises(LogFormatError, match="no RLASER messages; is this a CARMEN log"):
+        read_carmen(tmp_path / "empty.log", message="RLASER")
     (tmp_path / "mixed.log").write_text(carmen_text(1, 180) + carmen_text(1, 181))
     with pytest.raises(LogFormatError, match=r"different beam counts \[180, 181\] \(line 4: 180 beams, line 8: 181\)"):
         read_carmen(tmp_path / "mixed.log")
@@ -159,12 +161,25 @@ def test_a_non_finite_value_is_named_by_field_and_line(tmp_path, column, value, 
         read_carmen(tmp_path / "bad.log")
 
 
-@pytest.mark.parametrize("name", ["ROBOTLASER1", "RAWLASER1", "RLASER"])
-def test_other_laser_messages_are_named(tmp_path, name):
+@pytest.mark.parametrize(
+    "name, fix",
+    [
+        ("RAWLASER1", "convert the laser lines to FLASER or ROBOTLASER1 lines"),  # no pose: cannot be read
+        ("RLASER", "read them with message='RLASER'"),
+        ("ROBOTLASER2", "read them with message='ROBOTLASER2'"),
+    ],
+)
+def test_other_laser_messages_are_named(tmp_path, name, fix):
     """A CARMEN log with another laser message is named as such, not asked 'is this a CARMEN log?'."""
     (tmp_path / "other.log").write_text(carmen_text(scans=2).replace("FLASER", name))
-    with pytest.raises(LogFormatError, match=f"no FLASER messages, but 2 {name} lines; .* convert the laser lines"):
+    with pytest.raises(LogFormatError, match=f"no FLASER or ROBOTLASER1 messages, but 2 {name} lines; .*: {fix}"):
         read_carmen(tmp_path / "other.log")
+
+
+def test_a_message_mi_lidar_does_not_read_is_named(tmp_path):
+    (tmp_path / "a.log").write_text(carmen_text(scans=2))
+    with pytest.raises(ParameterError, match="message='RAWLASER1': mi-lidar reads .* FLASER, RLASER, ROBOTLASER1"):
+        read_carmen(tmp_path / "a.log", message="RAWLASER1")
 
 
 def test_zero_and_negative_readings_are_no_returns(tmp_path):
