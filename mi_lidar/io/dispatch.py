@@ -5,6 +5,7 @@ extension                              read                 write
 =====================================  ===================  =========================================
 ``.npz``                               mi-lidar log         mi-lidar log (all scans)
 ``.log``, ``.log.gz``, ``.clf``        CARMEN ``FLASER``    -
+                                       or ``ROBOTLASER1``
 ``.pcap``                              Ouster (when a       -
                                        metadata ``.json``
                                        sits next to it or
