@@ -27,10 +27,11 @@ class LidarSensor(mi.Sensor):
        - Firings per sweep (film width) for spinning and planar patterns. Default: the pattern's.
      * - min_range
        - |float|
-       - Returns closer than this are not reported (m). Default: 0.
+       - Returns closer than this are not reported (m; the blind zone). Default: 0.
      * - max_range
        - |float|
-       - Elements farther than this are not seen (m). Default: 120.
+       - Elements farther than this are not seen, and returns reported beyond it are not
+         reported (m): the sampler and the likelihood lose them alike. Default: 120.
      * - range_sigma
        - |float|
        - Range noise (m) of elements that do not set their own. Default: 0.01.

@@ -9,6 +9,10 @@ with ``pi_k p_k drop_k``, and lets it pass otherwise. So
 * a measured return at ``z`` has density ``sum_k pi_k p_k (1 - drop_k) f_k(z)`` (1/m);
 * a miss has probability ``sum_k pi_k p_k drop_k + pi_{K+1}``.
 
+The sensor reports only ranges within its window ``[min_range, max_range]``: a return drawn outside
+is lost like a dropped beam, so ``drop_k`` includes the share of ``f_k`` outside the window
+(:meth:`~mi_lidar.core.sensor_model.SensorModel.censor`; the sampler drops such draws alike).
+
 When the log's intensities are scored too, a return at ``z`` with intensity ``I`` has the joint
 density ``sum_k pi_k p_k (1 - drop_k) f_k(z) g_k(I)``, with ``g_k`` the density per sensor unit of the
 model's :class:`~mi_lidar.core.intensity.IntensityModel` for element ``k``: the element that explains
@@ -185,7 +189,7 @@ def mixture_log_likelihood(
     sums = Sums.start(n)
     for seg in model.virtual_segments(rays):  # outliers and clutter keep their own Gaussian law
         seg = model.segment_law(seg, rays, virtual=True)
-        sums = sums.fold(seg.valid, seg.p, seg.drop, log_density(seg, z))
+        sums = sums.fold(seg.valid, seg.p, *model.censor(seg, log_density(seg, z), rays, virtual=True))
     if isinstance(rounds, CachedBatch):
         sums = _fold_cached(table, model, rays, rounds, z, sums)
     else:
@@ -193,7 +197,7 @@ def mixture_log_likelihood(
     escape = model.density.escape(rays)
     if escape is not None:
         escape = model.segment_law(escape, rays, escape=True)
-        sums = sums.fold(escape.valid, escape.p, escape.drop, model.density.log_prob(escape, z, rays))
+        sums = sums.fold(escape.valid, escape.p, *model.censor(escape, model.density.log_prob(escape, z, rays), rays))
     return sums.value(hit)
 
 
@@ -210,10 +214,10 @@ def _fold_rounds(
         seg, sub = round_segment(table, model, rays, r)
         seg = model.segment_law(seg, sub)
         z_entry = dr.gather(mi.Float, z, r.ray)
-        if r.log_density is not None:
+        if r.log_density is not None:  # censored when cached (trace.cache_distributions)
             log_f, drop = r.log_density, r.drop
         else:
-            log_f, drop = _entry_log_density(model, table, seg, z_entry, sub), seg.drop
+            drop, log_f = model.censor(seg, _entry_log_density(model, table, seg, z_entry, sub), sub)
         if intensity is not None:
             measured = dr.gather(mi.Float, intensity, r.ray)
             known = dr.isfinite(measured)
@@ -254,7 +258,8 @@ def _fold_cached(table, model, rays: RayBatch, batch: CachedBatch, z: mi.Float, 
                 cached=tuple(read(a) for a in cache.cached or ()),
             )
             seg = model.segment_law(table.cached_segment(view, active, model.range_sigma), rays)
-            p, drop, log_f = seg.p, seg.drop, model.density.log_prob(seg, z, rays)
+            p = seg.p
+            drop, log_f = model.censor(seg, model.density.log_prob(seg, z, rays), rays)
         sums = sums.fold(active, p, drop, log_f)
     return sums
 

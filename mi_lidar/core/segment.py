@@ -178,6 +178,32 @@ def log_density(seg: Segment, z: mi.Float) -> mi.Float:
     return dr.select(dr.isinf(top), top, safe + dr.log(dr.maximum(total, 1e-30)))
 
 
+def window_probability(seg: Segment, a: float, b: float) -> mi.Float:
+    """Probability that a return from each lane's law reports a range in ``[a, b]`` (m): the truncated
+    Gaussian's mass there (the uniform's overlap where its truncated mass is negligible), or its corner
+    mixture's. The sensor reports nothing outside its range window (see :meth:`SensorModel.censor`)."""
+    if not has_corners(seg):
+        return _gaussian_window(seg, a, b)
+    return sum(
+        (w * _gaussian_window(seg.with_(mean=m, sigma=sd), a, b) for w, m, sd in _components(seg)[1:]),
+        _components(seg)[0][0] * _gaussian_window(seg, a, b),
+    )
+
+
+def _gaussian_window(seg: Segment, a: float, b: float) -> mi.Float:
+    """Mass of each lane's truncated Gaussian on ``[a, b]`` (m), in [0, 1]."""
+    sigma = dr.maximum(seg.sigma, 1e-9)
+    low, high = dr.maximum(seg.lo, a), dr.minimum(seg.hi, b)
+    cdf_lo, cdf_hi = normal_cdf((seg.lo - seg.mean) / sigma), normal_cdf((seg.hi - seg.mean) / sigma)
+    mass = cdf_hi - cdf_lo
+    part = normal_cdf((high - seg.mean) / sigma) - normal_cdf((low - seg.mean) / sigma)
+    gaussian = part / dr.maximum(mass, 1e-30)
+    span = seg.hi - seg.lo
+    uniform = dr.select(span > 1e-9, (high - low) / dr.maximum(span, 1e-9), 1.0)
+    value = dr.select(mass > 1e-6, gaussian, uniform)
+    return dr.select(high >= low, dr.clip(value, 0.0, 1.0), 0.0)
+
+
 def range_moments(seg: Segment) -> tuple[mi.Float, mi.Float]:
     """First and second moments (m, m^2) of each lane's returned range (untruncated Gaussians, corners included)."""
     if not has_corners(seg):

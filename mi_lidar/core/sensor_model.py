@@ -31,7 +31,7 @@ from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.intensity import IntensityModel
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import Segment, sample_range
+from mi_lidar.core.segment import Segment, sample_range, window_probability
 from mi_lidar.core.streams import MAX_UNIFORM, NeighbourStreams, uniform, uniforms
 from mi_lidar.core.trace import RESTART_OFFSET, next_hit
 
@@ -51,6 +51,7 @@ CHANNELS = (
     "intensity",
 )
 INTENSITY_STREAM = 3  # random stream of a return's intensity
+TINY_WINDOW = 1e-12  # smallest share of a return law inside the range window (keeps its log finite)
 
 
 @dataclass
@@ -60,7 +61,8 @@ class SensorModel:
     Attributes:
         range_sigma: range noise (m) of elements that do not set their own.
         min_range: returns closer than this (m) are not reported (blind zone).
-        max_range: elements farther than this (m) are not seen.
+        max_range: elements farther than this (m) are not seen, and returns reported beyond it are not
+            reported: ``[min_range, max_range]`` is the sensor's range window (:meth:`censor`).
         max_segments: elements a ray may pass before it is declared a miss.
         effects: effects in application order.
         density: the return density of every element (default: each element's Gaussian).
@@ -131,6 +133,31 @@ class SensorModel:
             seg = effect.likelihood_segment(seg, rays)
         return seg
 
+    def censor(self, seg: Segment, log_f: mi.Float, rays: RayBatch, virtual: bool = False):
+        """A segment's loss probability and return log density as seen through the range window.
+
+        The sensor reports a return only within ``[min_range, max_range]`` (the sampler drops the
+        others, :meth:`_reported`); a draw outside is lost like a dropped beam (no return, nothing behind
+        revealed). With ``W`` the probability that a return of ``seg`` lies in the window
+        (:meth:`ReturnDensity.window`; the segment's own Gaussian for ``virtual`` elements), the element
+        loses the beam with ``1 - (1 - drop) W`` and returns ``z`` with density ``f(z) / W`` given that it
+        returns, so that ``(1 - drop) f(z)`` inside the window is unchanged. Beams fanned out by a footprint
+        effect are scored from their sub-rays' untruncated moments and do not see the window.
+
+        Args:
+            seg: the segment after :meth:`segment_law`.
+            log_f: (lanes,) log density (1/m) of the measured range under its law.
+
+        Returns:
+            ``(drop, log_f)`` to fold into the mixture.
+        """
+        if virtual:
+            inside = window_probability(seg, self.min_range, self.max_range)
+        else:
+            inside = self.density.window(seg, self.min_range, self.max_range, rays)
+        inside = dr.clip(dr.select(seg.valid, inside, 1.0), TINY_WINDOW, 1.0)
+        return 1.0 - (1.0 - seg.drop) * inside, log_f - dr.log(inside)
+
     def virtual_segments(self, rays: RayBatch) -> list[Segment]:
         """Elements met before the scene's, from the effects' :meth:`Effect.virtual_segments`."""
         return [seg for effect in self.effects for seg in effect.virtual_segments(rays)]
@@ -166,10 +193,10 @@ class SensorModel:
         return effect.combine(self._first_returns(scene, table, sub, seed), weight, rays.width, choice)
 
     def _reported(self, z: mi.Float, rays: RayBatch, returned: mi.Bool) -> tuple[mi.Float, mi.Bool]:
-        """Post-processed ranges (m) and the lanes that report them (returned, beyond the blind zone)."""
+        """Post-processed ranges (m) and the lanes that report them (returned, within the range window)."""
         for effect in self.effects:
             z = effect.finalize_range(z, rays)
-        return z, returned & (z >= self.min_range)
+        return z, returned & (z >= self.min_range) & (z <= self.max_range)
 
     def _report(
         self, out: dict, index: mi.UInt32, rays: RayBatch, returned: mi.Bool, z: mi.Float, intensity=0.0

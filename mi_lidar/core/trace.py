@@ -270,8 +270,10 @@ def cache_distributions(rounds: Rounds, table, model, rays: RayBatch, measured: 
             density = drop = None
             if measured is not None:
                 seg = model.segment_law(seg, sub)
-                density = model.density.log_prob(seg, dr.gather(mi.Float, measured, r.ray), sub)
-                drop = seg.drop + dr.zeros(mi.Float, r.width)
+                drop, density = model.censor(
+                    seg, model.density.log_prob(seg, dr.gather(mi.Float, measured, r.ray), sub), sub
+                )
+                drop = drop + dr.zeros(mi.Float, r.width)
             dr.eval(cached, density, drop)
             out.append(replace(r, cached=cached, log_density=density, drop=drop))
     return replace(rounds, rounds=out)

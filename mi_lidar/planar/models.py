@@ -32,6 +32,7 @@ likelihood on the training beams, the shared errors on at most 45,000 training b
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -88,9 +89,14 @@ def first_occupied(trace: PlanarTrace) -> np.ndarray:
     return out
 
 
-def base_model(z_max: float, density) -> SensorModel:
-    """The sensor model of the planar benchmark around ``density`` (nothing else: the map is the scene)."""
-    return SensorModel(range_sigma=0.05, max_range=max(z_max, 1.0) + 1.0, max_segments=64, density=density)
+def base_model(density) -> SensorModel:
+    """The sensor model of the planar benchmark around ``density`` (nothing else: the map is the scene).
+
+    Its range window is open (``max_range`` infinite): the protocol scores every model on the beams'
+    nominal states, and a model knows the log's no-return value only through its density's ``z_max``
+    (the protocol's M0 predicts a return at every nominal hit, also beyond a clipping sensor's maximum).
+    """
+    return SensorModel(range_sigma=0.05, max_range=math.inf, max_segments=64, density=density)
 
 
 def fit_m0(train: EngineBeams, samples: StateSamples, z_max: float) -> SensorModel:
@@ -102,9 +108,9 @@ def fit_m0(train: EngineBeams, samples: StateSamples, z_max: float) -> SensorMod
         return PhysicsDensity(sigma0=float(np.exp(log_sigma)), k=0.0, p_null=1e-3, escape_return=escape, z_max=z_max)
 
     def nll(log_sigma: float) -> float:
-        return float(-np.mean(train.log_likelihood(base_model(z_max, density(log_sigma)))))
+        return float(-np.mean(train.log_likelihood(base_model(density(log_sigma)))))
 
-    return base_model(z_max, density(golden_section(nll, np.log(0.003), np.log(2.0))))
+    return base_model(density(golden_section(nll, np.log(0.003), np.log(2.0))))
 
 
 def fit_beam(
@@ -123,7 +129,7 @@ def fit_beam(
             width = 4 if key == "logits" else 1
             parent = np.asarray(start.params[key]).reshape(-1, width)
             density.params[key] = type(density.params[key])(np.tile(parent[0], grid.size + 1).astype(np.float32))
-    model = base_model(z_max, density)
+    model = base_model(density)
     fit_parts(model, train.problem(), [density], steps=steps)
     if fallback is not None:
         met = samples.met
@@ -170,7 +176,7 @@ def fit_histograms(samples: StateSamples, z_max: float) -> dict[str, SensorModel
         ("M3a", StateGrid(range_edges=RANGE_EDGES)),
         ("M3b", StateGrid(range_edges=RANGE_EDGES, incidence_edges=INCIDENCE_EDGES)),
     ):
-        out[name] = base_model(z_max, fit_binned_histogram(samples, grid, edges=edges, z_max=z_max))
+        out[name] = base_model(fit_binned_histogram(samples, grid, edges=edges, z_max=z_max))
     return out
 
 
@@ -194,7 +200,7 @@ def fit_learned(train: PlanarTrace, z_max: float, family: str) -> tuple[SensorMo
     check = nominal_beams(train.take(train.scan % 2 == 1))
 
     def held_out(density) -> float:
-        return float(-np.mean(check.log_likelihood(base_model(z_max, density))))
+        return float(-np.mean(check.log_likelihood(base_model(density))))
 
     samples = samples_of(train)
     if family == "p_reg":
@@ -210,7 +216,7 @@ def fit_learned(train: PlanarTrace, z_max: float, family: str) -> tuple[SensorMo
             samples, grid, lambda d: 0.0, h_ranges=(h_r,), h_incidences=(h_i,), uniforms=(u,), z_max=z_max
         )
         setting = (h_r, h_i, u)
-    return base_model(z_max, density), setting
+    return base_model(density), setting
 
 
 def _responsibilities(
@@ -358,10 +364,10 @@ def fit_permeable_map(
     density = tables(first)
     beams = segment_beams(train, classes)
     for _ in range(rounds):
-        prior = fit_permeability(beams, base_model(z_max, density), steps, start=prior)
+        prior = fit_permeability(beams, base_model(density), steps, start=prior)
         density = tables(_responsibilities(train, density, *prior, classes))
-    a, b = fit_permeability(beams, base_model(z_max, density), steps, start=prior)
-    fitted = PermeableMap(model=base_model(z_max, density), a=a, b=b, classes=classes)
+    a, b = fit_permeability(beams, base_model(density), steps, start=prior)
+    fitted = PermeableMap(model=base_model(density), a=a, b=b, classes=classes)
     mixture = fitted.beams(train)
 
     def angular_share() -> float:
@@ -373,14 +379,14 @@ def fit_permeable_map(
         some = fitted.beams(train.take(np.isin(train.scan, evenly_spaced_scans(train.scan, TAIL_BEAMS))))
         density = fit_tails(some, density, z_max)
         mixture.weight = fitted.angular  # built before the spread was known
-        fitted.model = base_model(z_max, match_misses(mixture, density, z_max))
+        fitted.model = base_model(match_misses(mixture, density, z_max))
         fitted.angular = angular_share()
     return fitted
 
 
 def training_nll(beams: AngularMixture, density: NPRegDensity, z_max: float) -> float:
     """Mean score (nats per beam) of ``beams`` under the planar sensor model around ``density``."""
-    return float(-np.mean(beams.log_likelihood(base_model(z_max, density))))
+    return float(-np.mean(beams.log_likelihood(base_model(density))))
 
 
 FAR = 0.5  # m: a return farther than this from its segment's surface is in the table's short or long tail
@@ -444,7 +450,7 @@ def match_misses(beams: AngularMixture, density: NPRegDensity, z_max: float) -> 
         return density.with_tables(p_null=scaled)
 
     def p_miss(d: NPRegDensity) -> float:
-        return float(np.mean(beams.p_miss(base_model(z_max, d))))
+        return float(np.mean(beams.p_miss(base_model(d))))
 
     p0, p1 = p_miss(with_factor(0.0)), p_miss(density)
     if p1 - p0 < 1e-9:

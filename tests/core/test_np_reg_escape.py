@@ -59,7 +59,7 @@ def test_beams_that_meet_nothing_miss_as_often_as_the_training_beams_did():
     density, _ = fit_np_reg(
         samples, fine_grid(samples), lambda d: 0.0, h_ranges=(1.0,), h_incidences=(20.0,), uniforms=(1e-3,), z_max=Z_MAX
     )
-    model = base_model(Z_MAX, density)
+    model = base_model(density)
     escaped = ~np.isfinite(samples.nominal)
     trained = float(np.mean(~samples.hit[escaped]))
     np.testing.assert_allclose(beams.p_miss(model)[escaped], trained, rtol=1e-5)

@@ -50,10 +50,11 @@ def pattern_table(path, beams: int) -> str:
     return str(path)
 
 
-def scene_xml(pattern: str = "planar-360") -> str:
+def scene_xml(pattern: str = "planar-360", max_range: float = MAX_RANGE) -> str:
     """The room as a Mitsuba scene of vertical rectangles (the project's loader reads it).
 
-    ``pattern`` names the scanner's firing pattern (a registered name or a table, :func:`pattern_table`).
+    ``pattern`` names the scanner's firing pattern (a registered name or a table, :func:`pattern_table`);
+    ``max_range`` (m) is the sensor's maximum range.
     """
     shapes = []
     for i, (x0, y0, x1, y1, label) in enumerate(SEGMENTS):
@@ -68,7 +69,7 @@ def scene_xml(pattern: str = "planar-360") -> str:
     return (
         '<scene version="3.0.0"><integrator type="lidar_integrator"><integer name="max_segments" value="4"/>'
         f'</integrator><sensor type="lidar"><string name="pattern" value="{pattern}"/>'
-        f'<float name="max_range" value="{MAX_RANGE}"/><float name="range_sigma" value="{SIGMA}"/></sensor>'
+        f'<float name="max_range" value="{max_range}"/><float name="range_sigma" value="{SIGMA}"/></sensor>'
         + "".join(shapes)
         + "</scene>"
     )
@@ -92,8 +93,8 @@ class Hidden:
     logistic: tuple | None = None
 
 
-def room_log(hidden: Hidden, scans: int = 60, beams: int = 360, seed: int = 0) -> dict:
-    """Simulate ``scans`` scans with the ``hidden`` effects.
+def room_log(hidden: Hidden, scans: int = 60, beams: int = 360, seed: int = 0, max_range: float = MAX_RANGE) -> dict:
+    """Simulate ``scans`` scans with the ``hidden`` effects; the scanner reports nothing beyond ``max_range`` (m).
 
     Returns:
         The arrays of a ``mi_lidar`` log: ``poses`` (S, 4, 4), ``directions`` (1, beams, 1, 3),
@@ -117,7 +118,7 @@ def room_log(hidden: Hidden, scans: int = 60, beams: int = 360, seed: int = 0) -
         first = np.argmin(t, axis=1)
         r = t[np.arange(beams), first]
         cos_inc = np.abs(direction[:, 0] * along[first, 1] - direction[:, 1] * along[first, 0])
-        keep = np.isfinite(r) & (r <= MAX_RANGE) & (labels[first] > 0)
+        keep = np.isfinite(r) & (r <= max_range) & (labels[first] > 0)
         if hidden.logistic is not None:
             angle50, width = hidden.logistic
             delta = np.degrees(np.arccos(np.clip(cos_inc, 0.0, 1.0)))
@@ -125,7 +126,7 @@ def room_log(hidden: Hidden, scans: int = 60, beams: int = 360, seed: int = 0) -
         bias = 0.0 if hidden.bias is None else np.asarray(hidden.bias)
         sigma = np.sqrt(SIGMA**2 + (hidden.noise_k * np.where(keep, r, 0.0)) ** 2)
         z = hidden.scale * np.where(keep, r, 0.0) + bias + rng.normal(0.0, 1.0, beams) * sigma
-        hit = keep & (z > 0) & (z <= MAX_RANGE)
+        hit = keep & (z > 0) & (z <= max_range)
         ranges.append(np.where(hit, z, np.nan)[:, None])
         times.append((s * 0.2 + bearing / (2 * np.pi) * PERIOD)[:, None])
     directions = np.stack([np.cos(bearing), np.sin(bearing), np.zeros(beams)], axis=1)[:, None]

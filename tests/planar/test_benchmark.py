@@ -246,7 +246,7 @@ def test_the_beta_prior_fit_stops_when_converged(room, monkeypatch):
     monkeypatch.setattr(planar_beams, "adam_fit", counted)
     scores = []
     for tolerance in (planar_beams.PERMEABILITY_TOLERANCE, None):
-        a, b = planar_beams.fit_permeability(beams, base_model(z_max, model.density), 200, tolerance)
+        a, b = planar_beams.fit_permeability(beams, base_model(model.density), 200, tolerance)
         scores.append(beams.with_permeability(a, b).log_likelihood(model).mean())
     assert steps_run[0] < 200 and steps_run[1] == 200
     assert scores[1] - 1e-4 <= scores[0] <= scores[1] + 1e-4
@@ -263,7 +263,7 @@ def test_the_beta_prior_fit_starts_where_it_is_told(room, monkeypatch):
 
     data = prepare(read_carmen(room), PROTOCOL)
     z_max = float(np.nanmax(data.log.ranges)) + 1.0
-    model = base_model(z_max, fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01), 1, rounds=0).model.density)
+    model = base_model(fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01), 1, rounds=0).model.density)
     beams = planar_beams.segment_beams(data.train, 1)
     first_values, steps_run = [], []
     fit = planar_beams.adam_fit

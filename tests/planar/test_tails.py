@@ -53,7 +53,7 @@ def test_an_inflated_tail_is_pulled_back_and_the_score_improves(room_map):
     beams = fitted.beams(data.train)
 
     def nll(density) -> float:
-        return float(-np.mean(beams.log_likelihood(base_model(z_max, density))))
+        return float(-np.mean(beams.log_likelihood(base_model(density))))
 
     inflated = with_tails(fitted.model.density, 4.0, 4.0)
     pulled = fit_tails(beams, inflated, z_max)
@@ -84,10 +84,10 @@ def test_no_returns_are_matched_to_the_training_beams(tmp_path):
     assert 0.02 < measured < 0.5
 
     def p_miss(density) -> float:
-        return float(np.mean(beams.p_miss(base_model(z_max, density))))
+        return float(np.mean(beams.p_miss(base_model(density))))
 
     def nll(density) -> float:
-        return float(-np.mean(beams.log_likelihood(base_model(z_max, density))))
+        return float(-np.mean(beams.log_likelihood(base_model(density))))
 
     density = fitted.model.density
     doubled = density.with_tables(p_null=np.minimum(2.0 * density.p_null, 1.0))

@@ -36,7 +36,7 @@ import numpy as np
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import Catalog, Parametrized, parse_calls
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import Segment, log_density, sample_range
+from mi_lidar.core.segment import Segment, log_density, sample_range, window_probability
 
 ESCAPE = 2  # Segment.kind of the virtual segment of a beam that met nothing more
 
@@ -87,6 +87,12 @@ class ReturnDensity(Parametrized, metaclass=abc.ABCMeta):
     def sample(self, seg: Segment, u: mi.Point2f, rays: RayBatch) -> mi.Float:
         """A returned range (m) per lane from two independent uniform numbers ``u.x``, ``u.y`` in [0, 1)."""
 
+    def window(self, seg: Segment, a: float, b: float, rays: RayBatch) -> mi.Float:
+        """Probability that a return from ``seg`` reports a range in ``[a, b]`` (m): the sensor's range window
+        (:meth:`~mi_lidar.core.sensor_model.SensorModel.censor`). Default: the segment's own law
+        (:func:`~mi_lidar.core.segment.window_probability`); a family with another law overrides it."""
+        return window_probability(seg, a, b)
+
     def escape(self, rays: RayBatch) -> Segment | None:
         """The virtual last segment of beams that met nothing more, or None (an escaped beam is a miss)."""
         return None
@@ -103,6 +109,14 @@ class UniformEscapeDensity(ReturnDensity):
 
     def sample(self, seg: Segment, u: mi.Point2f, rays: RayBatch) -> mi.Float:
         return dr.select(seg.kind == ESCAPE, u.x * self["z_max"], sample_range(seg, u.x))
+
+    def window(self, seg: Segment, a: float, b: float, rays: RayBatch) -> mi.Float:
+        return dr.select(seg.kind == ESCAPE, uniform_window(self["z_max"], a, b), window_probability(seg, a, b))
+
+
+def uniform_window(z_max, a: float, b: float) -> mi.Float:
+    """Mass of the uniform law on ``[0, z_max]`` (m) within ``[a, b]`` (m)."""
+    return dr.clip((dr.minimum(z_max, b) - max(a, 0.0)) / z_max, 0.0, 1.0)
 
 
 def escape_segment(rays: RayBatch, drop=0.0, sigma=0.0) -> Segment:

@@ -26,12 +26,20 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.arrays import aligned
-from mi_lidar.core.densities.base import ESCAPE, ReturnDensity, escape_segment, register_density
+from mi_lidar.core.densities.base import ESCAPE, ReturnDensity, escape_segment, register_density, uniform_window
 from mi_lidar.core.densities.tables import StateGrid
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import ELLIPSOID, LOG_SQRT_2PI, Segment, log_density, normal_cdf, sample_range
+from mi_lidar.core.segment import (
+    ELLIPSOID,
+    LOG_SQRT_2PI,
+    Segment,
+    log_density,
+    normal_cdf,
+    sample_range,
+    window_probability,
+)
 
 COMPONENTS = ("hit", "short", "max", "random")
 START_WEIGHTS = (0.85, 0.05, 0.03, 0.07)
@@ -171,6 +179,23 @@ class BeamDensity(ReturnDensity):
         f_rand = dr.select(inside, 1.0 / z_max, 0.0)
         value = dr.log(dr.maximum(a_hit * f_hit + a_short * f_short + a_rand * f_rand, 1e-30))
         return dr.select(seg.kind == ELLIPSOID, log_density(seg, z), value)
+
+    def window(self, seg: Segment, a: float, b: float, rays: RayBatch) -> mi.Float:
+        a_hit, a_short, a_rand, reach, rate = self._parts(seg, rays)
+        z_max = self["z_max"]
+        sigma = dr.maximum(seg.sigma, 1e-6)
+        low, high = max(a, 0.0), dr.minimum(z_max, b)
+
+        def gauss(x):
+            return normal_cdf((x - seg.mean) / sigma)
+
+        mass = dr.maximum(gauss(z_max) - gauss(0.0), MIN_MASS)
+        hit = dr.select(high >= low, (gauss(high) - gauss(low)) / mass, 0.0)
+        top = dr.minimum(reach, b)
+        norm = dr.maximum(1.0 - dr.exp(-rate * reach), 1e-12)
+        short = dr.select(top >= low, (dr.exp(-rate * low) - dr.exp(-rate * top)) / norm, 0.0)
+        mixed = dr.clip(a_hit * hit + a_short * short + a_rand * uniform_window(z_max, a, b), 0.0, 1.0)
+        return dr.select(seg.kind == ELLIPSOID, window_probability(seg, a, b), mixed)
 
     def sample(self, seg: Segment, u: mi.Point2f, rays: RayBatch) -> mi.Float:
         a_hit, a_short, a_rand, reach, rate = self._parts(seg, rays)

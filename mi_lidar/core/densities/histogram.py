@@ -37,13 +37,13 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.arrays import aligned
-from mi_lidar.core.densities.base import ESCAPE, ReturnDensity, escape_segment, register_density
+from mi_lidar.core.densities.base import ESCAPE, ReturnDensity, escape_segment, register_density, uniform_window
 from mi_lidar.core.densities.samples import StateSamples, choose_by_held_out, protocol_residual_edges
 from mi_lidar.core.densities.tables import PSEUDO_SAMPLES, StateGrid, check_table
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import ELLIPSOID, Segment, log_density, sample_range
+from mi_lidar.core.segment import ELLIPSOID, Segment, log_density, sample_range, window_probability
 
 # 5-point Gauss-Hermite rule for E[f(e + sqrt(2) sigma x)], weights normalised by sqrt(pi)
 GH_NODES = (0.0, 0.958572464613819, -0.958572464613819, 2.020182870456086, -2.020182870456086)
@@ -211,6 +211,23 @@ class NPRegDensity(ReturnDensity):
         shape = dr.select(z >= 0, shape / (1.0 - self._below_zero(seg, state)), 0.0)
         value = dr.log(dr.maximum((1.0 - u) * shape + floor, 1e-30))
         return dr.select(seg.kind == ELLIPSOID, log_density(seg, z), value)
+
+    def window(self, seg: Segment, a: float, b: float, rays: RayBatch) -> mi.Float:
+        state = self.state(seg, rays)
+        low, high = self._residual(seg, max(a, 0.0) + 0.0 * seg.mean), self._residual(seg, b + 0.0 * seg.mean)
+        if self.choices["shape"] == "polygon":
+            spread = math.sqrt(2.0) * seg.sigma
+            nodes = list(zip(GH_NODES, GH_WEIGHTS))
+            part = sum(
+                w * (self._shape_cdf(state, high - spread * x) - self._shape_cdf(state, low - spread * x))
+                for x, w in nodes
+            )
+        else:
+            part = self._shape_cdf(state, high) - self._shape_cdf(state, low)
+        shape = dr.clip(part / (1.0 - self._below_zero(seg, state)), 0.0, 1.0)
+        u = self["uniform"]
+        mixed = dr.clip((1.0 - u) * shape + u * uniform_window(self["z_max"], a, b), 0.0, 1.0)
+        return dr.select(seg.kind == ELLIPSOID, window_probability(seg, a, b), mixed)
 
     def sample(self, seg: Segment, u: mi.Point2f, rays: RayBatch) -> mi.Float:
         state = self.state(seg, rays)
