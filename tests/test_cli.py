@@ -191,8 +191,9 @@ def test_primitives_list_prints_one_table_that_fits_80_columns(tmp_path):
     assert result.output.count("train_medium_shrub_1001007") == 1  # one table, not one on stderr and one on stdout
 
 
-def test_annotate_and_compose_name_every_file_they_write(tmp_path):
-    """They wrote a ground PLY, a pattern table, PLY assets and two PNG previews and named only the JSON or XML."""
+def test_fit_scene_annotate_and_compose_name_every_file_they_write(tmp_path):
+    """They wrote a ground PLY, a pattern table, PLY assets and two PNG previews and named only the JSON or XML
+    (fit-scene: only the XML and the previews, not its assets folder)."""
 
     def files():
         return {p for p in tmp_path.rglob("*") if p.is_file()}
@@ -208,6 +209,9 @@ def test_annotate_and_compose_name_every_file_they_write(tmp_path):
 
     log = tmp_path / "world.npz"
     assert invoke_at_80(["synth-world", "--out", log, "--seed", 11, "--length", 20, "--width", 20]).exit_code == 0
+    fitted = run_and_name("fit-scene", log, "--out", tmp_path / "fitted")
+    assert {"scene.xml", "pattern.npy", "scene_range.png", "scene_top.png"} < fitted
+    assert any(n.startswith("ground_b") for n in fitted)  # in fitted/scene_assets/, named with its folder
     assert invoke_at_80(["primitives", "extract", log, "--library", tmp_path / "lib"]).exit_code == 0
     assert run_and_name("annotate", log, "--out", tmp_path / "a.json") == {"a.json", "a_ground.ply", "a_pattern.npy"}
     composed = run_and_name("compose", tmp_path / "a.json", "--library", tmp_path / "lib", "--out", tmp_path / "c.xml")

@@ -189,7 +189,10 @@ def log_argument():
 def carmen_log_argument():
     """The LOG argument of the verbs that read a planar CARMEN log (``benchmark-planar``, ``evaluate-apps``)."""
     return typer.Argument(
-        ..., help="A SLAM-corrected CARMEN log (`.log` or `.log.gz`) with FLASER lines.", exists=True, dir_okay=False
+        ...,
+        help="A SLAM-corrected CARMEN log (`.log`, `.clf` or `.log.gz`) with FLASER or ROBOTLASER1 lines.",
+        exists=True,
+        dir_okay=False,
     )
 
 

@@ -3,30 +3,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
-from xml.etree import ElementTree
 
 import typer
 
 from mi_lidar.cli.app import FriendlyGroup, app, console
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.render import scan_summary
-
-
-def written_files(path: Path) -> list[Path]:
-    """``path`` and the files beside it that it references by a relative name, as the verb wrote them.
-
-    An annotation JSON names its ground mesh (``ground``) and firing pattern (``sensor.pattern``); a
-    scene XML its shapes' PLY assets (``<string name="filename">``). Absolute references are files the
-    verb read (a composed scene fires the annotation's pattern), not files it wrote.
-    """
-    if path.suffix == ".json":
-        doc = json.loads(path.read_text())
-        names = [doc.get("ground"), (doc.get("sensor") or {}).get("pattern")]
-    else:
-        names = [e.get("value") for e in ElementTree.parse(path).iter("string") if e.get("name") == "filename"]
-    return [path, *(path.parent / name for name in names if name and not Path(name).is_absolute())]
 
 
 @app.command("synth-world", rich_help_panel="Hybrid scenes")
@@ -70,7 +53,9 @@ def fit_scene(
     log: Path = typer.Argument(
         ..., help="Labeled log (`.npz`), e.g. from `mi-lidar synth-world`.", exists=True, dir_okay=False
     ),
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder for the scene XML, PLY assets and previews."),
+    out: Path = typer.Option(
+        ..., "--out", "-o", help="Output folder for the scene XML, its assets (`<name>_assets/`) and previews."
+    ),
     name: str = typer.Option("scene", help="Scene name (XML file stem)."),
 ):
     """Fit a hybrid geometric scene (ground triangles + vegetation ellipsoids with hit probabilities) to a log.
@@ -83,7 +68,8 @@ def fit_scene(
     """
     from mi_lidar.hybrid.commands import fit_scene as run
 
-    console.print(f"wrote {run(log, out, name=name)}")
+    for path in run(log, out, name=name):
+        console.print(f"wrote {path}")
 
 
 primitives_app = typer.Typer(
@@ -159,7 +145,7 @@ def annotate(
     """
     from mi_lidar.hybrid.commands import annotate as run
 
-    for path in written_files(run(log, out)):
+    for path in run(log, out):
         console.print(f"wrote {path}")
 
 
@@ -184,5 +170,5 @@ def compose(
     """
     from mi_lidar.hybrid.commands import compose as run
 
-    for path in written_files(run(annotation, library, out)):  # the previews are named as they are written
+    for path in run(annotation, library, out):
         console.print(f"wrote {path}")

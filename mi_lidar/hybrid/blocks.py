@@ -2,7 +2,8 @@
 
 :func:`write_scene` writes ``<name>.xml`` plus ``<name>_assets/ground_b<k>.ply`` and
 ``ellipsoids_b<k>.ply`` with per-element ``p_hit``, ``range_sigma`` (0 for ellipsoids, whose
-spread is their Gaussian) and ``label``, using :mod:`mi_lidar.scene.files`. Given a
+spread is their Gaussian) and ``label``, using :mod:`mi_lidar.scene.files`, and returns the paths
+it wrote. Given a
 :class:`SceneSensor`, the XML also holds a ``lidar`` sensor and a ``lidar_integrator``, so it
 loads with :func:`mi_lidar.load_scene`, renders with ``mi.render`` and simulates with
 :func:`mi_lidar.simulate`. :func:`read_scene` reads a scene back into a :class:`HybridModel`
@@ -82,18 +83,22 @@ class SceneSensor:
         )
 
 
-def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneSensor | None = None) -> Path:
-    """Write ``model`` as a Mitsuba scene; return the XML path.
+def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneSensor | None = None) -> list[Path]:
+    """Write ``model`` as a Mitsuba scene.
 
     Args:
         model: the hybrid model; elements are grouped by their ``block``.
         out_dir: output folder (created).
         name: XML file stem; assets go to ``<name>_assets/``.
         sensor: sensor and integrator to include (None: shapes only).
+
+    Returns:
+        The paths written: the XML first, then its PLY assets in the XML's order
+        (``xml, *assets = write_scene(...)``).
     """
     out_dir = Path(out_dir)
     assets = f"{name}_assets"
-    shapes = []
+    shapes, written = [], []
     g, e = model.ground, model.ellipsoids
     for b in np.unique(np.r_[g.block, e.block]):
         sel = g.block == b
@@ -101,7 +106,7 @@ def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneS
             faces = g.faces[sel]
             used, inverse = np.unique(faces, return_inverse=True)
             fname = f"{assets}/ground_b{b}.ply"
-            write_mesh_ply(
+            path = write_mesh_ply(
                 out_dir / fname,
                 g.vertices[used],
                 inverse.reshape(-1, 3),
@@ -109,12 +114,13 @@ def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneS
                 range_sigma=g.range_sigma[sel],
                 label=g.label[sel],
             )
+            written.append(path)
             shapes.append(ShapeEntry(id=f"ground_b{b}", kind="mesh", filename=fname))
         sel = e.block == b
         if sel.any():
             scales, quats = e.subset(sel).axes()
             fname = f"{assets}/ellipsoids_b{b}.ply"
-            write_ellipsoids_ply(
+            path = write_ellipsoids_ply(
                 out_dir / fname,
                 e.means[sel],
                 scales,
@@ -123,11 +129,13 @@ def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneS
                 range_sigma=np.zeros(sel.sum()),
                 label=e.label[sel],
             )
+            written.append(path)
             shapes.append(ShapeEntry(id=f"ellipsoids_b{b}", kind="ellipsoids", filename=fname, extent=model.extent))
     comment = f"mi-lidar hybrid geometric scene: {len(g)} triangles, {len(e)} ellipsoids, {len(shapes)} shapes"
-    return write_scene_xml(
+    xml = write_scene_xml(
         out_dir / f"{name}.xml", shapes, header_comment=comment, extra_xml=sensor.xml() if sensor is not None else ""
     )
+    return [xml, *written]
 
 
 def read_mesh_ply(path) -> GroundMesh:

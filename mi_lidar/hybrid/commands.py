@@ -2,12 +2,14 @@
 
 Examples::
 
-    fit_scene("train.npz", "out/train_scene")               # -> out/train_scene/scene.xml (+ previews)
+    fit_scene("train.npz", "out/train_scene")               # -> [out/train_scene/scene.xml, its assets, previews]
     primitives_extract("train.npz", "library")              # labelled log -> primitive library
     primitives_list("library")                              # table of primitives
     primitives_show("library", "library.png")               # preview PNG
     annotate("test.npz", "test_annotation.json")            # labelled log -> annotation + ground + sensor
     compose("test_annotation.json", "library", "out/test.xml")  # scene + range-image and top-view PNGs
+
+The verbs that write files return every path they wrote, the main file first; the CLI names them all.
 
 Every written scene holds a ``lidar`` sensor and a ``lidar_integrator``: it loads with
 :func:`mi_lidar.load_scene`, renders with ``mi.render`` and simulates with :func:`mi_lidar.simulate`.
@@ -109,11 +111,16 @@ def render_previews(xml, poses: np.ndarray | None = None, seed: int = 0, max_sca
     return range_png, top_png
 
 
-def fit_scene(log_path, out_dir, params: FitParams | None = None, name: str = "scene", preview: bool = True) -> Path:
-    """Fit a hybrid model to the log at ``log_path`` and write ``<out_dir>/<name>.xml``; return its path.
+def fit_scene(
+    log_path, out_dir, params: FitParams | None = None, name: str = "scene", preview: bool = True
+) -> list[Path]:
+    """Fit a hybrid model to the log at ``log_path`` and write ``<out_dir>/<name>.xml``.
 
     The scene's sensor fires the log's scan-0 pattern (``<name>_assets/pattern.npy``) from its
     first pose. With ``preview``, ``<name>_range.png`` and ``<name>_top.png`` are rendered.
+
+    Returns:
+        The paths written: the XML first, then its PLY assets, the pattern table and the previews.
     """
     log = read_any(log_path)
     elevation = log.directions[..., 2]
@@ -128,7 +135,8 @@ def fit_scene(log_path, out_dir, params: FitParams | None = None, name: str = "s
     result = _fit(log, params, "fit")
     assets = Path(out_dir) / f"{name}_assets"
     assets.mkdir(parents=True, exist_ok=True)
-    xml = write_scene(result.model, out_dir, name, SceneSensor.from_log(log, assets / "pattern.npy"))
+    pattern = assets / "pattern.npy"
+    xml, *shapes = write_scene(result.model, out_dir, name, SceneSensor.from_log(log, pattern))
     table = Table(title=f"hybrid scene {xml}")
     for col in ("points", "ground points", "triangles", "ellipsoids", "blocks", "triangle p_hit", "seconds"):
         table.add_column(col, justify="right")
@@ -142,10 +150,7 @@ def fit_scene(log_path, out_dir, params: FitParams | None = None, name: str = "s
         f"{sum(result.timings.values()):.1f}",
     )
     console.print(table)
-    if preview:
-        for png in render_previews(xml, log.poses):
-            console.print(f"wrote {png}", highlight=False, markup=False)
-    return xml
+    return [xml, *shapes, pattern, *(render_previews(xml, log.poses) if preview else ())]
 
 
 def primitives_extract(log_path, library_dir, params: FitParams | None = None) -> PrimitiveLibrary:
@@ -205,18 +210,19 @@ def primitives_show(library_dir, out_png, ids: list[str] | None = None, per_clas
     return PrimitiveLibrary.load(library_dir).preview(out_png, per_class=per_class, ids=ids)
 
 
-def annotate(log_path, out_json, params: FitParams | None = None) -> Path:
+def annotate(log_path, out_json, params: FitParams | None = None) -> list[Path]:
     """Annotation of a labelled log: objects from its labels, ground mesh fitted to its ground
-    points, and its sensor (pattern, poses, range limits); return the JSON path."""
+    points, and its sensor (pattern, poses, range limits); return the paths written, the JSON first
+    (:func:`~mi_lidar.hybrid.compose.save_annotation`)."""
     log = read_any(log_path)
     _require_labels(log, log_path)
     result = _fit(log, params, "annotate", ground_only=True)
     labels = log.attributes["label"].ravel()[result.ray_index]
     inst = log.attributes["instance"].ravel()[result.ray_index]
     objects = annotation_from_segments(result.points, segments_from_labels(result.points, labels, inst), log.poses)
-    path = save_annotation(out_json, objects, result.model.ground, log)
-    console.print(f"{len(objects)} objects, {len(result.model.ground)} ground triangles in {path}")
-    return path
+    written = save_annotation(out_json, objects, result.model.ground, log)
+    console.print(f"{len(objects)} objects, {len(result.model.ground)} ground triangles in {written[0]}")
+    return written
 
 
 def _default_sensor(model: HybridModel) -> tuple[SceneSensor, np.ndarray]:
@@ -228,25 +234,25 @@ def _default_sensor(model: HybridModel) -> tuple[SceneSensor, np.ndarray]:
     return SceneSensor(DEFAULT_PATTERN, pose, 1.0, 80.0), pose[None]
 
 
-def compose(annotation, library, out_xml, extent: float = 3.5, preview: bool = True) -> Path:
+def compose(annotation, library, out_xml, extent: float = 3.5, preview: bool = True) -> list[Path]:
     """Build the scene of ``annotation`` from the primitive library folder ``library``; write ``out_xml``.
 
     The sensor is the annotation's (its pattern and first pose), else an ``hdl32e`` 1.8 m above
     the middle of the scene. With ``preview``, ``<stem>_range.png`` and ``<stem>_top.png`` are
     rendered along the annotation's poses.
+
+    Returns:
+        The paths written: the XML first, then its PLY assets and the previews.
     """
     objects, ground = load_annotation(annotation)
     model = compose_scene(objects, PrimitiveLibrary.load(library), ground, extent)
     stored = annotation_sensor(annotation)
     sensor, poses = stored if stored is not None else _default_sensor(model)
     out_xml = Path(out_xml)
-    xml = write_scene(model, out_xml.parent, out_xml.stem, sensor)
+    xml, *shapes = write_scene(model, out_xml.parent, out_xml.stem, sensor)
     skipped = len(model.info["skipped"])
     console.print(
         f"{len(objects) - skipped} objects placed ({skipped} skipped: class not in the library), "
         f"{len(model.ellipsoids)} ellipsoids, {len(model.ground)} ground triangles -> {xml}"
     )
-    if preview:
-        for png in render_previews(xml, poses):
-            console.print(f"wrote {png}", highlight=False, markup=False)
-    return xml
+    return [xml, *shapes, *(render_previews(xml, poses) if preview else ())]

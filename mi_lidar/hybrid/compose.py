@@ -60,8 +60,8 @@ def annotation_from_segments(points: np.ndarray, segments: list[Segment], poses:
     return objects
 
 
-def save_annotation(path, objects: list[dict], ground: GroundMesh | None = None, log: Log | None = None) -> Path:
-    """Write an annotation JSON; return its path.
+def save_annotation(path, objects: list[dict], ground: GroundMesh | None = None, log: Log | None = None) -> list[Path]:
+    """Write an annotation JSON and the files it names beside it.
 
     Args:
         path: output ``.json``.
@@ -69,25 +69,33 @@ def save_annotation(path, objects: list[dict], ground: GroundMesh | None = None,
         ground: ground mesh, written to ``<stem>_ground.ply`` (None: no ground).
         log: the log the annotation came from; its scan-0 firing pattern (``<stem>_pattern.npy``),
             poses and range limits become the annotation's ``sensor`` (None: no sensor).
+
+    Returns:
+        The paths written: the JSON first, then the ground mesh and the pattern table when written
+        (``annotation, *files = save_annotation(...)``).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     doc = {"format": "mi-lidar-annotation", "version": 1, "objects": objects}
+    written = []
     if ground is not None:
         name = f"{path.stem}_ground.ply"
-        write_mesh_ply(
-            path.parent / name, ground.vertices, ground.faces, ground.p_hit, ground.range_sigma, ground.label
+        written.append(
+            write_mesh_ply(
+                path.parent / name, ground.vertices, ground.faces, ground.p_hit, ground.range_sigma, ground.label
+            )
         )
         doc["ground"] = name
     if log is not None:
         table = to_table(pattern_from_log(log), path.parent / f"{path.stem}_pattern.npy")
+        written.append(table)
         doc["sensor"] = {
             "pattern": table.name,
             "poses": log.poses.reshape(-1, 16).tolist(),
             "min_range": float(log.sensor.get("min_range", 0.0)),
             "max_range": float(log.sensor.get("max_range", 120.0)),
         }
-    return atomic_write_text(path, json.dumps(doc, indent=1))
+    return [atomic_write_text(path, json.dumps(doc, indent=1)), *written]
 
 
 class _AnnotationPart(BaseModel):

@@ -82,7 +82,7 @@ def score(model, log, seed: int) -> dict:
 def _write(model, out: Path, name: str, log) -> Path:
     (out / f"{name}_assets").mkdir(parents=True, exist_ok=True)
     sensor = SceneSensor.from_log(log, out / f"{name}_assets" / "pattern.npy")
-    return write_scene(model, out, name, sensor)
+    return write_scene(model, out, name, sensor)[0]
 
 
 def run(

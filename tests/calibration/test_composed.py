@@ -56,7 +56,7 @@ def composed(tmp_path_factory):
         {"class": "small_tree", "center": [-4.0, 3.0, 1.4], "yaw": -0.5, "extents": [1.5, 1.5, 3.0]},
         {"class": "large_tree", "center": [9.0, 9.0, 4.0], "yaw": 0.0, "extents": [4.0, 4.0, 8.0]},
     ]
-    annotation = save_annotation(tmp / "annotation.json", objects, ground)
+    annotation, *_ = save_annotation(tmp / "annotation.json", objects, ground)
     return tmp, annotation, tmp / "library"
 
 

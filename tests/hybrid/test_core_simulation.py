@@ -101,7 +101,7 @@ def test_written_scene_loads_renders_and_matches_log(small_log, small_fit, tmp_p
     """
     (tmp_path / "s_assets").mkdir()
     sensor = SceneSensor.from_log(small_log, tmp_path / "s_assets" / "pattern.npy")
-    xml = write_scene(small_fit.model, tmp_path, "s", sensor)
+    xml, *_ = write_scene(small_fit.model, tmp_path, "s", sensor)
     scene = mi_lidar.load_scene(xml)
     image = np.array(mi.render(scene, seed=3))
     assert image.shape == small_log.shape[1:] + (len(CHANNELS),)

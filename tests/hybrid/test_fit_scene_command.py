@@ -19,7 +19,7 @@ def test_a_planar_log_is_warned_about(tmp_path, capsys):
     log = mi_lidar.simulate(scene, poses=poses, seed=1)
     log.attributes["label"] = np.ones_like(log.hit, np.int32)  # the fit reads labels
     path = log.save(tmp_path / "room.npz")
-    xml = fit_scene(path, tmp_path / "fitted", preview=False)
+    xml, *_ = fit_scene(path, tmp_path / "fitted", preview=False)
     said = capsys.readouterr().err
     assert xml.is_file() and f"warning: {path} is a planar log (every beam in one plane)" in said  # one line
 

@@ -30,8 +30,9 @@ def test_fit_produces_both_element_kinds_with_probabilities(small_fit):
 
 
 def test_scene_files_round_trip(small_fit, tmp_path):
-    xml = write_scene(small_fit.model, tmp_path, "s")
-    back = read_scene(xml)
+    written = write_scene(small_fit.model, tmp_path, "s")
+    assert written[0] == tmp_path / "s.xml" and set(written) == {p for p in tmp_path.rglob("*") if p.is_file()}
+    back = read_scene(written[0])
     m = small_fit.model
     assert len(back.ground) == len(m.ground) and len(back.ellipsoids) == len(m.ellipsoids)
     np.testing.assert_allclose(np.sort(back.ellipsoids.p_hit), np.sort(m.ellipsoids.p_hit), atol=1e-6)
@@ -62,7 +63,8 @@ def test_primitives_library_and_composition(small_log, small_fit, tmp_path):
     png = back.preview(tmp_path / "prev.png")
     assert png.stat().st_size > 10_000
     objects = annotation_from_segments(small_fit.points, segs, small_log.poses)
-    path = save_annotation(tmp_path / "a.json", objects, small_fit.model.ground)
+    path, *files = save_annotation(tmp_path / "a.json", objects, small_fit.model.ground)
+    assert path == tmp_path / "a.json" and files == [tmp_path / "a_ground.ply"] and path.is_file()
     loaded, ground = load_annotation(path)
     scene = compose_scene(loaded, back, ground)
     assert len(scene.ground) == len(small_fit.model.ground)
@@ -96,15 +98,18 @@ def test_commands_end_to_end(small_log, tmp_path):
     """From a log file on disk to a composed scene that loads, renders and has previews."""
     log_path = small_log.save(tmp_path / "log.npz")
     params = FitParams(block_size=20.0)
-    xml = commands.fit_scene(log_path, tmp_path / "scene", params)
+    xml, *files = commands.fit_scene(log_path, tmp_path / "scene", params)
     assert xml.is_file() and "ellipsoids" in xml.read_text() and 'type="lidar"' in xml.read_text()
+    assert {xml, *files} == {p for p in (tmp_path / "scene").rglob("*") if p.is_file()}  # every file, named
+    assert (tmp_path / "scene" / "scene_assets" / "pattern.npy") in files
     assert (tmp_path / "scene" / "scene_range.png").stat().st_size > 10_000
     commands.primitives_extract(log_path, tmp_path / "lib", params)
     rows = commands.primitives_list(tmp_path / "lib")
     assert rows
     assert commands.primitives_show(tmp_path / "lib", tmp_path / "p.png").is_file()
-    ann = commands.annotate(log_path, tmp_path / "ann.json", params)
-    out = commands.compose(ann, tmp_path / "lib", tmp_path / "composed" / "c.xml")
+    ann, *_ = commands.annotate(log_path, tmp_path / "ann.json", params)
+    out, *files = commands.compose(ann, tmp_path / "lib", tmp_path / "composed" / "c.xml")
+    assert {out, *files} == {p for p in (tmp_path / "composed").rglob("*") if p.is_file()}
     assert len(read_scene(out).ellipsoids) > 0
     assert (tmp_path / "composed" / "c_top.png").stat().st_size > 10_000
     # the composed scene's sensor replays the annotated log's rays: as many beams and firings,

@@ -242,7 +242,7 @@ def _write_model_seeds(folder: Path) -> None:
     to_table(pattern, folder / "pattern.csv")
     write_mesh_ply(folder / "ground.ply", np.array([[0, 0, 0], [4, 0, 0], [0, 4, 0.0]]), np.array([[0, 1, 2]]))
     objects = [{"class": "small_tree", "center": [1.0, 1.0, 1.5], "yaw": 0.3, "extents": [1.0, 1.2, 3.0]}]
-    annotation = save_annotation(folder / "annotation.json", objects)
+    (annotation,) = save_annotation(folder / "annotation.json", objects)
     doc = json.loads(annotation.read_text())
     doc["ground"] = "ground.ply"
     doc["sensor"] = {"pattern": "vlp16", "poses": [np.eye(4).ravel().tolist()], "min_range": 1.0, "max_range": 80.0}
