@@ -159,8 +159,17 @@ class SensorModel:
         return 1.0 - (1.0 - seg.drop) * inside, log_f - dr.log(inside)
 
     def virtual_segments(self, rays: RayBatch) -> list[Segment]:
-        """Elements met before the scene's, from the effects' :meth:`Effect.virtual_segments`."""
-        return [seg for effect in self.effects for seg in effect.virtual_segments(rays)]
+        """Elements met before the scene's, from the effects' :meth:`Effect.virtual_segments`.
+
+        Their laws are truncated to the range window: a virtual element stands for returns the sensor
+        reports (clutter, random readings), so none of its draws falls outside and is lost. Left whole,
+        a random-return law wider than the window would lose its far draws and stand in for a dropout.
+        """
+        return [
+            seg.with_(lo=dr.maximum(seg.lo, self.min_range), hi=dr.minimum(seg.hi, self.max_range))
+            for effect in self.effects
+            for seg in effect.virtual_segments(rays)
+        ]
 
     # ------------------------------------------------------------- sampling
     def simulate_rays(self, scene, table: ElementTable, rays: RayBatch, seed: int = 0, evaluate: bool = True) -> dict:

@@ -151,3 +151,21 @@ def test_each_family_window_is_the_integral_of_its_density(family, window):
     seg1, rays1 = _lanes(density, 5.0, 1, **fields)
     value = float(np.asarray(density.window(seg1, a, b, rays1))[0])
     assert abs(value - f.sum() * step) < 2e-3, (value, f.sum() * step)
+
+
+def test_random_returns_stay_inside_the_window(tmp_path):
+    """Virtual elements stand for returns the sensor reports: outliers uniform on [0, 80 m] behind a 10 m
+    window are drawn on [0, 10 m], so they never stand in for a dropout. A miss then has probability
+    (1 - p_uniform) (1 - Phi(2)) = 1.82 % (left whole, 0.2 x 7/8 of the draws would be lost as well: 19.3 %);
+    same tolerance as above."""
+    scene = wall_scene(tmp_path)
+    model, _ = scene_sensor_model(scene)
+    model.effects = [make_effect("outliers", p_uniform=0.2, uniform_max=80.0)]
+    poses = np.tile(np.eye(4), (SCANS, 1, 1))
+    log = mi_lidar.simulate(scene, poses=poses, seed=3, model=model)
+    hit = log.hit.ravel()
+    expected = 0.8 * P_BEYOND
+    assert log.ranges.ravel()[hit].max() <= MAX_RANGE
+    assert abs((1.0 - hit.mean()) - expected) < 0.0015, 1.0 - hit.mean()
+    ll = Problem.build(scene, LogRays.from_log(log)).log_likelihood(model)
+    assert np.allclose(ll[~hit], math.log(expected + FLOOR), atol=2e-3), ll[~hit][:3]
