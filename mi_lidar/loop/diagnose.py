@@ -267,17 +267,44 @@ def _learned(names: list[str], given: SensorModel, found: SensorModel, data: Spl
 def _join(ranked: list[Candidate], base: SensorModel, data: Splits, steps: int, threshold: float, before_test):
     """The first significant candidate that still wins held out once the model's effects are refitted with it.
 
+    Screening fits a candidate beside the model's effects as they are, so a flexible candidate can win it
+    by mending an earlier effect's misfit: after a logistic incidence dropout that absorbed a hidden random
+    dropout, a per-label dropout beat the random one by giving the ground (all grazing rays) 0.82. Once the
+    winner has won its refit, it and every significant candidate with fewer parameters are refitted with
+    the earlier effects to the end (twice the screening's steps, as the final fit; cut short, the earlier
+    effects do not adapt), and the first simpler one, in rank order, that the winner does not beat in the
+    paired held-out test at :data:`P_VALUE` joins instead (the rule of :func:`~mi_lidar.loop.selection.rank`,
+    on joint fits). Without earlier effects screening is already a joint fit, and nothing is refitted again.
+
     Returns:
         ``(candidate, augmented model, its held-out per-ray log-likelihood)`` or ``(None, None, None)``.
     """
-    for c in (c for c in ranked if c.significant):
+
+    def joined_with(c: Candidate, thorough: bool = False):
         augmented = dataclasses.replace(base, effects=base.effects + [copy.deepcopy(c.effect)])
-        refit(augmented, data.fitting, steps=steps, tolerance=SCREEN_TOLERANCE)  # earlier effects adapt
-        after_test = data.test.log_likelihood(augmented)
-        if significant(*held_out_test(after_test, before_test), threshold):
-            c.status = JOINED
-            return c, augmented, after_test
-        c.status = LOST
+        if thorough:  # every step: the earlier effects adapt slowly once the candidate has taken its share
+            refit(augmented, data.fitting, steps=2 * steps)
+        else:
+            refit(augmented, data.fitting, steps=steps, tolerance=SCREEN_TOLERANCE)  # earlier effects adapt
+        return augmented, data.test.log_likelihood(augmented)
+
+    for c in (c for c in ranked if c.significant):
+        augmented, after_test = joined_with(c)
+        if not significant(*held_out_test(after_test, before_test), threshold):
+            c.status = LOST
+            continue
+        simpler = [s for s in ranked if s.significant and s.k < c.k] if base.effects else []
+        if simpler:
+            augmented, after_test = joined_with(c, thorough=True)
+        for s in simpler:
+            model, test = joined_with(s, thorough=True)
+            if significant(*held_out_test(test, before_test), threshold) and (
+                held_out_test(after_test, test)[1] >= P_VALUE
+            ):
+                c, augmented, after_test = s, model, test
+                break
+        c.status = JOINED
+        return c, augmented, after_test
     return None, None, None
 
 

@@ -164,6 +164,21 @@ def test_combination_on_a_short_list(tmp_path):
     check("combination", outcome)
 
 
+def test_a_simpler_effect_joins_when_the_flexible_one_only_mends_an_earlier_fit(tmp_path):
+    """A random dropout (5 %) behind a logistic incidence dropout (60, 4) (make test). Screened beside the
+    logistic as first fitted, a per-label dropout won by giving the ground, whose rays all graze, 0.82, and
+    joined; refitted jointly to the end the two explain the log alike (paired held-out p 0.19), so the
+    random dropout, one parameter against five, joins instead, within 5 % of its truth."""
+    outcome = run_case(
+        street_log(Hidden(random_drop=0.05, logistic=(60.0, 4.0))),
+        scene_xml(),
+        tmp_path,
+        candidates=["incidence_dropout", "random_dropout", "label_dropout"],
+    )
+    assert outcome.selected == ["incidence_dropout", "random_dropout"], outcome.summary
+    assert abs(outcome.parameters["random_dropout.p_drop"][0] - 0.05) < 0.05 * 0.05, outcome.parameters
+
+
 @pytest.mark.slow
 def test_drift_outside_the_catalog_is_flagged_with_time(tmp_path):
     """A range bias growing 3 cm/s: no catalog effect explains it; the residual test names time, and
