@@ -91,7 +91,9 @@ class AppsEvaluation:
         }
 
 
-def _key(path: Path, protocol: PlanarProtocol, simulators: tuple[str, ...], runs: int, seed: int, max_range) -> str:
+def _key(
+    path: Path, protocol: PlanarProtocol, simulators: tuple[str, ...], runs: int, seed: int, max_range, message
+) -> str:
     settings = {
         "protocol": protocol.__dict__,
         "sim": simulators,
@@ -99,6 +101,8 @@ def _key(path: Path, protocol: PlanarProtocol, simulators: tuple[str, ...], runs
         "seed": seed,
         "max": max_range,
     }
+    if message is not None:  # a log read from other laser lines; the default keeps its key
+        settings["message"] = message
     return cache_key(path, settings)
 
 
@@ -239,6 +243,7 @@ def evaluate_log(
     seed: int = 0,
     workers: int = 1,
     progress=None,
+    message: str | None = None,
 ) -> AppsEvaluation:
     """Simulate the test states of a CARMEN log with each simulator, then :func:`evaluate_datasets`.
 
@@ -254,6 +259,8 @@ def evaluate_log(
         seed: seed of the sampled scans and of the draws.
         workers: processes running the applications side by side.
         progress: optional ``progress(done, total, label)``.
+        message: the laser lines to read (:func:`~mi_lidar.io.carmen.read_carmen`; default: FLASER, else
+            ROBOTLASER1).
     """
     from mi_lidar.io.dispatch import read_any
     from mi_lidar.planar.benchmark import run_planar_benchmark
@@ -265,10 +272,10 @@ def evaluate_log(
     protocol = protocol or PlanarProtocol()
     (out / "cache").mkdir(parents=True, exist_ok=True)
     start, cpu = time.perf_counter(), time.process_time()
-    key = _key(path, protocol, tuple(simulators), runs, seed, max_range)
+    key = _key(path, protocol, tuple(simulators), runs, seed, max_range, message)
     loaded = load_datasets(out / "cache" / "datasets.npz", key)
     if loaded is None:
-        log = read_any(path, formats=("carmen",), max_range=max_range)
+        log = read_any(path, formats=("carmen",), max_range=max_range, message=message)
         result = run_planar_benchmark(log, str(path), protocol, tuple(simulators), seed=seed, progress=progress)
         states, ranges = planar_datasets(result, samples=runs, seed=seed)
         benchmark = [r.to_json() for r in result.rows]

@@ -209,6 +209,17 @@ def max_range_option():
     )
 
 
+def carmen_message_option():
+    """The ``--message`` option of the verbs that read a planar CARMEN log."""
+    return typer.Option(
+        None,
+        "--message",
+        metavar="NAME",
+        help="The laser lines to read: FLASER, RLASER, ROBOTLASER1 or ROBOTLASER2; default: FLASER when the log "
+        "has any, else ROBOTLASER1.",
+    )
+
+
 def versions() -> dict[str, str]:
     """Versions of mi-lidar, Mitsuba, Dr.Jit, the active variant and the LLVM library."""
     import drjit as dr

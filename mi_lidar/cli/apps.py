@@ -10,7 +10,7 @@ from rich.console import Group
 from rich.table import Table
 from rich.text import Text
 
-from mi_lidar.cli.app import app, carmen_log_argument, console, max_range_option
+from mi_lidar.cli.app import app, carmen_log_argument, carmen_message_option, console, max_range_option
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import FIGURE_WIDTH
 
@@ -22,6 +22,7 @@ def evaluate_apps(
     log: Path = carmen_log_argument(),
     out: Path = typer.Option(..., "--out", "-o", help="Report folder: apps.json, apps.html, PNGs, cache/."),
     max_range: float | None = max_range_option(),
+    message: str | None = carmen_message_option(),
     simulator: list[str] | None = typer.Option(
         None, "--simulator", "-s", help="Only these simulators (repeatable): M0 M1 P-Reg NP-Reg mi-lidar (default)."
     ),
@@ -82,6 +83,7 @@ def evaluate_apps(
             runs=runs,
             workers=workers or min(3, os.cpu_count() or 1),
             progress=lambda done, total, label: update(done, total, label),
+            message=message,
         )
     console.print(
         risk_table(

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from mi_lidar.cli.app import app, carmen_log_argument, console, max_range_option, warn
+from mi_lidar.cli.app import app, carmen_log_argument, carmen_message_option, console, max_range_option, warn
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import figure, figure_table
 
@@ -16,6 +16,7 @@ def benchmark_planar(
     log: Path = carmen_log_argument(),
     out: Path = typer.Option(..., "--out", "-o", help="Report folder: benchmark.json, benchmark.html, PNGs."),
     max_range: float | None = max_range_option(),
+    message: str | None = carmen_message_option(),
     test_every: int = typer.Option(5, metavar="N", min=2, help="Every k-th scan is a test scan."),
     cell: float = typer.Option(0.05, metavar="X", min=0.005, max=1.0, help="Map cell (m)."),
     radius: float = typer.Option(
@@ -61,6 +62,7 @@ def benchmark_planar(
             PlanarProtocol(cell=cell, test_every=test_every, radius=radius, window=window, train_beams=train_beams),
             tuple(model) if model else MODELS,
             progress=lambda done, total, label: update(done, total, label),
+            message=message,
         )
     scores = figure_table(
         f"{log.name}: {result.data.test.n:,} test beams",

@@ -334,16 +334,18 @@ def benchmark_file(
     protocol: PlanarProtocol | None = None,
     models: tuple[str, ...] = MODELS,
     progress=None,
+    message: str | None = None,
 ) -> PlanarBenchmark:
     """Read a CARMEN log, run the benchmark, and write ``benchmark.json``, ``benchmark.html`` and PNGs to ``out``.
 
-    The folder ``out`` is made first, so that a path that cannot be a folder fails before the run.
+    The folder ``out`` is made first, so that a path that cannot be a folder fails before the run. ``message``
+    names the laser lines to read (:func:`~mi_lidar.io.carmen.read_carmen`; default: FLASER, else ROBOTLASER1).
     """
     from mi_lidar.io.dispatch import read_any
 
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
-    log = read_any(path, formats=("carmen",), max_range=max_range)
+    log = read_any(path, formats=("carmen",), max_range=max_range, message=message)
     result = run_planar_benchmark(log, str(path), protocol, models, progress=progress)
     if out is not None:
         from mi_lidar.planar.report import write_benchmark

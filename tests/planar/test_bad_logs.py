@@ -188,3 +188,20 @@ def test_a_carmen_log_under_any_other_name_is_read_as_one(tmp_path, name):
     (tmp_path / "scan.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
     with pytest.raises(LogFormatError, match="PLY point cloud"):
         read_any(tmp_path / "scan.ply", formats=("carmen",))
+
+
+@pytest.mark.parametrize("verb", ["benchmark-planar", "evaluate-apps"])
+def test_message_picks_the_laser_lines_and_names_what_the_log_has(tmp_path, verb):
+    """``--message`` reaches the reader: a log of FLASER lines read as RLASER is refused with what it holds and the
+    option that reads it; an unknown name is refused with the names mi-lidar reads."""
+    from tests.terminal import invoke_at_80
+
+    path = tmp_path / "room.log"
+    path.write_text(room_log_text(scans=6))
+    for name, expected in (
+        ("RLASER", "no RLASER messages, but 6 FLASER lines"),
+        ("LASER", "message='LASER': mi-lidar reads the laser messages with a pose"),
+    ):
+        result = invoke_at_80([verb, path, "--out", tmp_path / "out", "--message", name])
+        assert result.exit_code == 2, result.output
+        assert expected in " ".join(result.output.split()), result.output
