@@ -123,3 +123,40 @@ def test_max_segments_out_of_range(tmp_path):
     text = scene_xml('<integrator type="lidar_integrator"><integer name="max_segments" value="0"/></integrator>')
     with pytest.raises(SceneError, match="max_segments=0"):
         mi_lidar.load_scene(write(tmp_path, text))
+
+
+def _denied(path):
+    raise PermissionError(13, "Permission denied", str(path))
+
+
+@pytest.mark.parametrize("reader", ["spec", "mesh", "library index", "primitive"])
+def test_a_file_the_process_may_not_read_is_named_as_such(reader, tmp_path, monkeypatch):
+    """A permission error was reported as a parse error ('cannot parse the spec: [Errno 13] ...', 'not a triangle
+    mesh PLY (PermissionError ...)', 'not a primitive library index'): each reader now says the file cannot be read
+    and how to make it readable. The read is denied by the test (file modes do not bind a root process)."""
+    import json
+    import pathlib
+    import re
+
+    from mi_lidar.core.errors import SpecError
+    from mi_lidar.dataset.spec import read_spec_file
+    from mi_lidar.hybrid import blocks, primitives
+
+    path = tmp_path / {"spec": "spec.yaml", "mesh": "ground.ply"}.get(reader, "library.json")
+    path.write_text("{}")
+    if reader == "spec":
+        monkeypatch.setattr(pathlib.Path, "read_text", lambda self, *a, **k: _denied(self))
+        call, error = (lambda: read_spec_file(path)), SpecError
+    elif reader == "mesh":
+        monkeypatch.setattr(blocks.PlyData, "read", _denied)
+        call, error = (lambda: blocks.read_mesh_ply(path)), SceneError
+    else:
+        path.write_text(json.dumps({"primitives": [{"id": "a", "label": 1, "file": "a.npz"}]}))
+        if reader == "library index":
+            monkeypatch.setattr(pathlib.Path, "read_text", lambda self, *a, **k: _denied(self))
+        else:
+            path = tmp_path / "a.npz"
+            monkeypatch.setattr(primitives.np, "load", lambda p, **k: _denied(p))
+        call, error = (lambda: primitives.PrimitiveLibrary.load(tmp_path)), SceneError
+    with pytest.raises(error, match=rf"{re.escape(str(path))}: cannot read the .* \(permission denied\); make it"):
+        call()

@@ -50,14 +50,15 @@ class SensorMismatchError(MiLidarError, ValueError):
     """A log was recorded by another sensor than the scene's (beam count, field of view or range scale)."""
 
 
-def unreadable(path, what: str = "file") -> LogFormatError:
+def unreadable(path, what: str = "file", error: type[MiLidarError] | None = None) -> MiLidarError:
     """The error for a file the process may not read: what happened and the two ways out.
 
     Args:
         path: The file.
-        what: Its role in the message ("log", "file").
+        what: Its role in the message ("log", "file", "spec").
+        error: The exception type of the reader's other errors (default :class:`LogFormatError`).
     """
-    return LogFormatError(
+    return (error or LogFormatError)(
         f"{path}: cannot read the {what} (permission denied); make it readable (chmod a+r {path}) or copy it to a "
         "file you may read"
     )

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from mi_lidar.core.errors import MiLidarError, SpecError, describe_invalid, parser_message
+from mi_lidar.core.errors import MiLidarError, SpecError, describe_invalid, parser_message, unreadable
 from mi_lidar.core.params import parse_calls
 from mi_lidar.core.patterns import is_pattern_file
 
@@ -296,6 +296,8 @@ def read_spec_file(path: Path) -> dict:
             raise SpecError(f"{path}: unknown spec format {suffix!r}; write the spec as .yaml, .yml or .toml")
     except SpecError:
         raise
+    except PermissionError as exc:
+        raise unreadable(path, "spec", SpecError) from exc
     except Exception as exc:
         raise SpecError(f"{path}: cannot parse the spec: {parser_message(exc)}") from exc
     if not isinstance(data, dict):

@@ -20,7 +20,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 from plyfile import PlyData
 
-from mi_lidar.core.errors import SceneError
+from mi_lidar.core.errors import SceneError, unreadable
 from mi_lidar.core.log import Log
 from mi_lidar.core.patterns import to_table
 from mi_lidar.core.patterns.from_log import pattern_from_log
@@ -162,6 +162,8 @@ def read_mesh_ply(path) -> GroundMesh:
         )
     except FileNotFoundError:
         raise SceneError(f"{path}: no such triangle mesh file") from None
+    except PermissionError:
+        raise unreadable(path, "triangle mesh", SceneError) from None
     except Exception as exc:  # plyfile raises many types on malformed files; name the file either way
         raise SceneError(
             f"{path}: not a triangle mesh PLY ({type(exc).__name__}: {exc}); "

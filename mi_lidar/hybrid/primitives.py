@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_path, atomic_write_text
-from mi_lidar.core.errors import NPZ_MEMBER_ERRORS, SceneError
+from mi_lidar.core.errors import NPZ_MEMBER_ERRORS, SceneError, unreadable
 from mi_lidar.hybrid.classes import CLASS_NAMES, class_id
 from mi_lidar.hybrid.model import EllipsoidSet, HybridModel
 from mi_lidar.hybrid.segments import Segment
@@ -205,6 +205,8 @@ class PrimitiveLibrary:
             index = json.loads(path.read_text())
             items = index["primitives"]
             entries = [(str(item["id"]), class_id(int(item["label"])), str(item["file"]), item) for item in items]
+        except PermissionError:
+            raise unreadable(path, "primitive library index", SceneError) from None
         except (OSError, ValueError, KeyError, TypeError) as exc:  # JSON and Unicode errors are ValueErrors
             raise SceneError(
                 f"{path}: not a primitive library index ({type(exc).__name__}: {exc}); "
@@ -274,6 +276,8 @@ def _load_primitive(path: Path, id_: str, label: int, item: dict) -> Primitive:
     try:
         with np.load(path, allow_pickle=False) as d:
             arrays = {k: np.asarray(d[k], np.float64) for k in ("means", "covs", "p_hit", "box_lo", "box_hi")}
+    except PermissionError:
+        raise unreadable(path, "primitive", SceneError) from None
     except NPZ_MEMBER_ERRORS as exc:
         raise SceneError(
             f"{path}: not a primitive file ({type(exc).__name__}: {exc}); extract the library again"
