@@ -181,6 +181,8 @@ class BeamDensity(ReturnDensity):
         return dr.select(seg.kind == ELLIPSOID, log_density(seg, z), value)
 
     def window(self, seg: Segment, a: float, b: float, rays: RayBatch) -> mi.Float:
+        if a <= 0.0 and b == math.inf:  # every component lies on [0, z_max] or [0, reach]
+            return dr.select(seg.kind == ELLIPSOID, window_probability(seg, a, b), 1.0)
         a_hit, a_short, a_rand, reach, rate = self._parts(seg, rays)
         z_max = self["z_max"]
         sigma = dr.maximum(seg.sigma, 1e-6)

@@ -213,6 +213,8 @@ class NPRegDensity(ReturnDensity):
         return dr.select(seg.kind == ELLIPSOID, log_density(seg, z), value)
 
     def window(self, seg: Segment, a: float, b: float, rays: RayBatch) -> mi.Float:
+        if a <= 0.0 and b == math.inf:  # the shapes are truncated to z >= 0 and the floor lies on [0, z_max]
+            return dr.select(seg.kind == ELLIPSOID, window_probability(seg, a, b), 1.0)
         state = self.state(seg, rays)
         low, high = self._residual(seg, max(a, 0.0) + 0.0 * seg.mean), self._residual(seg, b + 0.0 * seg.mean)
         if self.choices["shape"] == "polygon":
