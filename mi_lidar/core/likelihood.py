@@ -187,9 +187,9 @@ def mixture_log_likelihood(
     n = rays.width
     z = dr.select(hit, measured, 0.0)
     sums = Sums.start(n)
-    for seg in model.virtual_segments(rays):  # outliers and clutter keep their own Gaussian law
+    for seg in model.virtual_segments(rays):  # outliers and clutter: their own Gaussian law, inside the window
         seg = model.segment_law(seg, rays, virtual=True)
-        sums = sums.fold(seg.valid, seg.p, *model.censor(seg, log_density(seg, z), rays, virtual=True))
+        sums = sums.fold(seg.valid, seg.p, seg.drop, log_density(seg, z))
     if isinstance(rounds, CachedBatch):
         sums = _fold_cached(table, model, rays, rounds, z, sums)
     else:

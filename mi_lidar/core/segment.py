@@ -184,10 +184,7 @@ def window_probability(seg: Segment, a: float, b: float) -> mi.Float:
     mixture's. The sensor reports nothing outside its range window (see :meth:`SensorModel.censor`)."""
     if not has_corners(seg):
         return _gaussian_window(seg, a, b)
-    return sum(
-        (w * _gaussian_window(seg.with_(mean=m, sigma=sd), a, b) for w, m, sd in _components(seg)[1:]),
-        _components(seg)[0][0] * _gaussian_window(seg, a, b),
-    )
+    return sum(w * _gaussian_window(seg.with_(mean=m, sigma=sd), a, b) for w, m, sd in _components(seg))
 
 
 def _gaussian_window(seg: Segment, a: float, b: float) -> mi.Float:

@@ -31,7 +31,7 @@ from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.intensity import IntensityModel
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import Segment, sample_range, window_probability
+from mi_lidar.core.segment import Segment, sample_range
 from mi_lidar.core.streams import MAX_UNIFORM, NeighbourStreams, uniform, uniforms
 from mi_lidar.core.trace import RESTART_OFFSET, next_hit
 
@@ -133,16 +133,17 @@ class SensorModel:
             seg = effect.likelihood_segment(seg, rays)
         return seg
 
-    def censor(self, seg: Segment, log_f: mi.Float, rays: RayBatch, virtual: bool = False):
+    def censor(self, seg: Segment, log_f: mi.Float, rays: RayBatch):
         """A segment's loss probability and return log density as seen through the range window.
 
         The sensor reports a return only within ``[min_range, max_range]`` (the sampler drops the
         others, :meth:`_reported`); a draw outside is lost like a dropped beam (no return, nothing behind
         revealed). With ``W`` the probability that a return of ``seg`` lies in the window
-        (:meth:`ReturnDensity.window`; the segment's own Gaussian for ``virtual`` elements), the element
+        (:meth:`ReturnDensity.window`), the element
         loses the beam with ``1 - (1 - drop) W`` and returns ``z`` with density ``f(z) / W`` given that it
         returns, so that ``(1 - drop) f(z)`` inside the window is unchanged. Beams fanned out by a footprint
-        effect are scored from their sub-rays' untruncated moments and do not see the window.
+        effect are scored from their sub-rays' untruncated moments and do not see the window; virtual
+        elements are drawn inside it (:meth:`virtual_segments`) and need no censoring.
 
         Args:
             seg: the segment after :meth:`segment_law`.
@@ -151,10 +152,7 @@ class SensorModel:
         Returns:
             ``(drop, log_f)`` to fold into the mixture.
         """
-        if virtual:
-            inside = window_probability(seg, self.min_range, self.max_range)
-        else:
-            inside = self.density.window(seg, self.min_range, self.max_range, rays)
+        inside = self.density.window(seg, self.min_range, self.max_range, rays)
         inside = dr.clip(dr.select(seg.valid, inside, 1.0), TINY_WINDOW, 1.0)
         return 1.0 - (1.0 - seg.drop) * inside, log_f - dr.log(inside)
 

@@ -216,7 +216,7 @@ class NPRegDensity(ReturnDensity):
         if a <= 0.0 and b == math.inf:  # the shapes are truncated to z >= 0 and the floor lies on [0, z_max]
             return dr.select(seg.kind == ELLIPSOID, window_probability(seg, a, b), 1.0)
         state = self.state(seg, rays)
-        low, high = self._residual(seg, max(a, 0.0) + 0.0 * seg.mean), self._residual(seg, b + 0.0 * seg.mean)
+        low, high = self._residual(seg, max(a, 0.0)), self._residual(seg, b)
         if self.choices["shape"] == "polygon":
             spread = math.sqrt(2.0) * seg.sigma
             nodes = list(zip(GH_NODES, GH_WEIGHTS))
