@@ -83,13 +83,20 @@ class SceneSensor:
         )
 
 
+def assets_folder(out_dir, name: str) -> Path:
+    """The folder of scene ``name``'s assets beside its XML, ``<out_dir>/<name>_assets`` (created)."""
+    folder = Path(out_dir) / f"{name}_assets"
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
 def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneSensor | None = None) -> list[Path]:
     """Write ``model`` as a Mitsuba scene.
 
     Args:
         model: the hybrid model; elements are grouped by their ``block``.
         out_dir: output folder (created).
-        name: XML file stem; assets go to ``<name>_assets/``.
+        name: XML file stem; assets go to :func:`assets_folder`.
         sensor: sensor and integrator to include (None: shapes only).
 
     Returns:
@@ -97,7 +104,7 @@ def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneS
         (``xml, *assets = write_scene(...)``).
     """
     out_dir = Path(out_dir)
-    assets = f"{name}_assets"
+    assets = assets_folder(out_dir, name).name  # the XML names its assets relative to itself
     shapes, written = [], []
     g, e = model.ground, model.ellipsoids
     for b in np.unique(np.r_[g.block, e.block]):

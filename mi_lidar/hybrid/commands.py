@@ -28,7 +28,7 @@ from rich.table import Table
 
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
-from mi_lidar.hybrid.blocks import SceneSensor, write_scene
+from mi_lidar.hybrid.blocks import SceneSensor, assets_folder, write_scene
 from mi_lidar.hybrid.compose import (
     annotation_from_segments,
     annotation_sensor,
@@ -133,9 +133,7 @@ def fit_scene(
             soft_wrap=True,
         )
     result = _fit(log, params, "fit")
-    assets = Path(out_dir) / f"{name}_assets"
-    assets.mkdir(parents=True, exist_ok=True)
-    pattern = assets / "pattern.npy"
+    pattern = assets_folder(out_dir, name) / "pattern.npy"
     xml, *shapes = write_scene(result.model, out_dir, name, SceneSensor.from_log(log, pattern))
     table = Table(title=f"hybrid scene {xml}")
     for col in ("points", "ground points", "triangles", "ellipsoids", "blocks", "triangle p_hit", "seconds"):

@@ -31,7 +31,7 @@ import numpy as np
 
 from mi_lidar.core.atomic import atomic_write_text
 from mi_lidar.hybrid.baselines import NeighborSimulator, box_surface_scene, mesh_model_scene
-from mi_lidar.hybrid.blocks import SceneSensor, write_scene
+from mi_lidar.hybrid.blocks import SceneSensor, assets_folder, write_scene
 from mi_lidar.hybrid.classes import GROUND_CLASSES, OBJECT_CLASSES
 from mi_lidar.hybrid.commands import render_previews
 from mi_lidar.hybrid.compose import annotation_from_segments, compose_scene, save_annotation
@@ -80,8 +80,7 @@ def score(model, log, seed: int) -> dict:
 
 
 def _write(model, out: Path, name: str, log) -> Path:
-    (out / f"{name}_assets").mkdir(parents=True, exist_ok=True)
-    sensor = SceneSensor.from_log(log, out / f"{name}_assets" / "pattern.npy")
+    sensor = SceneSensor.from_log(log, assets_folder(out, name) / "pattern.npy")
     return write_scene(model, out, name, sensor)[0]
 
 
