@@ -1,6 +1,6 @@
 """Every command's ``--help`` as a user reads it in an 80-column terminal: no option name split or cut,
-no help text cut short, no type or default beside a flag (``--force``, not ``--force <bool>``), and the
-examples on lines a user can copy."""
+no help text cut short, no type or default beside a flag (``--force``, not ``--force <bool>``), plain
+words instead of Python types (``MODEL ...``, not ``<list[str]>``), and the examples on lines a user can copy."""
 
 import re
 
@@ -41,6 +41,8 @@ def test_help_is_readable_at_80_columns(words, command):
     assert not split, f"option names split across lines or cut: {split}\n{text}"
     assert_whole(text, "Show this message and exit.", *example_lines(command))
     assert "<bool>" not in text and "[default: False]" not in text, f"a flag shows a type or default\n{text}"
+    python_types = re.findall(r"<(?:str|int|float|list\[\w+\])>", text)
+    assert not python_types, f"Python types in the type column: {python_types}\n{text}"
 
 
 def test_every_verb_has_examples_that_fit():

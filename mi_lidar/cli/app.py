@@ -55,16 +55,33 @@ def usage_error_line(exc, args: list[str]) -> str:
     return f"{message}; see `{command} --help`"
 
 
-def quiet_flags(params: list) -> list:
-    """``params`` with the type column of every flag left blank in ``--help``; returns them.
+NUMBER_METAVARS = {"int": "N", "float": "X"}  # Python types -> the app's number metavars
 
-    Typer's rich help writes a type for each option, ``<bool>`` for a flag that takes no value
-    (``--force``, ``--help``); its plain help writes none. An empty metavar is what the rich help
-    prints instead.
+
+def plain_metavars(params: list) -> list:
+    """``params`` with a plain word in the type column of ``--help`` where Typer would print a Python type.
+
+    Typer's rich help writes ``<bool>`` beside a flag that takes no value (``--force``, ``--help``),
+    ``<str>`` or ``<list[str]>`` beside a text option and ``<float>`` beside a number. A flag gets an
+    empty metavar (what the plain help prints), a number ``N`` or ``X`` as everywhere in the app, and a
+    text value its own name in capitals (``--model`` -> ``MODEL``), with ``...`` when it may repeat.
+    Metavars the commands set, paths (``<file>``, ``<dir>``) and choices stay. Returns ``params``.
     """
     for param in params:
-        if getattr(param, "is_flag", False) and param.metavar is None:
+        if param.metavar is not None:
+            continue
+        if getattr(param, "is_flag", False):
             param.metavar = ""
+            continue
+        descriptor = getattr(param, "type_descriptor", None)
+        if descriptor is None or descriptor.is_path or descriptor.is_choice:
+            continue
+        bare = param.bare_type()
+        many = bare.startswith("list[")
+        bare = bare.removeprefix("list[").removesuffix("]")
+        word = NUMBER_METAVARS.get(bare) or (param.name.upper() if bare == "str" and param.name else None)
+        if word:
+            param.metavar = word + (" ..." if many else "")
     return params
 
 
@@ -73,16 +90,16 @@ class FriendlyGroup(TyperGroup):
 
     Bad command-line values (click's usage errors: a value out of range, a missing option) and the
     errors a command raises (:data:`USER_ERRORS`) both print ``error: <message>`` and exit with 2.
-    Its own flags and its commands' show no type in ``--help`` (:func:`quiet_flags`).
+    Its own options and its commands' show plain words, not Python types, in ``--help`` (:func:`plain_metavars`).
     """
 
     def get_params(self, ctx):
-        return quiet_flags(super().get_params(ctx))
+        return plain_metavars(super().get_params(ctx))
 
     def get_command(self, ctx, cmd_name):
         command = super().get_command(ctx, cmd_name)
         if command is not None:
-            quiet_flags(command.get_params(ctx))
+            plain_metavars(command.get_params(ctx))
         return command
 
     def invoke(self, ctx):
