@@ -6,7 +6,8 @@ every return adds a *pass-through* to each cell its beam crosses from the sensor
 the return (sampled every quarter cell); beams without a return clear nothing. Contributions are
 additive, so the map of a query scan that leaves some scans out is the total minus their
 contributions: :class:`CountMap` keeps the totals and, per query scan, the sparse corrections of its
-excluded scans (only for cells that hold a hit somewhere, the only cells that can be occupied).
+excluded scans. Pass-throughs and corrections are kept only for cells that hold a hit somewhere in the
+log, the only cells that can be occupied.
 The endpoints' coordinates are summed the same way, so every cell also has the exact leave-out mean
 of its endpoint hits (where inside the cell the surface is).
 """
@@ -124,9 +125,10 @@ class ScanCounts:
 
     Attributes:
         grid: the grid.
-        hit_start, hit_cell: offsets (S + 1,) and cells of each scan's endpoint hits.
+        hit_start, hit_cell: offsets (S + 1,) and int32 cells of each scan's endpoint hits.
         hit_xy: (H, 2) world position (m) of each endpoint hit.
-        pass_start, pass_cell: offsets (S + 1,) and cells of each scan's pass-throughs (one per beam and cell).
+        pass_start, pass_cell: offsets (S + 1,) and int32 cells of each scan's pass-throughs (one per beam
+            and cell), in cells with an endpoint hit in the whole log only (:func:`count_scans`).
     """
 
     grid: Grid
@@ -157,48 +159,59 @@ def count_scans(
 ) -> ScanCounts:
     """Each scan's endpoint hits and pass-throughs on ``grid`` (see the module docstring).
 
-    Chunks of ``chunk`` scans are counted on ``workers`` threads (numpy releases the GIL in its loops).
+    Pass-throughs are kept only in cells with an endpoint hit in the whole log, the only cells that can
+    be occupied (``occ3`` needs a hit): the free space every beam crosses is most of the passes and
+    none of the map, so the per-scan lists stay a fraction of the log's march. The endpoints are found
+    first, then chunks of ``chunk`` scans are marched on ``workers`` threads (numpy releases the GIL
+    in its loops). Cells are int32 (a grid holds fewer than 2**31 cells).
     """
     chunks = [np.arange(first, min(first + chunk, log.shape[0])) for first in range(0, log.shape[0], chunk)]
-    hit_cells, hit_points, pass_cells = [], [], []
-    for scans, (hits, points, passes) in zip(
-        chunks, in_threads(lambda scans: _count_chunk(log, grid, reach, scans), chunks, workers)
-    ):
+    hit_cells, hit_points = [], []
+    for hits, points in map(lambda scans: _endpoints(log, grid, reach, scans), chunks):
         hit_cells += hits
         hit_points += points
+    hit_cell = np.concatenate(hit_cells)
+    can_hold = np.zeros(grid.size, bool)
+    can_hold[hit_cell] = True
+    pass_cells = []
+    marched = in_threads(lambda scans: _passes(log, grid, reach, can_hold, scans), chunks, workers)
+    for scans, passes in zip(chunks, marched):
         pass_cells += passes
         if progress is not None:
             progress(scans[-1] + 1, log.shape[0])
     return ScanCounts(
         grid,
         np.concatenate([[0], np.cumsum([c.size for c in hit_cells])]),
-        np.concatenate(hit_cells),
+        hit_cell,
         np.concatenate(hit_points),
         np.concatenate([[0], np.cumsum([c.size for c in pass_cells])]),
         np.concatenate(pass_cells),
     )
 
 
-def _count_chunk(log: Log, grid: Grid, reach: float, scans: np.ndarray) -> tuple[list, list, list]:
-    """Per scan of ``scans``: its endpoint-hit cells, their (H, 2) positions (m), and its pass-through cells."""
+def _endpoints(log: Log, grid: Grid, reach: float, scans: np.ndarray) -> tuple[list, list]:
+    """Per scan of ``scans``: the int32 cells of its endpoint hits, and their (H, 2) positions (m)."""
+    origin, direction, z = planar_beams(log, scans)
+    point = origin + np.nan_to_num(z)[..., None] * direction
+    end = np.where(np.isfinite(z) & (z < reach), grid.cell_of(point), -1).astype(np.int32)
+    landed = end >= 0
+    return [e[k] for e, k in zip(end, landed)], [p[k] for p, k in zip(point, landed)]
+
+
+def _passes(log: Log, grid: Grid, reach: float, can_hold: np.ndarray, scans: np.ndarray) -> list:
+    """Per scan of ``scans``: the int32 cells its returns pass through (one per beam and cell), where ``can_hold``."""
     origin, direction, z = planar_beams(log, scans)
     n_beams = origin.shape[1]
     o, d, r = origin.reshape(-1, 2), direction.reshape(-1, 2), z.ravel()
     hit = np.isfinite(r)
-    point = o + np.nan_to_num(r)[:, None] * d
-    end = np.where(hit & (r < reach), grid.cell_of(point), -1)
     ray, cell = march_cells(grid, o, d, np.where(hit, np.nan_to_num(r) - grid.cell, 0.0), grid.cell / 4)
-    keep = cell != end[ray]
+    keep = can_hold[cell]
     ray, cell = ray[keep], cell[keep]
+    end = np.where(hit & (r < reach), grid.cell_of(o + np.nan_to_num(r)[:, None] * d), -1)
+    keep = cell != end[ray]  # a beam's own endpoint hit is not a pass
+    ray, cell = ray[keep], cell[keep].astype(np.int32)
     bounds = np.searchsorted(ray // n_beams, np.arange(len(scans) + 1))
-    hits, points, passes = [], [], []
-    for local in range(len(scans)):
-        rows = slice(local * n_beams, (local + 1) * n_beams)
-        landed = end[rows] >= 0
-        hits.append(end[rows][landed])
-        points.append(point[rows][landed])
-        passes.append(cell[bounds[local] : bounds[local + 1]])
-    return hits, points, passes
+    return [cell[bounds[k] : bounds[k + 1]] for k in range(len(scans))]
 
 
 def in_threads(work, items: list, workers: int):
@@ -251,7 +264,7 @@ class CountMap:
             for kind, (keys, counts) in parts.items():
                 cells = self.counts.cells(scans, kind)
                 kept = self.hits[cells] > 0
-                unique, inverse, n = np.unique(cells[kept], return_inverse=True, return_counts=True)
+                unique, inverse, n = np.unique(cells[kept].astype(np.int64), return_inverse=True, return_counts=True)
                 keys.append(q * size + unique)
                 counts.append(n)
                 if kind == "hit":
