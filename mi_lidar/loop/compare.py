@@ -202,6 +202,43 @@ def breakdown(t: RayTable, by: str) -> list[dict]:
     return rows
 
 
+def gain_groups(t: RayTable, before: np.ndarray, after: np.ndarray, most: int = 3) -> list[dict]:
+    """Where a change of model gains most: the ``most`` groups, one per breakdown, of the largest NLL drop.
+
+    Args:
+        t: the rays (a breakdown with one group says nothing and is skipped).
+        before, after: (N,) per-ray log-likelihoods of the two models (nats).
+        most: groups returned at most.
+
+    Returns:
+        Rows ``breakdown``, ``group``, ``rays``, ``gain`` (nats, total), ``nll_before`` and ``nll_after``
+        (nats per ray), best first; only groups of at least 2 % of the rays.
+    """
+    rows = []
+    for by in BREAKDOWNS:
+        keys = group_keys(t, by)
+        groups = np.unique(keys)
+        if len(groups) < 2:
+            continue
+        for key in groups:
+            m = keys == key
+            rows.append(
+                {
+                    "breakdown": by,
+                    "group": str(key),
+                    "rays": int(m.sum()),
+                    "gain": float(np.sum(after[m] - before[m])),
+                    "nll_before": float(-before[m].mean()),
+                    "nll_after": float(-after[m].mean()),
+                }
+            )
+    best = {}
+    for row in sorted(rows, key=lambda r: -(r["nll_before"] - r["nll_after"])):
+        if row["rays"] >= 0.02 * before.size and row["breakdown"] not in best:
+            best[row["breakdown"]] = row
+    return sorted(best.values(), key=lambda r: -(r["nll_before"] - r["nll_after"]))[:most]
+
+
 @dataclass
 class Comparison:
     """Result of :func:`compare`.

@@ -62,7 +62,7 @@ from mi_lidar.loop.catalog import (
     fit_density_candidate,
     refit,
 )
-from mi_lidar.loop.compare import BREAKDOWNS, RayTable, first_elements, group_keys
+from mi_lidar.loop.compare import RayTable, first_elements, gain_groups
 from mi_lidar.loop.intensity_residuals import intensity_residuals, intensity_section
 from mi_lidar.loop.realism import Realism
 from mi_lidar.loop.residuals import residual_structure
@@ -274,7 +274,9 @@ def _join(ranked: list[Candidate], base: SensorModel, data: Splits, steps: int, 
     the earlier effects to the end (twice the screening's steps, as the final fit; cut short, the earlier
     effects do not adapt), and the first simpler one, in rank order, that the winner does not beat in the
     paired held-out test at :data:`P_VALUE` joins instead (the rule of :func:`~mi_lidar.loop.selection.rank`,
-    on joint fits). Without earlier effects screening is already a joint fit, and nothing is refitted again.
+    on joint fits). A winner with such simpler rivals is refitted to the end at once, and that fit decides
+    whether it wins its refit. Without earlier effects screening is already a joint fit, and nothing is
+    refitted again.
 
     Returns:
         ``(candidate, augmented model, its held-out per-ray log-likelihood)`` or ``(None, None, None)``.
@@ -289,13 +291,11 @@ def _join(ranked: list[Candidate], base: SensorModel, data: Splits, steps: int, 
         return augmented, data.test.log_likelihood(augmented)
 
     for c in (c for c in ranked if c.significant):
-        augmented, after_test = joined_with(c)
+        simpler = [s for s in ranked if s.significant and s.k < c.k] if base.effects else []
+        augmented, after_test = joined_with(c, thorough=bool(simpler))
         if not significant(*held_out_test(after_test, before_test), threshold):
             c.status = LOST
             continue
-        simpler = [s for s in ranked if s.significant and s.k < c.k] if base.effects else []
-        if simpler:
-            augmented, after_test = joined_with(c, thorough=True)
         for s in simpler:
             model, test = joined_with(s, thorough=True)
             if significant(*held_out_test(test, before_test), threshold) and (
@@ -390,7 +390,7 @@ def diagnose(
         joined, augmented, after_test = _join(ranked, base, data, steps, threshold, before_test)
         if joined is None:
             break
-        groups = _evidence(data, before_test, after_test)
+        groups = gain_groups(data.held_out, before_test, after_test)
         evidence.append({"effect": joined.name, "groups": groups, "realism": [len(realism) - 1, len(realism)]})
         realism.append(data.realism(augmented, f"+ {joined.name}", stream, realism[-1]))
         joined_effects.append((joined.name, augmented.effects[-1]))
@@ -427,7 +427,7 @@ def diagnose(
                 [learned[0].name],
                 [],
             )
-            groups = _evidence(data, realism[-1].ll, learned[0].test_ll)
+            groups = gain_groups(data.held_out, realism[-1].ll, learned[0].test_ll)
             evidence.append({"effect": learned[0].name, "groups": groups, "realism": [len(realism) - 1, len(realism)]})
             realism.append(data.realism(base, f"{learned[0].name} instead", stream, realism[-1]))
     final = realism[-1]
@@ -468,33 +468,6 @@ def diagnose(
         intensity = intensity_section(intensity_residuals(log, data.scene, base, data.test.index), out)
         write_report(result, out, appendix=intensity)
     return result
-
-
-def _evidence(data: Splits, before: np.ndarray, after: np.ndarray) -> list[dict]:
-    """The breakdown groups where the held-out gain of a new candidate concentrates most."""
-    rows = []
-    for by in BREAKDOWNS:
-        keys = group_keys(data.held_out, by)
-        groups = np.unique(keys)
-        if len(groups) < 2:
-            continue
-        for key in groups:
-            m = keys == key
-            rows.append(
-                {
-                    "breakdown": by,
-                    "group": str(key),
-                    "rays": int(m.sum()),
-                    "gain": float(np.sum(after[m] - before[m])),
-                    "nll_before": float(-before[m].mean()),
-                    "nll_after": float(-after[m].mean()),
-                }
-            )
-    best = {}
-    for row in sorted(rows, key=lambda r: -(r["nll_before"] - r["nll_after"])):
-        if row["rays"] >= 0.02 * before.size and row["breakdown"] not in best:
-            best[row["breakdown"]] = row
-    return sorted(best.values(), key=lambda r: -(r["nll_before"] - r["nll_after"]))[:3]
 
 
 def _structure(data: Splits, model: SensorModel, final: Realism) -> list:

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from mi_lidar.loop.compare import RayTable, breakdown
+from mi_lidar.loop.compare import RayTable, breakdown, gain_groups
 from mi_lidar.loop.selection import relative_gain
 
 
@@ -54,3 +54,18 @@ def test_a_group_is_named_with_its_breakdown_once():
     assert names["time"] == "scans 00000" and names["range"] == "range 5-10 m"
     assert names["incidence"] == "incidence 00-15 deg" and names["element_type"] == "element_type surface"
     assert group_name({"breakdown": "label", "group": "none"}) == "label none"
+
+
+def test_gain_groups_name_where_the_gain_concentrates_one_group_per_breakdown():
+    t = table(np.linspace(-179, 179, 240))
+    before = np.full(240, -3.0)
+    after = before.copy()
+    after[t.beam == 5] += 2.0  # beam 5 gains 2 nats per ray; a small gain everywhere else
+    after[t.beam != 5] += 0.01
+    rows = gain_groups(t, before, after)
+    assert rows[0]["breakdown"] == "beam" and rows[0]["group"] == "beam 005"
+    assert rows[0]["rays"] == 20 and math.isclose(rows[0]["gain"], 40.0)
+    assert math.isclose(rows[0]["nll_before"] - rows[0]["nll_after"], 2.0)
+    assert len({r["breakdown"] for r in rows}) == len(rows) <= 3  # one group per breakdown
+    gains = [r["nll_before"] - r["nll_after"] for r in rows]
+    assert gains == sorted(gains, reverse=True)
