@@ -7,6 +7,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.poses import validate_poses
 
 
 class LidarSensor(mi.Sensor):
@@ -37,7 +38,8 @@ class LidarSensor(mi.Sensor):
        - Range noise (m) of elements that do not set their own. Default: 0.01.
      * - to_world
        - |transform|
-       - Sensor pose: sensor frame (x forward, y left, z up) to world. Not differentiable here
+       - Sensor pose: sensor frame (x forward, y left, z up) to world, a finite rigid transform
+         (rotation and translation, no scale). Not differentiable here
          (calibrate extrinsics with :mod:`mi_lidar.calibration`).
 
     The film is the range image: width = firings, height = beams (rows sorted by elevation,
@@ -92,7 +94,9 @@ class LidarSensor(mi.Sensor):
         self.min_range = float(props.get("min_range", 0.0))
         self.max_range = float(props.get("max_range", 120.0))
         self.range_sigma = float(props.get("range_sigma", 0.01))
-        self.to_world_matrix = np.array(props.get("to_world", mi.ScalarTransform4f()).matrix, dtype=np.float64)
+        self.to_world_matrix = validate_poses(
+            np.array(props.get("to_world", mi.ScalarTransform4f()).matrix, dtype=np.float64), "lidar sensor: to_world"
+        )[0]
         self.to_world = mi.ScalarTransform4f(self.to_world_matrix.astype(np.float32))
         if not (0 <= self.min_range < self.max_range):
             raise ParameterError(

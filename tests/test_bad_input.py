@@ -160,3 +160,56 @@ def test_a_file_the_process_may_not_read_is_named_as_such(reader, tmp_path, monk
         call, error = (lambda: primitives.PrimitiveLibrary.load(tmp_path)), SceneError
     with pytest.raises(error, match=rf"{re.escape(str(path))}: cannot read the .* \(permission denied\); make it"):
         call()
+
+
+PLY_HEADER = "ply\nformat ascii 1.0\nelement vertex {v}\nproperty float x\nproperty float y\nproperty float z\n"
+PLY_FACES = "element face 0\nproperty list uchar int vertex_indices\nend_header\n"
+
+
+@pytest.mark.parametrize(
+    "body,expected",
+    [
+        # a Python plugin's refusal: Mitsuba passed on the whole traceback as the message
+        (
+            '<integrator type="lidar_integrator"><string name="effects" value="range_bias(bias=abc)"/></integrator>',
+            'failed to instantiate integrator plugin of type "lidar_integrator": effect '
+            "'range_bias': bias='abc' is not a number",
+        ),
+        (
+            '<shape type="sphere"><bsdf type="lidar_material"><integer name="label" value="-3"/></bsdf></shape>',
+            "lidar_material: label=-3 is outside >= 0; fix the value in the scene",
+        ),
+        # a sensor pose with NaN was rendered as a scan of NaN rays
+        ("", "lidar sensor: to_world: pose 0 is not a rigid transform: has non-finite entries"),
+        # Mitsuba's words on meshes without faces or vertices were Dr.Jit's ('operands have incompatible sizes')
+        (
+            '<shape type="ply"><string name="filename" value="{faceless}"/></shape>',
+            "a mesh without faces gives this: give the shape at least one triangle, or remove it",
+        ),
+        (
+            '<shape type="ply"><string name="filename" value="{empty}"/></shape>',
+            "a mesh without vertices gives this: give the shape at least one triangle, or remove it",
+        ),
+        # a binary file given as a PLY: Mitsuba's message quoted its bytes, and Python's UTF-8 decoder replaced it
+        (
+            '<shape type="ply"><string name="filename" value="{binary}"/></shape>',
+            'binary.ply": invalid PLY header: unknown token "\\xff\\xfe',
+        ),
+    ],
+)
+def test_a_scene_mitsuba_refuses_is_one_line_naming_the_cause(tmp_path, body, expected):
+    """Each error was several lines (a Python traceback, Mitsuba's source location) or another error's words."""
+    names = {name: tmp_path / f"{name}.ply" for name in ("faceless", "empty", "binary")}
+    names["faceless"].write_text(PLY_HEADER.format(v=3) + PLY_FACES + "0 0 0\n1 0 0\n0 1 0\n")
+    names["empty"].write_text(PLY_HEADER.format(v=0) + PLY_FACES)
+    names["binary"].write_bytes(b"ply\n\xff\xfe\x00garbage\n")
+    text = scene_xml(body.format(**names))
+    if not body:
+        text = text.replace("</sensor>", '<transform name="to_world"><translate x="nan"/></transform></sensor>')
+    with pytest.raises(SceneError) as error:
+        mi_lidar.load_scene(write(tmp_path, text))
+    message = str(error.value)
+    assert message.startswith(f"{tmp_path / 'scene.xml'}: could not load the scene: "), message
+    assert "\n" not in message and "Traceback" not in message, message
+    assert "(line 1, col " in message and ".cpp:" not in message and ".h:" not in message, message
+    assert expected in message, message

@@ -197,6 +197,14 @@ CASES = {
         {},
         ["test_every=100", "--test-every", "--window"],
     ),
+    "scene value a plugin refuses": (  # was Mitsuba's message with the plugin's Python traceback in it
+        ["render", "{refused_scene}", "--out", "{tmp}/o"],
+        {},
+        [
+            'refused.xml (line 14, col 6): failed to instantiate sensor plugin of type "lidar": lidar sensor: need '
+            "0 <= min_range < max_range; got min_range=0.0, max_range=nan"
+        ],
+    ),
     "unknown variant": (["render", ROOM, "--out", "{tmp}/o"], {"MI_LIDAR_VARIANT": "llvm_nope"}, ["'llvm_nope'"]),
     "cuda without a GPU": (
         ["render", ROOM, "--out", "{tmp}/o"],
@@ -213,6 +221,10 @@ def test_bad_input_is_one_line_with_exit_code_2(tmp_path, room_log, street_frame
     values["read_only"] = read_only_folder(tmp_path)
     values["file"] = str(tmp_path / "a_file")
     Path(values["file"]).write_text("not a folder")
+    values["refused_scene"] = str(tmp_path / "refused.xml")
+    Path(values["refused_scene"]).write_text(
+        Path(ROOM).read_text().replace('"max_range" value="30"', '"max_range" value="nan"')
+    )
     if case == "cuda without a GPU" and os.path.exists("/dev/nvidia0"):
         pytest.skip("this machine has a GPU")
     run = subprocess.run(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import mitsuba as mi
@@ -62,10 +63,47 @@ def load_scene(source, optimize: bool = False, **parameters):
         raise
     except Exception as exc:
         where = "scene dict" if isinstance(source, dict) else str(source)
-        hint = ""
-        if 'plugin "lidar" is of type "sensor"' in str(exc):
-            hint = '\nThe integrator is called `lidar_integrator`: write <integrator type="lidar_integrator">.'
-        raise SceneError(f"{where}: could not load the scene:\n{exc}{hint}") from exc
+        raise SceneError(f"{where}: could not load the scene: {loader_message(exc)}") from exc
+
+
+PYTHON_TRACEBACK = "Traceback (most recent call last):"
+LOADER_HINTS = (  # (text in Mitsuba's message, what to do), for the messages that do not say it
+    (
+        'plugin "lidar" is of type "sensor"',
+        'the integrator is called `lidar_integrator`: write <integrator type="lidar_integrator">',
+    ),
+    (
+        "incompatible sizes! (sizes: 0",
+        "a mesh without faces gives this: give the shape at least one triangle, or remove it",
+    ),
+    (
+        "didn't have normals at construction",
+        "a mesh without vertices gives this: give the shape at least one triangle, or remove it",
+    ),
+)
+
+
+def loader_message(exc: Exception) -> str:
+    """Mitsuba's error on loading a scene, on one line: where in the file, the plugin, and the cause.
+
+    A Python plugin (``lidar``, ``lidar_integrator``, ``lidar_material``) that refuses a value raises an error
+    naming it; Mitsuba passes it on as the text of the whole Python traceback. The traceback is replaced by the
+    error's own message, the C++ source locations (``[parser.cpp:1718]``) is dropped, line breaks are folded, and
+    a hint is added where Mitsuba's words do not say what to do (:data:`LOADER_HINTS`).
+    """
+    text = str(exc)
+    if isinstance(exc, UnicodeDecodeError):  # Mitsuba quoted bytes of a binary file that are not UTF-8
+        text = exc.object.decode("utf-8", "backslashreplace")
+    if PYTHON_TRACEBACK in text:
+        context = text.split(PYTHON_TRACEBACK, 1)[0]
+        trace = text.rsplit(PYTHON_TRACEBACK, 1)[1].splitlines()
+        end = max((i for i, line in enumerate(trace) if line.startswith("  File ")), default=-1) + 1
+        while end < len(trace) and trace[end][:1].isspace():  # the last frame's source line and markers
+            end += 1
+        text = context + re.sub(r"^[\w.]+: ", "", "\n".join(trace[end:]))
+    text = " ".join(re.sub(r"\[[\w.]+\.(?:cpp|h):\d+\] ", "", text).split())
+    hints = [hint for found, hint in LOADER_HINTS if found in text]
+    return "; ".join([text, *hints])
 
 
 def use_density(scene, spec: str | None):
