@@ -108,6 +108,11 @@ CASES = {
         {},
         ["{file}: file exists; a file of that name is in the way of the folder: give another path"],
     ),
+    "output file is a folder": (  # named the temporary file ('.folder.x1y2.tmp.npz: is a directory')
+        ["simulate", ROOM, "--poses", "{log}", "--out", "{folder}"],
+        {},
+        ["error: {folder}: is a directory; the path is a folder: give a file name"],
+    ),
     "repeated option": (["render", ROOM, "--seed", "1", "--seed", "-1", "--out", "{tmp}/o"], {}, ["(got '-1')"]),
     # numbers a typo makes huge, each refused before any work (were tracebacks, terabyte allocations or endless runs)
     "render seed beyond 32 bits": (
@@ -221,6 +226,8 @@ def test_bad_input_is_one_line_with_exit_code_2(tmp_path, room_log, street_frame
     values["read_only"] = read_only_folder(tmp_path)
     values["file"] = str(tmp_path / "a_file")
     Path(values["file"]).write_text("not a folder")
+    values["folder"] = str(tmp_path / "folder.npz")
+    Path(values["folder"]).mkdir()
     values["refused_scene"] = str(tmp_path / "refused.xml")
     Path(values["refused_scene"]).write_text(
         Path(ROOM).read_text().replace('"max_range" value="30"', '"max_range" value="nan"')

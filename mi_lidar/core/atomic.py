@@ -38,7 +38,10 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     try:
         yield tmp
         os.chmod(tmp, _default_mode())
-        os.replace(tmp, path)
+        try:
+            os.replace(tmp, path)
+        except OSError as exc:  # a folder of that name: name it, not the temporary file
+            raise type(exc)(exc.errno, exc.strerror, os.fspath(path)) from exc
     finally:
         tmp.unlink(missing_ok=True)
 

@@ -66,3 +66,12 @@ def test_bytes_are_refused_and_the_old_file_stays(tmp_path):
         atomic_write_text(path, b"new")
     assert path.read_text(encoding="utf-8") == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["note.txt"]
+
+
+def test_a_folder_in_the_way_is_named_not_the_temporary_file(tmp_path):
+    """The rename onto a folder failed naming the temporary file ('.scan.x1y2.tmp.npz: is a directory')."""
+    (tmp_path / "scan.npz").mkdir()
+    with pytest.raises(IsADirectoryError) as error:
+        atomic_write_text(tmp_path / "scan.npz", "new")
+    assert error.value.filename == str(tmp_path / "scan.npz")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scan.npz"]
