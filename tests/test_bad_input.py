@@ -213,3 +213,31 @@ def test_a_scene_mitsuba_refuses_is_one_line_naming_the_cause(tmp_path, body, ex
     assert "\n" not in message and "Traceback" not in message, message
     assert "(line 1, col " in message and ".cpp:" not in message and ".h:" not in message, message
     assert expected in message, message
+
+
+@pytest.mark.parametrize("reader", ["density", "pattern", "log", "primitive"])
+def test_random_bytes_for_a_numpy_file_are_not_called_a_pickle(reader, tmp_path):
+    """numpy reads a file that is neither .npy nor .npz as a pickle and advised to 'load it unsafely using the
+    `allow_pickle=` keyword': each reader of a numpy file now says the file is damaged or of another format."""
+    import json
+
+    from mi_lidar.core.densities.tables import load_density
+    from mi_lidar.core.errors import MiLidarError
+    from mi_lidar.core.log import Log
+    from mi_lidar.core.patterns import get_pattern
+    from mi_lidar.hybrid.primitives import PrimitiveLibrary
+
+    path = tmp_path / ("a.npy" if reader == "pattern" else "a.npz")
+    path.write_bytes(np.random.default_rng(0).bytes(1000))
+    (tmp_path / "library.json").write_text(json.dumps({"primitives": [{"id": "a", "label": 1, "file": "a.npz"}]}))
+    calls = {
+        "density": lambda: load_density(path),
+        "pattern": lambda: get_pattern(path),
+        "log": lambda: Log.load(path),
+        "primitive": lambda: PrimitiveLibrary.load(tmp_path),
+    }
+    with pytest.raises(MiLidarError) as error:
+        calls[reader]()
+    message = str(error.value)
+    assert str(path) in message and "allow_pickle" not in message, message
+    assert "its first bytes are neither a numpy .npy header nor a zip archive: damaged, or another format" in message

@@ -107,3 +107,15 @@ NUMPY_FILE_ERRORS = (
 )
 # ... and what reading a named member of an ``.npz`` archive adds: ``KeyError`` when the member is missing.
 NPZ_MEMBER_ERRORS = (*NUMPY_FILE_ERRORS, KeyError)
+
+
+def numpy_file_problem(exc: Exception) -> str:
+    """What a numpy load error (one of :data:`NPZ_MEMBER_ERRORS`) says about the file, for a message.
+
+    numpy reads a file that starts as neither an ``.npy`` array nor a zip archive as a pickle, and refuses it
+    advising to "load it unsafely using the `allow_pickle=` keyword": for random bytes or another format, it
+    is said so instead. Other errors are named with their type.
+    """
+    if isinstance(exc, ValueError) and "pickled" in str(exc):
+        return "its first bytes are neither a numpy .npy header nor a zip archive: damaged, or another format"
+    return f"{type(exc).__name__}: {exc}"

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_write
-from mi_lidar.core.errors import NUMPY_FILE_ERRORS, LogFormatError
+from mi_lidar.core.errors import NUMPY_FILE_ERRORS, LogFormatError, numpy_file_problem
 from mi_lidar.core.poses import validate_poses
 
 FORMAT_NAME = "mi-lidar-log"
@@ -219,7 +219,7 @@ class Log:
             meta = json.loads(arrays.pop("meta").tobytes().decode()) if "meta" in arrays else None
         except NUMPY_FILE_ERRORS as exc:
             raise LogFormatError(
-                f"{path}: not a readable mi-lidar log ({type(exc).__name__}: {exc}); was it truncated? Re-create "
+                f"{path}: not a readable mi-lidar log ({numpy_file_problem(exc)}); was it truncated? Re-create "
                 "it with `mi-lidar simulate` or `mi-lidar convert`."
             ) from exc
         if meta is None:

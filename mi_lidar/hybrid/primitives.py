@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_path, atomic_write_text
-from mi_lidar.core.errors import NPZ_MEMBER_ERRORS, SceneError, unreadable
+from mi_lidar.core.errors import NPZ_MEMBER_ERRORS, SceneError, numpy_file_problem, unreadable
 from mi_lidar.hybrid.classes import CLASS_NAMES, class_id
 from mi_lidar.hybrid.model import EllipsoidSet, HybridModel
 from mi_lidar.hybrid.segments import Segment
@@ -280,7 +280,7 @@ def _load_primitive(path: Path, id_: str, label: int, item: dict) -> Primitive:
         raise unreadable(path, "primitive", SceneError) from None
     except NPZ_MEMBER_ERRORS as exc:
         raise SceneError(
-            f"{path}: not a primitive file ({type(exc).__name__}: {exc}); extract the library again"
+            f"{path}: not a primitive file ({numpy_file_problem(exc)}); extract the library again"
         ) from None
     n = len(arrays["means"])
     shapes = {"means": (n, 3), "covs": (n, 3, 3), "p_hit": (n,), "box_lo": (3,), "box_hi": (3,)}

@@ -23,7 +23,7 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.atomic import atomic_write
-from mi_lidar.core.errors import NPZ_MEMBER_ERRORS, LogFormatError, ParameterError
+from mi_lidar.core.errors import NPZ_MEMBER_ERRORS, LogFormatError, ParameterError, numpy_file_problem
 
 FORMAT_NAME = "mi-lidar-density"
 FORMAT_VERSION = 1
@@ -172,7 +172,7 @@ def read_density(path: str | os.PathLike) -> tuple[dict, dict[str, np.ndarray]]:
             tables = {k.split("/", 1)[1]: np.asarray(data[k]) for k in data.files if k.startswith("table/")}
     except NPZ_MEMBER_ERRORS as exc:  # json's and unicode's errors are ValueErrors
         raise LogFormatError(
-            f"{path}: not a mi-lidar density file ({type(exc).__name__}: {exc}); write one with `mi-lidar fit-sensor`"
+            f"{path}: not a mi-lidar density file ({numpy_file_problem(exc)}); write one with `mi-lidar fit-sensor`"
         ) from None
     if not isinstance(meta, dict):
         raise LogFormatError(f"{path}: the density file's header is not a mapping; write it with `mi-lidar fit-sensor`")

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_path, atomic_write
-from mi_lidar.core.errors import NUMPY_FILE_ERRORS, PatternError
+from mi_lidar.core.errors import NUMPY_FILE_ERRORS, PatternError, numpy_file_problem
 from mi_lidar.core.patterns.firing import FiringPattern, positive_float
 
 _CSV_ANGLES = ("elevation_deg", "azimuth_deg")
@@ -185,7 +185,7 @@ def _read_npy_columns(path: Path) -> dict[str, np.ndarray]:
     try:
         array = np.load(path, allow_pickle=False)
     except NUMPY_FILE_ERRORS as exc:
-        raise PatternError(f"{where} is not a plain numeric NPY array ({type(exc).__name__}: {exc})") from None
+        raise PatternError(f"{where} is not a plain numeric NPY array ({numpy_file_problem(exc)})") from None
     if array.ndim not in (2, 3) or array.shape[-1] not in (2, 3) or 0 in array.shape:
         raise PatternError(
             f"{where}: array of shape {array.shape}; expected (N, 2|3) or (H, W, 2|3) with "
