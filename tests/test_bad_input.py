@@ -156,6 +156,7 @@ def test_a_file_the_process_may_not_read_is_named_as_such(reader, tmp_path, monk
             monkeypatch.setattr(pathlib.Path, "read_text", lambda self, *a, **k: _denied(self))
         else:
             path = tmp_path / "a.npz"
+            path.write_bytes(b"")
             monkeypatch.setattr(primitives.np, "load", lambda p, **k: _denied(p))
         call, error = (lambda: primitives.PrimitiveLibrary.load(tmp_path)), SceneError
     with pytest.raises(error, match=rf"{re.escape(str(path))}: cannot read the .* \(permission denied\); make it"):

@@ -140,7 +140,7 @@ class AnnotationFile(_AnnotationPart):
     """A whole annotation file (see the module docstring)."""
 
     format: Literal["mi-lidar-annotation"]
-    version: int = 1
+    version: Literal[1] = 1
     ground: str | None = None
     objects: list[AnnotatedObject] = []
     sensor: AnnotatedSensor | None = None

@@ -22,6 +22,8 @@ from mi_lidar.hybrid.classes import CLASS_NAMES, class_id
 from mi_lidar.hybrid.model import EllipsoidSet, HybridModel
 from mi_lidar.hybrid.segments import Segment
 
+LIBRARY_FORMAT, LIBRARY_VERSION = "mi-lidar-primitives", 1  # library.json's format and version
+
 
 def rotation_z(yaw: float) -> np.ndarray:
     """(3, 3) rotation by ``yaw`` rad about z."""
@@ -185,7 +187,7 @@ class PrimitiveLibrary:
                 {"id": p.id, "label": int(p.label), "class": p.class_name, "file": f"{p.id}.npz", "source": p.source}
             )
         # the index last, so that it only ever names whole files
-        text = json.dumps({"format": "mi-lidar-primitives", "version": 1, "primitives": index}, indent=1)
+        text = json.dumps({"format": LIBRARY_FORMAT, "version": LIBRARY_VERSION, "primitives": index}, indent=1)
         return atomic_write_text(folder / "library.json", text)
 
     @classmethod
@@ -212,6 +214,12 @@ class PrimitiveLibrary:
                 f"{path}: not a primitive library index ({type(exc).__name__}: {exc}); "
                 "write it with mi-lidar primitives extract"
             ) from None
+        kind = (index.get("format", LIBRARY_FORMAT), index.get("version", LIBRARY_VERSION))
+        if kind != (LIBRARY_FORMAT, LIBRARY_VERSION):
+            raise SceneError(
+                f"{path}: format {kind[0]!r} version {kind[1]!r}; this mi-lidar reads {LIBRARY_FORMAT!r} version "
+                f"{LIBRARY_VERSION}: extract the library again with mi-lidar primitives extract"
+            )
         return cls([_load_primitive(folder / file, id_, label, item) for id_, label, file, item in entries])
 
     def preview(self, path, per_class: int = 4, ids: list[str] | None = None) -> Path:
@@ -273,6 +281,8 @@ class PrimitiveLibrary:
 
 def _load_primitive(path: Path, id_: str, label: int, item: dict) -> Primitive:
     """One primitive's ``.npz`` (see :meth:`PrimitiveLibrary.save`); SceneError naming the file when damaged."""
+    if not path.is_file():
+        raise SceneError(f"{path}: no such primitive file, yet library.json lists it; extract the library again")
     try:
         with np.load(path, allow_pickle=False) as d:
             arrays = {k: np.asarray(d[k], np.float64) for k in ("means", "covs", "p_hit", "box_lo", "box_hi")}

@@ -45,6 +45,7 @@ def test_keys_of_other_tools_are_kept(tmp_path):
         ('{"format": "mi-lidar-annotation", "objects": [', r"not JSON"),
         ("[1, 2]", r"\(top level\): Input should be a valid dictionary"),
         ('{"format": "scene", "objects": []}', r"format: Input should be 'mi-lidar-annotation'"),
+        ('{"format": "mi-lidar-annotation", "version": 9}', r"version: Input should be 1 \(got 9\)"),  # was read
         ('{"format": "mi-lidar-annotation", "objects": {"a": 1}}', r"objects: Input should be a valid list"),
         (
             json.dumps({"format": "mi-lidar-annotation", "objects": [{"class": "small_tree"}]}),

@@ -43,3 +43,22 @@ def test_a_save_that_fails_midway_keeps_the_previous_index_and_no_temporary(tmp_
     assert (folder / "library.json").read_text() == before
     assert sorted(p.name for p in folder.iterdir()) == ["a.npz", "b.npz", "library.json", "x.npz"]
     assert [r["id"] for r in PrimitiveLibrary.load(folder).rows()] == ["a", "b"]
+
+
+def test_an_index_of_another_version_or_a_missing_primitive_is_named(tmp_path):
+    """A library.json of version 7 was read as version 1; a primitive it lists but the folder lacks was 'not a
+    primitive file (FileNotFoundError: ...)'."""
+    import json
+
+    from mi_lidar.core.errors import SceneError
+
+    folder = tmp_path / "lib"
+    library("a", "b").save(folder)
+    index = json.loads((folder / "library.json").read_text())
+    (folder / "library.json").write_text(json.dumps({**index, "version": 7}))
+    with pytest.raises(SceneError, match=r"library.json: format 'mi-lidar-primitives' version 7; this mi-lidar reads"):
+        PrimitiveLibrary.load(folder)
+    (folder / "library.json").write_text(json.dumps(index))
+    (folder / "b.npz").unlink()
+    with pytest.raises(SceneError, match=r"b\.npz: no such primitive file, yet library.json lists it; extract"):
+        PrimitiveLibrary.load(folder)
