@@ -22,7 +22,8 @@ the range must explain the intensity as well.
 (:mod:`mi_lidar.core.trace`): each round works only on the rays that met an element in it and reads
 the running sums of its rays from the previous round (``prev``); a ray's sums are written when its
 last element has been folded in. Beams fanned out into sub-rays by a footprint effect are scored
-from the sub-rays' return moments by that effect (:meth:`FootprintEffect.combine_log_likelihood`).
+from the sub-rays' return moments by that effect (:meth:`FootprintEffect.combine_log_likelihood`),
+which loses the combined law's mass outside the window to the miss.
 
 **One scoring rule, one floor** (:func:`score`): a return counts as the probability of its
 ``RESOLUTION`` = 1 cm range bin (density x 0.01 m, the sensor's resolution and the thesis's
@@ -282,7 +283,7 @@ def _footprint_log_likelihood(table, model, fan, rounds: Rounds, measured: mi.Fl
         seg, entry_rays = round_segment(table, model, sub, r)
         moments, log_pass = _moment_step(moments, log_pass, model.segment_law(seg, entry_rays), r.ray, r.prev)
     moments.log_miss = dr.log(dr.clip(1.0 - moments.p_return, TINY, 1.0))
-    return effect.combine_log_likelihood(moments, weight, measured, hit, n)
+    return effect.combine_log_likelihood(moments, weight, measured, hit, n, (model.min_range, model.max_range))
 
 
 def _moment_step(moments: SubRayMoments, log_pass: mi.Float, seg: Segment, lanes, prev):

@@ -142,8 +142,9 @@ class SensorModel:
         (:meth:`ReturnDensity.window`), the element
         loses the beam with ``1 - (1 - drop) W`` and returns ``z`` with density ``f(z) / W`` given that it
         returns, so that ``(1 - drop) f(z)`` inside the window is unchanged. Beams fanned out by a footprint
-        effect are scored from their sub-rays' untruncated moments and do not see the window; virtual
-        elements are drawn inside it (:meth:`virtual_segments`) and need no censoring.
+        effect see the window once their sub-rays are combined
+        (:meth:`~mi_lidar.core.effects.base.FootprintEffect.combine_log_likelihood`); virtual elements are drawn
+        inside it (:meth:`virtual_segments`) and need no censoring.
 
         Args:
             seg: the segment after :meth:`segment_law`.
@@ -197,25 +198,42 @@ class SensorModel:
             return self._first_returns(scene, table, rays, seed, evaluate)
         effect, sub, weight = fan
         choice = uniforms(seed, rays.ray_id, FOOTPRINT_SEGMENT)
-        return effect.combine(self._first_returns(scene, table, sub, seed), weight, rays.width, choice)
+        out = effect.combine(self._first_returns(scene, table, sub, seed, final=False), weight, rays.width, choice)
+        z, reported = self._reported(out["range"], rays, out["hit"])  # the beam's return, not its sub-rays'
+        out["range"], out["hit"] = dr.select(reported, z, dr.nan), reported
+        if "intensity" in out:
+            out["intensity"] = dr.select(reported, out["intensity"], 0.0)
+        return out
 
-    def _reported(self, z: mi.Float, rays: RayBatch, returned: mi.Bool) -> tuple[mi.Float, mi.Bool]:
-        """Post-processed ranges (m) and the lanes that report them (returned, within the range window)."""
+    def _reported(self, z: mi.Float, rays: RayBatch, returned: mi.Bool, final: bool = True) -> tuple[mi.Float, mi.Bool]:
+        """Post-processed ranges (m) and the lanes that report them (returned, within the range window).
+
+        ``final=False`` (the sub-rays of a footprint, combined later): the raw draws and every return.
+        """
+        if not final:
+            return z, returned
         for effect in self.effects:
             z = effect.finalize_range(z, rays)
         return z, returned & (z >= self.min_range) & (z <= self.max_range)
 
     def _report(
-        self, out: dict, index: mi.UInt32, rays: RayBatch, returned: mi.Bool, z: mi.Float, intensity=0.0
+        self,
+        out: dict,
+        index: mi.UInt32,
+        rays: RayBatch,
+        returned: mi.Bool,
+        z: mi.Float,
+        intensity=0.0,
+        final: bool = True,
     ) -> None:
         """Write the reported ranges (post-processed, blind zone applied) and intensities of the lanes that returned."""
-        z, reported = self._reported(z, rays, returned)
+        z, reported = self._reported(z, rays, returned, final)
         dr.scatter(out["range"], z, index, reported)
         dr.scatter(out["hit"], mi.Bool(True), index, reported)
         if "intensity" in out:  # sample_trace draws ranges only
             dr.scatter(out["intensity"], mi.Float(intensity), index, reported)
 
-    def _virtual_returns(self, out: dict, rays: RayBatch, seed: int | NeighbourStreams) -> mi.Bool:
+    def _virtual_returns(self, out: dict, rays: RayBatch, seed: int | NeighbourStreams, final: bool = True) -> mi.Bool:
         """Draw the effects' virtual elements (outliers, clutter) of every lane, in order.
 
         Returns:
@@ -226,13 +244,14 @@ class SensorModel:
         for v, seg in enumerate(self.virtual_segments(rays)):
             u = uniform(seed, rays.ray_id, VIRTUAL_SEGMENT + v, 0)
             returned = alive & seg.valid & (u < seg.p * (1.0 - seg.drop))
-            self._report(
-                out, everyone, rays, returned, sample_range(seg, uniform(seed, rays.ray_id, VIRTUAL_SEGMENT + v, 1))
-            )
+            z = sample_range(seg, uniform(seed, rays.ray_id, VIRTUAL_SEGMENT + v, 1))
+            self._report(out, everyone, rays, returned, z, final=final)
             alive = alive & ~(seg.valid & (u < seg.p))
         return alive
 
-    def _first_returns(self, scene, table: ElementTable, rays: RayBatch, seed: int, evaluate: bool = True) -> dict:
+    def _first_returns(
+        self, scene, table: ElementTable, rays: RayBatch, seed: int, evaluate: bool = True, final: bool = True
+    ) -> dict:
         """The sampling loop of :meth:`simulate_rays` on prepared rays (one lane per ray).
 
         The rays walk through their elements in a symbolic Dr.Jit loop that only decides where each
@@ -256,7 +275,7 @@ class SensorModel:
             "segments": dr.zeros(mi.UInt32, n),
             "intensity": dr.zeros(mi.Float, n),
         }
-        alive = self._virtual_returns(out, rays, seed)  # virtual elements (outliers, clutter) come first
+        alive = self._virtual_returns(out, rays, seed, final)  # virtual elements (outliers, clutter) come first
         first = min(FIRST_PHASE, self.max_segments)
         end, going, start = self._pass_through(
             scene, table, rays, alive, rays.origin, _BeamEnds.empty(n), 0, first, seed
@@ -287,7 +306,7 @@ class SensorModel:
         seg = self.apply_effects(seg, rays)
         z = self.density.sample(seg, uniforms(seed, rays.ray_id, end.segments - 1), rays)
         intensity = self.intensity.sample(seg, uniform(seed, rays.ray_id, end.segments - 1, INTENSITY_STREAM), rays)
-        z, reported = self._reported(z, rays, end.returned)
+        z, reported = self._reported(z, rays, end.returned, final)
         out["range"] = dr.select(reported, z, out["range"])
         out["intensity"] = dr.select(reported, intensity, out["intensity"])
         out["hit"] = out["hit"] | reported
@@ -300,7 +319,7 @@ class SensorModel:
         ):
             out[name] = dr.select(end.returned, value, out[name])
         out["segments"] = end.segments
-        self._escape(out, dr.arange(mi.UInt32, n), rays, end.escaped, seed)
+        self._escape(out, dr.arange(mi.UInt32, n), rays, end.escaped, seed, final)
         if evaluate:
             dr.eval(out)
         return out
@@ -406,7 +425,13 @@ class SensorModel:
         return out["range"], out["hit"]
 
     def _escape(
-        self, out: dict, index: mi.UInt32, rays: RayBatch, escaped: mi.Bool, seed: int | NeighbourStreams
+        self,
+        out: dict,
+        index: mi.UInt32,
+        rays: RayBatch,
+        escaped: mi.Bool,
+        seed: int | NeighbourStreams,
+        final: bool = True,
     ) -> None:
         """Draw the escape law's return (if the density has one) for the lanes that met nothing more."""
         escape = self.density.escape(rays)
@@ -416,7 +441,7 @@ class SensorModel:
         u = uniform(seed, rays.ray_id, ESCAPE_SEGMENT, 0)
         returned = escaped & escape.valid & (u < escape.p * (1.0 - escape.drop))
         z = self.density.sample(escape, uniforms(seed, rays.ray_id, ESCAPE_SEGMENT), rays)
-        self._report(out, index, rays, returned, z)
+        self._report(out, index, rays, returned, z, final=final)
         dr.eval(out)
 
 

@@ -40,13 +40,29 @@ Writing a new effect::
 from __future__ import annotations
 
 import abc
+import math
 from dataclasses import dataclass
 
+import drjit as dr
 import mitsuba as mi
 
 from mi_lidar.core.params import Catalog, Parametrized, parse_calls
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import Segment
+from mi_lidar.core.segment import Segment, normal_cdf
+
+OPEN_WINDOW = (0.0, math.inf)  # m: a sensor that reports every range
+
+
+def is_open(window: tuple[float, float]) -> bool:
+    """True when the range window ``(a, b)`` (m) cuts nothing: ``a <= 0`` and ``b`` infinite."""
+    return window[0] <= 0.0 and window[1] == math.inf
+
+
+def gaussian_window(mean: mi.Float, variance: mi.Float, window: tuple[float, float]) -> mi.Float:
+    """Mass of each lane's Gaussian ``N(mean, variance)`` (m, m^2) on the range window ``(a, b)`` (m), in [0, 1]."""
+    a, b = window
+    sd = dr.sqrt(variance)
+    return dr.clip(normal_cdf((b - mean) / sd) - normal_cdf((a - mean) / sd), 0.0, 1.0)
 
 
 @dataclass
@@ -161,9 +177,14 @@ class FootprintEffect(Effect, metaclass=abc.ABCMeta):
 
     @abc.abstractmethod
     def combine_log_likelihood(
-        self, moments: SubRayMoments, weight: mi.Float, z: mi.Float, hit: mi.Bool, n: int
+        self, moments: SubRayMoments, weight: mi.Float, z: mi.Float, hit: mi.Bool, n: int, window: tuple = OPEN_WINDOW
     ) -> mi.Float:
         """Log-likelihood (nats) of each beam's measured return from its sub-rays' return moments.
+
+        The sensor reports only ranges in its ``window`` (the sampler drops the others): a beam's
+        return law loses its mass outside to the miss, so a miss has probability ``1 - P(return) W``
+        with ``W`` the law's mass in the window (:func:`gaussian_window` of its components), and a
+        reported return keeps its density.
 
         Args:
             moments: per sub-ray, the probability of a return and the first two moments of its
@@ -171,6 +192,7 @@ class FootprintEffect(Effect, metaclass=abc.ABCMeta):
             weight: (m n,) energy weights of the sub-rays.
             z, hit: (n,) measured ranges (m) and return flags of the beams.
             n: number of beams.
+            window: the sensor's ``(min_range, max_range)``, m.
         """
 
 

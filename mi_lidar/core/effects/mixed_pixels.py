@@ -7,7 +7,14 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.effects.base import FootprintEffect, SubRayMoments, register_effect
+from mi_lidar.core.effects.base import (
+    OPEN_WINDOW,
+    FootprintEffect,
+    SubRayMoments,
+    gaussian_window,
+    is_open,
+    register_effect,
+)
 from mi_lidar.core.effects.beam_offsets import offset_direction
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
@@ -128,9 +135,10 @@ class MixedPixels(FootprintEffect):
         return out
 
     def combine_log_likelihood(
-        self, moments: SubRayMoments, weight: mi.Float, z: mi.Float, hit: mi.Bool, n: int
+        self, moments: SubRayMoments, weight: mi.Float, z: mi.Float, hit: mi.Bool, n: int, window: tuple = OPEN_WINDOW
     ) -> mi.Float:
         m = len(PATTERN)
+        inside = dr.zeros(mi.Float, n)  # the pure sub-ray laws' mass in the window, weighted
         log_miss, a_sum, mean_sum, var_sum, pure = (dr.zeros(mi.Float, n) for _ in range(5))
         for j in range(m):
             r = _sub(moments.p_return, j, n)
@@ -143,10 +151,15 @@ class MixedPixels(FootprintEffect):
             mean_sum += a * mu
             var_sum += a * var
             pure += a * dr.exp(-0.5 * dr.square(z - mu) / var) / dr.sqrt(var)
+            if not is_open(window):
+                inside += a * gaussian_window(mu, var, window)
         safe = dr.maximum(a_sum, 1e-12)
         mean, variance = mean_sum / safe, dr.maximum(var_sum / safe, MIN_VARIANCE)
         between = dr.exp(-0.5 * dr.square(z - mean) / variance) / dr.sqrt(variance)
         share = self["share"]
         density = (share * between + (1.0 - share) * pure / safe) * math.exp(-LOG_SQRT_2PI)
         p_hit = dr.maximum(1.0 - dr.exp(log_miss), 1e-12)
+        if not is_open(window):
+            reported = p_hit * (share * gaussian_window(mean, variance, window) + (1.0 - share) * inside / safe)
+            log_miss = dr.log(dr.clip(1.0 - reported, 1e-12, 1.0))
         return dr.select(hit, dr.log(p_hit) + dr.log(dr.maximum(density, 1e-30)), log_miss)
