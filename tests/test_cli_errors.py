@@ -144,6 +144,11 @@ CASES = {
     ),
     "3D draws": (["evaluate-apps-3d", "{frame}", "--out", "{tmp}/a", "--draws", HUGE], {}, ["--draws", "1000"]),
     "3D starts": (["evaluate-apps-3d", "{frame}", "--out", "{tmp}/a", "--starts", HUGE], {}, ["--starts", "100"]),
+    "planar log to the 3D evaluation": (  # named neither the file nor what to give
+        ["evaluate-apps-3d", "{carmen}", "--out", "{tmp}/a"],
+        {},
+        ["{carmen}: the frame has 1 column(s) of 181 beams; the column protocol needs 16", "not a planar scan"],
+    ),
     "3D negative seed": (["evaluate-apps-3d", "{frame}", "--out", "{tmp}/a", "--seed", "-1"], {}, ["--seed", "'-1'"]),
     "planar draws": (["evaluate-apps", "{carmen}", "--out", "{tmp}/a", "--draws", HUGE], {}, ["--draws", "1000"]),
     "planar runs": (["evaluate-apps", "{carmen}", "--out", "{tmp}/a", "--runs", HUGE], {}, ["--runs", "32"]),

@@ -63,7 +63,11 @@ def one_frame(log: Log) -> Log:
     """
     s = int(np.argmax(log.hit.reshape(log.shape[0], -1).sum(axis=1)))
     if log.shape[2] < 4 * MESH_EVERY:
-        raise LogFormatError(f"the frame has {log.shape[2]} columns; the column protocol needs 16 or more")
+        named = f"{log.source}: the" if log.source else "the"
+        raise LogFormatError(
+            f"{named} frame has {log.shape[2]} column(s) of {log.shape[1]} beams; the column protocol needs "
+            f"{4 * MESH_EVERY} or more: give a 3D frame (an Ouster or Velodyne pcap, or a 3D log), not a planar scan"
+        )
     keep = slice(s, s + 1)
     return Log(
         poses=log.poses[keep],

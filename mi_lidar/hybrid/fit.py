@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
 from mi_lidar.hybrid.counting import count_hits
 from mi_lidar.hybrid.ellipsoids import ClusterParams, fit_ellipsoids
@@ -213,6 +214,9 @@ def fit_model(
     Returns:
         The :class:`FitResult`. If the log has ``label`` / ``instance`` attributes, element labels
         and instances are the majority of their points; triangles get label ``ground``.
+
+    Raises:
+        LogFormatError: the log's returns give neither a ground triangle nor an ellipsoid (too few of them).
     """
     params = params or FitParams()
     report = progress or (lambda stage, fraction: None)
@@ -259,6 +263,11 @@ def fit_model(
         params.extent,
         info={"n_blocks": int(len(blocks)), "block_size": params.block_size},
     )
+    if len(model.ground) == 0 and len(model.ellipsoids) == 0:
+        raise LogFormatError(
+            f"{log.source or 'the log'}: the fit found neither ground nor vegetation in the log's {len(points)} "
+            "returns; give a 3D log with returns from the ground (e.g. `mi-lidar synth-world --out train.npz`)"
+        )
     if "label" in log.attributes and len(model.ellipsoids):
         labels = log.attributes["label"].ravel()[ray_index]
         inst = log.attributes["instance"].ravel()[ray_index] if "instance" in log.attributes else np.zeros_like(labels)

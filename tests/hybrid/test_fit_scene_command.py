@@ -24,6 +24,12 @@ def test_a_planar_log_is_warned_about(tmp_path, capsys):
     assert xml.is_file() and f"warning: {path} is a planar log (every beam in one plane)" in said  # one line
 
 
+TWO_POINTS = (
+    "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+)
+TWO_POINTS += "1 0 0\n0 1 1\n"
+
+
 def nan_pose_log(path):
     log = synthetic_log(scans=2)
     log.poses[1, 0, 3] = np.nan
@@ -35,8 +41,12 @@ def nan_pose_log(path):
     [
         (nan_pose_log, "log.npz: pose 1 is not a rigid transform: has non-finite entries"),
         (lambda path: path.write_bytes(b""), "log.ply: empty file (0 bytes), not a PLY point cloud"),
+        (  # was 'the scene has no shapes; add a mesh or an ellipsoid set', naming no file
+            lambda path: path.write_text(TWO_POINTS),
+            "log.ply: the fit found neither ground nor vegetation in the log's 2 returns; give a 3D log",
+        ),
     ],
-    ids=["nan-pose", "empty-ply"],
+    ids=["nan-pose", "empty-ply", "two-points"],
 )
 def test_a_bad_log_is_one_error_line_naming_the_file(tmp_path, make, said):
     """A NaN pose said matplotlib's 'data must be finite, check for nan or inf values'; any file but a .npz was
