@@ -70,7 +70,12 @@ class LidarMaterial(mi.BSDF):
         self.reflectivity = float(props.get("reflectivity", self.reflectance))
         checks = [
             ("p_hit", self.p_hit, 0.0 <= self.p_hit <= 1.0, "[0, 1]"),
-            ("range_sigma", self.range_sigma, math.isnan(self.range_sigma) or self.range_sigma >= 0, ">= 0 m"),
+            (
+                "range_sigma",
+                self.range_sigma,
+                math.isnan(self.range_sigma) or 0 <= self.range_sigma < math.inf,
+                "finite numbers >= 0 m",
+            ),
             ("label", self.label, self.label >= 0, ">= 0"),
             ("reflectance", self.reflectance, 0.0 <= self.reflectance <= 1.0, "[0, 1]"),
             ("reflectivity", self.reflectivity, 0.0 <= self.reflectivity <= 100.0, "[0, 100]"),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -103,8 +105,8 @@ class LidarSensor(mi.Sensor):
                 f"lidar sensor: need 0 <= min_range < max_range; got min_range={self.min_range}, "
                 f"max_range={self.max_range}"
             )
-        if not self.range_sigma >= 0:
-            raise ParameterError(f"lidar sensor: range_sigma={self.range_sigma} must be >= 0 m")
+        if not 0 <= self.range_sigma < math.inf:
+            raise ParameterError(f"lidar sensor: range_sigma={self.range_sigma} must be a finite number >= 0 m")
         self.local_directions = mi.Vector3f(*np.ascontiguousarray(self.pattern.directions().reshape(-1, 3).T))
         self.local_origins = mi.Point3f(*np.ascontiguousarray(self.pattern.origins().reshape(-1, 3).T))
         self.times = mi.Float(self.pattern.time.reshape(-1).astype(np.float32))

@@ -242,3 +242,27 @@ def test_random_bytes_for_a_numpy_file_are_not_called_a_pickle(reader, tmp_path)
     message = str(error.value)
     assert str(path) in message and "allow_pickle" not in message, message
     assert "its first bytes are neither a numpy .npy header nor a zip archive: damaged, or another format" in message
+
+
+@pytest.mark.parametrize(
+    "where, expected",
+    [
+        ("sensor", "lidar sensor: range_sigma=inf must be a finite number >= 0 m"),
+        ("material", "lidar_material: range_sigma=inf is outside finite numbers >= 0 m"),
+        ("effect", "effect 'range_noise': sigma0=inf m is outside [0, inf) (constant part of the noise)"),
+    ],
+)
+def test_an_infinite_range_sigma_is_refused(tmp_path, where, expected):
+    """The sensor and the material took range_sigma=inf and rendered scans of infinite ranges; the effect refused
+    sigma0=inf saying it was outside [0, inf]."""
+    inf = '<float name="range_sigma" value="inf"/>'
+    text = {
+        "sensor": scene_xml("").replace("</sensor>", inf + "</sensor>"),
+        "material": scene_xml(f'<shape type="sphere"><bsdf type="lidar_material">{inf}</bsdf></shape>'),
+        "effect": scene_xml(
+            '<integrator type="lidar_integrator"><string name="effects" value="range_noise(sigma0=inf)"/></integrator>'
+        ),
+    }[where]
+    with pytest.raises(SceneError) as error:
+        mi_lidar.load_scene(write(tmp_path, text))
+    assert expected in str(error.value), error.value

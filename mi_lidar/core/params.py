@@ -120,10 +120,11 @@ class Parametrized:
                     f"{self.kind} {self.name!r}: {key}={raw!r} is not a number ({spec.doc}, {spec.unit})"
                 ) from None
             bad = ~np.isfinite(array) | (array < spec.lower) | (array > spec.upper)
-            if np.any(bad):
+            if np.any(bad):  # an infinite bound is open: inf itself is refused
+                low, high = "[" if np.isfinite(spec.lower) else "(", "]" if np.isfinite(spec.upper) else ")"
                 raise ParameterError(
                     f"{self.kind} {self.name!r}: {key}={array[bad][0]:g} {spec.unit} is outside "
-                    f"[{spec.lower:g}, {spec.upper:g}] ({spec.doc})"
+                    f"{low}{spec.lower:g}, {spec.upper:g}{high} ({spec.doc})"
                 )
             self.params[key] = mi.Float(array.astype(np.float32))
 
