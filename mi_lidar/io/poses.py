@@ -102,8 +102,15 @@ def read_poses(path: str | os.PathLike) -> np.ndarray:
         raise LogFormatError(
             f"{path}: {found[0].kind if found else 'a binary file'}, not a pose file; give {POSE_FILES}"
         )
-    first = next((line.split() for line in head.decode("utf-8", "replace").splitlines() if line.strip()), [])
-    return read_kitti_poses(path) if len(first) == 12 else read_pose_matrices(path)
+    lines = head.decode("utf-8", "replace").splitlines()
+    number, first = next(((i, line) for i, line in enumerate(lines, start=1) if line.strip()), (0, ""))
+    width = len(first.split())
+    if width and width not in (12, 16) and "," not in first:
+        raise LogFormatError(
+            f"{path}: line {number} has {width} numbers; a pose file has 12 (KITTI: a 3x4 [R | t]) or 16 (a 4x4 "
+            "matrix) on each line: repair or delete the line"
+        )
+    return read_kitti_poses(path) if width == 12 else read_pose_matrices(path)
 
 
 def write_kitti_poses(path: str | os.PathLike, poses: np.ndarray) -> Path:

@@ -88,6 +88,11 @@ def test_read_poses_takes_every_pose_file_and_a_saved_log(tmp_path):
         ("1,0,0,0,0,1,0,0,0,0,1,0\n", r"p.txt: line 1: numbers separated by commas; .* replace the commas by spaces"),
         # a file cut inside its last line: 'line 2 has 3 numbers; expected 12' without a word of why
         ("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0", r"p.txt: line 2 has 3 numbers; expected 12 \(the file is cut short\?\)"),
+        # a first line of 11 numbers (one dropped from a KITTI line) was read as a 4x4 file: 'expected 16'
+        (
+            "\n1 0 0 0 0 1 0 0 0 0 1\n",
+            r"p.txt: line 2 has 11 numbers; a pose file has 12 \(KITTI: a 3x4 \[R \| t\]\) or 16",
+        ),
     ],
 )
 def test_text_pose_files_say_what_is_wrong(tmp_path, text, message):
