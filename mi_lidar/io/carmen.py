@@ -96,10 +96,10 @@ def parse_message(tokens: list[str], number: int) -> np.ndarray:
         n = int(tokens[1])
         if n <= 1:
             raise ValueError(f"beam count {n} must be > 1")
+        _check_length(tokens, number, n + 10, f"n={n}", "n ranges + 10", f"the beam count {n}")  # before the values
         values = np.array(tokens[2 : 2 + n + 7], dtype=np.float64)
     except (IndexError, ValueError) as exc:
         raise LogFormatError(f"line {number}: malformed {name} message ({exc}): repair or delete the line") from exc
-    _check_length(tokens, number, n + 10, f"n={n}", "n ranges + 10", f"the beam count {n}")
     return values
 
 

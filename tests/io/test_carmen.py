@@ -53,6 +53,11 @@ def test_beam_layout():
     "line, message",
     [
         ("FLASER 3 1 2", "line 2: FLASER with n=3 needs 13 fields"),
+        # a count larger than the ranges read the host name as a number: "could not convert string to float: 'host'"
+        (
+            "FLASER 99 1 2 3 0 0 0 0 0 0 5 host 5",
+            r"line 2: FLASER with n=99 needs 109 fields \(n ranges \+ 10\); found 14",
+        ),
         ("FLASER 3 1 2 x 0 0 0 0 0 0 5 host 5", "line 2: malformed FLASER"),
         ("FLASER 3 1 2 nan 0 0 0 0 0 0 5 host 5", "line 2: FLASER range 2 is nan"),
         # a count smaller than the ranges read the surplus ranges as the pose, silently
