@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, parser_message
 from mi_lidar.core.log import Log
 from mi_lidar.io.cloud import ORIGIN_FIELDS, STANDARD_FIELDS, cloud_from_log, log_from_fields, stack_scans
 
@@ -152,8 +152,8 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
         raise
     except Exception as exc:  # rosbags raises many reader/deserializer error types.
         raise LogFormatError(
-            f"{path}: not a readable ROS bag ({type(exc).__name__}: {exc}); the bag is damaged or incomplete: copy it "
-            "again or record it again"
+            f"{path}: not a readable ROS bag ({type(exc).__name__}: {parser_message(exc)}); the bag is damaged or "
+            "incomplete: copy it again or record it again"
         ) from exc
     if not logs:
         raise LogFormatError(f"{path}: topic {chosen!r} has no messages")

@@ -129,6 +129,17 @@ def test_a_bag_folder_without_metadata_says_reindex(tmp_path):
         read_any(bag)
 
 
+def test_a_bag_whose_metadata_is_not_yaml_is_one_line(tmp_path):
+    """YAML's error came over seven lines, with a drawing of the spot, inside the one-line message."""
+    bag = write_any(synthetic_log(height=4, width=16, scans=2), tmp_path / "bag")
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 5\n")
+    with pytest.raises(LogFormatError) as error:
+        read_any(bag)
+    message = str(error.value)
+    assert "\n" not in message and "metadata.yaml: while parsing a flow mapping" in message, message
+    assert message.endswith("the bag is damaged or incomplete: copy it again or record it again"), message
+
+
 def deny(monkeypatch, path):
     """Make reading ``path`` raise PermissionError, as a chmod 000 file does (tests may run as root, whom chmod
     does not stop): through open, Path.read_bytes and numpy.fromfile."""
