@@ -153,6 +153,11 @@ CASES = {
     "planar draws": (["evaluate-apps", "{carmen}", "--out", "{tmp}/a", "--draws", HUGE], {}, ["--draws", "1000"]),
     "planar runs": (["evaluate-apps", "{carmen}", "--out", "{tmp}/a", "--runs", HUGE], {}, ["--runs", "32"]),
     "planar workers": (["evaluate-apps", "{carmen}", "--out", "{tmp}/a", "--workers", HUGE], {}, ["--workers", "3"]),
+    "unreadable planar log": (  # the report folder was made before the log was read, and left empty
+        ["benchmark-planar", "{file}", "--out", "{tmp}/b"],
+        {},
+        ["{file}"],
+    ),
     "max range beyond 10 km": (
         ["benchmark-planar", "{carmen}", "--out", "{tmp}/b", "--max-range", "1e12"],
         {},
@@ -239,6 +244,8 @@ def test_bad_input_is_one_line_with_exit_code_2(tmp_path, room_log, street_frame
     )
     if case == "cuda without a GPU" and os.path.exists("/dev/nvidia0"):
         pytest.skip("this machine has a GPU")
+    outs = [Path(args[i + 1].format(**values)) for i, a in enumerate(args[:-1]) if a in ("--out", "-o")]
+    fresh = [out for out in outs if not out.exists()]
     run = subprocess.run(
         [MI_LIDAR, *(a.format(**values) for a in args)],
         capture_output=True,
@@ -250,6 +257,8 @@ def test_bad_input_is_one_line_with_exit_code_2(tmp_path, room_log, street_frame
     assert len(lines) == 1 and lines[0].startswith("error: "), lines
     for text in expected:
         assert text.format(**values) in lines[0], lines[0]
+    left = [str(out) for out in fresh if out.exists()]
+    assert not left, f"a failed run left its output behind: {left}"
 
 
 def test_an_error_is_printed_as_written_not_read_as_markup(tmp_path):

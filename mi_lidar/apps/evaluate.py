@@ -31,6 +31,7 @@ from mi_lidar.apps.localization import ParticleFilter
 from mi_lidar.apps.registration import ScanToMapEKF
 from mi_lidar.apps.risk import AppResult, Objectives, evaluate_application
 from mi_lidar.apps.scans import MOTION_NOISE, PlanarStates, ScanMaps, planar_datasets, scan_statistics
+from mi_lidar.core.atomic import output_folder
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.planar.benchmark import MODELS
 from mi_lidar.planar.grid import Grid
@@ -270,17 +271,17 @@ def evaluate_log(
         raise ParameterError(f"evaluate-apps: unknown simulators {unknown}; choose from {', '.join(MODELS)}")
     path, out = Path(path), Path(out)
     protocol = protocol or PlanarProtocol()
-    (out / "cache").mkdir(parents=True, exist_ok=True)
     start, cpu = time.perf_counter(), time.process_time()
     key = _key(path, protocol, tuple(simulators), runs, seed, max_range, message)
-    loaded = load_datasets(out / "cache" / "datasets.npz", key)
-    if loaded is None:
-        log = read_any(path, formats=("carmen",), max_range=max_range, message=message)
-        result = run_planar_benchmark(log, str(path), protocol, tuple(simulators), seed=seed, progress=progress)
-        states, ranges = planar_datasets(result, samples=runs, seed=seed)
-        benchmark = [r.to_json() for r in result.rows]
-        save_datasets(out / "cache" / "datasets.npz", key, _state_arrays(states), ranges, benchmark)
-    else:
+    with output_folder(out / "cache"):  # a log that cannot be read leaves no empty folder behind
+        loaded = load_datasets(out / "cache" / "datasets.npz", key)
+        if loaded is None:
+            log = read_any(path, formats=("carmen",), max_range=max_range, message=message)
+            result = run_planar_benchmark(log, str(path), protocol, tuple(simulators), seed=seed, progress=progress)
+            states, ranges = planar_datasets(result, samples=runs, seed=seed)
+            benchmark = [r.to_json() for r in result.rows]
+            save_datasets(out / "cache" / "datasets.npz", key, _state_arrays(states), ranges, benchmark)
+    if loaded is not None:
         arrays, ranges, benchmark = loaded
         states = _states(arrays)
     spent = {"datasets": time.perf_counter() - start, "datasets_cpu": time.process_time() - cpu}

@@ -26,6 +26,7 @@ from mi_lidar.apps.cache import cache_key, load_datasets, save_datasets
 from mi_lidar.apps.frames import SIMULATORS, fit_simulators, frame_states, one_frame, simulated_scans
 from mi_lidar.apps.matching3d import FrameStates, ScanMatching3D
 from mi_lidar.apps.risk import AppResult, Objectives, evaluate_application
+from mi_lidar.core.atomic import output_folder
 from mi_lidar.core.errors import ParameterError
 
 BOOTSTRAP = 400  # resamples of the starts for the risk's standard error
@@ -125,20 +126,20 @@ def evaluate_frame(
     if unknown or not simulators:
         raise ParameterError(f"evaluate-apps-3d: unknown simulators {unknown}; choose from {', '.join(SIMULATORS)}")
     path, out = Path(path), Path(out)
-    (out / "cache").mkdir(parents=True, exist_ok=True)
     say = progress or (lambda done, total, label: None)
     start = time.perf_counter()
     key = _key(path, simulators, starts, seed, steps)
-    loaded = load_datasets(out / "cache" / "frame.npz", key)
-    if loaded is None:
-        say(0, 1, f"reading {path.name}")
-        states, ranges, benchmark = frame_datasets(
-            read_any(path), tuple(simulators), starts, seed, steps, lambda message: say(0, 1, message)
-        )
-        save_datasets(
-            out / "cache" / "frame.npz", key, {k: getattr(states, k) for k in FRAME_ARRAYS}, ranges, benchmark
-        )
-    else:
+    with output_folder(out / "cache"):  # a frame that cannot be read leaves no empty folder behind
+        loaded = load_datasets(out / "cache" / "frame.npz", key)
+        if loaded is None:
+            say(0, 1, f"reading {path.name}")
+            states, ranges, benchmark = frame_datasets(
+                read_any(path), tuple(simulators), starts, seed, steps, lambda message: say(0, 1, message)
+            )
+            save_datasets(
+                out / "cache" / "frame.npz", key, {k: getattr(states, k) for k in FRAME_ARRAYS}, ranges, benchmark
+            )
+    if loaded is not None:
         arrays, ranges, benchmark = loaded
         states = FrameStates(*(arrays[k] for k in FRAME_ARRAYS))
     seconds = {"datasets": time.perf_counter() - start}

@@ -1,7 +1,9 @@
 """Atomic file writes: write to a temporary file in the target folder, then rename.
 
 A crash or an exception leaves the previous file (or nothing) and no temporary file behind, and
-the final file gets the usual permissions (0666 minus the umask), not mkstemp's 0600.
+the final file gets the usual permissions (0666 minus the umask), not mkstemp's 0600. A run's output
+folder (:func:`output_folder`) is made before the run and removed again, while still empty, when the
+run fails.
 """
 
 from __future__ import annotations
@@ -66,3 +68,25 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     if not isinstance(text, str):
         raise TypeError(f"{os.fspath(path)}: text must be a str, not {type(text).__name__}")
     return atomic_write(path, lambda stream: stream.write(text.encode("utf-8")))
+
+
+@contextlib.contextmanager
+def output_folder(path: str | os.PathLike) -> Iterator[Path]:
+    """Make the folder ``path`` (parents included) for a run's outputs; undo it if the run fails.
+
+    Made first, a path that cannot be a folder fails before the run. When the block raises, the
+    folders this call made are removed while they hold no file (empty subfolders such as ``cache/``
+    go with them), so a run stopped by bad input leaves nothing behind; folders that existed before,
+    and anything already written, are kept.
+    """
+    path = Path(path)
+    made = [folder for folder in (path, *path.parents) if not folder.exists()]  # innermost first
+    path.mkdir(parents=True, exist_ok=True)
+    try:
+        yield path
+    except BaseException:
+        for folder in made:
+            for root, _, _ in os.walk(folder, topdown=False):
+                with contextlib.suppress(OSError):  # not empty: something was written there
+                    os.rmdir(root)
+        raise

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mi_lidar.core.atomic import atomic_write_text
+from mi_lidar.core.atomic import atomic_write_text, output_folder
 from mi_lidar.core.errors import SpecError
 from mi_lidar.core.resources import cpu_seconds, peak_resident_mib
 from mi_lidar.dataset.spec import DatasetSpec
@@ -235,14 +235,14 @@ def run_dataset(
     from mi_lidar.dataset.scenes import check_scenes
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    report = RunReport(total=spec.frames, skipped=0, removed_partial=remove_partial_files(out))
-    manifest = Manifest.open(out, spec, semantic_table(spec), [INTENSITY_NOTE])
-    intact = {k: r for k, r in manifest.frames.items() if verify_frame(out, r)}
-    manifest.data["frames"] = intact
-    todo = [k for k in range(spec.frames) if str(k) not in intact]
-    check_scenes(spec, sorted({spec.locate(k)[0] for k in todo}))  # a bad scene fails here, not in every frame
+    with output_folder(out):  # a bad scene leaves no empty folder behind
+        report = RunReport(total=spec.frames, skipped=0, removed_partial=remove_partial_files(out))
+        manifest = Manifest.open(out, spec, semantic_table(spec), [INTENSITY_NOTE])
+        intact = {k: r for k, r in manifest.frames.items() if verify_frame(out, r)}
+        manifest.data["frames"] = intact
+        todo = [k for k in range(spec.frames) if str(k) not in intact]
+        check_scenes(spec, sorted({spec.locate(k)[0] for k in todo}))  # a bad scene fails here, not in every frame
     report.skipped = spec.frames - len(todo)
     if report.skipped or report.removed_partial:
         announce(

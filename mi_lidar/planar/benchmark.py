@@ -20,6 +20,7 @@ bandwidths are chosen on held-out training scans.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass, field
@@ -27,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_lidar.core.atomic import output_folder
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.log import Log
 from mi_lidar.core.metrics import metrics_of
@@ -338,17 +340,16 @@ def benchmark_file(
 ) -> PlanarBenchmark:
     """Read a CARMEN log, run the benchmark, and write ``benchmark.json``, ``benchmark.html`` and PNGs to ``out``.
 
-    The folder ``out`` is made first, so that a path that cannot be a folder fails before the run. ``message``
-    names the laser lines to read (:func:`~mi_lidar.io.carmen.read_carmen`; default: FLASER, else ROBOTLASER1).
+    The folder ``out`` is made first (:func:`~mi_lidar.core.atomic.output_folder`: a path that cannot be a
+    folder fails before the run, and a failed run leaves no empty folder). ``message`` names the laser lines
+    to read (:func:`~mi_lidar.io.carmen.read_carmen`; default: FLASER, else ROBOTLASER1).
     """
     from mi_lidar.io.dispatch import read_any
+    from mi_lidar.planar.report import write_benchmark
 
-    if out is not None:
-        Path(out).mkdir(parents=True, exist_ok=True)
-    log = read_any(path, formats=("carmen",), max_range=max_range, message=message)
-    result = run_planar_benchmark(log, str(path), protocol, models, progress=progress)
-    if out is not None:
-        from mi_lidar.planar.report import write_benchmark
-
-        write_benchmark(result, Path(out))
+    with output_folder(out) if out is not None else contextlib.nullcontext():
+        log = read_any(path, formats=("carmen",), max_range=max_range, message=message)
+        result = run_planar_benchmark(log, str(path), protocol, models, progress=progress)
+        if out is not None:
+            write_benchmark(result, Path(out))
     return result

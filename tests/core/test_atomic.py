@@ -75,3 +75,28 @@ def test_a_folder_in_the_way_is_named_not_the_temporary_file(tmp_path):
         atomic_write_text(tmp_path / "scan.npz", "new")
     assert error.value.filename == str(tmp_path / "scan.npz")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scan.npz"]
+
+
+def test_an_output_folder_made_for_a_failed_run_is_removed_while_it_holds_no_file(tmp_path):
+    target = tmp_path / "new" / "report"
+    with pytest.raises(ValueError), atomic.output_folder(target / "cache") as folder:
+        assert folder.is_dir()
+        (target / "figures").mkdir()  # an empty subfolder the run made goes too
+        raise ValueError("bad log")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_output_folder_keeps_what_existed_and_what_was_written(tmp_path):
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    with pytest.raises(ValueError), atomic.output_folder(existing / "report"):
+        raise ValueError("bad log")
+    assert list(existing.iterdir()) == []  # the folder that was there stays; the one made goes
+    with pytest.raises(ValueError), atomic.output_folder(tmp_path / "partial") as folder:
+        (folder / "cache").mkdir()
+        (folder / "cache" / "frame.npz").write_bytes(b"done")
+        raise ValueError("later stage")
+    assert (tmp_path / "partial" / "cache" / "frame.npz").read_bytes() == b"done"
+    with atomic.output_folder(tmp_path / "fine") as folder:
+        pass
+    assert folder.is_dir()

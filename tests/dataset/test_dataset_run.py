@@ -209,7 +209,8 @@ def test_other_spec_in_the_same_folder_is_refused(serial, spec_path, tmp_path):
 def test_a_scene_that_would_fail_every_frame_stops_the_run_before_any_frame(
     spec_path, tmp_path, monkeypatch, change, error, message, serial_run
 ):
-    """Both scenes are checked first: no cluster starts and not even the good scene's frames are rendered."""
+    """Both scenes are checked first: no cluster starts, not even the good scene's frames are rendered, and the
+    output folder the run made is removed again."""
     import mi_lidar.dataset.frame
     import mi_lidar.dataset.run
 
@@ -225,7 +226,7 @@ def test_a_scene_that_would_fail_every_frame_stops_the_run_before_any_frame(
     (tmp_path / "library").symlink_to(spec_path.parent / "library")
     with pytest.raises(error, match=message):
         run_dataset(load_spec(changed), tmp_path / "out", serial=serial_run)
-    assert not (tmp_path / "out" / "velodyne").exists()
+    assert not (tmp_path / "out").exists()  # not even the folder: the run made it and wrote nothing
 
 
 def test_workers_share_their_hosts_cores():
