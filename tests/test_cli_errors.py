@@ -60,7 +60,11 @@ def read_only_folder(tmp_path: Path) -> str:
 CASES = {
     "negative seed": (["render", ROOM, "--seed", "-1", "--out", "{tmp}/o"], {}, ["--seed", "'-1'", "--help"]),
     "negative scan": (["convert", "{log}", "{tmp}/x.pcd", "--scan", "-1"], {}, ["--scan", "'-1'"]),
-    "scan past the end": (["convert", "{log}", "{tmp}/x.pcd", "--scan", "7"], {}, ["scan 7 out of range", "2 scans"]),
+    "scan past the end": (
+        ["convert", "{log}", "{tmp}/x.pcd", "--scan", "7"],
+        {},
+        ["cannot write scan 7: the log holds 2 scans", "from 0 to 1"],
+    ),
     "unknown candidate": (
         ["diagnose", "{log}", ROOM, "--out", "{tmp}/d", "--candidate", "no_such_effect"],
         {},

@@ -233,7 +233,11 @@ def write_any(log: Log, path: str | os.PathLike, fmt: str | None = None, scan: i
             )
         scan = 0
     if not -log.n_scans <= scan < log.n_scans:
-        raise LogFormatError(f"{path}: scan {scan} out of range; the log holds {log.n_scans} scans")
+        n = log.n_scans
+        raise LogFormatError(
+            f"{path}: cannot write scan {scan}: the log holds {n} scan{'s' if n != 1 else ''}; give a scan index "
+            f"from 0 to {n - 1} (or from -{n} to -1, counted from the end)"
+        )
     if fmt == "png":
         one = log.scan(scan)
         title = f"{one.sensor.get('name', 'scan')} scan {scan}"

@@ -51,7 +51,7 @@ def test_write_formats_and_errors(tmp_path):
     log = synthetic_log(scans=3)
     with pytest.raises(LogFormatError, match="holds 3 scans and pcd holds one; pass scan="):
         write_any(log, tmp_path / "a.pcd")
-    with pytest.raises(LogFormatError, match="scan 5 out of range"):
+    with pytest.raises(LogFormatError, match="cannot write scan 5: the log holds"):
         write_any(log, tmp_path / "a.pcd", scan=5)
     with pytest.raises(LogFormatError, match="cannot write format 'carmen'"):
         write_any(log, tmp_path / "a.log", fmt="carmen")
