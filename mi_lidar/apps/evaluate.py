@@ -281,9 +281,9 @@ def evaluate_log(
             states, ranges = planar_datasets(result, samples=runs, seed=seed)
             benchmark = [r.to_json() for r in result.rows]
             save_datasets(out / "cache" / "datasets.npz", key, _state_arrays(states), ranges, benchmark)
-    if loaded is not None:
-        arrays, ranges, benchmark = loaded
-        states = _states(arrays)
+        else:
+            arrays, ranges, benchmark = loaded
+            states = _states(arrays)
     spent = {"datasets": time.perf_counter() - start, "datasets_cpu": time.process_time() - cpu}
     return evaluate_datasets(
         states, ranges, out, str(path), benchmark, key, draws, runs, seed, workers, progress, spent

@@ -139,9 +139,9 @@ def evaluate_frame(
             save_datasets(
                 out / "cache" / "frame.npz", key, {k: getattr(states, k) for k in FRAME_ARRAYS}, ranges, benchmark
             )
-    if loaded is not None:
-        arrays, ranges, benchmark = loaded
-        states = FrameStates(*(arrays[k] for k in FRAME_ARRAYS))
+        else:
+            arrays, ranges, benchmark = loaded
+            states = FrameStates(*(arrays[k] for k in FRAME_ARRAYS))
     seconds = {"datasets": time.perf_counter() - start}
     app = ScanMatching3D()
     done = [0]

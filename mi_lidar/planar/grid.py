@@ -166,15 +166,14 @@ def count_scans(
     in its loops). Cells are int32 (a grid holds fewer than 2**31 cells).
     """
     chunks = [np.arange(first, min(first + chunk, log.shape[0])) for first in range(0, log.shape[0], chunk)]
-    hit_cells, hit_points = [], []
-    for hits, points in map(lambda scans: _endpoints(log, grid, reach, scans), chunks):
-        hit_cells += hits
-        hit_points += points
+    ends, points = zip(*(_endpoints(log, grid, reach, scans) for scans in chunks))
+    hit_cells = [e[e >= 0] for end in ends for e in end]
+    hit_points = [p[e >= 0] for end, point in zip(ends, points) for e, p in zip(end, point)]
     hit_cell = np.concatenate(hit_cells)
     can_hold = np.zeros(grid.size, bool)
     can_hold[hit_cell] = True
     pass_cells = []
-    marched = in_threads(lambda scans: _passes(log, grid, reach, can_hold, scans), chunks, workers)
+    marched = in_threads(lambda k: _passes(log, grid, can_hold, chunks[k], ends[k]), range(len(chunks)), workers)
     for scans, passes in zip(chunks, marched):
         pass_cells += passes
         if progress is not None:
@@ -189,17 +188,17 @@ def count_scans(
     )
 
 
-def _endpoints(log: Log, grid: Grid, reach: float, scans: np.ndarray) -> tuple[list, list]:
-    """Per scan of ``scans``: the int32 cells of its endpoint hits, and their (H, 2) positions (m)."""
+def _endpoints(log: Log, grid: Grid, reach: float, scans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(S, N) int32 endpoint-hit cell of every beam of ``scans`` (-1: no return closer than ``reach``), and
+    (S, N, 2) return positions (m)."""
     origin, direction, z = planar_beams(log, scans)
     point = origin + np.nan_to_num(z)[..., None] * direction
-    end = np.where(np.isfinite(z) & (z < reach), grid.cell_of(point), -1).astype(np.int32)
-    landed = end >= 0
-    return [e[k] for e, k in zip(end, landed)], [p[k] for p, k in zip(point, landed)]
+    return np.where(np.isfinite(z) & (z < reach), grid.cell_of(point), -1).astype(np.int32), point
 
 
-def _passes(log: Log, grid: Grid, reach: float, can_hold: np.ndarray, scans: np.ndarray) -> list:
-    """Per scan of ``scans``: the int32 cells its returns pass through (one per beam and cell), where ``can_hold``."""
+def _passes(log: Log, grid: Grid, can_hold: np.ndarray, scans: np.ndarray, end: np.ndarray) -> list:
+    """Per scan of ``scans``: the int32 cells its returns pass through (one per beam and cell), where ``can_hold``,
+    short of each beam's endpoint cell ``end`` (S, N) (:func:`_endpoints`)."""
     origin, direction, z = planar_beams(log, scans)
     n_beams = origin.shape[1]
     o, d, r = origin.reshape(-1, 2), direction.reshape(-1, 2), z.ravel()
@@ -207,8 +206,7 @@ def _passes(log: Log, grid: Grid, reach: float, can_hold: np.ndarray, scans: np.
     ray, cell = march_cells(grid, o, d, np.where(hit, np.nan_to_num(r) - grid.cell, 0.0), grid.cell / 4)
     keep = can_hold[cell]
     ray, cell = ray[keep], cell[keep]
-    end = np.where(hit & (r < reach), grid.cell_of(o + np.nan_to_num(r)[:, None] * d), -1)
-    keep = cell != end[ray]  # a beam's own endpoint hit is not a pass
+    keep = cell != end.ravel()[ray]  # a beam's own endpoint hit is not a pass
     ray, cell = ray[keep], cell[keep].astype(np.int32)
     bounds = np.searchsorted(ray // n_beams, np.arange(len(scans) + 1))
     return [cell[bounds[k] : bounds[k + 1]] for k in range(len(scans))]

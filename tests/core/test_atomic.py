@@ -98,5 +98,5 @@ def test_an_output_folder_keeps_what_existed_and_what_was_written(tmp_path):
         raise ValueError("later stage")
     assert (tmp_path / "partial" / "cache" / "frame.npz").read_bytes() == b"done"
     with atomic.output_folder(tmp_path / "fine") as folder:
-        pass
-    assert folder.is_dir()
+        (folder / "report.json").write_text("{}")
+    assert folder.is_dir() and (folder / "report.json").is_file()
