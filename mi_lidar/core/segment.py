@@ -106,6 +106,16 @@ def normal_cdf(x: mi.Float) -> mi.Float:
     return 0.5 * (1.0 + dr.erf(x * INV_SQRT2))
 
 
+def normal_mass(mean: mi.Float, sigma: mi.Float, a, b) -> mi.Float:
+    """Mass of each lane's Gaussian ``N(mean, sigma^2)`` (m) on ``[a, b]`` (m; floats or per-lane arrays)."""
+    return normal_cdf((b - mean) / sigma) - normal_cdf((a - mean) / sigma)
+
+
+def is_open(a: float, b: float) -> bool:
+    """True when the range window ``[a, b]`` (m) cuts nothing a sensor reports: ``a <= 0`` and ``b`` infinite."""
+    return a <= 0.0 and b == math.inf
+
+
 def has_corners(seg: Segment) -> bool:
     """True when ``seg`` may return from its corners (known corners and a share that is not a literal 0)."""
     share = seg.corner_share
@@ -191,9 +201,8 @@ def _gaussian_window(seg: Segment, a: float, b: float) -> mi.Float:
     """Mass of each lane's truncated Gaussian on ``[a, b]`` (m), in [0, 1]."""
     sigma = dr.maximum(seg.sigma, 1e-9)
     low, high = dr.maximum(seg.lo, a), dr.minimum(seg.hi, b)
-    cdf_lo, cdf_hi = normal_cdf((seg.lo - seg.mean) / sigma), normal_cdf((seg.hi - seg.mean) / sigma)
-    mass = cdf_hi - cdf_lo
-    part = normal_cdf((high - seg.mean) / sigma) - normal_cdf((low - seg.mean) / sigma)
+    mass = normal_mass(seg.mean, sigma, seg.lo, seg.hi)
+    part = normal_mass(seg.mean, sigma, low, high)
     gaussian = part / dr.maximum(mass, 1e-30)
     span = seg.hi - seg.lo
     uniform = dr.select(span > 1e-9, (high - low) / dr.maximum(span, 1e-9), 1.0)

@@ -35,8 +35,9 @@ from mi_lidar.core.segment import (
     ELLIPSOID,
     LOG_SQRT_2PI,
     Segment,
+    is_open,
     log_density,
-    normal_cdf,
+    normal_mass,
     sample_range,
     window_probability,
 )
@@ -171,7 +172,7 @@ class BeamDensity(ReturnDensity):
         sigma = dr.maximum(seg.sigma, 1e-6)
         x = (z - seg.mean) / sigma
         # floored where float32 still squares it (the gradient divides by mass^2): an element beyond z_max
-        mass = dr.maximum(normal_cdf((z_max - seg.mean) / sigma) - normal_cdf(-seg.mean / sigma), MIN_MASS)
+        mass = dr.maximum(normal_mass(seg.mean, sigma, 0.0, z_max), MIN_MASS)
         f_hit = dr.select(inside, dr.exp(-0.5 * x * x - LOG_SQRT_2PI) / (sigma * mass), 0.0)
         f_short = dr.select(
             (z >= 0) & (z <= reach), rate * dr.exp(-rate * z) / dr.maximum(1.0 - dr.exp(-rate * reach), 1e-12), 0.0
@@ -181,18 +182,14 @@ class BeamDensity(ReturnDensity):
         return dr.select(seg.kind == ELLIPSOID, log_density(seg, z), value)
 
     def window(self, seg: Segment, a: float, b: float, rays: RayBatch) -> mi.Float:
-        if a <= 0.0 and b == math.inf:  # every component lies on [0, z_max] or [0, reach]
+        if is_open(a, b):  # every component lies on [0, z_max] or [0, reach]
             return dr.select(seg.kind == ELLIPSOID, window_probability(seg, a, b), 1.0)
         a_hit, a_short, a_rand, reach, rate = self._parts(seg, rays)
         z_max = self["z_max"]
         sigma = dr.maximum(seg.sigma, 1e-6)
         low, high = max(a, 0.0), dr.minimum(z_max, b)
-
-        def gauss(x):
-            return normal_cdf((x - seg.mean) / sigma)
-
-        mass = dr.maximum(gauss(z_max) - gauss(0.0), MIN_MASS)
-        hit = dr.select(high >= low, (gauss(high) - gauss(low)) / mass, 0.0)
+        mass = dr.maximum(normal_mass(seg.mean, sigma, 0.0, z_max), MIN_MASS)
+        hit = dr.select(high >= low, normal_mass(seg.mean, sigma, low, high) / mass, 0.0)
         top = dr.minimum(reach, b)
         norm = dr.maximum(1.0 - dr.exp(-rate * reach), 1e-12)
         short = dr.select(top >= low, (dr.exp(-rate * low) - dr.exp(-rate * top)) / norm, 0.0)

@@ -43,7 +43,7 @@ from mi_lidar.core.densities.tables import PSEUDO_SAMPLES, StateGrid, check_tabl
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import ELLIPSOID, Segment, log_density, sample_range, window_probability
+from mi_lidar.core.segment import ELLIPSOID, Segment, is_open, log_density, sample_range, window_probability
 
 # 5-point Gauss-Hermite rule for E[f(e + sqrt(2) sigma x)], weights normalised by sqrt(pi)
 GH_NODES = (0.0, 0.958572464613819, -0.958572464613819, 2.020182870456086, -2.020182870456086)
@@ -213,7 +213,7 @@ class NPRegDensity(ReturnDensity):
         return dr.select(seg.kind == ELLIPSOID, log_density(seg, z), value)
 
     def window(self, seg: Segment, a: float, b: float, rays: RayBatch) -> mi.Float:
-        if a <= 0.0 and b == math.inf:  # the shapes are truncated to z >= 0 and the floor lies on [0, z_max]
+        if is_open(a, b):  # the shapes are truncated to z >= 0 and the floor lies on [0, z_max]
             return dr.select(seg.kind == ELLIPSOID, window_probability(seg, a, b), 1.0)
         state = self.state(seg, rays)
         low, high = self._residual(seg, max(a, 0.0)), self._residual(seg, b)

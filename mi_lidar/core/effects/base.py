@@ -43,26 +43,13 @@ import abc
 import math
 from dataclasses import dataclass
 
-import drjit as dr
 import mitsuba as mi
 
 from mi_lidar.core.params import Catalog, Parametrized, parse_calls
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import Segment, normal_cdf
+from mi_lidar.core.segment import Segment
 
 OPEN_WINDOW = (0.0, math.inf)  # m: a sensor that reports every range
-
-
-def is_open(window: tuple[float, float]) -> bool:
-    """True when the range window ``(a, b)`` (m) cuts nothing: ``a <= 0`` and ``b`` infinite."""
-    return window[0] <= 0.0 and window[1] == math.inf
-
-
-def gaussian_window(mean: mi.Float, variance: mi.Float, window: tuple[float, float]) -> mi.Float:
-    """Mass of each lane's Gaussian ``N(mean, variance)`` (m, m^2) on the range window ``(a, b)`` (m), in [0, 1]."""
-    a, b = window
-    sd = dr.sqrt(variance)
-    return dr.clip(normal_cdf((b - mean) / sd) - normal_cdf((a - mean) / sd), 0.0, 1.0)
 
 
 @dataclass
@@ -183,7 +170,7 @@ class FootprintEffect(Effect, metaclass=abc.ABCMeta):
 
         The sensor reports only ranges in its ``window`` (the sampler drops the others): a beam's
         return law loses its mass outside to the miss, so a miss has probability ``1 - P(return) W``
-        with ``W`` the law's mass in the window (:func:`gaussian_window` of its components), and a
+        with ``W`` the law's mass in the window (:func:`~mi_lidar.core.segment.normal_mass` of its components), and a
         reported return keeps its density.
 
         Args:

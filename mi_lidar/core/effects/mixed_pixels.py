@@ -7,17 +7,11 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.effects.base import (
-    OPEN_WINDOW,
-    FootprintEffect,
-    SubRayMoments,
-    gaussian_window,
-    is_open,
-    register_effect,
-)
+from mi_lidar.core.effects.base import OPEN_WINDOW, FootprintEffect, SubRayMoments, register_effect
 from mi_lidar.core.effects.beam_offsets import offset_direction
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.segment import is_open, normal_mass
 
 # Sub-ray pattern of the footprint: (elevation, azimuth) offsets in units of ``divergence``.
 PATTERN = ((0.0, 0.0), (1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
@@ -151,15 +145,15 @@ class MixedPixels(FootprintEffect):
             mean_sum += a * mu
             var_sum += a * var
             pure += a * dr.exp(-0.5 * dr.square(z - mu) / var) / dr.sqrt(var)
-            if not is_open(window):
-                inside += a * gaussian_window(mu, var, window)
+            if not is_open(*window):
+                inside += a * normal_mass(mu, dr.sqrt(var), *window)
         safe = dr.maximum(a_sum, 1e-12)
         mean, variance = mean_sum / safe, dr.maximum(var_sum / safe, MIN_VARIANCE)
         between = dr.exp(-0.5 * dr.square(z - mean) / variance) / dr.sqrt(variance)
         share = self["share"]
         density = (share * between + (1.0 - share) * pure / safe) * math.exp(-LOG_SQRT_2PI)
         p_hit = dr.maximum(1.0 - dr.exp(log_miss), 1e-12)
-        if not is_open(window):
-            reported = p_hit * (share * gaussian_window(mean, variance, window) + (1.0 - share) * inside / safe)
+        if not is_open(*window):
+            reported = p_hit * (share * normal_mass(mean, dr.sqrt(variance), *window) + (1.0 - share) * inside / safe)
             log_miss = dr.log(dr.clip(1.0 - reported, 1e-12, 1.0))
         return dr.select(hit, dr.log(p_hit) + dr.log(dr.maximum(density, 1e-30)), log_miss)

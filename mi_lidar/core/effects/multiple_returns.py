@@ -5,10 +5,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_lidar.core.effects.base import OPEN_WINDOW, SubRayMoments, gaussian_window, is_open, register_effect
+from mi_lidar.core.effects.base import OPEN_WINDOW, SubRayMoments, register_effect
 from mi_lidar.core.effects.mixed_pixels import FOOTPRINT_SPECS, LOG_SQRT_2PI, MIN_VARIANCE, PATTERN, MixedPixels
 from mi_lidar.core.params import ParamSpec
-from mi_lidar.core.segment import normal_cdf
+from mi_lidar.core.segment import is_open, normal_cdf, normal_mass
 
 ORDER_SCALE = 1e-3  # m: softness of the order of two echoes in the likelihood
 
@@ -113,7 +113,8 @@ class MultipleReturns(MixedPixels):
             density += share[j] * dr.exp(log_phi)
         p_any = dr.maximum(1.0 - dr.exp(log_miss), 1e-12)
         density *= p_any / dr.maximum(total, 1e-30)
-        if not is_open(window):
-            inside = sum((share[j] * gaussian_window(mu[j], var[j], window) for j in range(m)), dr.zeros(mi.Float, n))
+        if not is_open(*window):
+            masses = (share[j] * normal_mass(mu[j], dr.sqrt(var[j]), *window) for j in range(m))
+            inside = sum(masses, dr.zeros(mi.Float, n))
             log_miss = dr.log(dr.clip(1.0 - p_any * inside / dr.maximum(total, 1e-30), 1e-12, 1.0))
         return dr.select(hit, dr.log(dr.maximum(density, 1e-30)), log_miss)
