@@ -273,8 +273,8 @@ def _footprint_log_likelihood(table, model, fan, rounds: Rounds, measured: mi.Fl
     moments = SubRayMoments(
         log_miss=dr.zeros(mi.Float, m),
         p_return=dr.zeros(mi.Float, m),
-        m1=dr.zeros(mi.Float, m),
-        m2=dr.zeros(mi.Float, m),
+        mean=dr.zeros(mi.Float, m),
+        variance=dr.zeros(mi.Float, m),
     )
     log_pass = dr.zeros(mi.Float, m)
     for seg in model.virtual_segments(sub):
@@ -295,14 +295,27 @@ def _moment_step(moments: SubRayMoments, log_pass: mi.Float, seg: Segment, lanes
     reach = log_pass if lanes is None else dr.gather(mi.Float, log_pass, lanes)
     weight = dr.select(seg.valid, dr.exp(reach) * seg.p * (1.0 - seg.drop), 0.0)
     passed = reach + dr.select(seg.valid, dr.log(dr.clip(1.0 - seg.p, TINY, 1.0)), 0.0)
-    first, second = range_moments(seg)
-    values = (weight, weight * first, weight * second)
+    mean, variance = range_moments(seg)
+    state = (moments.p_return, moments.mean, moments.variance)
     if lanes is None:
-        return SubRayMoments(
-            moments.log_miss, moments.p_return + values[0], moments.m1 + values[1], moments.m2 + values[2]
-        ), passed
-    every = dr.full(mi.Bool, True, dr.width(lanes))
-    new = [_add_at(a, v, lanes, every) for a, v in zip((moments.p_return, moments.m1, moments.m2), values)]
+        return SubRayMoments(moments.log_miss, *_merge_moments(state, (weight, mean, variance))), passed
+    merged = _merge_moments(tuple(dr.gather(mi.Float, a, lanes) for a in state), (weight, mean, variance))
+    new = [mi.Float(a) for a in state]
+    for target, value in zip(new, merged):
+        dr.scatter(target, value, lanes)
     log_pass = mi.Float(log_pass)
     dr.scatter(log_pass, passed, lanes)
     return SubRayMoments(moments.log_miss, *new), log_pass
+
+
+def _merge_moments(mixture: tuple, component: tuple) -> tuple[mi.Float, mi.Float, mi.Float]:
+    """Weight, mean (m) and variance (m^2) of the mixture ``(p, mean, variance)`` with ``component`` ``(w, m, s2)``.
+
+    The pairwise update of Chan, Golub and LeVeque (1979): the new mean moves by a share of the difference
+    and the variance gains that share's spread, so nothing is squared at the range's scale.
+    """
+    (p, mean, variance), (w, m, s2) = mixture, component
+    total = p + w
+    share = w / dr.maximum(total, 1e-30)
+    delta = m - mean
+    return total, mean + share * delta, (1.0 - share) * variance + share * (s2 + (1.0 - share) * dr.square(delta))

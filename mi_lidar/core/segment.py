@@ -211,14 +211,20 @@ def _gaussian_window(seg: Segment, a: float, b: float) -> mi.Float:
 
 
 def range_moments(seg: Segment) -> tuple[mi.Float, mi.Float]:
-    """First and second moments (m, m^2) of each lane's returned range (untruncated Gaussians, corners included)."""
+    """Mean (m) and variance (m^2) of each lane's returned range (untruncated Gaussians, corners included).
+
+    The variance is taken about the mean (never as ``E[z^2] - E[z]^2``, which float32 rounds by more than
+    a centimetre sigma's square beyond about 40 m).
+    """
     if not has_corners(seg):
-        return seg.mean, dr.square(seg.sigma) + dr.square(seg.mean)
-    first = second = dr.zeros(mi.Float, dr.width(seg.mean))
-    for w, m, sd in _components(seg):
-        first = first + w * m
-        second = second + w * (dr.square(sd) + dr.square(m))
-    return first, second
+        return seg.mean, dr.square(seg.sigma)
+    components = _components(seg)
+    shift = sum((w * (m - seg.mean) for w, m, _ in components), dr.zeros(mi.Float, dr.width(seg.mean)))
+    spread = sum(
+        (w * (dr.square(sd) + dr.square(m - seg.mean - shift)) for w, m, sd in components),
+        dr.zeros(mi.Float, dr.width(seg.mean)),
+    )
+    return seg.mean + shift, spread
 
 
 def _gaussian_log_density(seg: Segment, z: mi.Float) -> mi.Float:

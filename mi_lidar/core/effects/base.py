@@ -56,19 +56,21 @@ OPEN_WINDOW = (0.0, math.inf)  # m: a sensor that reports every range
 class SubRayMoments:
     """What the likelihood knows of each sub-ray's first return (one lane per sub-ray).
 
-    With ``P_k = p_k prod_{j<k} (1 - p_j)`` the probability that element ``k`` returns it:
+    With ``P_k = p_k prod_{j<k} (1 - p_j)`` the probability that element ``k`` returns it, the return's
+    range follows the mixture ``sum_k P_k N(mean_k, sigma_k^2) / p_return``, summarised by its moments:
 
     Attributes:
         log_miss: ``log prod_k (1 - p_k)``, nats.
         p_return: ``sum_k P_k``.
-        m1: ``sum_k P_k mean_k``, m.
-        m2: ``sum_k P_k (sigma_k^2 + mean_k^2)``, m^2 (untruncated Gaussians).
+        mean: the mixture's mean range, m (0 where ``p_return`` is 0).
+        variance: the mixture's variance about ``mean``, m^2 (untruncated Gaussians; accumulated about the
+            running mean, so float32 keeps a centimetre sigma at any range).
     """
 
     log_miss: mi.Float
     p_return: mi.Float
-    m1: mi.Float
-    m2: mi.Float
+    mean: mi.Float
+    variance: mi.Float
 
 
 class Effect(Parametrized):

@@ -136,9 +136,8 @@ class MixedPixels(FootprintEffect):
         log_miss, a_sum, mean_sum, var_sum, pure = (dr.zeros(mi.Float, n) for _ in range(5))
         for j in range(m):
             r = _sub(moments.p_return, j, n)
-            safe = dr.maximum(r, 1e-12)
-            mu = _sub(moments.m1, j, n) / safe
-            var = dr.maximum(_sub(moments.m2, j, n) / safe - dr.square(mu), MIN_VARIANCE)
+            mu = _sub(moments.mean, j, n)
+            var = dr.maximum(_sub(moments.variance, j, n), MIN_VARIANCE)
             a = _sub(weight, j, n) * r
             log_miss += _sub(moments.log_miss, j, n)
             a_sum += a

@@ -91,12 +91,9 @@ class MultipleReturns(MixedPixels):
         r, mu, var, log_miss = [], [], [], dr.zeros(mi.Float, n)
         for j in range(m):
             index = dr.arange(mi.UInt32, n) + j * n
-            rj = dr.gather(mi.Float, moments.p_return, index)
-            safe = dr.maximum(rj, 1e-12)
-            mean = dr.gather(mi.Float, moments.m1, index) / safe
-            r.append(rj)
-            mu.append(mean)
-            var.append(dr.maximum(dr.gather(mi.Float, moments.m2, index) / safe - dr.square(mean), MIN_VARIANCE))
+            r.append(dr.gather(mi.Float, moments.p_return, index))
+            mu.append(dr.gather(mi.Float, moments.mean, index))
+            var.append(dr.maximum(dr.gather(mi.Float, moments.variance, index), MIN_VARIANCE))
             log_miss += dr.gather(mi.Float, moments.log_miss, index)
         share, total = [], dr.zeros(mi.Float, n)
         for j in range(m):
