@@ -40,7 +40,7 @@ from mi_lidar.core.segment import (
     Segment,
     corners,
     element_segment,
-    ray_quadratic,
+    ray_closest_approach,
     ray_restricted_gaussian,
     rotate_inverse,
 )
@@ -412,8 +412,8 @@ class ElementTable:
         e_normal = rotate_inverse(mi.Vector4f(-quat.x, -quat.y, -quat.z, quat.w), local_gradient)
         e_cos = dr.abs(dr.dot(dr.normalize(e_normal), direction))
         if self.smoothing > 0:
-            a, b, c = ray_quadratic(center, scale, quat, origin, direction)
-            soft = presence(a, b, c, extent, self.smoothing)
+            _, _, closest_sq = ray_closest_approach(center, scale, quat, origin, direction)
+            soft = presence(closest_sq, extent, self.smoothing)
             values = values._replace(p=dr.select(is_ellipsoid, values.p * soft, values.p))
 
         return element_segment(

@@ -245,28 +245,14 @@ def rotate_inverse(q: mi.Vector4f, v: mi.Vector3f) -> mi.Vector3f:
     return v + 2.0 * dr.cross(u, dr.cross(u, v) + q.w * v)
 
 
-def ray_quadratic(center, scale, quat, origin, direction):
-    """Squared Mahalanobis distance of an ellipsoid element along the ray ``origin + t direction``.
+def ray_closest_approach(center, scale, quat, origin, direction):
+    """Where the ray ``origin + t direction`` passes closest to an ellipsoid element's centre, in its metric.
 
     Args:
         center: (3,) lanes of ellipsoid means, m.
         scale: (3,) lanes of standard deviations along the principal axes, m.
         quat: (4,) lanes of rotations (x, y, z, w).
         origin, direction: ray origin (m) and unit direction.
-
-    Returns:
-        ``(a, b, c)`` with the distance ``a t^2 + 2 b t + c`` (sigmas squared, ``t`` in m). Far from the
-        element ``c`` is large (``(r / scale)^2``: 2.5e7 for a 5 cm element at 250 m), so take the closest
-        approach from :func:`ray_closest_approach`, never as ``c - b^2 / a``.
-    """
-    o, d = _element_frame(center, scale, quat, origin, direction)
-    return dr.squared_norm(d), dr.dot(o, d), dr.squared_norm(o)
-
-
-def ray_closest_approach(center, scale, quat, origin, direction):
-    """Where the ray ``origin + t direction`` passes closest to an ellipsoid element's centre, in its metric.
-
-    Args: as in :func:`ray_quadratic`.
 
     Returns:
         ``(a, t0, m2)``: the distance is ``a (t - t0)^2 + m2`` (sigmas squared): ``a`` (1/m^2), the range of
@@ -282,7 +268,7 @@ def ray_closest_approach(center, scale, quat, origin, direction):
 
 
 def _element_frame(center, scale, quat, origin, direction):
-    """The ray's origin and direction in the element's frame, in its sigmas (see :func:`ray_quadratic`)."""
+    """The ray's origin and direction in the element's frame, in its sigmas (see :func:`ray_closest_approach`)."""
     return rotate_inverse(quat, origin - center) / scale, rotate_inverse(quat, direction) / scale
 
 
@@ -290,7 +276,7 @@ def ray_restricted_gaussian(center, scale, quat, extent, origin, direction):
     """Gaussian of an ellipsoid element restricted to the ray ``origin + t direction``.
 
     Args:
-        center, scale, quat, origin, direction: as in :func:`ray_quadratic`.
+        center, scale, quat, origin, direction: as in :func:`ray_closest_approach`.
         extent: Mahalanobis radius of the element's surface, in sigmas.
 
     Returns:

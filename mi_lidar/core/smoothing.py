@@ -44,15 +44,16 @@ def smoothing_at(step: int, steps: int, start: float, final: float) -> float:
     return start * (final / start) ** (min(step, steps) / max(steps, 1))
 
 
-def presence(a: mi.Float, b: mi.Float, c: mi.Float, extent: mi.Float, kappa: float) -> mi.Float:
+def presence(closest_sq: mi.Float, extent: mi.Float, kappa: float) -> mi.Float:
     """Soft indicator ``Phi((E - m) / kappa)`` that the ray meets the element.
 
     Args:
-        a, b, c: the ray's squared Mahalanobis quadratic (:func:`mi_lidar.core.segment.ray_quadratic`).
+        closest_sq: ``m^2``, the squared Mahalanobis distance of the ray's closest approach to the element's
+            centre, sigmas squared (:func:`mi_lidar.core.segment.ray_closest_approach`).
         extent: the element's extent ``E``, sigmas.
         kappa: smoothing, sigmas (> 0).
     """
-    closest = dr.sqrt(dr.maximum(c - b * b / a, 1e-12))
+    closest = dr.sqrt(dr.maximum(closest_sq, 1e-12))
     return normal_cdf((extent - closest) / dr.opaque(mi.Float, kappa))
 
 

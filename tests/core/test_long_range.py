@@ -207,6 +207,8 @@ def test_an_ellipsoid_keeps_its_chord_at_long_range(wall, scale):
     closest approaches 0 to 2.95 sigmas (extent 3). The chord ends must lie within 2e-4 m of the float64 ones
     (measured at most 7.5e-5 m, at the rim; they were 1.2 cm off for a 5 cm element at 250 m, where the closest approach
     was taken as ``c - b^2 / a`` with ``c = 2.5e7`` sigmas squared) and every such ray must meet the element.
+    The calibration's soft silhouette (``smoothing.presence``, smoothing 0.1 sigma) must be within 0.02 of
+    float64's ``Phi((3 - m) / 0.1)`` (from ``c - b^2 / a`` it failed at 60-250 m).
     """
     from mi_lidar.core.segment import ray_restricted_gaussian
 
@@ -245,7 +247,7 @@ def test_an_ellipsoid_keeps_its_chord_at_long_range(wall, scale):
     def floats(v):
         return [float(c) for c in v]
 
-    got = ray_restricted_gaussian(
+    got_args = (
         mi.Point3f(*floats(center)),
         mi.Vector3f(*floats(sigmas)),
         mi.Vector4f(*floats(q)),
@@ -253,10 +255,19 @@ def test_an_ellipsoid_keeps_its_chord_at_long_range(wall, scale):
         mi.Point3f(0.0, 0.0, 0.0),
         mi.Vector3f(*(mi.Float(directions[:, i].astype(np.float32)) for i in range(3))),
     )
+    got = ray_restricted_gaussian(*got_args)
     lo, hi = (np.asarray(v, np.float64) for v in got[2:])
     error = np.maximum(np.abs(lo - (mean - half)), np.abs(hi - (mean + half)))[inside]
     assert error.max() < 2e-4, error.max()
     assert np.all(hi[inside] > lo[inside])
+    # the calibration's soft silhouette reads the same closest approach (it took c - b^2 / a as well)
+    from mi_lidar.core.segment import ray_closest_approach
+    from mi_lidar.core.smoothing import presence
+
+    closest_sq = ray_closest_approach(got_args[0], got_args[1], got_args[2], got_args[4], got_args[5])[2]
+    soft = np.asarray(presence(closest_sq, 3.0, 0.1), np.float64)
+    expected = 0.5 * np.array([math.erfc(-(3.0 - math.sqrt(v)) / 0.1 / math.sqrt(2.0)) for v in m2])
+    assert np.abs(soft - expected).max() < 0.02, np.abs(soft - expected).max()
 
 
 GRADIENTS = [
