@@ -226,7 +226,7 @@ class Calibration:
         )
         # only hit probabilities move: the densities of the measured ranges are computed once too
         self.densities = self.static and not edits and all(p.family == "p_hit" for p in self.params.values())
-        self.rays = LogRays.from_log(log, relative_time=False)
+        self.rays = LogRays.from_log(log, relative_time=False, scene=scene)
         order = np.random.default_rng(self.options.seed).permutation(self.rays.n)
         n_held = max(1, int(round(self.options.holdout * self.rays.n)))
         self.held_out = np.sort(order[:n_held][: self.options.eval_rays])

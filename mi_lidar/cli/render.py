@@ -55,7 +55,7 @@ def write_scan_outputs(log, out: Path, scene_name: str) -> list[Path]:
         {k: np.asarray(v, np.float32) if k not in INTEGER_CHANNELS else v for k, v in channels.items()},
     )
     hit = scan.hit[0]
-    points = scan.points_world()[0][hit].astype(np.float32)
+    points = scan.points_world()[0][hit]  # float64: write_ply keeps it for georeferenced points
     beam = np.broadcast_to(np.arange(hit.shape[0])[:, None], hit.shape)[hit].astype(np.uint16)
     attributes = {"range": scan.ranges[0][hit], "ring": beam}
     attributes.update({k: v[0][hit] for k, v in scan.attributes.items()})
@@ -92,6 +92,7 @@ def render(
     import mitsuba as mi
 
     from mi_lidar.core.channels import tensor_to_numpy
+    from mi_lidar.core.frames import scene_origin, shift_poses
     from mi_lidar.core.log import Log
     from mi_lidar.scene import load_scene, scene_lidar_sensor, use_density
     from mi_lidar.scene.simulation import simulate
@@ -105,7 +106,7 @@ def render(
         channels = tensor_to_numpy(mi.render(loaded, seed=seed))
         pat = sensor.pattern
         log = Log(
-            poses=sensor.to_world_matrix[None],
+            poses=shift_poses(sensor.to_world_matrix[None], -scene_origin(loaded)),  # the world pose
             directions=pat.directions()[None],
             origins=pat.origins()[None],
             ranges=channels.pop("range")[None],

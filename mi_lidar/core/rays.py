@@ -10,7 +10,7 @@ batches would recompile the same likelihood kernels at random.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import drjit as dr
 import mitsuba as mi
@@ -18,6 +18,7 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.frames import scene_origin
 from mi_lidar.core.log import Log
 
 
@@ -113,6 +114,8 @@ class LogRays:
         hit: (N,) True where the sensor reported a return.
         intensity: optional (N,) measured intensities (sensor units, NaN for a miss) that the
             likelihood scores with the range (None: ranges only).
+        origin: (3,) world position (m) of the scene's local frame, subtracted from the poses before
+            the rays reach float32 (:func:`mi_lidar.core.frames.scene_origin`; zero: world coordinates).
     """
 
     log: Log
@@ -123,9 +126,10 @@ class LogRays:
     measured: np.ndarray
     hit: np.ndarray
     intensity: np.ndarray | None = None
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     @classmethod
-    def from_log(cls, log: Log, relative_time: bool = True, intensity: str | None = None) -> LogRays:
+    def from_log(cls, log: Log, relative_time: bool = True, intensity: str | None = None, scene=None) -> LogRays:
         """Flatten a log.
 
         Args:
@@ -134,6 +138,8 @@ class LogRays:
                 microseconds); False keeps the log's absolute timestamps.
             intensity: name of the per-ray attribute holding the measured intensity to score
                 (``intensity``, or an Ouster log's ``reflectivity`` or ``signal``); None scores ranges only.
+            scene: the scene the rays will be traced in: a scene loaded at a local origin (georeferenced)
+                gets the rays in its frame. None: world coordinates.
         """
         if intensity is not None and intensity not in log.attributes:
             raise LogFormatError(
@@ -154,6 +160,7 @@ class LogRays:
             intensity=None
             if intensity is None
             else np.where(log.hit, log.attributes[intensity], np.nan).ravel().astype(np.float32),
+            origin=np.zeros(3) if scene is None else scene_origin(scene),
         )
 
     @property
@@ -165,7 +172,7 @@ class LogRays:
         """World-frame rays, measured ranges and hit flags of rays ``index`` (all when None).
 
         Returns:
-            ``(rays, measured, hit)``: the rays (ray ids are the flat indices into the log, the
+            ``(rays, measured, hit)``: the rays in the scene's frame (ray ids are the flat indices into the log, the
             ids :func:`mi_lidar.simulate` gives), (M,) measured ranges in m (0 for a miss) and (M,)
             return flags.
         """
@@ -174,7 +181,7 @@ class LogRays:
         log = self.log
         pick = lambda a: a[scan if a.shape[0] > 1 else 0, beam, column].astype(np.float64)
         rotation = log.poses[scan, :3, :3]
-        position = log.poses[scan, :3, 3]
+        position = log.poses[scan, :3, 3] - self.origin  # in the scene's frame, before float32
         direction = np.einsum("nij,nj->ni", rotation, pick(log.directions))
         origin = np.einsum("nij,nj->ni", rotation, pick(log.origins)) + position
 

@@ -26,6 +26,7 @@ from mi_lidar.core.patterns import to_table
 from mi_lidar.core.patterns.from_log import pattern_from_log
 from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
 from mi_lidar.scene.files import ShapeEntry, write_ellipsoids_ply, write_mesh_ply, write_scene_xml
+from mi_lidar.scene.rebase import matrix_value, to_world_matrix
 
 
 @dataclass
@@ -66,7 +67,7 @@ class SceneSensor:
         The pattern is a ``<default name="pattern">`` parameter, so
         ``mi_lidar.load_scene(xml, pattern="vlp16")`` swaps it.
         """
-        matrix = " ".join(f"{v:.9g}" for v in np.asarray(self.pose, float).ravel())
+        matrix = matrix_value(self.pose)
         firings = "" if self.firings is None else f'\n        <integer name="firings" value="{int(self.firings)}"/>'
         return (
             f'    <default name="pattern" value={quoteattr(str(self.pattern))}/>\n'
@@ -107,6 +108,10 @@ def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneS
     assets = assets_folder(out_dir, name).name  # the XML names its assets relative to itself
     shapes, written = [], []
     g, e = model.ground, model.ellipsoids
+    to_world = None
+    if np.any(model.origin):  # elements in a local frame: each shape placed at its origin
+        to_world = np.eye(4)
+        to_world[:3, 3] = model.origin
     for b in np.unique(np.r_[g.block, e.block]):
         sel = g.block == b
         if sel.any():
@@ -122,7 +127,7 @@ def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneS
                 label=g.label[sel],
             )
             written.append(path)
-            shapes.append(ShapeEntry(id=f"ground_b{b}", kind="mesh", filename=fname))
+            shapes.append(ShapeEntry(id=f"ground_b{b}", kind="mesh", filename=fname, to_world=to_world))
         sel = e.block == b
         if sel.any():
             scales, quats = e.subset(sel).axes()
@@ -137,7 +142,11 @@ def write_scene(model: HybridModel, out_dir, name: str = "scene", sensor: SceneS
                 label=e.label[sel],
             )
             written.append(path)
-            shapes.append(ShapeEntry(id=f"ellipsoids_b{b}", kind="ellipsoids", filename=fname, extent=model.extent))
+            shapes.append(
+                ShapeEntry(
+                    id=f"ellipsoids_b{b}", kind="ellipsoids", filename=fname, extent=model.extent, to_world=to_world
+                )
+            )
     comment = f"mi-lidar hybrid geometric scene: {len(g)} triangles, {len(e)} ellipsoids, {len(shapes)} shapes"
     xml = write_scene_xml(
         out_dir / f"{name}.xml", shapes, header_comment=comment, extra_xml=sensor.xml() if sensor is not None else ""
@@ -201,8 +210,11 @@ def read_scene(xml_path) -> HybridModel:
     if not xml_path.is_file():
         raise SceneError(f"{xml_path}: no such scene file")
     root = ET.parse(xml_path).getroot()
-    grounds, ells, extent = [], [], 3.0
+    grounds, ells, extent, origin = [], [], 3.0, np.zeros(3)
     for b, shape in enumerate(root.iter("shape")):
+        transform = shape.find("transform[@name='to_world']")
+        if transform is not None:  # the local origin of a georeferenced scene (write_scene's translation)
+            origin = to_world_matrix(transform, {})[:3, 3]
         fname = next((s.get("value") for s in shape.iter("string") if s.get("name") == "filename"), None)
         if fname is None:
             raise SceneError(f"{xml_path}: shape {shape.get('id')!r} has no filename")
@@ -215,4 +227,4 @@ def read_scene(xml_path) -> HybridModel:
             ell.block[:] = b
             ells.append(ell)
             extent = float(next((f.get("value") for f in shape.iter("float") if f.get("name") == "extent"), 3.0))
-    return HybridModel(GroundMesh.concat(grounds), EllipsoidSet.concat(ells), extent)
+    return HybridModel(GroundMesh.concat(grounds), EllipsoidSet.concat(ells), extent, origin=origin)

@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.frames import local_origin, shift_poses
 from mi_lidar.core.log import Log
 from mi_lidar.hybrid.counting import count_hits
 from mi_lidar.hybrid.ellipsoids import ClusterParams, fit_ellipsoids
@@ -212,8 +213,10 @@ def fit_model(
         ground_only: fit only the ground triangles (e.g. the ground of a composed test scene).
 
     Returns:
-        The :class:`FitResult`. If the log has ``label`` / ``instance`` attributes, element labels
-        and instances are the majority of their points; triangles get label ``ground``.
+        The :class:`FitResult`; its points and model are in the model's local frame (``model.origin``
+        is zero unless the returns lie beyond :data:`~mi_lidar.core.frames.NEAR_M`). If the log has
+        ``label`` / ``instance`` attributes, element labels and instances are the majority of their
+        points; triangles get label ``ground``.
 
     Raises:
         LogFormatError: the log's returns give neither a ground triangle nor an ellipsoid (too few of them).
@@ -223,6 +226,9 @@ def fit_model(
     timings = {}
     t0 = time.perf_counter()
     ray_index = np.flatnonzero(log.hit.ravel())
+    frame = local_origin(log.points_world().reshape(-1, 3)[ray_index])
+    if np.any(frame):  # georeferenced returns: fit in the local frame (float32 meshes and Mitsuba keep mm there)
+        log = replace(log, poses=shift_poses(log.poses, frame))
     points = log.points_world().reshape(-1, 3)[ray_index]
     timings["points"] = time.perf_counter() - t0
 
@@ -262,6 +268,7 @@ def fit_model(
         EllipsoidSet.concat(ells),
         params.extent,
         info={"n_blocks": int(len(blocks)), "block_size": params.block_size},
+        origin=frame,
     )
     if len(model.ground) == 0 and len(model.ellipsoids) == 0:
         raise LogFormatError(

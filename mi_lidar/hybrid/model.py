@@ -146,9 +146,15 @@ class EllipsoidSet:
 
 @dataclass
 class HybridModel:
-    """A hybrid geometric scene: ground triangles, ellipsoids and the ellipsoid extent (sigmas)."""
+    """A hybrid geometric scene: ground triangles, ellipsoids and the ellipsoid extent (sigmas).
+
+    ``origin`` (3,) m is the world position of the frame the elements are given in: zero, or the
+    local origin of a scene fitted to georeferenced data (:mod:`mi_lidar.core.frames`), which the
+    scene XML places with a ``translate``.
+    """
 
     ground: GroundMesh
     ellipsoids: EllipsoidSet
     extent: float = 3.5
     info: dict = field(default_factory=dict)
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))

@@ -18,8 +18,13 @@ direction the unit vector from there to it. Points that are not finite or closer
 trustworthy direction, so it gets the estimated pattern direction: its row's median elevation and
 its column's mean azimuth (columns without any return are interpolated from their neighbours).
 
+A cloud read without a pose is in world coordinates; a georeferenced one (UTM, say) is read at a
+local origin, the rounded centre of its bounding box, which becomes the scan's pose, so that the
+log's float32 ranges keep 0.1 mm (:mod:`mi_lidar.core.frames`).
+
 :func:`cloud_from_log` goes the other way and defines the standard fields every writer uses:
-``x y z`` (float32, m, sensor frame), ``intensity`` (float32, from the ``intensity``,
+``x y z`` (float32, m, sensor frame; float64 world coordinates for a cloud read at a local
+origin), ``intensity`` (float32, from the ``intensity``,
 ``reflectivity`` or ``signal`` attribute, else 0), ``ring`` (uint16, ``H - 1 - row``: ring 0 is
 the lowest beam), ``column`` (uint32) and ``time`` (float32, s since the scan's first ray).
 """
@@ -29,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.frames import local_origin
 from mi_lidar.core.log import Log
 
 MAX_EMPTY_CELLS = 1 << 20  # a damaged ring or column field cannot make a huge grid (and a slow read)
@@ -36,6 +42,7 @@ MAX_COORDINATE_M = 1e8  # beyond any Lidar's range and any Earth-fixed coordinat
 INTENSITY_SOURCES = ("intensity", "reflectivity", "signal")
 STANDARD_FIELDS = ("x", "y", "z", "intensity", "ring", "column", "time")
 ORIGIN_FIELDS = ("origin_x", "origin_y", "origin_z")  # per-point ray origins (m, sensor frame), when not all zero
+CLOUD_ORIGIN = "cloud_origin"  # Log.sensor key: a world cloud read at this local origin (m), written back in world
 
 
 def _grid_indices(
@@ -137,7 +144,11 @@ def log_from_points(
             earliest time.
         min_range: Points closer than this (m) are misses (e.g. 1.0 for nuScenes).
         sensor: Metadata stored in ``Log.sensor``.
-        pose: (4, 4) sensor-to-world pose; identity when None.
+        pose: (4, 4) sensor-to-world pose. When None the points are taken as world coordinates: the
+            identity, or, for a georeferenced cloud (coordinates beyond
+            :data:`~mi_lidar.core.frames.NEAR_M`), a translation to the rounded centre of its
+            bounding box, the points kept relative to it (float32 ranges then keep 0.1 mm, not
+            0.25 m) and the centre recorded as ``sensor["cloud_origin"]``.
         origins: Optional (N, 3) ray origins (m, sensor frame) of the points; the sensor's origin when None.
 
     Returns:
@@ -166,6 +177,14 @@ def log_from_points(
     if ring is not None and len(np.unique(row * width + col)) != count:
         raise LogFormatError(f"{source}: two points share a (ring, column) cell; ring/column fields are inconsistent")
     origins = np.zeros_like(points) if origins is None else np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+    if pose is None:  # a cloud in world coordinates: far from the origin, the sensor sits at a local origin
+        origin = local_origin(points[np.isfinite(points).all(axis=1) & np.any(points != origins, axis=1)])
+        if np.any(origin):
+            points = points - origin
+            origins = origins - origin if np.any(origins) else origins  # zero: rays from the local origin
+            pose = np.eye(4)
+            pose[:3, 3] = origin
+            sensor = {**(sensor or {}), CLOUD_ORIGIN: origin.tolist()}
     rays = points - origins
     distance = np.linalg.norm(rays, axis=1)
     finite = np.isfinite(distance)
@@ -237,16 +256,18 @@ def cloud_from_log(log: Log, scan: int = 0, organized: bool = False) -> dict[str
     """
     one = log.scan(scan)
     _, height, width = one.shape
-    points = one.points_sensor()[0]
+    world = CLOUD_ORIGIN in one.sensor  # a world cloud read at a local origin goes back to the world, in float64
+    points = one.points_world()[0] if world else one.points_sensor()[0]
+    coordinate = np.float64 if world else np.float32
     keep = np.ones((height, width), dtype=bool) if organized else one.hit[0]
     source = next((n for n in INTENSITY_SOURCES if n in one.attributes), None)
     intensity = one.attributes[source][0] if source else np.zeros((height, width))
     rows, cols = np.indices((height, width))
     times = one.times[0]
     return {
-        "x": points[..., 0][keep].astype(np.float32),
-        "y": points[..., 1][keep].astype(np.float32),
-        "z": points[..., 2][keep].astype(np.float32),
+        "x": points[..., 0][keep].astype(coordinate),
+        "y": points[..., 1][keep].astype(coordinate),
+        "z": points[..., 2][keep].astype(coordinate),
         "intensity": np.asarray(intensity, dtype=np.float32)[keep],
         "ring": (height - 1 - rows)[keep].astype(np.uint16),
         "column": cols[keep].astype(np.uint32),

@@ -1,7 +1,8 @@
 """PLY point clouds (binary little-endian or ASCII) via ``plyfile``.
 
-One ``vertex`` element holds float32 ``x y z`` plus one property per attribute. PLY knows the
-types int8/16/32, uint8/16/32, float32 and float64, so those attribute dtypes round-trip exactly;
+One ``vertex`` element holds float32 ``x y z`` (float64 for georeferenced points) plus one
+property per attribute. PLY knows the types int8/16/32, uint8/16/32, float32 and float64, so those
+attribute dtypes round-trip exactly;
 bool attributes are stored as uint8 and int64/uint64 ones as int32/uint32 when every value fits
 (they read back with the narrower dtype); anything else is rejected with a clear message.
 """
@@ -16,6 +17,7 @@ import plyfile
 
 from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import LogFormatError, unreadable
+from mi_lidar.core.frames import RESOLUTION_M, float32_step, max_magnitude
 from mi_lidar.core.log import Log
 from mi_lidar.io.cloud import cloud_from_log, log_from_fields
 
@@ -51,7 +53,8 @@ def write_ply(
 
     Args:
         path: Destination ``.ply`` file.
-        points: (N, 3) coordinates (m), stored as float32 ``x y z``.
+        points: (N, 3) coordinates (m), stored as float32 ``x y z``, or float64 when they are float64
+            and float32 would keep them more coarsely than 1 mm (georeferenced points).
         attributes: Name -> (N,) array per point (e.g. ``intensity``, ``ring``); dtypes kept.
         binary: Binary little-endian when True, ASCII otherwise.
         comments: Optional header comment lines.
@@ -66,7 +69,8 @@ def write_ply(
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"write_ply: points have shape {points.shape}; expected (N, 3)")
     attributes = dict(attributes or {})
-    fields = [(c, "f4") for c in _COORDS]
+    far = points.dtype == np.float64 and float32_step(max_magnitude(points)) > RESOLUTION_M
+    fields = [(c, "f8" if far else "f4") for c in _COORDS]
     for name, values in attributes.items():
         values = np.asarray(values)
         if name in _COORDS:
@@ -111,7 +115,8 @@ def _load(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], list[str]]:
     missing = [c for c in _COORDS if c not in names]
     if missing:
         raise LogFormatError(f"{path}: vertex element lacks properties {missing}; expected x y z")
-    points = np.stack([vertex[c] for c in _COORDS], axis=1).astype(np.float32, copy=False)
+    wide = any(vertex[c].dtype.itemsize > 4 for c in _COORDS)  # double coordinates (georeferenced) stay float64
+    points = np.stack([vertex[c] for c in _COORDS], axis=1).astype(np.float64 if wide else np.float32, copy=False)
     attributes = {}
     for name in names:
         if name not in _COORDS:  # views into the vertex table, copied only to swap a foreign byte order

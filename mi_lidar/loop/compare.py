@@ -105,7 +105,7 @@ def simulate_log_rays(
 
 def ray_table(log: Log, scene, model: SensorModel, seed: int = 0) -> RayTable:
     """Score, simulate and describe every ray of ``log`` under ``model``."""
-    rays = LogRays.from_log(log)
+    rays = LogRays.from_log(log, scene=scene)
     problem = Problem.build(scene, rays)
     ll = problem.log_likelihood(model)
     sim_range, sim_hit = simulate_log_rays(scene, problem.table, rays, model, seed)

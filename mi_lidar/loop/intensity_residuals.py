@@ -160,7 +160,7 @@ def intensity_residuals(
     attribute = intensity_attribute(log, model.intensity.choices["law"])
     if attribute is None:
         return None
-    rays = LogRays.from_log(log, intensity=attribute)
+    rays = LogRays.from_log(log, intensity=attribute, scene=scene)
     index = np.arange(rays.n) if index is None else np.asarray(index)
     index = index[rays.hit[index] & np.isfinite(rays.intensity[index])]
     table = ElementTable.from_scene(scene)

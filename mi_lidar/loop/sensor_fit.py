@@ -143,7 +143,7 @@ def fit_sensor(
     say = progress or (lambda message: None)
     scene = log_scene(log, scene, force=force)
     base = scene_sensor_model(scene)[0]
-    rays = LogRays.from_log(log)
+    rays = LogRays.from_log(log, scene=scene)
     train_index, test_index = split_rays(log, max_train, max_test, seed)
     table = ElementTable.from_scene(scene)
     train, test = Problem.build(scene, rays, train_index, table), Problem.build(scene, rays, test_index, table)

@@ -86,7 +86,7 @@ class Splits:
     @classmethod
     def build(cls, log: Log, scene, max_train: int, max_test: int, max_fit: int, seed: int) -> Splits:
         """Split and trace the rays of ``log`` (see :func:`diagnose` for the arguments)."""
-        rays = LogRays.from_log(log)
+        rays = LogRays.from_log(log, scene=scene)
         train_index, test_index = split_rays(log, max_train, max_test, seed)
         fit_index = subsample(train_index, max_fit, seed + 1)
         table = ElementTable.from_scene(scene)

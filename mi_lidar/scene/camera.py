@@ -16,6 +16,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.frames import scene_origin, shift_poses
 
 
 @dataclass
@@ -55,7 +56,9 @@ class PinholeCamera:
     def look_at(cls, origin, target, up=(0.0, 0.0, 1.0), **kwargs) -> PinholeCamera:
         """A camera at ``origin`` (m) looking at ``target`` (m)."""
         origin, target, up = (list(map(float, v)) for v in (origin, target, up))
-        to_world = np.array(mi.ScalarTransform4f().look_at(origin=origin, target=target, up=up).matrix, np.float64)
+        offset = np.array(target) - origin  # the rotation from a float64 difference, the position kept in float64
+        to_world = np.array(mi.ScalarTransform4f().look_at(origin=[0.0] * 3, target=offset, up=up).matrix, np.float64)
+        to_world[:3, 3] = origin
         if not np.isfinite(to_world).all():
             raise ParameterError(
                 f"camera at {origin} looking at {target}: the target must differ from the position and not lie "
@@ -81,9 +84,11 @@ class PinholeCamera:
         flip = np.diag([-1.0, -1.0, 1.0, 1.0])  # Mitsuba camera frame (x left, y up) -> OpenCV (x right, y down)
         return flip @ np.linalg.inv(self.to_world)
 
-    def sensor(self, spp: int = 64):
-        """The Mitsuba ``perspective`` sensor of this camera."""
+    def sensor(self, spp: int = 64, origin=(0.0, 0.0, 0.0)):
+        """The Mitsuba ``perspective`` sensor of this camera, in the frame of a scene whose local origin is
+        ``origin`` (3,) m (:func:`mi_lidar.core.frames.scene_origin`; moved in float64, before float32)."""
         cx, cy = self.centre
+        to_world = shift_poses(self.to_world, origin)
         return mi.load_dict(
             {
                 "type": "perspective",
@@ -92,7 +97,7 @@ class PinholeCamera:
                 # Mitsuba's offsets are fractions of the film, positive towards image left and up
                 "principal_point_offset_x": float(self.width / 2 - cx) / self.width,
                 "principal_point_offset_y": float(self.height / 2 - cy) / self.height,
-                "to_world": mi.ScalarTransform4f(self.to_world.astype(np.float32)),
+                "to_world": mi.ScalarTransform4f(to_world.astype(np.float32)),
                 "film": {
                     "type": "hdrfilm",
                     "width": int(self.width),
@@ -129,7 +134,7 @@ def render_camera(scene, camera: PinholeCamera, spp: int = 64, seed: int = 0) ->
     the image is bit-identical whatever the thread count or scheduling (samples of one pixel
     accumulated by concurrent threads are not).
     """
-    sensor = camera.sensor(1)
+    sensor = camera.sensor(1, origin=scene_origin(scene))  # a georeferenced scene is loaded at a local origin
     integrator = mi.load_dict({"type": "path", "max_depth": 6})
     seeds = np.random.SeedSequence(seed).generate_state(spp) & 0x7FFFFFFF
     image = np.zeros((camera.height, camera.width, 3), dtype=np.float64)

@@ -27,6 +27,7 @@ from plyfile import PlyData, PlyElement
 
 from mi_lidar.core.atomic import atomic_write, atomic_write_text
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.scene.rebase import matrix_value
 
 ELEMENT_ATTRIBUTES = ("p_hit", "range_sigma", "label", "reflectivity")
 ANALYTIC_SHAPES = ("sphere", "cylinder", "disk")  # one element each, placed by their to_world alone
@@ -124,7 +125,8 @@ class ShapeEntry:
         p_hit, range_sigma, label: per-shape defaults written to a nested ``lidar_material``
             (None leaves Mitsuba's/sensor's default).
         extent: ellipsoid extent in sigmas (ellipsoids only).
-        to_world: (4, 4) object-to-world matrix, m (analytic shapes only).
+        to_world: (4, 4) object-to-world matrix, m (analytic shapes; for files, None or the world
+            position of the frame their coordinates are given in, e.g. a georeferenced local origin).
     """
 
     id: str
@@ -145,11 +147,11 @@ def shape_xml(entry: ShapeEntry, indent: str = "    ") -> str:
             f"shape {entry.id!r}: kind {entry.kind!r} is not 'mesh', 'ellipsoids' or one of {ANALYTIC_SHAPES}"
         )
     lines = [f'{indent}<shape type="{mitsuba_type or entry.kind}" id={quoteattr(entry.id)}>']
-    if mitsuba_type is None:
-        matrix = " ".join(f"{v:.9g}" for v in np.asarray(entry.to_world, np.float64).ravel())
-        lines.append(f'{indent}    <transform name="to_world"><matrix value="{matrix}"/></transform>')
-    else:
+    if mitsuba_type is not None:
         lines.append(f'{indent}    <string name="filename" value={quoteattr(entry.filename)}/>')
+    if entry.to_world is not None:
+        matrix = matrix_value(entry.to_world)
+        lines.append(f'{indent}    <transform name="to_world"><matrix value="{matrix}"/></transform>')
     if entry.extent is not None:
         lines.append(f'{indent}    <float name="extent" value="{entry.extent:g}"/>')
     material = []

@@ -10,7 +10,9 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.errors import MiLidarError, SceneError
+from mi_lidar.core.frames import COORDINATES_DOC, check_float32, set_scene_origin
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.scene.rebase import rebase_xml
 
 
 def bundled_scene(name: str) -> Path:
@@ -47,23 +49,69 @@ def load_scene(source, optimize: bool = False, **parameters):
     it on demand. Serial loading costs 0.1 s on a 1M-triangle mesh (0.55 -> 0.65 s) and is faster for
     many small shapes (600 shapes with a ``lidar_material``: 0.06 s against 0.08 s).
 
+    A file whose shapes and sensors are placed far from the origin (a georeferenced ``translate``)
+    is loaded at a local origin (:mod:`mi_lidar.scene.rebase`); :func:`mi_lidar.core.frames.scene_origin`
+    gives that origin, and :func:`mi_lidar.simulate` moves poses into the scene's frame and its log
+    back out of it.
+
     Raises:
         SceneError: the file is missing, malformed, or names an unknown plugin or property;
-            the message keeps Mitsuba's explanation and names the file.
+            the message keeps Mitsuba's explanation and names the file. Or the geometry reaches
+            coordinates where float32 keeps more than 1 mm (e.g. a PLY of UTM vertices): the
+            message names the coordinate and how to move the scene near the origin.
     """
+    where = "scene dict" if isinstance(source, dict) else str(source)
+    origin = np.zeros(3)
     try:
         if isinstance(source, dict):
-            return mi.load_dict(source, parallel=False, optimize=False)
-        path = Path(source)
-        if not path.is_file():
-            raise SceneError(f"{path}: no such scene file")
-        values = {k: str(v) for k, v in parameters.items()}
-        return mi.load_file(os.fspath(path), parallel=False, optimize=optimize, **values)
+            scene = mi.load_dict(source, parallel=False, optimize=False)
+        else:
+            path = Path(source)
+            if not path.is_file():
+                raise SceneError(f"{path}: no such scene file")
+            values = {k: str(v) for k, v in parameters.items()}
+            scene, origin = _load_file(path, optimize, values)
     except MiLidarError:
         raise
     except Exception as exc:
-        where = "scene dict" if isinstance(source, dict) else str(source)
         raise SceneError(f"{where}: could not load the scene: {loader_message(exc)}") from exc
+    box = scene.bbox()
+    check_float32(
+        [box.min, box.max],
+        where,
+        "vertex coordinates",
+        "Move the scene near the origin: write mesh vertices relative to a local origin and place each shape "
+        'there with <transform name="to_world"><translate .../></transform>, which mi-lidar reads in float64 '
+        f"(see {COORDINATES_DOC})",
+        SceneError,
+    )
+    set_scene_origin(scene, origin)
+    return scene
+
+
+def _load_file(path: Path, optimize: bool, values: dict[str, str]):
+    """Load a scene file, at a local origin when its elements are placed far from the world's (:mod:`.rebase`).
+
+    Returns:
+        ``(scene, origin)``: the scene and the world position (m) of its frame's origin.
+    """
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        text = ""  # Mitsuba's loader reports an unreadable file in its own words
+    rebased = rebase_xml(text, values) if "to_world" in text else None
+    if rebased is None:
+        return mi.load_file(os.fspath(path), parallel=False, optimize=optimize, **values), np.zeros(3)
+    xml, origin = rebased
+    resolver = mi.file_resolver()
+    saved = [resolver[i] for i in range(len(resolver))]
+    resolver.prepend(mi.filesystem.path(os.fspath(path.resolve().parent)))  # assets relative to the file
+    try:
+        return mi.load_string(xml, parallel=False, optimize=optimize, **values), origin
+    finally:
+        resolver.clear()
+        for folder in saved:
+            resolver.append(folder)
 
 
 PYTHON_TRACEBACK = "Traceback (most recent call last):"

@@ -12,7 +12,8 @@ import numpy as np
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.channels import channels_to_numpy
 from mi_lidar.core.elements import ElementTable
-from mi_lidar.core.errors import PatternError
+from mi_lidar.core.errors import PatternError, PoseError
+from mi_lidar.core.frames import COORDINATES_DOC, check_float32, scene_origin, shift_poses
 from mi_lidar.core.log import Log
 from mi_lidar.core.poses import validate_poses
 from mi_lidar.core.rays import RayBatch
@@ -65,6 +66,25 @@ def world_rays(local_origin: mi.Point3f, local_direction: mi.Vector3f, entries: 
     return origin, direction
 
 
+def scene_poses(poses: np.ndarray, origin: np.ndarray, source: str = "poses") -> np.ndarray:
+    """World poses (S, 4, 4) in the frame of a scene whose local origin is ``origin`` (3,) m, float64.
+
+    Raises:
+        PoseError: a pose that even in the scene's frame lies where float32 keeps more than 1 mm
+            (poses in another frame than the scene's).
+    """
+    local = shift_poses(poses, origin)
+    where = "" if not np.any(origin) else f" (the scene's local origin is {', '.join(f'{v:,.0f}' for v in origin)})"
+    check_float32(
+        local[:, :3, 3],
+        source,
+        f"sensor positions relative to the scene{where}",
+        f"Give the poses in the scene's frame, or place the scene where the poses are (see {COORDINATES_DOC})",
+        PoseError,
+    )
+    return local
+
+
 def simulate(
     scene, pattern=None, poses=None, seed: int = 0, model: SensorModel | None = None, scan_times=None, progress=None
 ) -> Log:
@@ -74,8 +94,9 @@ def simulate(
         scene: a loaded Mitsuba scene, or the path of a scene XML.
         pattern: a :class:`~mi_lidar.core.patterns.FiringPattern` or a pattern name/path; default:
             the pattern of the scene's ``lidar`` sensor.
-        poses: (4, 4) or (S, 4, 4) sensor-to-world transforms; default: the scene's ``lidar``
-            sensor pose, or the identity.
+        poses: (4, 4) or (S, 4, 4) sensor-to-world transforms in the world frame, float64 (a scene
+            loaded at a local origin gets them moved into its frame, and the log keeps them as given);
+            default: the scene's ``lidar`` sensor pose, or the identity.
         seed: random seed; scan ``s`` uses rays ``s * H * W ...``, so scans are independent.
         model: sensor model; default: the scene's ``lidar`` sensor and integrator settings.
         scan_times: (S,) start time of each sweep (s); default ``s * pattern.period``.
@@ -100,7 +121,9 @@ def simulate(
         pattern = get_pattern(str(pattern))
     default_model, default_pose = scene_sensor_model(scene)
     model = model or default_model
-    poses = validate_poses(default_pose if poses is None else poses)
+    origin = scene_origin(scene)
+    poses = validate_poses(shift_poses(default_pose, -origin) if poses is None else poses)
+    local = scene_poses(poses, origin)
     n_scans = len(poses)
     height, width = pattern.shape
     n = height * width
@@ -120,7 +143,7 @@ def simulate(
     for first in range(0, n_scans, per_batch):
         batch = range(first, min(first + per_batch, n_scans))
         scan = dr.repeat(dr.arange(mi.UInt32, batch.start, batch.stop), n)
-        entries = pose_entries(poses, scan)
+        entries = pose_entries(local, scan)
         rays = RayBatch(
             *world_rays(local_o, local_d, entries, dr.tile(ray_in_scan, len(batch))),
             beam=dr.tile(beam, len(batch)),

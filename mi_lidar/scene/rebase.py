@@ -1,0 +1,147 @@
+"""Scene XML in world coordinates far from the origin, loaded at a local origin.
+
+A georeferenced scene places its shapes with ``<transform name="to_world">`` (``translate x="500012"
+y="4000031"``). Mitsuba composes and applies that transform in float32 (0.25 m steps at 4e6 m), so
+the XML is rewritten before Mitsuba reads it: each top-level element's ``to_world`` is evaluated in
+float64, the local origin (:func:`mi_lidar.core.frames.local_origin` of the elements' positions) is
+subtracted, and the result goes back as one ``<matrix>``. The loader records the origin with the
+scene (:func:`mi_lidar.core.frames.set_scene_origin`) so that poses are moved into the same frame
+and outputs back out of it.
+
+Supported transform steps: ``translate``, ``scale``, ``rotate``, ``matrix`` and ``lookat``, with
+numbers or ``$name`` parameters. A file that uses anything else is loaded as written, and
+:func:`mi_lidar.scene.loading.load_scene` refuses it if its geometry ends up far from the origin.
+"""
+
+from __future__ import annotations
+
+import re
+import xml.etree.ElementTree as ET
+
+import numpy as np
+
+from mi_lidar.core.frames import NEAR_M, local_origin
+
+PLACED = ("shape", "sensor", "emitter")  # top-level elements whose to_world is moved to the local frame
+
+
+class _Unsupported(Exception):
+    """A transform step this module does not evaluate (the file is then loaded as written)."""
+
+
+def _numbers(text: str | None, parameters: dict[str, str]) -> list[float]:
+    if text is None:
+        raise _Unsupported("missing value")
+    text = re.sub(r"\$(\w+)", lambda m: parameters.get(m.group(1), m.group(0)), text)
+    try:
+        return [float(v) for v in text.replace(",", " ").split()]
+    except ValueError as exc:
+        raise _Unsupported(text) from exc
+
+
+def _vector(step: ET.Element, parameters: dict[str, str], default: float, name: str = "value") -> np.ndarray:
+    """An ``x y z`` step value: the ``value`` attribute (one number is uniform) or ``x``, ``y``, ``z``."""
+    if name in step.attrib:
+        values = _numbers(step.attrib[name], parameters)
+        if len(values) == 1:
+            values *= 3
+        if len(values) != 3:
+            raise _Unsupported(step.attrib[name])
+        return np.array(values)
+    return np.array([_numbers(step.attrib.get(axis, str(default)), parameters)[0] for axis in "xyz"])
+
+
+def _rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
+    """(4, 4) right-handed rotation by ``degrees`` about ``axis`` (Rodrigues), as Mitsuba builds it: the axis is
+    not normalized (a non-unit axis scales and shears as it does in Mitsuba)."""
+    angle = np.radians(degrees)
+    cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    matrix = np.eye(4)
+    matrix[:3, :3] = np.cos(angle) * np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * np.outer(axis, axis)
+    return matrix
+
+
+def _look_at(step: ET.Element, parameters: dict[str, str]) -> np.ndarray:
+    """Mitsuba's ``lookat``: columns left, up, direction and the origin."""
+    origin, target, up = (np.array(_numbers(step.attrib.get(k), parameters)) for k in ("origin", "target", "up"))
+    direction = (target - origin) / np.linalg.norm(target - origin)
+    left = np.cross(up, direction)
+    left /= np.linalg.norm(left)
+    matrix = np.eye(4)
+    matrix[:3, 0], matrix[:3, 1], matrix[:3, 2], matrix[:3, 3] = left, np.cross(direction, left), direction, origin
+    return matrix
+
+
+def to_world_matrix(transform: ET.Element, parameters: dict[str, str]) -> np.ndarray:
+    """The (4, 4) float64 matrix of a ``<transform>`` element (steps applied in order: each left-multiplies)."""
+    matrix = np.eye(4)
+    for step in transform:
+        if step.tag == "translate":
+            change = np.eye(4)
+            change[:3, 3] = _vector(step, parameters, 0.0)
+        elif step.tag == "scale":
+            change = np.diag([*_vector(step, parameters, 1.0), 1.0])
+        elif step.tag == "rotate":
+            axis = _vector(step, parameters, 0.0)
+            change = _rotation(axis, _numbers(step.attrib.get("angle"), parameters)[0])
+        elif step.tag == "matrix":
+            values = _numbers(step.attrib.get("value"), parameters)
+            if len(values) == 9:
+                change = np.eye(4)
+                change[:3, :3] = np.reshape(values, (3, 3))
+            elif len(values) == 16:
+                change = np.reshape(values, (4, 4))
+            else:
+                raise _Unsupported(step.attrib.get("value"))
+        elif step.tag == "lookat":
+            change = _look_at(step, parameters)
+        else:
+            raise _Unsupported(step.tag)
+        matrix = change @ matrix
+    return matrix
+
+
+def matrix_value(matrix: np.ndarray) -> str:
+    """A (4, 4) matrix as an XML ``<matrix value>``, each entry in the shortest text that reads back exactly."""
+    return " ".join(repr(float(v)) for v in np.asarray(matrix, dtype=np.float64).ravel())
+
+
+def rebase_xml(text: str, parameters: dict[str, str] | None = None) -> tuple[str, np.ndarray] | None:
+    """Rewrite a scene XML whose elements sit far from the origin into a local frame.
+
+    Args:
+        text: the scene XML.
+        parameters: values of its ``<default>`` parameters given by the caller (they override the file's).
+
+    Returns:
+        ``(xml, origin)``: the rewritten XML and the local origin (3,) m in the world, or None when
+        every top-level ``to_world`` stays within :data:`~mi_lidar.core.frames.NEAR_M` of the origin
+        or uses a step this module does not evaluate (the file is then loaded as written).
+    """
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError:
+        return None  # Mitsuba reports the syntax error with its own words
+    values = {d.attrib["name"]: d.attrib.get("value", "") for d in root.iter("default") if "name" in d.attrib}
+    values.update(parameters or {})
+    placed = []
+    try:
+        for element in root:
+            transform = element.find("transform[@name='to_world']")
+            if element.tag in PLACED and transform is not None:
+                placed.append((transform, to_world_matrix(transform, values)))
+    except (_Unsupported, ValueError, ZeroDivisionError):
+        return None
+    if not placed:
+        return None
+    positions = np.array([matrix[:3, 3] for _, matrix in placed])
+    if np.abs(positions).max() <= NEAR_M:
+        return None
+    origin = local_origin(positions)
+    for transform, matrix in placed:
+        matrix = matrix.copy()
+        matrix[:3, 3] -= origin
+        for step in list(transform):
+            transform.remove(step)
+        ET.SubElement(transform, "matrix", value=matrix_value(matrix))
+    return ET.tostring(root, encoding="unicode"), origin
