@@ -20,6 +20,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_lidar.core.frames import scene_origin
 from mi_lidar.dataset.scenes import Box3D
 from mi_lidar.hybrid.primitives import rotation_z
 from mi_lidar.scene.camera import PinholeCamera
@@ -97,6 +98,7 @@ def hidden_fractions(
 
 def _trace(scene, origin, directions, owner, exit_, instance_of_shape) -> np.ndarray:
     """Per ray: 1 sees its object first, 2 meets it behind other surfaces, 0 crosses its box without meeting it."""
+    origin = origin - scene_origin(scene)  # a georeferenced scene is loaded at a local origin
     verdict = np.zeros(len(directions), np.uint8)
     start = np.zeros(len(directions))
     blocked = np.zeros(len(directions), bool)

@@ -18,6 +18,7 @@ from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
 from mi_lidar.core.elements import ElementTable, registry_id
 from mi_lidar.core.errors import SceneError, SpecError
+from mi_lidar.core.frames import scene_origin
 from mi_lidar.dataset.spec import DatasetSpec, SceneSpec
 from mi_lidar.hybrid.blocks import read_mesh_ply
 from mi_lidar.hybrid.classes import CLASS_ID, CLASS_NAMES
@@ -87,11 +88,15 @@ class SceneInstance:
 
 
 def shape_bounds(scene) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """World bounding box (min (3,), max (3,)) of every shape with an id, m."""
-    bounds = {}
+    """World bounding box (min (3,), max (3,)) of every shape with an id, m (a georeferenced scene's local
+    origin added back)."""
+    bounds, origin = {}, scene_origin(scene)
     for shape in scene.shapes():
         box = shape.bbox()
-        bounds[shape.id()] = (np.array(box.min, dtype=np.float64), np.array(box.max, dtype=np.float64))
+        bounds[shape.id()] = (
+            np.array(box.min, dtype=np.float64) + origin,
+            np.array(box.max, dtype=np.float64) + origin,
+        )
     return bounds
 
 

@@ -18,6 +18,8 @@ from mi_lidar.core.errors import NUMPY_FILE_ERRORS, LogFormatError, unreadable
 from mi_lidar.core.poses import validate_poses
 from mi_lidar.io.signature import check_signature, read_head, sniff
 
+TEXT_RESOLUTION_M = 1e-6  # finest step a written position keeps (m)
+
 
 def _read_text_rows(path: Path, width: int) -> np.ndarray:
     """Rows of ``width`` numbers from a whitespace-separated text file (blank lines skipped)."""
@@ -116,12 +118,17 @@ def read_poses(path: str | os.PathLike) -> np.ndarray:
 def write_kitti_poses(path: str | os.PathLike, poses: np.ndarray) -> Path:
     """Write (S, 4, 4) rigid transforms as a KITTI pose file (12 numbers per line), atomically.
 
+    Numbers carry 10 significant digits (``%.9e``), more where positions are georeferenced, so that
+    every position keeps :data:`TEXT_RESOLUTION_M` (4,000,000 m needs 13 digits).
+
     Raises:
         PoseError: A pose is not a finite rigid transform.
     """
     poses = validate_poses(poses, path)
+    largest = float(np.abs(poses[:, :3, 3]).max())
+    digits = max(9, int(np.ceil(np.log10(max(largest, 1.0) / TEXT_RESOLUTION_M))))
     with atomic_path(path) as tmp:
-        np.savetxt(tmp, poses[:, :3, :].reshape(-1, 12), fmt="%.9e")
+        np.savetxt(tmp, poses[:, :3, :].reshape(-1, 12), fmt=f"%.{digits}e")
     return Path(path)
 
 
