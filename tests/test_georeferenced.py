@@ -301,3 +301,13 @@ def test_a_dataset_in_utm_renders_the_frames_of_the_origin(tmp_path):
         assert a.startswith("Car ") and a == b  # the box seen by the camera, in its frame
     a, b = (np.loadtxt(d / "poses.txt").reshape(-1, 3, 4) for d in (near, far))
     np.testing.assert_allclose(b[:, :, 3] - shift, a[:, :, 3], rtol=0, atol=1e-6)
+
+
+def test_a_utm_cloud_is_not_written_to_a_float32_format(clouds, tmp_path):
+    _, far, _ = clouds
+    result = invoke_at_80(["convert", far, tmp_path / "far.bin"])
+    assert result.exit_code == 2
+    message = " ".join(result.output.split())
+    assert "KITTI .bin stores float32 and the points reach 4,000,030 m; float32 keeps 0.25 m there." in message
+    assert "Write .las, .ply or .pcd" in message
+    assert not (tmp_path / "far.bin").exists()

@@ -15,6 +15,7 @@ import numpy as np
 
 from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import LogFormatError, unreadable
+from mi_lidar.core.frames import check_float32
 from mi_lidar.core.log import Log
 from mi_lidar.io.cloud import check_coordinates, cloud_from_log, log_from_points
 
@@ -137,6 +138,19 @@ def read_bin_log(path: str | os.PathLike, columns: int | None = None, min_range:
 
 
 def write_bin_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
-    """Write the hits of one scan as a KITTI ``.bin`` (x y z intensity; misses cannot be stored)."""
+    """Write the hits of one scan as a KITTI ``.bin`` (x y z intensity; misses cannot be stored).
+
+    Raises:
+        LogFormatError: the points are georeferenced world coordinates (a cloud read at a local origin)
+            that float32 keeps more coarsely than 1 mm.
+    """
     cloud = cloud_from_log(log, scan)
-    return write_kitti_bin(path, np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1), cloud["intensity"])
+    points = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1)
+    check_float32(
+        points,
+        str(path),
+        "KITTI .bin stores float32 and the points",
+        "Write .las, .ply or .pcd, which keep float64 coordinates",
+        LogFormatError,
+    )
+    return write_kitti_bin(path, points, cloud["intensity"])
