@@ -16,6 +16,7 @@ import pytest
 
 import mi_lidar
 from mi_lidar.core.errors import PoseError, SceneError
+from mi_lidar.core.frames import scene_origin
 from mi_lidar.core.problem import score_log
 from mi_lidar.core.rays import LogRays
 from mi_lidar.dataset.run import run_dataset
@@ -311,3 +312,17 @@ def test_a_utm_cloud_is_not_written_to_a_float32_format(clouds, tmp_path):
     assert "KITTI .bin stores float32 and the points reach 4,000,030 m; float32 keeps 0.25 m there." in message
     assert "Write .las, .ply or .pcd" in message
     assert not (tmp_path / "far.bin").exists()
+
+
+def test_a_scene_keeps_its_local_origin_when_its_geometry_is_updated(scene_files):
+    """Calibration moves vertices through mi.traverse; the scene's frame must not change with them."""
+    _, far = scene_files
+    scene = mi_lidar.load_scene(far)
+    origin = scene_origin(scene)
+    np.testing.assert_array_equal(origin, [500008.0, 4000000.0, 101.0])  # rounded centre of the elements' positions
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("vertex_positions"))
+    params[key] = params[key] + 0.5
+    params.update()
+    np.testing.assert_array_equal(scene_origin(scene), origin)
+    assert not scene_origin(mi_lidar.load_scene(SCENES / "offroad.xml")).any()

@@ -8,10 +8,10 @@ once per scene with :func:`local_origin`, applied to geometry and poses alike an
 what is written in world coordinates. Coordinates that cannot be moved (a mesh file's own
 vertices) are checked with :func:`check_float32`, which names the value and the fix.
 
-Loaded scenes carry their origin in a small registry (:func:`set_scene_origin`,
-:func:`scene_origin`): Mitsuba's scene objects take neither attributes nor weak references, so the
-registry keys them by ``id`` and stamps each entry with the scene's bounding box, which a new scene
-at a recycled address would not share.
+Loaded scenes carry their origin themselves (:func:`set_scene_origin`, :func:`scene_origin`): Mitsuba's
+scene objects take neither attributes nor weak references, but they have an ``id`` string, which
+gets a mark ``mi_lidar.origin=x,y,z`` (a table keyed by the object's address would hand a freed
+scene's origin to the next scene allocated there).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ NEAR_M = 1024.0  # coordinates up to this magnitude keep 0.12 mm in float32: no 
 RESOLUTION_M = 1e-3  # coarsest float32 step (m) accepted on coordinates that reach Mitsuba
 COORDINATES_DOC = "docs/coordinates.md"
 
-_SCENE_ORIGINS: dict[int, tuple[tuple, np.ndarray]] = {}  # id(scene) -> (bounding-box stamp, origin)
+ORIGIN_MARK = "mi_lidar.origin="  # in a scene's id: the world position of its local frame
 
 
 def float32_step(magnitude: float) -> float:
@@ -84,23 +84,15 @@ def check_float32(points, source: str, what: str, fix: str, error: type[MiLidarE
         raise error(f"{source}: {what} reach {largest:,.0f} m; float32 keeps {step:.3g} m there. {fix}")
 
 
-def _stamp(scene) -> tuple:
-    box = scene.bbox()
-    return (*(float(v) for v in box.min), *(float(v) for v in box.max), len(scene.shapes()))
-
-
 def set_scene_origin(scene, origin) -> None:
-    """Record that ``scene``'s geometry is in a local frame whose origin is ``origin`` (3,) m in the world."""
+    """Record in ``scene`` that its geometry is in a local frame whose origin is ``origin`` (3,) m in the world."""
     origin = np.asarray(origin, dtype=np.float64).reshape(3)
-    if np.any(origin != 0):
-        _SCENE_ORIGINS[id(scene)] = (_stamp(scene), origin)
-    else:
-        _SCENE_ORIGINS.pop(id(scene), None)
+    own = scene.id().split(ORIGIN_MARK)[0].rstrip()
+    mark = f"{ORIGIN_MARK}{','.join(repr(float(v)) for v in origin)}" if np.any(origin) else ""
+    scene.set_id(" ".join(part for part in (own, mark) if part))
 
 
 def scene_origin(scene) -> np.ndarray:
     """The world position (m, float64 (3,)) of ``scene``'s local frame: zero for a scene in world coordinates."""
-    entry = _SCENE_ORIGINS.get(id(scene))
-    if entry is None or entry[0] != _stamp(scene):
-        return np.zeros(3)
-    return entry[1].copy()
+    _, found, values = scene.id().partition(ORIGIN_MARK)
+    return np.array([float(v) for v in values.split(",")]) if found else np.zeros(3)
