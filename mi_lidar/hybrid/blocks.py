@@ -26,7 +26,7 @@ from mi_lidar.core.patterns import to_table
 from mi_lidar.core.patterns.from_log import pattern_from_log
 from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
 from mi_lidar.scene.files import ShapeEntry, write_ellipsoids_ply, write_mesh_ply, write_scene_xml
-from mi_lidar.scene.rebase import matrix_value, to_world_matrix
+from mi_lidar.scene.rebase import UnsupportedTransform, matrix_value, to_world_matrix
 
 
 @dataclass
@@ -214,7 +214,10 @@ def read_scene(xml_path) -> HybridModel:
     for b, shape in enumerate(root.iter("shape")):
         transform = shape.find("transform[@name='to_world']")
         if transform is not None:  # the local origin of a georeferenced scene (write_scene's translation)
-            origin = to_world_matrix(transform, {})[:3, 3]
+            try:
+                origin = to_world_matrix(transform, {})[:3, 3]
+            except UnsupportedTransform as exc:
+                raise SceneError(f"{xml_path}: shape {shape.get('id')!r}: {exc}") from exc
         fname = next((s.get("value") for s in shape.iter("string") if s.get("name") == "filename"), None)
         if fname is None:
             raise SceneError(f"{xml_path}: shape {shape.get('id')!r} has no filename")

@@ -20,23 +20,24 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
+from mi_lidar.core.errors import SceneError
 from mi_lidar.core.frames import NEAR_M, local_origin
 
 PLACED = ("shape", "sensor", "emitter")  # top-level elements whose to_world is moved to the local frame
 
 
-class _Unsupported(Exception):
-    """A transform step this module does not evaluate (the file is then loaded as written)."""
+class UnsupportedTransform(SceneError):
+    """A ``to_world`` step this module does not evaluate (:func:`rebase_xml` then loads the file as written)."""
 
 
 def _numbers(text: str | None, parameters: dict[str, str]) -> list[float]:
     if text is None:
-        raise _Unsupported("missing value")
+        raise UnsupportedTransform("to_world: a transform step lacks a value; give its numbers")
     text = re.sub(r"\$(\w+)", lambda m: parameters.get(m.group(1), m.group(0)), text)
     try:
         return [float(v) for v in text.replace(",", " ").split()]
     except ValueError as exc:
-        raise _Unsupported(text) from exc
+        raise UnsupportedTransform(f"to_world: {text!r} is not a list of numbers") from exc
 
 
 def _vector(step: ET.Element, parameters: dict[str, str], default: float, name: str = "value") -> np.ndarray:
@@ -46,7 +47,7 @@ def _vector(step: ET.Element, parameters: dict[str, str], default: float, name: 
         if len(values) == 1:
             values *= 3
         if len(values) != 3:
-            raise _Unsupported(step.attrib[name])
+            raise UnsupportedTransform(f"to_world: {step.attrib[name]!r} has not 1 or 3 numbers")
         return np.array(values)
     return np.array([_numbers(step.attrib.get(axis, str(default)), parameters)[0] for axis in "xyz"])
 
@@ -73,7 +74,11 @@ def _look_at(step: ET.Element, parameters: dict[str, str]) -> np.ndarray:
 
 
 def to_world_matrix(transform: ET.Element, parameters: dict[str, str]) -> np.ndarray:
-    """The (4, 4) float64 matrix of a ``<transform>`` element (steps applied in order: each left-multiplies)."""
+    """The (4, 4) float64 matrix of a ``<transform>`` element (steps applied in order: each left-multiplies).
+
+    Raises:
+        UnsupportedTransform: a step other than those of the module docstring, or a value that is not numbers.
+    """
     matrix = np.eye(4)
     for step in transform:
         if step.tag == "translate":
@@ -92,11 +97,13 @@ def to_world_matrix(transform: ET.Element, parameters: dict[str, str]) -> np.nda
             elif len(values) == 16:
                 change = np.reshape(values, (4, 4))
             else:
-                raise _Unsupported(step.attrib.get("value"))
+                raise UnsupportedTransform(f"to_world: matrix {step.attrib.get('value')!r} has not 9 or 16 numbers")
         elif step.tag == "lookat":
             change = _look_at(step, parameters)
         else:
-            raise _Unsupported(step.tag)
+            raise UnsupportedTransform(
+                f"to_world: step <{step.tag}> is not one of translate, scale, rotate, matrix, lookat"
+            )
         matrix = change @ matrix
     return matrix
 
@@ -130,7 +137,7 @@ def rebase_xml(text: str, parameters: dict[str, str] | None = None) -> tuple[str
             transform = element.find("transform[@name='to_world']")
             if element.tag in PLACED and transform is not None:
                 placed.append((transform, to_world_matrix(transform, values)))
-    except (_Unsupported, ValueError, ZeroDivisionError):
+    except (UnsupportedTransform, ValueError, ZeroDivisionError):
         return None
     if not placed:
         return None
