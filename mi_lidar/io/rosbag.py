@@ -115,6 +115,8 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
         path = path.parent
     if not path.exists():
         raise LogFormatError(f"{path}: no such ROS bag")
+    if path.is_dir():
+        path = _BagFolder(path)
     logs, poses = [], []
     try:
         with AnyReader([path], default_typestore=_typestore()) as reader:
@@ -169,6 +171,16 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
     if sensor is not None:
         log.sensor = sensor
     return log
+
+
+class _BagFolder(type(Path())):  # type: ignore[misc]
+    """A ROS 2 bag folder, whatever its name: rosbags' ``AnyReader`` takes every ``*.bag`` path for a ROS 1 file,
+    so a folder ``drive.bag`` (which :func:`write_rosbag_log` writes for ``convert log.npz drive.bag``) read as
+    "Is a directory"."""
+
+    @property
+    def suffix(self) -> str:
+        return ""
 
 
 def _read_sensor_info(reader, path: Path, topic: str) -> dict | None:

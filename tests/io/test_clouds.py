@@ -191,6 +191,16 @@ def test_rosbag_round_trip_keeps_poses_and_attributes(tmp_path):
     assert back.attributes["label"].dtype == np.int32 and back.attributes["valid"].dtype == bool
 
 
+def test_a_bag_folder_named_dot_bag_reads_back(tmp_path):
+    """``convert log.npz drive.bag`` writes a ROS 2 bag folder called ``drive.bag``; reading it failed with
+    "Could not open file 'drive.bag': Is a directory" (rosbags takes every ``*.bag`` for a ROS 1 file)."""
+    log = synthetic_log(scans=2)
+    path = write_any(log, tmp_path / "drive.bag")
+    assert path.is_dir()
+    back = read_any(path)
+    np.testing.assert_allclose(back.points_world()[log.hit], log.points_world()[log.hit], atol=1e-4)
+
+
 @pytest.mark.parametrize("per_scan", [False, True])
 def test_rosbag_round_trip_keeps_the_sensor_metadata_and_ray_origins(tmp_path, per_scan):
     """The bag carried neither: read back, ``sensor`` was only the topic, bag and frame, and every ray started at
