@@ -27,6 +27,7 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.fitting import lookup
 
 
 @dataclass(frozen=True)
@@ -145,14 +146,20 @@ class Parametrized:
         return float(scale(self) if callable(scale) else scale)
 
     def per_beam(self, key: str, beam: mi.UInt32) -> mi.Float:
-        """Value of per-beam parameter ``key`` for each lane's beam (the last value repeats)."""
+        """Value of per-beam parameter ``key`` for each lane's beam (the last value repeats).
+
+        Read by :func:`~mi_lidar.core.fitting.lookup`, so its gradient in a fit is the same in every run.
+        """
         values = self.params[key]
-        return dr.gather(mi.Float, values, dr.minimum(beam, dr.width(values) - 1))
+        return lookup(values, dr.minimum(beam, dr.width(values) - 1))
 
     def per_label(self, key: str, label: mi.UInt32) -> mi.Float:
-        """Value of per-label parameter ``key`` for each lane's label (the last value repeats)."""
+        """Value of per-label parameter ``key`` for each lane's label (the last value repeats).
+
+        Read by :func:`~mi_lidar.core.fitting.lookup`, so its gradient in a fit is the same in every run.
+        """
         values = self.params[key]
-        return dr.gather(mi.Float, values, dr.minimum(label, dr.width(values) - 1))
+        return lookup(values, dr.minimum(label, dr.width(values) - 1))
 
     def parameters(self) -> dict[str, mi.Float]:
         """Named parameters (Dr.Jit arrays) for traversal and fitting."""

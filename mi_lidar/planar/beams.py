@@ -29,7 +29,7 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.elements import ElementTable
-from mi_lidar.core.fitting import FitVariable, adam_fit
+from mi_lidar.core.fitting import FitVariable, adam_fit, lookup
 from mi_lidar.core.likelihood import mixture_log_likelihood, score
 from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import RayBatch
@@ -331,7 +331,7 @@ def fit_permeability(
 
     def objective(values, step: int) -> float:
         v = values()
-        a, b = dr.gather(mi.Float, v["a"], occupied), dr.gather(mi.Float, v["b"], occupied)
+        a, b = lookup(v["a"], occupied), lookup(v["b"], occupied)  # per class, with reproducible gradients
         table = beams.table.replaced(p_hit=permeability(hits, passes, a, b))
         raw = mixture_log_likelihood(table, model, beams.rays, batch, beams.z, beams.hit)
         loss = -dr.mean(score(raw, beams.hit))
