@@ -29,6 +29,7 @@ from mi_lidar.core.arrays import aligned
 from mi_lidar.core.densities.base import ESCAPE, ReturnDensity, escape_segment, register_density, uniform_window
 from mi_lidar.core.densities.tables import StateGrid
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.fitting import lookup
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import (
@@ -130,14 +131,14 @@ class BeamDensity(ReturnDensity):
 
     def weights(self, state: mi.UInt32) -> list[mi.Float]:
         """Softmax weights (hit, short, max, random) of each lane's state."""
-        logits = [dr.gather(mi.Float, self["logits"], 4 * state + c) for c in range(4)]
+        logits = [lookup(self["logits"], 4 * state + c) for c in range(4)]
         top = dr.maximum(dr.maximum(logits[0], logits[1]), dr.maximum(logits[2], logits[3]))
         exps = [dr.exp(v - top) for v in logits]
         total = exps[0] + exps[1] + exps[2] + exps[3]
         return [v / total for v in exps]
 
     def _rate(self, state: mi.UInt32) -> mi.Float:
-        return dr.exp(dr.gather(mi.Float, self["log_lambda"], state))
+        return dr.exp(lookup(self["log_lambda"], state))
 
     # ------------------------------------------------------------------ density interface
     def prepare(self, seg: Segment, rays: RayBatch) -> Segment:
@@ -145,7 +146,7 @@ class BeamDensity(ReturnDensity):
         w_hit, _, w_max, _ = self.weights(state)
         escape = seg.kind == ESCAPE
         lost = dr.select(escape, w_hit + w_max, w_max)
-        sigma = dr.exp(dr.gather(mi.Float, self["log_sigma"], state))
+        sigma = dr.exp(lookup(self["log_sigma"], state))
         surface = seg.kind != ELLIPSOID
         return seg.with_(
             drop=dr.select(surface, 1.0 - (1.0 - seg.drop) * (1.0 - lost), seg.drop),
