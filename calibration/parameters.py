@@ -292,7 +292,7 @@ class ParameterSpace:
             array_name, index = par.target
             array = arrays.get(array_name, getattr(self.table, array_name))
             if par.family == "class_sigma":
-                array = dr.select(index, dr.gather(mi.Float, value, dr.zeros(mi.UInt32, dr.width(array))), array)
+                array = dr.select(index, value, array)  # a broadcast: its gradient is a sum over fixed blocks
             else:
                 array = mi.Float(array)
                 dr.scatter(array, value, index)
