@@ -387,8 +387,8 @@ def adam_fit(
         """The objective at ``step``, its gradient carried through ``T^-1`` to Adam's state."""
         state = {v.name: dr.detach(opt[v.name]) for v in variables}
         total, gradients = natural_gradient(variables, objective, step, state)
-        for v in variables:
-            dr.backward(v.natural(opt[v.name]) * gradients[v.name])
+        for v in variables:  # a variable the loss does not depend on (a zero gradient) gets a zero step
+            dr.backward(v.natural(opt[v.name]) * gradients[v.name], flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
         return total
 
     def snapshot() -> dict[str, np.ndarray]:

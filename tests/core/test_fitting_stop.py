@@ -54,3 +54,11 @@ def test_a_logit_variable_starting_on_its_bound_fits_a_bernoulli_rate():
 
     fit = adam_fit([variable], objective, 300)
     np.testing.assert_allclose(fit.values["p"], rate, atol=2e-3)
+
+
+def test_a_variable_the_loss_does_not_read_keeps_its_value():
+    """A fit of two variables whose loss reads only ``x``: ``y`` gets no gradient, so it must stay where it
+    starts (the fitter's chain through ``T^-1`` raised "does not depend on the input variables" there)."""
+    variables = [FitVariable("x", np.array([0.0]), scale=0.1), FitVariable("y", np.array([0.3]), scale=0.1)]
+    fit = adam_fit(variables, quadratic(2.0), 30)
+    assert fit.values["y"][0] == np.float32(0.3) and fit.values["x"][0] > 0.3  # x moves about 0.5 in 30 steps
