@@ -197,20 +197,6 @@ def lookup(values: mi.Float, index: mi.UInt32, active: mi.Bool | bool = True) ->
     return tape.lanes[key]
 
 
-def fixed_point_sum(values: mi.Float, index: mi.UInt32, active: mi.Bool | bool, size: int) -> mi.Float:
-    """``out[index[i]] += values[i]`` over the lanes, in the same bits whatever the order of the additions.
-
-    See :func:`fixed_point_sums` (this is one group of one part).
-
-    Args:
-        values: (N,) lane values.
-        index: (N,) target of each lane, in ``[0, size)``.
-        active: lanes that add.
-        size: length of the result.
-    """
-    return fixed_point_sums({"": ([(values, index, mi.Bool(active))], size)})[""]
-
-
 def fixed_point_sums(groups: dict[str, tuple[list[tuple[mi.Float, mi.UInt32, mi.Bool]], int]]) -> dict[str, mi.Float]:
     """Scatter-add sums that are the same bits on any thread schedule and thread count.
 

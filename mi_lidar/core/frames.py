@@ -65,6 +65,11 @@ def shift_poses(poses: np.ndarray, offset) -> np.ndarray:
     return shifted
 
 
+def needs_float64(points) -> bool:
+    """Whether float32 keeps coordinates ``points`` (m, any shape) more coarsely than :data:`RESOLUTION_M`."""
+    return float32_step(max_magnitude(points)) > RESOLUTION_M
+
+
 def check_float32(points, source: str, what: str, fix: str, error: type[MiLidarError]) -> None:
     """Refuse coordinates that float32 keeps more coarsely than :data:`RESOLUTION_M`.
 
@@ -78,9 +83,9 @@ def check_float32(points, source: str, what: str, fix: str, error: type[MiLidarE
     Raises:
         error: e.g. ``scene.xml: vertex coordinates reach 4,000,123 m; float32 keeps 0.25 m there. <fix>``.
     """
-    largest = max_magnitude(points)
-    step = float32_step(largest)
-    if step > RESOLUTION_M:
+    if needs_float64(points):
+        largest = max_magnitude(points)
+        step = float32_step(largest)
         raise error(f"{source}: {what} reach {largest:,.0f} m; float32 keeps {step:.3g} m there. {fix}")
 
 

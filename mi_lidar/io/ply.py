@@ -17,7 +17,7 @@ import plyfile
 
 from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import LogFormatError, unreadable
-from mi_lidar.core.frames import RESOLUTION_M, float32_step, max_magnitude
+from mi_lidar.core.frames import needs_float64
 from mi_lidar.core.log import Log
 from mi_lidar.io.cloud import cloud_from_log, log_from_fields
 
@@ -69,7 +69,7 @@ def write_ply(
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"write_ply: points have shape {points.shape}; expected (N, 3)")
     attributes = dict(attributes or {})
-    far = points.dtype == np.float64 and float32_step(max_magnitude(points)) > RESOLUTION_M
+    far = points.dtype == np.float64 and needs_float64(points)
     fields = [(c, "f8" if far else "f4") for c in _COORDS]
     for name, values in attributes.items():
         values = np.asarray(values)

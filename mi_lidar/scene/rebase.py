@@ -21,7 +21,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from mi_lidar.core.errors import SceneError
-from mi_lidar.core.frames import NEAR_M, local_origin
+from mi_lidar.core.frames import local_origin
 
 PLACED = ("shape", "sensor", "emitter")  # top-level elements whose to_world is moved to the local frame
 
@@ -141,10 +141,9 @@ def rebase_xml(text: str, parameters: dict[str, str] | None = None) -> tuple[str
         return None
     if not placed:
         return None
-    positions = np.array([matrix[:3, 3] for _, matrix in placed])
-    if np.abs(positions).max() <= NEAR_M:
+    origin = local_origin(np.array([matrix[:3, 3] for _, matrix in placed]))
+    if not np.any(origin):  # every element within NEAR_M of the origin
         return None
-    origin = local_origin(positions)
     for transform, matrix in placed:
         matrix = matrix.copy()
         matrix[:3, 3] -= origin

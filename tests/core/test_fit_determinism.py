@@ -21,7 +21,7 @@ from mi_lidar.core.arrays import aligned
 from mi_lidar.core.densities import BeamDensity
 from mi_lidar.core.effects.range_bias import RangeBias
 from mi_lidar.core.elements import ElementTable
-from mi_lidar.core.fitting import FitVariable, fixed_point_sum, lookup, natural_gradient
+from mi_lidar.core.fitting import FitVariable, fixed_point_sums, lookup, natural_gradient
 from mi_lidar.core.problem import Problem, fit_parts
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.sensor_model import SensorModel
@@ -85,6 +85,11 @@ def test_the_fit_still_finds_the_bias_of_the_biased_beam():
     assert bias[3] - np.mean(others) > 0.01  # beam 3 reads 2 cm long
 
 
+def fixed_point_sum(values: mi.Float, index: mi.UInt32, size: int) -> mi.Float:
+    """``out[index[i]] += values[i]`` by :func:`fixed_point_sums` (one group of one part, every lane)."""
+    return fixed_point_sums({"": ([(values, index, mi.Bool(True))], size)})[""]
+
+
 def test_fixed_point_sums_match_float64_sums_in_any_lane_order():
     rng = np.random.default_rng(2)
     values = (rng.standard_normal(100_000) * np.exp(rng.uniform(-20.0, 5.0, 100_000))).astype(np.float32)
@@ -92,14 +97,14 @@ def test_fixed_point_sums_match_float64_sums_in_any_lane_order():
     exact = np.bincount(index, weights=values.astype(np.float64), minlength=5)
     sums = []
     for order in (np.arange(index.size), rng.permutation(index.size)):
-        total = fixed_point_sum(mi.Float(values[order]), mi.UInt32(index[order].astype(np.uint32)), True, 5)
+        total = fixed_point_sum(mi.Float(values[order]), mi.UInt32(index[order].astype(np.uint32)), 5)
         sums.append(np.asarray(total))
     assert sums[0].tobytes() == sums[1].tobytes()
     np.testing.assert_allclose(sums[0], exact, rtol=2e-7, atol=1e-9 * np.abs(values).max())
 
 
 def test_a_non_finite_lane_makes_the_sums_nan():
-    total = fixed_point_sum(mi.Float([1.0, np.inf, 2.0]), mi.UInt32([0, 1, 0]), True, 2)
+    total = fixed_point_sum(mi.Float([1.0, np.inf, 2.0]), mi.UInt32([0, 1, 0]), 2)
     assert np.all(np.isnan(np.asarray(total)))
 
 
