@@ -44,6 +44,7 @@ from mi_lidar.core.segment import (
     ray_restricted_gaussian,
     rotate_inverse,
 )
+from mi_lidar.core.trace import mitsuba_ray_length
 
 ELLIPSOID_STRIDE = 10  # floats per ellipsoid in Mitsuba's `data`: center, scale, quaternion
 
@@ -101,6 +102,17 @@ def _per_element(shape, params, name: str, count: int, ellipsoids: bool) -> np.n
     return values
 
 
+def scene_ray_length(scene) -> float:
+    """:func:`~mi_lidar.core.trace.mitsuba_ray_length` of the ellipsoids of a loaded scene, m (1 without)."""
+    sizes = [np.zeros((0, 3))]
+    for shape in scene.shapes():
+        params = mi.traverse(shape)
+        if _is_ellipsoids(params):
+            data = np.asarray(params["data"], np.float64).reshape(-1, ELLIPSOID_STRIDE)
+            sizes.append(data[:, 3:6] * float(params["extent"]))
+    return mitsuba_ray_length(np.concatenate(sizes))
+
+
 @dataclass
 class ElementTable:
     """Flat per-element arrays of a scene (see the module docstring).
@@ -126,6 +138,8 @@ class ElementTable:
         is_triangle: per element, True for triangles of meshes with editable vertices.
         vertex_offset: per shape, index of its first vertex in ``vertex_positions`` (-1 if not a mesh).
         vertex_counts: per shape, vertex count (0 if not a mesh).
+        ray_length: length of the ray directions handed to Mitsuba, m
+            (:func:`~mi_lidar.core.trace.mitsuba_ray_length`: 1 without ellipsoids).
         smoothing: > 0 while fitting ellipsoid geometry: ellipsoids return with the soft silhouette
             of :mod:`~mi_lidar.core.smoothing` (sigmas of the element); 0 is the exact model.
     """
@@ -149,6 +163,7 @@ class ElementTable:
     is_triangle: mi.Bool
     vertex_offset: list
     vertex_counts: list
+    ray_length: float = 1.0
     smoothing: float = 0.0
 
     @property
@@ -258,6 +273,7 @@ class ElementTable:
             is_triangle=mi.Bool(np.concatenate(triangle)),
             vertex_offset=vertex_offset,
             vertex_counts=vertex_counts,
+            ray_length=scene_ray_length(scene),
         )
 
     @classmethod
@@ -340,6 +356,23 @@ class ElementTable:
         quat = dr.select(active, mi.Vector4f(*data[6:10]), mi.Vector4f(0, 0, 0, 1))
         return center, scale, quat, dr.gather(mi.Float, self.ellipsoid_extent, e, active)
 
+    def ellipsoid_entry(self, element: mi.UInt32, valid: mi.Bool, origin, direction):
+        """Where rays ``(origin, direction)`` enter the traced surfaces of the ellipsoids they met: ``(inside, entry)``.
+
+        The traced surface is the element's at ``extent`` sigmas, widened by the margin of
+        :mod:`~mi_lidar.core.smoothing` while ``smoothing`` > 0 (the scene then holds inflated
+        ellipsoids). ``inside`` marks the lanes where ``element`` is an ellipsoid and the ray passes
+        inside that surface; ``entry`` is there in m from ``origin``.
+        """
+        from mi_lidar.core.smoothing import REACH
+
+        is_ellipsoid = valid & (dr.gather(mi.UInt32, self.kind, element, valid) == ELLIPSOID)
+        center, scale, quat, extent = self._ellipsoid(element, is_ellipsoid)
+        if self.smoothing > 0:  # a kernel input: annealing does not recompile
+            extent = extent + dr.opaque(mi.Float, REACH * self.smoothing)
+        _, _, lo, hi = ray_restricted_gaussian(center, scale, quat, extent, origin, direction)
+        return is_ellipsoid & (hi > lo), lo
+
     # ------------------------------------------------------------------ segments
     def traced_segment(self, si, valid, element, origin, direction, default_sigma: float) -> Segment:
         """The :class:`Segment` of Mitsuba intersections ``si`` of rays ``(origin, direction)`` (sampler).
@@ -355,9 +388,10 @@ class ElementTable:
         nominal = dr.dot(si.p - origin, direction)
         values = self._properties(element, valid, default_sigma)
         is_ellipsoid = valid & (values.kind == ELLIPSOID)
-        if self.has_ellipsoids:
+        if self.has_ellipsoids:  # the range of an ellipsoid is its chord's entry, as in :meth:`segment`
             center, scale, quat, extent = self._ellipsoid(element, is_ellipsoid)
             restricted = ray_restricted_gaussian(center, scale, quat, extent, origin, direction)
+            nominal = dr.select(is_ellipsoid, restricted[2], nominal)
         else:  # no lane is an ellipsoid: skip their gathers (every lane selects the surface values)
             restricted = (nominal, values.sigma, nominal, nominal)
         corner = (None, None)

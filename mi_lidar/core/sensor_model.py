@@ -33,7 +33,7 @@ from mi_lidar.core.intensity import IntensityModel
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment, sample_range
 from mi_lidar.core.streams import MAX_UNIFORM, NeighbourStreams, uniform, uniforms
-from mi_lidar.core.trace import RESTART_OFFSET, next_hit
+from mi_lidar.core.trace import RESTART_OFFSET, mitsuba_ray, next_hit
 
 NO_ELEMENT = 0xFFFFFFFF
 VIRTUAL_SEGMENT = 1000  # random-stream segment index of the first virtual element
@@ -301,7 +301,8 @@ class SensorModel:
             dr.eval(end)
 
         # ---------------- Draw the range at the element that returned the beam ----------------
-        si = end.hit.compute_surface_interaction(mi.Ray3f(end.start, rays.direction), mi.RayFlags.Minimal, end.returned)
+        ray = mitsuba_ray(table, end.start, rays.direction)
+        si = end.hit.compute_surface_interaction(ray, mi.RayFlags.Minimal, end.returned)
         seg = table.traced_segment(si, end.returned, end.element, rays.origin, rays.direction, self.range_sigma)
         seg = self.apply_effects(seg, rays)
         z = self.density.sample(seg, uniforms(seed, rays.ray_id, end.segments - 1), rays)
@@ -348,7 +349,7 @@ class SensorModel:
         def meet_element(k, going, start, end):
             # ---------------- Trace the next element (its surface details wait for the return) --------
             pi, point, valid, element = next_hit(scene, table, start, origin, direction, self.max_range, going)
-            si = pi.compute_surface_interaction(mi.Ray3f(start, direction), mi.RayFlags.Minimal, valid)
+            si = pi.compute_surface_interaction(mitsuba_ray(table, start, direction), mi.RayFlags.Minimal, valid)
             seg = table.traced_segment(si, valid, element, origin, direction, self.range_sigma)
             seg = self.apply_effects(seg, rays)  # only p and drop are used here: the rest is not compiled
 

@@ -20,6 +20,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_lidar.core.elements import scene_ray_length
 from mi_lidar.core.frames import scene_origin
 from mi_lidar.dataset.scenes import Box3D
 from mi_lidar.hybrid.primitives import rotation_z
@@ -99,6 +100,7 @@ def hidden_fractions(
 def _trace(scene, origin, directions, owner, exit_, instance_of_shape) -> np.ndarray:
     """Per ray: 1 sees its object first, 2 meets it behind other surfaces, 0 crosses its box without meeting it."""
     origin = origin - scene_origin(scene)  # a georeferenced scene is loaded at a local origin
+    length = scene_ray_length(scene)  # Mitsuba's distances are in units of it
     verdict = np.zeros(len(directions), np.uint8)
     start = np.zeros(len(directions))
     blocked = np.zeros(len(directions), bool)
@@ -108,10 +110,10 @@ def _trace(scene, origin, directions, owner, exit_, instance_of_shape) -> np.nda
         if not len(index):
             break
         d = directions[index]
-        ray = mi.Ray3f(mi.Point3f(*(origin + d * start[index, None]).T), mi.Vector3f(*d.T))
+        ray = mi.Ray3f(mi.Point3f(*(origin + d * start[index, None]).T), mi.Vector3f(*(d * length).T))
         si = scene.ray_intersect(ray, mi.RayFlags.Minimal, True)
         valid = np.asarray(si.is_valid())
-        distance = start[index] + np.where(valid, np.asarray(si.t), np.inf)
+        distance = start[index] + np.where(valid, np.asarray(si.t) * length, np.inf)
         shape = np.asarray(dr.reinterpret_array(mi.UInt32, si.shape)).astype(np.int64)
         instance = instance_of_shape[np.where(valid, shape, 0)]  # registry id 0: no shape
         inside = distance <= exit_[index]

@@ -11,6 +11,8 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
+from mi_lidar.core.elements import scene_ray_length
+
 
 def mesh_scene(vertices: np.ndarray, faces: np.ndarray):
     """A Mitsuba scene holding one triangle mesh.
@@ -59,10 +61,11 @@ def intersect(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.nd
         ``t`` (N,) float64 distance along the ray, m (inf for a miss) and ``prim`` (N,) int64
         primitive index (-1 for a miss).
     """
+    length = scene_ray_length(scene)  # Mitsuba's distances are in units of it
     o = mi.Point3f(np.ascontiguousarray(np.asarray(origins, np.float32).T))
-    d = mi.Vector3f(np.ascontiguousarray(np.asarray(directions, np.float32).T))
+    d = mi.Vector3f(np.ascontiguousarray(np.asarray(directions, np.float32).T)) * length
     si = scene.ray_intersect(mi.Ray3f(o, d), mi.RayFlags.Minimal, True)
     valid = np.array(si.is_valid(), bool)
-    t = np.where(valid, np.array(si.t, np.float64), np.inf)
+    t = np.where(valid, np.array(si.t, np.float64) * length, np.inf)
     prim = np.where(valid, np.array(si.prim_index, np.int64), -1)
     return t, prim

@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import drjit as dr
-import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.elements import ElementTable
@@ -31,6 +30,7 @@ from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import LogRays, world_rays
 from mi_lidar.core.segment import ELLIPSOID
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.core.trace import next_intersection
 
 BREAKDOWNS = ("range", "incidence", "beam", "azimuth", "time", "element_type", "label", "shape")
 NO_ELEMENT_GROUP = "none"
@@ -76,10 +76,9 @@ def first_elements(scene, table: ElementTable, problem: Problem, model: SensorMo
         batch, _, _ = problem.rays.batch(problem.index[first : first + (1 << 20)])
         batch = model.prepare_rays(batch)
         with dr.suspend_grad():
-            si = scene.ray_intersect(mi.Ray3f(batch.origin, batch.direction), mi.RayFlags.Minimal, True)
-            nominal = dr.dot(si.p - batch.origin, batch.direction)
-            valid = si.is_valid() & (nominal <= model.max_range)
-            element = dr.select(valid, table.element_of(si), 0)
+            si, valid, element = next_intersection(
+                scene, table, batch.origin, batch.origin, batch.direction, model.max_range
+            )
             seg = table.traced_segment(si, valid, element, batch.origin, batch.direction, model.range_sigma)
         ok = np.asarray(valid)
         out["nominal"].append(np.where(ok, np.asarray(seg.nominal), np.nan))
