@@ -11,6 +11,7 @@ batches would recompile the same likelihood kernels at random.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import drjit as dr
 import mitsuba as mi
@@ -41,7 +42,8 @@ class RayBatch:
         origin: ray origins in the world frame, m.
         direction: unit ray directions in the world frame.
         beam: beam (range-image row) index of each ray.
-        time: timestamp of each ray, s.
+        time: time of each ray since the start of its sweep (its scan's first ray, the time of the
+            scan's pose), s: small, so float32 keeps microseconds in logs of any length.
         ray_id: unique index of each ray (keys the random streams).
         sensor_rotation: optional sensor-to-world rotation of each ray's sensor pose (effects
             that act in the sensor frame, such as beam angle offsets and extrinsics, use it;
@@ -109,7 +111,8 @@ class LogRays:
     Attributes:
         log: the log.
         scan, beam, column: (N,) indices of each ray in the (S, H, W) grid.
-        time: (N,) ray timestamps, s (relative to the first ray of the log, or absolute).
+        time: (N,) ray timestamps, s (relative to the first ray of the log, or absolute); the
+            :class:`RayBatch` of :meth:`batch` gets the time since each ray's sweep start instead.
         measured: (N,) measured range, m (NaN for a miss).
         hit: (N,) True where the sensor reported a return.
         intensity: optional (N,) measured intensities (sensor units, NaN for a miss) that the
@@ -163,6 +166,11 @@ class LogRays:
             origin=np.zeros(3) if scene is None else scene_origin(scene),
         )
 
+    @cached_property
+    def _sweep_start(self) -> np.ndarray:
+        """(S,) absolute timestamp of each scan's first ray, s (the time of its pose), float64."""
+        return self.log.times.reshape(self.log.shape[0], -1).min(axis=1)
+
     @property
     def n(self) -> int:
         """Number of rays."""
@@ -192,7 +200,7 @@ class LogRays:
             origin=mi.Point3f(*floats(origin.T)),
             direction=dr.normalize(mi.Vector3f(*floats(direction.T))),
             beam=mi.UInt32(aligned(beam.astype(np.uint32))),
-            time=mi.Float(aligned(self.time[index].astype(np.float32))),
+            time=mi.Float(aligned((log.times[scan, beam, column] - self._sweep_start[scan]).astype(np.float32))),
             ray_id=mi.UInt32(aligned(index.astype(np.uint32))),
             sensor_rotation=mi.Matrix3f(*floats(rotation.reshape(-1, 9).T)),
             sensor_position=mi.Point3f(*floats(position.T)),

@@ -147,7 +147,7 @@ def simulate(
         rays = RayBatch(
             *world_rays(local_o, local_d, entries, dr.tile(ray_in_scan, len(batch))),
             beam=dr.tile(beam, len(batch)),
-            time=mi.Float(aligned(np.concatenate([rel_time + scan_times[s] for s in batch]).astype(np.float32))),
+            time=mi.Float(aligned(np.tile(rel_time, len(batch)).astype(np.float32))),  # since the sweep start
             ray_id=dr.arange(mi.UInt32, batch.start * n, batch.stop * n),
             sensor_rotation=mi.Matrix3f(*(entries[4 * i + j] for i in range(3) for j in range(3))),
             sensor_position=mi.Point3f(entries[3], entries[7], entries[11]),

@@ -27,9 +27,11 @@ class MotionDistortion(Effect):
     leaves from the pose moved by the linear velocity ``(vx, vy, vz)`` (m/s) and turned by the
     angular velocity ``(wx, wy, wz)`` (rad/s), both in the sensor frame at sweep start:
     ``o' = p + R (v dt + Rot(w dt) R^T (o - p))`` and ``d' = R Rot(w dt) R^T d``.
-    ``dt = time mod period``: sweeps start at multiples of ``period`` (s), as
-    :func:`mi_lidar.simulate` times them. The six velocities are differentiable; ``period`` is
-    fixed.
+    ``dt`` is the ray's time since its sweep start (:attr:`~mi_lidar.core.rays.RayBatch.time`,
+    whatever the scans' start times, so real logs whose sweeps drift against a fixed period are
+    right), wrapped by ``period`` (s) for scans that hold several sweeps. Rays of a log without
+    per-ray times (one timestamp per scan, as in CARMEN logs) have ``dt = 0``: no distortion. The
+    six velocities are differentiable; ``period`` is fixed.
 
     Example: ``motion_distortion(vx=10, wz=0.5, period=0.1)`` (10 m/s forward, turning left).
     """
@@ -53,7 +55,7 @@ class MotionDistortion(Effect):
 
     def perturb_rays(self, rays: RayBatch) -> RayBatch:
         period = self["period"]
-        dt = rays.time - dr.floor(rays.time / period + 1e-5) * period  # 1e-5: float32 sweep starts
+        dt = rays.time - dr.floor(rays.time / period + 1e-5) * period  # 1e-5: a float32 time of one period
         rotation, position = rays.sensor_frame()
         turn = mi.Vector3f(self["wx"], self["wy"], self["wz"]) * dt
         shift = mi.Vector3f(self["vx"], self["vy"], self["vz"]) * dt
