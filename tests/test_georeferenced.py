@@ -5,6 +5,7 @@ off by decimetres. Each test runs one job twice, at the origin and translated by
 compares; an input that cannot be made right must be refused with a message naming the value.
 """
 
+import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -312,6 +313,34 @@ def test_a_utm_cloud_is_not_written_to_a_float32_format(clouds, tmp_path):
     assert "KITTI .bin stores float32 and the points reach 4,000,030 m; float32 keeps 0.25 m there." in message
     assert "Write .las, .ply or .pcd" in message
     assert not (tmp_path / "far.bin").exists()
+
+
+def write_float32_ply(path: Path, points: np.ndarray) -> Path:
+    vertex = np.empty(len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    vertex["x"], vertex["y"], vertex["z"] = points.T
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")]).write(str(path))
+    return path
+
+
+def test_a_utm_cloud_stored_in_float32_reads_with_a_warning(clouds, tmp_path):
+    """A file that kept UTM coordinates in float32 already lost them to 0.25-0.5 m: the reader says so (the
+    points are still read), and the CLI prints it as one warning line. Doubles, or float32 near the origin,
+    read silently."""
+    from mi_lidar.core.errors import CoarseCoordinatesWarning
+
+    _, _, points = clouds
+    coarse = write_float32_ply(tmp_path / "utm32.ply", points + OFFSET)
+    with pytest.warns(CoarseCoordinatesWarning, match=r"float32 coordinates reach 4,000,0\d\d m; float32 keeps 0.25 m"):
+        log = read_any(coarse)
+    assert log.hit.sum() == len(points)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CoarseCoordinatesWarning)
+        read_any(write_float32_ply(tmp_path / "near32.ply", points))
+        read_any(write_any(log, tmp_path / "utm64.ply"))  # written back with double coordinates
+    result = invoke_at_80(["info", coarse])
+    assert result.exit_code == 0
+    message = " ".join(result.output.split())
+    assert "warning: " in message and "Export the cloud with double coordinates" in message
 
 
 def test_a_scene_keeps_its_local_origin_when_its_geometry_is_updated(scene_files):

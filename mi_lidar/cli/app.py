@@ -17,6 +17,8 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import sys
+import warnings
 from pathlib import Path
 
 import typer
@@ -24,7 +26,7 @@ from rich.console import Console
 from rich.markup import escape
 from typer.core import TyperGroup
 
-from mi_lidar.core.errors import MiLidarError
+from mi_lidar.core.errors import MiLidarError, MiLidarWarning
 
 console = Console()
 USER_ERRORS = (MiLidarError, ValueError, OSError)
@@ -104,6 +106,12 @@ class FriendlyGroup(TyperGroup):
 
     def invoke(self, ctx):
         args = list(ctx.args)
+        with warnings.catch_warnings():  # restores the filters and the printer afterwards
+            warnings.simplefilter("always", MiLidarWarning)
+            warnings.showwarning = _show_warning
+            return self._invoke(ctx, args)
+
+    def _invoke(self, ctx, args: list[str]):
         try:
             return super().invoke(ctx)
         except typer.TyperException as exc:
@@ -138,6 +146,14 @@ def os_error_line(exc: OSError) -> str:
     if exc.errno not in OS_ERROR_FIXES or not exc.filename:
         return str(exc)
     return f"{exc.filename}: {exc.strerror.lower()}; {OS_ERROR_FIXES[exc.errno]}"
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Print mi-lidar's warnings as ``warning: <message>`` lines; others as Python prints them."""
+    if issubclass(category, MiLidarWarning):
+        warn([str(message)])
+    else:
+        sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
 
 
 def warn(messages: list[str]) -> None:

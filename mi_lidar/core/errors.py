@@ -13,6 +13,14 @@ class MiLidarError(Exception):
     """Base class of every error raised by mi-lidar."""
 
 
+class MiLidarWarning(UserWarning):
+    """Base class of the warnings of mi-lidar: the input is usable but worse than it looks; the CLI prints them."""
+
+
+class CoarseCoordinatesWarning(MiLidarWarning):
+    """Coordinates were stored in float32 where float32 keeps them more coarsely than a millimetre."""
+
+
 class SetupError(MiLidarError):
     """The environment cannot run mi-lidar (missing LLVM, scalar variant, ...)."""
 

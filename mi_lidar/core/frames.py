@@ -84,9 +84,13 @@ def check_float32(points, source: str, what: str, fix: str, error: type[MiLidarE
         error: e.g. ``scene.xml: vertex coordinates reach 4,000,123 m; float32 keeps 0.25 m there. <fix>``.
     """
     if needs_float64(points):
-        largest = max_magnitude(points)
-        step = float32_step(largest)
-        raise error(f"{source}: {what} reach {largest:,.0f} m; float32 keeps {step:.3g} m there. {fix}")
+        raise error(float32_message(points, source, what, fix))
+
+
+def float32_message(points, source: str, what: str, fix: str) -> str:
+    """``<source>: <what> reach 4,000,123 m; float32 keeps 0.25 m there. <fix>`` for coordinates ``points`` (m)."""
+    largest = max_magnitude(points)
+    return f"{source}: {what} reach {largest:,.0f} m; float32 keeps {float32_step(largest):.3g} m there. {fix}"
 
 
 def set_scene_origin(scene, origin) -> None:

@@ -31,10 +31,12 @@ the lowest beam), ``column`` (uint32) and ``time`` (float32, s since the scan's 
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError
-from mi_lidar.core.frames import local_origin
+from mi_lidar.core.errors import CoarseCoordinatesWarning, LogFormatError
+from mi_lidar.core.frames import float32_message, local_origin, needs_float64
 from mi_lidar.core.log import Log
 
 MAX_EMPTY_CELLS = 1 << 20  # a damaged ring or column field cannot make a huge grid (and a slow read)
@@ -42,6 +44,10 @@ MAX_COORDINATE_M = 1e8  # beyond any Lidar's range and any Earth-fixed coordinat
 INTENSITY_SOURCES = ("intensity", "reflectivity", "signal")
 STANDARD_FIELDS = ("x", "y", "z", "intensity", "ring", "column", "time")
 ORIGIN_FIELDS = ("origin_x", "origin_y", "origin_z")  # per-point ray origins (m, sensor frame), when not all zero
+COARSE_FIX = (
+    "The points are no finer than that: the file lost the precision when it was written. Export the cloud with "
+    "double coordinates (PLY 'property double', PCD 'SIZE 8') or relative to a local origin."
+)
 CLOUD_ORIGIN = "cloud_origin"  # Log.sensor key: a world cloud read at this local origin (m), written back in world
 
 
@@ -158,12 +164,16 @@ def log_from_points(
         LogFormatError: No points, a coordinate beyond :data:`MAX_COORDINATE_M`, or ring/column fields that
             are not non-negative integers, collide, or describe a grid far larger than the cloud.
     """
+    stored = np.asarray(points)
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     count = len(points)
     source = (sensor or {}).get("source", "point cloud")
     if count == 0:
         raise LogFormatError(f"{source}: the point cloud is empty; a log needs at least one point")
     check_coordinates(points, source)
+    if stored.dtype == np.float32 and needs_float64(points):
+        message = float32_message(points, source, "float32 coordinates", COARSE_FIX)
+        warnings.warn(message, CoarseCoordinatesWarning, stacklevel=2)
     for name, values in (("ring", ring), ("column", column)):
         if values is not None and count:
             values = np.asarray(values)
@@ -284,7 +294,7 @@ def log_from_fields(
     (s, relative to ``start_time``) becomes the ray times; :data:`ORIGIN_FIELDS` become the ray
     origins; ``intensity`` and any other numeric field become attributes.
     """
-    points = np.stack([np.asarray(fields[c], dtype=np.float64) for c in ("x", "y", "z")], axis=1)
+    points = np.stack([np.asarray(fields[c]) for c in ("x", "y", "z")], axis=1)  # stored dtype: float32 is checked
     ring = fields.get("ring")
     column = fields.get("column") if ring is not None else None
     time_name = next((n for n in ("time", "t", "timestamp") if n in fields), None)
