@@ -315,6 +315,45 @@ def test_a_utm_cloud_is_not_written_to_a_float32_format(clouds, tmp_path):
     assert not (tmp_path / "far.bin").exists()
 
 
+def shifted_scene(path: Path, shift) -> str:
+    """The scene file ``path`` with every shape and sensor moved by ``shift`` (m), as a surveyor would write it:
+    a ``translate`` appended to each ``to_world``, a sphere's or cylinder's own points moved, a shape placed by
+    neither given a ``to_world``; relative asset paths made absolute."""
+    x, y, z = (repr(float(v)) for v in shift)
+    root = ET.fromstring(path.read_text())
+    for element in root:
+        if element.tag not in ("shape", "sensor"):
+            continue
+        transform = element.find("transform[@name='to_world']")
+        points = [p for p in element.findall("point") if p.attrib.get("name") in ("center", "p0", "p1")]
+        if transform is not None:
+            ET.SubElement(transform, "translate", x=x, y=y, z=z)
+        elif points:
+            for point in points:
+                point.attrib.update({a: repr(float(point.attrib.get(a, 0)) + float(v)) for a, v in zip("xyz", shift)})
+        else:
+            ET.SubElement(ET.SubElement(element, "transform", name="to_world"), "translate", x=x, y=y, z=z)
+        for name in element.findall("string[@name='filename']"):
+            name.attrib["value"] = str((path.parent / name.attrib["value"]).resolve())
+    return ET.tostring(root, encoding="unicode")
+
+
+def test_a_far_scene_of_spheres_and_cylinders_gives_the_scans_at_the_origin(tmp_path):
+    """The urban street (cubes and a rectangle placed by to_world, lamp poles by their cylinders' ends, trees as
+    an ellipsoid file) moved to UTM scans as at the origin. Before, the poles' ends were left in the world frame
+    and the scene was refused ("vertex coordinates reach 3,999,994 m")."""
+    near, far = (tmp_path / name for name in ("near.xml", "far.xml"))
+    near.write_text(shifted_scene(SCENES / "urban_street.xml", np.zeros(3)))
+    far.write_text(shifted_scene(SCENES / "urban_street.xml", OFFSET))
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, :3, 3] = [[0.0, 0.0, 1.8], [3.0, 0.5, 1.8], [-4.0, -1.0, 1.8]]
+    near_log = mi_lidar.simulate(mi_lidar.load_scene(near), "vlp16", poses, seed=3)
+    far_log = mi_lidar.simulate(mi_lidar.load_scene(far), "vlp16", translated(poses), seed=3)
+    assert_same_scan(near_log, far_log)
+    poles = near_log.attributes["label"] == 3
+    assert (near_log.hit & poles).sum() > 50  # the cylinders are in the scans
+
+
 def write_float32_ply(path: Path, points: np.ndarray) -> Path:
     vertex = np.empty(len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
     vertex["x"], vertex["y"], vertex["z"] = points.T

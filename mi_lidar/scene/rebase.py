@@ -4,7 +4,9 @@ A georeferenced scene places its shapes with ``<transform name="to_world">`` (``
 y="4000031"``). Mitsuba composes and applies that transform in float32 (0.25 m steps at 4e6 m), so
 the XML is rewritten before Mitsuba reads it: each top-level element's ``to_world`` is evaluated in
 float64, the local origin (:func:`mi_lidar.core.frames.local_origin` of the elements' positions) is
-subtracted, and the result goes back as one ``<matrix>``. The loader records the origin with the
+subtracted, and the result goes back as one ``<matrix>``; a shape placed by its own points instead
+(a ``sphere``'s ``center``, a ``cylinder``'s ``p0`` and ``p1``, without a ``to_world``) gets them
+moved the same way. The loader records the origin with the
 scene (:func:`mi_lidar.core.frames.set_scene_origin`) so that poses are moved into the same frame
 and outputs back out of it.
 
@@ -24,6 +26,7 @@ from mi_lidar.core.errors import SceneError
 from mi_lidar.core.frames import local_origin
 
 PLACED = ("shape", "sensor", "emitter")  # top-level elements whose to_world is moved to the local frame
+PLACING_POINTS = ("center", "p0", "p1")  # points that place a shape without a to_world (sphere, cylinder), moved too
 
 
 class UnsupportedTransform(SceneError):
@@ -131,17 +134,23 @@ def rebase_xml(text: str, parameters: dict[str, str] | None = None) -> tuple[str
         return None  # Mitsuba reports the syntax error with its own words
     values = {d.attrib["name"]: d.attrib.get("value", "") for d in root.iter("default") if "name" in d.attrib}
     values.update(parameters or {})
-    placed = []
+    placed, points = [], []
     try:
         for element in root:
+            if element.tag not in PLACED:
+                continue
             transform = element.find("transform[@name='to_world']")
-            if element.tag in PLACED and transform is not None:
+            if transform is not None:
                 placed.append((transform, to_world_matrix(transform, values)))
+            elif element.tag == "shape":  # a sphere's centre, a cylinder's ends: the points are world positions
+                for point in element.findall("point"):
+                    if point.attrib.get("name") in PLACING_POINTS:
+                        points.append((point, _vector(point, values, 0.0)))
     except (UnsupportedTransform, ValueError, ZeroDivisionError):
         return None
-    if not placed:
+    if not placed and not points:
         return None
-    origin = local_origin(np.array([matrix[:3, 3] for _, matrix in placed]))
+    origin = local_origin(np.array([matrix[:3, 3] for _, matrix in placed] + [p for _, p in points]))
     if not np.any(origin):  # every element within NEAR_M of the origin
         return None
     for transform, matrix in placed:
@@ -150,4 +159,8 @@ def rebase_xml(text: str, parameters: dict[str, str] | None = None) -> tuple[str
         for step in list(transform):
             transform.remove(step)
         ET.SubElement(transform, "matrix", value=matrix_value(matrix))
+    for point, position in points:
+        for key in ("value", "x", "y", "z"):
+            point.attrib.pop(key, None)
+        point.attrib.update({axis: repr(float(v)) for axis, v in zip("xyz", position - origin)})
     return ET.tostring(root, encoding="unicode"), origin
