@@ -32,6 +32,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.errors import SceneError
+from mi_lidar.core.fitting import lookup
 from mi_lidar.core.segment import (
     DEFAULT_REFLECTIVITY,
     ELLIPSOID,
@@ -335,22 +336,20 @@ class ElementTable:
     def _properties(self, element: mi.UInt32, valid: mi.Bool, default_sigma: float) -> ElementValues:
         """The values of ``element``: hit probability, range sigma (m, the sensor's where unset), kind, shape,
         label and reflectivity."""
-        sigma = dr.gather(mi.Float, self.range_sigma, element, valid)
+        sigma = lookup(self.range_sigma, element, valid)  # lookup: fitted tables get reproducible gradients
         return ElementValues(
-            dr.gather(mi.Float, self.p_hit, element, valid),
+            lookup(self.p_hit, element, valid),
             dr.select(dr.isnan(sigma), default_sigma, sigma),
             dr.gather(mi.UInt32, self.kind, element, valid),
             dr.gather(mi.UInt32, self.element_shape, element, valid),
             dr.gather(mi.UInt32, self.label, element, valid),
-            dr.gather(mi.Float, self.reflectivity, element, valid),
+            lookup(self.reflectivity, element, valid),
         )
 
     def _ellipsoid(self, element: mi.UInt32, active: mi.Bool):
         """Center, scale, quaternion and extent of the ellipsoid elements ``element`` (identity elsewhere)."""
         e = dr.gather(mi.UInt32, self.ellipsoid_index, element, active)
-        data = [
-            dr.gather(mi.Float, self.ellipsoid_data, e * ELLIPSOID_STRIDE + i, active) for i in range(ELLIPSOID_STRIDE)
-        ]
+        data = [lookup(self.ellipsoid_data, e * ELLIPSOID_STRIDE + i, active) for i in range(ELLIPSOID_STRIDE)]
         center = mi.Point3f(*data[0:3])
         scale = dr.select(active, mi.Vector3f(*data[3:6]), 1.0)
         quat = dr.select(active, mi.Vector4f(*data[6:10]), mi.Vector4f(0, 0, 0, 1))
@@ -405,7 +404,7 @@ class ElementTable:
 
     def _vertex(self, element: mi.UInt32, corner: int, active: mi.Bool) -> mi.Point3f:
         index = dr.gather(mi.UInt32, self.face_vertices, 3 * element + corner, active)
-        return mi.Point3f(*[dr.gather(mi.Float, self.vertex_positions, 3 * index + i, active) for i in range(3)])
+        return mi.Point3f(*[lookup(self.vertex_positions, 3 * index + i, active) for i in range(3)])
 
     def segment(self, entry, valid, element, origin, direction, default_sigma: float) -> Segment:
         """The :class:`Segment` of ``element`` along rays ``(origin, direction)``, from the table's geometry.
