@@ -266,3 +266,24 @@ def test_an_infinite_range_sigma_is_refused(tmp_path, where, expected):
     with pytest.raises(SceneError) as error:
         mi_lidar.load_scene(write(tmp_path, text))
     assert expected in str(error.value), error.value
+
+
+@pytest.mark.parametrize("scale", [np.nan, 0.0, -0.1])
+def test_an_ellipsoid_without_a_finite_positive_scale_is_refused(scale):
+    """Such an element was never met, silently (Mitsuba skips it; a scale of 0 would divide by zero in its chord);
+    now the scene is refused, naming the element and its values."""
+    import mitsuba as mi
+
+    scales = np.array([[0.2, 0.2, 0.2], [0.1, 0.1, scale]], np.float32)
+    tensor = lambda a: mi.TensorXf(np.asarray(a, np.float32))  # noqa: E731
+    scene = {
+        "type": "scene",
+        "bushes": {
+            "type": "ellipsoids",
+            "centers": tensor([[5, 0, 0], [8, 0, 0]]),
+            "scales": tensor(scales),
+            "quaternions": tensor([[0, 0, 0, 1], [0, 0, 0, 1]]),
+        },
+    }
+    with pytest.raises(SceneError, match=r"'bushes': ellipsoid 1 \(of 2, 1 such\).*finite scales > 0 m"):
+        mi_lidar.simulate(mi_lidar.load_scene(scene), "planar-180")

@@ -207,6 +207,7 @@ class ElementTable:
             count = shape.primitive_count()
             if ellipsoids:
                 data = np.asarray(params["data"], dtype=np.float32)
+                _check_ellipsoids(shape.id(), data.reshape(-1, ELLIPSOID_STRIDE))
                 count = data.size // ELLIPSOID_STRIDE
                 ellipsoid_data.append(data)
                 ellipsoid_extent.append(np.full(count, float(params["extent"]), np.float32))
@@ -488,6 +489,19 @@ class ElementTable:
             corner_offset=mi.Vector3f(*corner[:3]) if corner else None,
             corner_weight=mi.Vector3f(*corner[3:]) if corner else None,
             **values._replace(sigma=dr.select(values.kind == ELLIPSOID, e_sigma, values.sigma))._asdict(),
+        )
+
+
+def _check_ellipsoids(shape_id: str, data: np.ndarray) -> None:
+    """Refuse ellipsoids (N, 10) whose centre, scales or quaternion is not finite, or whose scales are not > 0."""
+    bad = ~np.isfinite(data).all(axis=1) | np.any(data[:, 3:6] <= 0, axis=1)
+    if bad.any():
+        index = int(np.argmax(bad))
+        center, scale, quat = (", ".join(f"{v:.4g}" for v in data[index, a:b]) for a, b in ((0, 3), (3, 6), (6, 10)))
+        raise SceneError(
+            f"shape {shape_id!r}: ellipsoid {index} (of {len(data)}, {int(bad.sum())} such) has center ({center}), "
+            f"scales ({scale}), quaternion ({quat}): every ellipsoid needs a finite centre, finite scales > 0 m and "
+            "a finite quaternion. Fix or drop it in the file."
         )
 
 

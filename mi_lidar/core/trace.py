@@ -68,6 +68,7 @@ def mitsuba_ray_length(ellipsoid_sizes: np.ndarray) -> float:
         XML and read back) gets the same length.
     """
     sizes = np.abs(np.asarray(ellipsoid_sizes, np.float64))
+    sizes = sizes[np.isfinite(sizes) & (sizes > 0)]  # a degenerate element must not set every ray's length
     if sizes.size == 0:
         return 1.0
     smallest = float(np.clip(np.min(sizes), MIN_RAY_LENGTH, 1.0))
