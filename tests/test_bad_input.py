@@ -268,10 +268,13 @@ def test_an_infinite_range_sigma_is_refused(tmp_path, where, expected):
     assert expected in str(error.value), error.value
 
 
-@pytest.mark.parametrize("scale", [np.nan, 0.0, -0.1])
-def test_an_ellipsoid_without_a_finite_positive_scale_is_refused(scale):
-    """Such an element was never met, silently (Mitsuba skips it; a scale of 0 would divide by zero in its chord);
-    now the scene is refused, naming the element and its values."""
+@pytest.mark.parametrize(
+    "scale, quaternion", [(np.nan, [0, 0, 0, 1]), (0.0, [0, 0, 0, 1]), (-0.1, [0, 0, 0, 1]), (0.1, [0, 0, 0, 2])]
+)
+def test_an_ellipsoid_without_a_finite_positive_scale_is_refused(scale, quaternion):
+    """Such an element was never met, silently (Mitsuba skips it; a scale of 0 would divide by zero in its chord), or,
+    with a quaternion that is not a unit one, met where Mitsuba's shape and mi-lidar's chords disagree; now the
+    scene is refused, naming the element and its values."""
     import mitsuba as mi
 
     scales = np.array([[0.2, 0.2, 0.2], [0.1, 0.1, scale]], np.float32)
@@ -282,8 +285,10 @@ def test_an_ellipsoid_without_a_finite_positive_scale_is_refused(scale):
             "type": "ellipsoids",
             "centers": tensor([[5, 0, 0], [8, 0, 0]]),
             "scales": tensor(scales),
-            "quaternions": tensor([[0, 0, 0, 1], [0, 0, 0, 1]]),
+            "quaternions": tensor([[0, 0, 0, 1], quaternion]),
         },
     }
-    with pytest.raises(SceneError, match=r"'bushes': ellipsoid 1 \(of 2, 1 such\).*finite scales > 0 m"):
+    with pytest.raises(
+        SceneError, match=r"'bushes': ellipsoid 1 \(of 2, 1 such\).*finite scales > 0 m and a unit quaternion"
+    ):
         mi_lidar.simulate(mi_lidar.load_scene(scene), "planar-180")

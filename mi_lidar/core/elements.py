@@ -48,6 +48,7 @@ from mi_lidar.core.segment import (
 from mi_lidar.core.trace import mitsuba_ray_length
 
 ELLIPSOID_STRIDE = 10  # floats per ellipsoid in Mitsuba's `data`: center, scale, quaternion
+QUATERNION_SLACK = 1e-3  # an ellipsoid's quaternion norm may differ from 1 by this much (float32 files)
 
 
 def registry_id(shape) -> int:
@@ -493,15 +494,17 @@ class ElementTable:
 
 
 def _check_ellipsoids(shape_id: str, data: np.ndarray) -> None:
-    """Refuse ellipsoids (N, 10) whose centre, scales or quaternion is not finite, or whose scales are not > 0."""
-    bad = ~np.isfinite(data).all(axis=1) | np.any(data[:, 3:6] <= 0, axis=1)
+    """Refuse ellipsoids (N, 10) whose centre, scales or quaternion is not finite, whose scales are not > 0, or
+    whose quaternion is not a unit one (Mitsuba turns it into a matrix as it is, the chords assume a rotation)."""
+    norm = np.linalg.norm(data[:, 6:10].astype(np.float64), axis=1)
+    bad = ~np.isfinite(data).all(axis=1) | np.any(data[:, 3:6] <= 0, axis=1) | (np.abs(norm - 1.0) > QUATERNION_SLACK)
     if bad.any():
         index = int(np.argmax(bad))
         center, scale, quat = (", ".join(f"{v:.4g}" for v in data[index, a:b]) for a, b in ((0, 3), (3, 6), (6, 10)))
         raise SceneError(
             f"shape {shape_id!r}: ellipsoid {index} (of {len(data)}, {int(bad.sum())} such) has center ({center}), "
             f"scales ({scale}), quaternion ({quat}): every ellipsoid needs a finite centre, finite scales > 0 m and "
-            "a finite quaternion. Fix or drop it in the file."
+            "a unit quaternion (x, y, z, w). Fix or drop it in the file (normalize the quaternions)."
         )
 
 
