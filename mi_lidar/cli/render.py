@@ -64,7 +64,14 @@ def write_scan_outputs(log, out: Path, scene_name: str) -> list[Path]:
     npz = scan.save(out / "scan.npz")
     png_range = range_image_png(out / "range.png", scan.ranges[0], title=f"{scene_name}: range (m)")
     values = scan.attributes["label"][0][hit] if "label" in scan.attributes else None
-    png_bev = birds_eye_png(out / "birds_eye.png", points, values=values, title=f"{scene_name}: returns by label")
+    png_bev = birds_eye_png(
+        out / "birds_eye.png",
+        points,
+        values=values,
+        title=f"{scene_name}: returns by label",
+        value_label="label",
+        categorical=True,
+    )
     return [exr, ply, kitti, npz, png_range, png_bev]
 
 

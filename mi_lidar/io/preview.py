@@ -135,6 +135,7 @@ def birds_eye_png(
     values: np.ndarray | None = None,
     title: str = "bird's-eye view",
     value_label: str = "value",
+    categorical: bool = False,
 ) -> Path:
     """Draw points from above (x right, y up) with equal axes in metres.
 
@@ -143,7 +144,9 @@ def birds_eye_png(
         points: (N, 3) points (m); rows with a non-finite coordinate (misses) are skipped.
         values: Optional (N,) colour values; the height ``z`` is used when None.
         title: Figure title.
-        value_label: Colour bar label when ``values`` is given.
+        value_label: Colour bar label when ``values`` is given (the legend's entries' name when categorical).
+        categorical: ``values`` are classes (labels): one colour each from a qualitative palette and a
+            legend ``<value_label> <value> (<count>)``, instead of a colour scale.
 
     Returns:
         The destination path.
@@ -157,13 +160,24 @@ def birds_eye_png(
     keep = np.isfinite(points).all(axis=1) & np.isfinite(colour)
     figure = Figure(figsize=(8.0, 7.0))
     axes = figure.add_subplot()
-    scatter = axes.scatter(points[keep, 0], points[keep, 1], c=colour[keep], s=1.0, cmap="viridis", linewidths=0)
-    colour_bar = figure.colorbar(scatter, ax=axes)
-    colour_bar.set_label("height z (m)" if values is None else value_label)
+    if categorical and values is not None:
+        classes = np.unique(colour[keep])
+        palette = colormaps["tab10" if len(classes) <= 10 else "tab20"]
+        for k, value in enumerate(classes):
+            mine = keep & (colour == value)
+            name = f"{value_label} {value:g} ({int(mine.sum()):,})"
+            axes.scatter(
+                points[mine, 0], points[mine, 1], s=1.0, color=palette(k % palette.N), linewidths=0, label=name
+            )
+        axes.legend(loc="upper right", fontsize=8, markerscale=6, framealpha=0.8)
+    else:
+        scatter = axes.scatter(points[keep, 0], points[keep, 1], c=colour[keep], s=1.0, cmap="viridis", linewidths=0)
+        colour_bar = figure.colorbar(scatter, ax=axes)
+        colour_bar.set_label("height z (m)" if values is None else value_label)
     axes.set_aspect("equal", adjustable="datalim")
     axes.set_xlabel("x (m)")
     axes.set_ylabel("y (m)")
-    axes.set_title(f"{title}  ({int(keep.sum())} points)")
+    axes.set_title(f"{title}  ({int(keep.sum()):,} points)")
     axes.grid(True, linewidth=0.3)
     figure.tight_layout()
     return _save(figure, path)

@@ -67,3 +67,19 @@ def test_overlay_png_draws_each_return_at_its_pixel_in_its_depth_colour(tmp_path
     np.testing.assert_array_equal(pixel(50.0, 20.0), turbo[128])
     grey = np.round(255 * (1.055 * 0.2 ** (1 / 2.4) - 0.055))
     np.testing.assert_array_equal(pixel(30.0, 35.0), [grey] * 3)  # no return there: the sRGB image
+
+
+def test_birds_eye_png_draws_classes_in_their_own_colours(tmp_path):
+    """Labels are classes: each gets a colour of the qualitative palette (tab10: blue, orange, green ...), named
+    in a legend, not a shade of one colour scale."""
+    from matplotlib import colormaps
+
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-20, 20, (6000, 3))
+    labels = np.where(points[:, 0] < 0, 1, 7).astype(np.uint32)
+    image = imread(birds_eye_png(tmp_path / "l.png", points, values=labels, value_label="label", categorical=True))
+    for k in (0, 1):  # the first two palette colours, one per class present
+        colour = np.asarray(colormaps["tab10"](k)[:3])
+        assert (np.abs(image[..., :3] - colour).max(axis=-1) < 0.05).sum() > 500
+    viridis = np.asarray(colormaps["viridis"](1.0)[:3])  # no colour scale: its top colour appears nowhere
+    assert (np.abs(image[..., :3] - viridis).max(axis=-1) < 0.05).sum() == 0
