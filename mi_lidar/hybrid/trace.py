@@ -3,7 +3,9 @@
 Two scene kinds are used: a triangle mesh and an analytic ``ellipsoids`` set, by the synthetic
 world's own sensor (:mod:`.world`) and the baselines (:mod:`.baselines`), which are independent of
 the product's simulation core on purpose. Elements of product scenes are traced by the core's one
-tracer (:func:`mi_lidar.core.trace.trace_rounds`).
+tracer (:func:`mi_lidar.core.trace.trace_rounds`). The one thing shared with it is the length of the
+ray directions handed to Mitsuba (:func:`mi_lidar.core.elements.scene_ray_length`), without which
+Mitsuba's ellipsoid test misses small elements far away.
 """
 
 from __future__ import annotations
