@@ -104,14 +104,18 @@ def _per_element(shape, params, name: str, count: int, ellipsoids: bool) -> np.n
     return values
 
 
+def _sizes(data: np.ndarray, extent) -> np.ndarray:
+    """(N, 3) ``extent x scale`` (m) of ellipsoids ``data`` (10 floats each); ``extent`` one value or (N,)."""
+    return np.asarray(data, np.float64).reshape(-1, ELLIPSOID_STRIDE)[:, 3:6] * np.reshape(extent, (-1, 1))
+
+
 def scene_ray_length(scene) -> float:
     """:func:`~mi_lidar.core.trace.mitsuba_ray_length` of the ellipsoids of a loaded scene, m (1 without)."""
     sizes = [np.zeros((0, 3))]
     for shape in scene.shapes():
         params = mi.traverse(shape)
         if _is_ellipsoids(params):
-            data = np.asarray(params["data"], np.float64).reshape(-1, ELLIPSOID_STRIDE)
-            sizes.append(data[:, 3:6] * float(params["extent"]))
+            sizes.append(_sizes(params["data"], float(params["extent"])))
     return mitsuba_ray_length(np.concatenate(sizes))
 
 
@@ -276,7 +280,9 @@ class ElementTable:
             is_triangle=mi.Bool(np.concatenate(triangle)),
             vertex_offset=vertex_offset,
             vertex_counts=vertex_counts,
-            ray_length=scene_ray_length(scene),
+            ray_length=mitsuba_ray_length(
+                np.concatenate([_sizes(d, e) for d, e in zip(ellipsoid_data, ellipsoid_extent)] or [np.zeros((0, 3))])
+            ),
         )
 
     @classmethod

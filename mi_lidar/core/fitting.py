@@ -170,19 +170,18 @@ class _Tape:
         The sums of an array computed from the leaves are carried back to them first, through the
         array's own graph (elementwise steps and gathers: deterministic), in the order the arrays were read.
         """
-        sizes = {**sizes, **{name: dr.width(array) for name, array in self.derived.items()}}
+        owners = {**sizes, **{name: dr.width(array) for name, array in self.derived.items()}}
         lanes = [dr.grad(lane) for _, _, _, lane in self.lookups]
-        groups: dict[str, list] = {name: [] for name in sizes}
+        groups: dict[str, list] = {name: [] for name in owners}
         for (name, index, active, _), grad in zip(self.lookups, lanes):
             groups[name].append((grad, index, active))
-        sums = fixed_point_sums({name: (parts, sizes[name]) for name, parts in groups.items() if parts})
+        sums = fixed_point_sums({name: (parts, owners[name]) for name, parts in groups.items() if parts})
         carried = [(array, sums.pop(name)) for name, array in self.derived.items() if name in sums]
         for array, value in carried:
             dr.accum_grad(array, value)
             dr.enqueue(dr.ADMode.Backward, array)
         if carried:
             dr.traverse(dr.ADMode.Backward)  # one pass: arrays that share steps carry through them together
-        sizes = {name: size for name, size in sizes.items() if name not in self.derived}
         total = {name: dr.zeros(mi.Float, size) for name, size in sizes.items()}
         for name, leaf in self.leaves:
             total[name] = total[name] + dr.grad(leaf)

@@ -301,7 +301,7 @@ class SensorModel:
             dr.eval(end)
 
         # ---------------- Draw the range at the element that returned the beam ----------------
-        ray = mitsuba_ray(table, end.start, rays.direction)
+        ray = mitsuba_ray(end.start, rays.direction, table.ray_length)
         si = end.hit.compute_surface_interaction(ray, mi.RayFlags.Minimal, end.returned)
         seg = table.traced_segment(si, end.returned, end.element, rays.origin, rays.direction, self.range_sigma)
         seg = self.apply_effects(seg, rays)
@@ -349,7 +349,9 @@ class SensorModel:
         def meet_element(k, going, start, end):
             # ---------------- Trace the next element (its surface details wait for the return) --------
             pi, point, valid, element = next_hit(scene, table, start, origin, direction, self.max_range, going)
-            si = pi.compute_surface_interaction(mitsuba_ray(table, start, direction), mi.RayFlags.Minimal, valid)
+            si = pi.compute_surface_interaction(
+                mitsuba_ray(start, direction, table.ray_length), mi.RayFlags.Minimal, valid
+            )
             seg = table.traced_segment(si, valid, element, origin, direction, self.range_sigma)
             seg = self.apply_effects(seg, rays)  # only p and drop are used here: the rest is not compiled
 

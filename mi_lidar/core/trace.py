@@ -75,11 +75,11 @@ def mitsuba_ray_length(ellipsoid_sizes: np.ndarray) -> float:
     return float(2.0 ** np.floor(np.log2(smallest)))
 
 
-def mitsuba_ray(table, start: mi.Point3f, direction: mi.Vector3f) -> mi.Ray3f:
-    """The ray handed to Mitsuba from ``start`` along unit ``direction``: its direction is
-    ``table.ray_length`` m long (:func:`mitsuba_ray_length`), so ``ray(t)`` is a point but ``t`` is
-    not a distance in metres."""
-    return mi.Ray3f(start, direction * table.ray_length)
+def mitsuba_ray(start: mi.Point3f, direction: mi.Vector3f, length: float) -> mi.Ray3f:
+    """The ray handed to Mitsuba from ``start`` along unit ``direction``: its direction is ``length`` m
+    long (a scene's :func:`mitsuba_ray_length`, ``ElementTable.ray_length``), so ``ray(t)`` is a point
+    and ``t * length`` the distance in metres."""
+    return mi.Ray3f(start, direction * length)
 
 
 def next_hit(
@@ -89,7 +89,7 @@ def next_hit(
 
     ``pi`` is Mitsuba's preliminary intersection along :func:`mitsuba_ray` (primitive, shape and
     ``t`` in units of ``table.ray_length``: enough for the surface interaction later,
-    ``pi.compute_surface_interaction(mitsuba_ray(table, start, direction), ...)``); ``point`` is where
+    ``pi.compute_surface_interaction(mitsuba_ray(start, direction, table.ray_length), ...)``); ``point`` is where
     the ray met the element (m; for an ellipsoid the entry of its chord, not Mitsuba's approximate
     one, which could lie before the element: the ray would meet it again); the ray continues from
     ``point + RESTART_OFFSET direction``.
@@ -97,7 +97,7 @@ def next_hit(
     along ``direction``) and on inactive lanes (``active``: a mask or True). Rays are Lidar-ordered,
     so the query is flagged coherent.
     """
-    ray = mitsuba_ray(table, start, direction)
+    ray = mitsuba_ray(start, direction, table.ray_length)
     pi = scene.ray_intersect_preliminary(ray, True, active)
     point = ray(pi.t)
     met = pi.is_valid()
@@ -119,7 +119,7 @@ def next_intersection(
     of the element met; ``valid`` and ``element`` as there.
     """
     pi, _, valid, element = next_hit(scene, table, start, origin, direction, max_range, active)
-    si = pi.compute_surface_interaction(mitsuba_ray(table, start, direction), mi.RayFlags.Minimal, active)
+    si = pi.compute_surface_interaction(mitsuba_ray(start, direction, table.ray_length), mi.RayFlags.Minimal, active)
     return si, valid, element
 
 
@@ -230,7 +230,7 @@ def trace_rounds(scene, table, model, rays: RayBatch) -> Rounds:
         for k in range(model.max_segments):
             # ---------------- Next element along every live ray ----------------
             pi, point, valid, element = next_hit(scene, table, start, origin, direction, model.max_range)
-            si = pi.compute_surface_interaction(mitsuba_ray(table, start, direction), mi.RayFlags.Minimal)
+            si = pi.compute_surface_interaction(mitsuba_ray(start, direction, table.ray_length), mi.RayFlags.Minimal)
             nominal = dr.dot(si.p - origin, direction)
             cos_incidence = dr.abs(dr.dot(si.n, direction))
             dr.eval(valid, element, nominal, cos_incidence, si.p, si.n, point)

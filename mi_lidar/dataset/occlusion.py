@@ -22,6 +22,7 @@ import numpy as np
 
 from mi_lidar.core.elements import scene_ray_length
 from mi_lidar.core.frames import scene_origin
+from mi_lidar.core.trace import mitsuba_ray
 from mi_lidar.dataset.scenes import Box3D
 from mi_lidar.hybrid.primitives import rotation_z
 from mi_lidar.scene.camera import PinholeCamera
@@ -110,7 +111,7 @@ def _trace(scene, origin, directions, owner, exit_, instance_of_shape) -> np.nda
         if not len(index):
             break
         d = directions[index]
-        ray = mi.Ray3f(mi.Point3f(*(origin + d * start[index, None]).T), mi.Vector3f(*(d * length).T))
+        ray = mitsuba_ray(mi.Point3f(*(origin + d * start[index, None]).T), mi.Vector3f(*d.T), length)
         si = scene.ray_intersect(ray, mi.RayFlags.Minimal, True)
         valid = np.asarray(si.is_valid())
         distance = start[index] + np.where(valid, np.asarray(si.t) * length, np.inf)

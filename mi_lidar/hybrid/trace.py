@@ -14,6 +14,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.elements import scene_ray_length
+from mi_lidar.core.trace import mitsuba_ray
 
 
 def mesh_scene(vertices: np.ndarray, faces: np.ndarray):
@@ -65,8 +66,8 @@ def intersect(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.nd
     """
     length = scene_ray_length(scene)  # Mitsuba's distances are in units of it
     o = mi.Point3f(np.ascontiguousarray(np.asarray(origins, np.float32).T))
-    d = mi.Vector3f(np.ascontiguousarray(np.asarray(directions, np.float32).T)) * length
-    si = scene.ray_intersect(mi.Ray3f(o, d), mi.RayFlags.Minimal, True)
+    d = mi.Vector3f(np.ascontiguousarray(np.asarray(directions, np.float32).T))
+    si = scene.ray_intersect(mitsuba_ray(o, d, length), mi.RayFlags.Minimal, True)
     valid = np.array(si.is_valid(), bool)
     t = np.where(valid, np.array(si.t, np.float64) * length, np.inf)
     prim = np.where(valid, np.array(si.prim_index, np.int64), -1)
