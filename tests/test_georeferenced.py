@@ -354,6 +354,24 @@ def test_a_far_scene_of_spheres_and_cylinders_gives_the_scans_at_the_origin(tmp_
     assert (near_log.hit & poles).sum() > 50  # the cylinders are in the scans
 
 
+def test_a_far_scene_placed_by_points_alone_loads_at_a_local_origin(tmp_path):
+    """A scene whose only far shapes are placed by their own points (no to_world anywhere in the file) is rebased
+    too: before, the loader skipped files without the text 'to_world' and refused this one."""
+    path = tmp_path / "poles.xml"
+    x, y = (float(v) for v in OFFSET[:2])
+    path.write_text(
+        f"""<scene version="3.0.0">
+        <shape type="cylinder" id="pole"><point name="p0" x="{x!r}" y="{y!r}" z="0"/>
+            <point name="p1" x="{x!r}" y="{y!r}" z="6"/><float name="radius" value="0.12"/></shape>
+        <shape type="sphere" id="ball"><point name="center" x="{x + 5.0!r}" y="{y!r}" z="1"/></shape>
+    </scene>"""
+    )
+    scene = mi_lidar.load_scene(path)
+    placed = np.array([[x, y, 0.0], [x, y, 6.0], [x + 5.0, y, 1.0]])  # the points that place the shapes
+    np.testing.assert_array_equal(scene_origin(scene), np.round((placed.min(axis=0) + placed.max(axis=0)) / 2))
+    assert max(abs(v) for v in (*scene.bbox().min, *scene.bbox().max)) < 10
+
+
 def write_float32_ply(path: Path, points: np.ndarray) -> Path:
     vertex = np.empty(len(points), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
     vertex["x"], vertex["y"], vertex["z"] = points.T

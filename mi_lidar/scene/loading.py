@@ -99,7 +99,7 @@ def _load_file(path: Path, optimize: bool, values: dict[str, str]):
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError):
         text = ""  # Mitsuba's loader reports an unreadable file in its own words
-    rebased = rebase_xml(text, values) if "to_world" in text else None
+    rebased = rebase_xml(text, values)
     if rebased is None:
         return mi.load_file(os.fspath(path), parallel=False, optimize=optimize, **values), np.zeros(3)
     xml, origin = rebased
