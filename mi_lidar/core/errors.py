@@ -21,6 +21,10 @@ class CoarseCoordinatesWarning(MiLidarWarning):
     """Coordinates were stored in float32 where float32 keeps them more coarsely than a millimetre."""
 
 
+class TruncatedLogWarning(MiLidarWarning):
+    """A log ends in the middle of a record (a logger stopped mid-write): the complete records before it were read."""
+
+
 class SetupError(MiLidarError):
     """The environment cannot run mi-lidar (missing LLVM, scalar variant, ...)."""
 

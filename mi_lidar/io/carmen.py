@@ -34,16 +34,16 @@ carries one per beam; otherwise (none, or a count other than ``n`` on a line) th
 
 from __future__ import annotations
 
-import gzip
 import os
 import re
+import warnings
 import zlib
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError, ParameterError, unreadable
+from mi_lidar.core.errors import LogFormatError, ParameterError, TruncatedLogWarning, unreadable
 from mi_lidar.core.log import Log
 
 SICK_SWEEP_S = 1.0 / 150.0
@@ -69,18 +69,52 @@ ROBOT_TAIL = ROBOT_COLUMNS[:6] + tuple(  # the fields after its remissions
 )
 
 
+class _CutShort(LogFormatError):
+    """A laser line ends before the fields its counts announce (read_carmen skips it when it is the file's last)."""
+
+
 def text_lines(path: Path) -> list[str]:
-    """Decoded text lines of a plain or gzip-compressed file."""
+    """Decoded text lines of a plain or gzip-compressed file.
+
+    A gzip stream that ends early (a logger stopped mid-write) gives the text decompressed up to its end, with a
+    :class:`~mi_lidar.core.errors.TruncatedLogWarning`; its last line is then usually cut short too.
+
+    Raises:
+        LogFormatError: Unreadable file, or a gzip stream that is corrupt or yields no text before it ends.
+    """
     try:
         raw = path.read_bytes()
     except PermissionError as exc:
         raise unreadable(path, "log") from exc
     if raw[:2] == b"\x1f\x8b":
-        try:
-            raw = gzip.decompress(raw)
-        except (OSError, EOFError, zlib.error) as exc:
-            raise LogFormatError(f"{path}: corrupt or truncated gzip stream ({exc})") from exc
+        raw = _gunzip(path, raw)
     return raw.decode("utf-8", errors="replace").splitlines()
+
+
+def _gunzip(path: Path, raw: bytes) -> bytes:
+    """The text of the gzip members in ``raw``, up to where the stream ends (warned when that is mid-member)."""
+    parts, rest = [], raw
+    try:
+        while rest:
+            member = zlib.decompressobj(16 + zlib.MAX_WBITS)  # one gzip member, header and trailer checked
+            parts.append(member.decompress(rest))
+            if not member.eof:
+                parts.append(member.flush())
+                break
+            rest = member.unused_data
+    except zlib.error as exc:
+        raise LogFormatError(f"{path}: corrupt gzip stream ({exc}); recompress the log or read the plain text") from exc
+    text = b"".join(parts)
+    if not member.eof:
+        if not text:
+            raise LogFormatError(f"{path}: truncated gzip stream: it ends before any text; copy the log again")
+        warnings.warn(
+            f"{path}: the gzip stream ends early, after {len(text):,} bytes of text (a logger stopped mid-write, or "
+            "a partial copy?): reading the complete lines before its end",
+            TruncatedLogWarning,
+            stacklevel=4,
+        )
+    return text
 
 
 def parse_message(tokens: list[str], number: int) -> np.ndarray:
@@ -98,7 +132,9 @@ def parse_message(tokens: list[str], number: int) -> np.ndarray:
             raise ValueError(f"beam count {n} must be > 1")
         _check_length(tokens, number, n + 10, f"n={n}", "n ranges + 10", f"the beam count {n}")  # before the values
         values = np.array(tokens[2 : 2 + n + 7], dtype=np.float64)
-    except (IndexError, ValueError) as exc:
+    except IndexError:
+        raise _CutShort(f"line {number}: {name} ends after its name: truncated: repair or delete the line") from None
+    except ValueError as exc:
         raise LogFormatError(f"line {number}: malformed {name} message ({exc}): repair or delete the line") from exc
     return values
 
@@ -108,7 +144,7 @@ def _check_length(tokens: list[str], number: int, need: int, counts: str, rule: 
     timestamp (``counts``: the counts read, ``rule``: how they make ``need``, ``count``: the count to repair)."""
     name = tokens[0]
     if len(tokens) < need:
-        raise LogFormatError(
+        raise _CutShort(
             f"line {number}: {name} with {counts} needs {need} fields ({rule}); found {len(tokens)} (truncated?): "
             "repair or delete the line"
         )
@@ -147,7 +183,7 @@ def _count(tokens: list[str], k: int, n: int, low: int, number: int) -> int:
     """The whole number in token ``k`` (num_readings or num_remissions) of a robot laser line, at least ``low``."""
     name, field = tokens[0], robot_field(k, n, 0)
     if k >= len(tokens):
-        raise LogFormatError(
+        raise _CutShort(
             f"line {number}: {name} ends before {field} (field {k}; the line has {len(tokens)}): truncated"
             + (f", or num_readings {n} is larger than the ranges on the line" if k > 8 else "")
             + ": repair or delete the line"
@@ -183,7 +219,7 @@ def parse_robot_laser(tokens: list[str], number: int) -> RobotLaser:
     need = n + m + 23  # the name, 8 config fields, n ranges, num_remissions, m remissions, 13 fields after them
     counts = f"num_readings={n}, num_remissions={m}"
     if m and need - m <= len(tokens) < need:
-        raise LogFormatError(
+        raise _CutShort(
             f"line {number}: {name} num_remissions {m} overruns the line: with {counts} it needs {need} fields "
             f"(13 after the remissions), found {len(tokens)}: a wrong remission count or a line cut short: repair "
             "num_remissions (0 when the line has no remissions) or delete the line"
@@ -315,7 +351,9 @@ def read_carmen(
     Raises:
         ParameterError: a ``message`` mi-lidar does not read.
         LogFormatError: Missing, unreadable or corrupt file (or a folder), no ``message`` lines (other
-            laser messages named), a line with the wrong number of fields, a non-numeric or non-finite
+            laser messages named), a line with the wrong number of fields (but the file's last line, cut short
+            by a logger stopped mid-write, is skipped with a :class:`~mi_lidar.core.errors.TruncatedLogWarning`,
+            as is the end of a gzip stream cut short), a non-numeric or non-finite
             value (line number and field named), or scans of different ``n`` or, for robot laser lines,
             of different beam angles (lines named).
     """
@@ -333,6 +371,7 @@ def read_carmen(
         )
     robot = message in ROBOT_LASER
     rows, widths, numbers, others, scans = [], {}, [], {}, []
+    last = next((k for k in range(len(lines), 0, -1) if lines[k - 1].strip()), 0)  # the last line with text
     for number, line in enumerate(lines, start=1):
         tokens = line.split()
         if not tokens or tokens[0] != message:
@@ -343,6 +382,17 @@ def read_carmen(
             if robot:
                 scans.append(parse_robot_laser(tokens, number))
             values = scans[-1].values if robot else parse_message(tokens, number)
+        except _CutShort as exc:
+            if number != last or not rows:  # a short line before the end is damage; a log of one line is refused
+                raise LogFormatError(f"{path}: {exc}") from exc
+            warnings.warn(
+                f"{path}: line {number}, the last, is a {message} line cut short ({len(tokens)} fields, fewer than "
+                f"its counts need: a logger stopped mid-write?): read the {len(rows)} complete scans before it; "
+                "delete the line to silence this warning",
+                TruncatedLogWarning,
+                stacklevel=2,
+            )
+            continue
         except LogFormatError as exc:
             raise LogFormatError(f"{path}: {exc}") from exc
         n = len(values) - 7
