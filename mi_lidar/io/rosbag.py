@@ -159,7 +159,7 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
         ) from exc
     if not logs:
         raise LogFormatError(f"{path}: topic {chosen!r} has no messages")
-    counted = sum(c.msgcount for c in connections)
+    counted = _message_count(path, chosen, connections)
     if len(logs) < counted:
         raise LogFormatError(
             f"{path}: its metadata counts {counted} messages on {chosen}, its storage holds {len(logs)}: the bag is "
@@ -171,6 +171,22 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
     if sensor is not None:
         log.sensor = sensor
     return log
+
+
+def _message_count(path, topic: str, connections) -> int:
+    """The number of messages the bag's metadata counts on ``topic`` (its connections' ``message_count``).
+
+    Raises:
+        LogFormatError: a count that is not a whole number >= 0 (a damaged ``metadata.yaml``).
+    """
+    for connection in connections:
+        count = connection.msgcount
+        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+            raise LogFormatError(
+                f"{path}: its metadata counts {count!r} messages on {topic}; a message_count is a whole number >= 0: "
+                f"repair metadata.yaml, or rebuild it from the storage with `ros2 bag reindex {path}`"
+            )
+    return sum(c.msgcount for c in connections)
 
 
 class _BagFolder(type(Path())):  # type: ignore[misc]

@@ -390,14 +390,26 @@ def test_compare_names_the_log_with_a_nan_direction(tmp_path):
     assert "room.npz: ray [0, 7, 0] has direction length nan" in result.output.replace("\n", "")
 
 
-def test_a_bag_missing_messages_its_metadata_counts_is_refused(tmp_path):
-    """A storage file holding 2 of the 20 clouds metadata.yaml counts read as a 2-scan log."""
+def bag_counting(tmp_path, count: str) -> Path:
+    """A bag of two clouds on /points whose metadata.yaml counts ``count`` messages on that topic."""
     bag = write_any(synthetic_log(height=4, width=16, scans=2), tmp_path / "bag")
     meta = bag / "metadata.yaml"
-    text = meta.read_text()
-    meta.write_text(re.sub(r"message_count: 2(\n\s+topic_metadata:\n\s+name: /points)", r"message_count: 20\1", text))
+    pattern = r"message_count: 2(\n\s+topic_metadata:\n\s+name: /points)"
+    meta.write_text(re.sub(pattern, rf"message_count: {count}\1", meta.read_text()))
+    return bag
+
+
+def test_a_bag_missing_messages_its_metadata_counts_is_refused(tmp_path):
+    """A storage file holding 2 of the 20 clouds metadata.yaml counts read as a 2-scan log."""
     with pytest.raises(LogFormatError, match=r"bag: its metadata counts 20 messages on /points, its storage holds 2"):
-        read_any(bag)
+        read_any(bag_counting(tmp_path, "20"))
+
+
+@pytest.mark.parametrize("count", ["nan", "-3", "2.5", "null"])
+def test_a_bag_whose_metadata_count_is_not_a_count_is_refused(tmp_path, count):
+    """A message_count of 'nan' in metadata.yaml raised TypeError (unsupported operand type(s) for +)."""
+    with pytest.raises(LogFormatError, match=r"bag: its metadata counts .* messages on /points; a message_count is a "):
+        read_any(bag_counting(tmp_path, count))
 
 
 def test_a_damaged_bag_says_what_to_do(tmp_path):
