@@ -78,6 +78,25 @@ def _check_header_values(path: Path, header, need: int, size: int) -> None:
         )
 
 
+def _check_span(path, scan: int, local: np.ndarray) -> None:
+    """Refuse points that lie farther from the file's offset than LAS's 32-bit integers reach at
+    :data:`COORDINATE_SCALE` (214,748 m), which laspy reports as a bare ``OverflowError``.
+
+    Args:
+        path: The file being written (for the message).
+        scan: The scan written.
+        local: (N, 3) coordinates minus the file's offsets (m, >= 0).
+    """
+    reach = np.iinfo(np.int32).max * COORDINATE_SCALE
+    if len(local) and local.max() > reach:
+        axis = "xyz"[int(np.argmax(local.max(axis=0)))]
+        raise LogFormatError(
+            f"{path}: the hits of scan {scan} span {local.max():,.0f} m along {axis}; LAS stores coordinates as 32-bit "
+            f"integers of {COORDINATE_SCALE} m, at most {reach:,.0f} m apart: write .ply, .pcd or .npz, or drop the "
+            "far points (a range that long is a damaged reading)"
+        )
+
+
 def write_las_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
     """Write the hits of one scan as a LAS 1.4 file, atomically (see the module docstring)."""
     cloud = cloud_from_log(log, scan)
@@ -91,6 +110,7 @@ def write_las_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
     )
     xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], axis=1).astype(np.float64)
     header.offsets = np.floor(xyz.min(axis=0)) if len(xyz) else np.zeros(3)
+    _check_span(path, scan, xyz - header.offsets)
     header.scales = np.full(3, COORDINATE_SCALE)
     las = laspy.LasData(header)
     las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]

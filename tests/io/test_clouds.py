@@ -92,6 +92,16 @@ def test_round_trip_keeps_grid_and_ranges(tmp_path, suffix):
     assert [p.name for p in tmp_path.iterdir()] == [f"scan{suffix}"]
 
 
+def test_a_scan_too_wide_for_las_integers_is_refused(tmp_path):
+    """A hit 300 km away raised laspy's OverflowError ('Values given do not fit after applying offset and scale')
+    as a traceback; the file is not written."""
+    log = synthetic_log(height=4, width=16)
+    log.ranges[0, 0, 0], log.hit[0, 0, 0] = 3e5, True
+    with pytest.raises(LogFormatError, match=r"far.las: the hits of scan 0 span \d{3},\d{3} m along [xyz]; LAS stores"):
+        write_any(log, tmp_path / "far.las")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_read_las_gives_the_written_hits_and_attributes(tmp_path):
     log = synthetic_log()
     points, attributes, start = read_las(write_any(log, tmp_path / "scan.las"))
