@@ -41,6 +41,15 @@ BLOCK_FLAG = 0xEEFF  # bytes FF EE read as little-endian u16
 RETURN_MODES = {0x37: "strongest", 0x38: "last", 0x39: "dual"}
 PRODUCT_IDS = {0x21: "HDL-32E", 0x22: "VLP-16", 0x24: "VLP-16", 0x28: "VLP-32C"}
 TIMING_TOLERANCE = 0.15
+MAX_CORRECTION_M = 10.0  # a distance or offset correction beyond this is a unit slip (tables in m; db.xml has cm)
+CORRECTION_LIMITS = {  # calibration column -> (|value| must stay below, what the message says it must be)
+    "vert_correction": (np.pi / 2, "a finite angle in radians within +-pi/2 (degrees given by mistake?)"),
+    "rot_correction": (np.pi, "a finite angle in radians within +-pi (degrees given by mistake?)"),
+    **dict.fromkeys(
+        ("dist_correction", "vert_offset_correction", "horiz_offset_correction"),
+        (MAX_CORRECTION_M, f"a finite length in metres within +-{MAX_CORRECTION_M:g} m (cm or mm given by mistake?)"),
+    ),
+}
 ELEVATION_TOLERANCE_DEG = 1.0
 
 
@@ -139,7 +148,8 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
 
     Raises:
         LogFormatError: Unreadable YAML, a missing or non-numeric field (named with the laser),
-            or laser ids that are not ``0 .. L-1``.
+            laser ids that are not ``0 .. L-1``, or a correction that is not finite or beyond
+            :data:`CORRECTION_LIMITS`.
     """
     from ruamel.yaml import YAML, YAMLError
 
@@ -178,13 +188,11 @@ def read_calibration(path: str | os.PathLike) -> Calibration:
                     columns[key][laser_id] = float(laser[key])
         except (KeyError, TypeError, ValueError) as exc:
             raise LogFormatError(f"{path}: lasers[{index}]: bad or missing field ({exc})") from exc
-    bad = ~(np.abs(columns["vert_correction"]) < np.pi / 2)
-    if bad.any():
-        laser = int(np.argmax(bad))
-        raise LogFormatError(
-            f"{path}: laser {laser}: vert_correction is {columns['vert_correction'][laser]:g}; it must be a finite "
-            "angle in radians within +-pi/2 (degrees given by mistake?)"
-        )
+    for key, (bound, allowed) in CORRECTION_LIMITS.items():
+        bad = ~(np.abs(columns[key]) < bound)
+        if bad.any():
+            laser = int(np.argmax(bad))
+            raise LogFormatError(f"{path}: laser {laser}: {key} is {columns[key][laser]:g}; it must be {allowed}")
     try:
         resolution = float(table.get("distance_resolution", 0.0))
     except (TypeError, ValueError) as exc:

@@ -167,6 +167,14 @@ def test_cli_model_and_calibration_options(tmp_path):
     assert read_any(tmp_path / "hdl.npz").sensor["name"] == "velodyne:HDL-32E"
 
 
+def _one(text: str, key: str, value: str) -> str:
+    """``text`` with ``key: value`` in laser 0's line (in place of its own ``key`` when it has one)."""
+    first, rest = text.split("\n- ", 1)[1].split("\n", 1)
+    fields = dict(field.split(": ") for field in first.strip("{}").split(", "))
+    line = "{" + ", ".join(f"{k}: {v}" for k, v in {**fields, key: value}.items()) + "}"
+    return f"lasers:\n- {line}\n{rest}"
+
+
 @pytest.mark.parametrize(
     "damage, message",
     [
@@ -175,6 +183,15 @@ def test_cli_model_and_calibration_options(tmp_path):
         # only 'vert_correction must be finite angles ...', without the laser or the value
         (lambda text: text.replace("vert_correction: -0.261799", "vert_correction: .nan"), r"laser 0: .* is nan; it"),
         (lambda text: text.replace("vert_correction: 0.000000", "vert_correction: 15.0", 1), r"laser 7: .* is 15;"),
+        # the other corrections were not checked: NaN ones blamed the capture ('v.pcap: ray [0, 11, 0] has origin
+        # [nan, nan, 0.0] m; the file is damaged') or named no file ('a ray flagged as hit has a non-finite range'),
+        # huge ones read, with ranges of 1e9 m or origins 1e9 m away
+        (lambda t: _one(t, "rot_correction", ".nan"), r"t.yaml: laser 0: rot_correction is nan; it must be a"),
+        (lambda t: _one(t, "rot_correction", "-7"), r"laser 0: rot_correction is -7; it must be .* within \+-pi "),
+        (lambda t: _one(t, "dist_correction", ".nan"), r"laser 0: dist_correction is nan; it must be a finite le"),
+        (lambda t: _one(t, "dist_correction", "1e9"), r"laser 0: dist_correction is 1e\+09; .* within \+-10 m"),
+        (lambda t: _one(t, "vert_offset_correction", ".inf"), r"laser 0: vert_offset_correction is inf; it must"),
+        (lambda t: _one(t, "horiz_offset_correction", "-1e11"), r"laser 0: horiz_offset_correction is -1e\+11;"),
     ],
 )
 def test_a_damaged_calibration_table_is_named_on_one_line(tmp_path, damage, message):
