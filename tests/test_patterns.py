@@ -382,6 +382,14 @@ def test_malformed_npy_is_refused(tmp_path, array, named):
             ' "lidar_to_sensor_transform": [2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}',
             "[2, 0, 0",
         ),
+        # angles and shifts beyond any sensor's read silently (points in no direction the sensor has)
+        ('{"beam_altitude_angles": [1, 1e11], "beam_azimuth_angles": [0, 0], "lidar_mode": "512x10"}', "s[1] is 1e+11"),
+        ('{"beam_altitude_angles": [1, 2], "beam_azimuth_angles": [0, -1e308], "lidar_mode": "512x10"}', "+-180 deg"),
+        (
+            '{"beam_altitude_angles": [1, 2], "beam_azimuth_angles": [0, 0], "lidar_mode": "512x10",'
+            ' "pixel_shift_by_row": [0, 99999999999]}',
+            "pixel_shift_by_row[1] is 99999999999; a shift is a column offset of at most 8192",
+        ),
     ],
 )
 def test_broken_ouster_metadata_is_refused(tmp_path, content, named):

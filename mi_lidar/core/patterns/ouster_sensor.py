@@ -29,6 +29,9 @@ MAX_COLUMNS = 8192
 """Most columns per frame a metadata file may declare (Ouster sensors have at most 2048)."""
 MAX_BEAMS = 512
 """Most beams a metadata file may declare (Ouster sensors have at most 128)."""
+ANGLE_LIMITS_DEG = {"beam_altitude_angles": 90.0, "beam_azimuth_angles": 180.0}
+"""Largest ``|angle|`` (degrees) of each per-beam angle list: a beam above the zenith, or an azimuth offset beyond
+half a turn (the same direction as one within it), is a damaged number."""
 
 # Where fields live: the legacy flat layout keeps them at the top level, the newer one in sections.
 _SECTIONS = (
@@ -84,8 +87,8 @@ def read_ouster_metadata(path: str | os.PathLike) -> OusterMetadata:
 
     Returns:
         The metadata, checked: one altitude, azimuth (and shift) per beam, at most
-        :data:`MAX_BEAMS` beams of finite angles, 1 to :data:`MAX_COLUMNS` columns per frame, a
-        rigid lidar-to-sensor transform.
+        :data:`MAX_BEAMS` beams of finite angles within :data:`ANGLE_LIMITS_DEG`, shifts of at
+        most :data:`MAX_COLUMNS`, 1 to :data:`MAX_COLUMNS` columns per frame, a rigid lidar-to-sensor transform.
 
     Raises:
         PatternError: The file is missing, not JSON, or lacks or contradicts a field (named).
@@ -122,6 +125,13 @@ def read_ouster_metadata(path: str | os.PathLike) -> OusterMetadata:
             raise PatternError(f"{where}: {key!r} must be a list of degrees") from exc
         if values.ndim != 1 or values.size == 0 or not np.all(np.isfinite(values)):
             raise PatternError(f"{where}: {key!r} must be a non-empty list of finite degrees, got {value!r}")
+        beyond = np.abs(values) > ANGLE_LIMITS_DEG[key]
+        if beyond.any():
+            i = int(np.argmax(beyond))
+            raise PatternError(
+                f"{where}: {key}[{i}] is {values[i]:g} degrees; beam angles there lie within "
+                f"+-{ANGLE_LIMITS_DEG[key]:g} degrees: the metadata is corrupt, use the JSON the sensor wrote"
+            )
         return values
 
     altitude_deg = angles("beam_altitude_angles")
@@ -156,6 +166,13 @@ def read_ouster_metadata(path: str | os.PathLike) -> OusterMetadata:
         shifts = np.asarray(given)
         if shifts.shape != altitude_deg.shape or not np.issubdtype(shifts.dtype, np.integer):
             raise PatternError(f"{where}: pixel_shift_by_row must hold {altitude_deg.size} integers, got {given!r}")
+        if np.any(np.abs(shifts) > MAX_COLUMNS):
+            i = int(np.argmax(np.abs(shifts) > MAX_COLUMNS))
+            raise PatternError(
+                f"{where}: pixel_shift_by_row[{i}] is {given[i]}; a shift is a column offset of at most "
+                f"{MAX_COLUMNS} (the most columns a frame may have): the metadata is corrupt, use the JSON the sensor "
+                "wrote"
+            )
         shifts = shifts.astype(np.int64)
     per_packet = positive_int(where, "columns_per_packet", find("columns_per_packet", 16))
     if per_packet > columns:
