@@ -20,6 +20,7 @@ import numpy as np
 
 from mi_lidar.core.errors import MiLidarError
 
+MAX_COORDINATE_M = 1e8  # beyond any Lidar's range and any Earth-fixed coordinate: a larger one is a misread number
 NEAR_M = 1024.0  # coordinates up to this magnitude keep 0.12 mm in float32: no local origin needed
 RESOLUTION_M = 1e-3  # coarsest float32 step (m) accepted on coordinates that reach Mitsuba
 COORDINATES_DOC = "docs/coordinates.md"

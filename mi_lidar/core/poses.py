@@ -7,12 +7,13 @@ import os
 import numpy as np
 
 from mi_lidar.core.errors import PoseError
+from mi_lidar.core.frames import MAX_COORDINATE_M
 
 RIGID_TOLERANCE = 1e-4
 
 
 def validate_poses(poses: np.ndarray, source: str | os.PathLike = "poses") -> np.ndarray:
-    """Check that every pose is a finite rigid transform.
+    """Check that every pose is a finite rigid transform at a position on Earth.
 
     Args:
         poses: (S, 4, 4) or (4, 4) sensor-to-world transforms.
@@ -23,8 +24,8 @@ def validate_poses(poses: np.ndarray, source: str | os.PathLike = "poses") -> np
 
     Raises:
         PoseError: Naming ``source``, the first bad pose index and what is wrong: non-finite
-            entries, ``R^T R != I`` or ``det(R) != 1`` beyond 1e-4, or a last row other than
-            ``0 0 0 1``.
+            entries, ``R^T R != I`` or ``det(R) != 1`` beyond 1e-4, a last row other than
+            ``0 0 0 1``, or a position beyond :data:`~mi_lidar.core.frames.MAX_COORDINATE_M`.
     """
     poses = np.asarray(poses, dtype=np.float64)
     if poses.shape == (4, 4):
@@ -48,4 +49,11 @@ def validate_poses(poses: np.ndarray, source: str | os.PathLike = "poses") -> np
         if bad.any():
             i = int(np.argmax(bad))
             raise PoseError(f"{source}: pose {i} is not a rigid transform: {describe(i)}")
+    far = np.abs(poses[:, :3, 3]) > MAX_COORDINATE_M
+    if far.any():
+        pose, axis = (int(k) for k in np.unravel_index(int(np.argmax(far)), far.shape))
+        raise PoseError(
+            f"{source}: pose {pose} has position {'xyz'[axis]} = {poses[pose, axis, 3]:.3g} m, beyond "
+            f"{MAX_COORDINATE_M:.0e} m (farther than any Earth-fixed coordinate): a misread number; repair the pose"
+        )
     return poses

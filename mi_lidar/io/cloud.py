@@ -36,11 +36,10 @@ import warnings
 import numpy as np
 
 from mi_lidar.core.errors import CoarseCoordinatesWarning, LogFormatError
-from mi_lidar.core.frames import float32_message, local_origin, needs_float64
+from mi_lidar.core.frames import MAX_COORDINATE_M, float32_message, local_origin, needs_float64
 from mi_lidar.core.log import Log
 
 MAX_EMPTY_CELLS = 1 << 20  # a damaged ring or column field cannot make a huge grid (and a slow read)
-MAX_COORDINATE_M = 1e8  # beyond any Lidar's range and any Earth-fixed coordinate: a larger one is a misread number
 INTENSITY_SOURCES = ("intensity", "reflectivity", "signal")
 STANDARD_FIELDS = ("x", "y", "z", "intensity", "ring", "column", "time")
 ORIGIN_FIELDS = ("origin_x", "origin_y", "origin_z")  # per-point ray origins (m, sensor frame), when not all zero

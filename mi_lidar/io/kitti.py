@@ -102,7 +102,7 @@ def read_bin_log(path: str | os.PathLike, columns: int | None = None, min_range:
         columns in firing order. ``attributes['intensity']`` holds the intensity column.
 
     Raises:
-        LogFormatError: As :func:`read_kitti_bin`, a coordinate beyond :data:`~mi_lidar.io.cloud.MAX_COORDINATE_M`
+        LogFormatError: As :func:`read_kitti_bin`, a coordinate beyond :data:`~mi_lidar.core.frames.MAX_COORDINATE_M`
             (the bytes are not such records), or ring ids that are not small integers.
     """
     path = Path(path)

@@ -2,7 +2,9 @@ import numpy as np
 import pytest
 
 from mi_lidar.core.errors import LogFormatError, PoseError
-from mi_lidar.io import read_kitti_poses, read_pose_matrices, read_poses, write_kitti_poses
+from mi_lidar.io import read_any, read_kitti_poses, read_pose_matrices, read_poses, write_kitti_poses
+
+from .synth import carmen_text
 
 
 def _poses(n=5):
@@ -37,6 +39,8 @@ def test_matrices_npy_and_text(tmp_path):
         (lambda p: p.__setitem__((1, 0, 0), 1.1), "pose 1 .*orthonormal"),
         (lambda p: p.__setitem__((3, slice(0, 3), 0), -p[3, :3, 0]), "pose 3 .*determinant"),
         (lambda p: p.__setitem__((4, 3, 0), 0.5), r"pose 4 .*last row"),
+        # a position of 1e12 m (a misread number) was taken
+        (lambda p: p.__setitem__((1, 1, 3), -1e12), r"pose 1 has position y = -1e\+12 m, beyond 1e\+08 m \(farther"),
     ],
 )
 def test_invalid_pose_named(tmp_path, corrupt, message):
@@ -46,6 +50,16 @@ def test_invalid_pose_named(tmp_path, corrupt, message):
     np.save(path, poses)
     with pytest.raises(PoseError, match=f"bad.npy: {message}"):
         read_pose_matrices(path)
+
+
+def test_a_carmen_pose_beyond_the_earth_is_refused(tmp_path):
+    """x = 1e308 in a FLASER line read, and info printed a trajectory length of inf."""
+    lines = carmen_text(3).splitlines()
+    fields = lines[5].split()
+    fields[-9] = "1e308"  # x of the laser pose (then y, theta, the odometry pose, the timestamps and host)
+    (tmp_path / "far.log").write_text("\n".join([*lines[:5], " ".join(fields), *lines[6:]]) + "\n")
+    with pytest.raises(PoseError, match=r"far.log: pose 1 has position x = 1e\+308 m, beyond 1e\+08 m"):
+        read_any(tmp_path / "far.log")
 
 
 def test_malformed_text(tmp_path):
