@@ -91,6 +91,12 @@ def detect_format(path: str | os.PathLike, for_writing: bool = False) -> str:
                 f"{path}: a ROS 2 bag folder without metadata.yaml (it holds {', '.join(storage)}); rebuild the "
                 f"metadata with `ros2 bag reindex {path}`"
             )
+        named = "pcap" if suffix == ".pcap" else _SUFFIX_FORMATS.get(suffix, "rosbag")
+        if named != "rosbag":  # drive.exr/, scan.ply/: a file's name on a folder (an unpacked archive, a typo)
+            raise LogFormatError(
+                f"{path}: a folder, but its name ends in {suffix!r}, which names {KINDS[named]}: give the file "
+                "itself, or the folder's file that is one"
+            )
         known = ", ".join(sorted(set(_SUFFIX_FORMATS) | {".pcap"}))
         raise LogFormatError(
             f"{path}: a folder without metadata.yaml, so not a ROS 2 bag; give a ROS 2 bag folder or a file: {known}"

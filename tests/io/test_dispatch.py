@@ -48,6 +48,12 @@ def test_write_formats_and_errors(tmp_path):
     with pytest.raises(LogFormatError, match="images: a folder without metadata.yaml, so not a ROS 2 bag"):
         read_any(tmp_path / "images")
     (tmp_path / "images").rmdir()
+    for name, kind in (("scan.exr", "an EXR range image"), ("drive.pcap", "a pcap capture"), ("c.log.gz", "a CARMEN")):
+        (tmp_path / name).mkdir()  # was 'a folder without metadata.yaml, so not a ROS 2 bag'
+        pattern = rf"{name}: a folder, but its name ends in '\.\w+', which names {kind}"
+        with pytest.raises(LogFormatError, match=pattern):
+            read_any(tmp_path / name)
+        (tmp_path / name).rmdir()
     log = synthetic_log(scans=3)
     with pytest.raises(LogFormatError, match="holds 3 scans and pcd holds one; pass scan="):
         write_any(log, tmp_path / "a.pcd")
