@@ -126,6 +126,25 @@ def check_coordinates(
         )
 
 
+def _check_index_field(values: np.ndarray, name: str, source, limit: int) -> None:
+    """Refuse a ring or column field that is not made of non-negative integers below ``limit`` (a larger one
+    makes a grid larger than :func:`log_from_points` takes, and one beyond int64 wraps to a negative index).
+
+    Raises:
+        LogFormatError: naming the field, the first bad point and its value.
+    """
+    bad = ~(np.isfinite(values) & (values >= 0) & (values == np.round(values)))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise LogFormatError(f"{source}: field {name!r} must hold non-negative integers; point {i} has {values[i]}")
+    if values.max() >= limit:
+        i = int(np.argmax(values))
+        raise LogFormatError(
+            f"{source}: field {name!r} of point {i} is {values[i]:.6g}; ring and column indices of {len(values):,} "
+            f"points stay below {limit:,} (a grid that large is mostly empty): a damaged field; export the file again"
+        )
+
+
 def log_from_points(
     points: np.ndarray,
     attributes: dict[str, np.ndarray] | None = None,
@@ -175,9 +194,7 @@ def log_from_points(
         warnings.warn(message, CoarseCoordinatesWarning, stacklevel=2)
     for name, values in (("ring", ring), ("column", column)):
         if values is not None and count:
-            values = np.asarray(values)
-            if not (np.isfinite(values).all() and values.min() >= 0 and np.all(values == np.round(values))):
-                raise LogFormatError(f"{source}: field {name!r} must hold non-negative integers")
+            _check_index_field(np.asarray(values), name, source, count + MAX_EMPTY_CELLS)
     row, col, height, width = _grid_indices(count, ring, column if ring is not None else None)
     if height * width > count + MAX_EMPTY_CELLS:
         raise LogFormatError(

@@ -16,6 +16,7 @@ from mi_lidar.io import (
     read_rosbag_log,
     write_any,
     write_pcd,
+    write_ply,
 )
 
 from .conftest import data_file
@@ -305,10 +306,26 @@ def test_inconsistent_ring_fields_are_rejected(tmp_path):
     points = np.ones((3, 3))
     with pytest.raises(LogFormatError, match="share a"):
         log_from_points(points, ring=np.array([0, 0, 1]), column=np.array([0, 0, 0]))
-    with pytest.raises(LogFormatError, match="non-negative integers"):
+    with pytest.raises(LogFormatError, match=r"field 'ring' must hold non-negative integers; point 1 has -1"):
         log_from_points(points, ring=np.array([0, -1, 1]))
-    with pytest.raises(LogFormatError, match="grid for only 3 points"):
+    with pytest.raises(LogFormatError, match="field 'column' of point 2 is 1.09951e"):
         log_from_points(points, ring=np.array([0, 1, 2]), column=np.array([0, 1, 2**40]))
+    with pytest.raises(LogFormatError, match="grid for only 3 points"):
+        log_from_points(points, ring=np.array([0, 1, 2]), column=np.array([0, 1, 2**20]))
+
+
+@pytest.mark.parametrize("field", ["ring", "column"])
+def test_a_ring_or_column_beyond_int64_is_refused(tmp_path, field):
+    """A float64 column of 1e30 wrapped to index -2**63 when cast: IndexError (index -9223372036854775808 is out of
+    bounds for axis 1) as a traceback."""
+    log = synthetic_log(height=4, width=16)
+    cloud = cloud_from_log(log)
+    cloud[field] = cloud[field].astype(np.float64)
+    cloud[field][7] = 1e30
+    points = np.stack([cloud.pop(c) for c in "xyz"], axis=1)
+    write_ply(tmp_path / "far.ply", points, cloud)
+    with pytest.raises(LogFormatError, match=rf"far.ply: field '{field}' of point 7 is 1e\+30; ring and column"):
+        read_any(tmp_path / "far.ply")
 
 
 def test_ros1_bag_with_unorganized_ring_cloud(tmp_path):
