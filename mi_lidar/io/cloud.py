@@ -18,9 +18,10 @@ direction the unit vector from there to it. Points that are not finite or closer
 trustworthy direction, so it gets the estimated pattern direction: its row's median elevation and
 its column's mean azimuth (columns without any return are interpolated from their neighbours).
 
-A cloud read without a pose is in world coordinates; a georeferenced one (UTM, say) is read at a
-local origin, the rounded centre of its bounding box, which becomes the scan's pose, so that the
-log's float32 ranges keep 0.1 mm (:mod:`mi_lidar.core.frames`).
+A cloud read without a pose is in world coordinates; a georeferenced one (UTM, say: most points far
+from the origin, :func:`georeferenced`) is read at a local origin, the rounded centre of its bounding
+box, which becomes the scan's pose, so that the log's float32 ranges keep 0.1 mm
+(:mod:`mi_lidar.core.frames`).
 
 :func:`cloud_from_log` goes the other way and defines the standard fields every writer uses:
 ``x y z`` (float32, m, sensor frame; float64 world coordinates for a cloud read at a local
@@ -36,7 +37,7 @@ import warnings
 import numpy as np
 
 from mi_lidar.core.errors import CoarseCoordinatesWarning, LogFormatError
-from mi_lidar.core.frames import MAX_COORDINATE_M, float32_message, local_origin, needs_float64
+from mi_lidar.core.frames import MAX_COORDINATE_M, NEAR_M, float32_message, local_origin, needs_float64
 from mi_lidar.core.log import Log
 
 MAX_EMPTY_CELLS = 1 << 20  # a damaged ring or column field cannot make a huge grid (and a slow read)
@@ -126,6 +127,14 @@ def check_coordinates(
         )
 
 
+def georeferenced(points: np.ndarray) -> bool:
+    """Whether a cloud's (N, 3) finite points are georeferenced: most of them (the median point's largest
+    coordinate) lie beyond :data:`~mi_lidar.core.frames.NEAR_M` from the origin. A scan in its sensor's frame
+    surrounds the origin: a few stray far points (a damaged reading) do not move its sensor to the centre of their
+    bounding box."""
+    return bool(len(points)) and float(np.median(np.abs(points).max(axis=1))) > NEAR_M
+
+
 def _check_index_field(values: np.ndarray, name: str, source, limit: int) -> None:
     """Refuse a ring or column field that is not made of non-negative integers below ``limit`` (a larger one
     makes a grid larger than :func:`log_from_points` takes, and one beyond int64 wraps to a negative index).
@@ -169,8 +178,8 @@ def log_from_points(
         min_range: Points closer than this (m) are misses (e.g. 1.0 for nuScenes).
         sensor: Metadata stored in ``Log.sensor``.
         pose: (4, 4) sensor-to-world pose. When None the points are taken as world coordinates: the
-            identity, or, for a georeferenced cloud (coordinates beyond
-            :data:`~mi_lidar.core.frames.NEAR_M`), a translation to the rounded centre of its
+            identity, or, for a georeferenced cloud (most points beyond
+            :data:`~mi_lidar.core.frames.NEAR_M`, :func:`georeferenced`), a translation to the rounded centre of its
             bounding box, the points kept relative to it (float32 ranges then keep 0.1 mm, not
             0.25 m) and the centre recorded as ``sensor["cloud_origin"]``.
         origins: Optional (N, 3) ray origins (m, sensor frame) of the points; the sensor's origin when None.
@@ -204,7 +213,8 @@ def log_from_points(
         raise LogFormatError(f"{source}: two points share a (ring, column) cell; ring/column fields are inconsistent")
     origins = np.zeros_like(points) if origins is None else np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     if pose is None:  # a cloud in world coordinates: far from the origin, the sensor sits at a local origin
-        origin = local_origin(points[np.isfinite(points).all(axis=1) & np.any(points != origins, axis=1)])
+        placed = points[np.isfinite(points).all(axis=1) & np.any(points != origins, axis=1)]
+        origin = local_origin(placed) if georeferenced(placed) else np.zeros(3)
         if np.any(origin):
             points = points - origin
             origins = origins - origin if np.any(origins) else origins  # zero: rays from the local origin

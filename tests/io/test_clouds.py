@@ -103,6 +103,20 @@ def test_a_scan_too_wide_for_las_integers_is_refused(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_stray_far_point_does_not_move_a_sensor_frame_scan(tmp_path):
+    """One point 70 km away made the whole scan 'georeferenced': the sensor moved to the centre of the bounding
+    box, 35 km off, and every range read about 35,000 m (info: 'range min / median / max 34882 / 34963 / 35039')."""
+    log = synthetic_log(height=4, width=16)
+    cloud = cloud_from_log(log)
+    points = np.stack([cloud.pop(c) for c in "xyz"], axis=1).astype(np.float64)
+    points[7] = (7e4, 0.0, 0.0)
+    back = read_any(write_ply(tmp_path / "stray.ply", points, cloud))
+    np.testing.assert_array_equal(back.poses[0], np.eye(4))
+    ranges = back.ranges[back.hit]
+    np.testing.assert_allclose(np.delete(ranges, 7), np.delete(log.ranges[log.hit], 7), rtol=1e-6)
+    assert ranges[7] == pytest.approx(7e4)
+
+
 def test_read_las_gives_the_written_hits_and_attributes(tmp_path):
     log = synthetic_log()
     points, attributes, start = read_las(write_any(log, tmp_path / "scan.las"))
