@@ -39,10 +39,12 @@ import numpy as np
 
 from mi_lidar.core.atomic import atomic_write
 from mi_lidar.core.errors import NUMPY_FILE_ERRORS, LogFormatError, numpy_file_problem
+from mi_lidar.core.frames import MAX_COORDINATE_M
 from mi_lidar.core.poses import validate_poses
 
 FORMAT_NAME = "mi-lidar-log"
 FORMAT_VERSION = 1
+MAX_TIME_S = 1e11  # 3,000 years from 1970: a larger time is in ms, us or ns, or a misread number
 UNIT_TOLERANCE = 1e-3  # |norm - 1| a ray direction may show (float32 storage, estimated miss directions)
 
 
@@ -114,7 +116,8 @@ class Log:
 
     def check_values(self, source: str | os.PathLike = "log") -> None:
         """Refuse numbers no measurement has: a pose that is not a finite rigid transform, a non-finite time or
-        origin, a ray direction that is not a finite unit vector, a negative range of a hit.
+        origin, a time beyond :data:`MAX_TIME_S`, a ray direction that is not a finite unit vector, a negative range
+        of a hit or one beyond :data:`~mi_lidar.core.frames.MAX_COORDINATE_M`.
 
         Shapes are :meth:`validate`'s; these are the values (one vectorized pass, the first bad ray named as
         ``[scan, beam, firing]``).
@@ -131,9 +134,21 @@ class Log:
         origins = np.asarray(self.origins)  # set by __post_init__
         checks = (
             ("time", self.times, ~np.isfinite(self.times), "s"),
+            (
+                "time",
+                self.times,
+                np.abs(self.times) > MAX_TIME_S,
+                f"s, beyond {MAX_TIME_S:.0e} s from 1970 (ms, us or ns?)",
+            ),
             ("origin", origins, ~np.isfinite(origins).all(axis=-1), "m"),
             ("direction length", norm, ~(np.abs(norm - 1.0) <= UNIT_TOLERANCE), "(a unit vector has 1)"),
             ("range of a hit", self.ranges, self.hit & (self.ranges < 0), "m (ranges are >= 0)"),
+            (
+                "range of a hit",
+                self.ranges,
+                self.hit & (self.ranges > MAX_COORDINATE_M),
+                f"m, beyond {MAX_COORDINATE_M:.0e} m",
+            ),
         )
         for name, values, bad, unit in checks:
             if bad.any():

@@ -365,6 +365,17 @@ BAD_VALUES = {
         LogFormatError,
         r"ray \[0, 0, \d+\] has range of a hit -1.5 m \(ranges are >= 0\)",
     ),
+    # a hit 1e30 m away, and times in nanoseconds read as seconds (info: 'time span (s) 10000000150474662198...')
+    "far-range": (
+        lambda a: a.update(ranges=np.where(a["hit"], 1e30, a["ranges"])),
+        LogFormatError,
+        r"ray \[0, 0, \d+\] has range of a hit 1\.0\d*e\+30 m, beyond 1e\+08 m",
+    ),
+    "ns-time": (
+        lambda a: a.update(times=a["times"] * 1e10),
+        LogFormatError,
+        r"ray \[0, 0, 0\] has time 1000000000000.0 s, beyond 1e\+11 s from 1970 \(ms, us or ns\?\)",
+    ),
 }
 
 
