@@ -26,6 +26,7 @@ from mi_lidar.core.log import Log
 
 _UINT_MAX = np.iinfo(np.uint32).max
 _FLOAT32_EXACT = 2**24
+ANGLE_TOLERANCE = 1e-6  # rad: float32 rounds pi and pi/2 up by less than 1e-7
 
 
 def _storage_array(name: str, array: np.ndarray) -> np.ndarray:
@@ -168,7 +169,8 @@ def read_exr_log(path: str | os.PathLike) -> Log:
     """Read an EXR range image written by :func:`write_exr_log` as a one-scan log.
 
     Raises:
-        LogFormatError: Unreadable file or missing ``range``/``elevation``/``azimuth`` channels.
+        LogFormatError: Unreadable file, missing ``range``/``elevation``/``azimuth`` channels, or an elevation
+            beyond +-pi/2 or an azimuth beyond +-pi rad.
     """
     channels, metadata = read_exr(path, with_metadata=True)
     missing = [c for c in ("range", "elevation", "azimuth") if c not in channels]
@@ -185,6 +187,17 @@ def read_exr_log(path: str | os.PathLike) -> Log:
     ranges = channels["range"].astype(np.float32)
     hit = channels["hit"].astype(bool) & np.isfinite(ranges) if "hit" in channels else np.isfinite(ranges)
     elevation, azimuth = channels["elevation"].astype(np.float64), channels["azimuth"].astype(np.float64)
+    for name, angles, bound, allowed in (
+        ("elevation", elevation, np.pi / 2, "+-pi/2"),
+        ("azimuth", azimuth, np.pi, "+-pi"),
+    ):
+        beyond = np.abs(angles) > bound + ANGLE_TOLERANCE  # (NaN directions are check_values')
+        if beyond.any():
+            pixel = [int(i) for i in np.unravel_index(int(np.argmax(beyond)), beyond.shape)]
+            raise LogFormatError(
+                f"{path}: channel {name!r} at pixel {pixel} is {angles[tuple(pixel)]:g} rad; range images hold "
+                f"{name} angles within {allowed} rad: the image is damaged or was written by another program"
+            )
     cos_el = np.cos(elevation)
     directions = np.stack([cos_el * np.cos(azimuth), cos_el * np.sin(azimuth), np.sin(elevation)], axis=-1)
     origins = None

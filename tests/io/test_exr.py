@@ -1,10 +1,13 @@
 import os
+import re
 
 import numpy as np
 import pytest
 
 from mi_lidar.core.errors import LogFormatError
-from mi_lidar.io import read_exr, write_exr
+from mi_lidar.io import read_any, read_exr, write_any, write_exr
+
+from .test_clouds import synthetic_log
 
 
 def test_round_trip_is_exact_and_looked_up_by_name(tmp_path):
@@ -67,3 +70,14 @@ def test_read_errors_name_the_file(tmp_path):
     truncated.write_bytes(good.read_bytes()[:200])
     with pytest.raises(LogFormatError, match="trunc.exr"):
         read_exr(truncated)
+
+
+@pytest.mark.parametrize("channel, value, allowed", [("elevation", 7.0, "pi/2"), ("azimuth", 1e30, "pi")])
+def test_a_range_image_with_an_angle_beyond_its_range_is_refused(tmp_path, channel, value, allowed):
+    """An elevation of 7 rad or an azimuth of 1e30 rad read silently: cos and sin gave some unit direction."""
+    channels, metadata = read_exr(write_any(synthetic_log(height=4, width=16), tmp_path / "s.exr"), with_metadata=True)
+    channels[channel][2, 5] = value
+    write_exr(tmp_path / "bad.exr", channels, metadata)
+    said = f"bad.exr: channel '{channel}' at pixel [2, 5] is {value:g} rad; range images hold {channel} angles"
+    with pytest.raises(LogFormatError, match=re.escape(f"{said} within +-{allowed} rad")):
+        read_any(tmp_path / "bad.exr")
