@@ -9,6 +9,8 @@ import mitsuba as mi
 
 from mi_lidar.core.errors import ParameterError
 
+MAX_LABEL = 2**24  # labels reach the range image in float32 channels, exact up to 2**24 (2**24 + 1 read as 2**24)
+
 
 class LidarMaterial(mi.BSDF):
     r"""
@@ -28,7 +30,7 @@ class LidarMaterial(mi.BSDF):
          sensor's ``range_sigma``. Ellipsoids return their own Gaussian restricted to the ray.
      * - label
        - |int|
-       - Class label reported for returns from this shape (>= 0). Default: 0.
+       - Class label reported for returns from this shape (a whole number from 0 to 2**24). Default: 0.
      * - reflectance
        - |float|
        - Diffuse albedo (0 to 1) seen by cameras, so one scene serves camera and Lidar. Default: 0.5.
@@ -65,7 +67,8 @@ class LidarMaterial(mi.BSDF):
         super().__init__(props)
         self.p_hit = float(props.get("p_hit", 1.0))
         self.range_sigma = float(props.get("range_sigma", math.nan))
-        self.label = int(props.get("label", 0))
+        given = props.get("label", 0)  # (a <float> label of 1.5 was truncated to 1)
+        self.label = int(given) if float(given).is_integer() else -1
         self.reflectance = float(props.get("reflectance", 0.5))
         self.reflectivity = float(props.get("reflectivity", self.reflectance))
         checks = [
@@ -76,7 +79,7 @@ class LidarMaterial(mi.BSDF):
                 math.isnan(self.range_sigma) or 0 <= self.range_sigma < math.inf,
                 "finite numbers >= 0 m",
             ),
-            ("label", self.label, self.label >= 0, ">= 0"),
+            ("label", given, 0 <= self.label <= MAX_LABEL, f"whole numbers in [0, 2**24 = {MAX_LABEL}] (float32's)"),
             ("reflectance", self.reflectance, 0.0 <= self.reflectance <= 1.0, "[0, 1]"),
             ("reflectivity", self.reflectivity, 0.0 <= self.reflectivity <= 100.0, "[0, 100]"),
         ]

@@ -178,7 +178,17 @@ PLY_FACES = "element face 0\nproperty list uchar int vertex_indices\nend_header\
         ),
         (
             '<shape type="sphere"><bsdf type="lidar_material"><integer name="label" value="-3"/></bsdf></shape>',
-            "lidar_material: label=-3 is outside >= 0; fix the value in the scene",
+            "lidar_material: label=-3 is outside whole numbers in [0, 2**24 = 16777216] (float32's); fix the value",
+        ),
+        # labels travel in float32 channels: 16777217 was reported as 16777216, 2**31 as -2**31, and 99999999999
+        # failed inside Dr.Jit's render ('error while performing a custom differentiable operation'); 1.5 read as 1
+        (
+            '<shape type="sphere"><bsdf type="lidar_material"><integer name="label" value="16777217"/></bsdf></shape>',
+            "lidar_material: label=16777217 is outside whole numbers in [0, 2**24 = 16777216]",
+        ),
+        (
+            '<shape type="sphere"><bsdf type="lidar_material"><float name="label" value="1.5"/></bsdf></shape>',
+            "lidar_material: label=1.5 is outside whole numbers",
         ),
         # a sensor pose with NaN was rendered as a scan of NaN rays
         ("", "lidar sensor: to_world: pose 0 is not a rigid transform: has non-finite entries"),
