@@ -224,6 +224,11 @@ CASES = {
             "0 <= min_range < max_range; got min_range=0.0, max_range=nan"
         ],
     ),
+    "scene without a lidar integrator": (  # was Mitsuba's 'No integrator specified!' in a rich traceback
+        ["render", "{bare_scene}", "--out", "{tmp}/o"],
+        {},
+        ['bare.xml: the scene\'s integrator is none, not a lidar_integrator; add <integrator type="lidar_integrator"'],
+    ),
     "unknown variant": (["render", ROOM, "--out", "{tmp}/o"], {"MI_LIDAR_VARIANT": "llvm_nope"}, ["'llvm_nope'"]),
     "cuda without a GPU": (
         ["render", ROOM, "--out", "{tmp}/o"],
@@ -245,6 +250,10 @@ def test_bad_input_is_one_line_with_exit_code_2(tmp_path, room_log, street_frame
     values["refused_scene"] = str(tmp_path / "refused.xml")
     Path(values["refused_scene"]).write_text(
         Path(ROOM).read_text().replace('"max_range" value="30"', '"max_range" value="nan"')
+    )
+    values["bare_scene"] = str(tmp_path / "bare.xml")
+    Path(values["bare_scene"]).write_text(
+        re.sub(r"<integrator .*?</integrator>", "", Path(ROOM).read_text(), flags=re.S)
     )
     if case == "cuda without a GPU" and os.path.exists("/dev/nvidia0"):
         pytest.skip("this machine has a GPU")

@@ -101,6 +101,7 @@ def render(
     from mi_lidar.core.channels import tensor_to_numpy
     from mi_lidar.core.frames import scene_origin, shift_poses
     from mi_lidar.core.log import Log
+    from mi_lidar.plugins.lidar_integrator import LidarIntegrator
     from mi_lidar.scene import load_scene, scene_lidar_sensor, use_density
     from mi_lidar.scene.simulation import simulate
 
@@ -110,6 +111,12 @@ def render(
     if pattern is None:
         if sensor is None:
             raise MiLidarError(f'{scene}: the scene has no `lidar` sensor; add <sensor type="lidar"> or pass --pattern')
+        if not isinstance(loaded.integrator(), LidarIntegrator):  # (Mitsuba's own exception came as a traceback)
+            kind = type(loaded.integrator()).__name__ if loaded.integrator() is not None else "none"
+            raise MiLidarError(
+                f"{scene}: the scene's integrator is {kind}, not a lidar_integrator; add <integrator type=\""
+                'lidar_integrator"/> or pass --pattern'
+            )
         channels = tensor_to_numpy(mi.render(loaded, seed=seed))
         pat = sensor.pattern
         log = Log(
