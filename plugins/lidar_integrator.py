@@ -6,6 +6,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.params import property_number
 
 
 class LidarIntegrator(mi.SamplingIntegrator):
@@ -72,7 +73,7 @@ class LidarIntegrator(mi.SamplingIntegrator):
         from mi_lidar.core.intensity import parse_intensity
 
         super().__init__(props)
-        self.max_segments = int(props.get("max_segments", 16))
+        self.max_segments = property_number(props, "lidar integrator", "max_segments", 16, whole=True)
         if not 1 <= self.max_segments <= 256:
             raise ParameterError(f"lidar integrator: max_segments={self.max_segments} must be in [1, 256]")
         self.effects = parse_effects(str(props.get("effects", "")))

@@ -8,6 +8,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.params import property_number
 
 MAX_LABEL = 2**24  # labels reach the range image in float32 channels, exact up to 2**24 (2**24 + 1 read as 2**24)
 
@@ -65,12 +66,11 @@ class LidarMaterial(mi.BSDF):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        self.p_hit = float(props.get("p_hit", 1.0))
-        self.range_sigma = float(props.get("range_sigma", math.nan))
-        given = props.get("label", 0)  # (a <float> label of 1.5 was truncated to 1)
-        self.label = int(given) if float(given).is_integer() else -1
-        self.reflectance = float(props.get("reflectance", 0.5))
-        self.reflectivity = float(props.get("reflectivity", self.reflectance))
+        self.p_hit = property_number(props, "lidar_material", "p_hit", 1.0)
+        self.range_sigma = property_number(props, "lidar_material", "range_sigma", math.nan)
+        self.label = property_number(props, "lidar_material", "label", 0, whole=True)
+        self.reflectance = property_number(props, "lidar_material", "reflectance", 0.5)
+        self.reflectivity = property_number(props, "lidar_material", "reflectivity", self.reflectance)
         checks = [
             ("p_hit", self.p_hit, 0.0 <= self.p_hit <= 1.0, "[0, 1]"),
             (
@@ -79,7 +79,7 @@ class LidarMaterial(mi.BSDF):
                 math.isnan(self.range_sigma) or 0 <= self.range_sigma < math.inf,
                 "finite numbers >= 0 m",
             ),
-            ("label", given, 0 <= self.label <= MAX_LABEL, f"whole numbers in [0, 2**24 = {MAX_LABEL}] (float32's)"),
+            ("label", self.label, 0 <= self.label <= MAX_LABEL, f"[0, 2**24 = {MAX_LABEL}] (float32's whole numbers)"),
             ("reflectance", self.reflectance, 0.0 <= self.reflectance <= 1.0, "[0, 1]"),
             ("reflectivity", self.reflectivity, 0.0 <= self.reflectivity <= 100.0, "[0, 100]"),
         ]

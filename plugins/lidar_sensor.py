@@ -9,6 +9,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.params import property_number
 from mi_lidar.core.poses import validate_poses
 
 
@@ -69,8 +70,11 @@ class LidarSensor(mi.Sensor):
         from mi_lidar.core.patterns import get_pattern
 
         name = str(props.get("pattern", "vlp16"))
-        firings = props.get("firings", None)
-        kwargs = {} if firings is None else {"n_firings": int(firings)}
+        kwargs = (
+            {"n_firings": property_number(props, "lidar sensor", "firings", 0, whole=True)}
+            if "firings" in props
+            else {}
+        )
         if name.endswith((".csv", ".npy", ".json")):  # a table next to the scene file
             name = str(mi.file_resolver().resolve(name))
         self.pattern = get_pattern(name, **kwargs)
@@ -93,9 +97,9 @@ class LidarSensor(mi.Sensor):
                 f"lidar sensor: film is {film_size[0]} x {film_size[1]} but pattern {name!r} fires "
                 f"{width} x {height} (firings x beams); remove the <film> or set width={width}, height={height}"
             )
-        self.min_range = float(props.get("min_range", 0.0))
-        self.max_range = float(props.get("max_range", 120.0))
-        self.range_sigma = float(props.get("range_sigma", 0.01))
+        self.min_range = property_number(props, "lidar sensor", "min_range", 0.0)
+        self.max_range = property_number(props, "lidar sensor", "max_range", 120.0)
+        self.range_sigma = property_number(props, "lidar sensor", "range_sigma", 0.01)
         self.to_world_matrix = validate_poses(
             np.array(props.get("to_world", mi.ScalarTransform4f()).matrix, dtype=np.float64), "lidar sensor: to_world"
         )[0]

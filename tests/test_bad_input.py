@@ -1,5 +1,7 @@
 """Bad input gets a clear error that names the value and the fix."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -59,6 +61,19 @@ def test_negative_sensor_sigma_and_bad_ranges(tmp_path):
     )
     with pytest.raises(SceneError, match=r"min_range=5.0, max_range=2.0"):
         mi_lidar.load_scene(write(tmp_path, text))
+
+
+@pytest.mark.parametrize(
+    "prop, message",
+    [
+        ('<string name="max_range" value="far"/>', "lidar sensor: max_range='far' is not a number; write <float"),
+        ('<float name="firings" value="2.5"/>', "lidar sensor: firings=2.5 is not a whole number"),
+    ],
+)
+def test_a_sensor_property_of_the_wrong_kind_is_named(tmp_path, prop, message):
+    """Python's words came without the property ('could not convert string to float: 'far''); 2.5 firings read as 2."""
+    with pytest.raises(SceneError, match=re.escape(message)):
+        mi_lidar.load_scene(write(tmp_path, scene_xml("").replace("</sensor>", f"{prop}</sensor>")))
 
 
 def test_malformed_xml(tmp_path):
@@ -178,17 +193,27 @@ PLY_FACES = "element face 0\nproperty list uchar int vertex_indices\nend_header\
         ),
         (
             '<shape type="sphere"><bsdf type="lidar_material"><integer name="label" value="-3"/></bsdf></shape>',
-            "lidar_material: label=-3 is outside whole numbers in [0, 2**24 = 16777216] (float32's); fix the value",
+            "lidar_material: label=-3 is outside [0, 2**24 = 16777216] (float32's whole numbers); fix the value",
         ),
         # labels travel in float32 channels: 16777217 was reported as 16777216, 2**31 as -2**31, and 99999999999
         # failed inside Dr.Jit's render ('error while performing a custom differentiable operation'); 1.5 read as 1
         (
             '<shape type="sphere"><bsdf type="lidar_material"><integer name="label" value="16777217"/></bsdf></shape>',
-            "lidar_material: label=16777217 is outside whole numbers in [0, 2**24 = 16777216]",
+            "lidar_material: label=16777217 is outside [0, 2**24 = 16777216]",
         ),
+        # a <float> where a count belongs was truncated (label 1.5 -> 1, max_segments 4.5 -> 4); a <string> where a
+        # number belongs failed with Python's words ('could not convert string to float: 'half''), no property named
         (
             '<shape type="sphere"><bsdf type="lidar_material"><float name="label" value="1.5"/></bsdf></shape>',
-            "lidar_material: label=1.5 is outside whole numbers",
+            'lidar_material: label=1.5 is not a whole number; write <integer name="label" .../>',
+        ),
+        (
+            '<integrator type="lidar_integrator"><float name="max_segments" value="4.5"/></integrator>',
+            "lidar integrator: max_segments=4.5 is not a whole number",
+        ),
+        (
+            '<shape type="sphere"><bsdf type="lidar_material"><string name="p_hit" value="half"/></bsdf></shape>',
+            'lidar_material: p_hit=\'half\' is not a number; write <float name="p_hit" value="..."/>',
         ),
         # a sensor pose with NaN was rendered as a scan of NaN rays
         ("", "lidar sensor: to_world: pose 0 is not a rigid transform: has non-finite entries"),

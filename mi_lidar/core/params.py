@@ -282,3 +282,34 @@ def _parse_value(text: str):
         return float(text)
     except ValueError:
         return text
+
+
+def property_number(props, plugin: str, name: str, default: float, whole: bool = False) -> float:
+    """The number of a plugin's XML property: ``<float name="max_range" value="30"/>`` gives 30.0.
+
+    Mitsuba hands on whatever the XML element holds (a ``<string>``, a ``<float>`` where a count belongs);
+    ``float()`` or ``int()`` on it failed without naming the property, or truncated 4.5 to 4.
+
+    Args:
+        props: The plugin's ``mi.Properties``.
+        plugin: The plugin's name in messages (``"lidar sensor"``).
+        name: The property.
+        default: Its value when the XML does not set it.
+        whole: The property is a count or an id: the value must be a whole number (returned as ``int``).
+
+    Raises:
+        ParameterError: naming the plugin, the property and the value: not a number, or not a whole one.
+    """
+    given = props.get(name, default)
+    try:
+        value = float(given)
+    except (TypeError, ValueError):
+        kind = "integer" if whole else "float"
+        raise ParameterError(
+            f'{plugin}: {name}={given!r} is not a number; write <{kind} name="{name}" value="..."/>'
+        ) from None
+    if not whole:
+        return value
+    if not value.is_integer():
+        raise ParameterError(f'{plugin}: {name}={given!r} is not a whole number; write <integer name="{name}" .../>')
+    return int(value)
