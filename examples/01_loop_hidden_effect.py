@@ -6,11 +6,15 @@ log, finds that effect among candidates, and writes before/after reports to OUT_
 out/loop_demo). See docs/tutorial_loop.md.
 """
 
-import sys
+import argparse
 
 import mi_lidar  # noqa: F401  (selects the variant, registers the plugins)
 from mi_lidar.loop.demo import run_demo
 
 if __name__ == "__main__":
-    result = run_demo(out=sys.argv[1] if len(sys.argv) > 1 else "out/loop_demo")
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument(
+        "out", nargs="?", default="out/loop_demo", help="folder of the before/after reports (default: %(default)s)"
+    )
+    result = run_demo(out=parser.parse_args().out)
     print("selected:", result["selected"])

@@ -5,6 +5,8 @@ The log hides a constant 3 cm range offset; `range_offset` below is written from
 registered, found by diagnose and fitted, and the script prints the NLL curve over iterations.
 """
 
+import argparse
+
 import mi_lidar  # noqa: F401
 from mi_lidar.core.effects import Effect, register_effect
 from mi_lidar.core.params import ParamSpec
@@ -25,6 +27,8 @@ class RangeOffset(Effect):
 
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.parse_args()
     scene, model, log = make_hidden_log("range_offset(offset=0.03)")
     d = diagnose(log, scene, model, candidates=["range_offset", "range_noise", "outliers"], rounds=1, steps=100)
     print(d.summary)

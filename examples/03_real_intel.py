@@ -9,6 +9,7 @@ scored on the test beams (nats per beam, 1 cm bins) beside the realism of a samp
 2 cores. The same command works on any planar CARMEN log: see docs/loop_results.md.
 """
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -17,7 +18,9 @@ from mi_lidar.cli import app
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "carmen" / "intel-corrected.log.gz"
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("out", nargs="?", default="reports/intel", help="report folder (default: %(default)s)")
+    out = parser.parse_args().out
     if not DATA.is_file():
         sys.exit(f"the Intel log is not at {DATA.resolve()}: it lives beside the repository in ../shared/data")
-    out = sys.argv[1] if len(sys.argv) > 1 else "reports/intel"
     app(["benchmark-planar", str(DATA), "--out", out])  # prints progress, the table and the report path

@@ -13,7 +13,7 @@ columns (nats per ray, 1 cm bins). The loop, as a user runs it:
 OUT defaults to reports/ouster_loop/. About 2 minutes on 2 cores.
 """
 
-import sys
+import argparse
 import time
 from pathlib import Path
 
@@ -92,8 +92,10 @@ def path_tables(rows: list[Step], title: str) -> Group:
 
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("out", nargs="?", default="reports/ouster_loop", help="report folder (default: %(default)s)")
+    out = Path(parser.parse_args().out)
     console = Console()
-    out = Path(sys.argv[1] if len(sys.argv) > 1 else "reports/ouster_loop")
     start = time.perf_counter()
     say = lambda message: console.print(f"[{time.perf_counter() - start:6.1f} s] {message}", markup=False)  # noqa: E731
     log = read_any(DATA)

@@ -10,7 +10,7 @@ scores columns 3 mod 4 against a constant per beam. OUT/report.html holds the ta
 OUT defaults to reports/intensity_real/. About 1 minute on 2 cores.
 """
 
-import sys
+import argparse
 from pathlib import Path
 
 import numpy as np
@@ -22,8 +22,10 @@ from mi_lidar.loop.real_intensity import intensity_experiment, write_intensity_r
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("out", nargs="?", default="reports/intensity_real", help="report folder (default: %(default)s)")
+    out = Path(parser.parse_args().out)
     console = Console()
-    out = Path(sys.argv[1] if len(sys.argv) > 1 else "reports/intensity_real")
     ouster = read_any(DATA / "ouster" / "OS-1-32-G_v2.1.1_1024x10.pcap")
     velodyne = read_any(DATA / "velodyne" / "velodyne_vlp16.pcap")
     # the capture's longest scan: 1,464 columns, about 0.81 of a revolution (no scan of it is whole)

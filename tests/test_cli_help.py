@@ -3,12 +3,15 @@ no help text cut short, no type or default beside a flag (``--force``, not ``--f
 words instead of Python types (``MODEL ...``, not ``<list[str]>``), and the examples on lines a user can copy."""
 
 import re
+import subprocess
+import sys
 
 import pytest
 import typer.main
 
 from mi_lidar.cli import app
 
+from .conftest import REPO
 from .terminal import assert_whole, invoke_at_80
 
 
@@ -50,3 +53,16 @@ def test_every_verb_has_examples_that_fit():
     assert verbs and all(example_lines(command) for _, command in verbs)
     too_long = [line for _, command in verbs for line in example_lines(command) if len(line) > 76]
     assert not too_long, too_long
+
+
+EXAMPLES = sorted((REPO / "examples").glob("0*.py"))
+
+
+@pytest.mark.parametrize("script", EXAMPLES, ids=[p.name for p in EXAMPLES])
+def test_example_help_prints_its_docstring_and_runs_nothing(script, tmp_path):
+    """``python examples/0N_*.py --help`` ran the whole example (up to 5 min) into a folder named ``--help``."""
+    run = lambda flag: subprocess.run([sys.executable, script, flag], cwd=tmp_path, capture_output=True, text=True)  # noqa: E731
+    help_run, typo_run = run("--help"), run("--hepl")
+    assert help_run.returncode == 0 and f"Run:  python examples/{script.name}" in help_run.stdout, help_run
+    assert typo_run.returncode == 2 and "unrecognized arguments: --hepl" in typo_run.stderr, typo_run
+    assert not any(tmp_path.iterdir()), f"{script.name} wrote {sorted(tmp_path.iterdir())}"
