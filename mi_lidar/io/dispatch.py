@@ -101,9 +101,14 @@ def detect_format(path: str | os.PathLike, for_writing: bool = False) -> str:
         raise LogFormatError(
             f"{path}: a folder without metadata.yaml, so not a ROS 2 bag; give a ROS 2 bag folder or a file: {known}"
         )
-    if suffix == ".pcap" and not for_writing:
-        return "pcap"
+    if suffix == ".pcap":
+        return "pcap"  # read only: write_any names the formats it writes
     if suffix not in _SUFFIX_FORMATS:
+        if for_writing:  # was the extensions read, .pcap and .log among them, to a writer that refuses them
+            known = ", ".join(s for s, fmt in _SUFFIX_FORMATS.items() if fmt in WRITE_FORMATS and s != ".laz")
+            raise LogFormatError(
+                f"{path}: unknown extension {suffix!r}; writable: {known} or a ROS 2 bag (.bag or no extension)"
+            )
         known = ", ".join(sorted(set(_SUFFIX_FORMATS) | {".pcap"}))
         raise LogFormatError(f"{path}: unknown extension {suffix!r}; supported: {known} or a ROS 2 bag folder")
     return _SUFFIX_FORMATS[suffix]

@@ -61,6 +61,12 @@ def test_write_formats_and_errors(tmp_path):
         write_any(log, tmp_path / "a.pcd", scan=5)
     with pytest.raises(LogFormatError, match="cannot write format 'carmen'"):
         write_any(log, tmp_path / "a.log", fmt="carmen")
+    with pytest.raises(LogFormatError, match="cannot write format 'pcap'; writable formats: npz"):
+        write_any(log, tmp_path / "a.pcap")  # was "unknown extension '.pcap'; supported: ..., .pcap, ..."
+    with pytest.raises(
+        LogFormatError, match=r"unknown extension '\.xyz'; writable: \.npz, \.bin, [^:]*\.png or a ROS 2 bag"
+    ):
+        write_any(log, tmp_path / "a.xyz")  # was every extension read (.clf, .log, .pcap), as if written
     assert not any(tmp_path.iterdir())
     back = read_any(write_any(log, tmp_path / "two.pcd", scan=2))
     np.testing.assert_allclose(back.ranges[back.hit], log.ranges[2][log.hit[2]], atol=1e-5)
