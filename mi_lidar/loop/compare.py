@@ -138,7 +138,8 @@ def group_keys(t: RayTable, by: str) -> np.ndarray:
     if by == "range":
         edges = np.array([0, 1, 2, 5, 10, 20, 40, 80, 1e9])
         idx = np.digitize(np.nan_to_num(t.nominal, nan=-1), edges)
-        names = np.array([NO_ELEMENT_GROUP] + [f"{edges[i]:g}-{edges[i + 1]:g} m" for i in range(8)] + ["far"])
+        names = [f"{edges[i]:g}-{edges[i + 1]:g} m" for i in range(7)] + ["80+ m"]  # was "80-1e+09 m"
+        names = np.array([NO_ELEMENT_GROUP, *names, "far"])
         return names[np.where(np.isnan(t.nominal), 0, idx)]
     if by == "incidence":
         angle = np.degrees(np.arccos(np.clip(t.cos_incidence, 0, 1)))
@@ -177,6 +178,7 @@ def group_order(key: str) -> tuple:
     ``+000..+030 deg``, ``2-5 m`` before ``10-20 m``), then as text; ``none`` last."""
     head = key.split(" ")[-1] if key.startswith(NAMED_GROUPS) else key.split(" ")[0]
     number = head.split("..")[0].split("-")[0] if not head.startswith("-") else "-" + head[1:].split("..")[0]
+    number = number.removesuffix("+")  # the open last range group, 80+ m
     try:
         return (0, float(number), key)
     except ValueError:

@@ -38,6 +38,14 @@ def test_azimuth_and_beam_groups_sort_numerically():
     assert beams == [f"beam {b:03d}" for b in range(12)]
 
 
+def test_range_groups_sort_numerically_and_the_last_is_open():
+    """The last range group read ``80-1e+09 m`` in the breakdown figure and tables."""
+    t = table(np.zeros(9))
+    t.nominal[:] = [0.5, 1.5, 3, 7, 15, 30, 60, 120, np.nan]
+    groups = [r["group"] for r in breakdown(t, "range")]
+    assert groups == ["0-1 m", "1-2 m", "2-5 m", "5-10 m", "10-20 m", "20-40 m", "40-80 m", "80+ m", "none"]
+
+
 def test_relative_gain_only_away_from_zero_nll():
     assert relative_gain(0.5, -2.0) == 25.0
     assert math.isnan(relative_gain(0.5, 0.3))
