@@ -49,6 +49,9 @@ def scans_figure(evaluation, ranges: dict, path: Path, extent: float = 30.0) -> 
         axis.set_ylim(-extent, extent)
     for axis in axes.ravel()[len(names) :]:
         axis.axis("off")
+    figure.suptitle(f"Each source's scan of the test rays from above, within {extent:g} m of the sensor")
+    figure.supxlabel("x from the sensor (m)")  # the panels had no axis labels
+    figure.supylabel("y from the sensor (m)")
     return _save(figure, path)
 
 

@@ -1,8 +1,11 @@
-"""The loss figure's legend quotes the risk's standard error the report's table quotes."""
+"""The loss figure's legend quotes the risk's standard error the report's table quotes; the 3D report's figures
+say what they show."""
+
+from types import SimpleNamespace
 
 import numpy as np
 
-from mi_lidar.apps import report
+from mi_lidar.apps import report, report3d
 from mi_lidar.apps.risk import AppResult
 
 
@@ -61,3 +64,23 @@ def test_a_path_of_one_step_has_integer_ticks_and_a_whole_y_label(monkeypatch, t
     assert ticks == [0.0, 1.0], ticks
     label = single.yaxis.label.get_window_extent()
     assert label.height <= figure.bbox.height, "the y label runs off the figure"
+
+
+def test_the_scans_figure_has_a_title_and_axes_in_metres(monkeypatch, tmp_path):
+    """``scans.png`` of ``evaluate-apps-3d`` showed seven panels of points with no title and no axis labels."""
+    directions = np.c_[np.cos(np.linspace(0, 6, 50)), np.sin(np.linspace(0, 6, 50)), np.zeros(50)]
+    states = SimpleNamespace(origins=np.zeros((50, 3)), directions=directions)
+    evaluation = SimpleNamespace(simulators=["gaussian", "mi-lidar"], states=states)
+    saved = {}
+    monkeypatch.setattr(report3d, "_save", lambda figure, path: saved.setdefault("figure", figure) and path)
+    report3d.scans_figure(
+        evaluation, dict.fromkeys(["real", "gaussian", "mi-lidar"], np.full(50, 5.0)), tmp_path / "s.png"
+    )
+    figure = saved["figure"]
+    assert "from above" in figure.get_suptitle() and "30 m" in figure.get_suptitle()
+    assert figure.get_supxlabel() == "x from the sensor (m)" and figure.get_supylabel() == "y from the sensor (m)"
+    assert [axis.get_title() for axis in figure.axes[:3]] == [
+        "real: 50 points",
+        "gaussian: 50 points",
+        "mi-lidar: 50 points",
+    ]
