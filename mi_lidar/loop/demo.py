@@ -86,6 +86,8 @@ def run_demo(
     )
     q = before.headline["hit_rate_measured"]
     echo("  " + F1_NOTE.format(q=q, always=2 * q / (1 + q)))
+    if out is not None:  # the demo ended on the F1 note and never said where its reports were
+        echo(f"reports: {out / 'diagnosis.html'}, {out / 'before' / 'report.html'}, {out / 'after' / 'report.html'}")
     return {
         "ranking": d.ranking(),
         "selected": d.selected,

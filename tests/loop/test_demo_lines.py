@@ -1,8 +1,9 @@
-"""The demo's ranking fits 80 columns (a 31-character candidate pushed 'significant' onto its own line)."""
+"""The demo's ranking fits 80 columns (a 31-character candidate pushed 'significant' onto its own line), and the
+demo ends by naming the reports it wrote."""
 
 from types import SimpleNamespace
 
-from mi_lidar.loop.demo import ranking_lines
+from mi_lidar.loop.demo import ranking_lines, run_demo
 
 
 def test_the_ranking_keeps_one_line_per_candidate_in_80_columns():
@@ -15,3 +16,12 @@ def test_the_ranking_keeps_one_line_per_candidate_in_80_columns():
     assert len(lines) == 4 and all(len(line) <= 80 for line in lines), [len(line) for line in lines]
     assert lines[2].endswith("significant") and lines[3].endswith("-")
     assert len({line.index("+4.9975") for line in lines[1:]}) == 1  # the figures in one column
+
+
+def test_the_demo_ends_naming_the_reports_it_wrote(tmp_path):
+    """`make demo` ended on its F1 note: nothing said that demo_out/loop held a diagnosis and two HTML reports."""
+    lines = []
+    run_demo(out=tmp_path / "loop", candidates=["incidence_dropout"], echo=lines.append)
+    reports = [tmp_path / "loop" / name for name in ("diagnosis.html", "before/report.html", "after/report.html")]
+    assert lines[-1] == "reports: " + ", ".join(map(str, reports)), lines[-1]
+    assert all(report.is_file() for report in reports)
