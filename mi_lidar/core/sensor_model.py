@@ -32,7 +32,7 @@ from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.intensity import IntensityModel
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment, sample_range
-from mi_lidar.core.streams import MAX_UNIFORM, NeighbourStreams, uniform, uniforms
+from mi_lidar.core.streams import MAX_UNIFORM, NeighbourStreams, check_seed, uniform, uniforms
 from mi_lidar.core.trace import RESTART_OFFSET, mitsuba_ray, next_hit
 
 NO_ELEMENT = 0xFFFFFFFF
@@ -178,7 +178,7 @@ class SensorModel:
             scene: a loaded Mitsuba scene.
             table: its :class:`ElementTable`.
             rays: the wavefront (world frame); lanes are compacted as rays terminate.
-            seed: random seed.
+            seed: random seed, 0 .. 2**32 - 1 (:func:`~mi_lidar.core.streams.check_seed`).
             evaluate: evaluate the outputs before returning them. False leaves the last step (the
                 draw at the returning element) to the kernel that reads the outputs, so that a caller
                 that rearranges them at once (the range-image tensor of ``mi.render``) writes them once;
@@ -192,6 +192,7 @@ class SensorModel:
             miss or a stray return). With a beam-divergence effect each beam's
             sub-rays are simulated and the effect combines their returns (:meth:`Effect.combine`).
         """
+        check_seed(seed)
         rays = self.prepare_rays(rays)
         fan = self.fan_out(rays)
         if fan is None:
@@ -400,6 +401,7 @@ class SensorModel:
         Returns:
             ``(range, hit)`` per ray (m, NaN for a miss).
         """
+        check_seed(seed)
         rays = self.prepare_rays(rays)
         n = rays.width
         out = {"range": dr.full(mi.Float, dr.nan, n), "hit": dr.full(mi.Bool, False, n)}

@@ -38,14 +38,18 @@ from mi_lidar.core.errors import ParameterError
 MAX_UNIFORM = 1.0 - 2.0**-24  # largest float32 below 1: Phi of a large score must stay in [0, 1)
 DECISION_STREAM = 0  # the stream that decides an element's outcome (one per segment)
 DRIVE_STREAM = 64  # offset of the stream that drives a stream's shared (AR(1)) part
+MAX_SEED = 2**32 - 1  # the streams key on the seed modulo 2**32: a larger seed would repeat a smaller one's draws
 
 
 def uniform(seed, ray_id: mi.UInt32, segment, stream: int) -> mi.Float:
     """Uniform numbers in [0, 1): one per lane, keyed by (seed, ray, segment, stream).
 
-    ``seed`` is an integer (the counter-based TEA hash) or a :class:`NeighbourStreams`.
+    ``seed`` is an integer from 0 to :data:`MAX_SEED` (the counter-based TEA hash) or a :class:`NeighbourStreams`.
     ``segment`` is a Python int or a per-lane ``mi.UInt32`` (the counter of a symbolic loop); both
     give the same numbers, as the key is formed modulo 2^32 either way.
+
+    The sampler's entry points check the seed first (:func:`check_seed`): raised in here, inside a Dr.Jit loop,
+    the error would come out as the loop's RuntimeError.
     """
     if isinstance(seed, NeighbourStreams):
         return seed.uniform(ray_id, segment, stream)
@@ -54,6 +58,21 @@ def uniform(seed, ray_id: mi.UInt32, segment, stream: int) -> mi.Float:
         # An opaque key is a kernel input, not a constant: new seeds and rounds reuse compiled kernels.
         return mi.sample_tea_float32(ray_id, dr.opaque(mi.UInt32, (base + segment * 0x85EBCA77) & 0xFFFFFFFF), 8)
     return mi.sample_tea_float32(ray_id, dr.opaque(mi.UInt32, base) + segment * 0x85EBCA77, 8)
+
+
+def check_seed(seed) -> None:
+    """Refuse an integer seed outside 0 .. :data:`MAX_SEED`: :func:`uniform` keys on it modulo 2**32, so seed 2**32
+    gave the very scan of seed 0 (labelled 2**32), and seed -1 that of 2**32 - 1. A :class:`NeighbourStreams`
+    was checked when it was made.
+
+    Raises:
+        ParameterError: naming the seed, the range and the seed it would repeat.
+    """
+    if not isinstance(seed, NeighbourStreams) and not 0 <= int(seed) <= MAX_SEED:
+        raise ParameterError(
+            f"seed {seed} is outside 0 .. {MAX_SEED}: the random streams key on 32 bits, so it would repeat the "
+            f"draws of seed {int(seed) % 2**32}; give a seed in that range"
+        )
 
 
 def uniforms(seed, ray_id: mi.UInt32, segment) -> mi.Point2f:
@@ -103,6 +122,9 @@ class NeighbourStreams:
     follows: np.ndarray
     correlation: BeamCorrelation
     _cache: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        check_seed(int(self.seed))
 
     def uniform(self, ray_id: mi.UInt32, segment, stream: int) -> mi.Float:
         """The stream's numbers of rays ``ray_id`` (a Python int ``segment`` only: the trace's rounds)."""

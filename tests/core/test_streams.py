@@ -130,3 +130,17 @@ def test_carried_outcomes_keep_the_pass_through_law():
     stop = np.where(hit, np.round(np.nan_to_num(z) / 10.0), 0).reshape(SCANS, BEAMS)
     same = np.mean(stop[:, 1:] == stop[:, :-1])
     assert same > 0.5**2 + 0.2**2 + 0.27**2 + 0.03**2 + 0.2
+
+
+@pytest.mark.parametrize("seed", [2**32, 2**64, -1])
+def test_a_seed_beyond_32_bits_is_refused_before_it_repeats_another(seed):
+    """simulate(seed=2**32) gave the very scan of seed 0 (labelled 2**32); seed -1 that of 2**32 - 1."""
+    import mi_lidar
+    from tests.conftest import SCENES
+
+    scene = mi_lidar.load_scene(SCENES / "indoor_planar.xml")
+    with pytest.raises(ParameterError, match=rf"seed {seed} is outside 0 \.\. 4294967295: .* repeat the draws of seed"):
+        mi_lidar.simulate(scene, seed=seed)
+    with pytest.raises(ParameterError, match=rf"seed {seed} is outside"):
+        _streams(BeamCorrelation(), seed=seed)
+    assert mi_lidar.simulate(scene, seed=2**32 - 1).n_scans == 1
