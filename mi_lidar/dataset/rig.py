@@ -171,6 +171,37 @@ def nuscenes_camera(name: str, camera: dict, scale: float) -> RigCamera:
     return RigCamera(name, width, height, fov, camera["cam2ego"], centre)
 
 
+def nuscenes_calibration(spec: DatasetSpec) -> dict | None:
+    """The calibration of the rig's nuScenes file (:func:`~mi_lidar.io.nuscenes.read_nuscenes_calibration`), with
+    every camera the spec names; None when the rig has no ``nuscenes`` entry.
+
+    Raises:
+        LogFormatError: the file is unreadable or not a nuScenes info pickle.
+        SpecError: a camera the file does not hold.
+    """
+    nuscenes = spec.rig.nuscenes
+    if nuscenes is None:
+        return None
+    calibration = read_nuscenes_calibration(spec.resolve(nuscenes.file))
+    for name in nuscenes.cameras:
+        if name not in calibration["cameras"]:
+            raise SpecError(
+                f"rig.nuscenes.cameras: {name!r} is not in {nuscenes.file}; "
+                f"choose from {', '.join(sorted(calibration['cameras']))}"
+            )
+    return calibration
+
+
+def check_nuscenes(spec: DatasetSpec) -> list[str]:
+    """What is wrong with the rig's nuScenes file, as :func:`check_lidars` says it: read once before any frame (an
+    unreadable pickle failed every frame, each retried, then the run)."""
+    try:
+        nuscenes_calibration(spec)
+    except MiLidarError as exc:
+        return [f"rig.nuscenes: {exc}"]
+    return []
+
+
 def build_rig(spec: DatasetSpec) -> Rig:
     """The rig of a dataset spec; nuScenes cameras follow the explicit ones and give the Lidars their mount.
 
@@ -179,18 +210,13 @@ def build_rig(spec: DatasetSpec) -> Rig:
     cameras = [camera_from_spec(c) for c in spec.rig.cameras]
     lidar_mounts = [s.mount.to_matrix() for s in spec.rig.lidars]
     nuscenes = spec.rig.nuscenes
-    if nuscenes is not None:
-        calibration = read_nuscenes_calibration(spec.resolve(nuscenes.file))
+    calibration = nuscenes_calibration(spec)
+    if nuscenes is not None and calibration is not None:
         default_mount = LidarSpec().mount
         lidar_mounts = [
             calibration["lidar2ego"] if s.mount == default_mount else m for s, m in zip(spec.rig.lidars, lidar_mounts)
         ]
         for name in nuscenes.cameras:
-            if name not in calibration["cameras"]:
-                raise SpecError(
-                    f"rig.nuscenes.cameras: {name!r} is not in {nuscenes.file}; "
-                    f"choose from {', '.join(sorted(calibration['cameras']))}"
-                )
             cameras.append(nuscenes_camera(name, calibration["cameras"][name], nuscenes.image_scale))
     lidars = [
         RigLidar(s, m, sensor_model(s, spec.resolve), firing_pattern(s, spec.resolve))

@@ -212,9 +212,10 @@ def run_dataset(
     """Render every frame of ``spec`` not already in ``out``'s manifest.
 
     Raises:
-        SpecError: the spec does not fit ``out``'s manifest, or a scene is inconsistent with it
+        SpecError: the spec does not fit ``out``'s manifest, a scene is inconsistent with it
             (unknown shape, class or label: found before the first frame by
-            :func:`~mi_lidar.dataset.scenes.check_scenes`); other frame errors are retried, then reported.
+            :func:`~mi_lidar.dataset.scenes.check_scenes`), or a LocalCluster ``dashboard_address`` has no port
+            (:func:`check_dashboard`); other frame errors are retried, then reported.
         SceneError: a scene, annotation or library to render cannot be read.
 
     Args:
@@ -235,6 +236,8 @@ def run_dataset(
     from mi_lidar.dataset.scenes import check_scenes
 
     out = Path(out)
+    if not serial and scheduler is None:
+        check_dashboard(dashboard_address)
     start = time.perf_counter()
     with output_folder(out):  # a bad scene leaves no empty folder behind
         report = RunReport(total=spec.frames, skipped=0, removed_partial=remove_partial_files(out))
@@ -276,6 +279,25 @@ def run_dataset(
     write_poses(out, manifest, spec.frames)
     report.seconds = time.perf_counter() - start
     return report
+
+
+def check_dashboard(address: str | None) -> None:
+    """Refuse a LocalCluster dashboard address without a port Dask can listen on (``:8787``, ``host:8787``,
+    ``8787``; several separated by commas); None or ``""``: no dashboard.
+
+    Raises:
+        SpecError: naming the address and what to give (Dask's own error came as a traceback: 'Cluster failed to
+            start: invalid literal for int() with base 10').
+    """
+    if not address:
+        return
+    for part in address.split(","):
+        port = part.rpartition(":")[2]
+        if not (port.isdigit() and int(port) <= 65535):
+            raise SpecError(
+                f"dashboard address {address!r}: {part!r} needs a port number from 0 to 65535 after its last ':', "
+                "e.g. ':8787' or 'localhost:8787'; or give '' for no dashboard"
+            )
 
 
 def _attempt(spec: DatasetSpec, out: Path, index: int, retries: int) -> tuple[dict | None, str | None]:

@@ -11,13 +11,22 @@ import hashlib
 import json
 import math
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from mi_lidar.core.errors import MiLidarError, SpecError, describe_invalid, parser_message, unreadable
+from mi_lidar.core.frames import MAX_COORDINATE_M
 from mi_lidar.core.params import parse_calls
 from mi_lidar.core.patterns import is_pattern_file
+
+MAX_FRAMES = 1_000_000  # KITTI names frames with 6 digits (000000.bin ... 999999.bin)
+MAX_IMAGE_SIDE = 8192  # pixels, and samples per pixel below: the limits of `camera-lidar`
+MAX_SPP = 4096
+MAX_ANGLE_DEG = 360.0  # a mount angle beyond a turn is a unit slip or a misread number
+Position = Annotated[float, Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)]  # m: beyond is no place on Earth
+Angle = Annotated[float, Field(ge=-MAX_ANGLE_DEG, le=MAX_ANGLE_DEG)]
 
 
 class Strict(BaseModel):
@@ -49,8 +58,8 @@ class Mount(Strict):
     ``matrix`` (then ``xyz`` and ``rpy_deg`` must stay unset).
     """
 
-    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    xyz: tuple[Position, Position, Position] = (0.0, 0.0, 0.0)
+    rpy_deg: tuple[Angle, Angle, Angle] = (0.0, 0.0, 0.0)
     matrix: tuple[tuple[float, float, float, float], ...] | None = None
 
     @model_validator(mode="after")
@@ -98,8 +107,8 @@ class CameraSpec(Strict):
     """
 
     name: str
-    width: int = Field(640, ge=8)
-    height: int = Field(360, ge=8)
+    width: int = Field(640, ge=8, le=MAX_IMAGE_SIDE)
+    height: int = Field(360, ge=8, le=MAX_IMAGE_SIDE)
     fov_deg: float = Field(70.0, gt=1, lt=179)
     mount: Mount = Mount(xyz=(0.0, 0.0, 1.6))
 
@@ -140,7 +149,7 @@ class Trajectory(Strict):
     waypoint's z (default 0) is the ego height.
     """
 
-    waypoints: list[tuple[float, ...]] = Field(min_length=2)
+    waypoints: list[tuple[Position, ...]] = Field(min_length=2)
     follow_ground: bool = True
 
     @field_validator("waypoints")
@@ -158,7 +167,7 @@ class Trajectory(Strict):
 class XmlObject(Strict):
     """A labelled object of an XML scene: its class and the shape ids it is made of (one 3D box)."""
 
-    class_name: str = Field(alias="class")
+    class_name: str = Field(alias="class", pattern=r"^\S+$")  # the first word of a KITTI label_2 line
     shapes: list[str] = Field(min_length=1)
 
 
@@ -190,7 +199,7 @@ class SceneSpec(Strict):
     """One scene of the dataset: an XML file, an annotation filled from a library, or random objects."""
 
     name: str
-    frames: int = Field(ge=1)
+    frames: int = Field(ge=1, le=MAX_FRAMES)
     trajectory: Trajectory
     xml: Path | None = None
     parameters: dict[str, str] = {}
@@ -221,9 +230,11 @@ class SceneSpec(Strict):
 class OutputSpec(Strict):
     """What is written per frame besides the KITTI files."""
 
-    spp: int = Field(16, ge=1, description="camera samples per pixel")
+    spp: int = Field(16, ge=1, le=MAX_SPP, description="camera samples per pixel")
     overlays: bool = False
-    semantic_ids: dict[str, int] = Field({}, description="class name -> SemanticKITTI label id, over the defaults")
+    semantic_ids: dict[str, Annotated[int, Field(ge=0, le=0xFFFF)]] = Field(
+        {}, description="class name -> SemanticKITTI label id (16 bits), over the defaults"
+    )
 
 
 class DatasetSpec(Strict):
@@ -242,6 +253,11 @@ class DatasetSpec(Strict):
         names = [s.name for s in self.scenes]
         if len(set(names)) != len(names):
             raise ValueError(f"scene names must be unique; got {names}")
+        if self.frames > MAX_FRAMES:
+            raise ValueError(
+                f"the scenes' frames add up to {self.frames:,}; KITTI names frames with 6 digits, so a dataset holds "
+                f"at most {MAX_FRAMES:,}: split it into several datasets"
+            )
         return self
 
     @property
@@ -315,7 +331,8 @@ def load_spec(path: str | Path, source: dict | None = None) -> DatasetSpec:
 
     Raises:
         SpecError: missing or unparsable file, unknown or invalid fields (every one is listed), a
-            referenced file that does not exist, or a Lidar pattern or sensor model that cannot be built.
+            referenced file that does not exist, a Lidar pattern or sensor model that cannot be built, or a
+            nuScenes file that does not read.
     """
     path = Path(path)
     data = read_spec_file(path) if source is None else source
@@ -333,11 +350,11 @@ def load_spec(path: str | Path, source: dict | None = None) -> DatasetSpec:
             + "\n  ".join(lines)
             + _how_to_make(path, spec, missing)
         )
-    from mi_lidar.dataset.rig import check_lidars  # the rig module builds on this one
+    from mi_lidar.dataset.rig import check_lidars, check_nuscenes  # the rig module builds on this one
 
-    problems = check_lidars(spec)
+    problems = check_lidars(spec) + check_nuscenes(spec)
     if problems:
-        raise SpecError(f"{path}: the rig's Lidars cannot be built:\n  " + "\n  ".join(problems))
+        raise SpecError(f"{path}: the rig cannot be built:\n  " + "\n  ".join(problems))
     return spec
 
 

@@ -83,6 +83,20 @@ def test_yaml_and_toml_agree_and_frames_split_into_variants(folder):
         (("pattern: vlp16", "pattern: vlp16, effects: 'range_nois(k=1)'"), r"rig\.lidars\.0\.effects: .*'range_nois'"),
         (("pattern: vlp16", "pattern: vlp16, density: 'gaussian(sigm=1)'"), r"rig\.lidars\.0\.density: .*sigm"),
         (("pattern: vlp16", "pattern: vlp16, max_range: 0.2"), r"rig\.lidars\.0: sensor model: max_range=0\.2"),
+        # read, then rendered for ever (10**12 frames), garbage (a rotation of 1e30 degrees, an empty or spaced
+        # KITTI object type, a 16-bit id of 2**40), or failed in every frame, each retried (a waypoint 1e30 m away)
+        (("frames: 3", "frames: 1000000000000"), r"scenes\.0\.frames: Input should be less than or equal to 1000000"),
+        (("frames: 7", "frames: 999999"), r"frames add up to 1,000,002; KITTI names frames with 6 digits"),
+        (("[[0, 0], [10, 0]]}}", "[[0, 0], [1e30, 0]]}}"), r"waypoints\.1\.0: Input should be less than or equal to"),
+        (
+            ("rpy_deg: [0, 10, 0]", "rpy_deg: [0, 10, 1e30]"),
+            r"mount\.rpy_deg\.2: Input should be less than or equal to",
+        ),
+        (("xyz: [1, 0, 1.5]", "xyz: [-1e30, 0, 1.5]"), r"mount\.xyz\.0: Input should be greater than or equal to"),
+        (("{name: front,", "{name: front, width: 100000,"), r"cameras\.0\.width: Input should be less than or equal"),
+        (("seed: 1", "seed: 1\noutput: {spp: 1000000000}"), r"output\.spp: Input should be less than or equal to 4096"),
+        (("seed: 1", "seed: 1\noutput: {semantic_ids: {road: -1}}"), r"semantic_ids\.road: Input should be greater"),
+        (("seed: 1", "seed: 1\noutput: {semantic_ids: {road: 65536}}"), r"semantic_ids\.road: Input should be less"),
     ],
 )
 def test_bad_specs_name_the_field(folder, change, message):
@@ -150,6 +164,36 @@ def test_a_pattern_table_is_read_from_the_spec_folder(folder, monkeypatch):
     monkeypatch.chdir(folder / "lib")  # not the spec's folder
     pattern = build_rig(load_spec(folder / "s.yaml")).lidars[0].pattern
     assert np.allclose(pattern.elevation, get_pattern("vlp16").elevation, rtol=0, atol=1e-15)  # CSV round trip
+
+
+@pytest.mark.parametrize("name", ["", "Traffic Sign"])
+def test_an_object_class_that_is_not_one_word_is_refused(folder, name):
+    """It went to the first column of label_2 lines as it was: empty, or two columns for one."""
+    objects = f"frames: 3, objects: [{{class: '{name}', shapes: [car_body]}}],"
+    (folder / "s.yaml").write_text(YAML.replace("frames: 3,", objects))
+    with pytest.raises(SpecError, match=r"scenes\.0\.objects\.0\.class: String should match pattern"):
+        load_spec(folder / "s.yaml")
+
+
+def test_an_unreadable_nuscenes_file_is_refused_before_any_frame(folder):
+    """Read per frame, it failed every frame (each retried) and the run exited 1 saying to run it again."""
+    (folder / "info.pkl").write_bytes(b"not a pickle")
+    text = YAML.replace("rig:\n", "rig:\n  nuscenes: {file: info.pkl, cameras: [CAM_FRONT]}\n")
+    (folder / "s.yaml").write_text(text)
+    with pytest.raises(SpecError, match=r"the rig cannot be built:\n  rig\.nuscenes: .*info\.pkl: not a nuScenes info"):
+        load_spec(folder / "s.yaml")
+
+
+@pytest.mark.parametrize("address", ["nope:xx", "host:", ":99999"])
+def test_a_dashboard_address_without_a_port_is_refused_before_the_cluster(tmp_path, address):
+    """Dask's 'Cluster failed to start: invalid literal for int() with base 10' came as a traceback."""
+    from mi_lidar.dataset.run import run_dataset
+
+    (tmp_path / "lib").mkdir()
+    (tmp_path / "s.yaml").write_text(YAML)
+    with pytest.raises(SpecError, match=rf"dashboard address '{address}': .* needs a port number from 0 to 65535"):
+        run_dataset(load_spec(tmp_path / "s.yaml"), tmp_path / "out", dashboard_address=address)
+    assert not (tmp_path / "out").exists()
 
 
 def test_unreadable_specs(folder):
