@@ -312,3 +312,48 @@ def test_a_denied_read_and_a_denied_write_both_get_the_fix_for_what_was_done(tmp
         line = os_error_line(exc)
         assert line.startswith(f"{path}: permission denied; "), line
         assert "reading a file needs read access to it, writing one needs write access to its folder" in line, line
+
+
+def limited_size(limit: int):
+    """A preexec_fn capping the files the command writes at ``limit`` bytes (`ulimit -f`): a write past it fails
+    with EFBIG, as on a full disk (Python ignores SIGXFSZ)."""
+
+    def apply() -> None:
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+
+    return apply
+
+
+WRITES = {  # command, the output it fails to write, what was printed before
+    "npz": (["convert", "{log}", "{out}"], "out.npz", "[Errno 27] File too large"),
+    "exr": (["convert", "{log}", "{out}", "--scan", "0"], "out.exr", "a traceback: OpenEXR's RuntimeError"),
+    "bin": (["convert", "{log}", "{out}", "--scan", "0"], "out.bin", "22408 requested and 12800 written"),
+    "bag": (["convert", "{log}", "{out}"], "bag", "a traceback: sqlite3.OperationalError: disk I/O error"),
+    "render": (["render", ROOM, "--out", "{out}"], "scan", "a traceback, and the empty folder left behind"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(WRITES))
+def test_a_write_that_fails_midway_names_the_file_keeps_the_old_one_and_leaves_nothing(tmp_path, room_log, case):
+    args, name, before = WRITES[case]
+    out = tmp_path / name
+    if case not in ("bag", "render"):
+        out.write_bytes(b"the previous file")
+    run = subprocess.run(
+        [MI_LIDAR, *(a.format(log=room_log, out=out) for a in args)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "COLUMNS": "400"},
+        preexec_fn=limited_size(1000),
+    )
+    lines = [line for line in (run.stdout + run.stderr).splitlines() if line.strip() and not PROGRESS.match(line)]
+    assert run.returncode == 2 and len(lines) == 1, (before, lines)
+    written = out / "scan.exr" if case == "render" else out
+    assert lines[0].startswith(f"error: {written}: "), (before, lines)
+    assert "ulimit -f" in lines[0], lines
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == ([name] if case not in ("bag", "render") else []), left
+    if case not in ("bag", "render"):
+        assert out.read_bytes() == b"the previous file"

@@ -138,6 +138,11 @@ OS_ERROR_FIXES = {
     errno.EEXIST: "a file of that name is in the way of the folder: give another path, or move the file",
     errno.ENOENT: "check the path",
     errno.ENOSPC: "the disk is full: free space or choose another disk",
+    errno.EDQUOT: "your disk quota is used up: free space or choose another disk",
+    errno.EFBIG: "the file is larger than the file system or the process's limit (ulimit -f) allows: choose another "
+    "disk or raise the limit",
+    errno.EIO: "the write failed (a full disk, a file size limit, a failing disk): check the space (df) and "
+    "`ulimit -f`, or choose another disk",
 }
 
 
@@ -145,7 +150,7 @@ def os_error_line(exc: OSError) -> str:
     """One line for a failed file operation: the path, what the system said, and what to do."""
     if exc.errno not in OS_ERROR_FIXES or not exc.filename:
         return str(exc)
-    return f"{exc.filename}: {exc.strerror.lower()}; {OS_ERROR_FIXES[exc.errno]}"
+    return f"{exc.filename}: {exc.strerror[:1].lower()}{exc.strerror[1:]}; {OS_ERROR_FIXES[exc.errno]}"
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:

@@ -42,37 +42,41 @@ def scan_summary(log, title: str, elapsed: float | None = None) -> Table:
 
 
 def write_scan_outputs(log, out: Path, scene_name: str) -> list[Path]:
-    """Write ``scan.exr``, ``points.ply``, ``scan.bin`` (KITTI), ``scan.npz`` and PNG previews of scan 0."""
+    """Write ``scan.exr``, ``points.ply``, ``scan.bin`` (KITTI), ``scan.npz`` and PNG previews of scan 0.
+
+    The folder is made first and removed again while empty when a write fails (a full disk: it was left behind).
+    """
+    from mi_lidar.core.atomic import output_folder
     from mi_lidar.core.channels import INTEGER_CHANNELS
     from mi_lidar.io import birds_eye_png, range_image_png, write_exr, write_kitti_bin, write_ply
 
-    out.mkdir(parents=True, exist_ok=True)
-    scan = log.scan(0)
-    channels = {"range": scan.ranges[0], "hit": scan.hit[0].astype(np.float32)}
-    channels.update({k: v[0] for k, v in scan.attributes.items()})
-    exr = write_exr(
-        out / "scan.exr",
-        {k: np.asarray(v, np.float32) if k not in INTEGER_CHANNELS else v for k, v in channels.items()},
-    )
-    hit = scan.hit[0]
-    points = scan.points_world()[0][hit]  # float64: write_ply keeps it for georeferenced points
-    beam = np.broadcast_to(np.arange(hit.shape[0])[:, None], hit.shape)[hit].astype(np.uint16)
-    attributes = {"range": scan.ranges[0][hit], "ring": beam}
-    attributes.update({k: v[0][hit] for k, v in scan.attributes.items()})
-    ply = write_ply(out / "points.ply", points, attributes)
-    kitti = write_kitti_bin(out / "scan.bin", scan.points_sensor()[0][hit], None)
-    npz = scan.save(out / "scan.npz")
-    png_range = range_image_png(out / "range.png", scan.ranges[0], title=f"{scene_name}: range (m)")
-    values = scan.attributes["label"][0][hit] if "label" in scan.attributes else None
-    png_bev = birds_eye_png(
-        out / "birds_eye.png",
-        points,
-        values=values,
-        title=f"{scene_name}: returns by label",
-        value_label="label",
-        categorical=True,
-    )
-    return [exr, ply, kitti, npz, png_range, png_bev]
+    with output_folder(out):
+        scan = log.scan(0)
+        channels = {"range": scan.ranges[0], "hit": scan.hit[0].astype(np.float32)}
+        channels.update({k: v[0] for k, v in scan.attributes.items()})
+        exr = write_exr(
+            out / "scan.exr",
+            {k: np.asarray(v, np.float32) if k not in INTEGER_CHANNELS else v for k, v in channels.items()},
+        )
+        hit = scan.hit[0]
+        points = scan.points_world()[0][hit]  # float64: write_ply keeps it for georeferenced points
+        beam = np.broadcast_to(np.arange(hit.shape[0])[:, None], hit.shape)[hit].astype(np.uint16)
+        attributes = {"range": scan.ranges[0][hit], "ring": beam}
+        attributes.update({k: v[0][hit] for k, v in scan.attributes.items()})
+        ply = write_ply(out / "points.ply", points, attributes)
+        kitti = write_kitti_bin(out / "scan.bin", scan.points_sensor()[0][hit], None)
+        npz = scan.save(out / "scan.npz")
+        png_range = range_image_png(out / "range.png", scan.ranges[0], title=f"{scene_name}: range (m)")
+        values = scan.attributes["label"][0][hit] if "label" in scan.attributes else None
+        png_bev = birds_eye_png(
+            out / "birds_eye.png",
+            points,
+            values=values,
+            title=f"{scene_name}: returns by label",
+            value_label="label",
+            categorical=True,
+        )
+        return [exr, ply, kitti, npz, png_range, png_bev]
 
 
 @app.command(rich_help_panel="Make scans")

@@ -9,6 +9,7 @@ run fails.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from collections.abc import Iterator
@@ -28,6 +29,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
     The temporary name keeps the destination's suffix, so libraries that choose a format by
     extension (OpenEXR, plyfile, laspy) work. The parent folder is created when missing.
+
+    Raises:
+        OSError: a failed write in the block (a full disk, ``ulimit -f``) is raised naming ``path``, not the
+            temporary file or no file at all (``[Errno 27] File too large``; numpy's short write has no errno
+            and becomes ``EIO``).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -38,7 +44,12 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.close(fd)
     tmp = Path(name)
     try:
-        yield tmp
+        try:
+            yield tmp
+        except OSError as exc:  # a write that failed (disk full, size limit): name the file asked for
+            if exc.filename not in (None, name):
+                raise
+            raise OSError(exc.errno or errno.EIO, exc.strerror or str(exc), os.fspath(path)) from exc
         os.chmod(tmp, _default_mode())
         try:
             os.replace(tmp, path)

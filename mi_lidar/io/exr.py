@@ -10,6 +10,7 @@ value exactly, and rejected otherwise.
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import json
 import os
@@ -75,7 +76,11 @@ def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], metadata
     header.update({key: str(value) for key, value in (metadata or {}).items()})
     with atomic_path(path) as tmp:
         with OpenEXR.File(header, {k: np.ascontiguousarray(v) for k, v in stored.items()}) as exr:
-            exr.write(str(tmp))
+            try:
+                exr.write(str(tmp))
+            except RuntimeError as exc:  # OpenEXR's word for any failed write ('... File too large.')
+                said = str(exc).replace(f' to image file "{tmp}"', "")
+                raise OSError(errno.EIO, f"could not write the image (OpenEXR: {said})", os.fspath(path)) from exc
     return Path(path)
 
 

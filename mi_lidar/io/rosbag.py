@@ -31,9 +31,11 @@ more FLOAT32 fields ``origin_x origin_y origin_z`` per point, while ``x y z`` st
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
+import sqlite3
 import tempfile
 from pathlib import Path
 
@@ -337,6 +339,7 @@ def write_rosbag_log(
 
     Raises:
         FileExistsError: ``path`` already exists (bags are never overwritten).
+        OSError: the bag could not be written (a full disk, ``ulimit -f``), naming ``path``; nothing is left.
     """
     from rosbags.rosbag2 import Writer
 
@@ -408,6 +411,12 @@ def write_rosbag_log(
                 writer.write(tf, nanoseconds, store.serialize_cdr(pose, TF_MESSAGE))
                 writer.write(connection, nanoseconds, store.serialize_cdr(msg, POINTCLOUD2))
         os.replace(bag, path)
+    except sqlite3.Error as exc:  # the storage could not be written (a full disk, ulimit -f): was a traceback
+        raise OSError(errno.EIO, f"the bag's storage could not be written ({exc})", os.fspath(path)) from exc
+    except OSError as exc:  # a failed write names the bag, not a file of the staging folder or none
+        if exc.filename is not None and not str(exc.filename).startswith(str(staging)):
+            raise
+        raise OSError(exc.errno or errno.EIO, exc.strerror or str(exc), os.fspath(path)) from exc
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return path

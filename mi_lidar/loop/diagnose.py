@@ -49,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_lidar.core.atomic import output_folder
 from mi_lidar.core.log import Log
 from mi_lidar.core.problem import n_parameters
 from mi_lidar.core.sensor_model import SensorModel
@@ -464,9 +465,9 @@ def diagnose(
         )
     if out is not None:
         out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        intensity = intensity_section(intensity_residuals(log, data.scene, base, data.test.index), out)
-        write_report(result, out, appendix=intensity)
+        with output_folder(out):  # a first write that fails (a full disk) leaves no empty folder behind
+            intensity = intensity_section(intensity_residuals(log, data.scene, base, data.test.index), out)
+            write_report(result, out, appendix=intensity)
     return result
 
 

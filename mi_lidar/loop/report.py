@@ -11,7 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mi_lidar.core.atomic import atomic_path, atomic_write_text  # noqa: E402
+from mi_lidar.core.atomic import atomic_path, atomic_write_text, output_folder  # noqa: E402
 from mi_lidar.io.markdown import markdown_to_html  # noqa: E402
 
 
@@ -242,8 +242,15 @@ def write_residual_ply(t, log, path: Path) -> Path:
 
 
 def write_comparison(result, log, out: Path, title: str, model) -> list[Path]:
-    """Write the comparison report into folder ``out``; return the files."""
-    out.mkdir(parents=True, exist_ok=True)
+    """Write the comparison report into folder ``out``; return the files.
+
+    The folder is made first and removed again while empty when a write fails (a full disk: it was left behind).
+    """
+    with output_folder(out):
+        return _comparison_files(result, log, out, title, model)
+
+
+def _comparison_files(result, log, out: Path, title: str, model) -> list[Path]:
     t = result.table
     from mi_lidar.loop.intensity_residuals import FIGURE, intensity_section
 

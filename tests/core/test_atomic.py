@@ -1,5 +1,6 @@
 """atomic_write_text: UTF-8 text written through a temporary file; a failed write leaves the old file and no litter."""
 
+import errno
 import os
 
 import pytest
@@ -100,3 +101,20 @@ def test_an_output_folder_keeps_what_existed_and_what_was_written(tmp_path):
     with atomic.output_folder(tmp_path / "fine") as folder:
         (folder / "report.json").write_text("{}")
     assert folder.is_dir() and (folder / "report.json").is_file()
+
+
+@pytest.mark.parametrize(
+    "failure, code",
+    [
+        (OSError(errno.EFBIG, "File too large"), errno.EFBIG),  # a write past `ulimit -f`: no file named
+        (OSError("22408 requested and 12800 written"), errno.EIO),  # numpy's short write: no errno either
+    ],
+)
+def test_a_failed_write_names_the_file_asked_for(tmp_path, temporaries, failure, code):
+    """The CLI printed '[Errno 27] File too large' or '22408 requested and 12800 written': no file, no fix."""
+    path = tmp_path / "scan.bin"
+    path.write_bytes(b"old")
+    with pytest.raises(OSError) as caught, atomic.atomic_path(path):
+        raise failure
+    assert (caught.value.errno, caught.value.filename) == (code, str(path))
+    assert path.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["scan.bin"]
