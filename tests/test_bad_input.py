@@ -144,7 +144,9 @@ def _denied(path):
     raise PermissionError(13, "Permission denied", str(path))
 
 
-@pytest.mark.parametrize("reader", ["spec", "mesh", "library index", "primitive"])
+@pytest.mark.parametrize(
+    "reader", ["spec", "mesh", "library index", "primitive", "pattern csv", "pattern npy", "ouster metadata"]
+)
 def test_a_file_the_process_may_not_read_is_named_as_such(reader, tmp_path, monkeypatch):
     """A permission error was reported as a parse error ('cannot parse the spec: [Errno 13] ...', 'not a triangle
     mesh PLY (PermissionError ...)', 'not a primitive library index'): each reader now says the file cannot be read
@@ -165,6 +167,20 @@ def test_a_file_the_process_may_not_read_is_named_as_such(reader, tmp_path, monk
     elif reader == "mesh":
         monkeypatch.setattr(blocks.PlyData, "read", _denied)
         call, error = (lambda: blocks.read_mesh_ply(path)), SceneError
+    elif reader.startswith(("pattern", "ouster")):  # were 'check the path', 'not a plain numeric NPY array
+        # (PermissionError ...)' and 'pass the sensor's metadata JSON': the path and the file were right
+        from mi_lidar.core.patterns import from_table
+        from mi_lidar.core.patterns.ouster_sensor import read_ouster_metadata
+
+        path = tmp_path / {"pattern csv": "p.csv", "pattern npy": "p.npy"}.get(reader, "meta.json")
+        path.write_text("")
+        monkeypatch.setattr(pathlib.Path, "open", lambda self, *a, **k: _denied(self))
+        monkeypatch.setattr(pathlib.Path, "read_text", lambda self, *a, **k: _denied(self))
+        monkeypatch.setattr(np, "load", lambda p, **k: _denied(p))
+        call, error = (
+            (lambda: (read_ouster_metadata if reader == "ouster metadata" else from_table)(path)),
+            PatternError,
+        )
     else:
         path.write_text(json.dumps({"primitives": [{"id": "a", "label": 1, "file": "a.npz"}]}))
         if reader == "library index":

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError, parser_message
+from mi_lidar.core.errors import LogFormatError, parser_message, unreadable
 from mi_lidar.core.log import Log
 from mi_lidar.io.cloud import ORIGIN_FIELDS, STANDARD_FIELDS, cloud_from_log, log_from_fields, stack_scans
 
@@ -117,6 +117,9 @@ def read_rosbag_log(path: str | os.PathLike, topic: str | None = None, min_range
         path = path.parent
     if not path.exists():
         raise LogFormatError(f"{path}: no such ROS bag")
+    for part in sorted(path.iterdir()) if path.is_dir() else [path]:  # (was 'damaged or incomplete: copy it again')
+        if part.is_file() and not os.access(part, os.R_OK):
+            raise unreadable(part, "bag file")
     if path.is_dir():
         path = _BagFolder(path)
     logs, poses = [], []

@@ -193,6 +193,17 @@ def test_an_exr_the_user_may_not_read_says_so(seeds, tmp_path, monkeypatch):
         exr.read_exr(path)
 
 
+def test_a_bag_the_user_may_not_read_says_so(tmp_path, monkeypatch):
+    """SQLite said 'unable to open database file', worded as 'the bag is damaged or incomplete: copy it again'."""
+    import mi_lidar.io.rosbag as rosbag
+
+    bag = write_any(synthetic_log(height=4, width=16, scans=2), tmp_path / "bag")
+    storage = next(bag.glob("*.db3"))
+    monkeypatch.setattr(rosbag.os, "access", lambda p, mode: Path(p) != storage)
+    with pytest.raises(LogFormatError, match=rf"{storage.name}: cannot read the bag file \(permission denied\); make"):
+        read_any(bag)
+
+
 def test_a_damaged_exr_says_what_to_do(seeds, tmp_path):
     path = tmp_path / "cut.exr"
     path.write_bytes((seeds / "s.exr").read_bytes()[:-1])

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.errors import PatternError
+from mi_lidar.core.errors import PatternError, unreadable
 from mi_lidar.core.patterns.firing import TWO_PI, FiringPattern, positive_float, positive_int
 from mi_lidar.core.patterns.vendor import (
     OS1_BEAM_ORIGIN_MM,
@@ -96,6 +96,8 @@ def read_ouster_metadata(path: str | os.PathLike) -> OusterMetadata:
     where = f"ouster metadata {os.fspath(path)}"
     try:
         meta = json.loads(Path(path).read_text(encoding="utf-8"))
+    except PermissionError as exc:  # (its fix was to pass the metadata JSON: the user had)
+        raise unreadable(os.fspath(path), "Ouster metadata", PatternError) from exc
     except OSError as exc:
         raise PatternError(
             f"cannot read Ouster metadata {os.fspath(path)!r} ({exc.strerror}); pass the "

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_path, atomic_write
-from mi_lidar.core.errors import NUMPY_FILE_ERRORS, PatternError, numpy_file_problem
+from mi_lidar.core.errors import NUMPY_FILE_ERRORS, PatternError, numpy_file_problem, unreadable
 from mi_lidar.core.patterns.firing import FiringPattern, positive_float
 
 _CSV_ANGLES = ("elevation_deg", "azimuth_deg")
@@ -141,6 +141,8 @@ def _read_csv_columns(path: Path) -> dict[str, np.ndarray]:
             reader = csv.reader(f)
             header = [name.strip() for name in next(reader, [])]
             records = [(reader.line_num, [v.strip() for v in row]) for row in reader if row]  # blank lines skipped
+    except PermissionError as exc:  # (its fix was to check the path: the path was right)
+        raise unreadable(path, "pattern table", PatternError) from exc
     except OSError as exc:
         raise PatternError(f"cannot read {where} ({exc.strerror}); check the path") from exc
     except (UnicodeDecodeError, csv.Error) as exc:
@@ -184,6 +186,8 @@ def _read_npy_columns(path: Path) -> dict[str, np.ndarray]:
         raise PatternError(f"cannot read {where} (no such file); check the path")
     try:
         array = np.load(path, allow_pickle=False)
+    except PermissionError as exc:  # (it was 'not a plain numeric NPY array (PermissionError ...)')
+        raise unreadable(path, "pattern table", PatternError) from exc
     except NUMPY_FILE_ERRORS as exc:
         raise PatternError(f"{where} is not a plain numeric NPY array ({numpy_file_problem(exc)})") from None
     if array.ndim not in (2, 3) or array.shape[-1] not in (2, 3) or 0 in array.shape:
