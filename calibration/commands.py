@@ -41,6 +41,7 @@ def calibrate_command(
     patience: int = 5,
     eval_every: int = 10,
     counting_start: bool = True,
+    shared_start: bool = True,
     progress=None,
     pattern: str | None = None,
     force: bool = False,
@@ -54,7 +55,7 @@ def calibrate_command(
         params: parameter globs, e.g. ``["elements.*.p_hit", "sensor.range_bias"]``.
         out: output folder: ``scene.xml`` (+ ``scene_assets/``), ``loss.png``, ``changes.csv``,
             ``history.csv``, ``parameters.npz``, ``report.json``.
-        steps, batch_size, holdout, seed, patience, eval_every, counting_start: see
+        steps, batch_size, holdout, seed, patience, eval_every, counting_start, shared_start: see
             :class:`~mi_lidar.calibration.fit.FitOptions`.
         lr: learning-rate overrides ``GLOB=RATE``.
         lr_scale: factor on every learning rate.
@@ -88,6 +89,7 @@ def calibrate_command(
         learning_rates=parse_learning_rates(lr),
         lr_scale=lr_scale,
         counting_start=counting_start,
+        shared_start=shared_start,
     )
     calibration = Calibration(loaded, measured, list(params), options=options, pattern=firing, force=force)
     result = calibration.fit(progress)

@@ -75,6 +75,7 @@ class Parameter:
         unit: unit of the natural values.
         geometric: changing it moves what rays meet, so rays are re-traced at every step.
         target: ``(array name, index)`` for table arrays, or ``(effect name, keys)`` for effects.
+        per_beam: one value per beam of the log's sensor (a per-beam effect parameter).
     """
 
     name: str
@@ -87,6 +88,7 @@ class Parameter:
     unit: str
     geometric: bool
     target: tuple = field(default=())
+    per_beam: bool = False
 
     def variable(self, initial: np.ndarray, lr: float) -> FitVariable:
         """The fitter's view of this parameter, starting at natural values ``initial`` with step ``lr``."""
@@ -218,6 +220,7 @@ class ParameterSpace:
                     unit,
                     geometric,
                     (effect_name, keys),
+                    per_beam=spec.per_beam,
                 )
             )
         sensor_effects = {v[0] for v in SENSOR_EFFECTS.values()}
@@ -237,6 +240,7 @@ class ParameterSpace:
                         spec.unit,
                         False,
                         (part.name, (key,)),
+                        per_beam=spec.per_beam,
                     )
                 )
 

@@ -180,6 +180,9 @@ def loss_png(path, result: FitResult, title: str = "calibration") -> Path:
         result.counting_nll, color="tab:orange", ls="--", lw=1, label=f"counting start ({result.counting_nll:.4f})"
     )
     ax.axhline(result.initial_nll, color="tab:red", ls=":", lw=1, label=f"initial ({result.initial_nll:.4f})")
+    if result.shared:
+        label = f"per-beam fit from the shared start ({result.shared_nll:.4f})"
+        ax.axvline(result.shared_steps, color="0.3", ls="-.", lw=1, label=label)
     ax.set_xlabel("Adam step")
     ax.set_ylabel("negative log-likelihood (nats / ray)")
     ax.set_title(title)
@@ -237,7 +240,13 @@ def write_report(out, result: FitResult, scene, units: dict, title: str, pattern
         "parameters": result.names,
         "steps_run": result.steps_run,
         "stopped_early": result.stopped_early,
-        "held_out_nll": {"initial": result.initial_nll, "counting": result.counting_nll, "fitted": result.fitted_nll},
+        "held_out_nll": {
+            "initial": result.initial_nll,
+            "counting": result.counting_nll,
+            **({"shared_start": result.shared_nll} if result.shared else {}),
+            "fitted": result.fitted_nll,
+        },
+        "shared_start": result.shared,
         "effects": [e.describe() for e in result.model.effects],
         "held_out_samples": result.samples,
         "warnings": result.warnings,
@@ -261,7 +270,8 @@ def calibration_markdown(summary: dict, rows: list[dict], title: str) -> str:
         "",
         *(f"**Warning:** {w}.\n" for w in summary.get("warnings", [])),
         f"Held-out NLL (nats/ray): initial **{nll['initial']:.4f}**, counting start {nll['counting']:.4f}, "
-        f"fitted **{nll['fitted']:.4f}**; {summary['steps_run']} Adam steps"
+        + (f"shared start {nll['shared_start']:.4f}, " if "shared_start" in nll else "")
+        + f"fitted **{nll['fitted']:.4f}**; {summary['steps_run']} Adam steps"
         + (" (stopped early: the held-out loss stopped falling)." if summary["stopped_early"] else "."),
         "",
         *_samples_table(summary.get("held_out_samples", {})),

@@ -19,7 +19,8 @@ FIT = "Fit"  # the options of the optimisation, a panel of their own: the option
 
 
 def result_table(result: FitResult) -> Group:
-    """Two rich tables: the parameter changes, then the held-out loss of the initial, counting and fitted models.
+    """Two rich tables: the parameter changes, then the held-out loss of the initial, counting, shared-start (when
+    run) and fitted models.
 
     A parameter name longer than its column folds onto a second line instead of being cut.
     """
@@ -38,11 +39,9 @@ def result_table(result: FitResult) -> Group:
         ("nats/ray",),
         caption=f"after {result.steps_run} Adam steps" + (" (early stop)" if result.stopped_early else ""),
     )
-    for name, nll in (
-        ("initial", result.initial_nll),
-        ("counting", result.counting_nll),
-        ("fitted", result.fitted_nll),
-    ):
+    rows = [("initial", result.initial_nll), ("counting", result.counting_nll)]
+    rows += [("shared start", result.shared_nll)] if result.shared else []
+    for name, nll in rows + [("fitted", result.fitted_nll)]:
         losses.add_row(name, figure(nll, 5))
     return Group(changes, losses)
 
@@ -80,6 +79,13 @@ def calibrate(
         False,
         "--no-counting-start",
         help="Start hit probabilities from the scene's, not from the counting estimate hits/(hits+pass-throughs).",
+        rich_help_panel=FIT,
+    ),
+    no_shared_start: bool = typer.Option(
+        False,
+        "--no-shared-start",
+        help="Fit per-beam parameters (range bias, beam angle offsets) beam by beam from the start, not first as "
+        "one value shared by all beams.",
         rich_help_panel=FIT,
     ),
     pattern: str | None = typer.Option(
@@ -130,6 +136,7 @@ def calibrate(
             patience=patience,
             progress=report,
             counting_start=not no_counting_start,
+            shared_start=not no_shared_start,
             pattern=pattern,
             force=force,
         )

@@ -113,9 +113,14 @@ def test_cli_prints_table(files):
     # other steps out (they printed and wrote 'nan').
     assert "nan" not in run.output.lower() and "calibrating: loss" in run.output
     history = (tmp / "cli" / "history.csv").read_text().splitlines()
-    assert history[0] == "step,train_nll,held_out_nll" and len(history) == 7
+    report = json.loads((tmp / "cli" / "report.json").read_text())
+    # the per-beam bias starts shared: 5 steps of the shared start, then 5 per beam, one history row each
+    assert report["steps_run"] == 10 and set(report["shared_start"]) == {"sensor.range_bias"}
+    assert history[0] == "step,train_nll,held_out_nll" and len(history) == 12
+    assert [int(row.split(",")[0]) for row in history[1:]] == list(range(11))
     assert "nan" not in "".join(history).lower() and history[2].endswith(",")
-    fitted = json.loads((tmp / "cli" / "report.json").read_text())["held_out_nll"]["fitted"]
+    assert "shared start" in run.output
+    fitted = report["held_out_nll"]["fitted"]
     assert_whole(run.stdout, "elements.terrain.range_sigma", f"{fitted:.5f}")
     bad = CliRunner().invoke(
         app, ["calibrate", str(log), str(start), "--params", "elements.*.nothing", "--out", str(tmp / "bad")]
