@@ -19,7 +19,7 @@ Two ways to build the :class:`~mi_lidar.core.segment.Segment` of an element met 
 * :meth:`ElementTable.traced_segment` from a Mitsuba intersection (the sampler: no gradients);
 * :meth:`ElementTable.segment` from the table's own geometry along any ray (the likelihood):
   triangles from their vertices, ellipsoids from their parameters, other shapes (analytic spheres,
-  cylinders, rectangles) from the tangent plane at the traced point. It is differentiable in the
+  disks, rectangles) from the tangent plane at the traced point. It is differentiable in the
   geometry arrays and in the ray, so fitting heights, ellipsoids, beam angles or extrinsics works.
 """
 

@@ -66,7 +66,8 @@ class EllipsoidElements:
 
 @dataclass
 class AnalyticElements:
-    """A Mitsuba analytic shape (sphere, cylinder, disk: one element) with its Lidar values.
+    """A Mitsuba analytic shape (sphere, disk: one element; a cylinder loads as a mesh of ``2 n`` triangles,
+    :mod:`mi_lidar.scene.cylinders`) with its Lidar values.
 
     Attributes:
         plugin: Mitsuba shape plugin, one of :data:`~mi_lidar.scene.files.ANALYTIC_SHAPES`.

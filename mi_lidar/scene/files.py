@@ -13,7 +13,7 @@ Two element kinds make a scene (thesis ch. 4.3):
 
 Per-shape values (used where a per-element value is absent) go in a nested
 ``<bsdf type="lidar_material">`` with ``p_hit``, ``range_sigma`` and ``label``; analytic shapes
-(spheres, cylinders, disks: one element each) carry their values there alone.
+(spheres, cylinders, disks) carry their values there alone.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from mi_lidar.core.errors import ParameterError
 from mi_lidar.scene.rebase import matrix_value
 
 ELEMENT_ATTRIBUTES = ("p_hit", "range_sigma", "label", "reflectivity")
-ANALYTIC_SHAPES = ("sphere", "cylinder", "disk")  # one element each, placed by their to_world alone
+ANALYTIC_SHAPES = ("sphere", "cylinder", "disk")  # placed by their to_world alone; a cylinder loads as a mesh
 
 
 def _element_columns(n: int, p_hit, range_sigma, label, reflectivity=None) -> list[tuple[str, np.ndarray]]:

@@ -12,6 +12,7 @@ import numpy as np
 from mi_lidar.core.errors import MiLidarError, SceneError
 from mi_lidar.core.frames import COORDINATES_DOC, check_float32, set_scene_origin
 from mi_lidar.core.sensor_model import SensorModel
+from mi_lidar.scene.cylinders import mesh_cylinders
 from mi_lidar.scene.rebase import rebase_xml
 
 
@@ -49,6 +50,9 @@ def load_scene(source, optimize: bool = False, **parameters):
     it on demand. Serial loading costs 0.1 s on a 1M-triangle mesh (0.55 -> 0.65 s) and is faster for
     many small shapes (600 shapes with a ``lidar_material``: 0.06 s against 0.08 s).
 
+    Every ``cylinder`` is loaded as a triangle mesh of the same tube (Mitsuba 3.9.1's own cylinder test
+    misses thin poles far from the sensor: :mod:`mi_lidar.scene.cylinders`).
+
     A file whose shapes and sensors are placed far from the origin (a georeferenced ``translate``)
     is loaded at a local origin (:mod:`mi_lidar.scene.rebase`); :func:`mi_lidar.core.frames.scene_origin`
     gives that origin, and :func:`mi_lidar.simulate` moves poses into the scene's frame and its log
@@ -64,7 +68,8 @@ def load_scene(source, optimize: bool = False, **parameters):
     origin = np.zeros(3)
     try:
         if isinstance(source, dict):
-            scene = mi.load_dict(source, parallel=False, optimize=False)
+            config = _parser_config(optimize=False)
+            scene = _instantiate(config, mi.parser.parse_dict(config, source))
         else:
             path = Path(source)
             if not path.is_file():
@@ -100,18 +105,35 @@ def _load_file(path: Path, optimize: bool, values: dict[str, str]):
     except (OSError, UnicodeDecodeError):
         text = ""  # Mitsuba's loader reports an unreadable file in its own words
     rebased = rebase_xml(text, values)
-    if rebased is None:
-        return mi.load_file(os.fspath(path), parallel=False, optimize=optimize, **values), np.zeros(3)
-    xml, origin = rebased
+    config = _parser_config(optimize)
     resolver = mi.file_resolver()
     saved = [resolver[i] for i in range(len(resolver))]
     resolver.prepend(mi.filesystem.path(os.fspath(path.resolve().parent)))  # assets relative to the file
     try:
-        return mi.load_string(xml, parallel=False, optimize=optimize, **values), origin
+        if rebased is None:
+            return _instantiate(config, mi.parser.parse_file(config, os.fspath(path), **values)), np.zeros(3)
+        xml, origin = rebased
+        return _instantiate(config, mi.parser.parse_string(config, xml, **values)), origin
     finally:
         resolver.clear()
         for folder in saved:
             resolver.append(folder)
+
+
+def _parser_config(optimize: bool):
+    """Mitsuba's parser settings of ``mi.load_file(..., parallel=False, optimize=optimize)``."""
+    config = mi.parser.ParserConfig(mi.variant())
+    config.parallel = False
+    config.merge_equivalent = config.merge_meshes = optimize
+    return config
+
+
+def _instantiate(config, state):
+    """The scene of a parsed file or dict, made as ``mi.load_file`` makes it, with its cylinders as meshes
+    (:mod:`mi_lidar.scene.cylinders`: Mitsuba 3.9.1's own cylinder misses thin poles far away)."""
+    mi.parser.transform_all(config, state)
+    mesh_cylinders(state)
+    return mi.parser.instantiate(config, state)
 
 
 PYTHON_TRACEBACK = "Traceback (most recent call last):"
