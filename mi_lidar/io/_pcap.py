@@ -9,12 +9,13 @@ to the sensor modules, which stack equal-size payloads into numpy arrays.
 from __future__ import annotations
 
 import struct
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError, unreadable
+from mi_lidar.core.errors import LogFormatError, TruncatedLogWarning, unreadable
 
 PCAP_MAGIC = {
     b"\xd4\xc3\xb2\xa1": ("<", 1e-6),
@@ -109,6 +110,19 @@ def _network_layer(link: int, frame: bytes) -> bytes | None:
     return frame
 
 
+def _cut_short(path: Path, offset: int, what: str, first: bool) -> None:
+    """Warn that the capture ends inside its last record (``what``, at byte ``offset``), or refuse it when that
+    record is its ``first``: a capture stopped mid-write keeps the records before the cut."""
+    if first:
+        raise LogFormatError(f"{path}: byte {offset}: the first {what} is cut short at end of file: copy it again")
+    warnings.warn(
+        f"{path}: byte {offset}: the capture ends inside its last {what} (a capture stopped mid-write, or a "
+        "partial copy?): reading the records before it",
+        TruncatedLogWarning,
+        stacklevel=3,
+    )
+
+
 def read_udp(path: str | Path) -> UdpPackets:
     """Read every UDP datagram of a pcap file.
 
@@ -116,10 +130,12 @@ def read_udp(path: str | Path) -> UdpPackets:
         path: A classic libpcap capture (not pcapng).
 
     Returns:
-        The datagrams in file order.
+        The datagrams in file order. A capture whose last record is cut short (a capture stopped
+        mid-write, as tcpdump killed leaves it) gives the records before it, with a
+        :class:`~mi_lidar.core.errors.TruncatedLogWarning` naming the byte offset.
 
     Raises:
-        LogFormatError: Missing file, unknown magic or link type, a truncated record (names its
+        LogFormatError: Missing file, unknown magic or link type, a cut-short first record (names its
             byte offset), or a record longer than 256 KiB (corrupt length field).
     """
     path = Path(path)
@@ -143,18 +159,15 @@ def read_udp(path: str | Path) -> UdpPackets:
     offset = 24
     while offset < len(data):
         if offset + 16 > len(data):
-            raise LogFormatError(
-                f"{path}: byte {offset}: truncated pcap record header ({len(data) - offset} of 16 bytes)"
-            )
+            _cut_short(path, offset, f"record header ({len(data) - offset} of 16 bytes)", offset == 24)
+            break
         seconds, fraction, captured, _ = record.unpack_from(data, offset)
         if captured > _MAX_RECORD:
             raise LogFormatError(f"{path}: byte {offset}: record length {captured} is implausible (corrupt file?)")
         end = offset + 16 + captured
         if end > len(data):
-            raise LogFormatError(
-                f"{path}: byte {offset}: record of {captured} bytes is truncated at end of file "
-                f"({len(data) - offset - 16} present)"
-            )
+            _cut_short(path, offset, f"record of {captured} bytes ({len(data) - offset - 16} present)", offset == 24)
+            break
         ip = _network_layer(link, data[offset + 16 : end])
         datagram = None if ip is None else _ipv4_udp(path, offset, ip, fragments)
         if datagram is not None:

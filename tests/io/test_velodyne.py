@@ -1,7 +1,9 @@
+import warnings
+
 import numpy as np
 import pytest
 
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, TruncatedLogWarning
 from mi_lidar.io import read_any, read_velodyne
 from mi_lidar.io.velodyne import MODELS
 
@@ -203,3 +205,23 @@ def test_a_damaged_calibration_table_is_named_on_one_line(tmp_path, damage, mess
     with pytest.raises(LogFormatError, match=message) as caught:
         read_velodyne(_capture(tmp_path), tmp_path / "t.yaml")
     assert "\n" not in str(caught.value)
+
+
+def test_a_capture_cut_short_reads_its_complete_records(tmp_path):
+    """tcpdump killed mid-write leaves the last record cut short: the packets before it are read, with a warning
+    naming the byte; a capture whose first record is cut is refused."""
+    path = _capture(tmp_path, packets=10)
+    whole = read_velodyne(path)
+    data = path.read_bytes()
+    record = (len(data) - 24) // 10  # every record has the same length
+    for keep in (24 + 9 * record + 7, 24 + 9 * record + 100):  # inside the last record's header, inside its data
+        (tmp_path / "cut.pcap").write_bytes(data[:keep])
+        with pytest.warns(TruncatedLogWarning, match=rf"cut.pcap: byte {24 + 9 * record}: the capture ends inside"):
+            cut = read_velodyne(tmp_path / "cut.pcap")
+        assert cut.ranges.size == whole.ranges.size * 9 // 10  # the nine whole packets
+        np.testing.assert_array_equal(cut.ranges, whole.ranges[:, :, : cut.ranges.shape[2]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", TruncatedLogWarning)
+        (tmp_path / "first.pcap").write_bytes(data[: 24 + 50])
+        with pytest.raises(LogFormatError, match="first.pcap: byte 24: the first record of .* is cut short"):
+            read_velodyne(tmp_path / "first.pcap")
