@@ -20,6 +20,7 @@ from mi_lidar.core.log import Log
 from mi_lidar.planar.grid import CountMap, Grid, count_scans, in_threads, planar_beams
 from mi_lidar.planar.raymarch import PlanarTrace, trace_scans
 
+MAX_TEST_EVERY = 10**9  # a test scan every 10**9 scans already tests scan 0 alone: more is a typo
 MAX_CELLS = 2**28  # map cells: the count map keeps 24 bytes a cell (6 GB here) and needs twice that to build
 
 
@@ -54,8 +55,11 @@ class PlanarProtocol:
     train_beams: int = 300_000
 
     def __post_init__(self):
-        if self.test_every < 2:
-            raise ParameterError(f"test_every={self.test_every} must be >= 2 (training scans are the others)")
+        if not 2 <= self.test_every <= MAX_TEST_EVERY:  # (2**64 overflowed numpy's modulo: a traceback)
+            raise ParameterError(
+                f"test_every={self.test_every} must be from 2 (training scans are the others) to {MAX_TEST_EVERY:,} "
+                "(no log has more scans)"
+            )
         if self.train_beams < 0:
             raise ParameterError(f"train_beams={self.train_beams} must be >= 0 (0: every training scan)")
         if not 0.005 <= self.cell <= 1.0:

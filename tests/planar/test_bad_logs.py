@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from mi_lidar.core.errors import LogFormatError
+from mi_lidar.core.errors import LogFormatError, ParameterError
 from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
 from tests.planar.world import room_log_text
@@ -23,6 +23,14 @@ def test_a_one_scan_log_has_no_training_scans(tmp_path):
         LogFormatError, match=r"the log has 1 scan; .* \(every 5-th scan is a test scan\): give a longer"
     ):
         prepare(room(tmp_path, 1))
+
+
+@pytest.mark.parametrize("test_every", [1, 2**64])
+def test_a_test_scan_spacing_outside_2_to_a_billion_is_refused(test_every):
+    """2**64 (benchmark-planar or evaluate-apps --test-every) failed in numpy's modulo: 'OverflowError: Python int
+    too large to convert to C long' as a traceback."""
+    with pytest.raises(ParameterError, match=rf"test_every={test_every} must be from 2 .* to 1,000,000,000"):
+        PlanarProtocol(test_every=test_every)
 
 
 def test_a_log_too_short_to_leave_scans_out_says_so(tmp_path):
