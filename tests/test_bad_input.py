@@ -343,3 +343,37 @@ def test_an_ellipsoid_without_a_finite_positive_scale_is_refused(scale, quaterni
         SceneError, match=r"'bushes': ellipsoid 1 \(of 2, 1 such\).*finite scales > 0 m and a unit quaternion"
     ):
         mi_lidar.simulate(mi_lidar.load_scene(scene), "planar-180")
+
+
+@pytest.mark.parametrize(
+    "place, message",
+    [
+        ('<transform name="to_world"><translate x="nan"/></transform>', "its to_world holds a non-finite number"),
+        ('<transform name="to_world"><rotate x="1" angle="inf"/></transform>', "its to_world holds a non-finite"),
+        ('<point name="center" x="1" y="inf" z="0"/>', r"its center holds a non-finite number \(NaN or inf\) \(\[1"),
+        (
+            '<transform name="to_world"><translate x="1e30"/></transform>',
+            r"its to_world places it at \[1e\+30, 0.0, 0.0\] m, beyond",
+        ),
+    ],
+)
+def test_a_shape_placed_by_a_non_finite_or_far_number_is_refused(tmp_path, place, message):
+    """Mitsuba dropped a shape whose to_world or centre held a NaN or inf without a word (the scan missed it), and a
+    shape at 1e30 m moved the scene's local origin so far that the sensor's pose was the one refused."""
+    text = scene_xml(f'<shape type="sphere" id="ball">{place}</shape>')
+    with pytest.raises(SceneError, match=rf"scene\.xml: shape 'ball': {message}"):
+        mi_lidar.load_scene(write(tmp_path, text))
+
+
+@pytest.mark.parametrize("extent", ["0", "-1", "nan", "inf"])
+def test_ellipsoids_without_a_finite_positive_extent_are_refused(tmp_path, extent):
+    """extent 0, NaN or inf hid every ellipsoid of the set, -1 kept them, silently."""
+    from mi_lidar.scene.files import write_ellipsoids_ply
+
+    write_ellipsoids_ply(tmp_path / "e.ply", np.array([[5.0, 0, 0]]), np.full((1, 3), 0.2), np.array([[0, 0, 0, 1.0]]))
+    body = (
+        '<shape type="ellipsoids" id="bush"><string name="filename" value="e.ply"/>'
+        f'<float name="extent" value="{extent}"/></shape>'
+    )
+    with pytest.raises(SceneError, match=rf"shape 'bush': extent={extent}; the ellipsoids' extent is how many sigmas"):
+        mi_lidar.simulate(mi_lidar.load_scene(write(tmp_path, scene_xml(body))), "planar-180")

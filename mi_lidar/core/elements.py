@@ -25,6 +25,7 @@ Two ways to build the :class:`~mi_lidar.core.segment.Segment` of an element met 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import drjit as dr
@@ -212,7 +213,7 @@ class ElementTable:
             count = shape.primitive_count()
             if ellipsoids:
                 data = np.asarray(params["data"], dtype=np.float32)
-                _check_ellipsoids(shape.id(), data.reshape(-1, ELLIPSOID_STRIDE))
+                _check_ellipsoids(shape.id(), data.reshape(-1, ELLIPSOID_STRIDE), float(params["extent"]))
                 count = data.size // ELLIPSOID_STRIDE
                 ellipsoid_data.append(data)
                 ellipsoid_extent.append(np.full(count, float(params["extent"]), np.float32))
@@ -499,9 +500,15 @@ class ElementTable:
         )
 
 
-def _check_ellipsoids(shape_id: str, data: np.ndarray) -> None:
+def _check_ellipsoids(shape_id: str, data: np.ndarray, extent: float) -> None:
     """Refuse ellipsoids (N, 10) whose centre, scales or quaternion is not finite, whose scales are not > 0, or
-    whose quaternion is not a unit one (Mitsuba turns it into a matrix as it is, the chords assume a rotation)."""
+    whose quaternion is not a unit one (Mitsuba turns it into a matrix as it is, the chords assume a rotation), and
+    a set whose ``extent`` (sigmas) is not a finite number > 0 (0, NaN or inf: never met; -1: met, silently)."""
+    if not 0 < extent < math.inf:
+        raise SceneError(
+            f"shape {shape_id!r}: extent={extent:g}; the ellipsoids' extent is how many sigmas each reaches, a finite "
+            'number > 0 (default 3): fix <float name="extent" .../> in the scene'
+        )
     norm = np.linalg.norm(data[:, 6:10].astype(np.float64), axis=1)
     bad = ~np.isfinite(data).all(axis=1) | np.any(data[:, 3:6] <= 0, axis=1) | (np.abs(norm - 1.0) > QUATERNION_SLACK)
     if bad.any():

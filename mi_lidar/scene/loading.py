@@ -104,7 +104,10 @@ def _load_file(path: Path, optimize: bool, values: dict[str, str]):
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError):
         text = ""  # Mitsuba's loader reports an unreadable file in its own words
-    rebased = rebase_xml(text, values)
+    try:
+        rebased = rebase_xml(text, values)
+    except SceneError as exc:  # a shape placed by a NaN or far off: name the file
+        raise SceneError(f"{path}: {exc}") from exc
     config = _parser_config(optimize)
     resolver = mi.file_resolver()
     saved = [resolver[i] for i in range(len(resolver))]

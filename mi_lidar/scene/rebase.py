@@ -23,7 +23,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from mi_lidar.core.errors import SceneError
-from mi_lidar.core.frames import local_origin
+from mi_lidar.core.frames import MAX_COORDINATE_M, local_origin
 
 PLACED = ("shape", "sensor", "emitter")  # top-level elements whose to_world is moved to the local frame
 PLACING_POINTS = ("center", "p0", "p1")  # points that place a shape without a to_world (sphere, cylinder), moved too
@@ -82,6 +82,11 @@ def to_world_matrix(transform: ET.Element, parameters: dict[str, str]) -> np.nda
     Raises:
         UnsupportedTransform: a step other than those of the module docstring, or a value that is not numbers.
     """
+    with np.errstate(invalid="ignore", over="ignore"):  # inf steps make NaNs, refused by the caller, not warned
+        return _compose(transform, parameters)
+
+
+def _compose(transform: ET.Element, parameters: dict[str, str]) -> np.ndarray:
     matrix = np.eye(4)
     for step in transform:
         if step.tag == "translate":
@@ -111,6 +116,32 @@ def to_world_matrix(transform: ET.Element, parameters: dict[str, str]) -> np.nda
     return matrix
 
 
+def _check_shape_place(element: ET.Element, what: str, values: np.ndarray) -> None:
+    """Refuse a top-level shape placed by a non-finite number (Mitsuba drops such a shape without a word) or a
+    position beyond :data:`~mi_lidar.core.frames.MAX_COORDINATE_M` (a misread number). Sensors check their own pose.
+
+    Args:
+        element: the ``<shape>`` element.
+        what: ``"to_world"`` or the placing point's name (``"center"``, ``"p0"``).
+        values: its (4, 4) matrix or (3,) point.
+    """
+    if element.tag != "shape":
+        return
+    name = f"shape {element.attrib.get('id', element.attrib.get('type', ''))!r}"
+    position = values[:3, 3] if values.ndim == 2 else values
+    if not np.isfinite(values).all():
+        shown = "" if values.ndim == 2 else f" ({values.tolist()})"
+        raise SceneError(
+            f"{name}: its {what} holds a non-finite number (NaN or inf){shown}; Mitsuba would drop the shape without "
+            "a word: fix the transform or point"
+        )
+    if np.abs(position).max() > MAX_COORDINATE_M:
+        raise SceneError(
+            f"{name}: its {what} places it at {position.tolist()} m, beyond {MAX_COORDINATE_M:.0e} m (farther than any "
+            "Earth-fixed coordinate): a misread number; fix the transform or point"
+        )
+
+
 def matrix_value(matrix: np.ndarray) -> str:
     """A (4, 4) matrix as an XML ``<matrix value>``, each entry in the shortest text that reads back exactly."""
     return " ".join(repr(float(v)) for v in np.asarray(matrix, dtype=np.float64).ravel())
@@ -127,6 +158,9 @@ def rebase_xml(text: str, parameters: dict[str, str] | None = None) -> tuple[str
         ``(xml, origin)``: the rewritten XML and the local origin (3,) m in the world, or None when
         every top-level ``to_world`` stays within :data:`~mi_lidar.core.frames.NEAR_M` of the origin
         or uses a step this module does not evaluate (the file is then loaded as written).
+
+    Raises:
+        SceneError: a top-level shape placed by a non-finite number or beyond 1e8 m (:func:`_check_shape_place`).
     """
     try:
         root = ET.fromstring(text)
@@ -142,10 +176,12 @@ def rebase_xml(text: str, parameters: dict[str, str] | None = None) -> tuple[str
             transform = element.find("transform[@name='to_world']")
             if transform is not None:
                 placed.append((transform, to_world_matrix(transform, values)))
+                _check_shape_place(element, "to_world", placed[-1][1])
             elif element.tag == "shape":  # a sphere's centre, a cylinder's ends: the points are world positions
                 for point in element.findall("point"):
                     if point.attrib.get("name") in PLACING_POINTS:
                         points.append((point, _vector(point, values, 0.0)))
+                        _check_shape_place(element, point.attrib["name"], points[-1][1])
     except (UnsupportedTransform, ValueError, ZeroDivisionError):
         return None
     if not placed and not points:
