@@ -32,7 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mi_lidar.core.atomic import atomic_write  # noqa: E402
 from mi_lidar.core.errors import LogFormatError  # noqa: E402
-from mi_lidar.io.carmen import beam_angles, beam_step, parse_message, text_lines  # noqa: E402
+from mi_lidar.io.carmen import beam_angles, beam_step, parse_message  # noqa: E402
+from mi_lidar.io.text import text_lines  # noqa: E402
 
 
 def flaser_tokens(lines: list[str]) -> list[list[str]]:

@@ -37,14 +37,14 @@ from __future__ import annotations
 import os
 import re
 import warnings
-import zlib
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError, ParameterError, TruncatedLogWarning, unreadable
+from mi_lidar.core.errors import LogFormatError, ParameterError, TruncatedLogWarning
 from mi_lidar.core.log import Log
+from mi_lidar.io.text import text_lines
 
 SICK_SWEEP_S = 1.0 / 150.0
 MISS_MARGIN = 0.015  # m: readings this close to the no-return value are misses (the real-planar protocol)
@@ -71,50 +71,6 @@ ROBOT_TAIL = ROBOT_COLUMNS[:6] + tuple(  # the fields after its remissions
 
 class _CutShort(LogFormatError):
     """A laser line ends before the fields its counts announce (read_carmen skips it when it is the file's last)."""
-
-
-def text_lines(path: Path) -> list[str]:
-    """Decoded text lines of a plain or gzip-compressed file.
-
-    A gzip stream that ends early (a logger stopped mid-write) gives the text decompressed up to its end, with a
-    :class:`~mi_lidar.core.errors.TruncatedLogWarning`; its last line is then usually cut short too.
-
-    Raises:
-        LogFormatError: Unreadable file, or a gzip stream that is corrupt or yields no text before it ends.
-    """
-    try:
-        raw = path.read_bytes()
-    except PermissionError as exc:
-        raise unreadable(path, "log") from exc
-    if raw[:2] == b"\x1f\x8b":
-        raw = _gunzip(path, raw)
-    return raw.decode("utf-8", errors="replace").splitlines()
-
-
-def _gunzip(path: Path, raw: bytes) -> bytes:
-    """The text of the gzip members in ``raw``, up to where the stream ends (warned when that is mid-member)."""
-    parts, rest = [], raw
-    try:
-        while rest:
-            member = zlib.decompressobj(16 + zlib.MAX_WBITS)  # one gzip member, header and trailer checked
-            parts.append(member.decompress(rest))
-            if not member.eof:
-                parts.append(member.flush())
-                break
-            rest = member.unused_data
-    except zlib.error as exc:
-        raise LogFormatError(f"{path}: corrupt gzip stream ({exc}); recompress the log or read the plain text") from exc
-    text = b"".join(parts)
-    if not member.eof:
-        if not text:
-            raise LogFormatError(f"{path}: truncated gzip stream: it ends before any text; copy the log again")
-        warnings.warn(
-            f"{path}: the gzip stream ends early, after {len(text):,} bytes of text (a logger stopped mid-write, or "
-            "a partial copy?): reading the complete lines before its end",
-            TruncatedLogWarning,
-            stacklevel=4,
-        )
-    return text
 
 
 def parse_message(tokens: list[str], number: int) -> np.ndarray:
