@@ -377,3 +377,44 @@ def test_ellipsoids_without_a_finite_positive_extent_are_refused(tmp_path, exten
     )
     with pytest.raises(SceneError, match=rf"shape 'bush': extent={extent}; the ellipsoids' extent is how many sigmas"):
         mi_lidar.simulate(mi_lidar.load_scene(write(tmp_path, scene_xml(body))), "planar-180")
+
+
+@pytest.mark.parametrize(
+    "typed, shown",
+    [
+        ('&lt;float name="p_hit" value="0.3"/>', r"""'<float name="p_hit" value="0.3"/>'"""),
+        ('>float name="p_hit" value="0.3"/>', r"""'>float name="p_hit" value="0.3"/>'"""),
+        ('float name="p_hit" value="0.3"/>', r"""'float name="p_hit" value="0.3"/>'"""),
+        ('x<float name="p_hit" value="0.3"/>', "'x'"),
+        ('<float name="p_hit" value="0.3"/>\n   oops', "'oops'"),
+        ('<![CDATA[1]]><float name="p_hit" value="0.3"/>', "'1'"),
+    ],
+)
+def test_stray_text_in_a_scene_is_refused_naming_the_line_and_the_text(tmp_path, typed, shown):
+    """Mitsuba's parser skips text between elements without a word: a property whose '<' was lost or escaped was
+    dropped (the material kept p_hit 1), other stray text loaded as if absent."""
+    body = f'<shape type="sphere">\n<bsdf type="lidar_material">{typed}</bsdf>\n</shape>'
+    with pytest.raises(SceneError) as error:
+        mi_lidar.load_scene(write(tmp_path, scene_xml(body)))
+    message = str(error.value)
+    line = 2 if "oops" not in typed else 3
+    assert re.match(rf"{re.escape(str(tmp_path / 'scene.xml'))}: line {line}, column \d+: stray text ", message), (
+        message
+    )
+    assert f'{shown} in <bsdf type="lidar_material">' in message, message
+    assert "remove the text, or restore the element's '<'" in message, message
+
+
+@pytest.mark.parametrize("before, after", [("junk", ""), ("", "\ntrailing words")])
+def test_text_outside_the_scene_element_is_refused(tmp_path, before, after):
+    """Mitsuba's parser loaded a file with words before or after its <scene> element, ignoring them."""
+    with pytest.raises(
+        SceneError, match=r"scene\.xml: line \d+, column \d+: text outside the root element '(junk|trail)"
+    ):
+        mi_lidar.load_scene(write(tmp_path, before + scene_xml("") + after))
+
+
+def test_whitespace_comments_and_instructions_between_elements_still_load(tmp_path):
+    body = '\n\t<!-- a comment: text -->\n  <?note not text?>\n<shape type="sphere">\r\n</shape>  \n'
+    scene = mi_lidar.load_scene(write(tmp_path, '<?xml version="1.0"?>\n<!-- head -->\n' + scene_xml(body) + "\n"))
+    assert len(scene.shapes()) == 1

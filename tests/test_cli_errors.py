@@ -229,6 +229,14 @@ CASES = {
         {},
         ['bare.xml: the scene\'s integrator is none, not a lidar_integrator; add <integrator type="lidar_integrator"'],
     ),
+    "stray text in a scene": (  # the pane's p_hit, its '<' escaped, was dropped without a word
+        ["render", "{stray_scene}", "--out", "{tmp}/o"],
+        {},
+        [
+            """stray.xml: line 61, column 37: stray text '<float name="p_hit" value="0.3"/>' in """
+            '<bsdf type="lidar_material">; a Mitsuba scene holds only elements'
+        ],
+    ),
     "unknown variant": (["render", ROOM, "--out", "{tmp}/o"], {"MI_LIDAR_VARIANT": "llvm_nope"}, ["'llvm_nope'"]),
     "cuda without a GPU": (
         ["render", ROOM, "--out", "{tmp}/o"],
@@ -250,6 +258,10 @@ def test_bad_input_is_one_line_with_exit_code_2(tmp_path, room_log, street_frame
     values["refused_scene"] = str(tmp_path / "refused.xml")
     Path(values["refused_scene"]).write_text(
         Path(ROOM).read_text().replace('"max_range" value="30"', '"max_range" value="nan"')
+    )
+    values["stray_scene"] = str(tmp_path / "stray.xml")
+    Path(values["stray_scene"]).write_text(
+        Path(ROOM).read_text().replace('<float name="p_hit"', '&lt;float name="p_hit"')
     )
     values["bare_scene"] = str(tmp_path / "bare.xml")
     Path(values["bare_scene"]).write_text(

@@ -14,6 +14,7 @@ from mi_lidar.core.frames import COORDINATES_DOC, check_float32, set_scene_origi
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.scene.cylinders import mesh_cylinders
 from mi_lidar.scene.rebase import rebase_xml
+from mi_lidar.scene.stray_text import check_stray_text
 
 
 def bundled_scene(name: str) -> Path:
@@ -59,7 +60,8 @@ def load_scene(source, optimize: bool = False, **parameters):
     back out of it.
 
     Raises:
-        SceneError: the file is missing, malformed, or names an unknown plugin or property;
+        SceneError: the file is missing, malformed, holds stray text (:mod:`mi_lidar.scene.stray_text`: Mitsuba
+            ignores it, and an element typed without its ``<`` is lost), or names an unknown plugin or property;
             the message keeps Mitsuba's explanation and names the file. Or the geometry reaches
             coordinates where float32 keeps more than 1 mm (e.g. a PLY of UTM vertices): the
             message names the coordinate and how to move the scene near the origin.
@@ -104,6 +106,7 @@ def _load_file(path: Path, optimize: bool, values: dict[str, str]):
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError):
         text = ""  # Mitsuba's loader reports an unreadable file in its own words
+    outside = check_stray_text(text, str(path)) if text else None
     try:
         rebased = rebase_xml(text, values)
     except SceneError as exc:  # a shape placed by a NaN or far off: name the file
@@ -114,9 +117,12 @@ def _load_file(path: Path, optimize: bool, values: dict[str, str]):
     resolver.prepend(mi.filesystem.path(os.fspath(path.resolve().parent)))  # assets relative to the file
     try:
         if rebased is None:
-            return _instantiate(config, mi.parser.parse_file(config, os.fspath(path), **values)), np.zeros(3)
-        xml, origin = rebased
-        return _instantiate(config, mi.parser.parse_string(config, xml, **values)), origin
+            state, origin = mi.parser.parse_file(config, os.fspath(path), **values), np.zeros(3)
+        else:
+            state, origin = mi.parser.parse_string(config, rebased[0], **values), rebased[1]
+        if outside is not None:  # text before or after the root element, which Mitsuba's parser skipped
+            raise SceneError(outside)
+        return _instantiate(config, state), origin
     finally:
         resolver.clear()
         for folder in saved:
