@@ -38,9 +38,10 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.effects import make_effect
-from mi_lidar.core.elements import ELLIPSOID_STRIDE, ElementTable
+from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import CalibrationError
 from mi_lidar.core.fitting import FitVariable
+from mi_lidar.core.scene_shapes import ELLIPSOID_STRIDE
 from mi_lidar.core.segment import ELLIPSOID
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.smoothing import inflation

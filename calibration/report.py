@@ -16,10 +16,10 @@ import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mi_lidar.calibration.fit import FitResult  # noqa: E402
-from mi_lidar.core.atomic import atomic_path, atomic_write, atomic_write_text  # noqa: E402
-from mi_lidar.core.elements import ELLIPSOID_STRIDE, ordered_shapes  # noqa: E402
+from mi_lidar.core.atomic import atomic_path, atomic_write, atomic_write_text, staged_scene  # noqa: E402
 from mi_lidar.core.errors import CalibrationError, PatternError  # noqa: E402
 from mi_lidar.core.patterns import get_pattern, to_table  # noqa: E402
+from mi_lidar.core.scene_shapes import ELLIPSOID_STRIDE, ordered_shapes  # noqa: E402
 from mi_lidar.io.markdown import markdown_to_html  # noqa: E402
 from mi_lidar.scene.dicts import AnalyticElements, EllipsoidElements, MeshElements, save_scene  # noqa: E402
 from mi_lidar.scene.files import ANALYTIC_SHAPES  # noqa: E402
@@ -159,13 +159,16 @@ def sensor_xml(scene, model, assets: Path, pattern=None) -> str:
 def save_calibrated_scene(path, result: FitResult, scene, pattern=None) -> Path:
     """Write the fitted scene as XML plus PLY assets (``<stem>_assets/``), with sensor and effects.
 
-    ``pattern`` (the log's firing pattern) replaces the scene sensor's when given.
+    ``pattern`` (the log's firing pattern) replaces the scene sensor's when given. The XML and its assets
+    appear together or not at all (:func:`~mi_lidar.core.atomic.staged_scene`): a write that fails midway
+    keeps a previous scene and its assets as they were.
     """
     path = Path(path)
     sets = element_sets(result.table, scene)
-    return save_scene(
-        path, sets, extra_xml=sensor_xml(scene, result.model, path.parent / f"{path.stem}_assets", pattern)
-    )
+    with staged_scene(path) as staged:
+        assets = staged.with_name(f"{path.stem}_assets")
+        save_scene(staged, sets, extra_xml=sensor_xml(scene, result.model, assets, pattern))
+    return path
 
 
 def loss_png(path, result: FitResult, title: str = "calibration") -> Path:

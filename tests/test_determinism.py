@@ -14,7 +14,7 @@ import sys
 import numpy as np
 
 import mi_lidar
-from mi_lidar.core.elements import ordered_shapes
+from mi_lidar.core.scene_shapes import ordered_shapes
 
 from .conftest import SCENES
 

@@ -25,7 +25,6 @@ Two ways to build the :class:`~mi_lidar.core.segment.Segment` of an element met 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields
 
 import drjit as dr
@@ -34,6 +33,17 @@ import numpy as np
 
 from mi_lidar.core.errors import SceneError
 from mi_lidar.core.fitting import lookup
+from mi_lidar.core.scene_shapes import (
+    ELLIPSOID_STRIDE,
+    check_element_values,
+    check_ellipsoids,
+    element_attribute,
+    ellipsoid_sizes,
+    is_ellipsoids,
+    lidar_material,
+    ordered_shapes,
+    registry_id,
+)
 from mi_lidar.core.segment import (
     DEFAULT_REFLECTIVITY,
     ELLIPSOID,
@@ -47,77 +57,6 @@ from mi_lidar.core.segment import (
     rotate_inverse,
 )
 from mi_lidar.core.trace import mitsuba_ray_length
-
-ELLIPSOID_STRIDE = 10  # floats per ellipsoid in Mitsuba's `data`: center, scale, quaternion
-QUATERNION_SLACK = 1e-3  # an ellipsoid's quaternion norm may differ from 1 by this much (float32 files)
-
-
-def registry_id(shape) -> int:
-    """Dr.Jit registry id of a shape (the value ``si.shape`` carries for it)."""
-    return int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0])
-
-
-def shape_order(shape) -> tuple:
-    """Sort key of a shape in the table: its declared id, then its size and bounding box.
-
-    ``scene.shapes()`` lists shapes in the order Mitsuba's parallel loader finished them, which
-    changes from run to run under load; sorting by what the scene declares makes element and shape
-    indices the same on every load (:func:`mi_lidar.scene.load_scene` also keeps Mitsuba from merging
-    meshes that share a material into one unnamed mesh, so every declared id stays addressable).
-    Unnamed shapes (empty id) are told apart by their primitive count and bounding box (m, rounded
-    to 1 um).
-    """
-    box = shape.bbox()
-    return (shape.id(), shape.primitive_count(), tuple(round(float(v), 6) for v in (*box.min, *box.max)))
-
-
-def ordered_shapes(scene) -> list:
-    """The scene's shapes in table order (:func:`shape_order`)."""
-    return sorted(scene.shapes(), key=shape_order)
-
-
-def lidar_material(shape):
-    """The shape's ``lidar_material`` BSDF (anything holding ``p_hit``, ``range_sigma``, ``label`` and
-    ``reflectivity``), or None."""
-    bsdf = shape.bsdf()
-    return bsdf if all(hasattr(bsdf, name) for name in ("p_hit", "range_sigma", "label", "reflectivity")) else None
-
-
-def _is_ellipsoids(params) -> bool:
-    return "data" in params and "extent" in params
-
-
-def _per_element(shape, params, name: str, count: int, ellipsoids: bool) -> np.ndarray | None:
-    """Per-element attribute ``name`` of ``shape`` as a numpy array, or None when absent."""
-    if ellipsoids:
-        if name not in params:
-            return None
-        values = np.asarray(params[name], dtype=np.float64).ravel()
-    else:
-        if not (isinstance(shape, mi.Mesh) and shape.has_attribute(f"face_{name}")):
-            return None
-        values = np.asarray(shape.attribute_buffer(f"face_{name}"), dtype=np.float64).ravel()
-    if values.size != count:
-        raise SceneError(
-            f"shape {shape.id()!r}: attribute {name!r} has {values.size} values for {count} elements; "
-            "give exactly one value per element"
-        )
-    return values
-
-
-def _sizes(data: np.ndarray, extent) -> np.ndarray:
-    """(N, 3) ``extent x scale`` (m) of ellipsoids ``data`` (10 floats each); ``extent`` one value or (N,)."""
-    return np.asarray(data, np.float64).reshape(-1, ELLIPSOID_STRIDE)[:, 3:6] * np.reshape(extent, (-1, 1))
-
-
-def scene_ray_length(scene) -> float:
-    """:func:`~mi_lidar.core.trace.mitsuba_ray_length` of the ellipsoids of a loaded scene, m (1 without)."""
-    sizes = [np.zeros((0, 3))]
-    for shape in scene.shapes():
-        params = mi.traverse(shape)
-        if _is_ellipsoids(params):
-            sizes.append(_sizes(params["data"], float(params["extent"])))
-    return mitsuba_ray_length(np.concatenate(sizes))
 
 
 @dataclass
@@ -208,12 +147,12 @@ class ElementTable:
         offset = n_vertices = n_ellipsoids = 0
         for index, shape in enumerate(shapes):
             params = mi.traverse(shape)
-            ellipsoids = _is_ellipsoids(params)
+            ellipsoids = is_ellipsoids(params)
             mesh = not ellipsoids and isinstance(shape, mi.Mesh) and "vertex_positions" in params
             count = shape.primitive_count()
             if ellipsoids:
                 data = np.asarray(params["data"], dtype=np.float32)
-                _check_ellipsoids(shape.id(), data.reshape(-1, ELLIPSOID_STRIDE), float(params["extent"]))
+                check_ellipsoids(shape.id(), data.reshape(-1, ELLIPSOID_STRIDE), float(params["extent"]))
                 count = data.size // ELLIPSOID_STRIDE
                 ellipsoid_data.append(data)
                 ellipsoid_extent.append(np.full(count, float(params["extent"]), np.float32))
@@ -241,13 +180,13 @@ class ElementTable:
                 "reflectivity": material.reflectivity if material else DEFAULT_REFLECTIVITY,
             }
             for name, default in defaults.items():
-                values = _per_element(shape, params, name, count, ellipsoids)
+                values = element_attribute(shape, params, name, count, ellipsoids)
                 dtype = np.uint32 if name == "label" else np.float32
                 if values is None:  # one value for the whole shape: check it once
-                    _check_values(shape.id(), name, np.array([default], np.float64))
+                    check_element_values(shape.id(), name, np.array([default], np.float64))
                     values = np.full(count, default, dtype)
                 else:
-                    _check_values(shape.id(), name, values)
+                    check_element_values(shape.id(), name, values)
                 columns[name].append(values.astype(dtype, copy=False))
             columns["kind"].append(np.full(count, ELLIPSOID if ellipsoids else SURFACE, np.uint32))
             shape_of.append(np.full(count, index, np.uint32))
@@ -282,7 +221,9 @@ class ElementTable:
             vertex_offset=vertex_offset,
             vertex_counts=vertex_counts,
             ray_length=mitsuba_ray_length(
-                np.concatenate([_sizes(d, e) for d, e in zip(ellipsoid_data, ellipsoid_extent)] or [np.zeros((0, 3))])
+                np.concatenate(
+                    [ellipsoid_sizes(d, e) for d, e in zip(ellipsoid_data, ellipsoid_extent)] or [np.zeros((0, 3))]
+                )
             ),
         )
 
@@ -300,7 +241,7 @@ class ElementTable:
         a planar log's ray march met (:func:`mi_lidar.core.trace.rounds_from_segments`).
         """
         n = int(np.size(p_hit))
-        _check_values("elements", "p_hit", np.asarray(p_hit, np.float64))
+        check_element_values("elements", "p_hit", np.asarray(p_hit, np.float64))
         zeros = np.zeros(n, np.uint32)
         return cls(
             shape_ids=["elements"],
@@ -498,40 +439,3 @@ class ElementTable:
             corner_weight=mi.Vector3f(*corner[3:]) if corner else None,
             **values._replace(sigma=dr.select(values.kind == ELLIPSOID, e_sigma, values.sigma))._asdict(),
         )
-
-
-def _check_ellipsoids(shape_id: str, data: np.ndarray, extent: float) -> None:
-    """Refuse ellipsoids (N, 10) whose centre, scales or quaternion is not finite, whose scales are not > 0, or
-    whose quaternion is not a unit one (Mitsuba turns it into a matrix as it is, the chords assume a rotation), and
-    a set whose ``extent`` (sigmas) is not a finite number > 0 (0, NaN or inf: never met; -1: met, silently)."""
-    if not 0 < extent < math.inf:
-        raise SceneError(
-            f"shape {shape_id!r}: extent={extent:g}; the ellipsoids' extent is how many sigmas each reaches, a finite "
-            'number > 0 (default 3): fix <float name="extent" .../> in the scene'
-        )
-    norm = np.linalg.norm(data[:, 6:10].astype(np.float64), axis=1)
-    bad = ~np.isfinite(data).all(axis=1) | np.any(data[:, 3:6] <= 0, axis=1) | (np.abs(norm - 1.0) > QUATERNION_SLACK)
-    if bad.any():
-        index = int(np.argmax(bad))
-        center, scale, quat = (", ".join(f"{v:.4g}" for v in data[index, a:b]) for a, b in ((0, 3), (3, 6), (6, 10)))
-        raise SceneError(
-            f"shape {shape_id!r}: ellipsoid {index} (of {len(data)}, {int(bad.sum())} such) has center ({center}), "
-            f"scales ({scale}), quaternion ({quat}): every ellipsoid needs a finite centre, finite scales > 0 m and "
-            "a unit quaternion (x, y, z, w). Fix or drop it in the file (normalize the quaternions)."
-        )
-
-
-def _check_values(shape_id: str, name: str, values: np.ndarray) -> None:
-    """Validate per-element values of one shape."""
-    if name == "p_hit" and (not np.all(np.isfinite(values)) or values.min() < 0 or values.max() > 1):
-        raise SceneError(
-            f"shape {shape_id!r}: p_hit must lie in [0, 1]; got values in [{np.nanmin(values):.3g}, "
-            f"{np.nanmax(values):.3g}]. Clip the hit probabilities to [0, 1]."
-        )
-    if name == "reflectivity" and (not np.all(np.isfinite(values)) or np.any(values < 0)):
-        raise SceneError(
-            f"shape {shape_id!r}: reflectivity must be finite and >= 0 (1 = white diffuse target); got "
-            f"{values[~(np.isfinite(values) & (values >= 0))][0]:.3g}. Fix the material or the PLY face property."
-        )
-    if name == "range_sigma" and np.nanmin(values, initial=0.0) < 0:
-        raise SceneError(f"shape {shape_id!r}: range_sigma must be >= 0 m; got {np.nanmin(values):.3g}")

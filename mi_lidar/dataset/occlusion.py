@@ -20,8 +20,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.core.elements import scene_ray_length
 from mi_lidar.core.frames import scene_origin
+from mi_lidar.core.scene_shapes import scene_ray_length
 from mi_lidar.core.trace import mitsuba_ray
 from mi_lidar.dataset.scenes import Box3D
 from mi_lidar.hybrid.primitives import rotation_z

@@ -16,9 +16,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
-from mi_lidar.core.elements import ElementTable, registry_id
+from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import SceneError, SpecError
 from mi_lidar.core.frames import scene_origin
+from mi_lidar.core.scene_shapes import registry_id
 from mi_lidar.dataset.spec import DatasetSpec, SceneSpec
 from mi_lidar.hybrid.blocks import read_mesh_ply
 from mi_lidar.hybrid.classes import CLASS_ID, CLASS_NAMES

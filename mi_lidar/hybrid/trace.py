@@ -13,7 +13,7 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
-from mi_lidar.core.elements import scene_ray_length
+from mi_lidar.core.scene_shapes import scene_ray_length
 from mi_lidar.core.trace import mitsuba_ray
 
 
