@@ -8,7 +8,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_lidar.core.errors import ParameterError
-from mi_lidar.core.params import property_number
+from mi_lidar.core.params import MAX_SIGMA_M, SIGMA_LIMIT, property_number
 
 MAX_LABEL = 2**24  # labels reach the range image in float32 channels, exact up to 2**24 (2**24 + 1 read as 2**24)
 
@@ -27,8 +27,8 @@ class LidarMaterial(mi.BSDF):
          through :class:`mi_lidar.core.elements.ElementTable`.
      * - range_sigma
        - |float|
-       - Standard deviation (m) of the range returned by this shape's triangles. Default: the
-         sensor's ``range_sigma``. Ellipsoids return their own Gaussian restricted to the ray.
+       - Standard deviation (m) of the range returned by this shape's triangles, up to 1000 m. Default:
+         the sensor's ``range_sigma``. Ellipsoids return their own Gaussian restricted to the ray.
      * - label
        - |int|
        - Class label reported for returns from this shape (a whole number from 0 to 2**24). Default: 0.
@@ -76,8 +76,8 @@ class LidarMaterial(mi.BSDF):
             (
                 "range_sigma",
                 self.range_sigma,
-                math.isnan(self.range_sigma) or 0 <= self.range_sigma < math.inf,
-                "finite numbers >= 0 m",
+                math.isnan(self.range_sigma) or 0 <= self.range_sigma <= MAX_SIGMA_M,
+                f"[0, {MAX_SIGMA_M:g}] m ({SIGMA_LIMIT})",
             ),
             ("label", self.label, 0 <= self.label <= MAX_LABEL, f"[0, 2**24 = {MAX_LABEL}] (float32's whole numbers)"),
             ("reflectance", self.reflectance, 0.0 <= self.reflectance <= 1.0, "[0, 1]"),

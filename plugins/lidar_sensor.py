@@ -9,7 +9,14 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.errors import ParameterError
-from mi_lidar.core.params import property_number
+from mi_lidar.core.params import (
+    DISTANCE_LIMIT,
+    MAX_DISTANCE_M,
+    MAX_SIGMA_M,
+    SIGMA_LIMIT,
+    check_limit,
+    property_number,
+)
 from mi_lidar.core.poses import validate_poses
 
 
@@ -31,14 +38,16 @@ class LidarSensor(mi.Sensor):
        - Firings per sweep (film width) for spinning and planar patterns. Default: the pattern's.
      * - min_range
        - |float|
-       - Returns closer than this are not reported (m; the blind zone). Default: 0.
+       - Returns closer than this are not reported (m; the blind zone), up to 1e8 m. Default: 0.
      * - max_range
        - |float|
        - Elements farther than this are not seen, and returns reported beyond it are not
-         reported (m): the sampler and the likelihood lose them alike. Default: 120.
+         reported (m): the sampler and the likelihood lose them alike. Up to 1e8 m (a larger
+         number is a misread one), or ``inf`` for no far end. Default: 120.
      * - range_sigma
        - |float|
-       - Range noise (m) of elements that do not set their own. Default: 0.01.
+       - Range noise (m) of elements that do not set their own, up to 1000 m (a larger one spreads
+         every return over the whole range window: a misread number). Default: 0.01.
      * - to_world
        - |transform|
        - Sensor pose: sensor frame (x forward, y left, z up) to world, a finite rigid transform
@@ -111,6 +120,11 @@ class LidarSensor(mi.Sensor):
             )
         if not 0 <= self.range_sigma < math.inf:
             raise ParameterError(f"lidar sensor: range_sigma={self.range_sigma} must be a finite number >= 0 m")
+        fix = "fix the value in the scene"
+        check_limit("lidar sensor", "min_range", self.min_range, MAX_DISTANCE_M, DISTANCE_LIMIT, fix)
+        if self.max_range < math.inf:  # inf: no far end of the range window
+            check_limit("lidar sensor", "max_range", self.max_range, MAX_DISTANCE_M, DISTANCE_LIMIT, fix)
+        check_limit("lidar sensor", "range_sigma", self.range_sigma, MAX_SIGMA_M, SIGMA_LIMIT, fix)
         self.local_directions = mi.Vector3f(*np.ascontiguousarray(self.pattern.directions().reshape(-1, 3).T))
         self.local_origins = mi.Point3f(*np.ascontiguousarray(self.pattern.origins().reshape(-1, 3).T))
         self.times = mi.Float(self.pattern.time.reshape(-1).astype(np.float32))

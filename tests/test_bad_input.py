@@ -299,8 +299,8 @@ def test_random_bytes_for_a_numpy_file_are_not_called_a_pickle(reader, tmp_path)
     "where, expected",
     [
         ("sensor", "lidar sensor: range_sigma=inf must be a finite number >= 0 m"),
-        ("material", "lidar_material: range_sigma=inf is outside finite numbers >= 0 m"),
-        ("effect", "effect 'range_noise': sigma0=inf m is outside [0, inf) (constant part of the noise)"),
+        ("material", "lidar_material: range_sigma=inf is outside [0, 1000] m"),
+        ("effect", "effect 'range_noise': sigma0=inf m is outside [0, 1000] (constant part of the noise)"),
     ],
 )
 def test_an_infinite_range_sigma_is_refused(tmp_path, where, expected):
@@ -418,3 +418,80 @@ def test_whitespace_comments_and_instructions_between_elements_still_load(tmp_pa
     body = '\n\t<!-- a comment: text -->\n  <?note not text?>\n<shape type="sphere">\r\n</shape>  \n'
     scene = mi_lidar.load_scene(write(tmp_path, '<?xml version="1.0"?>\n<!-- head -->\n' + scene_xml(body) + "\n"))
     assert len(scene.shapes()) == 1
+
+
+@pytest.mark.parametrize(
+    "where, value, expected",
+    [
+        ("max_range", "1e30", "lidar sensor: max_range=1e+30 m is outside [0, 1e+08] m"),
+        ("min_range", "2e8", "lidar sensor: min_range=2e+08 m is outside [0, 1e+08] m"),
+        ("range_sigma", "1e30", "lidar sensor: range_sigma=1e+30 m is outside [0, 1000] m"),
+        ("material", "1e30", "lidar_material: range_sigma=1e+30 is outside [0, 1000] m"),
+    ],
+)
+def test_an_absurd_distance_or_range_noise_in_a_scene_is_refused(tmp_path, where, value, expected):
+    """The sensor took max_range=1e30 and range_sigma=1e30 (a room scanned with 12 returns of 360: the others were
+    drawn outside the range window), and the material range_sigma=1e30, without a word."""
+    prop = "range_sigma" if where == "material" else where
+    element = f'<float name="{prop}" value="{value}"/>'
+    if where == "min_range":
+        element += '<float name="max_range" value="3e8"/>'
+    text = (
+        scene_xml(f'<shape type="sphere"><bsdf type="lidar_material">{element}</bsdf></shape>')
+        if where == "material"
+        else scene_xml("").replace("</sensor>", element + "</sensor>")
+    )
+    with pytest.raises(SceneError) as error:
+        mi_lidar.load_scene(write(tmp_path, text))
+    assert expected in str(error.value) and "a misread number); fix the value in the scene" in str(error.value)
+    if where != "material":  # a scene dict goes through the same plugin
+        scene = {"type": "scene", "sensor": {"type": "lidar", "pattern": "planar-180", prop: float(value)}}
+        if where == "min_range":
+            scene["sensor"]["max_range"] = 3e8
+        with pytest.raises(SceneError, match=re.escape(expected)):
+            mi_lidar.load_scene(scene)
+
+
+@pytest.mark.parametrize(
+    "values, expected",
+    [
+        ({"max_range": 1e30}, "sensor model: max_range=1e+30 must be <= 1e+08 m"),
+        ({"min_range": 2e8, "max_range": np.inf}, "sensor model: min_range=200000000.0 must be in [0, 1e+08] m"),
+        ({"range_sigma": 1e30}, "sensor model: range_sigma=1e+30 must be in [0, 1000] m"),
+        ({"range_sigma": np.inf}, "sensor model: range_sigma=inf must be in [0, 1000] m"),
+    ],
+)
+def test_a_sensor_model_refuses_absurd_distances_and_range_noise(values, expected):
+    from mi_lidar.core.sensor_model import SensorModel
+
+    with pytest.raises(ParameterError, match=re.escape(expected)):
+        SensorModel(**values)
+    assert SensorModel(max_range=np.inf).max_range == np.inf  # no far end of the range window (planar models)
+
+
+@pytest.mark.parametrize(
+    "spec, expected",
+    [
+        ("range_noise(sigma0=1e30)", "effect 'range_noise': sigma0=1e+30 m is outside [0, 1000]"),
+        ("corner_returns(sigma=1e30)", "effect 'corner_returns': sigma=1e+30 m is outside [0, 1000]"),
+        ("physics(sigma0=1e30)", "density 'physics': sigma0=1e+30 m is outside [0, 1000]"),
+    ],
+)
+def test_effects_and_densities_refuse_an_absurd_range_noise(spec, expected):
+    from mi_lidar.core.densities import parse_density
+
+    parse = parse_density if spec.startswith("physics") else parse_effects
+    with pytest.raises(ParameterError, match=re.escape(expected)):
+        parse(spec)
+
+
+def test_per_element_range_noise_beyond_the_limit_is_refused(tmp_path):
+    """A PLY face property range_sigma_0 of 1e30 m was taken without a word."""
+    from mi_lidar.scene.files import write_mesh_ply
+
+    vertices = np.array([[5.0, -5, -5], [5, 5, -5], [5, 0, 5]])
+    faces = np.array([[0, 1, 2], [0, 2, 1]])
+    write_mesh_ply(tmp_path / "m.ply", vertices, faces, range_sigma=np.array([0.02, 1e30]))
+    body = '<shape type="ply" id="ground"><string name="filename" value="m.ply"/></shape>'
+    with pytest.raises(SceneError, match=r"shape 'ground': range_sigma must be in \[0, 1000\] m .*got 1e\+30"):
+        mi_lidar.simulate(mi_lidar.load_scene(write(tmp_path, scene_xml(body))), "planar-180")

@@ -237,6 +237,16 @@ CASES = {
             '<bsdf type="lidar_material">; a Mitsuba scene holds only elements'
         ],
     ),
+    "a range window of 1e30 m": (  # was rendered
+        ["render", "{far_scene}", "--out", "{tmp}/o"],
+        {},
+        ["lidar sensor: max_range=1e+30 m is outside [0, 1e+08] m (a distance beyond 1e+08 m is a misread number)"],
+    ),
+    "a range noise of 1e30 m": (  # was rendered: a few returns, the others drawn outside the range window
+        ["render", ROOM, "--out", "{tmp}/o", "--density", "physics(sigma0=1e30)"],
+        {},
+        ["density 'physics': sigma0=1e+30 m is outside [0, 1000]"],
+    ),
     "unknown variant": (["render", ROOM, "--out", "{tmp}/o"], {"MI_LIDAR_VARIANT": "llvm_nope"}, ["'llvm_nope'"]),
     "cuda without a GPU": (
         ["render", ROOM, "--out", "{tmp}/o"],
@@ -258,6 +268,10 @@ def test_bad_input_is_one_line_with_exit_code_2(tmp_path, room_log, street_frame
     values["refused_scene"] = str(tmp_path / "refused.xml")
     Path(values["refused_scene"]).write_text(
         Path(ROOM).read_text().replace('"max_range" value="30"', '"max_range" value="nan"')
+    )
+    values["far_scene"] = str(tmp_path / "far.xml")
+    Path(values["far_scene"]).write_text(
+        Path(ROOM).read_text().replace('"max_range" value="30"', '"max_range" value="1e30"')
     )
     values["stray_scene"] = str(tmp_path / "stray.xml")
     Path(values["stray_scene"]).write_text(

@@ -28,6 +28,11 @@ import numpy as np
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.fitting import lookup
+from mi_lidar.core.frames import MAX_COORDINATE_M
+
+MAX_DISTANCE_M = MAX_COORDINATE_M  # ranges and range windows (m): beyond 1e8 m a value is a misread number
+MAX_SIGMA_M = 1e3  # range noise (m): the longest-reaching Lidars reach a few km and spread returns by centimetres to
+# decimetres; a sigma beyond a kilometre spreads a return over the whole range window, so it is a misread number
 
 
 @dataclass(frozen=True)
@@ -313,3 +318,25 @@ def property_number(props, plugin: str, name: str, default: float, whole: bool =
     if not value.is_integer():
         raise ParameterError(f'{plugin}: {name}={given!r} is not a whole number; write <integer name="{name}" .../>')
     return int(value)
+
+
+def check_limit(owner: str, name: str, value: float, upper: float, what: str, fix: str = "fix the value") -> None:
+    """Refuse a distance or range noise beyond its physical limit (:data:`MAX_DISTANCE_M`, :data:`MAX_SIGMA_M`).
+
+    Args:
+        owner: The plugin or object in messages (``"lidar sensor"``).
+        name: The parameter.
+        value: Its value (m); NaN passes (the caller checks what NaN means for it).
+        upper: The largest value allowed (m).
+        what: Why larger values are refused, for the message.
+        fix: What to do.
+
+    Raises:
+        ParameterError: naming the owner, the parameter, the allowed range and the value.
+    """
+    if value > upper:
+        raise ParameterError(f"{owner}: {name}={value:g} m is outside [0, {upper:g}] m ({what}); {fix}")
+
+
+DISTANCE_LIMIT = f"a distance beyond {MAX_DISTANCE_M:g} m is a misread number"
+SIGMA_LIMIT = f"a range noise beyond {MAX_SIGMA_M:g} m is a misread number"

@@ -20,6 +20,7 @@ otherwise it passes. A return from a scene element reports an intensity drawn fr
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import drjit as dr
@@ -30,6 +31,7 @@ from mi_lidar.core.effects.base import Effect, FootprintEffect
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.intensity import IntensityModel
+from mi_lidar.core.params import DISTANCE_LIMIT, MAX_DISTANCE_M, MAX_SIGMA_M, SIGMA_LIMIT
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment, sample_range
 from mi_lidar.core.streams import MAX_UNIFORM, NeighbourStreams, check_seed, uniform, uniforms
@@ -59,10 +61,12 @@ class SensorModel:
     """Sensor defaults, the return density, and the effects applied on top of the scene's elements.
 
     Attributes:
-        range_sigma: range noise (m) of elements that do not set their own.
+        range_sigma: range noise (m) of elements that do not set their own, up to
+            :data:`~mi_lidar.core.params.MAX_SIGMA_M` (1000 m).
         min_range: returns closer than this (m) are not reported (blind zone).
         max_range: elements farther than this (m) are not seen, and returns reported beyond it are not
-            reported: ``[min_range, max_range]`` is the sensor's range window (:meth:`censor`).
+            reported: ``[min_range, max_range]`` is the sensor's range window (:meth:`censor`). Up to
+            :data:`~mi_lidar.core.params.MAX_DISTANCE_M` (1e8 m), or ``inf`` for no far end.
         max_segments: elements a ray may pass before it is declared a miss.
         effects: effects in application order.
         density: the return density of every element (default: each element's Gaussian).
@@ -79,9 +83,14 @@ class SensorModel:
 
     def __post_init__(self):
         checks = [
-            ("range_sigma", self.range_sigma >= 0, ">= 0 m"),
-            ("min_range", self.min_range >= 0, ">= 0 m"),
+            ("range_sigma", 0 <= self.range_sigma <= MAX_SIGMA_M, f"in [0, {MAX_SIGMA_M:g}] m ({SIGMA_LIMIT})"),
+            ("min_range", 0 <= self.min_range <= MAX_DISTANCE_M, f"in [0, {MAX_DISTANCE_M:g}] m ({DISTANCE_LIMIT})"),
             ("max_range", self.max_range > self.min_range, f"> min_range ({self.min_range} m)"),
+            (
+                "max_range",
+                self.max_range <= MAX_DISTANCE_M or self.max_range == math.inf,
+                f"<= {MAX_DISTANCE_M:g} m ({DISTANCE_LIMIT}), or inf for no far end",
+            ),
             ("max_segments", 1 <= self.max_segments <= 256, "in [1, 256]"),
         ]
         for name, ok, allowed in checks:

@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from mi_lidar.core.errors import MiLidarError, SpecError, describe_invalid, parser_message, unreadable
 from mi_lidar.core.frames import MAX_COORDINATE_M
-from mi_lidar.core.params import parse_calls
+from mi_lidar.core.params import MAX_DISTANCE_M, MAX_SIGMA_M, parse_calls
 from mi_lidar.core.patterns import is_pattern_file
 
 MAX_FRAMES = 1_000_000  # KITTI names frames with 6 digits (000000.bin ... 999999.bin)
@@ -92,9 +92,9 @@ class LidarSpec(Strict):
     mount: Mount = Mount(xyz=(0.0, 0.0, 1.8))
     density: str = Field("gaussian", description="return density, e.g. 'np_reg(file=sensor.npz)'")
     effects: str = Field("", description="effects, e.g. 'range_noise(sigma0=0.01)'")
-    range_sigma: float = Field(0.02, ge=0)
-    min_range: float = Field(0.5, ge=0)
-    max_range: float = Field(100.0, gt=0)
+    range_sigma: float = Field(0.02, ge=0, le=MAX_SIGMA_M)  # m; beyond, a misread number (core.params)
+    min_range: float = Field(0.5, ge=0, le=MAX_DISTANCE_M)
+    max_range: float = Field(100.0, gt=0, le=MAX_DISTANCE_M)
     max_segments: int = Field(16, ge=1, le=256)
 
 

@@ -83,6 +83,9 @@ def test_yaml_and_toml_agree_and_frames_split_into_variants(folder):
         (("pattern: vlp16", "pattern: vlp16, effects: 'range_nois(k=1)'"), r"rig\.lidars\.0\.effects: .*'range_nois'"),
         (("pattern: vlp16", "pattern: vlp16, density: 'gaussian(sigm=1)'"), r"rig\.lidars\.0\.density: .*sigm"),
         (("pattern: vlp16", "pattern: vlp16, max_range: 0.2"), r"rig\.lidars\.0: sensor model: max_range=0\.2"),
+        # read and rendered: a range window reaching 1e30 m, returns spread by a range noise of 1e30 m
+        (("pattern: vlp16", "pattern: vlp16, max_range: 1e30"), r"lidars\.0\.max_range: Input should be less than or"),
+        (("pattern: vlp16", "pattern: vlp16, range_sigma: 1e30"), r"lidars\.0\.range_sigma: Input should be less than"),
         # read, then rendered for ever (10**12 frames), garbage (a rotation of 1e30 degrees, an empty or spaced
         # KITTI object type, a 16-bit id of 2**40), or failed in every frame, each retried (a waypoint 1e30 m away)
         (("frames: 3", "frames: 1000000000000"), r"scenes\.0\.frames: Input should be less than or equal to 1000000"),

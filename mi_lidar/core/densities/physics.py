@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 
 from mi_lidar.core.densities.base import UniformEscapeDensity, escape_segment, register_density
-from mi_lidar.core.params import ParamSpec
+from mi_lidar.core.params import MAX_SIGMA_M, ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import SURFACE, Segment
 
@@ -25,7 +25,9 @@ class PhysicsDensity(UniformEscapeDensity):
 
     name = "physics"
     specs = {
-        "sigma0": ParamSpec(0.01, "m", "constant part of the noise", lower=0.0, fit_lower=1e-4, fit_scale=0.01),
+        "sigma0": ParamSpec(
+            0.01, "m", "constant part of the noise", lower=0.0, upper=MAX_SIGMA_M, fit_lower=1e-4, fit_scale=0.01
+        ),
         "k": ParamSpec(1e-5, "1", "range-incidence coefficient K", lower=0.0, fit_scale=1e-4),
         "p_null": ParamSpec(
             0.01, "1", "probability that an intercepted beam gives no return", lower=0.0, upper=0.999, fit_scale=0.01

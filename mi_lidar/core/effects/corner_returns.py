@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 
 from mi_lidar.core.effects.base import Effect, register_effect
-from mi_lidar.core.params import ParamSpec
+from mi_lidar.core.params import MAX_SIGMA_M, ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
@@ -44,7 +44,9 @@ class CornerReturns(Effect):
         "share": ParamSpec(
             0.0, "1", "probability that a return comes from a corner's surface", lower=0.0, upper=1.0, fit_start=0.5
         ),
-        "sigma": ParamSpec(0.0, "m", "range noise added to a corner's return (fixed)", lower=0.0, fit=False),
+        "sigma": ParamSpec(
+            0.0, "m", "range noise added to a corner's return (fixed)", lower=0.0, upper=MAX_SIGMA_M, fit=False
+        ),
     }
 
     def modify_segment(self, seg: Segment, rays: RayBatch) -> Segment:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 
 from mi_lidar.core.effects.base import Effect, register_effect
-from mi_lidar.core.params import ParamSpec
+from mi_lidar.core.params import MAX_SIGMA_M, ParamSpec
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment
 
@@ -34,7 +34,14 @@ class RangeNoise(Effect):
     variant_options = ("law",)
     specs = {
         "sigma0": ParamSpec(
-            0.0, "m", "constant part of the noise", lower=0.0, fit_lower=1e-4, fit_start=0.002, fit_scale=0.01
+            0.0,
+            "m",
+            "constant part of the noise",
+            lower=0.0,
+            upper=MAX_SIGMA_M,
+            fit_lower=1e-4,
+            fit_start=0.002,
+            fit_scale=0.01,
         ),
         # k differs by orders of magnitude between laws: 0.01 (1 cm per m) for the proportional law,
         # 1e-4 for the physics law's K (sigma 1 cm at 1 m, normal incidence).
