@@ -386,3 +386,47 @@ def test_a_write_that_fails_midway_names_the_file_keeps_the_old_one_and_leaves_n
     assert left == ([name] if case not in ("bag", "render") else []), left
     if case not in ("bag", "render"):
         assert out.read_bytes() == b"the previous file"
+
+
+@pytest.fixture(scope="module")
+def world_log(tmp_path_factory) -> str:
+    """A small labeled off-road log, as `fit-scene` reads."""
+    path = tmp_path_factory.mktemp("world") / "world.npz"
+    args = ["synth-world", "--out", str(path), "--seed", "11", "--length", "20", "--width", "20"]
+    run = subprocess.run([MI_LIDAR, *args], capture_output=True, text=True)
+    assert run.returncode == 0, run.stdout + run.stderr
+    return str(path)
+
+
+SCENE_WRITES = {  # command, what a write that failed midway left before
+    "calibrate": (
+        ["calibrate", "{log}", ROOM, "-p", "elements.*.p_hit", "--steps", "1", "--out", "{out}"],
+        "the new box_obstacle, glass_pane and partition PLYs in scene_assets/, beside no scene.xml or the previous one",
+    ),
+    "fit-scene": (["fit-scene", "{world}", "--out", "{out}"], "an empty scene_assets/ beside no scene.xml"),
+}
+
+
+@pytest.mark.parametrize("previous", [False, True], ids=["fresh", "previous output"])
+@pytest.mark.parametrize("case", sorted(SCENE_WRITES))
+def test_a_scene_and_its_assets_appear_together_or_not_at_all(tmp_path, room_log, world_log, case, previous):
+    args, before = SCENE_WRITES[case]
+    out = tmp_path / "out"
+    kept = {"scene.xml": b"<scene/>", "scene_assets/old.ply": b"the previous asset"}
+    for name, content in kept.items() if previous else ():
+        (out / name).parent.mkdir(parents=True, exist_ok=True)
+        (out / name).write_bytes(content)
+    run = subprocess.run(
+        [MI_LIDAR, *(a.format(log=room_log, world=world_log, out=out) for a in args)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "COLUMNS": "400"},
+        preexec_fn=limited_size(1000),
+    )
+    lines = [line for line in (run.stdout + run.stderr).splitlines() if line.strip() and not PROGRESS.match(line)]
+    lines = [line for line in lines if "while writing compiled kernel to cache file" not in line]  # Dr.Jit's
+    assert run.returncode == 2 and len(lines) == 1, (before, lines)
+    assert lines[0].startswith(f"error: {out / 'scene_assets'}/") and "ulimit -f" in lines[0], (before, lines)
+    left = {str(p.relative_to(out)): p.read_bytes() for p in out.rglob("*") if p.is_file()} if out.exists() else {}
+    assert left == (kept if previous else {}), (before, sorted(left))
+    assert not out.exists() or previous, (before, sorted(p.name for p in out.iterdir()))

@@ -14,6 +14,7 @@ from mi_lidar.calibration.fit import FitResult
 from mi_lidar.cli.app import MAX_STEPS, app, console, force_option, warn
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import FIGURE_WIDTH, figure, figure_table
+from mi_lidar.core.atomic import output_folder
 
 FIT = "Fit"  # the options of the optimisation, a panel of their own: the option column stays narrow
 
@@ -114,7 +115,7 @@ def calibrate(
         --pattern log --out out/building
     ```
     """
-    with progress("calibrating", total=steps) as update:
+    with output_folder(out), progress("calibrating", total=steps) as update:  # nothing left when the run fails
         held = {"text": ""}  # the held-out NLL is evaluated every few steps: show the last one, none before the first
 
         def report(step, total, train, held_out):

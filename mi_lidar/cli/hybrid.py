@@ -66,9 +66,12 @@ def fit_scene(
     mi-lidar fit-scene train.npz --out fitted/
     ```
     """
+    from mi_lidar.core.atomic import output_folder
     from mi_lidar.hybrid.commands import fit_scene as run
 
-    for path in run(log, out, name=name):
+    with output_folder(out):  # nothing left when the run fails
+        written = run(log, out, name=name)
+    for path in written:
         console.print(f"wrote {path}")
 
 

@@ -3,7 +3,7 @@
 A crash or an exception leaves the previous file (or nothing) and no temporary file behind, and
 the final file gets the usual permissions (0666 minus the umask), not mkstemp's 0600. A run's output
 folder (:func:`output_folder`) is made before the run and removed again, while still empty, when the
-run fails.
+run fails. A scene XML and its assets folder (:func:`staged_scene`) are written together or not at all.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -101,3 +102,56 @@ def output_folder(path: str | os.PathLike) -> Iterator[Path]:
                 with contextlib.suppress(OSError):  # not empty: something was written there
                     os.rmdir(root)
         raise
+
+
+@contextlib.contextmanager
+def staged_scene(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield where to write the scene XML ``path`` and its ``<stem>_assets/``: both appear together or not at all.
+
+    The block writes the XML at the yielded path and its assets in ``<stem>_assets/`` beside it, inside a
+    temporary folder next to ``path`` (the XML must name its assets relative to itself). When the block
+    succeeds, the assets folder and then the XML replace the previous ones (renames only, no copy); when it
+    fails (a full disk, ``ulimit -f``, any exception), the temporary folder is removed and a previous scene
+    and its assets stay as they were. Without this, a failed write left new assets beside no XML or beside
+    the previous XML.
+
+    Raises:
+        OSError: a failed write in the block, naming the file it was writing as it would have been named in
+            the output folder (not in the temporary one).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        stage = Path(tempfile.mkdtemp(prefix=f".{path.stem}.", suffix=".tmp", dir=path.parent))
+    except OSError as exc:  # name the file the caller asked for, not the temporary folder
+        raise type(exc)(exc.errno, exc.strerror, os.fspath(path)) from exc
+    assets = path.with_name(f"{path.stem}_assets")
+    try:
+        try:
+            yield stage / path.name
+        except OSError as exc:
+            if exc.filename is None or not Path(exc.filename).is_relative_to(stage):
+                raise
+            named = path.parent / Path(exc.filename).relative_to(stage)
+            raise type(exc)(exc.errno, exc.strerror, os.fspath(named)) from exc
+        _move_in(stage, path, assets)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+def _move_in(stage: Path, path: Path, assets: Path) -> None:
+    """Move the staged XML and assets onto ``path`` and ``assets``, the previous assets aside first (and back
+    if a rename fails)."""
+    previous = stage / ".previous_assets"
+    if assets.exists():
+        os.replace(assets, previous)
+    try:
+        if (stage / assets.name).exists():
+            os.replace(stage / assets.name, assets)
+        os.replace(stage / path.name, path)
+    except OSError as exc:
+        if previous.exists():
+            if assets.exists():
+                os.replace(assets, stage / assets.name)
+            os.replace(previous, assets)
+        raise type(exc)(exc.errno, exc.strerror, os.fspath(path)) from exc

@@ -18,6 +18,7 @@ Every written scene holds a ``lidar`` sensor and a ``lidar_integrator``: it load
 from __future__ import annotations
 
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 
 import mitsuba as mi
@@ -26,6 +27,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from mi_lidar.core.atomic import staged_scene
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
 from mi_lidar.hybrid.blocks import SceneSensor, assets_folder, write_scene
@@ -111,6 +113,29 @@ def render_previews(xml, poses: np.ndarray | None = None, seed: int = 0, max_sca
     return range_png, top_png
 
 
+def write_scene_together(model: HybridModel, out_xml: Path, sensor: SceneSensor | None = None, log=None) -> list[Path]:
+    """:func:`~mi_lidar.hybrid.blocks.write_scene` of ``model`` at ``out_xml``, the XML and its assets together or
+    not at all (:func:`~mi_lidar.core.atomic.staged_scene`): a write that fails midway keeps a previous scene whole.
+
+    Args:
+        model: the hybrid model.
+        out_xml: the scene XML; its assets go to ``<stem>_assets/`` beside it.
+        sensor: the scene's sensor (None: shapes only), or
+        log: a log whose scan-0 pattern the sensor fires from its first pose, written as ``<stem>_assets/pattern.npy``
+            and named relative to the XML.
+
+    Returns:
+        The paths written: the XML, its PLY assets, then the pattern table when ``log`` is given.
+    """
+    with staged_scene(out_xml) as staged:
+        table = []
+        if log is not None:
+            table = [assets_folder(staged.parent, out_xml.stem) / "pattern.npy"]
+            sensor = replace(SceneSensor.from_log(log, table[0]), pattern=f"{table[0].parent.name}/{table[0].name}")
+        written = [*write_scene(model, staged.parent, out_xml.stem, sensor), *table]
+    return [out_xml.parent / path.relative_to(staged.parent) for path in written]
+
+
 def fit_scene(
     log_path, out_dir, params: FitParams | None = None, name: str = "scene", preview: bool = True
 ) -> list[Path]:
@@ -133,8 +158,7 @@ def fit_scene(
             soft_wrap=True,
         )
     result = _fit(log, params, "fit")
-    pattern = assets_folder(out_dir, name) / "pattern.npy"
-    xml, *shapes = write_scene(result.model, out_dir, name, SceneSensor.from_log(log, pattern))
+    xml, *shapes, pattern = write_scene_together(result.model, Path(out_dir) / f"{name}.xml", log=log)
     table = Table(title=f"hybrid scene {xml}")
     for col in ("points", "ground points", "triangles", "ellipsoids", "blocks", "triangle p_hit", "seconds"):
         table.add_column(col, justify="right")
@@ -246,8 +270,7 @@ def compose(annotation, library, out_xml, extent: float = 3.5, preview: bool = T
     model = compose_scene(objects, PrimitiveLibrary.load(library), ground, extent)
     stored = annotation_sensor(annotation)
     sensor, poses = stored if stored is not None else _default_sensor(model)
-    out_xml = Path(out_xml)
-    xml, *shapes = write_scene(model, out_xml.parent, out_xml.stem, sensor)
+    xml, *shapes = write_scene_together(model, Path(out_xml), sensor)
     skipped = len(model.info["skipped"])
     console.print(
         f"{len(objects) - skipped} objects placed ({skipped} skipped: class not in the library), "

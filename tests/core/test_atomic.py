@@ -118,3 +118,34 @@ def test_a_failed_write_names_the_file_asked_for(tmp_path, temporaries, failure,
         raise failure
     assert (caught.value.errno, caught.value.filename) == (code, str(path))
     assert path.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["scan.bin"]
+
+
+def tree(folder) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def write_staged_scene(xml, assets: dict[str, bytes], fail_at: str | None = None) -> None:
+    (xml.parent / f"{xml.stem}_assets").mkdir()
+    for name, content in assets.items():
+        if name == fail_at:
+            raise OSError(errno.EFBIG, "File too large", os.fspath(xml.parent / f"{xml.stem}_assets" / name))
+        (xml.parent / f"{xml.stem}_assets" / name).write_bytes(content)
+    xml.write_bytes(b"<scene new/>")
+
+
+def test_a_staged_scene_replaces_the_previous_one_with_its_assets_or_leaves_it_whole(tmp_path):
+    """calibrate and fit-scene wrote scene_assets/ before scene.xml: a write that failed midway left new assets
+    beside the previous scene.xml (or beside none); stale assets of the previous scene stayed beside a new one."""
+    out = tmp_path / "out"
+    (out / "scene_assets").mkdir(parents=True)
+    (out / "scene.xml").write_bytes(b"<scene old/>")
+    (out / "scene_assets" / "stale.ply").write_bytes(b"old")
+    previous = tree(out)
+    with pytest.raises(OSError) as error, atomic.staged_scene(out / "scene.xml") as staged:
+        write_staged_scene(staged, {"a.ply": b"new a", "b.ply": b"new b"}, fail_at="b.ply")
+    assert error.value.filename == os.fspath(out / "scene_assets" / "b.ply")  # as named in the output folder
+    assert tree(out) == previous and sorted(p.name for p in out.iterdir()) == ["scene.xml", "scene_assets"]
+    with atomic.staged_scene(out / "scene.xml") as staged:
+        write_staged_scene(staged, {"a.ply": b"new a"})
+    assert tree(out) == {"scene.xml": b"<scene new/>", "scene_assets/a.ply": b"new a"}
+    assert sorted(p.name for p in out.iterdir()) == ["scene.xml", "scene_assets"]
