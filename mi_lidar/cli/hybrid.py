@@ -96,7 +96,7 @@ def primitives_extract(
     """
     from mi_lidar.hybrid.commands import primitives_extract as run
 
-    console.print(f"{library}: {len(run(log, library).primitives)} primitives")
+    console.print(f"{library}: {len(run(log, library).primitives):,} primitives")
 
 
 @primitives_app.command("list")

@@ -163,11 +163,11 @@ def fit_scene(
     for col in ("points", "ground points", "triangles", "ellipsoids", "blocks", "triangle p_hit", "seconds"):
         table.add_column(col, justify="right")
     table.add_row(
-        str(len(result.points)),
-        str(int(result.is_ground.sum())),
-        str(len(result.model.ground)),
-        str(len(result.model.ellipsoids)),
-        str(result.model.info["n_blocks"]),
+        f"{len(result.points):,}",
+        f"{int(result.is_ground.sum()):,}",
+        f"{len(result.model.ground):,}",
+        f"{len(result.model.ellipsoids):,}",
+        f"{result.model.info['n_blocks']:,}",
         f"{result.model.info['mean_triangle_p_hit']:.2f}",
         f"{sum(result.timings.values()):.1f}",
     )
@@ -243,7 +243,7 @@ def annotate(log_path, out_json, params: FitParams | None = None) -> list[Path]:
     inst = log.attributes["instance"].ravel()[result.ray_index]
     objects = annotation_from_segments(result.points, segments_from_labels(result.points, labels, inst), log.poses)
     written = save_annotation(out_json, objects, result.model.ground, log)
-    console.print(f"{len(objects)} objects, {len(result.model.ground)} ground triangles in {written[0]}")
+    console.print(f"{len(objects):,} objects, {len(result.model.ground):,} ground triangles in {written[0]}")
     return written
 
 
@@ -273,7 +273,7 @@ def compose(annotation, library, out_xml, extent: float = 3.5, preview: bool = T
     xml, *shapes = write_scene_together(model, Path(out_xml), sensor)
     skipped = len(model.info["skipped"])
     console.print(
-        f"{len(objects) - skipped} objects placed ({skipped} skipped: class not in the library), "
-        f"{len(model.ellipsoids)} ellipsoids, {len(model.ground)} ground triangles -> {xml}"
+        f"{len(objects) - skipped:,} objects placed ({skipped:,} skipped: class not in the library), "
+        f"{len(model.ellipsoids):,} ellipsoids, {len(model.ground):,} ground triangles -> {xml}"
     )
     return [xml, *shapes, *(render_previews(xml, poses) if preview else ())]

@@ -58,3 +58,24 @@ def test_a_bad_log_is_one_error_line_naming_the_file(tmp_path, make, said):
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert said in " ".join(result.output.split()) and lines[0].startswith("error:"), result.output
     assert not (tmp_path / "out").exists()
+
+
+def test_fit_scene_and_annotate_print_counts_with_thousands_separators(tmp_path, small_log, monkeypatch):
+    """fit-scene's table and annotate's line printed '25970' points and '2607 ground triangles' where every other
+    command prints 12,345."""
+    import io
+    import re
+
+    from rich.console import Console
+
+    from mi_lidar.hybrid import commands
+
+    printed = io.StringIO()
+    monkeypatch.setattr(commands, "console", Console(file=printed, width=400))
+    path = small_log.save(tmp_path / "world.npz")
+    fit_scene(path, tmp_path / "fitted", preview=False)
+    commands.annotate(path, tmp_path / "a.json")
+    words = [word for word in printed.getvalue().split() if "/" not in word]  # file names may hold digits
+    said = " ".join(words)
+    assert re.search(r"\d{1,3}(,\d{3})+ ground triangles", said), said  # the counts here reach thousands
+    assert not [word for word in words if re.fullmatch(r"\d{4,}", word.strip("│(),"))], said
