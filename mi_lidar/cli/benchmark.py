@@ -35,8 +35,8 @@ def benchmark_planar(
 ):
     """Fit every sensor model on the training scans of a planar log and score it on the test scans.
 
-    Implements `../shared/protocols/real_planar.md`: leave-out maps per scan, a 5 cm occ3 map, 1 cm
-    scoring. Prints NLL per beam, miss F1 and the realism of sampled scans for the ray cast + Gaussian
+    Runs the real-planar protocol (docs/benchmark_planar.md): leave-out maps per scan, a 5 cm occ3 map,
+    1 cm scoring. Prints NLL per beam, miss F1 and the realism of sampled scans for the ray cast + Gaussian
     (M0), the beam models (M1, M2a, M2b), the binned histograms (M3a, M3b), P-Reg, NP-Reg and mi-lidar's
     permeable map.
 
