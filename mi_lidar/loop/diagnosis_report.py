@@ -21,7 +21,15 @@ import numpy as np
 
 from mi_lidar.core.atomic import atomic_write_text
 from mi_lidar.io.markdown import markdown_to_html
-from mi_lidar.loop.residuals import UNITS, group_index, plot_structure, residual_structure, structure_verdict
+from mi_lidar.loop.residuals import (
+    MIN_GROUP,
+    UNITS,
+    Structure,
+    group_index,
+    plot_structure,
+    residual_structure,
+    structure_verdict,
+)
 from mi_lidar.loop.selection import DROPPED, JOINED, LOST, MIN_GAIN, REPLACED
 
 FIGURE_DIMENSIONS = ("range", "incidence", "beam")
@@ -170,14 +178,26 @@ def diagnosis_markdown(d) -> str:
             "| dimension | channel | chi2 | dof | p | largest departure | flagged |",
             "|---|---|---|---|---|---|---|",
         ]
-        for st in d.structure:
-            unit = "m" if st.channel == "range" else ""
-            lines.append(
-                f"| {st.dimension} | {st.channel} | {st.chi2:.1f} | {st.dof} | {st.p_value:.2g} | "
-                f"{st.departure:.4f} {unit} | {'yes' if st.flagged else 'no'} |"
-            )
+        lines += [structure_row(st) for st in d.structure]
         lines.append("")
     return "\n".join(lines)
+
+
+def structure_row(st: Structure) -> str:
+    """One row of the report's residual-structure table.
+
+    A dimension with fewer than two groups of :data:`~mi_lidar.loop.residuals.MIN_GROUP` rays (one label in
+    the scene, one beam of a planar scanner) has nothing to compare: its row says so instead of chi2 0 for
+    0 degrees of freedom.
+    """
+    if st.dof == 0:
+        untestable = f"not testable (fewer than 2 groups of {MIN_GROUP} rays)"
+        return f"| {st.dimension} | {st.channel} | - | - | - | - | {untestable} |"
+    unit = "m" if st.channel == "range" else ""
+    return (
+        f"| {st.dimension} | {st.channel} | {st.chi2:.1f} | {st.dof} | {st.p_value:.2g} | "
+        f"{st.departure:.4f} {unit} | {'yes' if st.flagged else 'no'} |"
+    )
 
 
 def _beam_groups(beam: np.ndarray, groups: int = 12) -> np.ndarray:

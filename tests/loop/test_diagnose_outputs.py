@@ -124,3 +124,21 @@ def test_diagnose_prints_its_verdict_without_markdown_asterisks(tmp_path):
     result = invoke_at_80([*arguments, "--candidate", "range_bias"])
     assert result.exit_code == 0, result.output
     assert "The model is missing range_bias" in " ".join(result.stdout.split()) and "**" not in result.stdout
+
+
+def test_a_dimension_with_one_group_is_reported_as_not_testable_not_as_chi2_zero():
+    """A scene of one label (or a planar scanner's one elevation) leaves one group: its row said chi2 0.0, dof 0,
+    p 1, 'no', as if tested and clean."""
+    from mi_lidar.loop.diagnosis_report import structure_row
+    from mi_lidar.loop.residuals import residual_structure
+
+    rng = np.random.default_rng(0)
+    n = 2000
+    nominal = rng.uniform(2.0, 20.0, n)
+    measured, simulated = nominal + rng.normal(0.0, 0.02, n), nominal + rng.normal(0.0, 0.02, n)
+    hit = np.ones(n, bool)
+    found = residual_structure({"label": np.zeros(n), "range": nominal}, nominal, measured, hit, simulated, hit)
+    rows = {(s.dimension, s.channel): structure_row(s) for s in found}
+    assert rows[("label", "range")].endswith("| - | - | - | - | not testable (fewer than 2 groups of 30 rays) |")
+    ranges = rows[("range", "range")].split("|")
+    assert ranges[4].strip() == "11" and ranges[7].strip() == "no", ranges  # 12 groups: tested, and clean
