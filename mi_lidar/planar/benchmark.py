@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -79,8 +80,8 @@ class ModelRow:
 
     Besides the figures: ``ll`` the test beams' log-likelihoods, ``sampled`` the first test scan it
     sampled (range, hit; the one the one-draw sample metrics pair with the measured scan), and
-    ``engine`` the ``(training beams, test beams, model)`` it was fitted and scored with, to simulate
-    more scans at the same beams (:func:`mi_lidar.apps.scans.planar_datasets`).
+    ``beams`` what builds the ``(training beams, test beams)`` it was fitted and scored with
+    (:attr:`engine`).
     """
 
     name: str
@@ -95,7 +96,16 @@ class ModelRow:
     seconds: float
     ll: np.ndarray = field(repr=False, default=None)
     sampled: tuple = field(repr=False, default=None)
-    engine: tuple = field(repr=False, default=None)
+    model: object = field(repr=False, default=None)
+    beams: Callable[[], tuple] | None = field(repr=False, default=None)
+
+    @property
+    def engine(self) -> tuple:
+        """``(training beams, test beams, model)``, to simulate more scans at the same beams
+        (:func:`mi_lidar.apps.scans.planar_datasets`). Built on each call, not kept: mi-lidar's beams
+        hold every segment of every beam three times (its angular spread), 0.5 GB for 300,000
+        training beams."""
+        return (*self.beams(), self.model)
 
     def to_json(self) -> dict:
         return {
@@ -177,16 +187,18 @@ class PlanarBenchmark:
 
 def _row(
     name: str,
-    train: EngineBeams,
-    test: EngineBeams,
+    beams: Callable[[], tuple[EngineBeams, EngineBeams]],
     model,
     data: PlanarData,
     seconds: float,
     seed: int,
     no_return: float,
 ) -> ModelRow:
-    ll_test, ll_train = test.log_likelihood(model), train.log_likelihood(model)
-    p_test, p_train = test.p_miss(model), train.p_miss(model)
+    """The figures of ``model`` on the ``(training beams, test beams)`` that ``beams()`` builds, kept meanwhile."""
+    train, test = beams()
+    ll_train, p_train = train.log_likelihood(model), train.p_miss(model)
+    del train  # mi-lidar's beams are large: one set at a time
+    ll_test, p_test = test.log_likelihood(model), test.p_miss(model)
     miss_test, miss_train = ~data.test.hit, ~data.train.hit
     threshold = tuned_threshold(p_train, miss_train)
     draws = [test.sample(model, seed + k) for k in range(SAMPLED_SCANS)]
@@ -205,7 +217,8 @@ def _row(
         seconds=seconds,
         ll=ll_test,
         sampled=(z, hit),
-        engine=(train, test, model),
+        model=model,
+        beams=beams,
     )
 
 
@@ -271,7 +284,7 @@ def run_planar_benchmark(
     fit("NP-Reg", np_reg)
     rows = []
     for name in [n for n in MODELS if n in fitted and n in models]:
-        rows.append(_row(name, train, test, fitted[name], data, timing[name], seed, z_max))
+        rows.append(_row(name, lambda: (train, test), fitted[name], data, timing[name], seed, z_max))
     if "mi-lidar" in models:
         t0 = time.perf_counter()
         permeable = m.fit_milidar(data.train, z_max, settings["np_reg"])
@@ -285,18 +298,11 @@ def run_planar_benchmark(
             "shared_errors_pit_lags": permeable.shared_errors,
         }
         say(len(models), len(models), "fitted mi-lidar")
-        rows.append(
-            _row(
-                "mi-lidar",
-                permeable.beams(data.train),
-                permeable.beams(data.test),
-                permeable.model,
-                data,
-                elapsed,
-                seed,
-                z_max,
-            )
-        )
+
+        def beams():
+            return permeable.beams(data.train), permeable.beams(data.test)
+
+        rows.append(_row("mi-lidar", beams, permeable.model, data, elapsed, seed, z_max))
     both = data.test.hit & np.isfinite(data.test.nominal)
     err = np.abs(data.test.z - data.test.nominal)[both]
     nominal = {

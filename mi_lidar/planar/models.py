@@ -367,6 +367,7 @@ def fit_permeable_map(
         prior = fit_permeability(beams, base_model(density), steps, start=prior)
         density = tables(_responsibilities(train, density, *prior, classes))
     a, b = fit_permeability(beams, base_model(density), steps, start=prior)
+    del beams  # the mixture below holds these segments again, three times: one set at a time
     fitted = PermeableMap(model=base_model(density), a=a, b=b, classes=classes)
     mixture = fitted.beams(train)
 
