@@ -1,6 +1,6 @@
 """Count maps of planar logs on a regular 2D grid, with exact leave-out maps per query scan.
 
-Following the real-planar protocol (``../shared/protocols/real_planar.md``): every scan contributes
+Following the real-planar protocol (``docs/benchmark_planar.md``): every scan contributes
 to the cells it touches. A return closer than ``reach`` (40 m) adds an endpoint *hit* to its cell;
 every return adds a *pass-through* to each cell its beam crosses from the sensor to one cell short of
 the return (sampled every quarter cell); beams without a return clear nothing. Contributions are

@@ -1,7 +1,7 @@
 """The models the planar benchmark compares, each fitted on training beams only and scored by the one engine.
 
 =========  ===================================================================================
-name       model (``../shared/protocols/real_planar.md``)
+name       model (``docs/benchmark_planar.md``)
 =========  ===================================================================================
 M0         ideal ray cast + one Gaussian (Gazebo-style): sigma by 1-D search, P(miss) 1e-3 at a
            nominal hit; a nominal-miss beam returns (uniformly on [0, z_max]) with the training

@@ -1,6 +1,6 @@
 """The real-planar protocol: splits, leave-out neighbourhoods, the map, and the traced beams of a log.
 
-``PlanarProtocol`` holds the protocol's settings (``../shared/protocols/real_planar.md``): every
+``PlanarProtocol`` holds the protocol's settings (``docs/benchmark_planar.md``): every
 ``test_every``-th scan is a test scan, the rest training; the map of query scan ``q`` leaves out the
 scans within ``radius`` m *and* ``window`` s of it (and ``q`` itself); 5 cm ``occ3`` map; march to
 40 m. :func:`prepare` builds the whole-log count map once and traces the test and training beams

@@ -1,6 +1,6 @@
 """The protocol's ray march through leave-out maps: nominal range, incidence, and every cell a beam meets.
 
-For each beam of a query scan (``../shared/protocols/real_planar.md``): march from the pose in steps of
+For each beam of a query scan (``docs/benchmark_planar.md``): march from the pose in steps of
 a quarter cell from 0.02 m to ``reach`` (40 m); the first *occupied* cell of the query's leave-out map
 (``occ3``: at least one hit, and hits >= passes / 3) is the nominal hit, its range the exact entry
 distance into that cell; a step that crosses a corner (both cell coordinates change) is blocked when

@@ -204,7 +204,7 @@ td,th{{border:1px solid #ccc;padding:3px 6px;font-size:13px;text-align:right}}th
 <h1>Planar benchmark: {html.escape(Path(result.source).name or "log")}</h1>
 <p>{info["scans"]} scans x {info["beams"]} beams; sensor no-return value {info["max_range_m"]:g} m;
 {info["test_beams"]:,} test beams, {info["train_beams"]:,} training beams{thinned}; protocol
-<code>../shared/protocols/real_planar.md</code> (cell {result.data.protocol.cell} m, occ3 map, leave-out
+<code>docs/benchmark_planar.md</code> in mi-lidar (cell {result.data.protocol.cell} m, occ3 map, leave-out
 {result.data.protocol.radius} m / {result.data.protocol.window} s, scores in 1 cm bins with the 1e-9 floor).</p>
 <p>Nominal ray cast on test beams: median |z - r| {nominal["median_abs_err"]:.3f} m,
 p90 {nominal["p90_abs_err"]:.3f} m; short (z &lt; r - 0.5 m) {nominal["short"]:.3f},
