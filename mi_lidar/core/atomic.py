@@ -24,6 +24,11 @@ def _default_mode() -> int:
     return 0o666 & ~mask
 
 
+def _naming(exc: OSError, path: str | os.PathLike) -> OSError:
+    """``exc`` (same type, errno and reason) naming ``path``: the file the caller asked for, not a temporary one."""
+    return type(exc)(exc.errno, exc.strerror, os.fspath(path))
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` when the block succeeds.
@@ -41,7 +46,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     try:
         fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
     except OSError as exc:  # name the file the caller asked for, not the temporary one
-        raise type(exc)(exc.errno, exc.strerror, os.fspath(path)) from exc
+        raise _naming(exc, path) from exc
     os.close(fd)
     tmp = Path(name)
     try:
@@ -55,7 +60,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         try:
             os.replace(tmp, path)
         except OSError as exc:  # a folder of that name: name it, not the temporary file
-            raise type(exc)(exc.errno, exc.strerror, os.fspath(path)) from exc
+            raise _naming(exc, path) from exc
     finally:
         tmp.unlink(missing_ok=True)
 
@@ -124,7 +129,7 @@ def staged_scene(path: str | os.PathLike) -> Iterator[Path]:
     try:
         stage = Path(tempfile.mkdtemp(prefix=f".{path.stem}.", suffix=".tmp", dir=path.parent))
     except OSError as exc:  # name the file the caller asked for, not the temporary folder
-        raise type(exc)(exc.errno, exc.strerror, os.fspath(path)) from exc
+        raise _naming(exc, path) from exc
     assets = path.with_name(f"{path.stem}_assets")
     try:
         try:
@@ -133,7 +138,7 @@ def staged_scene(path: str | os.PathLike) -> Iterator[Path]:
             if exc.filename is None or not Path(exc.filename).is_relative_to(stage):
                 raise
             named = path.parent / Path(exc.filename).relative_to(stage)
-            raise type(exc)(exc.errno, exc.strerror, os.fspath(named)) from exc
+            raise _naming(exc, named) from exc
         _move_in(stage, path, assets)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
@@ -154,4 +159,4 @@ def _move_in(stage: Path, path: Path, assets: Path) -> None:
             if assets.exists():
                 os.replace(assets, stage / assets.name)
             os.replace(previous, assets)
-        raise type(exc)(exc.errno, exc.strerror, os.fspath(path)) from exc
+        raise _naming(exc, path) from exc
