@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mi_lidar.calibration.fit import Calibration, FitOptions, FitResult
+from mi_lidar.calibration.fit import Calibration, FitOptions
 from mi_lidar.calibration.report import write_report
+from mi_lidar.calibration.result import FitResult
 from mi_lidar.core.errors import MiLidarError
 from mi_lidar.core.patterns import get_pattern
 from mi_lidar.core.patterns.from_log import pattern_from_log

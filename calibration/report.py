@@ -15,7 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mi_lidar.calibration.fit import FitResult  # noqa: E402
+from mi_lidar.calibration.result import FitResult  # noqa: E402
 from mi_lidar.core.atomic import atomic_path, atomic_write, atomic_write_text, staged_scene  # noqa: E402
 from mi_lidar.core.errors import CalibrationError, PatternError  # noqa: E402
 from mi_lidar.core.patterns import get_pattern, to_table  # noqa: E402

@@ -10,7 +10,7 @@ from rich.console import Group
 from rich.table import Table
 
 from mi_lidar.calibration.commands import calibrate_command
-from mi_lidar.calibration.fit import FitResult
+from mi_lidar.calibration.result import FitResult
 from mi_lidar.cli.app import MAX_STEPS, app, console, force_option, warn
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import FIGURE_WIDTH, figure, figure_table

@@ -1,6 +1,6 @@
 """calibrate warns when its fitted values score the held-out rays worse than the values it started from."""
 
-from mi_lidar.calibration.fit import no_gain_warnings
+from mi_lidar.calibration.result import no_gain_warnings
 
 
 def test_a_fit_that_gains_on_the_held_out_rays_is_not_warned_about():
