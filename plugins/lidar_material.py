@@ -8,7 +8,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_lidar.core.errors import ParameterError
-from mi_lidar.core.params import MAX_SIGMA_M, SIGMA_LIMIT, property_number
+from mi_lidar.core.params import MAX_SIGMA_M, SIGMA_LIMIT, check_limit, property_number
 
 MAX_LABEL = 2**24  # labels reach the range image in float32 channels, exact up to 2**24 (2**24 + 1 read as 2**24)
 
@@ -73,19 +73,16 @@ class LidarMaterial(mi.BSDF):
         self.reflectivity = property_number(props, "lidar_material", "reflectivity", self.reflectance)
         checks = [
             ("p_hit", self.p_hit, 0.0 <= self.p_hit <= 1.0, "[0, 1]"),
-            (
-                "range_sigma",
-                self.range_sigma,
-                math.isnan(self.range_sigma) or 0 <= self.range_sigma <= MAX_SIGMA_M,
-                f"[0, {MAX_SIGMA_M:g}] m ({SIGMA_LIMIT})",
-            ),
             ("label", self.label, 0 <= self.label <= MAX_LABEL, f"[0, 2**24 = {MAX_LABEL}] (float32's whole numbers)"),
             ("reflectance", self.reflectance, 0.0 <= self.reflectance <= 1.0, "[0, 1]"),
             ("reflectivity", self.reflectivity, 0.0 <= self.reflectivity <= 100.0, "[0, 100]"),
         ]
+        fix = "fix the value in the scene"
         for name, value, ok, allowed in checks:
             if not ok:
-                raise ParameterError(f"lidar_material: {name}={value} is outside {allowed}; fix the value in the scene")
+                raise ParameterError(f"lidar_material: {name}={value} is outside {allowed}; {fix}")
+        # unset (NaN): the sensor's range_sigma
+        check_limit("lidar_material", "range_sigma", self.range_sigma, MAX_SIGMA_M, SIGMA_LIMIT, fix, unset_nan=True)
         self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide
         self.m_components = [self.m_flags]
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -113,17 +111,14 @@ class LidarSensor(mi.Sensor):
             np.array(props.get("to_world", mi.ScalarTransform4f()).matrix, dtype=np.float64), "lidar sensor: to_world"
         )[0]
         self.to_world = mi.ScalarTransform4f(self.to_world_matrix.astype(np.float32))
-        if not (0 <= self.min_range < self.max_range):
-            raise ParameterError(
-                f"lidar sensor: need 0 <= min_range < max_range; got min_range={self.min_range}, "
-                f"max_range={self.max_range}"
-            )
-        if not 0 <= self.range_sigma < math.inf:
-            raise ParameterError(f"lidar sensor: range_sigma={self.range_sigma} must be a finite number >= 0 m")
         fix = "fix the value in the scene"
         check_limit("lidar sensor", "min_range", self.min_range, MAX_DISTANCE_M, DISTANCE_LIMIT, fix)
-        if self.max_range < math.inf:  # inf: no far end of the range window
-            check_limit("lidar sensor", "max_range", self.max_range, MAX_DISTANCE_M, DISTANCE_LIMIT, fix)
+        check_limit("lidar sensor", "max_range", self.max_range, MAX_DISTANCE_M, DISTANCE_LIMIT, fix, open_end=True)
+        if not self.min_range < self.max_range:
+            raise ParameterError(
+                f"lidar sensor: need min_range < max_range; got min_range={self.min_range}, "
+                f"max_range={self.max_range}; fix the values in the scene"
+            )
         check_limit("lidar sensor", "range_sigma", self.range_sigma, MAX_SIGMA_M, SIGMA_LIMIT, fix)
         self.local_directions = mi.Vector3f(*np.ascontiguousarray(self.pattern.directions().reshape(-1, 3).T))
         self.local_origins = mi.Point3f(*np.ascontiguousarray(self.pattern.origins().reshape(-1, 3).T))

@@ -298,8 +298,8 @@ def test_random_bytes_for_a_numpy_file_are_not_called_a_pickle(reader, tmp_path)
 @pytest.mark.parametrize(
     "where, expected",
     [
-        ("sensor", "lidar sensor: range_sigma=inf must be a finite number >= 0 m"),
-        ("material", "lidar_material: range_sigma=inf is outside [0, 1000] m"),
+        ("sensor", "lidar sensor: range_sigma=inf m is outside [0, 1000] m (a range noise beyond 1000 m is a misread"),
+        ("material", "lidar_material: range_sigma=inf m is outside [0, 1000] m"),
         ("effect", "effect 'range_noise': sigma0=inf m is outside [0, 1000] (constant part of the noise)"),
     ],
 )
@@ -426,7 +426,7 @@ def test_whitespace_comments_and_instructions_between_elements_still_load(tmp_pa
         ("max_range", "1e30", "lidar sensor: max_range=1e+30 m is outside [0, 1e+08] m"),
         ("min_range", "2e8", "lidar sensor: min_range=2e+08 m is outside [0, 1e+08] m"),
         ("range_sigma", "1e30", "lidar sensor: range_sigma=1e+30 m is outside [0, 1000] m"),
-        ("material", "1e30", "lidar_material: range_sigma=1e+30 is outside [0, 1000] m"),
+        ("material", "1e30", "lidar_material: range_sigma=1e+30 m is outside [0, 1000] m"),
     ],
 )
 def test_an_absurd_distance_or_range_noise_in_a_scene_is_refused(tmp_path, where, value, expected):
@@ -455,10 +455,10 @@ def test_an_absurd_distance_or_range_noise_in_a_scene_is_refused(tmp_path, where
 @pytest.mark.parametrize(
     "values, expected",
     [
-        ({"max_range": 1e30}, "sensor model: max_range=1e+30 must be <= 1e+08 m"),
-        ({"min_range": 2e8, "max_range": np.inf}, "sensor model: min_range=200000000.0 must be in [0, 1e+08] m"),
-        ({"range_sigma": 1e30}, "sensor model: range_sigma=1e+30 must be in [0, 1000] m"),
-        ({"range_sigma": np.inf}, "sensor model: range_sigma=inf must be in [0, 1000] m"),
+        ({"max_range": 1e30}, "sensor model: max_range=1e+30 m is outside [0, 1e+08] m, or inf for no far end"),
+        ({"min_range": 2e8, "max_range": np.inf}, "sensor model: min_range=2e+08 m is outside [0, 1e+08] m"),
+        ({"range_sigma": 1e30}, "sensor model: range_sigma=1e+30 m is outside [0, 1000] m"),
+        ({"range_sigma": np.inf}, "sensor model: range_sigma=inf m is outside [0, 1000] m (a range noise beyond"),
     ],
 )
 def test_a_sensor_model_refuses_absurd_distances_and_range_noise(values, expected):
@@ -493,5 +493,41 @@ def test_per_element_range_noise_beyond_the_limit_is_refused(tmp_path):
     faces = np.array([[0, 1, 2], [0, 2, 1]])
     write_mesh_ply(tmp_path / "m.ply", vertices, faces, range_sigma=np.array([0.02, 1e30]))
     body = '<shape type="ply" id="ground"><string name="filename" value="m.ply"/></shape>'
-    with pytest.raises(SceneError, match=r"shape 'ground': range_sigma must be in \[0, 1000\] m .*got 1e\+30"):
+    with pytest.raises(SceneError) as error:
         mi_lidar.simulate(mi_lidar.load_scene(write(tmp_path, scene_xml(body))), "planar-180")
+    assert str(error.value) == (
+        "shape 'ground': range_sigma=1e+30 m (1 of 2 values) is outside [0, 1000] m (a range noise beyond 1000 m is "
+        "a misread number); fix the material or the PLY face property"
+    )
+
+
+@pytest.mark.parametrize(
+    "sigmas, expected",
+    [
+        ([-0.5, -1e30, 0.02], "range_sigma=-0.5 m (2 of 3 values) is outside [0, 1000] m (a range noise beyond"),
+        ([np.nan, np.inf], "range_sigma=inf m (1 of 2 values) is outside [0, 1000] m (a range noise beyond"),
+    ],
+)
+def test_per_element_range_noise_below_zero_or_infinite_reads_the_same_message(sigmas, expected):
+    """A negative per-element range_sigma had a message of its own, without the allowed range, the count or the fix;
+    NaN (the element takes the sensor's range_sigma) still passes."""
+    from mi_lidar.core.scene_shapes import check_element_values
+
+    with pytest.raises(SceneError) as error:
+        check_element_values("ground", "range_sigma", np.array(sigmas))
+    message = str(error.value)
+    assert message.startswith(f"shape 'ground': {expected}"), message
+    assert message.endswith("; fix the material or the PLY face property"), message
+    check_element_values("ground", "range_sigma", np.array([np.nan, 0.0, 1000.0]))
+
+
+def test_a_negative_sensor_range_sigma_reads_one_message_with_its_range_and_fix(tmp_path):
+    """The sensor checked range_sigma twice: a negative or infinite one was refused by its own message, without the
+    allowed range's upper end or the fix, before the limit check."""
+    text = scene_xml("").replace("</sensor>", '<float name="range_sigma" value="-0.01"/></sensor>')
+    with pytest.raises(SceneError) as error:
+        mi_lidar.load_scene(write(tmp_path, text))
+    assert (
+        "lidar sensor: range_sigma=-0.01 m is outside [0, 1000] m (a range noise beyond 1000 m is a misread number); "
+        "fix the value in the scene"
+    ) in str(error.value), error.value

@@ -220,8 +220,9 @@ CASES = {
         ["render", "{refused_scene}", "--out", "{tmp}/o"],
         {},
         [
-            'refused.xml (line 14, col 6): failed to instantiate sensor plugin of type "lidar": lidar sensor: need '
-            "0 <= min_range < max_range; got min_range=0.0, max_range=nan"
+            'refused.xml (line 14, col 6): failed to instantiate sensor plugin of type "lidar": lidar sensor: '
+            "max_range=nan m is outside [0, 1e+08] m, or inf for no far end (a distance beyond 1e+08 m is a misread "
+            "number); fix the value in the scene"
         ],
     ),
     "scene without a lidar integrator": (  # was Mitsuba's 'No integrator specified!' in a rich traceback
@@ -240,7 +241,10 @@ CASES = {
     "a range window of 1e30 m": (  # was rendered
         ["render", "{far_scene}", "--out", "{tmp}/o"],
         {},
-        ["lidar sensor: max_range=1e+30 m is outside [0, 1e+08] m (a distance beyond 1e+08 m is a misread number)"],
+        [
+            "lidar sensor: max_range=1e+30 m is outside [0, 1e+08] m, or inf for no far end (a distance beyond 1e+08 m "
+            "is a misread number); fix the value in the scene"
+        ],
     ),
     "a range noise of 1e30 m": (  # was rendered: a few returns, the others drawn outside the range window
         ["render", ROOM, "--out", "{tmp}/o", "--density", "physics(sigma0=1e30)"],

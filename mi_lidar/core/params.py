@@ -26,7 +26,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.arrays import aligned
-from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.errors import MiLidarError, ParameterError
 from mi_lidar.core.fitting import lookup
 from mi_lidar.core.frames import MAX_COORDINATE_M
 
@@ -320,22 +320,49 @@ def property_number(props, plugin: str, name: str, default: float, whole: bool =
     return int(value)
 
 
-def check_limit(owner: str, name: str, value: float, upper: float, what: str, fix: str = "fix the value") -> None:
-    """Refuse a distance or range noise beyond its physical limit (:data:`MAX_DISTANCE_M`, :data:`MAX_SIGMA_M`).
+def check_limit(
+    owner: str,
+    name: str,
+    value: float | np.ndarray,
+    upper: float,
+    what: str,
+    fix: str = "fix the value",
+    *,
+    unset_nan: bool = False,
+    open_end: bool = False,
+    error: type[MiLidarError] = ParameterError,
+) -> None:
+    """Refuse a distance or range noise outside ``[0, upper]`` m (:data:`MAX_DISTANCE_M`, :data:`MAX_SIGMA_M`).
+
+    The one check of these limits: a negative, non-finite or absurdly large value gets one message.
 
     Args:
-        owner: The plugin or object in messages (``"lidar sensor"``).
+        owner: The plugin or object in messages (``"lidar sensor"``, ``"shape 'ground'"``).
         name: The parameter.
-        value: Its value (m); NaN passes (the caller checks what NaN means for it).
+        value: Its value (m), or one value per element.
         upper: The largest value allowed (m).
-        what: Why larger values are refused, for the message.
+        what: Why larger values are refused, for the message (:data:`DISTANCE_LIMIT`, :data:`SIGMA_LIMIT`).
         fix: What to do.
+        unset_nan: NaN means "unset" (an element without its own range noise) and passes.
+        open_end: ``inf`` is allowed too (a range window with no far end).
+        error: The exception raised (:class:`~mi_lidar.core.errors.SceneError` for a scene's elements).
 
     Raises:
-        ParameterError: naming the owner, the parameter, the allowed range and the value.
+        ParameterError: (or ``error``) naming the owner, the parameter, the first bad value (and how many values
+            are bad when there are several), the allowed range, why, and the fix.
     """
-    if value > upper:
-        raise ParameterError(f"{owner}: {name}={value:g} m is outside [0, {upper:g}] m ({what}); {fix}")
+    values = np.atleast_1d(np.asarray(value, dtype=np.float64))
+    ok = (values >= 0) & (values <= upper)
+    if unset_nan:
+        ok |= np.isnan(values)
+    if open_end:
+        ok |= values == np.inf
+    if ok.all():
+        return
+    bad = values[~ok]
+    count = f" ({bad.size} of {values.size} values)" if values.size > 1 else ""
+    allowed = f"[0, {upper:g}] m" + (", or inf for no far end" if open_end else "")
+    raise error(f"{owner}: {name}={bad[0]:g} m{count} is outside {allowed} ({what}); {fix}")
 
 
 DISTANCE_LIMIT = f"a distance beyond {MAX_DISTANCE_M:g} m is a misread number"

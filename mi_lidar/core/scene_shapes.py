@@ -15,7 +15,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.errors import SceneError
-from mi_lidar.core.params import MAX_SIGMA_M, SIGMA_LIMIT
+from mi_lidar.core.params import MAX_SIGMA_M, SIGMA_LIMIT, check_limit
 from mi_lidar.core.trace import mitsuba_ray_length
 
 ELLIPSOID_STRIDE = 10  # floats per ellipsoid in Mitsuba's `data`: center, scale, quaternion
@@ -123,10 +123,8 @@ def check_element_values(shape_id: str, name: str, values: np.ndarray) -> None:
             f"shape {shape_id!r}: reflectivity must be finite and >= 0 (1 = white diffuse target); got "
             f"{values[~(np.isfinite(values) & (values >= 0))][0]:.3g}. Fix the material or the PLY face property."
         )
-    if name == "range_sigma" and np.nanmin(values, initial=0.0) < 0:
-        raise SceneError(f"shape {shape_id!r}: range_sigma must be >= 0 m; got {np.nanmin(values):.3g}")
-    if name == "range_sigma" and np.nanmax(values, initial=0.0) > MAX_SIGMA_M:
-        raise SceneError(
-            f"shape {shape_id!r}: range_sigma must be in [0, {MAX_SIGMA_M:g}] m ({SIGMA_LIMIT}); got "
-            f"{np.nanmax(values):.3g}. Fix the material or the PLY face property."
+    if name == "range_sigma":  # NaN: the element takes the sensor's range_sigma
+        fix = "fix the material or the PLY face property"
+        check_limit(
+            f"shape {shape_id!r}", name, values, MAX_SIGMA_M, SIGMA_LIMIT, fix, unset_nan=True, error=SceneError
         )

@@ -20,7 +20,6 @@ otherwise it passes. A return from a scene element reports an intensity drawn fr
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import drjit as dr
@@ -31,7 +30,7 @@ from mi_lidar.core.effects.base import Effect, FootprintEffect
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.intensity import IntensityModel
-from mi_lidar.core.params import DISTANCE_LIMIT, MAX_DISTANCE_M, MAX_SIGMA_M, SIGMA_LIMIT
+from mi_lidar.core.params import DISTANCE_LIMIT, MAX_DISTANCE_M, MAX_SIGMA_M, SIGMA_LIMIT, check_limit
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.segment import Segment, sample_range
 from mi_lidar.core.streams import MAX_UNIFORM, NeighbourStreams, check_seed, uniform, uniforms
@@ -82,15 +81,11 @@ class SensorModel:
     intensity: IntensityModel = field(default_factory=IntensityModel)
 
     def __post_init__(self):
+        check_limit("sensor model", "range_sigma", self.range_sigma, MAX_SIGMA_M, SIGMA_LIMIT)
+        check_limit("sensor model", "min_range", self.min_range, MAX_DISTANCE_M, DISTANCE_LIMIT)
+        check_limit("sensor model", "max_range", self.max_range, MAX_DISTANCE_M, DISTANCE_LIMIT, open_end=True)
         checks = [
-            ("range_sigma", 0 <= self.range_sigma <= MAX_SIGMA_M, f"in [0, {MAX_SIGMA_M:g}] m ({SIGMA_LIMIT})"),
-            ("min_range", 0 <= self.min_range <= MAX_DISTANCE_M, f"in [0, {MAX_DISTANCE_M:g}] m ({DISTANCE_LIMIT})"),
             ("max_range", self.max_range > self.min_range, f"> min_range ({self.min_range} m)"),
-            (
-                "max_range",
-                self.max_range <= MAX_DISTANCE_M or self.max_range == math.inf,
-                f"<= {MAX_DISTANCE_M:g} m ({DISTANCE_LIMIT}), or inf for no far end",
-            ),
             ("max_segments", 1 <= self.max_segments <= 256, "in [1, 256]"),
         ]
         for name, ok, allowed in checks:
