@@ -44,7 +44,7 @@ from mi_lidar.loop.split import split_rays
 FAMILIES = ("np-reg", "p-reg", "beam", "physics")
 MAX_LABEL_GROUPS = 16  # labels a learned density keeps apart (higher labels share the last group)
 MAX_TABLE_ENTRIES = 20_000_000  # NP-Reg states x residual bins beyond which beams stay pooled (~75 B each at peak)
-BANDWIDTHS = {"np-reg": ("h_ranges", "h_incidences", "uniforms"), "p-reg": ("h_ranges", "h_incidences")}
+BANDWIDTHS = {"np-reg": ("h_ranges", "h_incidences", "uniforms", "reaches"), "p-reg": ("h_ranges", "h_incidences")}
 
 
 @dataclass

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import output_folder
+from mi_lidar.core.densities.histogram import support_end
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.log import Log
 from mi_lidar.core.metrics import metrics_of
@@ -319,8 +320,13 @@ def run_planar_benchmark(
     no_ll = np.full(data.test.n, np.nan)  # a reference, not a model: no likelihood
     reference = metrics_of(no_ll, data.test.z, data.test.hit, ranges[0], hits[0], draws=(ranges, hits), no_return=z_max)
     if "np_reg" in settings:
-        h_r, h_i, u = settings["np_reg"]
-        chosen["NP-Reg"] = {"h_range_m": h_r, "h_incidence_deg": h_i, "uniform_share": u}
+        h_r, h_i, u, reach = settings["np_reg"]
+        chosen["NP-Reg"] = {
+            "h_range_m": h_r,
+            "h_incidence_deg": h_i,
+            "uniform_share": u,
+            "support_end_m": support_end(m.samples_of(data.train), reach, z_max),
+        }
     seconds["fit_and_score"] = time.perf_counter() - start - sum(data.seconds.values())
     seconds["total"] = time.perf_counter() - start
     return PlanarBenchmark(

@@ -39,7 +39,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from mi_lidar.core.densities import BeamDensity, NPRegDensity, PhysicsDensity
-from mi_lidar.core.densities.histogram import _finish, count_states, fit_binned_histogram, fit_np_reg, kernel_smooth
+from mi_lidar.core.densities.histogram import (
+    _finish,
+    count_states,
+    fit_binned_histogram,
+    fit_np_reg,
+    kernel_smooth,
+    support_end,
+)
 from mi_lidar.core.densities.preg import fit_p_reg
 from mi_lidar.core.densities.samples import StateSamples, protocol_residual_edges
 from mi_lidar.core.densities.tables import StateGrid
@@ -194,7 +201,7 @@ def fit_learned(train: PlanarTrace, z_max: float, family: str) -> tuple[SensorMo
     """P-Reg or NP-Reg: settings chosen on held-out training scans, then refitted on all training scans.
 
     Returns:
-        The model and the chosen setting (bandwidths, and NP-Reg's uniform share).
+        The model and the chosen setting (bandwidths, and NP-Reg's uniform share and support reach).
     """
     fit_part = train.take(train.scan % 2 == 0)
     check = nominal_beams(train.take(train.scan % 2 == 1))
@@ -211,11 +218,18 @@ def fit_learned(train: PlanarTrace, z_max: float, family: str) -> tuple[SensorMo
     else:
         grid = fine_grid(samples)
         _, table = fit_np_reg(samples_of(fit_part), grid, held_out, z_max=z_max)
-        h_r, h_i, u, _ = min(table, key=lambda row: row[-1])
+        h_r, h_i, u, reach, _ = min(table, key=lambda row: row[-1])
         density, _ = fit_np_reg(
-            samples, grid, lambda d: 0.0, h_ranges=(h_r,), h_incidences=(h_i,), uniforms=(u,), z_max=z_max
+            samples,
+            grid,
+            lambda d: 0.0,
+            h_ranges=(h_r,),
+            h_incidences=(h_i,),
+            uniforms=(u,),
+            reaches=(reach,),
+            z_max=z_max,
         )
-        setting = (h_r, h_i, u)
+        setting = (h_r, h_i, u, reach)
     return base_model(density), setting
 
 
@@ -288,7 +302,7 @@ class PermeableMap:
 
 
 def fit_milidar(
-    train: PlanarTrace, z_max: float, bandwidths: tuple[float, float, float], classes=(1, EVIDENCE_CLASSES)
+    train: PlanarTrace, z_max: float, bandwidths: tuple[float, float, float, float], classes=(1, EVIDENCE_CLASSES)
 ) -> PermeableMap:
     """mi-lidar's permeable map (see the module docstring), its evidence classes chosen held out.
 
@@ -318,7 +332,7 @@ def fit_milidar(
 def fit_permeable_map(
     train: PlanarTrace,
     z_max: float,
-    bandwidths: tuple[float, float, float],
+    bandwidths: tuple[float, float, float, float],
     classes: int = EVIDENCE_CLASSES,
     rounds: int = 3,
     steps: int = 120,
@@ -328,7 +342,7 @@ def fit_permeable_map(
     """mi-lidar's permeable map with ``classes`` evidence classes (see the module docstring).
 
     Start: NP-Reg tables from each beam's first occupied cell (its surface, incidence and label) and
-    the kernel ``bandwidths`` ``(h_range, h_incidence, uniform)`` chosen for NP-Reg on held-out training
+    the kernel ``bandwidths`` ``(h_range, h_incidence, uniform, reach)`` chosen for NP-Reg on held-out training
     scans; then ``rounds`` times: fit the Beta prior (a, b) by the one fitter, assign each return to its
     most likely segment, and re-estimate the tables from those assignments; then the tables' far tails
     (:func:`fit_tails`, on evenly spaced training scans of at most :data:`TAIL_BEAMS` beams) and their
@@ -339,7 +353,8 @@ def fit_permeable_map(
     starts from the previous one's, the first from ``prior`` (default 0.5 each): a starting point,
     not a constraint.
     """
-    h_r, h_i, u = bandwidths
+    h_r, h_i, u, reach = bandwidths
+    end = support_end(samples_of(train), reach, z_max)
     grid = fine_grid(samples_of(train), labels=2 * classes)
     edges = protocol_residual_edges(z_max)
     labels = segment_labels(train.seg_occupied, train.seg_hits, classes)
@@ -359,7 +374,7 @@ def fit_permeable_map(
         )
         counts = count_states(assigned, grid, edges)
         mass, p_null = _finish(np.concatenate([kernel_smooth(grid, counts[:-1], h_r, h_i), counts[-1:]]), e_kernel=True)
-        return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=z_max)
+        return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=end)
 
     density = tables(first)
     beams = segment_beams(train, classes)

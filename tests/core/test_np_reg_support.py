@@ -1,10 +1,11 @@
-"""NP-Reg's residual histograms give no mass to negative ranges, in the likelihood and the sampler alike.
+"""NP-Reg's residual histograms give no mass outside ``[0, z_max]``, in the likelihood and the sampler alike.
 
 A state's histogram is smoothed across range states, so a state near the sensor can hold mass at
-residuals ``e < -r`` that no range reaches (the short returns of farther states). The density is
-truncated to ``z >= 0`` and renormalised: it integrates to one over the ranges a sensor reports, and
-the sampler draws exactly that law (before the fix, 30 % of the draws at 1 m fell below 0 m and came
-out as no-returns the likelihood did not predict).
+residuals ``e < -r`` that no range reaches (the short returns of farther states), and a far state mass
+beyond the farthest range the sensor reports (the long returns of nearer ones). The density is
+truncated to ``[0, z_max]`` and renormalised: it integrates to one over the ranges a sensor reports,
+and the sampler draws exactly that law (before the fix, 30 % of the draws at 1 m fell below 0 m and
+came out as no-returns the likelihood did not predict; draws went past ``z_max``).
 """
 
 from __future__ import annotations
@@ -26,14 +27,21 @@ STEP = 0.002  # m, the integration grid
 DRAWS = 200_000
 
 
-def density(shape: str) -> NPRegDensity:
+LONG = 0.2  # share of the long-tail histogram at residuals +6..+8 m
+REACH = 8.0  # m, the support's end in the long-tail cases: cuts that tail at 1 m, and all of it at 5 m
+
+
+def density(shape: str, long: bool = False) -> NPRegDensity:
+    """A surface peak, with :data:`SHORT` of the mass at -3..-2 m, or with :data:`LONG` at +6..+8 m and the
+    support ending at :data:`REACH`."""
     edges = protocol_residual_edges()
     centres = 0.5 * (edges[1:] + edges[:-1])
-    mass = np.where(np.abs(centres) < 0.05, 1.0, 0.0)
-    mass = (1.0 - SHORT) * mass / mass.sum() + SHORT * np.where((centres > -3) & (centres < -2), 1.0, 0.0) / np.sum(
-        (centres > -3) & (centres < -2)
-    )
-    return NPRegDensity(edges=edges, mass=mass[None, :].repeat(2, 0), p_null=np.zeros(2), shape=shape, z_max=40.0)
+    peak = np.where(np.abs(centres) < 0.05, 1.0, 0.0)
+    tail = (centres > 6) & (centres < 8) if long else (centres > -3) & (centres < -2)
+    share = LONG if long else SHORT
+    mass = (1.0 - share) * peak / peak.sum() + share * tail / tail.sum()
+    z_max = REACH if long else 40.0
+    return NPRegDensity(edges=edges, mass=mass[None, :].repeat(2, 0), p_null=np.zeros(2), shape=shape, z_max=z_max)
 
 
 def lanes(r: float, n: int):
@@ -43,30 +51,36 @@ def lanes(r: float, n: int):
     return seg, rays
 
 
+@pytest.mark.parametrize("long", [False, True], ids=["short-tail", "long-tail"])
 @pytest.mark.parametrize("shape", ["histogram", "polygon"])
 @pytest.mark.parametrize("r", [1.0, 5.0])
-def test_the_density_integrates_to_one_over_positive_ranges(shape, r):
-    """Tolerance 2e-3: the grid's quadrature error on the 1 cm bins."""
-    d = density(shape)
-    z = np.arange(STEP / 2, 10.0, STEP)
+def test_the_density_integrates_to_one_over_the_reported_ranges(shape, r, long):
+    """Tolerance 2e-3: the grid's quadrature error on the 1 cm bins. With the long tail, nothing lies past
+    the support's end (before the fix: 0.2 of the mass at 1 m, all the tail's, lay at 7-9 m)."""
+    d = density(shape, long)
+    z = np.arange(STEP / 2, 16.0, STEP)
     seg, rays = lanes(r, z.size)
     f = np.exp(np.asarray(d.log_prob(d.prepare(seg, rays), mi.Float(z.astype(np.float32)), rays), np.float64))
     assert abs(f.sum() * STEP - 1.0) < 2e-3, f.sum() * STEP
+    if long:
+        assert not np.any(f[z > REACH] > 1e-20)
 
 
+@pytest.mark.parametrize("long", [False, True], ids=["short-tail", "long-tail"])
 @pytest.mark.parametrize("shape", ["histogram", "polygon"])
 @pytest.mark.parametrize("r", [1.0, 5.0])
-def test_draws_follow_the_truncated_density(shape, r):
-    """200,000 draws (fixed seed): none below 0 m, and the 5 cm histogram of the draws is within 0.01 of the
-    density's in total variation (sampling noise alone is about 0.003)."""
-    d = density(shape)
+def test_draws_follow_the_truncated_density(shape, r, long):
+    """200,000 draws (fixed seed): none below 0 m or past the support's end, and the 5 cm histogram of the
+    draws is within 0.01 of the density's in total variation (sampling noise alone is about 0.003)."""
+    d = density(shape, long)
     seg, rays = lanes(r, DRAWS)
     rng = np.random.default_rng(3)
     u = mi.Point2f(*(mi.Float(rng.random(DRAWS, dtype=np.float32)) for _ in range(2)))
     drawn = np.asarray(d.sample(d.prepare(seg, rays), u, rays), np.float64)
     assert drawn.min() >= 0.0
-    bins = np.arange(0.0, 10.0 + 1e-9, 0.05)
-    z = np.arange(STEP / 2, 10.0, STEP)
+    assert drawn.max() <= float(d["z_max"][0]) + 1e-4
+    bins = np.arange(0.0, 16.0 + 1e-9, 0.05)
+    z = np.arange(STEP / 2, 16.0, STEP)
     seg_z, rays_z = lanes(r, z.size)
     f = np.exp(np.asarray(d.log_prob(d.prepare(seg_z, rays_z), mi.Float(z.astype(np.float32)), rays_z), np.float64))
     expected = np.histogram(z, bins=bins, weights=f * STEP)[0]

@@ -3,6 +3,8 @@ no-return probabilities matched to the training beams (models.match_misses)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -19,7 +21,7 @@ def room_map(tmp_path_factory):
     path.write_text(room_log_text(scans=40))
     data = prepare(read_carmen(path), PlanarProtocol(window=5.0))
     z_max = float(np.nanmax(data.log.ranges)) + 1.0
-    return data, z_max, fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01), 1, rounds=1, tails=False)
+    return data, z_max, fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf), 1, rounds=1, tails=False)
 
 
 def shares(density) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -78,7 +80,7 @@ def test_no_returns_are_matched_to_the_training_beams(tmp_path):
     path.write_text(room_log_text(scans=30, max_range=7.0))
     data = prepare(read_carmen(path), PlanarProtocol(window=5.0))
     z_max = 7.0
-    fitted = fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01), 1, rounds=1, tails=False)
+    fitted = fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf), 1, rounds=1, tails=False)
     beams = fitted.beams(data.train)
     measured = float(np.mean(~data.train.hit))
     assert 0.02 < measured < 0.5

@@ -7,10 +7,14 @@ an intercepted beam gives no return. A beam that meets nothing uses the *escape*
 of the measured range itself and the probability of a miss. A fraction ``uniform`` of the return
 mass is spread over ``[0, z_max]`` (a floor: no return is impossible).
 
-A reported range is never negative: the residual shape of a segment is truncated to ``z >= 0`` and
-renormalised (the part of a smoothed histogram below ``e = -r``, borrowed from farther states, is
-given back to the reachable bins), in :meth:`~NPRegDensity.log_prob` and
-:meth:`~NPRegDensity.sample` alike, so that a sampled scan has the misses the likelihood predicts.
+A reported range lies in ``[0, z_max]``: the residual shape of a segment is truncated there and
+renormalised (the part of a smoothed histogram below ``e = -r``, or beyond ``e = z_max - r``, borrowed
+from other states, is given back to the reachable bins), in :meth:`~NPRegDensity.log_prob` and
+:meth:`~NPRegDensity.sample` alike, so that a sampled scan has the misses the likelihood predicts and no
+return farther than the sensor reports. The fit sets ``z_max`` from the training returns
+(:func:`fit_np_reg`): without it, the long tail that the smoothing shares across states (a door seen
+open at 2 m, +20 m) would draw returns at 60 m from a wall at 40 m in a building whose sensor never
+reported beyond 25 m.
 The effects' Gaussian spread on top of a polygon may still reach below 0 by about ``seg.sigma``: such
 a draw is not reported (the sensor model's blind zone).
 
@@ -181,9 +185,12 @@ class NPRegDensity(ReturnDensity):
         t = dr.clip(e - c0, 0.0, c1 - c0)
         return dr.clip(before + d0 * t + 0.5 * (d1 - d0) / (c1 - c0) * t * t, 0.0, 1.0)
 
-    def _below_zero(self, seg: Segment, state: mi.UInt32) -> mi.Float:
-        """Mass of each lane's shape at a negative range (``e < -r``): the part the truncation removes."""
-        return dr.minimum(self._shape_cdf(state, self._residual(seg, dr.zeros(mi.Float, dr.width(state)))), MAX_CUT)
+    def _truncation(self, seg: Segment, state: mi.UInt32) -> tuple[mi.Float, mi.Float]:
+        """Mass of each lane's shape below range 0, and the mass it keeps on ``[0, z_max]`` (at least
+        ``1 - MAX_CUT``): what the truncation removes below, and its normaliser."""
+        below = dr.minimum(self._shape_cdf(state, self._residual(seg, dr.zeros(mi.Float, dr.width(state)))), MAX_CUT)
+        reach = self._shape_cdf(state, self._residual(seg, self["z_max"]))
+        return below, dr.maximum(reach - below, 1.0 - MAX_CUT)
 
     # ------------------------------------------------------------------ density interface
     def prepare(self, seg: Segment, rays: RayBatch) -> Segment:
@@ -207,16 +214,17 @@ class NPRegDensity(ReturnDensity):
             shape = self._shape_density(state, e)
         u = self["uniform"]
         z_max = self["z_max"]
-        floor = dr.select((z >= 0) & (z <= z_max), u / z_max, 0.0)
-        shape = dr.select(z >= 0, shape / (1.0 - self._below_zero(seg, state)), 0.0)
+        inside = (z >= 0) & (z <= z_max)
+        floor = dr.select(inside, u / z_max, 0.0)
+        shape = dr.select(inside, shape / self._truncation(seg, state)[1], 0.0)
         value = dr.log(dr.maximum((1.0 - u) * shape + floor, 1e-30))
         return dr.select(seg.kind == ELLIPSOID, log_density(seg, z), value)
 
     def window(self, seg: Segment, a: float, b: float, rays: RayBatch) -> mi.Float:
-        if is_open(a, b):  # the shapes are truncated to z >= 0 and the floor lies on [0, z_max]
+        if is_open(a, b):  # the shapes are truncated and the floor lies on [0, z_max]
             return dr.select(seg.kind == ELLIPSOID, window_probability(seg, a, b), 1.0)
         state = self.state(seg, rays)
-        low, high = self._residual(seg, max(a, 0.0)), self._residual(seg, b)
+        low, high = self._residual(seg, max(a, 0.0)), self._residual(seg, dr.minimum(b, self["z_max"]))
         if self.choices["shape"] == "polygon":
             spread = math.sqrt(2.0) * seg.sigma
             nodes = list(zip(GH_NODES, GH_WEIGHTS))
@@ -226,7 +234,7 @@ class NPRegDensity(ReturnDensity):
             )
         else:
             part = self._shape_cdf(state, high) - self._shape_cdf(state, low)
-        shape = dr.clip(part / (1.0 - self._below_zero(seg, state)), 0.0, 1.0)
+        shape = dr.clip(part / self._truncation(seg, state)[1], 0.0, 1.0)
         u = self["uniform"]
         mixed = dr.clip((1.0 - u) * shape + u * uniform_window(self["z_max"], a, b), 0.0, 1.0)
         return dr.select(seg.kind == ELLIPSOID, window_probability(seg, a, b), mixed)
@@ -236,8 +244,8 @@ class NPRegDensity(ReturnDensity):
         share = self["uniform"]
         floor = u.x < share
         v = dr.clip((u.x - share) / (1.0 - share), 0.0, 1.0 - 1e-7)
-        cut = self._below_zero(seg, state)
-        v = dr.minimum(cut + v * (1.0 - cut), 1.0 - 1e-7)  # the shape truncated to z >= 0
+        below, kept = self._truncation(seg, state)
+        v = dr.minimum(below + v * kept, 1.0 - 1e-7)  # the shape truncated to [0, z_max]
         b = self._b
         if self.choices["shape"] == "histogram":
             k = dr.minimum(
@@ -382,6 +390,18 @@ def shrink_beams(grid: StateGrid, counts: np.ndarray, pseudo: float = PSEUDO_SAM
     return blocks.reshape(counts.shape)
 
 
+REACHES = (1.0, 1.1, 1.25, 1.5, math.inf)  # candidate ends of the range support, in farthest training returns
+
+
+def support_end(samples: StateSamples, reach: float, z_max: float) -> float:
+    """The end (m) of a learned density's range support: ``reach`` times the farthest return of ``samples``,
+    at most ``z_max`` (the sensor's largest range; ``reach`` infinite, or no return: ``z_max``)."""
+    returned = samples.z[samples.hit & np.isfinite(samples.z)]
+    if not returned.size or not math.isfinite(reach):
+        return float(z_max)
+    return float(min(z_max, reach * float(returned.max())))
+
+
 def fit_np_reg(
     samples: StateSamples,
     grid: StateGrid,
@@ -389,6 +409,7 @@ def fit_np_reg(
     h_ranges=(0.5, 1.0, 2.0, 4.0),
     h_incidences=(5.0, 10.0, 20.0),
     uniforms=(1e-3,),
+    reaches=REACHES,
     edges: np.ndarray | None = None,
     z_max: float = 80.0,
     progress=None,
@@ -396,7 +417,10 @@ def fit_np_reg(
     """NP-Reg: per-state counts smoothed by the kernel ``W`` (``H W``), bandwidths chosen by held-out likelihood.
 
     With beams kept apart (``grid.n_beams > 1``) each beam's smoothed counts are shrunk to its label's
-    (:func:`shrink_beams`).
+    (:func:`shrink_beams`). The bandwidths and the uniform floor are chosen first, with the support
+    ending at ``z_max``; then the end of the support (:func:`support_end`) among ``reaches``, with the
+    chosen bandwidths: a sensor that never reported beyond 25 m in training is not drawn returning at
+    60 m, and one whose held-out returns reach farther than its training ones keeps a margin.
 
     Args:
         samples: training states and measurements.
@@ -404,20 +428,37 @@ def fit_np_reg(
         held_out_score: mean held-out NLL (nats per ray) of a candidate density (the one likelihood).
         h_ranges, h_incidences, uniforms: candidate range bandwidths (m), incidence bandwidths
             (deg) and uniform floors.
+        reaches: candidate ends of the range support, in farthest training returns (``inf``: ``z_max``).
         edges: residual bin edges (default: the protocol's).
-        z_max: largest reported range, m.
+        z_max: largest range the sensor reports, m.
         progress: optional ``progress(done, total)``.
 
     Returns:
-        The best density and the table of candidates ``(h_range, h_incidence, uniform, NLL)``.
+        The best density and the table of candidates ``(h_range, h_incidence, uniform, reach, NLL)``.
     """
     edges = protocol_residual_edges(z_max) if edges is None else np.asarray(edges)
     counts = count_states(samples, grid, edges)
-    candidates = list(itertools.product(h_ranges, h_incidences if grid.incidence_edges else (1.0,), uniforms))
+    reaches = tuple(reaches)
+    widest = max(reaches)
+    candidates = list(
+        itertools.product(h_ranges, h_incidences if grid.incidence_edges else (1.0,), uniforms, (widest,))
+    )
+    total = len(candidates) + len(reaches) - 1
 
-    def build(h_r: float, h_i: float, u: float) -> NPRegDensity:
+    def build(h_r: float, h_i: float, u: float, reach: float) -> NPRegDensity:
         smoothed = np.concatenate([shrink_beams(grid, kernel_smooth(grid, counts[:-1], h_r, h_i)), counts[-1:]])
         mass, p_null = _finish(smoothed, e_kernel=True)
-        return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=z_max)
+        end = support_end(samples, reach, z_max)
+        return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=end)
 
-    return choose_by_held_out(candidates, build, held_out_score, progress)
+    def step(done: int, _total: int, offset: int = 0) -> None:
+        if progress is not None:
+            progress(offset + done, total)
+
+    best, table = choose_by_held_out(candidates, build, held_out_score, step)
+    others = [(*min(table, key=lambda row: row[-1])[:3], r) for r in reaches if r != widest]
+    if others:
+        shorter, rows = choose_by_held_out(others, build, held_out_score, lambda d, t: step(d, t, len(candidates)))
+        table += rows
+        best = shorter if min(row[-1] for row in rows) < min(row[-1] for row in table[: len(candidates)]) else best
+    return best, table
