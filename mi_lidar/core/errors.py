@@ -25,6 +25,11 @@ class TruncatedLogWarning(MiLidarWarning):
     """A log ends in the middle of a record (a logger stopped mid-write): the complete records before it were read."""
 
 
+class TimeOrderWarning(MiLidarWarning):
+    """A log's timestamps step back by more than clock jitter (concatenated logs?): time windows misjudge which scans
+    are neighbours."""
+
+
 class SetupError(MiLidarError):
     """The environment cannot run mi-lidar (missing LLVM, scalar variant, ...)."""
 

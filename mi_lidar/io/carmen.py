@@ -42,7 +42,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError, ParameterError, TruncatedLogWarning
+from mi_lidar.core.errors import LogFormatError, ParameterError, TimeOrderWarning, TruncatedLogWarning
 from mi_lidar.core.log import Log
 from mi_lidar.io.text import text_lines
 
@@ -54,6 +54,7 @@ NO_RETURN_BAND = 0.2  # m: no-return codes of one scanner lie within this band b
 BACKGROUND = 5.0  # m: the readings this far below the codes give the background density of real returns
 BEAM_ANGLE_TOLERANCE = 1e-3  # rad: robot laser scans whose beams point this close to the first scan's share its pattern
 FLOAT32_MAX = float(np.finfo(np.float32).max)  # ranges and remissions are stored as float32
+JITTER_S = 1.0  # s: a timestamp at most this far before the previous scan's is clock jitter (Intel log: up to 0.86 s)
 
 OLD_LASER = ("FLASER", "RLASER")  # n ranges, then the laser pose, the odometry and the timestamp
 ROBOT_LASER = ("ROBOTLASER1", "ROBOTLASER2")  # the laser's configuration, ranges, remissions, laser and robot poses
@@ -312,6 +313,10 @@ def read_carmen(
             as is the end of a gzip stream cut short), a non-numeric or non-finite
             value (line number and field named), or scans of different ``n`` or, for robot laser lines,
             of different beam angles (lines named).
+
+    Warns:
+        TimeOrderWarning: a timestamp more than :data:`JITTER_S` before the previous scan's (lines and times named);
+            the scans are read as written. Smaller steps back (clock corrections) are read silently.
     """
     path = Path(path)
     if path.is_dir():
@@ -376,6 +381,7 @@ def read_carmen(
     table = np.stack(rows)
     _check_finite(path, message, table, numbers, ROBOT_COLUMNS if robot else OLD_COLUMNS)
     readings, pose, other_pose, stamp = table[:, :n], table[:, n : n + 3], table[:, n + 3 : n + 6], table[:, n + 6]
+    _check_time_order(path, message, stamp, numbers)
     if max_range is None:
         max_range = detect_max_range(readings)
     elif not max_range > 0:
@@ -426,6 +432,25 @@ def _check_finite(path: Path, message: str, table: np.ndarray, numbers: list[int
     raise LogFormatError(
         f"{path}: line {numbers[scan]}: {message} {field} is {table[scan, column]:g}; ranges (below 3.4e38), "
         f"poses and timestamps must be finite numbers: {fix}"
+    )
+
+
+def _check_time_order(path: Path, message: str, stamp: np.ndarray, numbers: list[int]) -> None:
+    """Warn when a scan's timestamp in ``stamp`` (S,) is more than :data:`JITTER_S` before the previous scan's,
+    naming the first such step (lines from ``numbers``, both times) and how many there are."""
+    back = np.flatnonzero(np.diff(stamp) < -JITTER_S)
+    if back.size == 0:
+        return
+    a, b = int(back[0]), int(back[0]) + 1
+    more = f" (and {back.size - 1} more such steps)" if back.size > 1 else ""
+    warnings.warn(
+        f"{path}: line {numbers[b]}: {message} timestamp {stamp[b]:.3f} s is {stamp[a] - stamp[b]:.3f} s before line "
+        f"{numbers[a]}'s {stamp[a]:.3f} s{more}: a step back beyond clock jitter ({JITTER_S:g} s), concatenated "
+        "logs? Time windows compare timestamps, so benchmark-planar's leave-out maps (the scans within 1 m and 30 s "
+        "of a scan, --radius, --window) misjudge which scans are neighbours across it: split the log at line "
+        f"{numbers[b]} or make its timestamps increase",
+        TimeOrderWarning,
+        stacklevel=3,
     )
 
 

@@ -157,17 +157,19 @@ def velodyne_payloads(
     return payloads
 
 
-def carmen_text(scans: int = 3, beams: int = 180, max_range: float = 81.83) -> str:
-    """A CARMEN log with ``scans`` FLASER lines (range ``1 + i/100`` m, beam 5 a miss)."""
+def carmen_text(scans: int = 3, beams: int = 180, max_range: float = 81.83, times=None) -> str:
+    """A CARMEN log with ``scans`` FLASER lines (range ``1 + i/100`` m, beam 5 a miss), timed ``times`` (s; default
+    ``10 + s``); scan ``s`` is on line ``4 + 2 s``."""
     lines = ["# synthetic", "PARAM robot_frontlaser_offset 0.0 nohost 0"]
     for s in range(scans):
         readings = [1 + i / 100 for i in range(beams)]
         readings[5] = max_range
         pose = (s * 1.0, 2.0, 0.5 * s)
+        stamp = 10.0 + s if times is None else times[s]
         lines.append("ODOM 0 0 0 0 0 0 0.1 host 0.1")
         lines.append(
             "FLASER {} {} {} {} {} {} {} {} {} host {}".format(
-                beams, " ".join(f"{r:.2f}" for r in readings), *pose, *pose, 10.0 + s, 10.0 + s
+                beams, " ".join(f"{r:.2f}" for r in readings), *pose, *pose, stamp, stamp
             )
         )
     return "\n".join(lines) + "\n"

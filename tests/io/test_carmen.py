@@ -1,11 +1,12 @@
 import errno
 import gzip
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from mi_lidar.core.errors import LogFormatError, ParameterError
+from mi_lidar.core.errors import LogFormatError, ParameterError, TimeOrderWarning
 from mi_lidar.io import read_any, read_carmen
 from mi_lidar.io.carmen import beam_angles, detect_max_range
 
@@ -196,3 +197,30 @@ def test_zero_and_negative_readings_are_no_returns(tmp_path):
     log = read_carmen(tmp_path / "z.log")
     assert not log.hit[0, 10, 0] and not log.hit[0, 20, 0]
     assert log.hit[0, [9, 11, 19, 21], 0].all() and log.hit[1, [10, 20], 0].all()
+
+
+def test_timestamps_that_step_back_beyond_jitter_are_warned_with_lines_and_times(tmp_path):
+    """Two logs written one after the other (times restart) were read silently; benchmark-planar's leave-out maps,
+    which compare timestamps (|t_j - t_q| <= 30 s), then misjudge which scans are neighbours."""
+    (tmp_path / "two.log").write_text(carmen_text(scans=5, times=[100.0, 101.0, 40.0, 41.0, 0.5]))
+    with pytest.warns(TimeOrderWarning) as caught:
+        log = read_carmen(tmp_path / "two.log")
+    (warning,) = caught
+    message = str(warning.message)
+    assert message.startswith(
+        f"{tmp_path / 'two.log'}: line 8: FLASER timestamp 40.000 s is 61.000 s before line 6's 101.000 s "
+        "(and 1 more such steps): a step back beyond clock jitter (1 s), concatenated logs?"
+    ), message
+    assert "benchmark-planar's leave-out maps (the scans within 1 m and 30 s of a scan" in message, message
+    assert message.endswith("split the log at line 8 or make its timestamps increase"), message
+    np.testing.assert_array_equal(log.times[:, 0, 0], [100.0, 101.0, 40.0, 41.0, 0.5])  # read as written
+
+
+def test_small_steps_back_are_clock_jitter_and_read_silently(tmp_path):
+    """The Intel log steps back four times, by up to 0.86 s: clock corrections, not a second log."""
+    (tmp_path / "jitter.log").write_text(carmen_text(scans=4, times=[10.0, 11.0, 10.05, 12.0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", TimeOrderWarning)
+        assert read_carmen(tmp_path / "jitter.log").times[2, 0, 0] == 10.05
+        intel = read_carmen(data_file("carmen/intel-corrected.log.gz"))
+    assert np.diff(intel.times[:, 0, 0]).min() == pytest.approx(-0.86, abs=1e-3)
