@@ -269,3 +269,24 @@ def test_the_scan_summary_keeps_each_label_beside_its_count():
     cells = [row.split("│")[2].strip() for row in rows[start:] if row.count("│") >= 3][:6]
     assert len(cells) > 1, cells  # the row wraps at this width ...
     assert not any(cell.endswith(":") for cell in cells), cells  # ... but never between a label and its count
+
+
+def test_the_scan_summary_gives_a_small_log_its_rate_in_rays():
+    """A planar room's 2,880 rays in 0.12 s read '(0.0 M rays/s)'; large logs keep millions."""
+    from rich.console import Console
+
+    from mi_lidar.cli.render import ray_rate, scan_summary
+
+    shape = (8, 360, 1)
+    log = Log(
+        poses=np.tile(np.eye(4), (8, 1, 1)),
+        directions=np.broadcast_to(np.array([1.0, 0.0, 0.0]), (*shape, 3)).copy(),
+        ranges=np.full(shape, 5.0),
+        hit=np.ones(shape, bool),
+        times=np.zeros(shape),
+    )
+    console = Console(width=80, record=True)
+    console.print(scan_summary(log, "room", elapsed=0.12))
+    assert "0.12 (24,000 rays/s)" in console.export_text()
+    assert ray_rate(28_928, 0.017) == "1.7 M rays/s"
+    assert ray_rate(10_000, 0.1) == "0.1 M rays/s"

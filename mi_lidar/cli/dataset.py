@@ -58,7 +58,8 @@ def dataset(
     from mi_lidar.dataset import load_spec, run_dataset
 
     loaded = load_spec(spec)
-    console.print(f"{loaded.name}: {loaded.frames} frames from {len(loaded.scenes)} scenes -> {out}")
+    scenes = len(loaded.scenes)
+    console.print(f"{loaded.name}: {loaded.frames:,} frames from {scenes:,} scene{'s' * (scenes != 1)} -> {out}")
     with progress("frames", total=loaded.frames) as update:
         report = run_dataset(
             loaded,

@@ -34,6 +34,7 @@ def test_a_run_in_a_log_prints_frame_counts_and_the_time_taken(tmp_path, monkeyp
     monkeypatch.setattr(progress_module, "PLAIN_EVERY_S", 0.0)  # every update prints
     result = run(tmp_path, LABELS)
     assert result.exit_code == 0, result.output
+    assert result.stdout.startswith("cli: 2 frames from 1 scene -> "), result.stdout  # it said '1 scenes'
     assert not [line for line in result.stdout.splitlines() if line.startswith("frames")]  # progress is not a result
     lines = result.stderr.splitlines()
     assert [line.split(" (")[0] for line in lines if line.startswith("frames: ")] == [
