@@ -243,6 +243,13 @@ def _scans_table(scans: dict) -> str:
     return "\n".join(lines + ["</table>"])
 
 
+def grids_text(parameters: list[dict]) -> str:
+    """The parameters' prior grids as a person reads them: ``iterations in [5, 10, 20, 40], voxel in [0.1, 0.2] m``."""
+    return ", ".join(
+        f"{p['name']} in [{', '.join(f'{value:g}' for value in p['values'])}] {p['unit']}".strip() for p in parameters
+    )
+
+
 def _image(file: Path) -> str:
     return f'<p><img alt="{file.stem}" src="data:image/png;base64,{base64.b64encode(file.read_bytes()).decode()}"/></p>'
 
@@ -260,7 +267,7 @@ def write_report(evaluation, out: Path) -> dict[str, Path]:
         if r.sweep:
             files[f"{r.name}_sweep"] = sweep_figure(r, out / f"{r.name}_sweep.png")
             swept = _image(files[f"{r.name}_sweep"])
-        params = ", ".join(f"{p['name']} in {p['values']} {p['unit']}".strip() for p in r.parameters)
+        params = grids_text(r.parameters)
         noise = ", ".join(f"{name} {value:.2g}" for name, value in r.run_se.items())
         sections.append(
             f"<h2>{html.escape(r.name)}</h2><p>J: {html.escape(r.objective)}. Parameters (uniform prior over "

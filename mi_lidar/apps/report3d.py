@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.apps.matching3d import scan_cloud
-from mi_lidar.apps.report import _colors, _image, _pick_table, _save, loss_figure, path_figure
+from mi_lidar.apps.report import _colors, _image, _pick_table, _save, grids_text, loss_figure, path_figure
 from mi_lidar.apps.risk import alpha_key
 from mi_lidar.core.atomic import atomic_write_text
 
@@ -43,7 +43,7 @@ def scans_figure(evaluation, ranges: dict, path: Path, extent: float = 30.0) -> 
         points = scan_cloud(evaluation.states, ranges[name]) - center
         near = np.abs(points[:, :2]).max(axis=1) < extent
         axis.scatter(points[near, 0], points[near, 1], s=0.2, color=colors[name], rasterized=True)
-        axis.set_title(f"{name}: {int(near.sum())} points", fontsize=9)
+        axis.set_title(f"{name}: {int(near.sum()):,} points", fontsize=9)
         axis.set_aspect("equal")
         axis.set_xlim(-extent, extent)
         axis.set_ylim(-extent, extent)
@@ -97,7 +97,7 @@ def write_report(evaluation, out: Path, ranges: dict | None = None) -> dict[str,
     for r in evaluation.results:
         files[f"{r.name}_loss"] = loss_figure(r, out / f"{r.name}_loss.png", evaluation.risk_se[r.name])
         files[f"{r.name}_paths"] = path_figure(r, out / f"{r.name}_paths.png")
-        params = ", ".join(f"{p['name']} in {p['values']} {p['unit']}".strip() for p in r.parameters)
+        params = grids_text(r.parameters)
         sections.append(
             f"<h2>{html.escape(r.name)}</h2><p>J: {html.escape(r.objective)}. Parameters (uniform prior over "
             f"each grid): {html.escape(params)}. Best real J found: {r.best_real[0]:.4g} at "
@@ -110,12 +110,12 @@ td,th{{border:1px solid #ccc;padding:3px 6px;font-size:13px;text-align:right}}th
 <h1>3D applications on a real frame and simulated scans: {html.escape(Path(evaluation.source).name)}</h1>
 <p>Scene: the mesh of the frame's columns 0 mod 4. Every simulator was fitted on the calibration columns
 (2 mod 4) and sampled the test columns (odd) at the same rays; the real dataset is the measured test columns.
-The map every scan is registered to is the measured calibration points ({info["map_points"]} points); each
+The map every scan is registered to is the measured calibration points ({info["map_points"]:,} points); each
 registration starts from the same {info["starts"]} seeded initial-pose errors. Real and simulated datasets differ
 only in the sensor model. Risk = mean over the prior draws of l(alpha) = |J(alpha, real) - J(alpha, simulated)|
 (lower is better), &plusmn; its bootstrap standard error over the starts.</p>
 <h2>Risk (application x simulator)</h2>{_risk_table(evaluation)}
-<h2>The simulators (observation level, {info["test_rays"]} test rays)</h2>
+<h2>The simulators (observation level, {info["test_rays"]:,} test rays)</h2>
 <p>NLL of the measured scan beside the realism of the sampled scan: a simulator that wins the likelihood by
 spreading its mass shows it here.</p>{_benchmark_table(evaluation.benchmark)}
 <h2>The scans (top view, 30 m around the sensor)</h2>{_image(files["scans"])}

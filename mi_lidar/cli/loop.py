@@ -52,8 +52,8 @@ def compare_command(
     if result.intensity is not None:
         i = result.intensity.metrics()
         console.print(
-            f"intensity ({result.intensity.attribute}): NLL {i['intensity_nll']:.3f} nats/return, "
-            f"measured / model median {i['intensity_ratio']:.2f} over {i['returns']} returns"
+            f"{result.intensity.channel}: NLL {i['intensity_nll']:.3f} nats/return, "
+            f"measured / model median {i['intensity_ratio']:.2f} over {i['returns']:,} returns"
         )
     console.print(f"report: {out / 'report.html'}")
 

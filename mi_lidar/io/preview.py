@@ -240,7 +240,7 @@ def overlay_png(
     ramp = np.repeat(turbo[::-1][np.linspace(0, 255, canvas.shape[0]).astype(int)][:, None], bar, axis=1)
     page.paste(Image.fromarray(ramp), (canvas.shape[1] + 6, top))
     draw = ImageDraw.Draw(page)
-    draw.text((4, 4), f"{title}  ({len(uv)} points)", fill="black", font=font)
+    draw.text((4, 4), f"{title}  ({len(uv):,} points)", fill="black", font=font)
     right = canvas.shape[1] + bar + 10
     for fraction in np.linspace(0, 1, 5):
         y = top + (1 - fraction) * (canvas.shape[0] - 1)

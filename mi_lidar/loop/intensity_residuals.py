@@ -115,6 +115,11 @@ class IntensityResiduals:
     simulated: np.ndarray
 
     @property
+    def channel(self) -> str:
+        """``intensity``, or ``intensity (reflectivity)`` when the log's attribute has another name."""
+        return "intensity" if self.attribute == "intensity" else f"intensity ({self.attribute})"
+
+    @property
     def ratio(self) -> np.ndarray:
         """(N,) ``(measured + 1) / (expected + 1)``."""
         return (self.measured + 1.0) / (self.expected + 1.0)
@@ -227,7 +232,7 @@ def plot_intensity_residuals(res: IntensityResiduals, path: Path) -> Path:
         ax.yaxis.set_minor_formatter(ticks)
         label_groups(ax, [r["group"] for r in rows])
         ax.set(ylabel="(measured + 1) / (expected + 1)", title=f"by {by} (median, quartiles)")
-    fig.suptitle(f"Intensity ({res.attribute}): returns whose range the first element explains")
+    fig.suptitle(f"{res.channel.capitalize()}: returns whose range the first element explains")
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, format="png")
@@ -244,9 +249,9 @@ def intensity_section(res: IntensityResiduals | None, out: Path) -> str:
     keys = ["group", "returns", "intensity_measured", "intensity_expected", "intensity_ratio", "intensity_nll"]
     lines = [
         "",
-        f"## Intensity ({res.attribute})",
+        f"## {res.channel.capitalize()}",
         "",
-        f"{head['returns']} returns whose range the first element explains: median measured "
+        f"{head['returns']:,} returns whose range the first element explains: median measured "
         f"{head['intensity_measured']:.1f}, expected {head['intensity_expected']:.1f}; measured / expected "
         f"(+1) median {head['intensity_ratio']:.2f} (quartiles {head['intensity_ratio_q1']:.2f}-"
         f"{head['intensity_ratio_q3']:.2f}); **intensity NLL {head['intensity_nll']:.3f} nats/return**; "

@@ -259,7 +259,7 @@ def intensity_figure(scores: list[IntensityScores], path: str | Path) -> Path:
             ylim=(1, top),
             xlabel=f"measured {s.attribute} + 1",
             ylabel="predicted + 1",
-            title=f"{s.sensor} {s.attribute}, test columns ({int(keep.sum())} returns; NLL nats/return)",
+            title=f"{s.sensor} {s.attribute}, test columns ({int(keep.sum()):,} returns; NLL nats/return)",
         )
         ax.legend(loc="upper left", fontsize=8, markerscale=4)
         widths = list(s.selection)

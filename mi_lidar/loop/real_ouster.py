@@ -172,8 +172,8 @@ def ouster_development_path(log: Log, steps: int = 1500, progress=None) -> Ouste
         for keep in (train_keep, test_keep)
     )
     say(
-        f"mesh: {len(mesh.faces)} faces from {w // MESH_EVERY} columns "
-        f"({int(np.sum(mesh.label >= FILLED))} closing holes); {train.rays.n} calibration and {test.rays.n} test rays"
+        f"mesh: {len(mesh.faces):,} faces from {w // MESH_EVERY:,} columns ({int(np.sum(mesh.label >= FILLED)):,} "
+        f"closing holes); {train.rays.n:,} calibration and {test.rays.n:,} test rays"
     )
     model = SensorModel(range_sigma=0.01, max_range=120.0, max_segments=4, effects=[])
     ll = test.per_beam(model)

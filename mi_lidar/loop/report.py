@@ -25,7 +25,7 @@ def save_figure(fig, path: Path, dpi: int = 90) -> Path:
 
 PLOTTED = ("range", "incidence", "azimuth", "beam", "label", "time")
 FMT = {
-    "rays": "{:d}",
+    "rays": "{:,d}",
     "nll": "{:.3f}",
     "nll_median": "{:.3f}",
     "hit_rate_measured": "{:.3f}",
@@ -36,9 +36,9 @@ FMT = {
     "recall": "{:.3f}",
     "f1": "{:.3f}",
     "histogram_l1": "{:.4f}",
-    "excess_nll": "{:.1f}",
+    "excess_nll": "{:,.1f}",
     "residual_median": "{:+.4f}",
-    "returns": "{:d}",
+    "returns": "{:,d}",
     "intensity_measured": "{:.1f}",
     "intensity_expected": "{:.1f}",
     "intensity_ratio": "{:.2f}",
@@ -205,6 +205,8 @@ def _plot_beam_curves(
         missed = ~np.isfinite(values)
         top.plot(beams[missed], np.zeros(missed.sum()), "|", ms=8, color=colour, label=f"{name}: no return")
     top.set_ylabel("range (m)")
+    low, high = top.get_ylim()
+    top.set_ylim(low, high + 0.3 * (high - low))  # headroom: the legend sat on the farthest ranges
     top.legend(fontsize=8, ncol=4, loc="upper right")
     middle.plot(beams, res, ".", ms=3, color="tab:purple")
     middle.axhline(0.0, color="grey", lw=0.6)
@@ -278,7 +280,7 @@ def _comparison_files(result, log, out: Path, title: str, model) -> list[Path]:
     lines = [
         f"# {title}",
         "",
-        f"Model: range sigma {model.range_sigma} m, effects: {effects}. {h['rays']} rays.",
+        f"Model: range sigma {model.range_sigma} m, effects: {effects}. {h['rays']:,} rays.",
         "",
         *(f"**Warning:** {w}.\n" for w in result.warnings),
         f"**NLL {h['nll']:.3f} nats/ray** (median {h['nll_median']:.3f}); hit/miss F1 {fmt('f1', h['f1'])} "

@@ -84,3 +84,12 @@ def test_the_scans_figure_has_a_title_and_axes_in_metres(monkeypatch, tmp_path):
         "gaussian: 50 points",
         "mi-lidar: 50 points",
     ]
+
+
+def test_the_reports_print_parameter_grids_as_numbers_not_floats():
+    """apps3d.html read 'iterations in [5.0, 10.0, 20.0, 40.0]' (the grids are stored as floats)."""
+    grids = [
+        {"name": "iterations", "values": [5.0, 10.0, 20.0, 40.0], "unit": ""},
+        {"name": "voxel", "values": [0.1, 0.2], "unit": "m"},
+    ]
+    assert report.grids_text(grids) == "iterations in [5, 10, 20, 40], voxel in [0.1, 0.2] m"

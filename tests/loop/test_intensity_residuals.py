@@ -6,6 +6,7 @@ from mi_lidar.core.intensity import IntensityModel
 from mi_lidar.core.patterns import get_pattern
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop import compare, diagnose
+from mi_lidar.loop.intensity_residuals import IntensityResiduals
 from mi_lidar.scene.simulation import simulate
 
 from .helpers import street
@@ -34,7 +35,9 @@ def test_compare_reports_intensity_residuals_by_incidence(tmp_path):
     true = ratio_by_incidence(compare(log, scene, SensorModel(intensity=IntensityModel(gain=120.0))))
     assert all(abs(value - 1.0) < 0.1 for value in true.values()), true
     report = (tmp_path / "flat" / "report.md").read_text()
-    assert "## Intensity (intensity)" in report and "### Intensity by label" in report
+    assert log.n_rays >= 1000 and f" {log.n_rays:,} rays." in report  # counts read 2,880, as on the console
+    assert "\n## Intensity\n" in report and "### Intensity by label" in report  # was 'Intensity (intensity)'
+    assert "Intensity (intensity)" not in report
     assert (tmp_path / "flat" / "intensity_residuals.png").stat().st_size > 10_000
     assert "intensity_residuals.png" in (tmp_path / "flat" / "report.html").read_text()
     del log.attributes["intensity"]
@@ -46,6 +49,13 @@ def test_diagnose_report_carries_the_intensity_section(tmp_path):
     """The diagnosis page shows the final model's intensity residuals on the held-out rays."""
     scene, log = street_log(n_firings=120)
     diagnose(log, scene, SensorModel(), out=tmp_path, candidates=["range_bias"], steps=5, rounds=1)
-    assert "## Intensity (intensity)" in (tmp_path / "diagnosis.md").read_text()
+    assert "\n## Intensity\n" in (tmp_path / "diagnosis.md").read_text()
     assert (tmp_path / "intensity_residuals.png").exists()
     assert np.isfinite(compare(log, scene, SensorModel()).intensity.metrics()["intensity_nll"])
+
+
+def test_a_channel_is_named_once_when_the_attribute_is_intensity():
+    """Headings and the CLI line read 'Intensity (intensity)' for a log's plain intensities."""
+    empty = [np.zeros(0)] * 9
+    assert IntensityResiduals("intensity", *empty).channel == "intensity"
+    assert IntensityResiduals("reflectivity", *empty).channel == "intensity (reflectivity)"

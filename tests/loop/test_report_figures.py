@@ -54,6 +54,13 @@ def test_a_planar_scan_is_drawn_as_curves_over_the_beams(monkeypatch, tmp_path):
     assert len(axes) == 3 and axes[-1].get_xlabel() == "beam"
     drawn = axes[0].lines[0].get_xdata()
     assert len(drawn) == beams and drawn.max() == beams - 1  # one point per beam, not a one-pixel column
+    figure = saved["figure"]
+    figure.canvas.draw()
+    box = axes[0].get_legend().get_window_extent()
+    for line in axes[0].lines:  # the legend sat on the farthest ranges, top right
+        xy = axes[0].transData.transform(np.c_[line.get_xdata(), line.get_ydata()])
+        inside = (box.x0 <= xy[:, 0]) & (xy[:, 0] <= box.x1) & (box.y0 <= xy[:, 1]) & (xy[:, 1] <= box.y1)
+        assert not inside.any(), line.get_label()
 
 
 def test_a_breakdown_of_many_groups_names_at_most_twenty():
