@@ -51,8 +51,13 @@ def ranking_lines(candidates) -> list[str]:
     ]
 
 
+def print_plain(text: str) -> None:
+    """Print a line written in the reports' Markdown without its bold markers (``**name**`` reads ``name``)."""
+    print(text.replace("**", ""))
+
+
 def run_demo(
-    out: str | Path | None = None, hidden: str = HIDDEN, candidates: list[str] | None = CANDIDATES, echo=print
+    out: str | Path | None = None, hidden: str = HIDDEN, candidates: list[str] | None = CANDIDATES, echo=print_plain
 ) -> dict:
     """Run compare -> diagnose -> compare on a log with a hidden effect and print the story.
 
@@ -60,7 +65,8 @@ def run_demo(
         out: folder for the two comparison reports and the diagnosis (nothing written when None).
         hidden: effects hidden in the log.
         candidates: effects diagnose tries (None: the whole catalog, slower).
-        echo: printer of the lines (``print``, or a rich console's ``print``).
+        echo: printer of the lines, which carry Markdown bold (``**name**``): the default prints them without it;
+            the command line passes one that prints it bold.
 
     Returns:
         ``{"ranking": [...], "nll_before": float, "nll_after": float, "selected": [...]}``.

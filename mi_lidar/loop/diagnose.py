@@ -98,7 +98,7 @@ class Diagnosis:
         nll_before, nll_after: held-out NLL per ray of the given and of the final model.
         evidence: per joined candidate, the breakdown groups where its gain concentrates and the rows of
             ``realism`` before and after it joined.
-        summary: the plain-words verdict.
+        summary: the plain-words verdict, in Markdown (the missing effect's name in bold: ``**name**``).
         parameters: the final model's fitted values of the selected effects, ``{"effect.param": values}``,
             refitted on every ray of the log once the held-out figures were taken.
         structure: residual structure left by the final model (:class:`~mi_lidar.loop.residuals.Structure`).
