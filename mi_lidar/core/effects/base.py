@@ -78,6 +78,10 @@ class Effect(Parametrized):
 
     kind = "effect"
 
+    def __repr__(self) -> str:
+        """As written in XML or on the command line: ``print(model.effects)`` showed object addresses."""
+        return self.describe()
+
     @property
     def moves_rays(self) -> bool:
         """True when the effect edits rays before tracing (:meth:`perturb_rays`) or fans them out (``footprint``)."""
