@@ -21,6 +21,7 @@ its leave-out hits give (:func:`segment_labels`), so densities can condition on 
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import drjit as dr
@@ -33,6 +34,7 @@ from mi_lidar.core.fitting import FitVariable, adam_fit, lookup
 from mi_lidar.core.likelihood import mixture_log_likelihood, score
 from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import RayBatch
+from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.streams import BeamCorrelation, NeighbourStreams, scan_follows
 from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segments
 from mi_lidar.planar.raymarch import PlanarTrace
@@ -59,6 +61,16 @@ def _f(values) -> mi.Float:
 def _cos(incidence_deg: np.ndarray) -> np.ndarray:
     """|cos| of incidence angles (deg); NaN (unknown) stays NaN."""
     return np.cos(np.radians(incidence_deg))
+
+
+def base_model(density) -> SensorModel:
+    """The sensor model of the planar benchmark around ``density`` (nothing else: the map is the scene).
+
+    Its range window is open (``max_range`` infinite): the protocol scores every model on the beams'
+    nominal states, and a model knows the log's no-return value only through its density's ``z_max``
+    (the protocol's M0 predicts a return at every nominal hit, also beyond a clipping sensor's maximum).
+    """
+    return SensorModel(range_sigma=0.05, max_range=math.inf, max_segments=64, density=density)
 
 
 @dataclass

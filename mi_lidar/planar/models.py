@@ -32,7 +32,6 @@ likelihood on the training beams, the shared errors on at most 45,000 training b
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -58,6 +57,7 @@ from mi_lidar.planar.beams import (
     AngularMixture,
     EngineBeams,
     angular_mixture,
+    base_model,
     fit_angular_weight,
     fit_permeability,
     golden_section,
@@ -68,6 +68,7 @@ from mi_lidar.planar.beams import (
 )
 from mi_lidar.planar.correlation import fit_beam_correlation
 from mi_lidar.planar.raymarch import PlanarTrace
+from mi_lidar.planar.tails import fit_tails, match_misses, match_short_returns
 
 RANGE_EDGES = [float(e) for e in np.linspace(0.0, 40.0, 18)] + [1.0e9]  # 17 bins over 0-40 m (M2a, M3a)
 INCIDENCE_EDGES = [0.0, 20.0, 40.0, 55.0, 65.0, 75.0, 82.0, 90.0]  # plus the unknown bin (M2b, M3b)
@@ -94,16 +95,6 @@ def first_occupied(trace: PlanarTrace) -> np.ndarray:
     out = np.full(trace.n, -1)
     out[beams] = occupied[first]
     return out
-
-
-def base_model(density) -> SensorModel:
-    """The sensor model of the planar benchmark around ``density`` (nothing else: the map is the scene).
-
-    Its range window is open (``max_range`` infinite): the protocol scores every model on the beams'
-    nominal states, and a model knows the log's no-return value only through its density's ``z_max``
-    (the protocol's M0 predicts a return at every nominal hit, also beyond a clipping sensor's maximum).
-    """
-    return SensorModel(range_sigma=0.05, max_range=math.inf, max_segments=64, density=density)
 
 
 def fit_m0(train: EngineBeams, samples: StateSamples, z_max: float) -> SensorModel:
@@ -345,9 +336,11 @@ def fit_permeable_map(
     the kernel ``bandwidths`` ``(h_range, h_incidence, uniform, reach)`` chosen for NP-Reg on held-out training
     scans; then ``rounds`` times: fit the Beta prior (a, b) by the one fitter, assign each return to its
     most likely segment, and re-estimate the tables from those assignments; then the tables' far tails
-    (:func:`fit_tails`, on evenly spaced training scans of at most :data:`TAIL_BEAMS` beams) and their
-    no-return probabilities (:func:`match_misses`, on all training beams: no-returns come in runs of
-    whole scans); neither with ``tails=False``; last, the angular spread (the neighbours' share) by
+    (:func:`~mi_lidar.planar.tails.fit_tails`, then
+    :func:`~mi_lidar.planar.tails.match_short_returns`, on evenly spaced training scans of at most
+    :data:`TAIL_BEAMS` beams) and their no-return probabilities
+    (:func:`~mi_lidar.planar.tails.match_misses`, on all training beams: no-returns come in runs of
+    whole scans); none with ``tails=False``; last, the angular spread (the neighbours' share) by
     maximum likelihood on the training beams. Its beams are sampled independently until
     :func:`fit_correlation` sets how much neighbours share their errors. Every fit of the Beta prior
     starts from the previous one's, the first from ``prior`` (default 0.5 each): a starting point,
@@ -392,88 +385,13 @@ def fit_permeable_map(
 
     fitted.angular = angular_share()
     if tails:
-        some = fitted.beams(train.take(np.isin(train.scan, evenly_spaced_scans(train.scan, TAIL_BEAMS))))
-        density = fit_tails(some, density, z_max)
+        part = train.take(np.isin(train.scan, evenly_spaced_scans(train.scan, TAIL_BEAMS)))
+        some = fitted.beams(part)
+        density = match_short_returns(some, part, fit_tails(some, density, z_max), z_max)
         mixture.weight = fitted.angular  # built before the spread was known
         fitted.model = base_model(match_misses(mixture, density, z_max))
         fitted.angular = angular_share()
     return fitted
-
-
-def training_nll(beams: AngularMixture, density: NPRegDensity, z_max: float) -> float:
-    """Mean score (nats per beam) of ``beams`` under the planar sensor model around ``density``."""
-    return float(-np.mean(beams.log_likelihood(base_model(density))))
-
-
-FAR = 0.5  # m: a return farther than this from its segment's surface is in the table's short or long tail
-
-
-def with_tails(density: NPRegDensity, short: float, long: float) -> NPRegDensity:
-    """``density`` with every state's mass more than :data:`FAR` short of the surface scaled by ``short``
-    and more than :data:`FAR` long by ``long`` (then each state renormalised; P(no return) unchanged)."""
-    centres = 0.5 * (density.edges[1:] + density.edges[:-1])
-    scale = np.where(centres < -FAR, short, np.where(centres > FAR, long, 1.0))
-    return density.with_tables(mass=density.mass * scale)
-
-
-def fit_tails(beams: AngularMixture, density: NPRegDensity, z_max: float, iterations: int = 10) -> NPRegDensity:
-    """The tables of ``density`` with their short and long tails scaled by maximum likelihood on ``beams``.
-
-    Hard EM gives each return to one segment, so a table also learns far returns that the pass-through
-    already explains (a return behind a wall is counted in the wall's table and in its permeability):
-    the model then draws more short and long returns than the log holds, on its training beams too. The
-    two factors (in [0.02, 2], 1: unchanged) are found one after the other by golden-section search on
-    the mean score of ``beams`` (:func:`~mi_lidar.planar.beams.golden_section`, ``iterations`` steps
-    each), with the beams' angular spread: much of the short tail of a beam's own trace is its
-    neighbours' nearer returns, which the spread explains. The spread is fitted again after. On Intel
-    (2026-11-26): short 0.75, long 0.28; test NLL 3.260 -> 3.252; of the sampled test returns, short
-    ones (> 0.5 m) 5.6 -> 4.3-5.0 % and long ones 5.7 -> 4.9-5.1 % (measured 3.6 and 4.1 %).
-    """
-
-    def nll(short: float, long: float) -> float:
-        return training_nll(beams, with_tails(density, short, long), z_max)
-
-    short = golden_section(lambda x: nll(x, 1.0), 0.02, 2.0, iterations)
-    long = golden_section(lambda x: nll(short, x), 0.02, 2.0, iterations)
-    if nll(short, long) >= nll(1.0, 1.0):
-        return density
-    return with_tails(density, short, long)
-
-
-MISS_TOLERANCE = 0.002  # nats per beam: the training score :func:`match_misses` may lose
-
-
-def match_misses(beams: AngularMixture, density: NPRegDensity, z_max: float) -> NPRegDensity:
-    """``density`` with every state's P(no return) scaled so that ``beams`` miss as often as the model predicts.
-
-    The tables' no-return probabilities come from the no-returns counted at each beam's first occupied
-    cell, smoothed across states, and the model predicted more no-returns than its training beams have
-    (Intel: 3.05 % against 2.57 %), so its sampled scans missed too often. The likelihood is nearly flat
-    in a common factor on them (Intel: within 1e-4 nats per beam from 0.8 to 1), so the factor is set by
-    the training beams' no-return rate instead: P(miss) is linear in it, ``P(miss) = P0 + factor (P1 -
-    P0)`` with ``P0`` (no table misses, only escapes) and ``P1`` (the tables as they are) the mean
-    P(miss) of ``beams``; each probability is capped at 1. The escape state (a beam that met no cell) is
-    left as it is: its P(null) is counted from its own beams, not smoothed across states (scaled with
-    the rest, Edmonton's beams that met no cell were predicted to miss 34 % of the time where 41 % did;
-    left, 40 %, test NLL 4.1754 -> 4.1743). Kept only if the mean training score loses less than
-    :data:`MISS_TOLERANCE`; otherwise ``density`` is returned unchanged.
-    """
-
-    def with_factor(factor: float) -> NPRegDensity:
-        scaled = np.minimum(density.p_null * factor, 1.0)
-        escape = density.grid.size  # the escape state's index (NPRegDensity.state)
-        scaled[escape:] = density.p_null[escape:]
-        return density.with_tables(p_null=scaled)
-
-    def p_miss(d: NPRegDensity) -> float:
-        return float(np.mean(beams.p_miss(base_model(d))))
-
-    p0, p1 = p_miss(with_factor(0.0)), p_miss(density)
-    if p1 - p0 < 1e-9:
-        return density
-    matched = with_factor(max(0.0, (float(np.mean(~beams.hit)) - p0) / (p1 - p0)))
-    kept = training_nll(beams, matched, z_max) < training_nll(beams, density, z_max) + MISS_TOLERANCE
-    return matched if kept else density
 
 
 CORRELATION_BEAMS = 45_000  # at most this many training beams (whole scans) measure the shared errors

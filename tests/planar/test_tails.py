@@ -1,5 +1,5 @@
-"""mi-lidar's permeable map after the hard EM: the tables' far tails scaled by likelihood (models.fit_tails), their
-no-return probabilities matched to the training beams (models.match_misses)."""
+"""mi-lidar's permeable map after the hard EM: the tables' far tails scaled by likelihood (tails.fit_tails), their
+no-return probabilities matched to the training beams (tails.match_misses)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,18 @@ import numpy as np
 import pytest
 
 from mi_lidar.io.carmen import read_carmen
-from mi_lidar.planar.models import FAR, base_model, fit_permeable_map, fit_tails, match_misses, with_tails
+from mi_lidar.planar.models import base_model, fit_permeable_map
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
+from mi_lidar.planar.tails import (
+    FAR,
+    SHORT_DRAWS,
+    fit_tails,
+    match_misses,
+    match_short_returns,
+    short_share,
+    training_nll,
+    with_tails,
+)
 from tests.planar.world import room_log_text
 
 
@@ -74,7 +84,7 @@ def test_no_returns_are_matched_to_the_training_beams(tmp_path):
     float32 sums), the escape state (beams that met no cell) keeps its counted P(null), and the training score
     improves (measured by 0.006 nats per beam). Matching the tables
     as fitted brings their rate closer and moves the score less than MISS_TOLERANCE."""
-    from mi_lidar.planar.models import MISS_TOLERANCE
+    from mi_lidar.planar.tails import MISS_TOLERANCE
 
     path = tmp_path / "clipped.log"
     path.write_text(room_log_text(scans=30, max_range=7.0))
@@ -102,3 +112,29 @@ def test_no_returns_are_matched_to_the_training_beams(tmp_path):
     again = match_misses(beams, density, z_max)
     assert abs(p_miss(again) - measured) <= abs(p_miss(density) - measured)  # closer (P(miss) capped at 1)
     assert nll(again) < nll(density) + MISS_TOLERANCE
+
+
+def test_a_heavy_short_tail_is_matched_to_the_measured_short_returns(room_map):
+    """Tables whose short tail holds 3x the EM's mass draw far more short returns (> FAR short of the nominal
+    range) than the room's training beams hold; matched, the scans sampled with the fit's seeds hold the
+    measured share within 0.004 (the bisection's resolution on 8 steps), and the training score is no
+    worse than the inflated tables'. A tail that draws too few short returns is left as it is."""
+    data, z_max, fitted = room_map
+    beams = fitted.beams(data.train)
+    measured = short_share(data.train.z, data.train.hit, data.train.nominal)
+    assert measured > 0.005
+
+    def drawn(density) -> float:
+        model = base_model(density)
+        return float(
+            np.mean([short_share(*beams.sample(model, seed), data.train.nominal) for seed in range(SHORT_DRAWS)])
+        )
+
+    heavy = with_tails(fitted.model.density, 3.0, 1.0)
+    assert drawn(heavy) > measured + 0.01
+    matched = match_short_returns(beams, data.train, heavy, z_max)
+    assert abs(drawn(matched) - measured) < 0.004, (drawn(matched), measured)
+    assert training_nll(beams, matched, z_max) <= training_nll(beams, heavy, z_max)
+    light = with_tails(fitted.model.density, 0.05, 1.0)
+    assert drawn(light) < measured
+    np.testing.assert_array_equal(match_short_returns(beams, data.train, light, z_max).mass, light.mass)
