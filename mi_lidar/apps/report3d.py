@@ -18,6 +18,7 @@ from mi_lidar.apps.matching3d import scan_cloud
 from mi_lidar.apps.report import _colors, _image, _pick_table, _save, grids_text, loss_figure, path_figure
 from mi_lidar.apps.risk import alpha_key
 from mi_lidar.core.atomic import atomic_write_text
+from mi_lidar.io.markdown import plain
 
 BENCHMARK_KEYS = (
     ("nll", "test NLL (nats/ray)", "{:.3f}"),
@@ -120,7 +121,7 @@ only in the sensor model. Risk = mean over the prior draws of l(alpha) = |J(alph
 spreading its mass shows it here.</p>{_benchmark_table(evaluation.benchmark)}
 <h2>The scans (top view, 30 m around the sensor)</h2>{_image(files["scans"])}
 {"".join(sections)}
-<p>Seconds: {html.escape(json.dumps({k: round(v, 1) for k, v in evaluation.seconds.items()}))}</p>
+<p>Seconds: {html.escape(plain({k: round(v, 1) for k, v in evaluation.seconds.items()}))}</p>
 </body></html>"""
     files["html"] = atomic_write_text(out / "apps3d.html", page)
     return files

@@ -55,3 +55,20 @@ def markdown_to_html(md: str, title: str) -> str:
         f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
         f"<style>{style}</style></head><body>{''.join(body)}</body></html>\n"
     )
+
+
+def plain(value) -> str:
+    """A JSON-like value as short readable text for a report: floats to 4 significant digits, lists
+    joined by commas, mappings as ``key: value`` pairs (underscores shown as spaces; a nested mapping in brackets)."""
+    if isinstance(value, bool) or value is None:
+        return str(value)
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, dict):
+        pairs = (
+            (str(k).replace("_", " "), f"({plain(v)})" if isinstance(v, dict) else plain(v)) for k, v in value.items()
+        )
+        return "; ".join(f"{k}: {v}" for k, v in pairs)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(plain(v) for v in value) + "]"
+    return str(value)

@@ -23,6 +23,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mi_lidar.core.atomic import atomic_path, atomic_write_text  # noqa: E402
+from mi_lidar.io.markdown import plain  # noqa: E402
 from mi_lidar.planar.benchmark import SAMPLED_SCANS  # noqa: E402
 
 BINS = np.linspace(-1.5, 1.5, 121)
@@ -195,6 +196,7 @@ def _write_report(result, out: Path) -> dict[str, Path]:
         for k in ("nll", "residuals", "ranges")
     )
     info = result.to_json()
+    chosen = "".join(f"<li>{html.escape(name)}: {html.escape(plain(v))}</li>" for name, v in info["settings"].items())
     nominal = info["nominal"]
     every = info["train_beams_in_log"]
     thinned = f" (of the log's {every:,}: evenly spaced scans)" if info["train_beams"] < every else ""
@@ -227,8 +229,8 @@ fair estimator from {SAMPLED_SCANS} sampled scans per model, a no-return counted
 for the sensor's own distribution, and for a model that never varies it is the plain |error|.</p>
 {_shared_errors(info["settings"].get("mi-lidar", {}))}
 {images}
-<p>Chosen on the training scans: {html.escape(json.dumps(info["settings"]))}</p>
-<p>Seconds: {html.escape(json.dumps({k: round(v, 1) for k, v in result.seconds.items()}))}</p>
+<p>Chosen on the training scans:</p><ul>{chosen}</ul>
+<p>Seconds: {html.escape(plain({k: round(v, 1) for k, v in result.seconds.items()}))}</p>
 </body></html>"""
     files["html"] = atomic_write_text(out / "benchmark.html", page)
     return files
