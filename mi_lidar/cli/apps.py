@@ -70,8 +70,10 @@ def evaluate_apps(
     ```
     """
     from mi_lidar.apps.evaluate import SIMULATORS, evaluate_log
+    from mi_lidar.core.resources import map_large_blocks
     from mi_lidar.planar.protocol import PlanarProtocol
 
+    map_large_blocks()  # freed arrays go back to the system (workers fork after): Intel's peak 1.76 -> 1.43 GB
     with progress(f"evaluate-apps {log.name}") as update:
         result = evaluate_log(
             log,
