@@ -38,6 +38,7 @@ from mi_lidar.planar import models as m
 from mi_lidar.planar.beams import EngineBeams, nominal_beams
 from mi_lidar.planar.protocol import PlanarData, PlanarProtocol, prepare
 from mi_lidar.planar.reference import repaired_scans
+from mi_lidar.planar.tails import short_share
 
 MODELS = ("M0", "M1", "M2a", "M2b", "M3a", "M3b", "P-Reg", "NP-Reg", "mi-lidar")
 SAMPLED_SCANS = 8  # sampled test scans per model for the CRPS (seeds seed, seed + 1, ...)
@@ -309,7 +310,7 @@ def run_planar_benchmark(
     nominal = {
         "median_abs_err": float(np.median(err)) if err.size else float("nan"),
         "p90_abs_err": float(np.quantile(err, 0.9)) if err.size else float("nan"),
-        "short": float(np.mean(both & (data.test.z < data.test.nominal - 0.5))),
+        "short": short_share(data.test.z, data.test.hit, data.test.nominal),
         "long": float(np.mean(both & (data.test.z > data.test.nominal + 0.5))),
         "measured_miss": float(np.mean(~data.test.hit)),
         "nominal_miss": float(np.mean(~np.isfinite(data.test.nominal))),

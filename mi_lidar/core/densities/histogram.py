@@ -456,9 +456,11 @@ def fit_np_reg(
             progress(offset + done, total)
 
     best, table = choose_by_held_out(candidates, build, held_out_score, step)
-    others = [(*min(table, key=lambda row: row[-1])[:3], r) for r in reaches if r != widest]
+    *chosen, best_nll = min(table, key=lambda row: row[-1])
+    others = [(*chosen[:3], r) for r in reaches if r != widest]
     if others:
         shorter, rows = choose_by_held_out(others, build, held_out_score, lambda d, t: step(d, t, len(candidates)))
         table += rows
-        best = shorter if min(row[-1] for row in rows) < min(row[-1] for row in table[: len(candidates)]) else best
+        if min(row[-1] for row in rows) < best_nll:
+            best = shorter
     return best, table
