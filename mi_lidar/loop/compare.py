@@ -34,7 +34,10 @@ from mi_lidar.core.trace import next_intersection
 
 BREAKDOWNS = ("range", "incidence", "beam", "azimuth", "time", "element_type", "label", "shape")
 NO_ELEMENT_GROUP = "none"
-NAMED_GROUPS = ("beam ", "label ", "shape ", "scans ")  # group labels that start with what they count
+# group labels that start with what they count
+NAMED_GROUPS = ("beam ", "beams ", "label ", "shape ", "scan ", "scans ")
+MAX_LISTED_GROUPS = 24  # a report lists a breakdown of more groups (a scanner's beams) in blocks of neighbours
+BEAM_BLOCKS = 12  # blocks of neighbouring beams the report lists instead
 
 
 @dataclass
@@ -151,10 +154,13 @@ def group_keys(t: RayTable, by: str) -> np.ndarray:
     if by == "azimuth":
         idx = ((t.azimuth + 180) // 30).astype(int) % 12
         return np.array([f"{-180 + 30 * i:+04d}..{-150 + 30 * i:+04d} deg" for i in range(12)])[idx]
-    if by == "time":
+    if by == "time":  # ten runs of scans, named by their first and last scan: scans 0-90, ..., scans 819-909
         n = int(t.scan.max()) + 1
         size = max(1, -(-n // 10))
-        return np.char.add("scans ", np.char.zfill((t.scan // size * size).astype(str), 5))
+        first = t.scan // size * size
+        last = np.minimum(first + size, n) - 1
+        runs = np.char.add(np.char.add(np.char.add("scans ", first.astype(str)), "-"), last.astype(str))
+        return np.where(first == last, np.char.add("scan ", first.astype(str)), runs)
     if by == "element_type":
         return np.where(t.kind < 0, NO_ELEMENT_GROUP, np.where(t.kind == ELLIPSOID, "ellipsoid", "surface"))
     if by == "label":
@@ -170,7 +176,7 @@ def group_name(row: dict) -> str:
             is written once (the labels of the beam, label, shape and time groups already say it).
     """
     group = row["group"]
-    return group if group.startswith(NAMED_GROUPS) else f"{row['breakdown']} {group}"
+    return group if group.startswith(NAMED_GROUPS) else f"{row['breakdown'].replace('_', ' ')} {group}"
 
 
 def group_order(key: str) -> tuple:
@@ -188,10 +194,45 @@ def group_order(key: str) -> tuple:
 def breakdown(t: RayTable, by: str) -> list[dict]:
     """Metrics per group of breakdown ``by``, with each group's excess NLL (nats, total)."""
     keys = group_keys(t, by)
+    return group_rows(t, keys, sorted(np.unique(keys), key=group_order))
+
+
+def beam_blocks(t: RayTable, blocks: int = BEAM_BLOCKS) -> list[dict]:
+    """The beam breakdown in at most ``blocks`` runs of neighbouring beams, for a report that cannot list every beam.
+
+    Each row holds the metrics over all rays of its beams (as :func:`breakdown`) and ``beams``, how many
+    beams it covers. Its group reads ``beams 0-14``; for a scanner whose every beam keeps one azimuth (a
+    planar scanner, whose beam index is its bearing) the azimuths of its first and last beam follow:
+    ``beams 0-14 (-90..-76 deg)``.
+
+    Args:
+        t: the rays.
+        blocks: runs of beams at most; each holds ``ceil(beams / blocks)`` beams, the last what remains.
+    """
+    n = int(t.beam.max()) + 1
+    size = -(-n // blocks)
+    first = np.arange(0, n, size)
+    last = np.minimum(first + size, n) - 1
+    names = [f"beams {a}-{b}" for a, b in zip(first, last)]
+    bearing = np.full(n, np.nan)
+    bearing[t.beam] = t.azimuth  # one of each beam's azimuths
+    turn = (t.azimuth - bearing[t.beam] + 180.0) % 360.0 - 180.0  # each ray's azimuth from its beam's, deg
+    if np.all(np.abs(turn) < 0.5) and np.all(np.isfinite(bearing)):
+        names = [f"{name} ({bearing[a]:+.0f}..{bearing[b]:+.0f} deg)" for name, a, b in zip(names, first, last)]
+    rows = group_rows(t, np.asarray(names)[t.beam // size], names)
+    covered = dict(zip(names, (last - first + 1).tolist()))
+    return [dict(row, beams=covered[row["group"]]) for row in rows]
+
+
+def group_rows(t: RayTable, keys: np.ndarray, order: list[str]) -> list[dict]:
+    """Metrics of the rays of each group in ``order`` (``keys``: each ray's group), with the group's excess NLL
+    (nats, total) and median residual (m); a group of no rays is left out."""
     overall = -np.mean(t.ll)
     rows = []
-    for key in sorted(np.unique(keys), key=group_order):
+    for key in order:
         m = keys == key
+        if not m.any():
+            continue
         row = {"group": str(key), **metrics(t, m)}
         row["excess_nll"] = (row["nll"] - overall) * row["rays"]
         row["residual_median"] = (
@@ -247,6 +288,8 @@ class Comparison:
     Attributes:
         headline: overall metrics (see :func:`metrics`).
         breakdowns: breakdown name -> rows of per-group metrics.
+        beam_blocks: the beam breakdown in blocks of neighbouring beams (:func:`beam_blocks`) when it has
+            more than :data:`MAX_LISTED_GROUPS` beams, for the report's table; else empty.
         worst: the groups with the largest excess NLL across all breakdowns.
         table: the per-ray results.
         intensity: the intensity residuals
@@ -263,9 +306,11 @@ class Comparison:
     intensity: object = field(repr=False, default=None)
     files: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
+    beam_blocks: list = field(default_factory=list)
 
     def to_json(self) -> dict:
         out = {"headline": self.headline, "breakdowns": self.breakdowns, "worst": self.worst, "warnings": self.warnings}
+        out |= {"beam_blocks": self.beam_blocks} if self.beam_blocks else {}
         return out | ({"intensity": self.intensity.to_json()} if self.intensity is not None else {})
 
 
@@ -330,6 +375,8 @@ def compare(
     origins, directions = world_rays(log, t.scan, t.beam, t.column)
     headline = metrics_of(t.ll, t.measured, t.hit, t.sim_range, t.sim_hit, origins, directions)
     result = Comparison(headline=headline, breakdowns={b: breakdown(t, b) for b in BREAKDOWNS}, worst=[], table=t)
+    if len(result.breakdowns["beam"]) > MAX_LISTED_GROUPS:
+        result.beam_blocks = beam_blocks(t)
     result.warnings = scene_warnings(t.on_surface, t.hit) + same_draw_warnings(t, log.sensor.get("seed"), seed)
     groups = [
         dict(row, breakdown=b) for b, rows in result.breakdowns.items() if b != "beam" or len(rows) > 1 for row in rows

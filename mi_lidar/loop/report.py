@@ -13,6 +13,7 @@ import numpy as np  # noqa: E402
 
 from mi_lidar.core.atomic import atomic_path, atomic_write_text, output_folder  # noqa: E402
 from mi_lidar.io.markdown import markdown_to_html  # noqa: E402
+from mi_lidar.loop.compare import NO_ELEMENT_GROUP  # noqa: E402
 
 
 def save_figure(fig, path: Path, dpi: int = 90) -> Path:
@@ -219,6 +220,21 @@ def _plot_beam_curves(
     return save_figure(fig, path)
 
 
+def beam_blocks_note(beams: list[dict], blocks: list[dict]) -> str:
+    """The line above a beam breakdown listed in blocks: how many beams each row covers, where the rows per beam are.
+
+    Args:
+        beams: the breakdown's rows, one per beam.
+        blocks: its rows per block of neighbouring beams (:func:`~mi_lidar.loop.compare.beam_blocks`).
+    """
+    sizes = sorted({b["beams"] for b in blocks})
+    each = f"{sizes[-1]} neighbouring beams" + (f" ({sizes[0]} in the last)" if len(sizes) > 1 else "")
+    return (
+        f"{len(beams)} beams in {len(blocks)} rows of {each}, each over all rays of its beams; one row per beam: "
+        "`comparison.json` (`breakdowns.beam`) and the figure's panel by beam."
+    )
+
+
 def write_residual_ply(t, log, path: Path) -> Path:
     """Measured points coloured by residual (red: long, blue: short), with residual and NLL."""
     from mi_lidar.io import write_ply
@@ -295,7 +311,7 @@ def _comparison_files(result, log, out: Path, title: str, model) -> list[Path]:
         "",
         "Groups with the largest excess NLL (group NLL minus overall NLL, times its rays):",
         "",
-        markdown_table(result.worst, keys),
+        markdown_table([dict(r, breakdown=r["breakdown"].replace("_", " ")) for r in result.worst], keys),
         "",
         "![breakdowns](breakdowns.png)",
         "",
@@ -306,8 +322,18 @@ def _comparison_files(result, log, out: Path, title: str, model) -> list[Path]:
         "## Breakdowns",
     ]
     for name, rows in result.breakdowns.items():
-        lines += ["", f"### By {name}", "", markdown_table(rows, keys[:1] + keys[2:])]
-    lines += ["", "`residuals.ply`: measured points coloured by measured - nominal range (red long, blue short)."]
+        lines += ["", f"### By {name.replace('_', ' ')}", ""]
+        if name == "beam" and result.beam_blocks:
+            lines += [beam_blocks_note(rows, result.beam_blocks), ""]
+            rows = result.beam_blocks
+        lines.append(markdown_table(rows, keys[:1] + keys[2:]))
+    lines += [
+        "",
+        f"Group `{NO_ELEMENT_GROUP}`: rays that meet no element of the scene within the sensor's range "
+        "(the model expects no return).",
+        "",
+        "`residuals.ply`: measured points coloured by measured - nominal range (red long, blue short).",
+    ]
     md = "\n".join(lines) + "\n" + intensity_section(result.intensity, out)
     report = [
         atomic_write_text(out / "report.md", md),

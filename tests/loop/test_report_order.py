@@ -59,8 +59,8 @@ def test_a_group_is_named_with_its_breakdown_once():
     t = table(np.linspace(-179, 179, 24))
     names = {by: group_name({"breakdown": by, "group": str(group_keys(t, by)[0])}) for by in BREAKDOWNS}
     assert names["label"] == "label 0" and names["beam"] == "beam 000" and names["shape"] == "shape 0"
-    assert names["time"] == "scans 00000" and names["range"] == "range 5-10 m"
-    assert names["incidence"] == "incidence 00-15 deg" and names["element_type"] == "element_type surface"
+    assert names["time"] == "scan 0" and names["range"] == "range 5-10 m"
+    assert names["incidence"] == "incidence 00-15 deg" and names["element_type"] == "element type surface"
     assert group_name({"breakdown": "label", "group": "none"}) == "label none"
 
 
@@ -77,3 +77,14 @@ def test_gain_groups_name_where_the_gain_concentrates_one_group_per_breakdown():
     assert len({r["breakdown"] for r in rows}) == len(rows) <= 3  # one group per breakdown
     gains = [r["nll_before"] - r["nll_after"] for r in rows]
     assert gains == sorted(gains, reverse=True)
+
+
+def test_time_groups_name_their_first_and_last_scan():
+    """The time groups read ``scans 00182``, which names one scan, for a group of 91 scans."""
+    t = table(np.zeros(910))
+    t.scan = np.arange(910)
+    groups = [r["group"] for r in breakdown(t, "time")]
+    assert groups[:3] == ["scans 0-90", "scans 91-181", "scans 182-272"] and groups[-1] == "scans 819-909"
+    assert all(r["rays"] == 91 for r in breakdown(t, "time"))
+    t.scan = np.arange(910) % 5
+    assert [r["group"] for r in breakdown(t, "time")] == [f"scan {s}" for s in range(5)]
