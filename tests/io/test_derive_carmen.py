@@ -40,11 +40,24 @@ def test_a_valid_log_is_derived(tool, monkeypatch, capsys, tmp_path):
 @pytest.mark.parametrize(
     "text, message",
     [
-        # each of these was a traceback (ValueError, EOFError) or, for the last two, a silently broken output
-        (carmen_text(scans=2)[:-300], "line 6: FLASER with n=180 needs 190 fields .* repair or delete the line"),
-        (carmen_text(scans=2).replace(" 1.10 ", " nan ", 1), "line 4: FLASER value 'nan' is not finite"),
-        ("ODOM 0 0 0 0 0 0 1 host 1\n", r"no FLASER scans to write \(--scans :, --every 1\)"),
-        (gzip.compress(carmen_text().encode())[:8], "truncated gzip stream: it ends before any text"),
+        # each of these was a traceback (ValueError, EOFError) or, for the last two, a silently broken output;
+        # explicit ids: pytest-xdist workers must collect the same ids, and the gzip header holds a time stamp
+        pytest.param(
+            carmen_text(scans=2)[:-300],
+            "line 6: FLASER with n=180 needs 190 fields .* repair or delete the line",
+            id="cut-short",
+        ),
+        pytest.param(
+            carmen_text(scans=2).replace(" 1.10 ", " nan ", 1), "line 4: FLASER value 'nan' is not finite", id="nan"
+        ),
+        pytest.param(
+            "ODOM 0 0 0 0 0 0 1 host 1\n", r"no FLASER scans to write \(--scans :, --every 1\)", id="no-flaser"
+        ),
+        pytest.param(
+            gzip.compress(carmen_text().encode(), mtime=0)[:8],
+            "truncated gzip stream: it ends before any text",
+            id="truncated-gzip",
+        ),
     ],
 )
 def test_a_bad_source_is_named_and_nothing_written(tool, monkeypatch, capsys, tmp_path, text, message):
