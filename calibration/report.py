@@ -20,7 +20,7 @@ from mi_lidar.core.atomic import atomic_path, atomic_write, atomic_write_text, s
 from mi_lidar.core.errors import CalibrationError, PatternError  # noqa: E402
 from mi_lidar.core.patterns import get_pattern, to_table  # noqa: E402
 from mi_lidar.core.scene_shapes import ELLIPSOID_STRIDE, ordered_shapes  # noqa: E402
-from mi_lidar.io.markdown import markdown_to_html  # noqa: E402
+from mi_lidar.io.markdown import effects_text, markdown_to_html, plain, spread, table_cell, words  # noqa: E402
 from mi_lidar.scene.dicts import AnalyticElements, EllipsoidElements, MeshElements, save_scene  # noqa: E402
 from mi_lidar.scene.files import ANALYTIC_SHAPES  # noqa: E402
 from mi_lidar.scene.loading import scene_lidar_sensor  # noqa: E402
@@ -255,19 +255,31 @@ def write_report(out, result: FitResult, scene, units: dict, title: str, pattern
         "warnings": result.warnings,
     }
     files["report"] = atomic_write_text(out / "report.json", json.dumps(summary, indent=1))
-    page = markdown_to_html(calibration_markdown(summary, rows, title), title)
+    page = markdown_to_html(
+        calibration_markdown(summary, rows, title, result.fitted, effects_text(result.model.effects)), title
+    )
     files["html"] = atomic_write_text(out / "report.html", page)
     return files
 
 
-def _cell(value) -> str:
-    """A table cell: floats to 4 significant digits, ``|`` escaped."""
-    return (f"{value:.4g}" if isinstance(value, float) else str(value)).replace("|", "\\|")
+CHANGE_HEADERS = {"mean_abs_change": "mean |change|", "max_abs_change": "max |change|"}  # words() for the rest
 
 
-def calibration_markdown(summary: dict, rows: list[dict], title: str) -> str:
-    """The calibration report page: held-out NLL before and after, the parameters' changes, the loss trace."""
+def calibration_markdown(
+    summary: dict, rows: list[dict], title: str, fitted: dict | None = None, effects: str = "none"
+) -> str:
+    """The calibration report page: held-out NLL before and after, the parameters' changes, the loss trace.
+
+    Args:
+        summary: ``report.json``'s content.
+        rows: :func:`change_rows`, a table row each (its columns in words).
+        title: the page's title.
+        fitted: ``{parameter: fitted values}``: a parameter of more than one value gets a line of their spread
+            (:func:`~mi_lidar.io.markdown.spread`; every value is in ``parameters.npz``).
+        effects: the calibrated scene's effects as text (:func:`~mi_lidar.io.markdown.effects_text`).
+    """
     nll = summary["held_out_nll"]
+    many = [row for row in rows if row["values"] > 1 and row["parameter"] in (fitted or {})]
     lines = [
         f"# {title}",
         "",
@@ -280,19 +292,25 @@ def calibration_markdown(summary: dict, rows: list[dict], title: str) -> str:
         *_samples_table(summary.get("held_out_samples", {})),
         "## Parameters",
         "",
-        "| " + " | ".join(_cell(k) for k in rows[0]) + " |",
+        "| " + " | ".join(table_cell(CHANGE_HEADERS.get(k, words(k))) for k in rows[0]) + " |",
         "|" + "---|" * len(rows[0]),
         *(
-            "| " + " | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in row.values()) + " |"
+            "| " + " | ".join(table_cell(f"{v:,}" if isinstance(v, int) else plain(v)) for v in row.values()) + " |"
             for row in rows
         ),
         "",
+        *(f"Fitted `{row['parameter']}` ({row['unit']}): {spread(fitted[row['parameter']])}." for row in many),
+        *(
+            ["", "Every value before and after: `parameters.npz` (`initial/<parameter>`, `fitted/<parameter>`).", ""]
+            if many
+            else []
+        ),
         "## Training and held-out loss",
         "",
         "![loss](loss.png)",
     ]
     if summary["effects"]:
-        lines += ["", "## Effects in the calibrated scene", "", *(f"`{e}`" for e in summary["effects"])]
+        lines += ["", "## Effects in the calibrated scene", "", effects + " (every value: `scene.xml`)."]
     return "\n".join(lines) + "\n"
 
 

@@ -15,13 +15,15 @@ from mi_lidar.cli.app import MAX_STEPS, app, console, force_option, warn
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import FIGURE_WIDTH, figure, figure_table
 from mi_lidar.core.atomic import output_folder
+from mi_lidar.io.markdown import plain, spread_figures
 
 FIT = "Fit"  # the options of the optimisation, a panel of their own: the option column stays narrow
 
 
 def result_table(result: FitResult) -> Group:
-    """Two rich tables: the parameter changes, then the held-out loss of the initial, counting, shared-start (when
-    run) and fitted models.
+    """Rich tables: the parameter changes; the spread of the fitted values of each parameter of more than one
+    value (per beam, per element); the held-out loss of the initial, counting, shared-start (when run) and fitted
+    models.
 
     A parameter name longer than its column folds onto a second line instead of being cut.
     """
@@ -32,8 +34,12 @@ def result_table(result: FitResult) -> Group:
     for name in result.names:
         before, after = result.initial[name], result.fitted[name]
         changes.add_row(
-            name, f"{before.size:,}", f"{before.mean():.6g}", f"{after.mean():.6g}", f"{abs(after - before).max():.3g}"
+            name, f"{before.size:,}", plain(before.mean()), plain(after.mean()), plain(abs(after - before).max())
         )
+    many = [name for name in result.names if result.fitted[name].size > 1]
+    spreads = figure_table("fitted values", "parameter", ("min", "median", "max", "RMS"))
+    for name in many:
+        spreads.add_row(name, *(plain(float(v)) for v in spread_figures(result.fitted[name]).values()))
     losses = figure_table(
         "held-out NLL",
         "model",
@@ -43,8 +49,8 @@ def result_table(result: FitResult) -> Group:
     rows = [("initial", result.initial_nll), ("counting", result.counting_nll)]
     rows += [("shared start", result.shared_nll)] if result.shared else []
     for name, nll in rows + [("fitted", result.fitted_nll)]:
-        losses.add_row(name, figure(nll, 5))
-    return Group(changes, losses)
+        losses.add_row(name, figure(nll, 4))  # as report.html writes it
+    return Group(changes, *([spreads] if many else []), losses)
 
 
 @app.command(rich_help_panel="The loop")

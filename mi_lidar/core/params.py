@@ -187,6 +187,12 @@ class Parametrized:
                 self.params[key] = mi.Float(aligned(np.full(size, spec.fit_start, np.float32)))
         return self
 
+    def named_values(self) -> dict:
+        """``{option: choice, parameter: value}``: the option choices, then every active parameter as a float (one
+        value) or an (n,) numpy array (per beam or per label), in the units of its spec."""
+        active = {key: np.asarray(value, np.float64) for key, value in self.params.items() if self.active(key)}
+        return self.choices | {key: float(a[0]) if a.size == 1 else a for key, a in active.items()}
+
     def describe(self) -> str:
         """``name(key=value, ...)``: the object as written in XML or on the command line."""
         parts = [f"{k}={v}" for k, v in self.choices.items()]

@@ -5,6 +5,8 @@ from __future__ import annotations
 import html
 import re
 
+import numpy as np
+
 CELL_SEPARATOR = re.compile(r"(?<!\\)\|")  # a `|` that is not escaped as `\|`
 
 
@@ -57,18 +59,58 @@ def markdown_to_html(md: str, title: str) -> str:
     )
 
 
+def table_cell(text) -> str:
+    """``text`` as a Markdown table cell: ``|`` escaped (``mean |range error|`` would split the row)."""
+    return str(text).replace("|", "\\|")
+
+
+LISTED = 8  # a list of more numbers reads as its summary (:func:`spread`): 180 per-beam values are a wall of digits
+
+
+def words(key) -> str:
+    """A JSON key or column name as words: ``mean_before`` -> ``mean before``."""
+    return str(key).replace("_", " ")
+
+
+def spread_figures(values) -> dict[str, float]:
+    """``{"min", "median", "max", "RMS"}`` of ``values`` (any shape, NaN where there is none)."""
+    a = np.asarray(values, dtype=np.float64).ravel()
+    if a.size == 0:
+        return dict.fromkeys(("min", "median", "max", "RMS"), float("nan"))
+    return {"min": a.min(), "median": np.median(a), "max": a.max(), "RMS": np.sqrt(np.mean(a**2))}
+
+
+def spread(values) -> str:
+    """Many numbers in one line: ``180 values: min 0.0312, median 0.0359, max 0.0402, RMS 0.036``."""
+    size = np.size(values)
+    figures = ", ".join(f"{k} {plain(float(v))}" for k, v in spread_figures(values).items())
+    return f"{size:,} values: {figures}" if size else "no values"
+
+
 def plain(value) -> str:
     """A JSON-like value as short readable text for a report: floats to 4 significant digits, lists
-    joined by commas, mappings as ``key: value`` pairs (underscores shown as spaces; a nested mapping in brackets)."""
+    joined by commas (a list of more than :data:`LISTED` numbers as its :func:`spread`), mappings as
+    ``key: value`` pairs (:func:`words` for the keys; a nested mapping in brackets). numpy arrays and
+    scalars read as lists and numbers."""
+    if isinstance(value, (np.ndarray, np.generic)):
+        value = value.tolist()
     if isinstance(value, bool) or value is None:
         return str(value)
     if isinstance(value, float):
         return f"{value:.4g}"
     if isinstance(value, dict):
-        pairs = (
-            (str(k).replace("_", " "), f"({plain(v)})" if isinstance(v, dict) else plain(v)) for k, v in value.items()
-        )
+        pairs = ((words(k), f"({plain(v)})" if isinstance(v, dict) else plain(v)) for k, v in value.items())
         return "; ".join(f"{k}: {v}" for k, v in pairs)
     if isinstance(value, (list, tuple)):
+        numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+        if numbers and len(value) > LISTED:
+            return f"[{spread(value)}]"
         return "[" + ", ".join(plain(v) for v in value) + "]"
     return str(value)
+
+
+def effects_text(effects) -> str:
+    """Effects (objects with ``name`` and ``named_values()``, e.g. :class:`~mi_lidar.core.effects.Effect`) as report
+    text: ``range_bias (bias: [180 values: min ..., RMS ...]), outliers (rate: 0.01)``; ``none`` for none.
+    Their full values are what ``describe()`` writes into scene XML."""
+    return ", ".join(f"{e.name} ({plain(e.named_values())})" for e in effects) or "none"

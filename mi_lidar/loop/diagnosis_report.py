@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_write_text
-from mi_lidar.io.markdown import markdown_to_html
+from mi_lidar.io.markdown import markdown_to_html, plain
 from mi_lidar.loop.residuals import (
     MIN_GROUP,
     UNITS,
@@ -36,8 +36,10 @@ FIGURE_DIMENSIONS = ("range", "incidence", "beam")
 MIN_SHOWN = 30  # held-out rays a group needs to be drawn
 
 
-def _values(values) -> str:
-    return np.array2string(np.asarray(values), precision=4, threshold=6)
+def values_text(values) -> str:
+    """A fitted parameter's values as text: one number, a short list, or the spread of many (per beam)."""
+    a = np.asarray(values, dtype=np.float64).ravel()
+    return plain(a[0] if a.size == 1 else a)
 
 
 def verdict(d) -> str:
@@ -69,7 +71,9 @@ def verdict(d) -> str:
         else:
             mine = name.split("(")[0]
             params = ", ".join(
-                f"{key.split('.', 1)[1]}={_values(v)}" for key, v in d.parameters.items() if key.split(".")[0] == mine
+                f"{key.split('.', 1)[1]}={values_text(v)}"
+                for key, v in d.parameters.items()
+                if key.split(".")[0] == mine
             )
             text = (
                 f"The model is missing **{name}** ({params}): {gain}(held-out p = {c.p_value:.2g}; {c.k} parameter(s))."

@@ -12,7 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mi_lidar.core.atomic import atomic_path, atomic_write_text, output_folder  # noqa: E402
-from mi_lidar.io.markdown import markdown_to_html  # noqa: E402
+from mi_lidar.io.markdown import effects_text, markdown_to_html, plain, table_cell, words  # noqa: E402
 from mi_lidar.loop.compare import NO_ELEMENT_GROUP  # noqa: E402
 
 
@@ -72,11 +72,6 @@ def fmt(key: str, value) -> str:
     if isinstance(value, float) and not np.isfinite(value):
         return "-"
     return FMT.get(key, "{}").format(value)
-
-
-def table_cell(text: str) -> str:
-    """``text`` as a Markdown table cell: ``|`` escaped (``mean |range error|`` would split the row)."""
-    return str(text).replace("|", "\\|")
 
 
 def markdown_table(rows: list[dict], keys: list[str]) -> str:
@@ -292,11 +287,10 @@ def _comparison_files(result, log, out: Path, title: str, model) -> list[Path]:
         "range_error_median",
         "residual_median",
     ]
-    effects = ", ".join(e.describe() for e in model.effects) or "none"
     lines = [
         f"# {title}",
         "",
-        f"Model: range sigma {model.range_sigma} m, effects: {effects}. {h['rays']:,} rays.",
+        f"Model: range sigma {plain(model.range_sigma)} m, effects: {effects_text(model.effects)}. {h['rays']:,} rays.",
         "",
         *(f"**Warning:** {w}.\n" for w in result.warnings),
         f"**NLL {h['nll']:.3f} nats/ray** (median {h['nll_median']:.3f}); hit/miss F1 {fmt('f1', h['f1'])} "
@@ -311,7 +305,7 @@ def _comparison_files(result, log, out: Path, title: str, model) -> list[Path]:
         "",
         "Groups with the largest excess NLL (group NLL minus overall NLL, times its rays):",
         "",
-        markdown_table([dict(r, breakdown=r["breakdown"].replace("_", " ")) for r in result.worst], keys),
+        markdown_table([dict(r, breakdown=words(r["breakdown"])) for r in result.worst], keys),
         "",
         "![breakdowns](breakdowns.png)",
         "",
@@ -322,7 +316,7 @@ def _comparison_files(result, log, out: Path, title: str, model) -> list[Path]:
         "## Breakdowns",
     ]
     for name, rows in result.breakdowns.items():
-        lines += ["", f"### By {name.replace('_', ' ')}", ""]
+        lines += ["", f"### By {words(name)}", ""]
         if name == "beam" and result.beam_blocks:
             lines += [beam_blocks_note(rows, result.beam_blocks), ""]
             rows = result.beam_blocks

@@ -1,6 +1,7 @@
 """The calibrate command end to end, and its bad-input errors."""
 
 import json
+import re
 
 import mitsuba as mi
 import numpy as np
@@ -73,6 +74,12 @@ def test_calibrate_recovers_truth_and_writes_report(files):
     assert samples["fitted"]["histogram_l1"] < samples["initial"]["histogram_l1"]
     assert samples["fitted"]["chamfer"] < samples["initial"]["chamfer"]
     assert "Samples beside the likelihood" in page and "Chamfer" in page
+    # The table's headers are words, and the 16 per-beam biases read as their spread, not 16 floats (the page
+    # showed 'mean_before' and 'range_bias(bias=[0.0201 0.0199 ...])' with every beam's value); the JSON keeps them.
+    assert "<th>mean before</th>" in page and "<th>max |change|</th>" in page and "mean_before" not in page
+    assert "Fitted sensor.range_bias (m): 16 values: min " in page and "RMS " in page
+    assert "range_bias (bias: [16 values: min " in page and not re.search(r"(\d\.\d+[ ,]+){8}", page)
+    assert len(report["effects"][0].split()) == 16  # 'range_bias(bias=[v0 v1 ... v15])'
     # The calibrated scene reloads with the fitted values, sensor and effect.
     scene = mi_lidar.load_scene(out / "scene.xml")
     table = ElementTable.from_scene(scene)
@@ -121,7 +128,12 @@ def test_cli_prints_table(files):
     assert "nan" not in "".join(history).lower() and history[2].endswith(",")
     assert "shared start" in run.output
     fitted = report["held_out_nll"]["fitted"]
-    assert_whole(run.stdout, "elements.terrain.range_sigma", f"{fitted:.5f}")
+    assert_whole(run.stdout, "elements.terrain.range_sigma", f"{fitted:.4f}")  # as report.html writes it
+    # the 16 per-beam biases as their spread (the table showed only their mean, to 6 digits)
+    assert_whole(run.stdout, "fitted values", "RMS")
+    spreads = run.stdout.split("fitted values")[1].split("held-out NLL")[0]
+    assert "sensor.range_bias" in spreads and "elements.terrain.range_sigma" in spreads
+    assert not re.search(r"\d\.0*[1-9]\d{5,}", run.stdout.split("calibrating: done")[-1])  # 6 significant digits
     bad = CliRunner().invoke(
         app, ["calibrate", str(log), str(start), "--params", "elements.*.nothing", "--out", str(tmp / "bad")]
     )

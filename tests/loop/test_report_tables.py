@@ -24,3 +24,37 @@ def test_an_image_whose_alt_text_names_an_effect_with_options_keeps_its_link():
         '<img src="before_after_1.png" alt="before and after incidence_dropout(law=cos), range_bias(bias=[0.1])"'
         in page
     )
+
+
+def test_fitted_values_read_as_a_number_a_short_list_or_their_spread():
+    """diagnose's verdict wrote ``sigma0=[0.0822]`` and a per-beam bias as numpy's ``[0.0359 0.0359 ... 0.0359]``."""
+    import numpy as np
+
+    from mi_lidar.loop.diagnosis_report import values_text
+
+    assert values_text(np.array([0.08219], np.float32)) == "0.08219"
+    assert values_text([0.5, 2.0]) == "[0.5, 2]"
+    assert values_text(np.full(180, 0.03, np.float32)) == "[180 values: min 0.03, median 0.03, max 0.03, RMS 0.03]"
+
+
+def test_the_compare_report_names_a_per_beam_effect_by_its_spread(tmp_path):
+    """compare's report began 'Model: range sigma 0.01 m, effects: range_bias(bias=[0.02 0.02 ...' with a value per
+    beam (360 on the room's scanner)."""
+    import dataclasses
+
+    import numpy as np
+
+    from mi_lidar.core.effects import parse_effects
+    from mi_lidar.loop import compare
+    from mi_lidar.scene.simulation import simulate
+
+    from .helpers import room
+
+    scene, model, poses = room(1)
+    log = simulate(scene, poses=poses, model=model, seed=1)
+    bias = "range_bias(bias=[" + ", ".join(f"{b:.3f}" for b in np.linspace(0.0, 0.02, 360)) + "])"
+    biased = dataclasses.replace(model, effects=parse_effects(bias))
+    compare(log, scene, biased, out=tmp_path)
+    head = (tmp_path / "report.md").read_text().splitlines()[2]
+    assert head.startswith("Model: range sigma 0.01 m, effects: range_bias (bias: [360 values: min 0, median 0.01")
+    assert len(head) < 200
