@@ -17,6 +17,7 @@ Every written scene holds a ``lidar`` sensor and a ``lidar_integrator``: it load
 
 from __future__ import annotations
 
+import shutil
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
@@ -30,6 +31,7 @@ from rich.table import Table
 from mi_lidar.core.atomic import staged_scene
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
+from mi_lidar.core.patterns import is_pattern_file
 from mi_lidar.hybrid.blocks import SceneSensor, assets_folder, write_scene
 from mi_lidar.hybrid.compose import (
     annotation_from_segments,
@@ -117,21 +119,29 @@ def write_scene_together(model: HybridModel, out_xml: Path, sensor: SceneSensor 
     """:func:`~mi_lidar.hybrid.blocks.write_scene` of ``model`` at ``out_xml``, the XML and its assets together or
     not at all (:func:`~mi_lidar.core.atomic.staged_scene`): a write that fails midway keeps a previous scene whole.
 
+    The XML names every file relative to itself, so its folder can be moved or shared whole.
+
     Args:
         model: the hybrid model.
         out_xml: the scene XML; its assets go to ``<stem>_assets/`` beside it.
-        sensor: the scene's sensor (None: shapes only), or
-        log: a log whose scan-0 pattern the sensor fires from its first pose, written as ``<stem>_assets/pattern.npy``
-            and named relative to the XML.
+        sensor: the scene's sensor (None: shapes only); a pattern given as a file (a table or Ouster metadata) is
+            copied to ``<stem>_assets/pattern<suffix>``, or
+        log: a log whose scan-0 pattern the sensor fires from its first pose, written as ``<stem>_assets/pattern.npy``.
 
     Returns:
-        The paths written: the XML, its PLY assets, then the pattern table when ``log`` is given.
+        The paths written: the XML, its PLY assets, then the pattern file when ``log`` is given or the sensor's pattern
+        is a file.
     """
     with staged_scene(out_xml) as staged:
         table = []
         if log is not None:
             table = [assets_folder(staged.parent, out_xml.stem) / "pattern.npy"]
-            sensor = replace(SceneSensor.from_log(log, table[0]), pattern=f"{table[0].parent.name}/{table[0].name}")
+            sensor = SceneSensor.from_log(log, table[0])
+        elif sensor is not None and is_pattern_file(sensor.pattern):
+            table = [assets_folder(staged.parent, out_xml.stem) / f"pattern{Path(sensor.pattern).suffix.lower()}"]
+            shutil.copyfile(sensor.pattern, table[0])
+        if table:
+            sensor = replace(sensor, pattern=f"{table[0].parent.name}/{table[0].name}")
         written = [*write_scene(model, staged.parent, out_xml.stem, sensor), *table]
     return [out_xml.parent / path.relative_to(staged.parent) for path in written]
 
@@ -264,7 +274,8 @@ def compose(annotation, library, out_xml, extent: float = 3.5, preview: bool = T
     rendered along the annotation's poses.
 
     Returns:
-        The paths written: the XML first, then its PLY assets and the previews.
+        The paths written: the XML first, then its PLY assets, the pattern file (when the annotation's sensor fires
+        one, copied beside the scene) and the previews.
     """
     objects, ground = load_annotation(annotation)
     model = compose_scene(objects, PrimitiveLibrary.load(library), ground, extent)

@@ -31,9 +31,8 @@ import numpy as np
 
 from mi_lidar.core.atomic import atomic_write_text
 from mi_lidar.hybrid.baselines import NeighborSimulator, box_surface_scene, mesh_model_scene
-from mi_lidar.hybrid.blocks import SceneSensor, assets_folder, write_scene
 from mi_lidar.hybrid.classes import GROUND_CLASSES, OBJECT_CLASSES
-from mi_lidar.hybrid.commands import render_previews
+from mi_lidar.hybrid.commands import render_previews, write_scene_together
 from mi_lidar.hybrid.compose import annotation_from_segments, compose_scene, save_annotation
 from mi_lidar.hybrid.evaluate import observation_metrics
 from mi_lidar.hybrid.fit import FitParams, fit_model, world_rays
@@ -80,8 +79,7 @@ def score(model, log, seed: int) -> dict:
 
 
 def _write(model, out: Path, name: str, log) -> Path:
-    sensor = SceneSensor.from_log(log, assets_folder(out, name) / "pattern.npy")
-    return write_scene(model, out, name, sensor)[0]
+    return write_scene_together(model, out / f"{name}.xml", log=log)[0]
 
 
 def run(
