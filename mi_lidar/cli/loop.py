@@ -114,9 +114,9 @@ def diagnose_command(
     from mi_lidar.scene.files import scene_with_effects
 
     density = None
-    if result.density is not None:  # a learned density replaced the scene's: save it beside the scene
+    if result.density is not None:  # a learned density replaced the scene's: save it beside the scene, which names
         saved = result.density.save(out / f"{result.density.name}.npz", notes={"from": "mi-lidar diagnose"})
-        density = f"{result.density.name}(file={Path(saved).resolve()})"
+        density = f"{result.density.name}(file={Path(saved).name})"  # it relative to itself: the folder moves whole
     effects = ", ".join(e.describe() for e in result.model.effects)
     found = scene_with_effects(scene, effects, out / "scene.xml", density)
     if as_json:

@@ -190,15 +190,15 @@ def scene_with_effects(source: str | Path, effects: str, path: str | Path, densi
     """Write a copy of the scene XML ``source`` whose ``lidar_integrator`` carries ``effects``, to ``path``.
 
     Used by ``diagnose`` to hand back the scene with the effects it found (the loop's next step is
-    ``compare`` or ``calibrate`` on that file). File references (``filename`` values, pattern tables)
-    are made absolute, so the copy loads from any folder.
+    ``compare`` or ``calibrate`` on that file). The source's file references (``filename`` values, pattern
+    tables, its density's ``file=`` tables) are made absolute, so the copy loads from any folder.
 
     Args:
         source: the scene XML.
         effects: the effects in the catalog's spec syntax, e.g. ``"range_bias(bias=0.02)"`` ("" for none).
         path: the output XML.
-        density: a return density to set as well, e.g. ``"np_reg(file=/abs/np_reg.npz)"`` (None: the
-            scene's stays).
+        density: a return density to set as well, e.g. ``"np_reg(file=np_reg.npz)"``, its file named relative
+            to ``path``'s folder or absolute (None: the scene's stays).
 
     Raises:
         ParameterError: the scene has no ``<integrator type="lidar_integrator">``.
@@ -215,6 +215,15 @@ def scene_with_effects(source: str | Path, effects: str, path: str | Path, densi
 
     text = re.sub(r'(name="filename"\s+value=)"([^"]+)"', absolute, text)
     text = re.sub(r'(name="pattern"\s+value=)"([^"]+\.(?:npy|csv|txt))"', absolute, text)
+
+    def absolute_tables(match: re.Match) -> str:  # the file= arguments of a density spec
+        def one(argument: re.Match) -> str:
+            value = argument.group(2)
+            return argument.group(1) + (value if Path(value).is_absolute() else str(folder / value))
+
+        return match.group(1) + '"' + re.sub(r"(\bfile\s*=\s*)([^,)\s]+)", one, match.group(2)) + '"'
+
+    text = re.sub(r'(name="density"\s+value=)"([^"]+)"', absolute_tables, text)
     settings = {"effects": effects} if density is None else {"effects": effects, "density": density}
     for name, value in settings.items():
         opening = re.search(r'<integrator\s+type="lidar_integrator"[^>]*?(/?)>', text)

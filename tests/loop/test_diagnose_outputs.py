@@ -72,6 +72,27 @@ def test_a_joined_learned_density_is_saved_and_referenced_by_the_written_scene(t
     monkeypatch.chdir(tmp_path / "d")
     found, _ = scene_sensor_model(load_scene(tmp_path / "d" / "scene.xml"))
     assert isinstance(found.density, NPRegDensity) and found.effects == []
+    # the scene names its tables relative to itself (it named them by their absolute path): the folder moves whole
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "d").rename(tmp_path / "moved")
+    found, _ = scene_sensor_model(mi.load_file(str(tmp_path / "moved" / "scene.xml")))
+    assert isinstance(found.density, NPRegDensity)
+
+
+def test_the_copy_of_a_scene_finds_the_density_tables_named_relative_to_the_source(tmp_path):
+    """A scene diagnose wrote names its density's tables relative to itself; a copy written elsewhere (the next
+    diagnose's scene.xml) kept the relative name and looked for the tables beside the copy."""
+    from mi_lidar.core.densities import NPRegDensity
+    from mi_lidar.core.densities.tables import StateGrid
+
+    grid = StateGrid(range_edges=[0.0, 5.0, 1.0e9], incidence_edges=[0.0, 45.0, 90.0], n_labels=2)
+    NPRegDensity(grid=grid).save(tmp_path / "first" / "np_reg.npz")
+    first = scene_with_effects(
+        SCENES / "indoor_planar.xml", "", tmp_path / "first" / "scene.xml", "np_reg(file=np_reg.npz)"
+    )
+    second = scene_with_effects(first, "range_bias(bias=0.02)", tmp_path / "second" / "scene.xml")
+    model, _ = scene_sensor_model(mi.load_file(str(second)))
+    assert isinstance(model.density, NPRegDensity) and [e.name for e in model.effects] == ["range_bias"]
 
 
 def test_a_scanner_of_many_beams_is_drawn_by_groups_of_neighbouring_beams():
