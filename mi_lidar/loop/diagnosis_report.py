@@ -20,9 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_write_text
-from mi_lidar.io.markdown import markdown_to_html, plain
+from mi_lidar.io.markdown import markdown_to_html, plain, words
 from mi_lidar.loop.residuals import (
     MIN_GROUP,
+    PARAGRAPH,
     UNITS,
     Structure,
     group_index,
@@ -43,7 +44,7 @@ def values_text(values) -> str:
 
 
 def verdict(d) -> str:
-    """The diagnosis in plain words; it names exactly the rows the tables mark ``joined``."""
+    """The diagnosis in plain words, a paragraph per finding; it names exactly the rows the tables mark ``joined``."""
     parts = []
     rows = [c for r in d.rounds for c in r]
     if not d.selected:
@@ -82,7 +83,7 @@ def verdict(d) -> str:
         if groups:
             g = groups[0]
             text += (
-                f" Its signature shows by {g['breakdown']}: in {g['group']} the NLL falls from "
+                f" Its signature shows by {words(g['breakdown'])}: in {g['group']} the NLL falls from "
                 f"{g['nll_before']:.3f} to {g['nll_after']:.3f} nats/ray."
             )
         parts.append(text)
@@ -108,7 +109,7 @@ def verdict(d) -> str:
                 "but leaves this structure, so its fitted values describe an average, not the cause."
             )
         parts.append(left + " See residual_structure.png.")
-    return " ".join(parts)
+    return PARAGRAPH.join(parts)
 
 
 def _ranking(d) -> list[str]:
@@ -169,7 +170,7 @@ def diagnosis_markdown(d) -> str:
             "|---|---|---|---|---|",
         ]
         lines += [
-            f"| {g['breakdown']} | {g['group']} | {g['rays']} | {g['nll_before']:.3f} | {g['nll_after']:.3f} |"
+            f"| {words(g['breakdown'])} | {g['group']} | {g['rays']:,} | {g['nll_before']:.3f} | {g['nll_after']:.3f} |"
             for g in ev["groups"]
         ]
         lines.append("")

@@ -42,6 +42,8 @@ CLOSEST = {
     ("returns", "label"): "label_dropout",
 }
 GUIDE = "docs/writing_an_effect.md"
+PARAGRAPH = "\n\n"  # between the paragraphs of a verdict: Markdown paragraphs, separate lines in a terminal
+MANY_GROUPS = 32  # a panel of more groups (a scanner's beams) draws a band of 2 standard errors, not a bar each
 UNITS = {"time": "s", "azimuth": "deg", "beam": "", "range": "m", "label": "", "incidence": "deg"}
 
 
@@ -160,7 +162,11 @@ def residual_structure(
 
 
 def structure_verdict(found: list[Structure]) -> str:
-    """The plain-words sentence for the flagged dimensions ('' when none)."""
+    """The plain-words paragraphs for the flagged dimensions, one each, then what to do ('' when none).
+
+    The paragraphs are separated by a blank line (Markdown paragraphs; a line each in a terminal): six
+    flagged dimensions made one paragraph of 20 terminal lines that said six times where the guide is.
+    """
     flagged = [s for s in found if s.flagged]
     if not flagged:
         return ""
@@ -174,10 +180,11 @@ def structure_verdict(found: list[Structure]) -> str:
         parts.append(
             f"The model still misses something that varies with {s.dimension}; no catalog effect explains it "
             f"({what}; chi2 {s.chi2:.0f} for {s.dof} degrees of freedom, p = {s.p_value:.1g}). "
-            f"The closest catalog effect is {CLOSEST[(s.channel, s.dimension)]}; to model it, write a new "
-            f"effect ({GUIDE})."
+            f"The closest catalog effect is {CLOSEST[(s.channel, s.dimension)]}."
         )
-    return " ".join(parts)
+    what = "it" if len(flagged) == 1 else "what no catalog effect explains"
+    parts.append(f"To model {what}, write a new effect ({GUIDE}).")
+    return PARAGRAPH.join(parts)
 
 
 def plot_structure(found: list[Structure], path: Path) -> Path:
@@ -202,14 +209,23 @@ def plot_structure(found: list[Structure], path: Path) -> Path:
                 continue
             scale = 100.0  # cm or percentage points
             colour = "tab:red" if s.flagged else "tab:blue"
-            ax.errorbar(s.centers, scale * s.difference, yerr=2 * scale * s.error, fmt="o-", color=colour, ms=3)
             ax.axhline(0.0, color="grey", lw=0.6)
+            ax.set_xlabel(f"{dimension} ({UNITS[dimension]})" if UNITS[dimension] else dimension)
+            if s.dof == 0:  # one group (one label in the scene): nothing to compare it with
+                ax.set_xticks([])
+                ax.text(0.5, 0.5, f"one {dimension} group:\nnothing to compare", ha="center", transform=ax.transAxes)
+                continue
+            y, e = scale * s.difference, 2 * scale * s.error
+            if s.centers.size > MANY_GROUPS:  # 180 error bars are a solid smear: a line in a band
+                ax.fill_between(s.centers, y - e, y + e, color=colour, alpha=0.25, lw=0)
+                ax.plot(s.centers, y, "-", color=colour, lw=0.8)
+            else:
+                ax.errorbar(s.centers, y, yerr=e, fmt="o-", color=colour, ms=3)
             low, high = ax.get_ylim()  # at least +-1 cm / point, so that agreement looks flat
             ax.set_ylim(min(low, -1.0), max(high, 1.0))
-            ax.set_xlabel(f"{dimension} ({UNITS[dimension]})" if UNITS[dimension] else dimension)
             ax.set_title(f"p = {s.p_value:.1g}", fontsize=8, color=colour)
             if col == 0:
                 ax.set_ylabel("range residual, cm" if channel == "range" else "return rate, points")
-    fig.suptitle("Measured minus model, per group (bars: 2 standard errors; red: structure left)")
+    fig.suptitle("Measured minus model, per group (bars or band: 2 standard errors; red: structure left)")
     fig.tight_layout()
     return save_figure(fig, path)

@@ -125,9 +125,9 @@ def check_log_sensor(log, scene, pattern=None, force: bool = False) -> None:
     if found:
         named = f"{log.source}: the" if log.source else "the"
         raise SensorMismatchError(
-            f"{named} log's sensor ({measured.describe('returns up to')}) does not match the scene's `lidar` sensor "
-            f"({expected.describe('max range')}): {'; '.join(found)}. Use the scene the log was recorded in, set "
-            "the scene sensor's pattern to the log's, or pass --force to go on anyway"
+            f"{named} log's sensor ({measured.describe('99 % of returns within')}) does not match the scene's "
+            f"`lidar` sensor ({expected.describe('max range')}): {'; '.join(found)}. Use the scene the log was "
+            "recorded in, set the scene sensor's pattern to the log's, or pass --force to go on anyway"
         )
 
 

@@ -75,3 +75,29 @@ def test_a_breakdown_of_many_groups_names_at_most_twenty():
     report.label_groups(ax, names[:7])
     assert [t.get_text() for t in ax.get_xticklabels()] == names[:7]
     plt.close(figure)
+
+
+def test_the_structure_figure_draws_many_beams_as_a_band_and_one_label_as_a_note(monkeypatch, tmp_path):
+    """On Intel (180 beams, one label) the beam panels were 180 overlapping error bars, a solid smear, and the
+    label panels one point over an axis from 0.96 to 1.04."""
+    saved = capture(monkeypatch, report)
+    found = [structure(d, c, n) for d, n in (("beam", 180), ("range", 12), ("label", 1)) for c in ("range", "returns")]
+    residuals.plot_structure(found, tmp_path / "s.png")
+    axes = [a for a in saved["figure"].axes if a.get_visible()]
+    beam, few, label = axes[:3]
+    assert not beam.containers and len(beam.collections) == 1  # one band, no error bars
+    assert len(few.containers) == 1  # 12 groups: error bars
+    assert "nothing to compare" in label.texts[0].get_text() and not label.lines[1:]
+
+
+def test_the_verdict_of_the_structure_left_names_the_guide_once_with_a_paragraph_per_dimension():
+    """Six flagged dimensions made one paragraph of 20 terminal lines, each sentence ending with the guide."""
+    flagged = [
+        Structure(d, c, np.arange(3.0), np.zeros(3), np.ones(3), 50.0, 2, 1e-9, 0.02, True)
+        for d, c in (("time", "returns"), ("range", "returns"), ("beam", "range"))
+    ]
+    text = residuals.structure_verdict(flagged)
+    paragraphs = text.split("\n\n")
+    assert len(paragraphs) == 4 and all("varies with" in p for p in paragraphs[:3])
+    assert text.count(residuals.GUIDE) == 1 and paragraphs[-1].startswith("To model what no catalog effect explains")
+    assert residuals.structure_verdict(flagged[:1]).endswith(f"To model it, write a new effect ({residuals.GUIDE}).")
