@@ -218,7 +218,13 @@ def beam_blocks(t: RayTable, blocks: int = BEAM_BLOCKS) -> list[dict]:
     bearing[t.beam] = t.azimuth  # one of each beam's azimuths
     turn = (t.azimuth - bearing[t.beam] + 180.0) % 360.0 - 180.0  # each ray's azimuth from its beam's, deg
     if np.all(np.abs(turn) < 0.5) and np.all(np.isfinite(bearing)):
-        names = [f"{name} ({bearing[a]:+.0f}..{bearing[b]:+.0f} deg)" for name, a, b in zip(names, first, last)]
+        step = float(np.median(np.abs(np.diff(bearing)))) if n > 1 else 1.0
+        digits = 0 if step > 0.95 else 1  # 0.5 deg beams: -75.0..-60.5, not -75..-60 and then -60..-46
+
+        def angle(deg: float) -> str:
+            return f"{round(float(deg), digits) + 0.0:+.{digits}f}"  # + 0.0: no '-0'
+
+        names = [f"{name} ({angle(bearing[a])}..{angle(bearing[b])} deg)" for name, a, b in zip(names, first, last)]
     rows = group_rows(t, np.asarray(names)[t.beam // size], names)
     covered = dict(zip(names, (last - first + 1).tolist()))
     return [dict(row, beams=covered[row["group"]]) for row in rows]

@@ -52,3 +52,17 @@ def test_a_few_beams_are_listed_one_per_row(tmp_path):
     assert result.beam_blocks == [] and "beam_blocks" not in json.loads((tmp_path / "comparison.json").read_text())
     section = (tmp_path / "report.md").read_text().split("### By beam")[1].split("###")[0]
     assert len([line for line in section.splitlines() if line.startswith("| beam ")]) == 16
+
+
+def test_block_bearings_keep_the_beam_spacing_and_never_read_minus_zero():
+    """Freiburg 079 (360 beams over 180 deg) read 'beams 30-59 (-75..-60 deg)', 'beams 60-89 (-60..-46 deg)' and
+    'beams 150-179 (-15..-0 deg)'."""
+    t = table(np.zeros(720))
+    t.beam = np.arange(720) % 360
+    t.azimuth = -90.0 + 0.5 * t.beam
+    names = [r["group"] for r in beam_blocks(t)]
+    assert names[1] == "beams 30-59 (-75.0..-60.5 deg)" and names[5] == "beams 150-179 (-15.0..-0.5 deg)"
+    t.beam = np.arange(720) % 180
+    t.azimuth = -89.3 + 1.0 * t.beam  # 1 deg beams: whole degrees; beam 89 at -0.3 deg
+    names = [r["group"] for r in beam_blocks(t)]
+    assert names[5] == "beams 75-89 (-14..+0 deg)" and names[6] == "beams 90-104 (+1..+15 deg)"
