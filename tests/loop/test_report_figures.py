@@ -101,3 +101,21 @@ def test_the_verdict_of_the_structure_left_names_the_guide_once_with_a_paragraph
     assert len(paragraphs) == 4 and all("varies with" in p for p in paragraphs[:3])
     assert text.count(residuals.GUIDE) == 1 and paragraphs[-1].startswith("To model what no catalog effect explains")
     assert residuals.structure_verdict(flagged[:1]).endswith(f"To model it, write a new effect ({residuals.GUIDE}).")
+
+
+def test_the_breakdown_figure_draws_every_beam(monkeypatch, tmp_path):
+    """The panel by beam drew every 9th of Freiburg 079's 360 beams (40 bars) and said nothing of it."""
+    saved = capture(monkeypatch, report)
+
+    def rows(n: int, name: str) -> list[dict]:
+        return [
+            {"group": f"{name} {i}", "nll": 1.0 + i % 7, "hit_rate_measured": 0.9, "hit_rate_simulated": 1.0}
+            for i in range(n)
+        ]
+
+    groups = {"range": 6, "incidence": 6, "azimuth": 6, "beam": 360, "label": 1, "time": 10}
+    result = SimpleNamespace(breakdowns={k: rows(n, k) for k, n in groups.items()}, headline={"nll": 3.0})
+    report.plot_breakdowns(result, tmp_path / "b.png")
+    panels = {a.get_title(): a for a in saved["figure"].axes if a.get_title()}
+    assert len(panels["by beam"].patches) == 360 and len(panels["by time"].patches) == 10
+    assert len(panels["by beam"].get_xticklabels()) == report.MAX_GROUP_LABELS  # names still thinned
