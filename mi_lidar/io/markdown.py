@@ -87,6 +87,17 @@ def spread(values) -> str:
     return f"{size:,} values: {figures}" if size else "no values"
 
 
+def p_value(p: float, digits: int = 2) -> str:
+    """A p-value for a table: ``2.3e-50``; ``< 1e-300`` where it underflowed to 0 (it printed as ``0``)."""
+    return "< 1e-300" if p == 0 else f"{p:.{digits}g}"
+
+
+def p_phrase(p: float, digits: int = 2) -> str:
+    """A p-value in a sentence: ``p = 2.3e-50``, ``p < 1e-300``."""
+    value = p_value(p, digits)
+    return f"p {value}" if value.startswith("<") else f"p = {value}"
+
+
 def plain(value) -> str:
     """A JSON-like value as short readable text for a report: floats to 4 significant digits, lists
     joined by commas (a list of more than :data:`LISTED` numbers as its :func:`spread`), mappings as

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_write_text
-from mi_lidar.io.markdown import markdown_to_html, plain, words
+from mi_lidar.io.markdown import markdown_to_html, p_phrase, p_value, plain, words
 from mi_lidar.loop.residuals import (
     MIN_GROUP,
     PARAGRAPH,
@@ -53,7 +53,7 @@ def verdict(d) -> str:
         if best is not None and not best.significant:
             parts.append(
                 f"The best candidate, {best.name}, gains {best.test_gain:+.4f} nats/ray held out "
-                f"(p = {best.p_value:.2g})."
+                f"({p_phrase(best.p_value)})."
             )
     for name in d.selected:
         c = next(c for c in rows if c.name == name and c.status == JOINED)
@@ -65,7 +65,7 @@ def verdict(d) -> str:
             instead = f"the model with {', '.join(replaced)}" if replaced else "the given model"
             text = (
                 f"No combination of catalog effects explains the log as well as a learned density: **{name}** "
-                f"replaces the model's return density, {gain}against {instead} (held-out p = {c.p_value:.2g}). "
+                f"replaces the model's return density, {gain}against {instead} (held-out {p_phrase(c.p_value)}). "
                 "It describes what the sensor does without saying why; a physical effect would say more (see "
                 "docs/writing_an_effect.md)."
             )
@@ -76,9 +76,8 @@ def verdict(d) -> str:
                 for key, v in d.parameters.items()
                 if key.split(".")[0] == mine
             )
-            text = (
-                f"The model is missing **{name}** ({params}): {gain}(held-out p = {c.p_value:.2g}; {c.k} parameter(s))."
-            )
+            held = f"held-out {p_phrase(c.p_value)}; {c.k} parameter(s)"
+            text = f"The model is missing **{name}** ({params}): {gain}({held})."
         groups = next((e["groups"] for e in d.evidence if e["effect"] == name), [])
         if groups:
             g = groups[0]
@@ -120,16 +119,22 @@ def _ranking(d) -> list[str]:
             "## Learned densities against the model with the effects found" if learned else f"## Round {i + 1}",
             "",
             "| rank | candidate | k | held-out gain (nats/ray) | gain % | held-out p | significant | status "
-            "| train LR |",
+            "| training LR statistic |",
             "|---|---|---|---|---|---|---|---|---|",
         ]
         for j, c in enumerate(ranked):
             pct = "-" if math.isnan(c.test_gain_pct) else f"{c.test_gain_pct:+.2f}"
             lines.append(
-                f"| {j + 1} | {c.name} | {c.k} | {c.test_gain:+.4f} | {pct} | {c.p_value:.2g} | "
-                f"{'yes' if c.significant else 'no'} | {c.status or '-'} | {c.lr:.1f} |"
+                f"| {j + 1} | {c.name} | {c.k} | {c.test_gain:+.4f} | {pct} | {p_value(c.p_value)} | "
+                f"{'yes' if c.significant else 'no'} | {c.status or '-'} | {c.lr:,.1f} |"
             )
         lines.append("")
+    if d.rounds:
+        lines += [
+            "k: fitted parameters (one per beam or label for a per-beam or per-label effect); training LR statistic: "
+            "twice the log-likelihood gain on the fitting rays (nats), reported, not used to rank.",
+            "",
+        ]
     if any(c.kind == "density" for r in d.rounds for c in r):
         lines += [
             "A learned density replaces the model with the effects found only when it beats it significantly held "
@@ -200,7 +205,7 @@ def structure_row(st: Structure) -> str:
         return f"| {st.dimension} | {st.channel} | - | - | - | - | {untestable} |"
     unit = "m" if st.channel == "range" else ""
     return (
-        f"| {st.dimension} | {st.channel} | {st.chi2:.1f} | {st.dof} | {st.p_value:.2g} | "
+        f"| {st.dimension} | {st.channel} | {st.chi2:.1f} | {st.dof} | {p_value(st.p_value)} | "
         f"{st.departure:.4f} {unit} | {'yes' if st.flagged else 'no'} |"
     )
 

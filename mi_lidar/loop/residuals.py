@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from mi_lidar.io.markdown import p_phrase
+
 P_STRUCTURE = 1e-6
 NEAR = 0.5  # m: returns this close to the first element's nominal range enter the range channel
 MIN_RANGE_DEPARTURE = 0.003  # m: RMS spread of the groups' range differences beyond their noise
@@ -179,7 +181,7 @@ def structure_verdict(found: list[Structure]) -> str:
         )
         parts.append(
             f"The model still misses something that varies with {s.dimension}; no catalog effect explains it "
-            f"({what}; chi2 {s.chi2:.0f} for {s.dof} degrees of freedom, p = {s.p_value:.1g}). "
+            f"({what}; chi2 {s.chi2:.0f} for {s.dof} degrees of freedom, {p_phrase(s.p_value, 1)}). "
             f"The closest catalog effect is {CLOSEST[(s.channel, s.dimension)]}."
         )
     what = "it" if len(flagged) == 1 else "what no catalog effect explains"
@@ -223,7 +225,7 @@ def plot_structure(found: list[Structure], path: Path) -> Path:
                 ax.errorbar(s.centers, y, yerr=e, fmt="o-", color=colour, ms=3)
             low, high = ax.get_ylim()  # at least +-1 cm / point, so that agreement looks flat
             ax.set_ylim(min(low, -1.0), max(high, 1.0))
-            ax.set_title(f"p = {s.p_value:.1g}", fontsize=8, color=colour)
+            ax.set_title(p_phrase(s.p_value, 1), fontsize=8, color=colour)
             if col == 0:
                 ax.set_ylabel("range residual, cm" if channel == "range" else "return rate, points")
     fig.suptitle("Measured minus model, per group (bars or band: 2 standard errors; red: structure left)")

@@ -34,3 +34,11 @@ def test_effects_read_with_their_values_summarised():
         "incidence_dropout (law: cos; mode: stop; gamma: 2)"
     )
     assert effects_text([]) == "none" and len(effects[0].describe().split()) == 16
+
+
+def test_a_p_value_that_underflowed_reads_as_a_bound():
+    """diagnose printed 'held-out p = 0' and a ranking column of 0 where the p-value underflowed."""
+    from mi_lidar.io.markdown import p_phrase, p_value
+
+    assert p_value(0.0) == "< 1e-300" and p_phrase(0.0) == "p < 1e-300"
+    assert p_value(2.34e-50) == "2.3e-50" and p_phrase(2.34e-50) == "p = 2.3e-50" and p_phrase(0.2, 1) == "p = 0.2"

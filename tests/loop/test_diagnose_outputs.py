@@ -27,6 +27,8 @@ def test_diagnose_writes_html_and_the_scene_with_the_found_effect(tmp_path, monk
     assert_whole(result.stdout, f"{report['nll_before']:.4f}", f"{report['nll_after']:.4f}")
     page = (tmp_path / "d" / "diagnosis.html").read_text()
     assert "range_bias" in page and "realism of samples" in page and 'src="before_after_1.png"' in page
+    # the ranking's last column read 'train LR' (a learning rate?) with no word of what it is
+    assert "<th>training LR statistic</th>" in page and "twice the log-likelihood gain" in page
     assert (tmp_path / "d" / "before_after_1.png").stat().st_size > 10_000
     realism = json.loads((tmp_path / "d" / "diagnosis.json").read_text())["realism"]
     assert [r["model"] for r in realism] == ["given model", "+ range_bias", "final model"]
