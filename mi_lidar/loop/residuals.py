@@ -211,12 +211,13 @@ def plot_structure(found: list[Structure], path: Path) -> Path:
                 continue
             scale = 100.0  # cm or percentage points
             colour = "tab:red" if s.flagged else "tab:blue"
-            ax.axhline(0.0, color="grey", lw=0.6)
             ax.set_xlabel(f"{dimension} ({UNITS[dimension]})" if UNITS[dimension] else dimension)
             if s.dof == 0:  # one group (one label in the scene): nothing to compare it with
                 ax.set_xticks([])
+                ax.set_yticks([])
                 ax.text(0.5, 0.5, f"one {dimension} group:\nnothing to compare", ha="center", transform=ax.transAxes)
                 continue
+            ax.axhline(0.0, color="grey", lw=0.6)
             y, e = scale * s.difference, 2 * scale * s.error
             if s.centers.size > MANY_GROUPS:  # 180 error bars are a solid smear: a line in a band
                 ax.fill_between(s.centers, y - e, y + e, color=colour, alpha=0.25, lw=0)
