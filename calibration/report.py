@@ -262,6 +262,10 @@ def write_report(out, result: FitResult, scene, units: dict, title: str, pattern
     return files
 
 
+SHARED_KEPT = (
+    "The fit beam by beam did not score the held-out rays better than the shared start: the values of the shared "
+    "start are kept (one value on every beam)."
+)  # said where a user otherwise sees 180 equal per-beam values and wonders why
 CHANGE_HEADERS = {"mean_abs_change": "mean |change|", "max_abs_change": "max |change|"}  # words() for the rest
 
 
@@ -289,6 +293,7 @@ def calibration_markdown(
         + f"fitted **{nll['fitted']:.4f}**; {summary['steps_run']} Adam steps"
         + (" (stopped early: the held-out loss stopped falling)." if summary["stopped_early"] else "."),
         "",
+        *([SHARED_KEPT, ""] if nll.get("shared_start") == nll["fitted"] else []),
         *_samples_table(summary.get("held_out_samples", {})),
         "## Parameters",
         "",

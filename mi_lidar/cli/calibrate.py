@@ -8,8 +8,10 @@ from pathlib import Path
 import typer
 from rich.console import Group
 from rich.table import Table
+from rich.text import Text
 
 from mi_lidar.calibration.commands import calibrate_command
+from mi_lidar.calibration.report import SHARED_KEPT
 from mi_lidar.calibration.result import FitResult
 from mi_lidar.cli.app import MAX_STEPS, app, console, force_option, warn
 from mi_lidar.cli.progress import progress
@@ -46,11 +48,12 @@ def result_table(result: FitResult) -> Group:
         ("nats/ray",),
         caption=f"after {result.steps_run} Adam steps" + (" (early stop)" if result.stopped_early else ""),
     )
+    kept = [Text(SHARED_KEPT)] if result.shared and result.shared_nll == result.fitted_nll else []
     rows = [("initial", result.initial_nll), ("counting", result.counting_nll)]
     rows += [("shared start", result.shared_nll)] if result.shared else []
     for name, nll in rows + [("fitted", result.fitted_nll)]:
         losses.add_row(name, figure(nll, 4))  # as report.html writes it
-    return Group(changes, *([spreads] if many else []), losses)
+    return Group(changes, *([spreads] if many else []), losses, *kept)
 
 
 @app.command(rich_help_panel="The loop")

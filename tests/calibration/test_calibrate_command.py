@@ -6,6 +6,7 @@ import re
 import mitsuba as mi
 import numpy as np
 import pytest
+from rich.console import Console
 from typer.testing import CliRunner
 
 import mi_lidar
@@ -169,3 +170,36 @@ def test_returns_no_element_explains_cost_the_floor_and_still_fit():
     floor = np.log(1e-9)
     assert scored.min() >= floor - 1e-3  # nothing costs more than the floor
     assert np.sum(scored < floor + 0.1) > 100  # the unexplained returns cost about the floor
+
+
+def test_a_shared_start_that_the_fit_beam_by_beam_did_not_beat_is_said_to_be_kept():
+    """Intel (--pattern log, -p sensor.range_bias): 180 equal per-beam biases, shared start and fitted NLL both 3.7888,
+    and nothing said why."""
+    from types import SimpleNamespace
+
+    from mi_lidar.calibration.report import SHARED_KEPT, calibration_markdown
+    from mi_lidar.cli.calibrate import result_table
+    from tests.terminal import WIDTH
+
+    row = {"parameter": "sensor.range_bias", "values": 180, "unit": "m", "mean_before": 0.0, "mean_after": 0.036}
+    summary = {"steps_run": 230, "stopped_early": True, "effects": [], "warnings": []}
+    nll = {"initial": 9.2763, "counting": 4.5964, "shared_start": 3.7888}
+    kept = calibration_markdown({**summary, "held_out_nll": {**nll, "fitted": 3.7888}}, [row], "t")
+    beaten = calibration_markdown({**summary, "held_out_nll": {**nll, "fitted": 3.70}}, [row], "t")
+    assert SHARED_KEPT in kept and SHARED_KEPT not in beaten
+    bias = np.full(180, 0.036)
+    result = SimpleNamespace(
+        names=["sensor.range_bias"],
+        initial={"sensor.range_bias": bias * 0},
+        fitted={"sensor.range_bias": bias},
+        steps_run=230,
+        stopped_early=True,
+        initial_nll=9.2763,
+        counting_nll=4.5964,
+        shared={"sensor.range_bias": 0.036},
+        shared_nll=3.7888,
+        fitted_nll=3.7888,
+    )
+    console = Console(width=WIDTH, record=True)
+    console.print(result_table(result))
+    assert " ".join(SHARED_KEPT.split()) in " ".join(console.export_text().split())
