@@ -339,12 +339,12 @@ def fit_permeable_map(
     (:func:`~mi_lidar.planar.tails.fit_tails`, then
     :func:`~mi_lidar.planar.tails.match_short_returns`, on evenly spaced training scans of at most
     :data:`TAIL_BEAMS` beams) and their no-return probabilities
-    (:func:`~mi_lidar.planar.tails.match_misses`, on all training beams: no-returns come in runs of
-    whole scans); none with ``tails=False``; last, the angular spread (the neighbours' share) by
-    maximum likelihood on the training beams. Its beams are sampled independently until
-    :func:`fit_correlation` sets how much neighbours share their errors. Every fit of the Beta prior
-    starts from the previous one's, the first from ``prior`` (default 0.5 each): a starting point,
-    not a constraint.
+    (:func:`~mi_lidar.planar.tails.match_misses`, per range band of the first occupied cell, on all
+    training beams: no-returns come in runs of whole scans); none with ``tails=False``; last, the
+    angular spread (the neighbours' share) by maximum likelihood on the training beams. Its beams are
+    sampled independently until :func:`fit_correlation` sets how much neighbours share their errors.
+    Every fit of the Beta prior starts from the previous one's, the first from ``prior`` (default 0.5
+    each): a starting point, not a constraint.
     """
     h_r, h_i, u, reach = bandwidths
     end = support_end(samples_of(train), reach, z_max)
@@ -389,7 +389,8 @@ def fit_permeable_map(
         some = fitted.beams(part)
         density = match_short_returns(some, part, fit_tails(some, density, z_max), z_max)
         mixture.weight = fitted.angular  # built before the spread was known
-        fitted.model = base_model(match_misses(mixture, density, z_max))
+        first_range = np.where(first >= 0, train.seg_at[np.maximum(first, 0)], np.nan)
+        fitted.model = base_model(match_misses(mixture, density, z_max, first_range, RANGE_EDGES))
         fitted.angular = angular_share()
     return fitted
 

@@ -3,13 +3,15 @@ no-return probabilities matched to the training beams (tails.match_misses)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
 from mi_lidar.io.carmen import read_carmen
-from mi_lidar.planar.models import base_model, fit_permeable_map
+from mi_lidar.planar import tails
+from mi_lidar.planar.models import base_model, first_occupied, fit_permeable_map
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
 from mi_lidar.planar.tails import (
     FAR,
@@ -104,14 +106,59 @@ def test_no_returns_are_matched_to_the_training_beams(tmp_path):
     density = fitted.model.density
     doubled = density.with_tables(p_null=np.minimum(2.0 * density.p_null, 1.0))
     assert p_miss(doubled) > 1.3 * measured
-    matched = match_misses(beams, doubled, z_max)
+    first, one_band = first_ranges(data.train), [0.0, 1.0e9]
+    matched = match_misses(beams, doubled, z_max, first, one_band)
     assert p_miss(matched) == pytest.approx(measured, abs=2e-4)
     escaping = doubled.with_tables(p_null=np.concatenate([doubled.p_null[:-1], [0.6]]))
-    assert match_misses(beams, escaping, z_max).p_null[-1] == 0.6  # the escape state keeps its counted P(null)
+    assert match_misses(beams, escaping, z_max, first, one_band).p_null[-1] == 0.6  # the escape state keeps its P(null)
     assert nll(matched) < nll(doubled) - 0.003, (nll(matched), nll(doubled))
-    again = match_misses(beams, density, z_max)
+    again = match_misses(beams, density, z_max, first, one_band)
     assert abs(p_miss(again) - measured) <= abs(p_miss(density) - measured)  # closer (P(miss) capped at 1)
     assert nll(again) < nll(density) + MISS_TOLERANCE
+
+
+def first_ranges(trace) -> np.ndarray:
+    """(B,) range (m) of each beam's first occupied cell (NaN: none), as the fit gives match_misses."""
+    first = first_occupied(trace)
+    return np.where(first >= 0, trace.seg_at[np.maximum(first, 0)], np.nan)
+
+
+def test_no_returns_are_matched_per_range_band(tmp_path, monkeypatch):
+    """A sensor that misses more often the farther its first wall (P(miss) = 0.6 r / r_max, drawn with a
+    fixed seed) and tables whose no-return probabilities are all 0.1: one common factor matches the overall
+    rate but leaves the near band over and the far band under its rate by more than 0.05; matched per band
+    (bands of at least 500 beams), every band's mean P(miss) is within 0.01 of its rate (float32 sums and
+    the coupling left after MISS_ROUNDS rounds), and the training score improves on the common factor's."""
+    monkeypatch.setattr(tails, "MISS_BAND_BEAMS", 500)
+    path = tmp_path / "room.log"
+    path.write_text(room_log_text(scans=30))
+    data = prepare(read_carmen(path), PlanarProtocol(window=5.0))
+    first = first_ranges(data.train)
+    far = np.nanmax(first)
+    drop = np.random.default_rng(7).random(first.size) < 0.6 * np.nan_to_num(first) / far
+    train = dataclasses.replace(data.train, z=np.where(drop, np.nan, data.train.z))
+    z_max = float(np.nanmax(data.log.ranges)) + 1.0
+    fitted = fit_permeable_map(train, z_max, (1.0, 0.2, 0.01, math.inf), 1, rounds=1, tails=False)
+    beams = fitted.beams(train)
+    density = fitted.model.density
+    flat = density.with_tables(p_null=np.concatenate([np.full(density.grid.size, 0.1), [0.5]]))
+    edges = [0.0, 1.5, 3.0, 4.5, 6.0, 1.0e9]
+    bands = tails.miss_bands(first, edges)
+    assert bands.size >= 4, bands  # at least three bands of >= 500 beams
+    band = np.where(np.isfinite(first), np.clip(np.searchsorted(bands, first, side="right") - 1, 0, bands.size - 2), -1)
+
+    def errors(density) -> np.ndarray:
+        p = beams.p_miss(base_model(density))
+        return np.array([p[band == b].mean() - np.mean(~train.hit[band == b]) for b in range(bands.size - 1)])
+
+    def nll(density) -> float:
+        return float(-np.mean(beams.log_likelihood(base_model(density))))
+
+    common = match_misses(beams, flat, z_max, first, [0.0, 1.0e9])
+    assert errors(common)[0] > 0.05 and errors(common)[-1] < -0.05, errors(common)
+    banded = match_misses(beams, flat, z_max, first, edges)
+    assert np.all(np.abs(errors(banded)) < 0.01), errors(banded)
+    assert nll(banded) < nll(common) - 0.005, (nll(banded), nll(common))
 
 
 def test_a_heavy_short_tail_is_matched_to_the_measured_short_returns(room_map):
