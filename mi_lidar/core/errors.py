@@ -38,6 +38,10 @@ class ParameterError(MiLidarError, ValueError):
     """A plugin, pattern or effect parameter is out of range or unknown."""
 
 
+class FitError(ParameterError):
+    """A fit cannot take its next step: its loss, or the gradient of some of its parameters, is not finite."""
+
+
 class PatternError(ParameterError):
     """A firing pattern name or table is invalid."""
 

@@ -53,7 +53,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_lidar.core.arrays import aligned
-from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.errors import FitError, ParameterError
 
 TRANSFORMS = ("value", "log", "logit")
 FIXED_POINT_BITS = 61  # a fixed-point sum keeps |sum| below 2^61 (Int64)
@@ -344,6 +344,29 @@ def natural_gradient(
     return total, tape.gradients({v.name: v.size for v in variables})
 
 
+def non_finite_gradient(step: int, loss: float, bad: dict[str, np.ndarray], sizes: dict[str, int]) -> str:
+    """The message of a fit whose loss is finite but whose gradient is not, for the values ``bad`` of each variable.
+
+    Args:
+        step: the fit step.
+        loss: the (finite) loss.
+        bad: per variable, the indices of its values whose gradient is NaN or infinite.
+        sizes: values per variable.
+    """
+    where = "; ".join(
+        f"{name} at {', '.join(str(i) for i in index[:5])}{' ...' if index.size > 5 else ''}"
+        f" ({index.size} of {sizes[name]} values)"
+        for name, index in bad.items()
+    )
+    return (
+        f"fit step {step}: the loss is finite ({loss:g}) but its gradient is not (NaN or infinite) for {where}: "
+        "the model is not differentiable there on some of these rays (a formula at its singular point, e.g. a "
+        "square root, acos or normalisation at 0, such as a ray at exactly normal or grazing incidence), which "
+        "is a bug of the effect or density that computes it: leave these parameters out of the fit or start "
+        "them elsewhere, and report it with the log and scene"
+    )
+
+
 def adam_fit(
     variables: list[FitVariable],
     objective: Callable[[Callable[[], dict[str, mi.Float]], int], float],
@@ -384,7 +407,7 @@ def adam_fit(
         The :class:`FitResult` (best values, history).
 
     Raises:
-        ParameterError: the loss or a gradient is not finite (the message says which variables).
+        FitError: the loss or a gradient is not finite (the message says which variables and values).
     """
     if not variables:
         return FitResult(values={})
@@ -415,13 +438,17 @@ def adam_fit(
         opt.set_learning_rate(lr * schedule(step - 1, steps))
         current = snapshot() if evaluate is None else {}
         total = run(step)
-        bad = [v.name for v in variables if not np.all(np.isfinite(np.asarray(dr.grad(opt[v.name]))))]
-        if not math.isfinite(total) or bad:
-            raise ParameterError(
-                f"fit step {step}: the loss is {total:g} and the gradients of {bad or 'no variable'} are not "
-                "finite; check that the log's ranges are in metres and the scene is the one the log was "
-                "recorded in, or lower the learning rate"
+        if not math.isfinite(total):
+            raise FitError(
+                f"fit step {step}: the loss is {total:g}, not finite: the model gives some measured rays no "
+                "likelihood at all, or the values left its domain; check that the log's ranges are in metres "
+                "and the scene is the one the log was recorded in, or lower the learning rate"
             )
+        bad = {v.name: np.asarray(dr.grad(opt[v.name])) for v in variables}
+        bad = {name: np.flatnonzero(~np.isfinite(grad)) for name, grad in bad.items()}
+        bad = {name: where for name, where in bad.items() if where.size}
+        if bad:
+            raise FitError(non_finite_gradient(step, total, bad, {v.name: v.size for v in variables}))
         if evaluate is None and total < best.best_loss:
             best.values, best.best_loss = current, total
         opt.step()

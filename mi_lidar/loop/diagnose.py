@@ -36,6 +36,10 @@
    beam, range and label (:mod:`mi_lidar.loop.residuals`): what varies there no catalog effect explains.
 8. **report**: :mod:`mi_lidar.loop.diagnosis_report` (Markdown, HTML, JSON and figures).
 
+A candidate whose fit fails (:class:`~mi_lidar.core.errors.FitError`: its loss or gradient is not finite) is
+left out of its round and of the rounds after, and named with the reason in :attr:`Diagnosis.failed`, the
+verdict and the report; the other candidates go on (a failed screening fit once cost a 7-minute run).
+
 Scores are floored per ray with the one floor of :func:`~mi_lidar.core.likelihood.score`.
 """
 
@@ -50,6 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.atomic import output_folder
+from mi_lidar.core.errors import FitError
 from mi_lidar.core.log import Log
 from mi_lidar.core.problem import n_parameters
 from mi_lidar.core.sensor_model import SensorModel
@@ -69,6 +74,7 @@ from mi_lidar.loop.realism import Realism
 from mi_lidar.loop.residuals import residual_structure
 from mi_lidar.loop.selection import (
     DROPPED,
+    FAILED,
     JOINED,
     LOST,
     P_VALUE,
@@ -107,6 +113,8 @@ class Diagnosis:
         held_out: the held-out rays described (first element, beam, azimuth...), for the figures.
         model: the augmented, fitted model.
         density: the learned density that joined and replaced the model's (None when none did).
+        failed: the candidate fits that failed, ``{"candidate", "round", "stage", "reason"}`` each
+            (:class:`~mi_lidar.core.errors.FitError`); those candidates were left out.
     """
 
     rounds: list
@@ -121,6 +129,7 @@ class Diagnosis:
     held_out: RayTable | None = field(repr=False, default=None)
     model: SensorModel = field(repr=False, default=None)
     density: object = field(repr=False, default=None)
+    failed: list = field(default_factory=list)
 
     def ranking(self) -> list[dict]:
         """The first round's ranking as JSON-able rows."""
@@ -144,6 +153,7 @@ class Diagnosis:
             "evidence": self.evidence,
             "realism": [r.row() for r in self.realism],
             "structure": [s.row() for s in self.structure],
+            "failed": self.failed,
             "summary": self.summary,
         }
 
@@ -180,13 +190,16 @@ def _screen(name, variant, base, data: Splits, steps, threshold, nll_before, bef
     )
 
 
-def _converged(ranked, base, data: Splits, steps, threshold, nll_before, before_test, base_fit) -> list[Candidate]:
+def _converged(
+    ranked, base, data: Splits, steps, threshold, nll_before, before_test, base_fit, failed: list
+) -> list[Candidate]:
     """``ranked`` with the effects in a close race refitted for ``4 steps`` without stopping early, and scored again.
 
     A screening fit stops once it stops gaining; an effect whose parameters trade off along a narrow
     valley (the constant and proportional parts of a noise law) may stop short of its optimum. So the
     significant effects within :data:`CLOSE` of the leader's held-out gain are fitted to the end before
-    the ranking decides.
+    the ranking decides. A candidate whose fit to the end fails (:class:`~mi_lidar.core.errors.FitError`) is
+    left out, and ``failed`` gets ``(name, stage, reason)``.
     """
     if not ranked or not ranked[0].significant:
         return ranked
@@ -196,9 +209,14 @@ def _converged(ranked, base, data: Splits, steps, threshold, nll_before, before_
     refitted = {}
     for c in close:
         trial = dataclasses.replace(base, effects=base.effects + [c.effect])
-        fit = refit(trial, data.fitting, [c.effect], steps=4 * steps)
+        try:
+            fit = refit(trial, data.fitting, [c.effect], steps=4 * steps)
+        except FitError as error:
+            failed.append((c.name, "fitted to the end", str(error)))
+            refitted[id(c)] = None
+            continue
         refitted[id(c)] = _scored(c, trial, data, threshold, nll_before, before_test, base_fit, fit)
-    return [refitted.get(id(c), c) for c in ranked]
+    return [refitted.get(id(c), c) for c in ranked if refitted.get(id(c), c) is not None]
 
 
 def _scored(c: Candidate, trial, data: Splits, threshold, nll_before, before_test, base_fit, fit) -> Candidate:
@@ -265,7 +283,9 @@ def _learned(names: list[str], given: SensorModel, found: SensorModel, data: Spl
     return rows
 
 
-def _join(ranked: list[Candidate], base: SensorModel, data: Splits, steps: int, threshold: float, before_test):
+def _join(
+    ranked: list[Candidate], base: SensorModel, data: Splits, steps: int, threshold: float, before_test, failed: list
+):
     """The first significant candidate that still wins held out once the model's effects are refitted with it.
 
     Screening fits a candidate beside the model's effects as they are, so a flexible candidate can win it
@@ -277,7 +297,8 @@ def _join(ranked: list[Candidate], base: SensorModel, data: Splits, steps: int, 
     paired held-out test at :data:`P_VALUE` joins instead (the rule of :func:`~mi_lidar.loop.selection.rank`,
     on joint fits). A winner with such simpler rivals is refitted to the end at once, and that fit decides
     whether it wins its refit. Without earlier effects screening is already a joint fit, and nothing is
-    refitted again.
+    refitted again. A candidate whose joint refit fails (:class:`~mi_lidar.core.errors.FitError`) does not join:
+    its status says so and ``failed`` gets ``(name, stage, reason)``.
 
     Returns:
         ``(candidate, augmented model, its held-out per-ray log-likelihood)`` or ``(None, None, None)``.
@@ -285,22 +306,31 @@ def _join(ranked: list[Candidate], base: SensorModel, data: Splits, steps: int, 
 
     def joined_with(c: Candidate, thorough: bool = False):
         augmented = dataclasses.replace(base, effects=base.effects + [copy.deepcopy(c.effect)])
-        if thorough:  # every step: the earlier effects adapt slowly once the candidate has taken its share
-            refit(augmented, data.fitting, steps=2 * steps)
-        else:
-            refit(augmented, data.fitting, steps=steps, tolerance=SCREEN_TOLERANCE)  # earlier effects adapt
+        try:
+            if thorough:  # every step: the earlier effects adapt slowly once the candidate has taken its share
+                refit(augmented, data.fitting, steps=2 * steps)
+            else:
+                refit(augmented, data.fitting, steps=steps, tolerance=SCREEN_TOLERANCE)  # earlier effects adapt
+        except FitError as error:
+            c.status = FAILED
+            failed.append((c.name, "joint refit", str(error)))
+            return None, None
         return augmented, data.test.log_likelihood(augmented)
 
     for c in (c for c in ranked if c.significant):
-        simpler = [s for s in ranked if s.significant and s.k < c.k] if base.effects else []
+        simpler = [s for s in ranked if s.significant and s.k < c.k and s.status != FAILED] if base.effects else []
         augmented, after_test = joined_with(c, thorough=bool(simpler))
+        if augmented is None:
+            continue
         if not significant(*held_out_test(after_test, before_test), threshold):
             c.status = LOST
             continue
         for s in simpler:
             model, test = joined_with(s, thorough=True)
-            if significant(*held_out_test(test, before_test), threshold) and (
-                held_out_test(after_test, test)[1] >= P_VALUE
+            if (
+                model is not None
+                and significant(*held_out_test(test, before_test), threshold)
+                and (held_out_test(after_test, test)[1] >= P_VALUE)
             ):
                 c, augmented, after_test = s, model, test
                 break
@@ -373,22 +403,30 @@ def diagnose(
         densities = []
     names = [(n, v) for n, v in names if n not in DENSITY_CANDIDATES]
     given = copy.deepcopy(base)
-    all_rounds, selected, evidence, joined_effects = [], [], [], []
+    all_rounds, selected, evidence, joined_effects, failed = [], [], [], [], []
     total, done = len(names) * rounds + len(densities), 0
-    for _ in range(rounds):
+    for round_number in range(1, rounds + 1):
         if not names:
             break
         threshold = P_VALUE / len(names)
         base_fit = float(data.fitting.log_likelihood(base).sum())
-        ranked = []
+        ranked, failures = [], []  # failures: (candidate, stage, reason) of this round
         for name, variant in names:
-            ranked.append(_screen(name, variant, base, data, steps, threshold, nll_before, before_test, base_fit))
+            label = _label(name, variant)
+            try:
+                ranked.append(_screen(name, variant, base, data, steps, threshold, nll_before, before_test, base_fit))
+            except FitError as error:
+                failures.append((label, "screening", str(error)))
+                label += ": fit failed, left out"
             done += 1
             if progress is not None:
-                progress(done, total, ranked[-1].name)
-        ranked = rank(_converged(rank(ranked), base, data, steps, threshold, nll_before, before_test, base_fit))
+                progress(done, total, label)
+        ranked = _converged(rank(ranked), base, data, steps, threshold, nll_before, before_test, base_fit, failures)
+        ranked = rank(ranked)
         all_rounds.append(ranked)
-        joined, augmented, after_test = _join(ranked, base, data, steps, threshold, before_test)
+        joined, augmented, after_test = _join(ranked, base, data, steps, threshold, before_test, failures)
+        failed += [{"candidate": c, "round": round_number, "stage": stage, "reason": why} for c, stage, why in failures]
+        names = [(n, v) for n, v in names if _label(n, v) not in {c for c, _, _ in failures}]  # not tried again
         if joined is None:
             break
         groups = gain_groups(data.held_out, before_test, after_test)
@@ -451,6 +489,7 @@ def diagnose(
         realism=realism,
         held_out=data.held_out,
         model=base,
+        failed=failed,
         density=next((c.effect for r in all_rounds for c in r if c.kind == "density" and c.status == JOINED), None),
     )
     result.summary = verdict(result)

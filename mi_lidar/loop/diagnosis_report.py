@@ -98,6 +98,11 @@ def verdict(d) -> str:
         parts.append(
             "Significant alone but not once refitted with the model's effects (not added): " + ", ".join(lost) + "."
         )
+    parts += [
+        f"The fit of {f['candidate']} failed (round {f['round']}, {f['stage']}), so it was left out and not tested: "
+        f"{f['reason']}."
+        for f in d.failed
+    ]
     parts += [f"Warning: {w}" for w in d.warnings()]
     parts.append(f"Held-out NLL: {d.nll_before:.4f} -> {d.nll_after:.4f} nats/ray.")
     left = structure_verdict(d.structure)

@@ -41,6 +41,7 @@ JOINED = "joined"
 LOST = "lost in the joint refit"
 DROPPED = "dropped after the final refit"
 REPLACED = "replaced by a learned density"
+FAILED = "fit failed"
 
 
 def relative_gain(gain: float, nll: float) -> float:
@@ -85,8 +86,8 @@ class Candidate:
         parameters: fitted values (of the candidate fit).
         status: :data:`JOINED`, :data:`LOST` (significant alone, not once the model's effects were
             refitted with it), :data:`DROPPED` (it joined, but the final joint refit left it no
-            held-out gain), :data:`REPLACED` (a learned density beat the model with the effects found)
-            or ``""``.
+            held-out gain), :data:`REPLACED` (a learned density beat the model with the effects found),
+            :data:`FAILED` (its joint refit failed: not finite) or ``""``.
         kind: ``effect`` or ``density``.
         history: training mean log-likelihood per step, nats/ray.
         effect: the fitted effect or density.

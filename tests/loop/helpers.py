@@ -44,6 +44,22 @@ def hidden_log(scene, model, poses, hidden: str, seed: int = 1):
     return simulate(scene, poses=poses, model=true, seed=seed), true
 
 
+def diagnose_hidden_bias(tmp_path, *candidates: str):
+    """``mi-lidar diagnose`` (80 columns) of a room log with a hidden 5 cm range bias, trying ``candidates``.
+
+    Returns:
+        The CLI result and the report folder (``tmp_path / "d"``).
+    """
+    from tests.terminal import invoke_at_80
+
+    scene, model, poses = room(6)
+    log, _ = hidden_log(scene, model, poses, "range_bias(bias=0.05)")
+    log.save(tmp_path / "room.npz")
+    out = tmp_path / "d"
+    chosen = [arg for name in candidates for arg in ("--candidate", name)]
+    return invoke_at_80(["diagnose", tmp_path / "room.npz", SCENES / "indoor_planar.xml", "--out", out, *chosen]), out
+
+
 def first_kept(log, clean) -> np.ndarray:
     """(S, B, F) True where ``log`` returned the element that ``clean`` (same rays and seed, no dropout) met first."""
     return log.hit & (log.attributes["element_id"] == clean.attributes["element_id"])

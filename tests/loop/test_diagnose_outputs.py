@@ -10,18 +10,13 @@ from mi_lidar.scene.files import scene_with_effects
 from tests.terminal import assert_whole, invoke_at_80
 
 from ..conftest import SCENES
-from .helpers import hidden_log, room
+from .helpers import diagnose_hidden_bias, hidden_log, room
 
 
 def test_diagnose_writes_html_and_the_scene_with_the_found_effect(tmp_path, monkeypatch):
     """A hidden 5 cm range bias is found; the page shows its before/after figure and the samples' realism beside the
     NLL; out/scene.xml loads from another folder and carries it (seeded; the bias refits within 1 cm)."""
-    scene, model, poses = room(6)
-    log, _ = hidden_log(scene, model, poses, "range_bias(bias=0.05)")
-    log.save(tmp_path / "room.npz")
-    out = tmp_path / "d"
-    candidates = ["--candidate", "range_bias", "--candidate", "outliers"]
-    result = invoke_at_80(["diagnose", tmp_path / "room.npz", SCENES / "indoor_planar.xml", "--out", out, *candidates])
+    result, out = diagnose_hidden_bias(tmp_path, "range_bias", "outliers")
     assert result.exit_code == 0, result.stdout
     report = json.loads((out / "diagnosis.json").read_text())
     assert_whole(result.stdout, f"{report['nll_before']:.4f}", f"{report['nll_after']:.4f}")
