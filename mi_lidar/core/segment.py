@@ -49,6 +49,10 @@ ELLIPSOID = 1
 INV_SQRT2 = 1.0 / math.sqrt(2.0)
 LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 DEFAULT_REFLECTIVITY = 0.5  # Lambertian reflectivity of elements that set none (lidar_material's default)
+# Largest |cos(incidence)| a law differentiates through: acos and sqrt(1 - cos^2) have an infinite slope at 1, where
+# float32 rounds the cos of a ray within 2.4e-4 rad of a surface's normal; times the ~0 slope of the cos in a ray's
+# angle that made NaN gradients for effects that move rays.
+MAX_COS = 0.9999999
 
 
 @dataclass

@@ -71,3 +71,59 @@ def test_gradient_matches_finite_difference(case, key, record_property):
     numeric = (total(plus) - total(minus)) / (2 * h)
     assert abs(auto - numeric) <= 0.05 * max(abs(auto), abs(numeric)) + 0.5 / scale, (auto, numeric)
     record_property("fd_checked", f"{label(case)}.{key}")
+
+
+def test_beam_offsets_beside_the_footprint_law_near_normal_incidence():
+    """Intel, round 2 of diagnose: beam_offsets beside range_noise(law=footprint) got NaN gradients from three rays
+    2e-5 to 7e-5 rad off an axis-aligned wall's normal, whose |cos(incidence)| rounds to 1 in float32 (tan = sqrt(1 -
+    cos^2) / cos has an infinite slope there). Here one planar scan is turned 2e-5 rad off a wall's normal: the
+    fitter's gradient of each beam's angle offsets is finite and matches the finite difference (the module's
+    tolerance) for the beam near the normal and its neighbours, 1 and 2 degrees off it."""
+    from mi_lidar.core.effects import EFFECTS
+    from mi_lidar.core.fitting import FitVariable, natural_gradient
+    from mi_lidar.core.patterns import get_pattern
+    from mi_lidar.core.rays import LogRays
+    from mi_lidar.core.sensor_model import SensorModel
+    from mi_lidar.scene.simulation import simulate
+
+    wall = mi.Mesh("wall", 4, 2)  # x = 5 m, vertices exact, as a scene built from a log's hit grid
+    params = mi.traverse(wall)
+    params["vertex_positions"] = np.array([[5, -20, -1], [5, 20, -1], [5, 20, 1], [5, -20, 1]], np.float32).ravel()
+    params["faces"] = np.array([[0, 1, 2], [0, 2, 3]], np.uint32).ravel()
+    params.update()
+    scene = mi.load_dict({"type": "scene", "wall": wall})
+    pose = np.eye(4)
+    yaw = 2e-5  # rad: beam 90 of planar-180 points along +x, the wall's normal
+    pose[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    noise = EFFECTS["range_noise"](law="footprint", sigma0=0.157566, k=0.0653525)  # Intel's joined values
+    log = simulate(scene, get_pattern("planar-180"), poses=pose[None], seed=1, model=SensorModel(effects=[noise]))
+    problem = Problem.build(scene, LogRays.from_log(log))
+    offsets = EFFECTS["beam_offsets"]().widen(180, 1)
+    model = SensorModel(effects=[noise, offsets])
+    problem.trace(model)
+    variables = [FitVariable(key, np.zeros(180), scale=offsets.fit_scale(key)) for key in ("elevation", "azimuth")]
+
+    def objective(values, step):
+        offsets.params.update(values())
+        ll = dr.sum(problem.chunk_log_likelihood(model, problem.chunks[0]))
+        dr.backward(ll)
+        return float(ll[0])
+
+    def shifted(key: str, beam: int, shift: float) -> float:
+        """The summed log-likelihood with beam ``beam``'s ``key`` offset at ``shift`` (rad), the others at 0."""
+        values = np.zeros(180, np.float32)
+        values[beam] = shift
+        offsets.params[key] = mi.Float(values)
+        total = float(np.sum(np.asarray(problem.chunk_log_likelihood(model, problem.chunks[0]), np.float64)))
+        offsets.params[key] = mi.Float(np.zeros(180, np.float32))
+        return total
+
+    _, gradients = natural_gradient(variables, objective)
+    for key in ("elevation", "azimuth"):
+        auto = np.asarray(gradients[key], np.float64)
+        assert np.all(np.isfinite(auto)), (key, np.flatnonzero(~np.isfinite(auto)))
+        scale = offsets.fit_scale(key)
+        h = 0.002 * scale
+        for beam in (90, 91, 92):
+            numeric = (shifted(key, beam, h) - shifted(key, beam, -h)) / (2 * h)
+            assert abs(auto[beam] - numeric) <= 0.05 * max(abs(auto[beam]), abs(numeric)) + 0.5 / scale, (key, beam)

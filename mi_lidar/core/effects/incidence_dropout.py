@@ -10,9 +10,7 @@ import mitsuba as mi
 from mi_lidar.core.effects.base import DropoutEffect, register_effect
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import Segment
-
-MAX_COS = 0.9999999  # largest |cos(incidence)| the logistic law differentiates through
+from mi_lidar.core.segment import MAX_COS, Segment
 
 
 @register_effect

@@ -7,7 +7,7 @@ import drjit as dr
 from mi_lidar.core.effects.base import Effect, register_effect
 from mi_lidar.core.params import MAX_SIGMA_M, ParamSpec
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import Segment
+from mi_lidar.core.segment import MAX_COS, Segment
 
 MIN_COS = 0.01  # the footprint law's floor of |cos(incidence)|: tan(delta) <= 100
 
@@ -26,7 +26,9 @@ class RangeNoise(Effect):
     The ``footprint`` law is the depth a patch of angular size ``k`` (rad) spans along the beam when
     seen at range ``r`` and incidence ``delta``: the spread of a beam footprint (mixed pixels) and of
     a mesh interpolated between returns ``k`` apart, both largest at grazing incidence and at depth
-    edges, whose faces are seen edge-on (``tan(delta)`` is capped at ``1 / MIN_COS``).
+    edges, whose faces are seen edge-on (``tan(delta)`` is capped at ``1 / MIN_COS``). Within 4.9e-4 rad of
+    normal incidence ``tan(delta)`` is held at 4.9e-4 (``cos`` at most :data:`~mi_lidar.core.segment.MAX_COS`),
+    with no gradient: float32 holds three values of ``cos`` there, and the slope in ``cos`` is infinite at 1.
     """
 
     name = "range_noise"
@@ -65,7 +67,7 @@ class RangeNoise(Effect):
         if law == "proportional":
             return dr.square(self["sigma0"] + self["k"] * r)
         if law == "footprint":
-            cos = dr.clip(seg.cos_incidence, MIN_COS, 1.0)
+            cos = dr.clip(seg.cos_incidence, MIN_COS, MAX_COS)  # below 1: tan's slope in cos is infinite there
             return dr.square(self["sigma0"] + self["k"] * r * dr.sqrt(1.0 - cos * cos) / cos)
         cos = dr.maximum(seg.cos_incidence, 1e-3)
         return dr.square(self["sigma0"]) + self["k"] * r * r / cos
