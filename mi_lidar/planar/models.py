@@ -97,6 +97,12 @@ def first_occupied(trace: PlanarTrace) -> np.ndarray:
     return out
 
 
+def first_occupied_range(trace: PlanarTrace) -> np.ndarray:
+    """(B,) range (m) of each beam's first ``occ3`` occupied segment's surface (NaN: none)."""
+    first = first_occupied(trace)
+    return np.where(first >= 0, trace.seg_at[np.maximum(first, 0)], np.nan)
+
+
 def fit_m0(train: EngineBeams, samples: StateSamples, z_max: float) -> SensorModel:
     """M0: sigma by golden-section search on the training NLL (the one score)."""
     escaped = ~samples.met
@@ -389,7 +395,7 @@ def fit_permeable_map(
         some = fitted.beams(part)
         density = match_short_returns(some, part, fit_tails(some, density, z_max), z_max)
         mixture.weight = fitted.angular  # built before the spread was known
-        first_range = np.where(first >= 0, train.seg_at[np.maximum(first, 0)], np.nan)
+        first_range = first_occupied_range(train)
         fitted.model = base_model(match_misses(mixture, density, z_max, first_range, RANGE_EDGES))
         fitted.angular = angular_share()
     return fitted

@@ -104,10 +104,7 @@ def match_misses(
     band_of = np.clip(np.searchsorted(bands, first_range, side="right") - 1, 0, n_bands - 1)
     band_of = np.where(np.isfinite(first_range), band_of, -1)
     grid = density.grid
-    range_edges = np.asarray(grid.range_edges, np.float64)
-    upper = np.where(range_edges[1:] < 1e6, range_edges[1:], range_edges[:-1] + 1.0)
-    centre = 0.5 * (range_edges[:-1] + upper)[np.arange(grid.size) % grid.n_range]  # StateGrid.index ordering
-    state_band = np.clip(np.searchsorted(bands, centre, side="right") - 1, 0, n_bands - 1)
+    state_band = np.clip(np.searchsorted(bands, grid.state_ranges(), side="right") - 1, 0, n_bands - 1)
 
     def with_factors(factors: np.ndarray) -> NPRegDensity:
         scaled = np.minimum(density.p_null[: grid.size] * factors[state_band], 1.0)

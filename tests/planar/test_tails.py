@@ -11,7 +11,7 @@ import pytest
 
 from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar import tails
-from mi_lidar.planar.models import base_model, first_occupied, fit_permeable_map
+from mi_lidar.planar.models import base_model, first_occupied_range, fit_permeable_map
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
 from mi_lidar.planar.tails import (
     FAR,
@@ -106,7 +106,7 @@ def test_no_returns_are_matched_to_the_training_beams(tmp_path):
     density = fitted.model.density
     doubled = density.with_tables(p_null=np.minimum(2.0 * density.p_null, 1.0))
     assert p_miss(doubled) > 1.3 * measured
-    first, one_band = first_ranges(data.train), [0.0, 1.0e9]
+    first, one_band = first_occupied_range(data.train), [0.0, 1.0e9]
     matched = match_misses(beams, doubled, z_max, first, one_band)
     assert p_miss(matched) == pytest.approx(measured, abs=2e-4)
     escaping = doubled.with_tables(p_null=np.concatenate([doubled.p_null[:-1], [0.6]]))
@@ -115,12 +115,6 @@ def test_no_returns_are_matched_to_the_training_beams(tmp_path):
     again = match_misses(beams, density, z_max, first, one_band)
     assert abs(p_miss(again) - measured) <= abs(p_miss(density) - measured)  # closer (P(miss) capped at 1)
     assert nll(again) < nll(density) + MISS_TOLERANCE
-
-
-def first_ranges(trace) -> np.ndarray:
-    """(B,) range (m) of each beam's first occupied cell (NaN: none), as the fit gives match_misses."""
-    first = first_occupied(trace)
-    return np.where(first >= 0, trace.seg_at[np.maximum(first, 0)], np.nan)
 
 
 def test_no_returns_are_matched_per_range_band(tmp_path, monkeypatch):
@@ -133,7 +127,7 @@ def test_no_returns_are_matched_per_range_band(tmp_path, monkeypatch):
     path = tmp_path / "room.log"
     path.write_text(room_log_text(scans=30))
     data = prepare(read_carmen(path), PlanarProtocol(window=5.0))
-    first = first_ranges(data.train)
+    first = first_occupied_range(data.train)
     far = np.nanmax(first)
     drop = np.random.default_rng(7).random(first.size) < 0.6 * np.nan_to_num(first) / far
     train = dataclasses.replace(data.train, z=np.where(drop, np.nan, data.train.z))

@@ -352,9 +352,7 @@ def kernel_smooth(grid: StateGrid, counts: np.ndarray, h_range: float, h_inciden
     applied as two small products along those axes of the (beam x label, incidence, range, B) counts
     rather than as the dense (S, S) matrix (which took seconds on a fine grid).
     """
-    edges = np.asarray(grid.range_edges, np.float64)
-    upper = np.where(np.isfinite(edges[1:]) & (edges[1:] < 1e6), edges[1:], edges[:-1] + 1.0)
-    r = 0.5 * (edges[:-1] + upper)
+    r = grid.range_centres
     if grid.incidence_edges:
         inc_edges = np.asarray(grid.incidence_edges, np.float64)
         inc = np.concatenate([0.5 * (inc_edges[:-1] + inc_edges[1:]), [np.nan]])

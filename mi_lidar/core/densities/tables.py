@@ -71,6 +71,17 @@ class StateGrid:
         """Number of states."""
         return self.n_range * self.n_incidence * self.n_beams * self.n_labels
 
+    @property
+    def range_centres(self) -> np.ndarray:
+        """(R,) centre of each range bin, m (the open last bin, or one past 1e6 m: its lower edge + 0.5 m)."""
+        edges = np.asarray(self.range_edges, np.float64)
+        upper = np.where(np.isfinite(edges[1:]) & (edges[1:] < 1e6), edges[1:], edges[:-1] + 1.0)
+        return 0.5 * (edges[:-1] + upper)
+
+    def state_ranges(self) -> np.ndarray:
+        """(size,) the range bin centre of every state (m), in :meth:`index_np` order."""
+        return self.range_centres[np.arange(self.size) % self.n_range]
+
     def index_np(
         self,
         nominal: np.ndarray,
