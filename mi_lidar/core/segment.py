@@ -105,6 +105,25 @@ class Segment:
         return replace(self, **changes)
 
 
+def incidence_deg(cos_incidence: mi.Float) -> mi.Float:
+    """Incidence angle (deg) of each lane's ``|cos|``, differentiable away from the normal.
+
+    The value is ``acos(clip(cos, 0, 1))`` in every lane. Within 4.9e-4 rad of the normal (``cos`` above
+    :data:`MAX_COS`) it carries no gradient: acos's slope in ``cos`` is infinite at 1, and the lanes of rays on a
+    surface's normal (``cos`` = 1 in float32) sent -inf, times the zero slope of the cos in the ray's angle NaN,
+    into the angle offsets of a fit.
+
+    Args:
+        cos_incidence: (N,) ``|cos|`` of the incidence angle (NaN where unknown: the angle is NaN too).
+
+    Returns:
+        (N,) incidence angle, deg, in [0, 90].
+    """
+    cos = dr.clip(cos_incidence, 0.0, 1.0)
+    angle = dr.select(cos <= MAX_COS, dr.acos(dr.minimum(cos, MAX_COS)), dr.detach(dr.acos(cos)))
+    return angle * (180.0 / math.pi)
+
+
 def normal_cdf(x: mi.Float) -> mi.Float:
     """Standard normal CDF."""
     return 0.5 * (1.0 + dr.erf(x * INV_SQRT2))

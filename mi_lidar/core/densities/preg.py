@@ -40,7 +40,7 @@ from mi_lidar.core.densities.tables import PSEUDO_SAMPLES, StateGrid, check_tabl
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import ELLIPSOID, Segment
+from mi_lidar.core.segment import ELLIPSOID, Segment, incidence_deg
 
 MIN_SIGMA = 1e-3  # m
 REACH = 2.0  # a local line is followed at most this many weighted standard deviations beyond its data's mean
@@ -116,7 +116,7 @@ class PRegDensity(UniformEscapeDensity):
         the tables of the lane's group (label and beam, as :attr:`grid` counts them)."""
         n_r, n_d = self.range_nodes.size, self.incidence_nodes.size
         i, t = self._locate(self._r, n_r, seg.nominal)
-        delta = dr.acos(dr.clip(seg.cos_incidence, 0.0, 1.0)) * (180.0 / math.pi)
+        delta = incidence_deg(seg.cos_incidence)
         j, s = self._locate(self._d, n_d, delta)
         unknown = dr.isnan(seg.cos_incidence)
         j = dr.select(unknown, n_d, j)

@@ -24,6 +24,7 @@ import numpy as np
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.atomic import atomic_write
 from mi_lidar.core.errors import NPZ_MEMBER_ERRORS, LogFormatError, ParameterError, numpy_file_problem
+from mi_lidar.core.segment import incidence_deg
 
 FORMAT_NAME = "mi-lidar-density"
 FORMAT_VERSION = 1
@@ -109,7 +110,7 @@ class StateGrid:
         r = dr.binary_search(0, n_r, lambda k: dr.gather(mi.Float, edges, k + 1) <= nominal)
         r = dr.minimum(r, n_r - 1)
         if self.incidence_edges:
-            delta = dr.acos(dr.clip(cos_incidence, 0.0, 1.0)) * (180.0 / math.pi)
+            delta = incidence_deg(cos_incidence)
             i_edges = mi.Float(aligned(np.asarray(self.incidence_edges, np.float32)))
             n_i = len(self.incidence_edges) - 1
             i = dr.minimum(dr.binary_search(0, n_i, lambda k: dr.gather(mi.Float, i_edges, k + 1) <= delta), n_i - 1)
