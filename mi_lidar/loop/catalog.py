@@ -30,7 +30,7 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.effects.base import EFFECTS, Effect, FootprintEffect
-from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.errors import FitError, ParameterError
 from mi_lidar.core.params import catalog_name, parse_calls
 from mi_lidar.core.problem import PartsFit, Problem, fit_parts, make_opaque
 from mi_lidar.core.sensor_model import SensorModel
@@ -236,6 +236,23 @@ def refit(
                     search_by_beam(model, part, key, problem, passes)
                     fit.parameters[f"{part.name}.{key}"] = np.asarray(part.params[key])
     return fit
+
+
+def refit_or_keep(model: SensorModel, problem: Problem, steps: int) -> FitError | None:
+    """:func:`refit` every effect of ``model`` on ``problem``; when the fit fails, the effects keep the values they had.
+
+    Returns:
+        None, or the :class:`~mi_lidar.core.errors.FitError` of the fit that failed (``model`` is then as it was).
+    """
+    kept = [(effect, dict(effect.params)) for effect in model.effects]
+    try:
+        refit(model, problem, steps=steps)
+    except FitError as error:
+        for effect, params in kept:
+            effect.params.update(params)
+        make_opaque(model.effects)
+        return error
+    return None
 
 
 def fit_density_candidate(name: str, base: SensorModel, states, fitting: Problem, n_labels: int):

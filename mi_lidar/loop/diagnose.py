@@ -38,7 +38,9 @@
 
 A candidate whose fit fails (:class:`~mi_lidar.core.errors.FitError`: its loss or gradient is not finite) is
 left out of its round and of the rounds after, and named with the reason in :attr:`Diagnosis.failed`, the
-verdict and the report; the other candidates go on (a failed screening fit once cost a 7-minute run).
+verdict and the report; the other candidates go on (a failed screening fit once cost a 7-minute run). A refit after
+the rounds that fails (the final joint refit, the refit after dropping passengers, the refit on every ray) leaves the
+effects at the values they had before it and is named the same way; the report is written.
 
 Scores are floored per ray with the one floor of :func:`~mi_lidar.core.likelihood.score`.
 """
@@ -67,6 +69,7 @@ from mi_lidar.loop.catalog import (
     candidate_settings,
     fit_density_candidate,
     refit,
+    refit_or_keep,
 )
 from mi_lidar.loop.compare import RayTable, first_elements, gain_groups
 from mi_lidar.loop.intensity_residuals import intensity_residuals, intensity_section
@@ -92,6 +95,8 @@ from mi_lidar.loop.split import Splits
 SIMULATION_STREAM = 7  # seed offset of the samples drawn for realism (the same for every model compared)
 MIN_ESTIMATION_RAYS = 1000  # training rays beyond the fitting subsample a learned density needs
 CLOSE = 0.02  # effects within 2 % of the leader's held-out gain are fitted to the end before the ranking decides
+KEPT = "the effects keep the values they had before it"  # what a refit after the rounds that failed leaves
+TRAINING_VALUES = "the values reported are those fitted on the training rays"  # ... when it was the one on every ray
 
 
 @dataclass
@@ -114,7 +119,8 @@ class Diagnosis:
         model: the augmented, fitted model.
         density: the learned density that joined and replaced the model's (None when none did).
         failed: the candidate fits that failed, ``{"candidate", "round", "stage", "reason"}`` each
-            (:class:`~mi_lidar.core.errors.FitError`); those candidates were left out.
+            (:class:`~mi_lidar.core.errors.FitError`); those candidates were left out. A refit after the rounds
+            that failed has round None, the effects refitted as ``candidate`` and ``kept``: what the model kept.
     """
 
     rounds: list
@@ -440,15 +446,17 @@ def diagnose(
         kept = set(candidate_names(base.effects, [n for n, _ in names]))
         names = [(n, v) for n, v in names if n in kept]
     if joined_effects:
-        refit(base, data.train, steps=2 * steps)
+        _refit_after_rounds(base, data.train, 2 * steps, "final joint refit", joined_effects, failed)
         added = [e for _, e in joined_effects]
         base, dropped = drop_passengers(base, added, data.test, [n for n, _ in joined_effects])
         for c in (c for r in all_rounds for c in r if c.name in dropped and c.status == JOINED):
             c.status = DROPPED
         selected = [n for n in selected if n not in dropped]
-        if dropped:
-            refit(base, data.train, steps=steps)
         joined_effects = [(n, e) for n, e in joined_effects if n not in dropped]
+        if dropped:
+            _refit_after_rounds(
+                base, data.train, steps, f"refit after dropping {', '.join(dropped)}", joined_effects, failed
+            )
         shrink_without_evidence(base, [e for _, e in joined_effects], data.train)
     if selected:
         realism.append(data.realism(base, "final model", stream, None))
@@ -473,8 +481,8 @@ def diagnose(
     structure = _structure(data, base, final)
     if joined_effects:  # the held-out figures are taken: report values fitted on every ray
         whole = data.whole()
-        refit(base, whole, steps=steps)
-        shrink_without_evidence(base, [e for _, e in joined_effects], whole)
+        if _refit_after_rounds(base, whole, steps, "refit on every ray", joined_effects, failed, TRAINING_VALUES):
+            shrink_without_evidence(base, [e for _, e in joined_effects], whole)
     result = Diagnosis(
         rounds=all_rounds,
         selected=selected,
@@ -508,6 +516,20 @@ def diagnose(
             intensity = intensity_section(intensity_residuals(log, data.scene, base, data.test.index), out)
             write_report(result, out, appendix=intensity)
     return result
+
+
+def _refit_after_rounds(model, problem, steps: int, stage: str, found: list, failed: list, kept: str = KEPT) -> bool:
+    """Refit the effects ``found`` (``(name, effect)`` pairs) of ``model``; a fit that fails leaves them as they were.
+
+    Returns:
+        Whether the refit went through; when it did not, ``failed`` has an entry naming ``stage``, the effects, the
+        reason and ``kept`` (round None).
+    """
+    error = refit_or_keep(model, problem, steps)
+    if error is not None:
+        names = ", ".join(name for name, _ in found)
+        failed.append({"candidate": names, "round": None, "stage": stage, "reason": str(error), "kept": kept})
+    return error is None
 
 
 def _structure(data: Splits, model: SensorModel, final: Realism) -> list:

@@ -101,6 +101,9 @@ def verdict(d) -> str:
     parts += [
         f"The fit of {f['candidate']} failed (round {f['round']}, {f['stage']}), so it was left out and not tested: "
         f"{f['reason']}."
+        if f["round"] is not None
+        else f"The {f['stage']} of {f['candidate']} failed, so {f['kept']} (the held-out figures are of those "
+        f"values): {f['reason']}."
         for f in d.failed
     ]
     parts += [f"Warning: {w}" for w in d.warnings()]
