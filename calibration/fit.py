@@ -338,10 +338,10 @@ class Calibration:
             if par.per_beam and par.initial.size > 1 and np.ptp(np.asarray(natural[n])) == 0
         ]
 
-    def _adam(self, natural: dict, tied: list[str], progress, offset: int):
+    def _adam(self, natural: dict, tied: list[str], progress, offset: int, total: int):
         """Adam from ``natural`` values, each ``tied`` parameter as one value shared by its beams; the
         :class:`~mi_lidar.core.fitting.FitResult` of :func:`~mi_lidar.core.fitting.adam_fit` (steps
-        reported to ``progress`` after ``offset`` earlier ones)."""
+        reported to ``progress`` after ``offset`` earlier ones, out of ``total``)."""
         opts = self.options
         variables = [
             par.variable(np.asarray(natural[name])[: 1 if name in tied else None], self.learning_rate(name))
@@ -369,7 +369,7 @@ class Calibration:
 
         def report(step: int, steps: int, train: float, held: float) -> None:
             if progress is not None:
-                progress(offset + step, offset + steps, train, held)
+                progress(offset + step, total, train, held)
 
         try:
             return adam_fit(
@@ -393,8 +393,9 @@ class Calibration:
 
         Args:
             progress: optional callable ``progress(step, total_steps, train_loss, held_out_loss)``
-                (held-out loss NaN between evaluations); the shared start's steps come first, so
-                ``total_steps`` grows by the steps it ran when the per-beam fit begins.
+                (held-out loss NaN between evaluations). ``total_steps`` is the most steps the fit can take,
+                the same in every call: ``steps``, twice that with a shared start, whose steps come first (the
+                per-beam fit counts on from where it stopped); an early stop ends short of it.
 
         Raises:
             CalibrationError: the loss or a gradient becomes non-finite.
@@ -409,13 +410,14 @@ class Calibration:
         counting_nll = self.held_out_loss(natural) if counting else initial_nll
         shared, shared_nll, done, history = {}, counting_nll, 0, []
         tied = self.tied_names(natural) if opts.shared_start else []
+        total = opts.steps * (2 if tied else 1)
         if tied:
-            first = self._adam(natural, tied, progress, offset=0)
+            first = self._adam(natural, tied, progress, offset=0, total=total)
             natural.update({n: mi.Float(v.astype(np.float32)) for n, v in first.values.items()})
             shared = {n: float(first.values[n][0]) for n in tied}
             natural.update({n: mi.Float(np.full(self.params[n].initial.size, shared[n], np.float32)) for n in tied})
             shared_nll, done, history = first.best_loss, first.steps_run, first.history
-        result = self._adam(natural, [], progress, offset=done)
+        result = self._adam(natural, [], progress, offset=done, total=total)
         history += [(done + step, *losses) for step, *losses in result.history[1 if history else 0 :]]
         fitted = result.values
         final = {n: mi.Float(v.astype(np.float32)) for n, v in fitted.items()}

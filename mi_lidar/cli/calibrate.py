@@ -124,7 +124,8 @@ def calibrate(
         --pattern log --out out/building
     ```
     """
-    with output_folder(out), progress("calibrating", total=steps) as update:  # nothing left when the run fails
+    # No total yet: it is known when the fit starts (twice the steps with a shared start), from the first update on.
+    with output_folder(out), progress("calibrating") as update:  # nothing left when the run fails
         held = {"text": ""}  # the held-out NLL is evaluated every few steps: show the last one, none before the first
 
         def report(step, total, train, held_out):

@@ -2,11 +2,12 @@
 
 Progress is not a result: the bar and the lines go to stderr, so a verb's stdout carries only its
 results (``diagnose --json | python -c 'import json, sys; json.load(sys.stdin)'`` parses).
-On a terminal a transient rich bar shows the task (with ``done/total`` and the time left when the
-total is known); when stderr is not a terminal (CI logs, files, pipes) the same updates print plain
-lines ``label: done/total (elapsed s)`` at most every :data:`PLAIN_EVERY_S` seconds, plus the first
-and the last, and ``label: done (elapsed s)`` at the end, so a log shows that work goes on and how
-long it took.
+On a terminal a transient rich bar shows the task (with ``done/total`` and the time left once the
+total is known: given at the start, or by the first update that gives one, as for a fit whose
+length is known only once the data are read); when stderr is not a terminal (CI logs, files,
+pipes) the same updates print plain lines ``label: done/total (elapsed s)`` at most every
+:data:`PLAIN_EVERY_S` seconds, plus the first and the last, and ``label: done (elapsed s)`` at the
+end, so a log shows that work goes on and how long it took.
 
 A bar always ends at its total: when the work ends short of the declared total (an early stop, a
 cached or skipped step, a total that was only an estimate), the count it reached becomes the total,
@@ -20,10 +21,26 @@ import time
 from collections.abc import Callable, Iterator
 
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    Task,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.text import Text
 
 PLAIN_EVERY_S = 10.0
 console = Console(stderr=True)  # progress, never results: stdout stays for what a verb prints as its result
+
+
+class _Count(MofNCompleteColumn):
+    """``done/total``, blank while the total is unknown (rich would show ``done/?``)."""
+
+    def render(self, task: Task) -> Text:
+        return super().render(task) if task.total is not None else Text("")
 
 
 def note(message: str) -> None:
@@ -41,7 +58,7 @@ def progress(label: str, total: int | None = None) -> Iterator[Callable[..., Non
     """
     start = time.perf_counter()
     if console.is_terminal:
-        counts = (MofNCompleteColumn(), TimeRemainingColumn()) if total else ()
+        counts = (_Count(), TimeRemainingColumn())  # both blank until a total is known
         columns = (TextColumn("[bold]{task.description}"), BarColumn(), *counts, TimeElapsedColumn())
         with Progress(*columns, console=console, transient=True) as bar:
             task = bar.add_task(label, total=total)

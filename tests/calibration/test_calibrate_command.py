@@ -141,6 +141,31 @@ def test_cli_prints_table(files):
     assert bad.exit_code == 2 and "matches no parameter" in bad.output
 
 
+def test_the_progress_bar_keeps_its_total_through_the_shared_start(files, monkeypatch):
+    """On a terminal the bar showed 0/20 to 16/20 while the shared start ran, then 21/40 once the per-beam fit began
+    (the shared start's steps plus 20): its total changed in the middle of the run. It now counts every step of both
+    fits against the most they can take (2 x 20), known when the fit starts; an early stop ends it full at the count
+    it reached, as every bar does."""
+    import io
+
+    from mi_lidar.cli import progress as progress_module
+
+    tmp, log, start = files
+    out = io.StringIO()
+    monkeypatch.setattr(progress_module, "console", Console(file=out, force_terminal=True, width=120))
+    args = ["calibrate", log, start, "-p", "sensor.range_bias", "--out", tmp / "bar", "--steps", "20"]
+    run = invoke_at_80([*args, "--batch-size", "4096"])
+    assert run.exit_code == 0, run.output
+    counts = [
+        tuple(map(int, m)) for m in re.findall(r"(\d+)/(\d+)", re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", out.getvalue()))
+    ]
+    report = json.loads((tmp / "bar" / "report.json").read_text())
+    reached = report["steps_run"]
+    assert set(report["shared_start"]) == {"sensor.range_bias"} and counts, out.getvalue()
+    assert {total for _, total in counts} <= {40, reached}, counts  # 40 from the first step on; the end: reached
+    assert counts[-1] == (reached, reached)
+
+
 def test_glob_matching_nothing_lists_names(files):
     _, log, start = files
     with pytest.raises(CalibrationError, match="matches no parameter; available: .*elements.terrain.p_hit"):
