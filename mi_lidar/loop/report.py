@@ -110,17 +110,25 @@ def plot_breakdowns(result, path: Path) -> Path:
             label="NLL (nats/ray)",
         )
         ax.axhline(result.headline["nll"], color="k", lw=1, ls="--", label="overall NLL")
-        label_groups(ax, [r["group"] for r in rows])
+        # Rays that met no element are no step of the range, incidence or label axis: marks apart, not joined on.
+        apart = x[[r["group"] == NO_ELEMENT_GROUP for r in rows]]
+        joined = np.setdiff1d(x, apart)
+        names = [r["group"] if r["group"] != NO_ELEMENT_GROUP else f"{r['group']} ({r['rays']:,} rays)" for r in rows]
+        label_groups(ax, names)
+        if apart.size:
+            ax.axvline(apart[0] - 0.5, color="0.5", lw=0.8, ls=":")
         ax.set_title(f"by {name}")
         ax.set_ylabel("NLL (nats/ray)")
         twin = ax.twinx()
         twins.append(twin)
         ms = 0 if many else 3
-        twin.plot(x, [r["hit_rate_measured"] for r in rows], "o-", color="tab:blue", ms=ms, label="hit rate measured")
-        twin.plot(
-            x, [r["hit_rate_simulated"] for r in rows], "s--", color="tab:green", ms=ms, label="hit rate simulated"
-        )
-        twin.set_ylim(0, 1.05)
+        for key, style, color, text in (
+            ("hit_rate_measured", "o-", "tab:blue", "hit rate measured"),
+            ("hit_rate_simulated", "s--", "tab:green", "hit rate simulated"),
+        ):
+            twin.plot(joined, [rows[i][key] for i in joined], style, color=color, ms=ms, label=text)
+            twin.plot(apart, [rows[i][key] for i in apart], style[0], color=color, ms=5)
+        twin.set_ylim(-0.05, 1.05)  # a rate of 0 (the model never returns from nothing) shows whole
         twin.set_ylabel("hit rate")
     handles = axes[0, 0].get_legend_handles_labels()[0] + twins[0].get_legend_handles_labels()[0]
     fig.legend(handles, [h.get_label() for h in handles], loc="upper center", ncol=4)
