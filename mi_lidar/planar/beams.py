@@ -39,6 +39,7 @@ from mi_lidar.core.streams import BeamCorrelation, NeighbourStreams, scan_follow
 from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segments
 from mi_lidar.planar.raymarch import PlanarTrace
 
+OCCUPANCY_CLASSES = 3  # stray-hit cells, ``occ3`` occupied cells, backstops: one Beta prior each
 PERMEABILITY_TOLERANCE = 1e-5  # nats per beam: the Beta priors' fit has converged (see fit_permeability)
 EVIDENCE_CLASSES = 5  # at most: leave-out hits of a cell 1, 2-3, 4-7, 8-15, 16 or more (doublings)
 
@@ -83,7 +84,8 @@ class EngineBeams:
         rounds: the segments of each beam, in order.
         z, hit: measured range (m; 0 for a miss) and return flag per beam.
         hits, passes: leave-out counts of every element (for :func:`permeability`).
-        occupied: (E,) 1 where the element is an ``occ3`` occupied cell, 0 for stray hits.
+        occupied: (E,) occupancy class of every element: 1 an ``occ3`` occupied cell, 0 stray hits,
+            2 a backstop (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`).
         follows: (B,) beam ``i`` is the next beam of beam ``i - 1``'s scan
             (:func:`~mi_lidar.core.streams.scan_follows`).
         correlation: how much neighbouring beams share their random draws when sampled
@@ -128,7 +130,7 @@ class EngineBeams:
     def with_permeability(self, a: np.ndarray, b: np.ndarray) -> EngineBeams:
         """These beams with every element's interception probability from its counts (:func:`permeability`).
 
-        ``a`` and ``b`` hold one Beta prior per occupancy class (index 0: stray hits, 1: occupied).
+        ``a`` and ``b`` hold one Beta prior per occupancy class (index 0: stray hits, 1: occupied, 2: backstops).
         """
         k = self.occupied
         p = permeability(self.hits, self.passes, np.asarray(a)[k], np.asarray(b)[k]) if self.hits.size else np.ones(1)
@@ -322,7 +324,8 @@ def fit_permeability(
 
     Stray-hit cells (hits in fewer than a quarter of visits: people, clutter, grazing wall edges) and
     ``occ3`` occupied cells get their own prior: the same counts mean a different interception
-    probability in the two classes.
+    probability in the two classes. Backstops (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`)
+    have no counts: theirs is ``a / (a + b)`` of their own prior.
 
     Only the interception probabilities move, so each segment's return density at the measured range
     is computed once (:func:`~mi_lidar.core.trace.cache_distributions`) and a step is a few gathers.
@@ -335,7 +338,7 @@ def fit_permeability(
     batch = cache.batch(np.arange(beams.n))
     hits, passes = _f(beams.hits), _f(beams.passes)
     occupied = mi.UInt32(aligned(beams.occupied.astype(np.uint32)))
-    a0, b0 = start if start is not None else ([0.5, 0.5], [0.5, 0.5])
+    a0, b0 = start if start is not None else ([0.5] * OCCUPANCY_CLASSES, [0.5] * OCCUPANCY_CLASSES)
     variables = [
         FitVariable("a", a0, lower=1e-3, upper=100.0, scale=0.5, transform="log"),
         FitVariable("b", b0, lower=1e-3, upper=100.0, scale=0.5, transform="log"),

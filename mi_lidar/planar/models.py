@@ -16,7 +16,9 @@ mi-lidar   the permeable map: every cell with leave-out hits is an element at it
            that intercepts the beam with its counting estimate (a Beta prior per occupancy class,
            fitted), returns by an NP-Reg density conditioned on the cell's occupancy, evidence (how
            many leave-out hits; whether to tell them apart is chosen held out), range and incidence
-           (refined by EM over the segments, its far tails scaled by likelihood); a beam's return
+           (refined by EM over the segments, its far tails scaled by likelihood); a beam that passes
+           every cell listed for it meets a backstop behind the last (its own interception probability
+           and return law, :meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`); a beam's return
            comes from its own trace or, by a fitted share, from a neighbouring beam's (its angular
            spread); sampled scans share errors between neighbouring beams as the real training
            scans do (a Gaussian copula on the sampler's streams, :mod:`~mi_lidar.planar.correlation`;
@@ -90,7 +92,7 @@ def samples_of(trace: PlanarTrace) -> StateSamples:
 def first_occupied(trace: PlanarTrace) -> np.ndarray:
     """(B,) index (into the segments) of each beam's first ``occ3`` occupied segment: its nominal cell (-1: none)."""
     seg_beam = np.repeat(np.arange(trace.n), np.diff(trace.seg_start))
-    occupied = np.flatnonzero(trace.seg_occupied)
+    occupied = np.flatnonzero(trace.seg_occupied == 1)
     beams, first = np.unique(seg_beam[occupied], return_index=True)
     out = np.full(trace.n, -1)
     out[beams] = occupied[first]
@@ -235,7 +237,7 @@ def _responsibilities(
 ) -> np.ndarray:
     """For every hit beam, the index (into the segments) of the segment most likely to have returned it (-1: none).
 
-    ``a``, ``b``: (2,) Beta priors per occupancy class (:func:`~mi_lidar.planar.beams.fit_permeability`);
+    ``a``, ``b``: (3,) Beta priors per occupancy class (:func:`~mi_lidar.planar.beams.fit_permeability`);
     ``classes``: evidence classes of the labels (:func:`~mi_lidar.planar.beams.segment_labels`).
     """
     k = trace.seg_occupied.astype(np.int64)
@@ -270,7 +272,8 @@ class PermeableMap:
 
     Attributes:
         model: the sensor model (its density conditions on range, incidence, cell occupancy and evidence).
-        a, b: (2,) the Beta priors of the cells' interception probabilities (stray-hit cells, occupied cells).
+        a, b: (3,) the Beta priors of the elements' interception probabilities (stray-hit cells, occupied
+            cells, backstops).
         classes: evidence classes of the segment labels (:func:`~mi_lidar.planar.beams.segment_labels`).
         angular: the share of each neighbouring beam's trace in a beam's return
             (:class:`~mi_lidar.planar.beams.AngularMixture`).
@@ -290,7 +293,7 @@ class PermeableMap:
 
     def segments(self, trace: PlanarTrace) -> EngineBeams:
         """The engine's view of ``trace`` under this map (every segment, interception from its counts)."""
-        beams = segment_beams(trace, self.classes).with_permeability(self.a, self.b)
+        beams = segment_beams(trace.with_backstops(), self.classes).with_permeability(self.a, self.b)
         return dataclasses.replace(beams, correlation=self.correlation)
 
     def beams(self, trace: PlanarTrace) -> AngularMixture:
@@ -338,6 +341,7 @@ def fit_permeable_map(
 ) -> PermeableMap:
     """mi-lidar's permeable map with ``classes`` evidence classes (see the module docstring).
 
+    Every beam of ``train`` gets its backstop (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`).
     Start: NP-Reg tables from each beam's first occupied cell (its surface, incidence and label) and
     the kernel ``bandwidths`` ``(h_range, h_incidence, uniform, reach)`` chosen for NP-Reg on held-out training
     scans; then ``rounds`` times: fit the Beta prior (a, b) by the one fitter, assign each return to its
@@ -354,18 +358,19 @@ def fit_permeable_map(
     """
     h_r, h_i, u, reach = bandwidths
     end = support_end(samples_of(train), reach, z_max)
-    grid = fine_grid(samples_of(train), labels=2 * classes)
+    grid = fine_grid(samples_of(train), labels=2 * classes + 1)  # stray and occupied cells by evidence, backstops
     edges = protocol_residual_edges(z_max)
-    labels = segment_labels(train.seg_occupied, train.seg_hits, classes)
-    first = first_occupied(train)
+    seen = train.with_backstops()
+    labels = segment_labels(seen.seg_occupied, seen.seg_hits, classes)
+    first = first_occupied(seen)
 
     def tables(chosen: np.ndarray) -> NPRegDensity:
         """Tables from the returns assigned to segments ``chosen`` (-1: the beam's first occupied one, if any)."""
         chosen = np.where(chosen >= 0, chosen, first)
         seg = np.maximum(chosen, 0)
         assigned = StateSamples(
-            nominal=np.where(chosen >= 0, train.seg_at[seg], np.nan),
-            incidence=np.where(chosen >= 0, train.seg_incidence[seg], np.nan),
+            nominal=np.where(chosen >= 0, seen.seg_at[seg], np.nan),
+            incidence=np.where(chosen >= 0, seen.seg_incidence[seg], np.nan),
             beam=train.beam,
             label=np.where(chosen >= 0, labels[seg], 0),
             z=train.z,
@@ -376,10 +381,10 @@ def fit_permeable_map(
         return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=end)
 
     density = tables(first)
-    beams = segment_beams(train, classes)
+    beams = segment_beams(seen, classes)
     for _ in range(rounds):
         prior = fit_permeability(beams, base_model(density), steps, start=prior)
-        density = tables(_responsibilities(train, density, *prior, classes))
+        density = tables(_responsibilities(seen, density, *prior, classes))
     a, b = fit_permeability(beams, base_model(density), steps, start=prior)
     del beams  # the mixture below holds these segments again, three times: one set at a time
     fitted = PermeableMap(model=base_model(density), a=a, b=b, classes=classes)
