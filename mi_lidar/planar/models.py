@@ -398,10 +398,10 @@ def fit_permeable_map(
     if tails:
         part = train.take(np.isin(train.scan, evenly_spaced_scans(train.scan, TAIL_BEAMS)))
         some = fitted.beams(part)
-        density = match_short_returns(some, part, fit_tails(some, density, z_max), z_max)
+        density = match_short_returns(some, part, fit_tails(some, density))
         mixture.weight = fitted.angular  # built before the spread was known
         first_range = first_occupied_range(train)
-        fitted.model = base_model(match_misses(mixture, density, z_max, first_range, RANGE_EDGES))
+        fitted.model = base_model(match_misses(mixture, density, first_range, RANGE_EDGES))
         fitted.angular = angular_share()
     return fitted
 

@@ -17,7 +17,7 @@ from mi_lidar.planar.beams import AngularMixture, base_model, golden_section
 from mi_lidar.planar.raymarch import PlanarTrace
 
 
-def training_nll(beams: AngularMixture, density: NPRegDensity, z_max: float) -> float:
+def training_nll(beams: AngularMixture, density: NPRegDensity) -> float:
     """Mean score (nats per beam) of ``beams`` under the planar sensor model around ``density``."""
     return float(-np.mean(beams.log_likelihood(base_model(density))))
 
@@ -33,7 +33,7 @@ def with_tails(density: NPRegDensity, short: float, long: float) -> NPRegDensity
     return density.with_tables(mass=density.mass * scale)
 
 
-def fit_tails(beams: AngularMixture, density: NPRegDensity, z_max: float, iterations: int = 10) -> NPRegDensity:
+def fit_tails(beams: AngularMixture, density: NPRegDensity, iterations: int = 10) -> NPRegDensity:
     """The tables of ``density`` with their short and long tails scaled by maximum likelihood on ``beams``.
 
     Hard EM gives each return to one segment, so a table also learns far returns that the pass-through
@@ -48,7 +48,7 @@ def fit_tails(beams: AngularMixture, density: NPRegDensity, z_max: float, iterat
     """
 
     def nll(short: float, long: float) -> float:
-        return training_nll(beams, with_tails(density, short, long), z_max)
+        return training_nll(beams, with_tails(density, short, long))
 
     short = golden_section(lambda x: nll(x, 1.0), 0.02, 2.0, iterations)
     long = golden_section(lambda x: nll(short, x), 0.02, 2.0, iterations)
@@ -75,9 +75,7 @@ def miss_bands(first_range: np.ndarray, edges) -> np.ndarray:
     return np.asarray(bands)
 
 
-def match_misses(
-    beams: AngularMixture, density: NPRegDensity, z_max: float, first_range: np.ndarray, edges
-) -> NPRegDensity:
+def match_misses(beams: AngularMixture, density: NPRegDensity, first_range: np.ndarray, edges) -> NPRegDensity:
     """``density`` with its P(no return) scaled per range band so that ``beams`` miss as often as predicted.
 
     The tables' no-return probabilities come from the no-returns counted at each beam's first occupied
@@ -123,7 +121,7 @@ def match_misses(
         ok = np.isfinite(rate) & (p - p0 > 1e-9)
         factors = np.where(ok, factors * np.maximum(rate - p0, 0.0) / np.where(ok, p - p0, 1.0), factors)
     matched = with_factors(factors)
-    kept = training_nll(beams, matched, z_max) < training_nll(beams, density, z_max) + MISS_TOLERANCE
+    kept = training_nll(beams, matched) < training_nll(beams, density) + MISS_TOLERANCE
     return matched if kept else density
 
 
@@ -136,7 +134,7 @@ def short_share(z: np.ndarray, hit: np.ndarray, nominal: np.ndarray) -> float:
     return float(np.mean(hit & np.isfinite(nominal) & (z < nominal - FAR)))
 
 
-def match_short_returns(beams: AngularMixture, trace: PlanarTrace, density: NPRegDensity, z_max: float) -> NPRegDensity:
+def match_short_returns(beams: AngularMixture, trace: PlanarTrace, density: NPRegDensity) -> NPRegDensity:
     """``density`` with its short tail scaled down until scans sampled at ``beams`` hold as many short returns
     (more than :data:`FAR` short of the nominal range) as the measured ones of ``trace`` (the same beams).
 
@@ -160,5 +158,5 @@ def match_short_returns(beams: AngularMixture, trace: PlanarTrace, density: NPRe
         middle = 0.5 * (low + high)
         low, high = (middle, high) if sampled(middle) < measured else (low, middle)
     matched = with_tails(density, 0.5 * (low + high), 1.0)
-    kept = training_nll(beams, matched, z_max) < training_nll(beams, density, z_max) + MISS_TOLERANCE
+    kept = training_nll(beams, matched) < training_nll(beams, density) + MISS_TOLERANCE
     return matched if kept else density

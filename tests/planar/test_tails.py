@@ -33,7 +33,7 @@ def room_map(tmp_path_factory):
     path.write_text(room_log_text(scans=40))
     data = prepare(read_carmen(path), PlanarProtocol(window=5.0))
     z_max = float(np.nanmax(data.log.ranges)) + 1.0
-    return data, z_max, fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf), 1, rounds=1, tails=False)
+    return data, fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf), 1, rounds=1, tails=False)
 
 
 def shares(density) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -44,7 +44,7 @@ def shares(density) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def test_scaling_the_tails_moves_only_their_mass(room_map):
-    _, _, fitted = room_map
+    _, fitted = room_map
     density = fitted.model.density
     same = with_tails(density, 1.0, 1.0)
     np.testing.assert_array_equal(same.mass, density.mass)
@@ -63,21 +63,21 @@ def test_an_inflated_tail_is_pulled_back_and_the_score_improves(room_map):
     """Tables whose tails hold 4x the mass the EM gave them: the fit scales them back (to under half their
     share of the near mass) and the training score improves; the fitted tails' score is no worse than the
     EM's own."""
-    data, z_max, fitted = room_map
+    data, fitted = room_map
     beams = fitted.beams(data.train)
 
     def nll(density) -> float:
         return float(-np.mean(beams.log_likelihood(base_model(density))))
 
     inflated = with_tails(fitted.model.density, 4.0, 4.0)
-    pulled = fit_tails(beams, inflated, z_max)
+    pulled = fit_tails(beams, inflated)
     (short, near, long), (short2, near2, long2) = shares(inflated), shares(pulled)
     used = (near > 0.01) & (short > 1e-6) & (long > 1e-6)
     assert used.sum() > 10
     assert np.all(short2[used] / near2[used] < 0.5 * short[used] / near[used])
     assert np.all(long2[used] / near2[used] < 0.5 * long[used] / near[used])
     assert nll(pulled) < nll(inflated) - 0.01, (nll(pulled), nll(inflated))
-    assert nll(fit_tails(beams, fitted.model.density, z_max)) <= nll(fitted.model.density) + 1e-9
+    assert nll(fit_tails(beams, fitted.model.density)) <= nll(fitted.model.density) + 1e-9
 
 
 def test_no_returns_are_matched_to_the_training_beams(tmp_path):
@@ -107,12 +107,12 @@ def test_no_returns_are_matched_to_the_training_beams(tmp_path):
     doubled = density.with_tables(p_null=np.minimum(2.0 * density.p_null, 1.0))
     assert p_miss(doubled) > 1.3 * measured
     first, one_band = first_occupied_range(data.train), [0.0, 1.0e9]
-    matched = match_misses(beams, doubled, z_max, first, one_band)
+    matched = match_misses(beams, doubled, first, one_band)
     assert p_miss(matched) == pytest.approx(measured, abs=2e-4)
     escaping = doubled.with_tables(p_null=np.concatenate([doubled.p_null[:-1], [0.6]]))
-    assert match_misses(beams, escaping, z_max, first, one_band).p_null[-1] == 0.6  # the escape state keeps its P(null)
+    assert match_misses(beams, escaping, first, one_band).p_null[-1] == 0.6  # the escape state keeps its P(null)
     assert nll(matched) < nll(doubled) - 0.003, (nll(matched), nll(doubled))
-    again = match_misses(beams, density, z_max, first, one_band)
+    again = match_misses(beams, density, first, one_band)
     assert abs(p_miss(again) - measured) <= abs(p_miss(density) - measured)  # closer (P(miss) capped at 1)
     assert nll(again) < nll(density) + MISS_TOLERANCE
 
@@ -148,9 +148,9 @@ def test_no_returns_are_matched_per_range_band(tmp_path, monkeypatch):
     def nll(density) -> float:
         return float(-np.mean(beams.log_likelihood(base_model(density))))
 
-    common = match_misses(beams, flat, z_max, first, [0.0, 1.0e9])
+    common = match_misses(beams, flat, first, [0.0, 1.0e9])
     assert errors(common)[0] > 0.05 and errors(common)[-1] < -0.05, errors(common)
-    banded = match_misses(beams, flat, z_max, first, edges)
+    banded = match_misses(beams, flat, first, edges)
     assert np.all(np.abs(errors(banded)) < 0.01), errors(banded)
     assert nll(banded) < nll(common) - 0.005, (nll(banded), nll(common))
 
@@ -160,7 +160,7 @@ def test_a_heavy_short_tail_is_matched_to_the_measured_short_returns(room_map):
     range) than the room's training beams hold; matched, the scans sampled with the fit's seeds hold the
     measured share within 0.004 (the bisection's resolution on 8 steps), and the training score is no
     worse than the inflated tables'. A tail that draws too few short returns is left as it is."""
-    data, z_max, fitted = room_map
+    data, fitted = room_map
     beams = fitted.beams(data.train)
     measured = short_share(data.train.z, data.train.hit, data.train.nominal)
     assert measured > 0.005
@@ -173,9 +173,9 @@ def test_a_heavy_short_tail_is_matched_to_the_measured_short_returns(room_map):
 
     heavy = with_tails(fitted.model.density, 3.0, 1.0)
     assert drawn(heavy) > measured + 0.01
-    matched = match_short_returns(beams, data.train, heavy, z_max)
+    matched = match_short_returns(beams, data.train, heavy)
     assert abs(drawn(matched) - measured) < 0.004, (drawn(matched), measured)
-    assert training_nll(beams, matched, z_max) <= training_nll(beams, heavy, z_max)
+    assert training_nll(beams, matched) <= training_nll(beams, heavy)
     light = with_tails(fitted.model.density, 0.05, 1.0)
     assert drawn(light) < measured
-    np.testing.assert_array_equal(match_short_returns(beams, data.train, light, z_max).mass, light.mass)
+    np.testing.assert_array_equal(match_short_returns(beams, data.train, light).mass, light.mass)
