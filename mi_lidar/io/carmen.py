@@ -44,7 +44,8 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.errors import LogFormatError, ParameterError, TimeOrderWarning, TruncatedLogWarning
-from mi_lidar.core.log import Log
+from mi_lidar.core.frames import MAX_COORDINATE_M
+from mi_lidar.core.log import MAX_TIME_S, Log
 from mi_lidar.io.carmen_lines import (
     BEAM_ANGLE_TOLERANCE,
     OLD_COLUMNS,
@@ -62,7 +63,7 @@ MIN_SHARE_AT_MAX = 1e-3  # share of all readings a 1 cm bin must hold to be a no
 SPIKE_RATIO = 20.0  # a no-return code holds this many times the readings of a 1 cm bin just below it
 NO_RETURN_BAND = 0.2  # m: no-return codes of one scanner lie within this band below the largest one
 BACKGROUND = 5.0  # m: the readings this far below the codes give the background density of real returns
-FLOAT32_MAX = float(np.finfo(np.float32).max)  # ranges and remissions are stored as float32
+FLOAT32_MAX = float(np.finfo(np.float32).max)  # remissions are stored as float32
 JITTER_S = 1.0  # s: a timestamp at most this far before the previous scan's is clock jitter (Intel log: up to 0.86 s)
 
 OLD_LASER = ("FLASER", "RLASER")  # n ranges, then the laser pose, the odometry and the timestamp
@@ -153,9 +154,9 @@ def read_carmen(
         LogFormatError: Missing, unreadable or corrupt file (or a folder), no ``message`` lines (other
             laser messages named), a line with the wrong number of fields (but the file's last line, cut short
             by a logger stopped mid-write, is skipped with a :class:`~mi_lidar.core.errors.TruncatedLogWarning`,
-            as is the end of a gzip stream cut short), a non-numeric or non-finite
-            value (line number and field named), or scans of different ``n`` or, for robot laser lines,
-            of different beam angles (lines named).
+            as is the end of a gzip stream cut short), a non-numeric or non-finite value, a range beyond 1e8 m
+            or a timestamp beyond 1e11 s (line number and field named), or scans of different ``n`` or, for robot
+            laser lines, of different beam angles (lines named).
 
     Warns:
         TimeOrderWarning: a timestamp more than :data:`JITTER_S` before the previous scan's (lines and times named);
@@ -222,7 +223,7 @@ def read_carmen(
         )
     n = next(iter(widths))
     table = np.stack(rows)
-    _check_finite(path, message, table, numbers, ROBOT_COLUMNS if robot else OLD_COLUMNS)
+    _check_values(path, message, table, numbers, ROBOT_COLUMNS if robot else OLD_COLUMNS)
     readings, pose, other_pose, stamp = table[:, :n], table[:, n : n + 3], table[:, n + 3 : n + 6], table[:, n + 6]
     _check_time_order(path, message, stamp, numbers)
     if max_range is None:
@@ -259,23 +260,31 @@ def read_carmen(
     )
 
 
-def _check_finite(path: Path, message: str, table: np.ndarray, numbers: list[int], columns: tuple[str, ...]) -> None:
-    """Refuse a non-finite value of the (S, n + 7) ``table`` of ranges, poses and timestamps, naming its line (from
-    ``numbers``) and its field (``range i`` or one of the 7 ``columns``)."""
+def _check_values(path: Path, message: str, table: np.ndarray, numbers: list[int], columns: tuple[str, ...]) -> None:
+    """Refuse a value of the (S, n + 7) ``table`` of ranges, poses and timestamps that no measurement has, naming its
+    line (from ``numbers``) and its field (``range i`` or one of the 7 ``columns``): a non-finite number, a range
+    beyond :data:`~mi_lidar.core.frames.MAX_COORDINATE_M` or a timestamp beyond :data:`~mi_lidar.core.log.MAX_TIME_S`
+    (limits that :meth:`~mi_lidar.core.log.Log.check_values` holds every log to, here with the line named and
+    before the no-return value is detected or the time order checked). Pose positions are checked with the poses
+    (:func:`~mi_lidar.core.poses.validate_poses`)."""
     n = table.shape[1] - len(columns)
-    # Ranges are stored as float32: a reading beyond its range (3.4e38) is as bad as a NaN.
-    finite = np.isfinite(table) & (np.abs(table) < np.where(np.arange(table.shape[1]) < n, FLOAT32_MAX, np.inf))
-    if finite.all():
+    limit = np.full(table.shape[1], np.inf)
+    limit[:n], limit[n + 6] = MAX_COORDINATE_M, MAX_TIME_S
+    good = np.isfinite(table) & (np.abs(table) <= limit)
+    if good.all():
         return
-    scan, column = (int(i[0]) for i in np.nonzero(~finite))
+    scan, column = (int(i[0]) for i in np.nonzero(~good))
+    value = table[scan, column]
     if column < n:
-        field, fix = f"range {column}", "write a no-return as the scanner's no-return value, or delete the line"
+        field, rule = f"range {column}", f"ranges are finite numbers of metres below {MAX_COORDINATE_M:.0e} m"
+        fix = "write a no-return as the scanner's no-return value, or delete the line"
+    elif column == n + 6:
+        field, rule = columns[column - n], f"timestamps are finite seconds within {MAX_TIME_S:.0e} s of 1970"
+        fix = "write them in seconds (not ms, us or ns), or repair or delete the line"
     else:
-        field, fix = columns[column - n], "repair or delete the line"
-    raise LogFormatError(
-        f"{path}: line {numbers[scan]}: {message} {field} is {table[scan, column]:g}; ranges (below 3.4e38), "
-        f"poses and timestamps must be finite numbers: {fix}"
-    )
+        field, rule, fix = columns[column - n], "poses are finite numbers", "repair or delete the line"
+    farther = " (a larger one is a misread number)" if np.isfinite(value) else ""
+    raise LogFormatError(f"{path}: line {numbers[scan]}: {message} {field} is {value:g}; {rule}{farther}: {fix}")
 
 
 def _check_time_order(path: Path, message: str, stamp: np.ndarray, numbers: list[int]) -> None:

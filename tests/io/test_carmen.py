@@ -156,9 +156,21 @@ def test_an_unreadable_file_or_a_folder_says_what_to_do(tmp_path, monkeypatch):
         (182, "nan", "line 4: FLASER pose theta is nan"),
         (184, "-inf", "line 4: FLASER odometry y is -inf"),
         (186, "nan", "line 4: FLASER timestamp is nan"),
-        (7, "1e39", "line 4: FLASER range 7 is 1e[+]39; ranges \\(below 3.4e38\\)"),
+        (7, "1e39", r"line 4: FLASER range 7 is 1e\+39; ranges are finite numbers of metres below 1e\+08 m"),
+        # beyond the limits every log is held to (read_any refused them as 'ray [0, 7, 0] has range of a hit 1e+09 m',
+        # 1e20 after numpy's 'RuntimeWarning: invalid value encountered in cast' from the no-return detector, a
+        # timestamp in ns after a TimeOrderWarning that it lies 1.7e18 s after the previous one)
+        (7, "1e9", r"line 4: FLASER range 7 is 1e\+09; .* below 1e\+08 m \(a larger one is a misread number\): write"),
+        (7, "1e20", r"line 4: FLASER range 7 is 1e\+20; ranges are finite numbers of metres below 1e\+08 m"),
+        (
+            186,
+            "1.7e18",
+            r"line 4: FLASER timestamp is 1.7e\+18; timestamps are finite seconds within 1e\+11 s of 1970 \(a larger "
+            r"one is a misread number\): write them in seconds \(not ms, us or ns\)",
+        ),
     ],
 )
+@pytest.mark.filterwarnings("error")  # the line is named before anything else is said about it
 def test_a_non_finite_value_is_named_by_field_and_line(tmp_path, column, value, message):
     lines = carmen_text(scans=2).splitlines()
     tokens = lines[3].split()

@@ -193,7 +193,7 @@ def edit(index: int, text: str):
             "ROBOTLASER1 with num_readings=5, num_remissions=0 needs 28 fields .*; found 23 \\(truncated",
         ),
         (edit(11, "nan"), "ROBOTLASER1 range 2 is nan; .* write a no-return as the scanner's no-return value"),
-        (edit(11, "1e39"), r"ROBOTLASER1 range 2 is 1e\+39; ranges \(below 3.4e38\)"),
+        (edit(11, "1e39"), r"ROBOTLASER1 range 2 is 1e\+39; ranges are finite numbers of metres below 1e\+08 m"),
         (edit(22, "inf"), "ROBOTLASER1 laser_pose_theta is inf; .* repair or delete the line"),
         (edit(23, "nan"), "ROBOTLASER1 robot_pose_x is nan"),
         (edit(31, "nan"), "ROBOTLASER1 timestamp is nan"),
