@@ -30,6 +30,11 @@ class TimeOrderWarning(MiLidarWarning):
     are neighbours."""
 
 
+class NoReturnValueWarning(MiLidarWarning):
+    """A no-return value given for a log disagrees with the log: returns it holds are read as no-returns, or its
+    no-return codes as returns."""
+
+
 class SetupError(MiLidarError):
     """The environment cannot run mi-lidar (missing LLVM, scalar variant, ...)."""
 

@@ -43,7 +43,13 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError, ParameterError, TimeOrderWarning, TruncatedLogWarning
+from mi_lidar.core.errors import (
+    LogFormatError,
+    NoReturnValueWarning,
+    ParameterError,
+    TimeOrderWarning,
+    TruncatedLogWarning,
+)
 from mi_lidar.core.frames import MAX_COORDINATE_M
 from mi_lidar.core.log import MAX_TIME_S, Log
 from mi_lidar.io.carmen_lines import (
@@ -159,6 +165,8 @@ def read_carmen(
             laser lines, of different beam angles (lines named).
 
     Warns:
+        NoReturnValueWarning: a given ``max_range`` below returns of the log (readings below the no-return value it
+            detects) or above that value: they are read as no-returns, or its no-returns as returns.
         TimeOrderWarning: a timestamp more than :data:`JITTER_S` before the previous scan's (lines and times named);
             the scans are read as written. Smaller steps back (clock corrections) are read silently.
     """
@@ -226,10 +234,13 @@ def read_carmen(
     _check_values(path, message, table, numbers, ROBOT_COLUMNS if robot else OLD_COLUMNS)
     readings, pose, other_pose, stamp = table[:, :n], table[:, n : n + 3], table[:, n + 3 : n + 6], table[:, n + 6]
     _check_time_order(path, message, stamp, numbers)
+    detected = detect_max_range(readings)
     if max_range is None:
-        max_range = detect_max_range(readings)
+        max_range = detected
     elif not max_range > 0:
         raise LogFormatError(f"{path}: max_range={max_range} m must be > 0 (the sensor's no-return value)")
+    else:
+        _check_given_max_range(path, readings, max_range, detected)
     hit = (readings < max_range - MISS_MARGIN) & (readings > 0)
     sensor = {"name": f"carmen:{message}", "source": str(path), "max_range_m": float(max_range)}
     attributes = {}
@@ -285,6 +296,34 @@ def _check_values(path: Path, message: str, table: np.ndarray, numbers: list[int
         field, rule, fix = columns[column - n], "poses are finite numbers", "repair or delete the line"
     farther = " (a larger one is a misread number)" if np.isfinite(value) else ""
     raise LogFormatError(f"{path}: line {numbers[scan]}: {message} {field} is {value:g}; {rule}{farther}: {fix}")
+
+
+def _check_given_max_range(path: Path, readings: np.ndarray, max_range: float, detected: float) -> None:
+    """Warn when the given no-return value ``max_range`` (m) disagrees with the (S, n) ``readings``: when it lies more
+    than :data:`MISS_MARGIN` below readings that the log's own no-return value ``detected`` (m; ``inf``: none) makes
+    returns, or above that value, so that its no-return codes are read as returns (how many, where, and what the log
+    holds). Readings at the value given are its code, not returns (a log too short for the code to be detected)."""
+    code = f"the log's no-return value is {detected:g} m" if np.isfinite(detected) else "the log has no no-return value"
+    given = f"{path}: max_range={max_range:g} m"
+    fix = "give the sensor's no-return value (--max-range), or leave it out to detect it from the log"
+    cut = (readings > max_range + MISS_MARGIN) & (readings < detected - MISS_MARGIN)  # not at the code given
+    if cut.any():
+        warnings.warn(
+            f"{given} lies below {np.count_nonzero(cut):,} returns of the log ({np.mean(cut):.1%} of its readings, "
+            f"{readings[cut].min():g} to {readings[cut].max():g} m; {code}), which are read as no-returns: "
+            f"{fix}",
+            NoReturnValueWarning,
+            stacklevel=3,
+        )
+    kept = (readings >= detected - MISS_MARGIN) & (readings < max_range - MISS_MARGIN)
+    if kept.any():
+        warnings.warn(
+            f"{given} lies above the log's no-return value {detected:g} m, so its {np.count_nonzero(kept):,} "
+            f"no-return readings ({np.mean(kept):.1%} of its readings) are read as returns at {detected:g} m and up: "
+            f"{fix}",
+            NoReturnValueWarning,
+            stacklevel=3,
+        )
 
 
 def _check_time_order(path: Path, message: str, stamp: np.ndarray, numbers: list[int]) -> None:

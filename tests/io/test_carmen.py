@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mi_lidar.core.errors import LogFormatError, ParameterError, TimeOrderWarning
+from mi_lidar.core.errors import LogFormatError, NoReturnValueWarning, ParameterError, TimeOrderWarning
 from mi_lidar.io import read_any, read_carmen
 from mi_lidar.io.carmen import beam_angles, detect_max_range
 
@@ -124,10 +124,43 @@ def test_max_range_detected_or_given(tmp_path):
     (tmp_path / "c.log").write_text(text)
     log = read_carmen(tmp_path / "c.log")
     assert log.sensor["max_range_m"] == 50.0 and not log.hit[:, 5, 0].any()
-    given = read_carmen(tmp_path / "c.log", max_range=100.0)  # the user says the sensor reaches 100 m
+    with pytest.warns(NoReturnValueWarning, match="max_range=100 m lies above the log's no-return value 50 m"):
+        given = read_carmen(tmp_path / "c.log", max_range=100.0)  # the user says the sensor reaches 100 m
     assert given.hit[:, 5, 0].all() and np.allclose(given.ranges[:, 5, 0], 50.0)
     with pytest.raises(LogFormatError, match="max_range=-1.0 m must be > 0"):
         read_carmen(tmp_path / "c.log", max_range=-1.0)
+
+
+@pytest.mark.filterwarnings("error")  # the log's own no-return value, given: no warning
+@pytest.mark.parametrize(
+    "max_range, said",
+    [
+        (
+            2.0,  # a SICK log with returns up to 2.79 m and 81.83 m codes, given a 2 m no-return value
+            r"max_range=2 m lies below 234 returns of the log \(43.3% of its readings, 2.02 to 2.79 m; the log's "
+            r"no-return value is 81.83 m\), which are read as no-returns: give the sensor's no-return value",
+        ),
+        (
+            100.0,
+            r"max_range=100 m lies above the log's no-return value 81.83 m, so its 3 no-return readings \(0.6% of its "
+            r"readings\) are read as returns at 81.83 m and up: give the sensor's no-return value \(--max-range\), or",
+        ),
+        (81.83, None),
+    ],
+)
+def test_a_given_no_return_value_that_disagrees_with_the_log_is_warned(tmp_path, max_range, said):
+    """--max-range 5 on a log of returns up to 10.65 m read 37 % of its readings as no-returns without a word (and
+    --max-range 100 on Intel read its 4,172 no-returns as returns at 81.83 m); what is read stays as given."""
+    (tmp_path / "c.log").write_text(carmen_text(scans=3))
+    if said is None:
+        log = read_carmen(tmp_path / "c.log", max_range=max_range)
+    else:
+        with pytest.warns(NoReturnValueWarning, match=said):
+            log = read_carmen(tmp_path / "c.log", max_range=max_range)
+    readings = 1 + np.arange(180) / 100
+    readings[5] = 81.83
+    assert log.sensor["max_range_m"] == max_range
+    np.testing.assert_array_equal(log.hit[:, :, 0], np.broadcast_to(readings < max_range - 0.015, (3, 180)))
 
 
 def test_an_unreadable_file_or_a_folder_says_what_to_do(tmp_path, monkeypatch):
