@@ -45,7 +45,7 @@ def evaluate_apps(
         help="Processes running the three applications side by side (default: one per core, up to 3).",
     ),
     test_every: int = typer.Option(
-        5, metavar="N", min=2, help="Every k-th scan is a test state (the planar protocol)."
+        5, metavar="N", min=3, help="Every k-th scan is a test state (the planar protocol)."
     ),
     window: float = typer.Option(
         30.0, metavar="X", min=0.0, help="A state's map leaves out the scans within 1 m and this many s."

@@ -17,7 +17,7 @@ def benchmark_planar(
     out: Path = typer.Option(..., "--out", "-o", help="Report folder: benchmark.json, benchmark.html, PNGs."),
     max_range: float | None = max_range_option(),
     message: str | None = carmen_message_option(),
-    test_every: int = typer.Option(5, metavar="N", min=2, help="Every k-th scan is a test scan."),
+    test_every: int = typer.Option(5, metavar="N", min=3, help="Every k-th scan is a test scan."),
     cell: float = typer.Option(0.05, metavar="X", min=0.005, max=1.0, help="Map cell (m)."),
     radius: float = typer.Option(
         1.0, metavar="X", min=0.0, help="A test scan's map leaves out scans within this distance (m) ..."

@@ -55,10 +55,11 @@ class PlanarProtocol:
     train_beams: int = 300_000
 
     def __post_init__(self):
-        if not 2 <= self.test_every <= MAX_TEST_EVERY:  # (2**64 overflowed numpy's modulo: a traceback)
+        if not 3 <= self.test_every <= MAX_TEST_EVERY:  # (2**64 overflowed numpy's modulo: a traceback)
             raise ParameterError(
-                f"test_every={self.test_every} must be from 2 (training scans are the others) to {MAX_TEST_EVERY:,} "
-                "(no log has more scans)"
+                f"test_every={self.test_every} must be from 3 (training scans are the others, and the learned models "
+                "choose their settings on the even ones and check them on the odd ones: with 2 every training scan is "
+                f"odd) to {MAX_TEST_EVERY:,} (no log has more scans)"
             )
         if self.train_beams < 0:
             raise ParameterError(f"train_beams={self.train_beams} must be >= 0 (0: every training scan)")
@@ -94,6 +95,23 @@ class PlanarProtocol:
         return out if scan in out else np.union1d(out, [scan])
 
 
+def _where_and_when(log: Log, window: float) -> str:
+    """Where and when a planar log's scans lie, and what to do when their leave-out maps (of ``window`` s) are empty:
+    the end of a sentence."""
+    xy, t = log.poses[:, :2, 3], log.times[:, 0, 0]
+    heading = np.arctan2(log.poses[:, 1, 0], log.poses[:, 0, 0])
+    if np.ptp(xy, axis=0).max() == 0 and np.ptp(heading) == 0:
+        return (
+            f"the laser pose is the same in every scan (x={xy[0, 0]:g} m, y={xy[0, 1]:g} m, theta={heading[0]:g} rad): "
+            "give a log whose laser pose fields hold each scan's SLAM-corrected pose"
+        )
+    dx, dy = np.ptp(xy, axis=0)
+    return (
+        f"the log's scans lie in a {dx:.2f} x {dy:.2f} m box over {np.ptp(t):.1f} s: give a longer log that passes "
+        f"the same places more than {window:g} s apart, or a smaller radius or window (--radius, --window)"
+    )
+
+
 @dataclass
 class PlanarData:
     """A planar log prepared for the benchmark: the map and the traced test and training beams.
@@ -126,10 +144,11 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None, wor
     workers = workers or os.cpu_count() or 1
     say = progress or (lambda done, total, label: None)
     test_scans, train_scans = protocol.split(log.shape[0], log.shape[1])
-    if not train_scans.size:
+    if np.unique(train_scans % 2).size < 2:  # the learned models fit on even training scans, check on odd ones
         raise LogFormatError(
-            f"the log has {log.shape[0]} scan; the benchmark needs a test scan and training scans "
-            f"(every {protocol.test_every}-th scan is a test scan): give a longer log"
+            f"the log has {log.shape[0]} scan{'s' if log.shape[0] > 1 else ''}; the benchmark needs a test scan and "
+            f"two training scans or more (every {protocol.test_every}-th scan is a test scan; the learned models "
+            "choose their settings on the even training scans and check them on the odd ones): give a longer log"
         )
     seconds, start = {}, time.perf_counter()
     origin, direction, z = planar_beams(log)
@@ -180,9 +199,8 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None, wor
         if not np.isfinite(beams.nominal).any():
             raise LogFormatError(
                 f"no {name} beam of the log's {log.shape[0]} scans meets a wall in its map (the map of a scan "
-                f"leaves out the scans within {protocol.radius:g} m and {protocol.window:g} s of it): give a longer "
-                f"log that passes the same places more than {protocol.window:g} s apart, or a smaller radius or "
-                "window (--radius, --window)"
+                f"leaves out the scans within {protocol.radius:g} m and {protocol.window:g} s of it), and "
+                + _where_and_when(log, protocol.window)
             )
     return PlanarData(
         log=log, protocol=protocol, grid=grid, counts=cmap, test=traces["test"], train=traces["train"], seconds=seconds

@@ -8,7 +8,7 @@ import pytest
 from mi_lidar.core.errors import LogFormatError, ParameterError
 from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
-from tests.planar.world import room_log_text
+from tests.planar.world import poses, room_log_text
 
 
 def room(tmp_path, scans: int, **options):
@@ -17,19 +17,29 @@ def room(tmp_path, scans: int, **options):
     return read_carmen(path)
 
 
-def test_a_one_scan_log_has_no_training_scans(tmp_path):
-    """It failed with numpy's 'need at least one array to concatenate'."""
-    with pytest.raises(
-        LogFormatError, match=r"the log has 1 scan; .* \(every 5-th scan is a test scan\): give a longer"
-    ):
-        prepare(room(tmp_path, 1))
+@pytest.mark.parametrize("scans", [1, 2])
+def test_a_log_of_fewer_than_two_training_scans_is_refused(tmp_path, scans):
+    """One scan failed with numpy's 'need at least one array to concatenate'. Two scans (--radius 0 --window 0, the
+    first two scans of Intel) have one training scan, odd: mi-lidar's fit, which chooses its evidence classes on the
+    even training scans, died with a traceback after the other models were fitted ('drjit.select ... operands have
+    incompatible sizes! (sizes: 0, 0, 1)'), and NP-Reg chose its bandwidths on no beam at all."""
+    s = "s" if scans > 1 else ""
+    match = (
+        rf"the log has {scans} scan{s}; the benchmark needs a test scan and two training scans or more \(every 5-th "
+        r"scan is a test scan; the learned models choose their settings on the even training scans and check them on "
+        r"the odd ones\): give a longer log"
+    )
+    with pytest.raises(LogFormatError, match=match):
+        prepare(room(tmp_path, scans), PlanarProtocol(radius=0.0, window=0.0))
 
 
-@pytest.mark.parametrize("test_every", [1, 2**64])
-def test_a_test_scan_spacing_outside_2_to_a_billion_is_refused(test_every):
+@pytest.mark.parametrize("test_every", [1, 2, 2**64])
+def test_a_test_scan_spacing_outside_3_to_a_billion_is_refused(test_every):
     """2**64 (benchmark-planar or evaluate-apps --test-every) failed in numpy's modulo: 'OverflowError: Python int
-    too large to convert to C long' as a traceback."""
-    with pytest.raises(ParameterError, match=rf"test_every={test_every} must be from 2 .* to 1,000,000,000"):
+    too large to convert to C long' as a traceback. 2 made every training scan odd: mi-lidar's fit died with a
+    traceback ('operands have incompatible sizes! (sizes: 0, 0, 1)') after 30 s on a 60-scan log, and P-Reg and NP-Reg
+    chose their bandwidths on no beam."""
+    with pytest.raises(ParameterError, match=rf"test_every={test_every} must be from 3 \(training .* to 1,000,000,000"):
         PlanarProtocol(test_every=test_every)
 
 
@@ -40,6 +50,29 @@ def test_a_log_too_short_to_leave_scans_out_says_so(tmp_path):
         LogFormatError, match=r"no test beam of the log's 5 scans meets a wall .* 20 m and 30 s .* --window"
     ):
         prepare(room(tmp_path, 5), PlanarProtocol(radius=20.0))
+
+
+def test_empty_maps_say_where_and_when_the_scans_lie(tmp_path):
+    """The advice for maps left empty was the same whatever the log: 'give a longer log that passes the same places
+    more than 30 s apart, or a smaller radius or window'; for a log whose laser poses are 0 0 0 in every scan (the pose
+    fields not filled) a smaller radius would have scored a map of every scan drawn at one spot."""
+    xy = poses(5)[:, :2]
+    dx, dy = np.ptp(xy, axis=0)
+    with pytest.raises(
+        LogFormatError,
+        match=rf"within 20 m and 30 s of it\), and the log's scans lie in a {dx:.2f} x {dy:.2f} m box over 0.8 s: give "
+        r"a longer log that passes the same places more than 30 s apart, or a smaller radius or window",
+    ):
+        prepare(room(tmp_path, 5), PlanarProtocol(radius=20.0))
+    lines = room_log_text(scans=10).splitlines()[1:]
+    still = [" ".join(t[:183] + ["0", "0", "0"] + t[186:]) for t in (line.split() for line in lines)]
+    (tmp_path / "still.log").write_text("\n".join(still) + "\n")
+    with pytest.raises(
+        LogFormatError,
+        match=r"meets a wall in its map .*, and the laser pose is the same in every scan \(x=0 m, y=0 m, theta=0 "
+        r"rad\): give a log whose laser pose fields hold each scan's SLAM-corrected pose",
+    ):
+        prepare(read_carmen(tmp_path / "still.log"))
 
 
 @pytest.mark.parametrize("reading, no_return", [("50.000", " and from the no-return value 50 m up"), ("0.000", "")])
