@@ -3,7 +3,8 @@
 A crash or an exception leaves the previous file (or nothing) and no temporary file behind, and
 the final file gets the usual permissions (0666 minus the umask), not mkstemp's 0600. A run's output
 folder (:func:`output_folder`) is made before the run and removed again, while still empty, when the
-run fails. A scene XML and its assets folder (:func:`staged_scene`) are written together or not at all.
+run fails. A scene XML and its assets folder (:func:`staged_scene`) are written together or not at all, and so
+are the files of a report (:func:`staged_files`).
 """
 
 from __future__ import annotations
@@ -110,6 +111,43 @@ def output_folder(path: str | os.PathLike) -> Iterator[Path]:
 
 
 @contextlib.contextmanager
+def _named_outside(stage: Path, folder: Path) -> Iterator[None]:
+    """Re-raise an OSError of the block about a file in the temporary folder ``stage`` naming that file as it would be
+    named in ``folder``, where it was to be moved (the temporary folder is gone when the message is read)."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is None or not Path(exc.filename).is_relative_to(stage):
+            raise
+        raise _naming(exc, folder / Path(exc.filename).relative_to(stage)) from exc
+
+
+@contextlib.contextmanager
+def staged_files(folder: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary folder inside ``folder`` to write a set of files in (a report); when the block succeeds, every
+    file written there is moved into ``folder`` (renames only, so each appears whole), replacing files of the same
+    name and keeping the others; when it fails (a full disk, ``ulimit -f``, any exception), the temporary folder is
+    removed and ``folder`` keeps what it held.
+
+    Raises:
+        OSError: a failed write in the block, naming the file as it would have been named in ``folder``.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        stage = Path(tempfile.mkdtemp(prefix=".staged-", suffix=".tmp", dir=folder))
+    except OSError as exc:  # name the folder asked for, not the temporary one
+        raise _naming(exc, folder) from exc
+    try:
+        with _named_outside(stage, folder):
+            yield stage
+        for path in sorted(stage.iterdir()):
+            os.replace(path, folder / path.name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+@contextlib.contextmanager
 def staged_scene(path: str | os.PathLike) -> Iterator[Path]:
     """Yield where to write the scene XML ``path`` and its ``<stem>_assets/``: both appear together or not at all.
 
@@ -132,13 +170,8 @@ def staged_scene(path: str | os.PathLike) -> Iterator[Path]:
         raise _naming(exc, path) from exc
     assets = path.with_name(f"{path.stem}_assets")
     try:
-        try:
+        with _named_outside(stage, path.parent):
             yield stage / path.name
-        except OSError as exc:
-            if exc.filename is None or not Path(exc.filename).is_relative_to(stage):
-                raise
-            named = path.parent / Path(exc.filename).relative_to(stage)
-            raise _naming(exc, named) from exc
         _move_in(stage, path, assets)
     finally:
         shutil.rmtree(stage, ignore_errors=True)

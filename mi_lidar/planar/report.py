@@ -11,9 +11,6 @@ from __future__ import annotations
 import base64
 import html
 import json
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -22,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mi_lidar.core.atomic import atomic_path, atomic_write_text  # noqa: E402
+from mi_lidar.core.atomic import atomic_path, atomic_write_text, staged_files  # noqa: E402
 from mi_lidar.io.markdown import plain  # noqa: E402
 from mi_lidar.planar.benchmark import SAMPLED_SCANS  # noqa: E402
 
@@ -171,17 +168,14 @@ def _shared_errors(settings: dict) -> str:
 
 
 def write_benchmark(result, out: Path) -> dict[str, Path]:
-    """Write the JSON, the figures and the HTML page of ``result`` into ``out`` (see the module docstring)."""
-    out.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".benchmark-", dir=out))
-    try:
+    """Write the JSON, the figures and the HTML page of ``result`` into ``out`` (see the module docstring).
+
+    Raises:
+        OSError: a failed write (a full disk, ``ulimit -f``), naming the file in ``out``; ``out`` keeps what it held.
+    """
+    with staged_files(out) as staging:
         files = _write_report(result, staging)
-        for key, path in files.items():
-            os.replace(path, out / path.name)
-            files[key] = out / path.name
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-    return files
+    return {key: out / path.name for key, path in files.items()}
 
 
 def _write_report(result, out: Path) -> dict[str, Path]:

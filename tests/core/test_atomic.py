@@ -149,3 +149,21 @@ def test_a_staged_scene_replaces_the_previous_one_with_its_assets_or_leaves_it_w
         write_staged_scene(staged, {"a.ply": b"new a"})
     assert tree(out) == {"scene.xml": b"<scene new/>", "scene_assets/a.ply": b"new a"}
     assert sorted(p.name for p in out.iterdir()) == ["scene.xml", "scene_assets"]
+
+
+def test_staged_files_move_in_together_or_leave_the_folder_as_it_was(tmp_path):
+    """benchmark-planar under `ulimit -f` said 'error: .../report/.benchmark-ndc82j3f/nll_by_range.png: file too
+    large': a file of a staging folder that was removed before the message was read."""
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "a.json").write_bytes(b"old a")
+    (out / "notes.txt").write_bytes(b"kept")
+    with pytest.raises(OSError) as error, atomic.staged_files(out) as staging:
+        (staging / "a.json").write_bytes(b"new a")
+        raise OSError(errno.EFBIG, "File too large", os.fspath(staging / "b.png"))
+    assert error.value.filename == os.fspath(out / "b.png")  # as named in the report folder
+    assert tree(out) == {"a.json": b"old a", "notes.txt": b"kept"} and len(list(out.iterdir())) == 2
+    with atomic.staged_files(out) as staging:
+        (staging / "a.json").write_bytes(b"new a")
+        (staging / "b.png").write_bytes(b"new b")
+    assert tree(out) == {"a.json": b"new a", "b.png": b"new b", "notes.txt": b"kept"} and len(list(out.iterdir())) == 3

@@ -197,6 +197,26 @@ def test_a_report_that_fails_while_written_leaves_the_previous_one_whole(tmp_pat
     assert sorted(p.name for p in out.iterdir()) == sorted(before)
 
 
+def test_a_report_write_that_fails_names_the_file_in_the_report_folder(tmp_path, monkeypatch):
+    """Under `ulimit -f` benchmark-planar said 'error: .../report/.benchmark-ndc82j3f/nll_by_range.png: file too
+    large; ...': a file of its staging folder, removed before the message was read."""
+    import errno
+
+    import mi_lidar.planar.report as report
+    from mi_lidar.planar.benchmark import run_planar_benchmark
+
+    result = run_planar_benchmark(room(tmp_path, 30), models=("M0",), protocol=PlanarProtocol(window=5.0))
+
+    def too_large(result, path):
+        raise OSError(errno.EFBIG, "File too large", str(path))  # as atomic_path names a failed write
+
+    monkeypatch.setattr(report, "range_figure", too_large)
+    with pytest.raises(OSError) as error:
+        report.write_benchmark(result, tmp_path / "report")
+    assert error.value.filename == str(tmp_path / "report" / "nll_by_range.png")
+    assert list((tmp_path / "report").iterdir()) == []
+
+
 @pytest.mark.parametrize("verb", ["benchmark-planar", "evaluate-apps"])
 def test_a_point_cloud_is_named_as_one(tmp_path, verb):
     """A PLY point cloud was read as CARMEN text: 'scan.ply: no FLASER messages; is this a CARMEN log?'."""
