@@ -4,7 +4,8 @@ Every verb module (:mod:`mi_lidar.cli.render`, ``convert``, ``hybrid``, ``loop``
 registers its commands on :data:`app`. A command raises; it never prints an error itself: the
 application's group catches :class:`~mi_lidar.core.errors.MiLidarError`, ``ValueError`` and
 ``OSError`` from any command, prints one line ``error: <message>`` and exits with code 2, the
-code of click's own usage errors. Messages say what was wrong and what to do.
+code of click's own usage errors. Messages say what was wrong and what to do. SIGTERM ends a command with its
+clean-up, as Ctrl-C does (exit code 143).
 
 Help stays readable in an 80-column terminal (``tests/test_cli_help.py``): a number option's metavar is
 ``N`` (integer) or ``X`` (real) so the type column stays narrow, a flag has one name (``--force``, not
@@ -17,7 +18,9 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import signal
 import sys
+import threading
 import warnings
 from pathlib import Path
 
@@ -87,6 +90,27 @@ def plain_metavars(params: list) -> list:
     return params
 
 
+@contextlib.contextmanager
+def _terminated_as_exit():
+    """Within the block, SIGTERM (``kill``, ``timeout``, a CI job cancelled) raises ``SystemExit(143)`` in the main
+    thread, so that the clean-up of a command runs as for Ctrl-C: a run's new output folder is removed while it holds
+    no file, a staged report or scene and a temporary file are removed (:mod:`mi_lidar.core.atomic`). By default
+    SIGTERM ended the process at once and left them behind. A second SIGTERM ends the process at once."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def exit_on(signum, frame):
+        signal.signal(signum, signal.SIG_DFL)
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, exit_on)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 class FriendlyGroup(TyperGroup):
     """A command group that turns user errors raised by any of its commands into one-line messages.
 
@@ -106,7 +130,7 @@ class FriendlyGroup(TyperGroup):
 
     def invoke(self, ctx):
         args = list(ctx.args)
-        with warnings.catch_warnings():  # restores the filters and the printer afterwards
+        with warnings.catch_warnings(), _terminated_as_exit():  # restore the filters, the printer and the handler
             warnings.simplefilter("always", MiLidarWarning)
             warnings.showwarning = _show_warning
             return self._invoke(ctx, args)
