@@ -78,17 +78,22 @@ class Grid:
         return np.asarray(self.origin) + (ij + 0.5) * self.cell
 
 
-def planar_beams(log: Log, scans: np.ndarray | None = None):
-    """World-plane origins (S, N, 2), unit directions (S, N, 2), readings (S, N; NaN = miss) of a planar log.
-
-    The log is (S, N, 1): N beams by one firing, all scans sharing one beam pattern.
-    """
+def check_planar_shape(log: Log) -> None:
+    """Refuse a log that is not (S, N, 1): N beams by one firing, all scans sharing one beam pattern."""
     if log.shape[2] != 1 or log.directions.shape[0] != 1:
         raise ParameterError(
             f"planar maps need a planar log of N beams x 1 firing sharing one pattern (directions (1, N, 1, 3)); "
             f"got shape {log.shape} with directions {log.directions.shape}; read CARMEN logs with "
             "mi_lidar.io.carmen.read_carmen"
         )
+
+
+def planar_beams(log: Log, scans: np.ndarray | None = None):
+    """World-plane origins (S, N, 2), unit directions (S, N, 2), readings (S, N; NaN = miss) of a planar log.
+
+    The log is (S, N, 1): N beams by one firing, all scans sharing one beam pattern (:func:`check_planar_shape`).
+    """
+    check_planar_shape(log)
     scans = np.arange(log.shape[0]) if scans is None else np.asarray(scans)
     poses = log.poses[scans]
     local = log.directions[0, :, 0, :2].astype(np.float64)

@@ -22,6 +22,7 @@ from mi_lidar.planar.raymarch import PlanarTrace, trace_scans
 
 MAX_TEST_EVERY = 10**9  # a test scan every 10**9 scans already tests scan 0 alone: more is a typo
 MAX_CELLS = 2**28  # map cells: the count map keeps 24 bytes a cell (6 GB here) and needs twice that to build
+TRIM = 5e-4  # share of the returns' ends left out of the map grid on each side of each axis (wild readings)
 
 
 @dataclass(frozen=True)
@@ -95,6 +96,40 @@ class PlanarProtocol:
         return out if scan in out else np.union1d(out, [scan])
 
 
+def map_grid(log: Log, cell: float, reach: float, trim: float = TRIM) -> Grid:
+    """The map grid of a planar log: cells of ``cell`` m over its poses and the ends of its returns closer than
+    ``reach`` m (the outermost ``trim`` of them on each side of each axis left out, so that a few wild readings do not
+    widen it), with a 1 m margin.
+
+    Raises:
+        LogFormatError: no return closer than ``reach``, or a grid of more than :data:`MAX_CELLS` cells.
+    """
+    origin, direction, z = planar_beams(log)
+    ends = (origin + np.nan_to_num(z)[..., None] * direction)[np.isfinite(z) & (z < reach)]
+    if not ends.size:
+        no_return = float(log.sensor.get("max_range_m", np.inf))
+        code = f" and from the no-return value {no_return:g} m up" if np.isfinite(no_return) else ""
+        raise LogFormatError(
+            f"none of the log's {z.size:,} readings is a return closer than {reach:g} m (readings <= 0"
+            f"{code} are no-returns), so there is no map: check the no-return value (--max-range) and that the "
+            "ranges are in metres"
+        )
+    lo, hi = np.percentile(ends, [100 * trim, 100 * (1 - trim)], axis=0)
+    inside = np.all((ends >= lo) & (ends <= hi), axis=1)
+    grid = Grid.around(np.concatenate([ends[inside], log.poses[:, :2, 3]]), cell)
+    if grid.size > MAX_CELLS:
+        xy = log.poses[:, :2, 3]
+        off = np.hypot(*(xy - np.median(xy, axis=0)).T)
+        far = int(np.argmax(off))
+        raise LogFormatError(
+            f"the map would span {grid.shape[0] * grid.cell:,.0f} x {grid.shape[1] * grid.cell:,.0f} m "
+            f"({grid.size:,} cells of {grid.cell:g} m, more than {MAX_CELLS:,}); scan {far + 1} of "
+            f"{log.shape[0]} is at x={xy[far, 0]:g}, y={xy[far, 1]:g} m, {off[far]:,.0f} m from the median pose: "
+            "check the log's poses (in metres?), or give a larger cell (--cell)"
+        )
+    return grid
+
+
 def _where_and_when(log: Log, window: float) -> str:
     """Where and when a planar log's scans lie, and what to do when their leave-out maps (of ``window`` s) are empty:
     the end of a sentence."""
@@ -151,29 +186,7 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None, wor
             "choose their settings on the even training scans and check them on the odd ones): give a longer log"
         )
     seconds, start = {}, time.perf_counter()
-    origin, direction, z = planar_beams(log)
-    ends = (origin + np.nan_to_num(z)[..., None] * direction)[np.isfinite(z) & (z < protocol.reach)]
-    if not ends.size:
-        no_return = float(log.sensor.get("max_range_m", np.inf))
-        code = f" and from the no-return value {no_return:g} m up" if np.isfinite(no_return) else ""
-        raise LogFormatError(
-            f"none of the log's {z.size:,} readings is a return closer than {protocol.reach:g} m (readings <= 0"
-            f"{code} are no-returns), so there is no map: check the no-return value (--max-range) and that the "
-            "ranges are in metres"
-        )
-    lo, hi = np.percentile(ends, [0.05, 99.95], axis=0)
-    inside = np.all((ends >= lo) & (ends <= hi), axis=1)
-    grid = Grid.around(np.concatenate([ends[inside], log.poses[:, :2, 3]]), protocol.cell)
-    if grid.size > MAX_CELLS:
-        xy = log.poses[:, :2, 3]
-        off = np.hypot(*(xy - np.median(xy, axis=0)).T)
-        far = int(np.argmax(off))
-        raise LogFormatError(
-            f"the map would span {grid.shape[0] * grid.cell:,.0f} x {grid.shape[1] * grid.cell:,.0f} m "
-            f"({grid.size:,} cells of {grid.cell:g} m, more than {MAX_CELLS:,}); scan {far + 1} of "
-            f"{log.shape[0]} is at x={xy[far, 0]:g}, y={xy[far, 1]:g} m, {off[far]:,.0f} m from the median pose: "
-            "check the log's poses (in metres?), or give a larger cell (--cell)"
-        )
+    grid = map_grid(log, protocol.cell, protocol.reach)
     counts = count_scans(
         log, grid, protocol.reach, progress=lambda d, n: say(d, n, "counting the map"), workers=workers
     )
