@@ -40,8 +40,8 @@ def parse_message(tokens: list[str], number: int) -> np.ndarray:
     odom_theta timestamp host logger_timestamp``): its n ranges, pose, odometry and timestamp.
 
     Raises:
-        LogFormatError: a beam count below 2, a non-numeric value, too few fields, or more than the count
-            allows (``n`` smaller than the ranges given) (``number``: the line's number, named in the message).
+        LogFormatError: a beam count below 2, a non-numeric value (field named), too few fields, or more than the
+            count allows (``n`` smaller than the ranges given) (``number``: the line's number, named in the message).
     """
     name = tokens[0]
     try:
@@ -49,12 +49,23 @@ def parse_message(tokens: list[str], number: int) -> np.ndarray:
         if n <= 1:
             raise ValueError(f"beam count {n} must be > 1")
         _check_length(tokens, number, n + 10, f"n={n}", "n ranges + 10", f"the beam count {n}")  # before the values
-        values = np.array(tokens[2 : 2 + n + 7], dtype=np.float64)
     except IndexError:
         raise CutShort(f"line {number}: {name} ends after its name: truncated: repair or delete the line") from None
     except ValueError as exc:
         raise LogFormatError(f"line {number}: malformed {name} message ({exc}): repair or delete the line") from exc
-    return values
+    numeric = tokens[2 : 2 + n + 7]  # the ranges, the pose, the odometry and the timestamp
+    try:
+        return np.array(numeric, dtype=np.float64)
+    except ValueError:
+        k = next(k for k, token in enumerate(numeric) if not _is_number(token))
+    field = f"range {k}" if k < n else OLD_COLUMNS[k - n]
+    # the host name where the timestamp belongs, the logger timestamp last: one value is missing before it
+    short = k == n + 6 and len(tokens) == n + 10 and _is_number(tokens[-1])
+    why = f": the line holds one value fewer than n={n} ranges and 7 fields need (a value lost, or n is wrong)"
+    raise LogFormatError(
+        f"line {number}: malformed {name} message: {field} is {numeric[k]!r}, not a number{why if short else ''}: "
+        "repair or delete the line"
+    )
 
 
 def _check_length(tokens: list[str], number: int, need: int, counts: str, rule: str, count: str) -> None:

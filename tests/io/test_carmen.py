@@ -59,7 +59,21 @@ def test_beam_layout():
             "FLASER 99 1 2 3 0 0 0 0 0 0 5 host 5",
             r"line 2: FLASER with n=99 needs 109 fields \(n ranges \+ 10\); found 14",
         ),
-        ("FLASER 3 1 2 x 0 0 0 0 0 0 5 host 5", "line 2: malformed FLASER"),
+        (
+            "FLASER 3 1 2 x 0 0 0 0 0 0 5 host 5",
+            "line 2: malformed FLASER message: range 2 is 'x', not a number: repair",
+        ),
+        (
+            "FLASER 3 1 2 3 0 0 y 0 0 0 5 host 5",
+            "line 2: malformed FLASER message: pose theta is 'y', not a number: re",
+        ),
+        # a value lost (here range 2): the host name was read as the timestamp, 'could not convert string to float:
+        # 'host'', with no field or cause named
+        (
+            "FLASER 3 1 2 0 0 0 0 0 0 5 host 5",
+            r"line 2: malformed FLASER message: timestamp is 'host', not a number: the line holds one value fewer "
+            r"than n=3 ranges and 7 fields need \(a value lost, or n is wrong\): repair or delete the line",
+        ),
         ("FLASER 3 1 2 nan 0 0 0 0 0 0 5 host 5", "line 2: FLASER range 2 is nan"),
         # a count smaller than the ranges read the surplus ranges as the pose, silently
         (
