@@ -51,26 +51,52 @@ def synth_world(
 @app.command("fit-scene", rich_help_panel="Hybrid scenes")
 def fit_scene(
     log: Path = typer.Argument(
-        ..., help="Labeled log (`.npz`), e.g. from `mi-lidar synth-world`.", exists=True, dir_okay=False
+        ...,
+        help="A 3D log (`.npz` from `mi-lidar synth-world`, any format `convert` reads), or a planar log with world "
+        "poses (a SLAM-corrected CARMEN `.log.gz`).",
+        exists=True,
+        dir_okay=False,
     ),
     out: Path = typer.Option(
         ..., "--out", "-o", help="Output folder for the scene XML, its assets (`<name>_assets/`) and previews."
     ),
     name: str = typer.Option("scene", help="Scene name (XML file stem)."),
+    cell: float | None = typer.Option(
+        None, metavar="X", min=0.005, max=1.0, help="Planar logs: the wall map's cell (m); default 0.05."
+    ),
 ):
-    """Fit a hybrid geometric scene (ground triangles + vegetation ellipsoids with hit probabilities) to a log.
+    """Fit a scene to a log: a hybrid geometric scene (ground triangles + vegetation ellipsoids with hit
+    probabilities) to a 3D log, a permeable wall map to a planar log.
 
-    Example:
+    A planar log's map (docs/tutorial_loop.md, "The loop on a real planar log"): every 5 cm cell that a return ended
+    in becomes a box 1 m tall around the scan plane that stops a beam with the share of the beams reaching it that
+    stopped there, in the log's world frame; the sensor fires the log's pattern up to its no-return value. Scored on
+    the log it was built from (`compare`, `fit-sensor`, `diagnose`) the map is in-sample: every return has a box at
+    its end.
+
+    Examples:
 
     ```
     mi-lidar fit-scene train.npz --out fitted/
+
+    mi-lidar fit-scene ../shared/data/carmen/intel-corrected.log.gz \\
+        --out intel/
     ```
     """
     from mi_lidar.core.atomic import output_folder
-    from mi_lidar.hybrid.commands import fit_scene as run
+    from mi_lidar.core.errors import ParameterError
+    from mi_lidar.hybrid.commands import fit_scene as fit_hybrid
+    from mi_lidar.io.dispatch import read_any
+    from mi_lidar.planar.map_scene import CELL, fit_map_scene
 
+    loaded = read_any(log)
+    if not loaded.is_planar and cell is not None:
+        raise ParameterError(f"--cell {cell:g}: {log} is a 3D log; --cell sets a planar log's wall map")
     with output_folder(out):  # nothing left when the run fails
-        written = run(log, out, name=name)
+        if loaded.is_planar:
+            written = fit_map_scene(loaded, out, name=name, cell=CELL if cell is None else cell)
+        else:
+            written = fit_hybrid(loaded, out, name=name)
     for path in written:
         console.print(f"wrote {path}")
 

@@ -46,6 +46,7 @@ FORMAT_NAME = "mi-lidar-log"
 FORMAT_VERSION = 1
 MAX_TIME_S = 1e11  # 3,000 years from 1970: a larger time is in ms, us or ns, or a misread number
 UNIT_TOLERANCE = 1e-3  # |norm - 1| a ray direction may show (float32 storage, estimated miss directions)
+PLANAR_SPREAD = 1e-3  # |z| of the beams' unit directions (sensor frame) below which a log is planar
 
 
 @dataclass
@@ -90,6 +91,12 @@ class Log:
     @property
     def n_rays(self) -> int:
         return int(self.ranges.size)
+
+    @property
+    def is_planar(self) -> bool:
+        """Whether every beam lies in the sensor's xy plane: the unit ray directions (sensor frame) have ``|z|`` below
+        :data:`PLANAR_SPREAD` (a 2D scanner such as a SICK LMS; not a spinning 3D Lidar, nor one ring of it)."""
+        return bool(np.nanmax(np.abs(self.directions[..., 2])) < PLANAR_SPREAD)
 
     def validate(self) -> None:
         """Raise :class:`LogFormatError` naming the first inconsistent field."""

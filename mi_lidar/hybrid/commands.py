@@ -50,7 +50,6 @@ from mi_lidar.scene.loading import load_scene
 from mi_lidar.scene.simulation import simulate
 
 console = Console(stderr=True)
-PLANAR_SPREAD = 1e-3  # spread of the beams' direction z (unit vectors, sensor frame) below which a log is planar
 
 DEFAULT_PATTERN = "hdl32e"  # composed scenes without a sensor in their annotation
 MOUNT_HEIGHT = 1.8  # m, sensor height above the ground for such scenes
@@ -116,40 +115,54 @@ def render_previews(xml, poses: np.ndarray | None = None, seed: int = 0, max_sca
 
 
 def write_scene_together(model: HybridModel, out_xml: Path, sensor: SceneSensor | None = None, log=None) -> list[Path]:
-    """:func:`~mi_lidar.hybrid.blocks.write_scene` of ``model`` at ``out_xml``, the XML and its assets together or
-    not at all (:func:`~mi_lidar.core.atomic.staged_scene`): a write that fails midway keeps a previous scene whole.
-
-    The XML names every file relative to itself, so its folder can be moved or shared whole.
-
-    Args:
-        model: the hybrid model.
-        out_xml: the scene XML; its assets go to ``<stem>_assets/`` beside it.
-        sensor: the scene's sensor (None: shapes only); a pattern given as a file (a table or Ouster metadata) is
-            copied to ``<stem>_assets/pattern<suffix>``, or
-        log: a log whose scan-0 pattern the sensor fires from its first pose, written as ``<stem>_assets/pattern.npy``.
+    """:func:`~mi_lidar.hybrid.blocks.write_scene` of ``model`` at ``out_xml`` by :func:`write_staged`: the XML and
+    its assets together or not at all, every file named relative to the XML.
 
     Returns:
         The paths written: the XML, its PLY assets, then the pattern file when ``log`` is given or the sensor's pattern
         is a file.
     """
+    return write_staged(out_xml, lambda folder, stem, s: write_scene(model, folder, stem, s), sensor, log)
+
+
+def write_staged(out_xml: Path, write, sensor: SceneSensor | None = None, log=None) -> list[Path]:
+    """Write a scene at ``out_xml`` with ``write``, the XML and its assets together or not at all
+    (:func:`~mi_lidar.core.atomic.staged_scene`): a write that fails midway keeps a previous scene whole.
+
+    The XML names every file relative to itself, so its folder can be moved or shared whole.
+
+    Args:
+        out_xml: the scene XML; its assets go to ``<stem>_assets/`` beside it.
+        write: ``write(folder, stem, sensor)`` writes ``<folder>/<stem>.xml`` and its assets and returns their paths,
+            the XML first (:func:`~mi_lidar.hybrid.blocks.write_scene`).
+        sensor: the scene's sensor (None: shapes only); a pattern given as a file (a table or Ouster metadata) is
+            copied to ``<stem>_assets/pattern<suffix>``, or
+        log: a log whose scan-0 pattern the sensor fires from its first pose, written as ``<stem>_assets/pattern.npy``;
+            with ``sensor`` as well, the sensor's other settings (pose, range limits, sigma) are kept.
+
+    Returns:
+        The paths written: ``write``'s, then the pattern file when ``log`` is given or the sensor's pattern is a file.
+    """
     with staged_scene(out_xml) as staged:
         table = []
         if log is not None:
             table = [assets_folder(staged.parent, out_xml.stem) / "pattern.npy"]
-            sensor = SceneSensor.from_log(log, table[0])
+            from_log = SceneSensor.from_log(log, table[0])
+            sensor = from_log if sensor is None else replace(sensor, pattern=from_log.pattern)
         elif sensor is not None and is_pattern_file(sensor.pattern):
             table = [assets_folder(staged.parent, out_xml.stem) / f"pattern{Path(sensor.pattern).suffix.lower()}"]
             shutil.copyfile(sensor.pattern, table[0])
         if table:
             sensor = replace(sensor, pattern=f"{table[0].parent.name}/{table[0].name}")
-        written = [*write_scene(model, staged.parent, out_xml.stem, sensor), *table]
+        written = [*write(staged.parent, out_xml.stem, sensor), *table]
     return [out_xml.parent / path.relative_to(staged.parent) for path in written]
 
 
 def fit_scene(
     log_path, out_dir, params: FitParams | None = None, name: str = "scene", preview: bool = True
 ) -> list[Path]:
-    """Fit a hybrid model to the log at ``log_path`` and write ``<out_dir>/<name>.xml``.
+    """Fit a hybrid model to the log at ``log_path`` (or a :class:`Log` read already) and write
+    ``<out_dir>/<name>.xml``.
 
     The scene's sensor fires the log's scan-0 pattern (``<name>_assets/pattern.npy``) from its
     first pose. With ``preview``, ``<name>_range.png`` and ``<name>_top.png`` are rendered.
@@ -157,12 +170,12 @@ def fit_scene(
     Returns:
         The paths written: the XML first, then its PLY assets, the pattern table and the previews.
     """
-    log = read_any(log_path)
-    elevation = log.directions[..., 2]
-    if float(np.nanmax(elevation) - np.nanmin(elevation)) < PLANAR_SPREAD:
+    log = log_path if isinstance(log_path, Log) else read_any(log_path)
+    if log.is_planar:
         console.print(
-            f"warning: {log_path} is a planar log (every beam in one plane): a hybrid scene's ground and "
-            "vegetation need a 3D scan, so the scene fitted here is a guess outside that plane",
+            f"warning: {log.source or 'the log'} is a planar log (every beam in one plane): a hybrid scene's ground "
+            "and vegetation need a 3D scan, so the scene fitted here is a guess outside that plane; `mi-lidar "
+            "fit-scene` builds a planar log's wall map instead (mi_lidar.planar.map_scene.fit_map_scene)",
             highlight=False,
             markup=False,
             soft_wrap=True,
