@@ -49,10 +49,11 @@ def segment_labels(occupied: np.ndarray, hits: np.ndarray, classes: int = EVIDEN
 
     A wall seen by many scans is located to a centimetre; a cell with one or two hits (seen once,
     or a person's legs) is not, and its returns spread more: the residual law depends on both.
-    ``2 * classes`` labels in all; ``classes = 1`` labels occupancy alone.
+    ``2 * classes`` labels in all; ``classes = 1`` labels occupancy alone. A backstop (``occupied`` 2,
+    no hits) is labelled as an occupied cell of the least evidence: a wall the map has not seen.
     """
     evidence = np.clip(np.floor(np.log2(np.maximum(hits, 1))), 0, classes - 1).astype(np.int64)
-    return np.asarray(occupied, np.int64) * classes + evidence
+    return np.minimum(np.asarray(occupied, np.int64), 1) * classes + evidence
 
 
 def _f(values) -> mi.Float:

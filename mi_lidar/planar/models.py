@@ -17,8 +17,8 @@ mi-lidar   the permeable map: every cell with leave-out hits is an element at it
            fitted), returns by an NP-Reg density conditioned on the cell's occupancy, evidence (how
            many leave-out hits; whether to tell them apart is chosen held out), range and incidence
            (refined by EM over the segments, its far tails scaled by likelihood); a beam that passes
-           every cell listed for it meets a backstop behind the last (its own interception probability
-           and return law, :meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`); a beam's return
+           every cell listed for it meets a backstop behind the last (its own interception probability,
+           returning as an unseen wall, :meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`); a beam's return
            comes from its own trace or, by a fitted share, from a neighbouring beam's (its angular
            spread); sampled scans share errors between neighbouring beams as the real training
            scans do (a Gaussian copula on the sampler's streams, :mod:`~mi_lidar.planar.correlation`;
@@ -341,11 +341,14 @@ def fit_permeable_map(
 ) -> PermeableMap:
     """mi-lidar's permeable map with ``classes`` evidence classes (see the module docstring).
 
-    Every beam of ``train`` gets its backstop (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`).
     Start: NP-Reg tables from each beam's first occupied cell (its surface, incidence and label) and
     the kernel ``bandwidths`` ``(h_range, h_incidence, uniform, reach)`` chosen for NP-Reg on held-out training
     scans; then ``rounds`` times: fit the Beta prior (a, b) by the one fitter, assign each return to its
-    most likely segment, and re-estimate the tables from those assignments; then the tables' far tails
+    most likely segment, and re-estimate the tables from those assignments; then the Beta priors again,
+    with a backstop behind every beam's last segment (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`:
+    a third class, returning by the tables of occupied cells; the tables stay as the EM left them, so
+    the backstops' interception is one more likelihood parameter, and near 0 they change nothing);
+    then the tables' far tails
     (:func:`~mi_lidar.planar.tails.fit_tails`, then
     :func:`~mi_lidar.planar.tails.match_short_returns`, on evenly spaced training scans of at most
     :data:`TAIL_BEAMS` beams) and their no-return probabilities
@@ -358,19 +361,18 @@ def fit_permeable_map(
     """
     h_r, h_i, u, reach = bandwidths
     end = support_end(samples_of(train), reach, z_max)
-    grid = fine_grid(samples_of(train), labels=2 * classes + 1)  # stray and occupied cells by evidence, backstops
+    grid = fine_grid(samples_of(train), labels=2 * classes)
     edges = protocol_residual_edges(z_max)
-    seen = train.with_backstops()
-    labels = segment_labels(seen.seg_occupied, seen.seg_hits, classes)
-    first = first_occupied(seen)
+    labels = segment_labels(train.seg_occupied, train.seg_hits, classes)
+    first = first_occupied(train)
 
     def tables(chosen: np.ndarray) -> NPRegDensity:
         """Tables from the returns assigned to segments ``chosen`` (-1: the beam's first occupied one, if any)."""
         chosen = np.where(chosen >= 0, chosen, first)
         seg = np.maximum(chosen, 0)
         assigned = StateSamples(
-            nominal=np.where(chosen >= 0, seen.seg_at[seg], np.nan),
-            incidence=np.where(chosen >= 0, seen.seg_incidence[seg], np.nan),
+            nominal=np.where(chosen >= 0, train.seg_at[seg], np.nan),
+            incidence=np.where(chosen >= 0, train.seg_incidence[seg], np.nan),
             beam=train.beam,
             label=np.where(chosen >= 0, labels[seg], 0),
             z=train.z,
@@ -381,12 +383,12 @@ def fit_permeable_map(
         return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=end)
 
     density = tables(first)
-    beams = segment_beams(seen, classes)
+    beams = segment_beams(train, classes)
     for _ in range(rounds):
         prior = fit_permeability(beams, base_model(density), steps, start=prior)
-        density = tables(_responsibilities(seen, density, *prior, classes))
-    a, b = fit_permeability(beams, base_model(density), steps, start=prior)
+        density = tables(_responsibilities(train, density, *prior, classes))
     del beams  # the mixture below holds these segments again, three times: one set at a time
+    a, b = fit_permeability(segment_beams(train.with_backstops(), classes), base_model(density), steps, start=prior)
     fitted = PermeableMap(model=base_model(density), a=a, b=b, classes=classes)
     mixture = fitted.beams(train)
 

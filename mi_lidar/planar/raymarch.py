@@ -120,8 +120,9 @@ class PlanarTrace:
         on to the escape state (the law of beams that met no cell at all), such beams were predicted to
         miss 30 % of the time on FHW (that state's P(null)), and so the beams whose first occupied cell
         was nearer than 8 m 0.5-1.2 % of the time, where the sensor missed none. The backstop is what
-        such a beam meets next: an element with its own interception probability and its own return
-        law (label :data:`BACKSTOP`), both fitted like the cells'.
+        such a beam meets next: an element with its own interception probability (fitted like the
+        cells' Beta priors) that returns as an occupied cell the map has not seen
+        (:func:`~mi_lidar.planar.beams.segment_labels`).
         """
         counts = np.diff(self.seg_start)
         has = counts > 0
