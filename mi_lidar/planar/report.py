@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import base64
 import html
-import json
 from pathlib import Path
 
 import matplotlib
@@ -20,6 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mi_lidar.core.atomic import atomic_path, atomic_write_text, staged_files  # noqa: E402
+from mi_lidar.core.strict_json import write_json  # noqa: E402
 from mi_lidar.io.markdown import plain  # noqa: E402
 from mi_lidar.planar.benchmark import SAMPLED_SCANS  # noqa: E402
 
@@ -180,7 +180,7 @@ def write_benchmark(result, out: Path) -> dict[str, Path]:
 
 def _write_report(result, out: Path) -> dict[str, Path]:
     files = {
-        "json": atomic_write_text(out / "benchmark.json", json.dumps(result.to_json(), indent=1, default=float)),
+        "json": write_json(out / "benchmark.json", result.to_json(), default=float),
         "nll": nll_figure(result, out / "nll.png"),
         "residuals": residual_figure(result, out / "residuals.png"),
         "ranges": range_figure(result, out / "nll_by_range.png"),

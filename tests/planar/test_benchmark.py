@@ -12,6 +12,7 @@ from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar.benchmark import run_planar_benchmark
 from mi_lidar.planar.grid import Grid, march_cells
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
+from tests.core.test_strict_json import strict_load
 from tests.planar.world import GLASS, WALLS, cast, poses, room_log_text
 from tests.terminal import assert_whole, invoke_at_80
 
@@ -108,9 +109,12 @@ def test_benchmark_cli_scores_and_reports_the_room(room, tmp_path):
     assert result.exit_code == 0, result.stdout
     assert "M3b" in result.stdout and "no no-return value" in result.stdout  # nothing reaches 50 m
     assert "warning" not in result.stdout  # the room's maps hold its walls
-    report = json.loads((tmp_path / "benchmark.json").read_text())
+    # Strict JSON (JSON.parse, jq, serde_json): what is undefined is null, not NaN or Infinity (it was both)
+    report = strict_load((tmp_path / "benchmark.json").read_text())
     rows = {r["model"]: r for r in report["models"]}
     assert set(rows) == {"M0", "M3b"}
+    assert report["max_range_m"] is None  # the log has no no-return value
+    assert [r["test_nll_misses"] for r in rows.values()] == [None, None]  # and no miss to score
     # Residual histograms per state beat one Gaussian around the map's nominal range.
     assert rows["M3b"]["test_nll"] < rows["M0"]["test_nll"] - 0.3, rows
     for row in rows.values():
