@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
@@ -20,6 +19,7 @@ from mi_lidar.core.atomic import atomic_path, atomic_write, atomic_write_text, s
 from mi_lidar.core.errors import CalibrationError, PatternError  # noqa: E402
 from mi_lidar.core.patterns import get_pattern, to_table  # noqa: E402
 from mi_lidar.core.scene_shapes import ELLIPSOID_STRIDE, ordered_shapes  # noqa: E402
+from mi_lidar.core.strict_json import write_json  # noqa: E402
 from mi_lidar.io.markdown import effects_text, markdown_to_html, plain, spread, table_cell, words  # noqa: E402
 from mi_lidar.scene.dicts import AnalyticElements, EllipsoidElements, MeshElements, save_scene  # noqa: E402
 from mi_lidar.scene.files import ANALYTIC_SHAPES  # noqa: E402
@@ -254,7 +254,7 @@ def write_report(out, result: FitResult, scene, units: dict, title: str, pattern
         "held_out_samples": result.samples,
         "warnings": result.warnings,
     }
-    files["report"] = atomic_write_text(out / "report.json", json.dumps(summary, indent=1))
+    files["report"] = write_json(out / "report.json", summary)
     page = markdown_to_html(
         calibration_markdown(summary, rows, title, result.fitted, effects_text(result.model.effects)), title
     )

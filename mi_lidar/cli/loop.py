@@ -95,8 +95,7 @@ def diagnose_command(
         --candidate incidence_dropout --candidate outliers
     ```
     """
-    import json
-
+    from mi_lidar.core.strict_json import dumps
     from mi_lidar.io import read_any
     from mi_lidar.loop import diagnose as run
     from mi_lidar.scene import load_scene, use_density
@@ -120,7 +119,7 @@ def diagnose_command(
     effects = ", ".join(e.describe() for e in result.model.effects)
     found = scene_with_effects(scene, effects, out / "scene.xml", density)
     if as_json:
-        typer.echo(json.dumps(result.ranking(), indent=1, default=float))
+        typer.echo(dumps(result.ranking(), indent=1, default=float))
     else:
         say(result.summary)
         console.print(f"report: {out / 'diagnosis.html'}; the scene with the model's effects: {found}")

@@ -13,13 +13,13 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_write_text
+from mi_lidar.core.strict_json import write_json
 from mi_lidar.io.markdown import markdown_to_html, p_phrase, p_value, plain, words
 from mi_lidar.loop.residuals import (
     MIN_GROUP,
@@ -291,7 +291,7 @@ def write_report(d, out: Path, appendix: str = "") -> None:
     ``appendix``: Markdown sections added after the diagnosis (e.g. the intensity section).
     """
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "diagnosis.json", json.dumps(d.to_json(), indent=1, default=float))
+    write_json(out / "diagnosis.json", d.to_json(), default=float)
     markdown = diagnosis_markdown(d) + appendix
     atomic_write_text(out / "diagnosis.md", markdown)
     atomic_write_text(out / "diagnosis.html", markdown_to_html(markdown, "mi-lidar diagnosis"))

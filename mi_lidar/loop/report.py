@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import matplotlib
@@ -12,6 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mi_lidar.core.atomic import atomic_path, atomic_write_text, output_folder  # noqa: E402
+from mi_lidar.core.strict_json import write_json  # noqa: E402
 from mi_lidar.io.markdown import effects_text, markdown_to_html, plain, table_cell, words  # noqa: E402
 from mi_lidar.loop.compare import NO_ELEMENT_GROUP  # noqa: E402
 
@@ -290,7 +290,7 @@ def _comparison_files(result, log, out: Path, title: str, model) -> list[Path]:
     ]
     if t.hit.any():
         files.append(write_residual_ply(t, log, out / "residuals.ply"))
-    files.append(atomic_write_text(out / "comparison.json", json.dumps(result.to_json(), indent=1, default=float)))
+    files.append(write_json(out / "comparison.json", result.to_json(), default=float))
     h = result.headline
     keys = [
         "group",

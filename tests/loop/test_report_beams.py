@@ -12,6 +12,7 @@ from mi_lidar.core.patterns import get_pattern
 from mi_lidar.loop import compare
 from mi_lidar.loop.compare import beam_blocks, breakdown, metrics
 from mi_lidar.scene.simulation import simulate
+from tests.core.test_strict_json import strict_load
 
 from .helpers import room, street
 from .test_report_order import table
@@ -49,7 +50,11 @@ def test_a_few_beams_are_listed_one_per_row(tmp_path):
     scene, model, poses = street(1)
     log = simulate(scene, get_pattern("vlp16", n_firings=90), poses=poses, model=model, seed=3)
     result = compare(log, scene, model, out=tmp_path)
-    assert result.beam_blocks == [] and "beam_blocks" not in json.loads((tmp_path / "comparison.json").read_text())
+    saved = strict_load((tmp_path / "comparison.json").read_text())  # strict JSON: it held NaN
+    assert result.beam_blocks == [] and "beam_blocks" not in saved
+    # the rays that met no element (the sky) have no range error and no hit to score: null, not NaN
+    sky = next(row for row in saved["breakdowns"]["range"] if row["group"] == "none")
+    assert sky["rays"] > 0 and sky["range_error_median"] is None and sky["f1"] is None, sky
     section = (tmp_path / "report.md").read_text().split("### By beam")[1].split("###")[0]
     assert len([line for line in section.splitlines() if line.startswith("| beam ")]) == 16
 
