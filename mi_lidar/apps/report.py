@@ -28,6 +28,7 @@ from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from mi_lidar.apps.risk import WITHIN, AppResult, alpha_key, standard_error  # noqa: E402
 from mi_lidar.core.atomic import atomic_write_text  # noqa: E402
+from mi_lidar.core.strict_json import write_json  # noqa: E402
 from mi_lidar.loop.report import save_figure  # noqa: E402
 
 SAMPLE_KEYS = ("range_error_median", "range_error_p90", "f1", "histogram_l1")  # benchmark columns shown
@@ -258,7 +259,7 @@ def write_report(evaluation, out: Path) -> dict[str, Path]:
     """Write the JSON, the figures and the HTML page of an :class:`~mi_lidar.apps.evaluate.AppsEvaluation`."""
     out.mkdir(parents=True, exist_ok=True)
     info = evaluation.to_json()
-    files = {"json": atomic_write_text(out / "apps.json", json.dumps(info, indent=1, default=float))}
+    files = {"json": write_json(out / "apps.json", info, default=float)}
     sections = []
     for r in evaluation.results:
         files[f"{r.name}_loss"] = loss_figure(r, out / f"{r.name}_loss.png")

@@ -9,7 +9,6 @@ like. Files are written atomically.
 from __future__ import annotations
 
 import html
-import json
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ from mi_lidar.apps.matching3d import scan_cloud
 from mi_lidar.apps.report import _colors, _image, _pick_table, _save, grids_text, loss_figure, path_figure
 from mi_lidar.apps.risk import alpha_key
 from mi_lidar.core.atomic import atomic_write_text
+from mi_lidar.core.strict_json import write_json
 from mi_lidar.io.markdown import plain
 
 BENCHMARK_KEYS = (
@@ -89,7 +89,7 @@ def write_report(evaluation, out: Path, ranges: dict | None = None) -> dict[str,
     """
     out.mkdir(parents=True, exist_ok=True)
     info = evaluation.to_json()
-    files = {"json": atomic_write_text(out / "apps3d.json", json.dumps(info, indent=1, default=float))}
+    files = {"json": write_json(out / "apps3d.json", info, default=float)}
     if ranges is None:
         with np.load(out / "cache" / "frame.npz") as z:
             ranges = {str(name): z[f"ranges/{name}"] for name in z["sources"]}

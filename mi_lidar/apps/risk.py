@@ -31,8 +31,8 @@ from typing import Protocol
 
 import numpy as np
 
-from mi_lidar.core.atomic import atomic_write_text
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.strict_json import nan_for_null, write_json
 
 WITHIN = 0.10  # a simulator's pick is good when its real J is within 10 % of the best real J found
 
@@ -130,7 +130,7 @@ class Objectives:
         if path is not None and path.exists():
             stored = json.loads(path.read_text())
             if stored.get("key") == key:
-                self.values = stored["values"]
+                self.values = nan_for_null(stored["values"])  # null: a metric that was NaN
 
     def __call__(self, app: Application, source: str, alpha: dict) -> dict:
         name = f"{app.name}|{source}|{alpha_key(alpha)}"
@@ -144,7 +144,7 @@ class Objectives:
 
     def save(self) -> None:
         if self.path is not None:
-            atomic_write_text(self.path, json.dumps({"key": self.key, "values": self.values}, default=float))
+            write_json(self.path, {"key": self.key, "values": self.values}, indent=None, default=float)
 
 
 @dataclass

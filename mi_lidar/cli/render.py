@@ -252,9 +252,7 @@ def camera_lidar(
         --from 0,0,1.8 --to 10,2,1.5
     ```
     """
-    import json
-
-    from mi_lidar.core.atomic import atomic_write_text
+    from mi_lidar.core.strict_json import write_json
     from mi_lidar.io import write_exr, write_ply
     from mi_lidar.io.preview import overlay_png, rgb_png
     from mi_lidar.scene import load_scene
@@ -287,7 +285,7 @@ def camera_lidar(
         "width": width,
         "height": height,
     }
-    files.append(atomic_write_text(out / "calib.json", json.dumps(calib, indent=1)))
+    files.append(write_json(out / "calib.json", calib))
     console.print(f"{int(frame['visible'].sum()):,} of {len(frame['points']):,} Lidar returns fall in the image")
     for path in files:
         console.print(f"wrote {path}")

@@ -23,9 +23,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mi_lidar.core.atomic import atomic_write_text, output_folder
+from mi_lidar.core.atomic import output_folder
 from mi_lidar.core.errors import SpecError
 from mi_lidar.core.resources import cpu_seconds, peak_resident_mib
+from mi_lidar.core.strict_json import write_json
 from mi_lidar.dataset.spec import DatasetSpec
 
 MANIFEST = "manifest.json"
@@ -157,8 +158,7 @@ class Manifest:
         start = time.monotonic()
         if throttled and start - self.saved_at < MANIFEST_SAVE_RATIO * self.save_cost:
             return None
-        text = json.dumps(self.data, indent=1, sort_keys=True)
-        path = atomic_write_text(self.out / MANIFEST, text)
+        path = write_json(self.out / MANIFEST, self.data, sort_keys=True)
         self.saved_at = time.monotonic()
         self.save_cost = self.saved_at - start
         return path

@@ -23,12 +23,12 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, PositiveFloat, ValidationError, field_validator
 
-from mi_lidar.core.atomic import atomic_write_text
 from mi_lidar.core.errors import PoseError, SceneError, describe_invalid
 from mi_lidar.core.log import Log
 from mi_lidar.core.patterns import to_table
 from mi_lidar.core.patterns.from_log import pattern_from_log
 from mi_lidar.core.poses import validate_poses
+from mi_lidar.core.strict_json import write_json
 from mi_lidar.hybrid.blocks import SceneSensor, read_mesh_ply
 from mi_lidar.hybrid.classes import CLASS_NAMES, class_id
 from mi_lidar.hybrid.model import EllipsoidSet, GroundMesh, HybridModel
@@ -95,7 +95,7 @@ def save_annotation(path, objects: list[dict], ground: GroundMesh | None = None,
             "min_range": float(log.sensor.get("min_range", 0.0)),
             "max_range": float(log.sensor.get("max_range", 120.0)),
         }
-    return [atomic_write_text(path, json.dumps(doc, indent=1)), *written]
+    return [write_json(path, doc), *written]
 
 
 class _AnnotationPart(BaseModel):

@@ -22,14 +22,13 @@ Run ``python -m mi_lidar.hybrid.experiment OUT_DIR [TUNE_SCANS [MAX_EVALS]]``.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.atomic import atomic_write_text
+from mi_lidar.core.strict_json import dumps, write_json
 from mi_lidar.hybrid.baselines import NeighborSimulator, box_surface_scene, mesh_model_scene
 from mi_lidar.hybrid.classes import GROUND_CLASSES, OBJECT_CLASSES
 from mi_lidar.hybrid.commands import render_previews, write_scene_together
@@ -195,14 +194,14 @@ def run(
             "auto_segments": len(scored),
             "auto_classification_accuracy": float(np.mean([p == t for p, t in scored])) if scored else float("nan"),
         }
-    atomic_write_text(out / "results.json", json.dumps(results, indent=1, default=float))
+    write_json(out / "results.json", results, default=float)
     return results
 
 
 if __name__ == "__main__":
     args = sys.argv[1:]
     print(
-        json.dumps(
+        dumps(
             run(
                 args[0] if args else "hybrid_experiment",
                 say=lambda m: print(m, file=sys.stderr, flush=True),

@@ -16,8 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mi_lidar.core.atomic import atomic_path, atomic_write_text
+from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import NPZ_MEMBER_ERRORS, SceneError, numpy_file_problem, unreadable
+from mi_lidar.core.strict_json import write_json
 from mi_lidar.hybrid.classes import CLASS_NAMES, class_id
 from mi_lidar.hybrid.model import EllipsoidSet, HybridModel
 from mi_lidar.hybrid.segments import Segment
@@ -187,8 +188,9 @@ class PrimitiveLibrary:
                 {"id": p.id, "label": int(p.label), "class": p.class_name, "file": f"{p.id}.npz", "source": p.source}
             )
         # the index last, so that it only ever names whole files
-        text = json.dumps({"format": LIBRARY_FORMAT, "version": LIBRARY_VERSION, "primitives": index}, indent=1)
-        return atomic_write_text(folder / "library.json", text)
+        return write_json(
+            folder / "library.json", {"format": LIBRARY_FORMAT, "version": LIBRARY_VERSION, "primitives": index}
+        )
 
     @classmethod
     def load(cls, folder) -> PrimitiveLibrary:

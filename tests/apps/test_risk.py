@@ -1,6 +1,7 @@
 """Loss, risk, development paths and the evaluate-apps command (on a toy application and on the test room)."""
 
 import json
+import math
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -23,6 +24,7 @@ from mi_lidar.cli import app as cli
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.planar.protocol import PlanarProtocol
 from tests.apps.room import room_ranges, room_states
+from tests.core.test_strict_json import strict_load
 from tests.planar.world import room_log_text
 from tests.terminal import assert_whole, invoke_at_80
 
@@ -86,6 +88,24 @@ def test_risk_is_zero_for_a_perfect_simulator_and_grows_with_its_bias(tmp_path):
     assert Objectives(None, ranges, tmp_path / "objectives.json", key="other").values == {}
     with pytest.raises(ParameterError, match="no 'real' source"):
         evaluate_application(Bowl(), Objectives(None, {"a": np.zeros(1)}), m=2)
+
+
+def test_the_objectives_file_writes_an_undefined_metric_as_null_and_reads_it_back_as_nan(tmp_path):
+    """Line detection's precision is NaN when it detects nothing: the cache file held NaN, which is not JSON."""
+
+    class Undetected(Bowl):
+        def evaluate(self, alpha, states, ranges):
+            return {**super().evaluate(alpha, states, ranges), "precision": float("nan"), "J_runs": [1.0, math.nan]}
+
+    objectives = Objectives(None, {"real": np.zeros(2)}, tmp_path / "objectives.json", key="k")
+    first = objectives(Undetected(), "real", {"a": 1.0, "b": 1.0})
+    objectives.save()
+    stored = strict_load((tmp_path / "objectives.json").read_text())["values"]
+    assert list(stored.values()) == [{"J": 4.0, "precision": None, "J_runs": [1.0, None]}]
+    again = Objectives(None, {"real": np.zeros(2)}, tmp_path / "objectives.json", key="k")
+    read = again(Undetected(), "real", {"a": 1.0, "b": 1.0})
+    assert again.new == 0 and read["J"] == first["J"] == 4.0 and read["J_runs"][0] == 1.0
+    assert math.isnan(read["precision"]) and math.isnan(read["J_runs"][1])
 
 
 def test_evaluate_datasets_reports_every_application_and_resumes_from_its_cache(tmp_path, monkeypatch):
