@@ -23,6 +23,7 @@ from rich.console import Console
 from rich.table import Table
 
 from mi_lidar.core.atomic import atomic_write
+from mi_lidar.core.strict_json import write_json
 
 from . import bench_calibrate, bench_core, bench_dataset, bench_diagnose, bench_fit_scene, bench_io, bench_planar
 
@@ -235,10 +236,7 @@ def main(argv: list[str] | None = None) -> None:
     console.print(table)
     passed = sum(row.passed is True for row in everything)
     failed = sum(row.passed is False for row in everything)
-    _write(
-        RESULTS / "bench.json",
-        json.dumps({"machines": headers, "rows": [dataclasses.asdict(row) for row in everything]}, indent=1),
-    )
+    write_json(RESULTS / "bench.json", {"machines": headers, "rows": [dataclasses.asdict(row) for row in everything]})
     summary = f"{passed} targets met, {failed} missed."
     if only:
         console.print(f"{summary} Written to {RESULTS}/ ({', '.join(f'{stem}.md' for stem in only)})")

@@ -35,7 +35,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import gzip
-import json
 from pathlib import Path
 
 import drjit as dr
@@ -45,6 +44,7 @@ import numpy as np
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.atomic import atomic_write
 from mi_lidar.core.metrics import metrics_of
+from mi_lidar.core.strict_json import write_json
 from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar.beams import AngularMixture, EngineBeams
 from mi_lidar.planar.benchmark import MODELS, SAMPLED_SCANS, ModelRow, run_planar_benchmark
@@ -150,7 +150,7 @@ def main() -> None:
                 "point": point_metrics(result.data.test.nominal, *drawn["test"], no_return),
             },
         }
-        write_bytes(args.out / f"oracle-{row.name}.json", json.dumps(report, indent=1, default=float).encode())
+        write_json(args.out / f"oracle-{row.name}.json", report, default=float)
         print(f"wrote {target}: truth {row.name}")
         for name, m in report["synthetic_test"].items():
             figures = (m["nll"], m["range_error_median"], m["range_error_p90"], m["f1"], m["histogram_l1"])
