@@ -37,9 +37,9 @@ from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.streams import BeamCorrelation, NeighbourStreams, scan_follows
 from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segments
-from mi_lidar.planar.raymarch import PlanarTrace
+from mi_lidar.planar.raymarch import BACKSTOP, PlanarTrace
 
-OCCUPANCY_CLASSES = 3  # stray-hit cells, ``occ3`` occupied cells, backstops: one Beta prior each
+OCCUPANCY_CLASSES = BACKSTOP + 1  # stray-hit cells, ``occ3`` occupied cells, backstops: one Beta prior each
 PERMEABILITY_TOLERANCE = 1e-5  # nats per beam: the Beta priors' fit has converged (see fit_permeability)
 EVIDENCE_CLASSES = 5  # at most: leave-out hits of a cell 1, 2-3, 4-7, 8-15, 16 or more (doublings)
 
