@@ -41,6 +41,7 @@ from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from mi_lidar.core.effects.base import SubRayMoments
 from mi_lidar.core.errors import ParameterError
@@ -89,12 +90,19 @@ class Sums:
     def start(cls, n: int) -> Sums:
         return cls(dr.full(mi.Float, -dr.inf, n), dr.zeros(mi.Float, n), dr.full(mi.Float, -dr.inf, n))
 
-    def fold(self, valid: mi.Bool, p: mi.Float, drop: mi.Float, log_f: mi.Float) -> Sums:
-        """Add the next element (probabilities ``p``, ``drop``; log density ``log_f`` of the measured range)."""
+    def terms(self, p: mi.Float, drop: mi.Float, log_f: mi.Float) -> tuple[mi.Float, mi.Float]:
+        """The next element's share: ``log pi p (1 - drop) f(z)`` (it returns the measured range) and
+        ``log pi p drop`` (it loses the beam)."""
         drop = dr.zeros(mi.Float, dr.width(p)) + drop
         log_p = dr.log(dr.clip(p, TINY, 1.0))
         term = self.log_pass + log_p + dr.log(dr.clip(1.0 - drop, TINY, 1.0)) + log_f
         lost = self.log_pass + log_p + dr.log(dr.clip(drop, TINY, 1.0))
+        return term, lost
+
+    def fold(self, valid: mi.Bool, p: mi.Float, drop: mi.Float, log_f: mi.Float) -> Sums:
+        """Add the next element (probabilities ``p``, ``drop``; log density ``log_f`` of the measured range)."""
+        drop = dr.zeros(mi.Float, dr.width(p)) + drop
+        term, lost = self.terms(p, drop, log_f)
         return Sums(
             log_mix=dr.select(valid, logaddexp(self.log_mix, term), self.log_mix),
             log_pass=self.log_pass + dr.select(valid, dr.log(dr.clip(1.0 - p, TINY, 1.0)), 0.0),
@@ -203,11 +211,19 @@ def mixture_log_likelihood(
 
 
 def _fold_rounds(
-    table, model, rays: RayBatch, rounds: Rounds, z: mi.Float, sums: Sums, intensity: mi.Float | None = None
+    table,
+    model,
+    rays: RayBatch,
+    rounds: Rounds,
+    z: mi.Float,
+    sums: Sums,
+    intensity: mi.Float | None = None,
+    shares: list | None = None,
 ) -> Sums:
     """Fold the traced elements round by round; each ray's sums end at its last element.
 
     With measured ``intensity``, each element's range density is multiplied by its intensity density.
+    With a list ``shares``, every round appends its entries' :meth:`Sums.terms` to it.
     """
     out = [dr.select(rounds.none, v, 0.0) for v in (sums.log_mix, sums.log_pass, sums.log_lost)]
     running = sums
@@ -223,10 +239,67 @@ def _fold_rounds(
             measured = dr.gather(mi.Float, intensity, r.ray)
             known = dr.isfinite(measured)
             log_f = log_f + dr.select(known, model.intensity.log_prob(seg, dr.select(known, measured, 0.0), sub), 0.0)
-        running = running.gather(r.prev).fold(seg.valid, seg.p, drop, log_f)
+        before = running.gather(r.prev)
+        if shares is not None:
+            shares.append(before.terms(seg.p, drop, log_f))
+        running = before.fold(seg.valid, seg.p, drop, log_f)
         values = (running.log_mix, running.log_pass, running.log_lost)
         out = [_add_at(o, v, r.ray, r.last) for o, v in zip(out, values)]
     return Sums(*out)
+
+
+ESCAPED = -1  # most_likely_elements: the beam passed every traced element (the density's escape law, or a miss)
+VIRTUAL = -2  # most_likely_elements: a virtual element of an effect (outliers, clutter) explains it best
+
+
+def most_likely_elements(
+    table, model, rays: RayBatch, rounds: Rounds, measured: mi.Float, hit: mi.Bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each ray, the traced element most likely to have produced what the sensor reported.
+
+    The hard assignment of an EM over the pass-through mixture: a return at ``z`` is credited to the
+    element of the largest share ``pi_k p_k (1 - drop_k) f_k(z)``, a miss to the one of the largest
+    ``pi_k p_k drop_k``; the beam that passes every traced element (``pi_{K+1}``, then the density's
+    escape law) and the effects' virtual elements compete with them.
+
+    Args:
+        table, model, rays, rounds, measured, hit: as for :func:`mixture_log_likelihood` (compact
+            :class:`Rounds` of single beams: no footprint effect, no cached batch).
+
+    Returns:
+        ``(round, entry)``: (B,) int arrays; the element is entry ``entry`` of round ``round``, or
+        ``round`` is :data:`ESCAPED` or :data:`VIRTUAL` (``entry`` -1).
+    """
+    rays = model.prepare_rays(rays)
+    if model.fan_out(rays) is not None or not isinstance(rounds, Rounds):
+        raise ParameterError("returns are credited to elements on traced rounds of single beams only")
+    z = dr.select(hit, measured, 0.0)
+    returned = np.asarray(hit, bool)
+    sums = Sums.start(rays.width)
+    for seg in model.virtual_segments(rays):
+        seg = model.segment_law(seg, rays, virtual=True)
+        sums = sums.fold(seg.valid, seg.p, seg.drop, log_density(seg, z))
+    best = np.where(returned, np.asarray(sums.log_mix, np.float64), np.asarray(sums.log_lost, np.float64))
+    best_round = np.full(rays.width, VIRTUAL)
+    best_entry = np.full(rays.width, -1)
+    shares: list = []
+    sums = _fold_rounds(table, model, rays, rounds, z, sums, shares=shares)
+    escape = model.density.escape(rays)
+    if escape is None:
+        term, lost = dr.full(mi.Float, -dr.inf, rays.width), sums.log_pass
+    else:
+        escape = model.segment_law(escape, rays, escape=True)
+        term, lost = sums.terms(escape.p, *model.censor(escape, model.density.log_prob(escape, z, rays), rays))
+    candidates = [(ESCAPED, None, term, lost)]
+    candidates += [(k, np.asarray(r.ray, np.int64), *pair) for k, (r, pair) in enumerate(zip(rounds.rounds, shares))]
+    for k, lanes, term, lost in candidates:
+        lanes = np.arange(rays.width) if lanes is None else lanes
+        value = np.where(returned[lanes], np.asarray(term, np.float64), np.asarray(lost, np.float64))
+        better = value > best[lanes]
+        best[lanes[better]] = value[better]
+        best_round[lanes[better]] = k
+        best_entry[lanes[better]] = np.flatnonzero(better) if k != ESCAPED else -1
+    return best_round, best_entry
 
 
 def _fold_cached(table, model, rays: RayBatch, batch: CachedBatch, z: mi.Float, sums: Sums) -> Sums:

@@ -1,10 +1,12 @@
-"""What learned densities are fitted from: the state of the first element each ray met, and what was measured.
+"""Learned densities' training data: per ray, the state of the element credited with its outcome, and the measurement.
 
 Learned densities (P-Reg, NP-Reg, the binned baselines) condition on the state of the element a
-beam meets. :class:`StateSamples` holds, per ray (numpy), the nominal range and incidence of the
-*first* element on the ray (NaN nominal where the ray met nothing: the escape state), its beam and
-label, and the measured return. For scenes of opaque surfaces this is exact; with permeable elements
-it attributes every return to the first element (an approximation the densities document).
+beam meets. :class:`StateSamples` holds, per ray (numpy), the nominal range and incidence of one
+element on the ray (NaN nominal for the escape state: the ray met nothing, or passed everything),
+its beam and label, and the measured return. By default that element is the ray's *first*, which
+is exact for scenes of opaque surfaces; with permeable elements a return may come from an element
+behind it, and the caller credits each ray to the element most likely to have produced its
+outcome (:func:`~mi_lidar.core.likelihood.most_likely_elements`: the hard EM of ``fit-sensor``).
 """
 
 from __future__ import annotations
@@ -62,9 +64,15 @@ class StateSamples:
 
     @classmethod
     def from_rounds(
-        cls, rounds, beam: np.ndarray, label_of_element: np.ndarray, z: np.ndarray, hit: np.ndarray
+        cls,
+        rounds,
+        beam: np.ndarray,
+        label_of_element: np.ndarray,
+        z: np.ndarray,
+        hit: np.ndarray,
+        credited: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> StateSamples:
-        """The first element of each ray of a trace (:class:`~mi_lidar.core.trace.Rounds`).
+        """The state of one element of each ray of a trace (:class:`~mi_lidar.core.trace.Rounds`).
 
         Args:
             rounds: the trace of N rays (one lane per ray, no fan-out).
@@ -72,18 +80,29 @@ class StateSamples:
             label_of_element: (E_total,) label of every element of the table.
             z: (N,) measured ranges, m (ignored where not ``hit``).
             hit: (N,) return flags.
+            credited: ``(round, entry)`` per ray, the element credited with its outcome
+                (:func:`~mi_lidar.core.likelihood.most_likely_elements`; a negative round: the escape
+                state); None: the first element of every ray.
         """
         n = rounds.width
+        if credited is None:
+            credited = (np.full(n, -1), np.full(n, -1))
+            if rounds.rounds:
+                lanes = np.asarray(rounds.rounds[0].ray, np.int64)
+                credited[0][lanes], credited[1][lanes] = 0, np.arange(lanes.size)
+        round_of, entry_of = credited
         nominal = np.full(n, np.nan)
         incidence = np.full(n, np.nan)
         label = np.zeros(n, np.int64)
-        if rounds.rounds:
-            first = rounds.rounds[0]
-            lanes = np.asarray(first.ray, np.int64)
-            nominal[lanes] = np.asarray(first.nominal, np.float64)
-            cos = np.clip(np.asarray(first.cos_incidence, np.float64), 0.0, 1.0)
+        for k, entries in enumerate(rounds.rounds):
+            lanes = np.flatnonzero(round_of == k)
+            if lanes.size == 0:
+                continue
+            at = entry_of[lanes]
+            nominal[lanes] = np.asarray(entries.nominal, np.float64)[at]
+            cos = np.clip(np.asarray(entries.cos_incidence, np.float64)[at], 0.0, 1.0)
             incidence[lanes] = np.degrees(np.arccos(cos))
-            label[lanes] = np.asarray(label_of_element)[np.asarray(first.element, np.int64)]
+            label[lanes] = np.asarray(label_of_element)[np.asarray(entries.element, np.int64)[at]]
         hit = np.asarray(hit, bool)
         return cls(
             nominal=nominal,

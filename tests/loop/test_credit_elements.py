@@ -1,0 +1,101 @@
+"""fit-sensor in a scene with permeable elements: each return is credited to the element that most likely produced it.
+
+A planar scanner looks through two permeable layers 0.3 m apart (hit probability 0.5 each, like the two
+faces of a wall map's cell or two rows of leaves) at an opaque wall. Credited to the first element they
+meet, the returns of the second layer and of the wall would become a +0.3 m and a +8 m residual of the
+first layer's state, which the pass-through mixture then adds again behind it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import mi_lidar
+from mi_lidar.core.elements import ElementTable
+from mi_lidar.core.likelihood import ESCAPED, most_likely_elements
+from mi_lidar.core.patterns import get_pattern
+from mi_lidar.core.problem import Problem
+from mi_lidar.core.rays import LogRays
+from mi_lidar.loop import sensor_fit
+from mi_lidar.scene import scene_sensor_model
+
+LAYERS = (4.0, 4.3)  # m: x of the two permeable layers
+P_LAYER = 0.5
+
+
+def _rectangle(x: float, y: float, length: float, angle: float, label: int, p_hit: float = 1.0) -> str:
+    """A 2 m high vertical rectangle centred at (x, y), ``length`` m long, turned ``angle`` deg about z."""
+    return (
+        f'<shape type="rectangle"><transform name="to_world"><scale x="{length / 2}" y="1"/>'
+        f'<rotate x="1" angle="90"/><rotate z="1" angle="{angle}"/><translate x="{x}" y="{y}" z="1"/></transform>'
+        f'<bsdf type="lidar_material"><integer name="label" value="{label}"/>'
+        f'<float name="p_hit" value="{p_hit}"/></bsdf></shape>'
+    )
+
+
+def layered_room(tmp_path):
+    """A 12 m x 8 m room of opaque walls (label 1) with two permeable layers across it (label 2)."""
+    shapes = [_rectangle(6, 0, 12, 0, 1), _rectangle(12, 4, 8, 90, 1), _rectangle(6, 8, 12, 0, 1)]
+    shapes += [_rectangle(0, 4, 8, 90, 1)] + [_rectangle(x, 4, 6, 90, 2, P_LAYER) for x in LAYERS]
+    xml = (
+        '<scene version="3.0.0"><integrator type="lidar_integrator"><integer name="max_segments" value="6"/>'
+        '</integrator><sensor type="lidar"><string name="pattern" value="planar-360"/>'
+        '<float name="max_range" value="30"/><float name="range_sigma" value="0.01"/></sensor>'
+        + "".join(shapes)
+        + "</scene>"
+    )
+    path = tmp_path / "layered.xml"
+    path.write_text(xml)
+    return path
+
+
+@pytest.fixture(scope="module")
+def layered_log(tmp_path_factory):
+    """20 scans of the layered room from poses 1.5-2.5 m in front of the first layer (seeded)."""
+    path = layered_room(tmp_path_factory.mktemp("layered"))
+    scene = mi_lidar.load_scene(path)
+    model, pose = scene_sensor_model(scene)
+    rng = np.random.default_rng(5)
+    poses = np.repeat(np.eye(4)[None], 20, 0)
+    poses[:, 0, 3] = rng.uniform(1.5, 2.5, 20)
+    poses[:, 1, 3] = rng.uniform(3.0, 5.0, 20)
+    poses[:, 2, 3] = 0.5
+    log = mi_lidar.simulate(scene, get_pattern("planar-360"), poses=poses, seed=3, model=model)
+    return path, scene, model, log
+
+
+def test_returns_are_credited_to_the_layer_they_came_from(layered_log):
+    """Under the scene's own model, every return within 5 cm of the second layer or the wall is credited to
+    that element, not to the first layer the ray met (exact here: the layers are 30 sigma apart)."""
+    path, scene, model, log = layered_log
+    rays = LogRays.from_log(log, scene=scene)
+    problem = Problem.build(scene, rays, table=ElementTable.from_scene(scene))
+    problem.trace(model)
+    chunk = problem.chunks[0]
+    round_of, entry_of = most_likely_elements(problem.table, model, chunk.rays, chunk.rounds, chunk.z, chunk.hit)
+    z, hit = np.asarray(chunk.z), np.asarray(chunk.hit)
+    credited = np.full(z.size, np.nan)
+    for k, entries in enumerate(chunk.rounds.rounds):
+        lanes = np.flatnonzero(round_of == k)
+        credited[lanes] = np.asarray(entries.nominal)[entry_of[lanes]]
+    first = np.full(z.size, np.nan)
+    first[np.asarray(chunk.rounds.rounds[0].ray)] = np.asarray(chunk.rounds.rounds[0].nominal)
+    behind = hit & (z > first + 0.2)
+    assert behind.sum() > 500  # returns from behind the first element the ray met
+    assert np.all(np.abs(z[hit] - credited[hit]) < 0.05)
+    assert np.all(round_of[~hit] == ESCAPED)  # no dropout in this model: a miss passed everything
+
+
+def test_credited_np_reg_scores_better_held_out_than_first_element_np_reg(layered_log, monkeypatch):
+    """NP-Reg fitted on returns credited to their elements beats NP-Reg fitted on first elements held out (seeded;
+    measured 1.927 -> 1.807 nats per ray, the true model 1.733) and samples far closer to the log (histogram L1
+    0.343 -> 0.020 m)."""
+    path, scene, model, log = layered_log
+    credited = sensor_fit.fit_sensor(log, path, "np-reg")
+    monkeypatch.setattr(sensor_fit, "CREDIT_ROUNDS", 0)
+    first = sensor_fit.fit_sensor(log, path, "np-reg")
+    truth, fitted = credited.rows
+    assert fitted["nll"] < first.rows[1]["nll"] - 0.05
+    assert fitted["nll"] < truth["nll"] + 0.15
+    assert fitted["histogram_l1"] < first.rows[1]["histogram_l1"] / 4
