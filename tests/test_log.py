@@ -1,10 +1,14 @@
 """The log data model and its on-disk format."""
 
+import json
+import math
+
 import numpy as np
 import pytest
 
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.core.log import Log
+from tests.core.test_strict_json import strict_load
 
 
 def small_log(scans=2):
@@ -34,6 +38,21 @@ def test_round_trip_is_exact(tmp_path):
     np.testing.assert_array_equal(back.attributes["label"], log.attributes["label"])
     assert back.sensor == {"pattern": "test"}
     assert [p.name for p in tmp_path.iterdir()] == ["a.npz"]  # no temporary file left
+
+
+def test_non_finite_sensor_values_read_back_and_the_header_is_strict_json(tmp_path):
+    """A sensor without a far end (max_range inf), a CARMEN log without a no-return value (max_range_m inf): the
+    header held ``Infinity``, which is not JSON; now null, listed so that the log reads back as it was."""
+    log = small_log()
+    log.sensor = {"pattern": "test", "max_range": math.inf, "max_range_m": math.inf, "offset": -math.inf}
+    log.sensor |= {"figures": [1.5, math.nan], "calibration": None}
+    path = log.save(tmp_path / "a.npz")
+    with np.load(path) as data:
+        header = strict_load(data["meta"].tobytes().decode())
+    assert header["sensor"]["max_range"] is None and header["sensor"]["figures"] == [1.5, None]
+    back = Log.load(path)
+    assert json.dumps(back.sensor) == json.dumps(log.sensor)  # Python's json writes NaN: NaN compares too
+    assert back.sensor["max_range"] == math.inf and back.sensor["offset"] == -math.inf
 
 
 def test_points_put_misses_at_nan_and_hits_on_the_ray():

@@ -9,19 +9,20 @@ leaves either the old cache or the new one.
 from __future__ import annotations
 
 import hashlib
-import json
 from functools import cache
 from pathlib import Path
 
 import numpy as np
 
 from mi_lidar.core.atomic import atomic_path
+from mi_lidar.core.strict_json import dumps_exact, loads_exact
 
 
 def cache_key(path: Path, settings: dict) -> str:
-    """The SHA-256 of the input file's bytes, the settings (JSON, sorted keys) and :func:`code_digest`."""
+    """The SHA-256 of the input file's bytes, the settings (:func:`~mi_lidar.core.strict_json.dumps_exact`, sorted keys:
+    an infinite setting and a NaN one differ) and :func:`code_digest`."""
     data = hashlib.sha256(Path(path).read_bytes()).hexdigest()
-    return f"{data}|{json.dumps(settings, sort_keys=True)}|code {code_digest()}"
+    return f"{data}|{dumps_exact(settings, sort_keys=True)}|code {code_digest()}"
 
 
 @cache
@@ -45,7 +46,7 @@ def save_datasets(file: Path, key: str, states: dict, ranges: dict, benchmark: l
     """Write the state arrays ``states``, the (name -> array) scans ``ranges`` and the benchmark rows."""
     arrays = {
         "key": np.array(key),
-        "benchmark": np.array(json.dumps(benchmark, default=float)),
+        "benchmark": np.array(dumps_exact({"rows": benchmark}, default=float)),
         **states,
         "sources": np.array(list(ranges)),
         **{f"ranges/{name}": value for name, value in ranges.items()},
@@ -64,4 +65,4 @@ def load_datasets(file: Path, key: str) -> tuple[dict, dict, list[dict]] | None:
             return None
         names = [str(name) for name in z["sources"]]
         states = {k: z[k] for k in z.files if k not in ("key", "benchmark", "sources") and not k.startswith("ranges/")}
-        return states, {name: z[f"ranges/{name}"] for name in names}, json.loads(str(z["benchmark"]))
+        return states, {name: z[f"ranges/{name}"] for name in names}, loads_exact(str(z["benchmark"]))["rows"]

@@ -15,7 +15,6 @@ application's settings), so a rerun, or a run stopped half-way, resumes where it
 
 from __future__ import annotations
 
-import json
 import multiprocessing
 import queue
 import time
@@ -33,6 +32,7 @@ from mi_lidar.apps.risk import AppResult, Objectives, evaluate_application
 from mi_lidar.apps.scans import MOTION_NOISE, PlanarStates, ScanMaps, planar_datasets, scan_statistics
 from mi_lidar.core.atomic import output_folder
 from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.strict_json import dumps
 from mi_lidar.planar.benchmark import MODELS
 from mi_lidar.planar.grid import Grid
 from mi_lidar.planar.protocol import PlanarProtocol
@@ -144,7 +144,7 @@ def app_settings(app) -> str:
 
     Not the draws: a rerun with more draws reuses every objective already evaluated.
     """
-    return json.dumps([app.name, repr(app)])
+    return dumps([app.name, repr(app)])
 
 
 def _run_one(app, states, ranges, file: Path, key: str, draws: int, seed: int, progress=None):

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import base64
 import html
-import json
 import textwrap
 from pathlib import Path
 
@@ -28,7 +27,7 @@ from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from mi_lidar.apps.risk import WITHIN, AppResult, alpha_key, standard_error  # noqa: E402
 from mi_lidar.core.atomic import atomic_write_text  # noqa: E402
-from mi_lidar.core.strict_json import write_json  # noqa: E402
+from mi_lidar.core.strict_json import dumps, write_json  # noqa: E402
 from mi_lidar.loop.report import save_figure  # noqa: E402
 
 SAMPLE_KEYS = ("range_error_median", "range_error_p90", "f1", "histogram_l1")  # benchmark columns shown
@@ -306,7 +305,7 @@ within 0.5 m of their nominal range (e = z - nominal): how smooth a surface's po
 length of the runs of no-return, short and long beams.</p>{_scans_table(evaluation.scans)}
 {scan_section}
 {"".join(sections)}
-<p>Seconds: {html.escape(json.dumps({k: round(v, 1) for k, v in evaluation.seconds.items()}))}</p>
+<p>Seconds: {html.escape(dumps({k: round(v, 1) for k, v in evaluation.seconds.items()}))}</p>
 </body></html>"""
     files["html"] = atomic_write_text(out / "apps.html", page)
     return files

@@ -23,13 +23,14 @@ A leading axis of 1 in ``directions``/``origins`` means that every scan shares t
 Misses are explicit: ``hit`` is False and ``ranges`` is NaN; nothing is silently dropped.
 
 On disk a log is one ``.npz`` archive holding the arrays above (attributes as ``attr/<name>``)
-plus ``meta``: a JSON string with ``format``, ``version``, ``sensor`` and the attribute names.
+plus ``meta``: a JSON string with ``format``, ``version``, ``sensor`` and the attribute names (strict JSON: a
+non-finite sensor value, such as ``max_range`` inf, is null there and listed to read back,
+:func:`~mi_lidar.core.strict_json.dumps_exact`).
 Files are written to a temporary name and renamed, so a crash never leaves half a file.
 """
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +42,7 @@ from mi_lidar.core.atomic import atomic_write
 from mi_lidar.core.errors import NUMPY_FILE_ERRORS, LogFormatError, numpy_file_problem
 from mi_lidar.core.frames import MAX_COORDINATE_M
 from mi_lidar.core.poses import validate_poses
+from mi_lidar.core.strict_json import dumps_exact, loads_exact
 
 FORMAT_NAME = "mi-lidar-log"
 FORMAT_VERSION = 1
@@ -220,7 +222,7 @@ class Log:
             "sensor": self.sensor,
             "attributes": sorted(self.attributes),
         }
-        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+        arrays["meta"] = np.frombuffer(dumps_exact(meta).encode(), dtype=np.uint8)
         atomic_write(path, lambda stream: np.savez_compressed(stream, **arrays))
         return path
 
@@ -238,7 +240,7 @@ class Log:
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
-            meta = json.loads(arrays.pop("meta").tobytes().decode()) if "meta" in arrays else None
+            meta = loads_exact(arrays.pop("meta").tobytes().decode()) if "meta" in arrays else None
         except NUMPY_FILE_ERRORS as exc:
             raise LogFormatError(
                 f"{path}: not a readable mi-lidar log ({numpy_file_problem(exc)}); was it truncated? Re-create "

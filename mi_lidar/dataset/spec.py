@@ -8,7 +8,6 @@ specs. :func:`load_spec` raises :class:`~mi_lidar.core.errors.SpecError` naming 
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 from pathlib import Path
 from typing import Annotated
@@ -20,6 +19,7 @@ from mi_lidar.core.errors import MiLidarError, SpecError, describe_invalid, pars
 from mi_lidar.core.frames import MAX_COORDINATE_M
 from mi_lidar.core.params import MAX_DISTANCE_M, MAX_SIGMA_M, parse_calls
 from mi_lidar.core.patterns import is_pattern_file
+from mi_lidar.core.strict_json import dumps
 
 MAX_FRAMES = 1_000_000  # KITTI names frames with 6 digits (000000.bin ... 999999.bin)
 MAX_IMAGE_SIDE = 8192  # pixels, and samples per pixel below: the limits of `camera-lidar`
@@ -268,7 +268,7 @@ class DatasetSpec(Strict):
     @property
     def digest(self) -> str:
         """SHA-256 of the spec as written (what resume compares)."""
-        return hashlib.sha256(json.dumps(self.source, sort_keys=True).encode()).hexdigest()
+        return hashlib.sha256(dumps(self.source, sort_keys=True).encode()).hexdigest()
 
     def resolve(self, path: Path | str) -> Path:
         """A spec path made absolute against the spec's folder."""

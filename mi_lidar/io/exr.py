@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import errno
 import io
-import json
 import os
 import sys
 import tempfile
@@ -24,6 +23,7 @@ import OpenEXR
 from mi_lidar.core.atomic import atomic_path
 from mi_lidar.core.errors import LogFormatError, unreadable
 from mi_lidar.core.log import Log
+from mi_lidar.core.strict_json import dumps, dumps_exact, loads_exact
 
 _UINT_MAX = np.iinfo(np.uint32).max
 _FLOAT32_EXACT = 2**24
@@ -164,8 +164,8 @@ def write_exr_log(log: Log, path: str | os.PathLike, scan: int = 0) -> Path:
     channels.update({f"attr.{k}": v[0] for k, v in one.attributes.items() if np.asarray(v).dtype.kind in "biuf"})
     metadata = {
         "mi_lidar_start_time": repr(float(times.min())),
-        "mi_lidar_pose": json.dumps(one.poses[0].tolist()),
-        "mi_lidar_sensor": json.dumps(one.sensor, default=str),
+        "mi_lidar_pose": dumps(one.poses[0]),
+        "mi_lidar_sensor": dumps_exact(one.sensor, default=str),
     }
     return write_exr(path, channels, metadata)
 
@@ -183,8 +183,8 @@ def read_exr_log(path: str | os.PathLike) -> Log:
         raise LogFormatError(f"{path}: EXR lacks channels {missing}; expected an mi-lidar range image")
     try:
         start = float(metadata.get("mi_lidar_start_time", "0"))
-        pose = np.array(json.loads(metadata.get("mi_lidar_pose", "null")) or np.eye(4).tolist(), dtype=np.float64)
-        sensor = json.loads(metadata.get("mi_lidar_sensor", "{}"))
+        pose = np.array(loads_exact(metadata.get("mi_lidar_pose", "null")) or np.eye(4).tolist(), dtype=np.float64)
+        sensor = loads_exact(metadata.get("mi_lidar_sensor", "{}"))
     except (ValueError, TypeError) as exc:
         raise LogFormatError(f"{path}: malformed mi_lidar header attribute ({exc})") from exc
     if pose.shape != (4, 4) or not isinstance(sensor, dict):

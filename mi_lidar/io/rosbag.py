@@ -20,7 +20,9 @@ poses are the sensor's own), so RViz with fixed frame ``map`` places every scan,
 :func:`read_rosbag_log` reads them back.
 
 The log's sensor metadata (``log.sensor``: name, pattern, ranges...) goes on ``<topic>/sensor_info``
-(``/points/sensor_info``): one ``std_msgs/String`` holding it as a JSON object, latched (transient
+(``/points/sensor_info``): one ``std_msgs/String`` holding it as a strict JSON object (a non-finite value,
+such as ``max_range`` inf, is null there and listed under ``$non_finite``:
+:func:`~mi_lidar.core.strict_json.dumps_exact`), latched (transient
 local, as ``/tf_static``) and stamped with the first scan, so ``ros2 topic echo`` shows it during
 ``ros2 bag play``. Per-ray origins (m, sensor frame), when any is non-zero (a sensor whose beams
 leave from an offset, e.g. Ouster's beam origins), have no place in a PointCloud2: they go as three
@@ -32,7 +34,6 @@ more FLOAT32 fields ``origin_x origin_y origin_z`` per point, while ``x y z`` st
 from __future__ import annotations
 
 import errno
-import json
 import os
 import shutil
 import sqlite3
@@ -43,6 +44,7 @@ import numpy as np
 
 from mi_lidar.core.errors import LogFormatError, parser_message, unreadable
 from mi_lidar.core.log import Log
+from mi_lidar.core.strict_json import dumps_exact, loads_exact
 from mi_lidar.io.cloud import ORIGIN_FIELDS, STANDARD_FIELDS, cloud_from_log, log_from_fields, stack_scans
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -217,7 +219,7 @@ def _read_sensor_info(reader, path: Path, topic: str) -> dict | None:
     for connection, _, raw in reader.messages(connections=connections):
         text = reader.deserialize(raw, connection.msgtype).data
         try:
-            sensor = json.loads(text)
+            sensor = loads_exact(text)
         except ValueError as exc:
             raise LogFormatError(f"{path}: {topic + SENSOR_INFO} is not JSON ({exc}); record the bag again") from exc
         if not isinstance(sensor, dict):
@@ -408,7 +410,7 @@ def write_rosbag_log(
                 if index == 0:
                     mount = _tf_message(types, stamp, base_frame, frame_id, np.eye(4))
                     writer.write(tf_static, nanoseconds, store.serialize_cdr(mount, TF_MESSAGE))
-                    info = types[STRING](data=json.dumps(log.sensor))
+                    info = types[STRING](data=dumps_exact(log.sensor))
                     writer.write(sensor_info, nanoseconds, store.serialize_cdr(info, STRING))
                 pose = _tf_message(types, stamp, world_frame, base_frame, log.poses[index])
                 writer.write(tf, nanoseconds, store.serialize_cdr(pose, TF_MESSAGE))

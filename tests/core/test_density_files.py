@@ -5,6 +5,7 @@ that are valid archives with wrong contents, which fuzzing of a compressed file 
 """
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ import pytest
 from mi_lidar.core.densities import NPRegDensity, PRegDensity
 from mi_lidar.core.densities.tables import StateGrid, load_density, read_density, save_density
 from mi_lidar.core.errors import LogFormatError, ParameterError
+from tests.core.test_strict_json import strict_load
 
 GRID = StateGrid(range_edges=[0.0, 5.0, 1.0e9], incidence_edges=[0.0, 45.0, 90.0], n_labels=2)
 
@@ -37,6 +39,19 @@ def test_saved_densities_read_back(tmp_path):
     )
     p_reg = load_density(PRegDensity(sigma=np.full((3, 2), 0.05)).save(tmp_path / "p.npz"))
     assert np.array_equal(p_reg.sigma, np.full((3, 2), 0.05))
+
+
+def test_non_finite_notes_read_back_and_the_header_is_strict_json(tmp_path):
+    """fit-sensor's notes list NP-Reg's candidate supports (reach inf: up to z_max) and NLLs that may be NaN; the
+    header held ``Infinity`` and ``NaN``, which are not JSON. Now null, listed so that they read back as written."""
+    notes = {"candidates": [[1.0, 5.0, 0.0, math.inf, 3.2]], "nll_misses": math.nan, "from": None}
+    path = NPRegDensity(grid=GRID).save(tmp_path / "np.npz", notes=notes)
+    with np.load(path) as data:
+        header = strict_load(bytes(data["meta"]).decode())
+    assert header["notes"] == {"candidates": [[1.0, 5.0, 0.0, None, 3.2]], "nll_misses": None, "from": None}
+    meta, _ = read_density(path)
+    assert json.dumps(meta["notes"]) == json.dumps(notes)  # Python's json writes NaN: NaN compares too
+    assert load_density(path).grid == GRID
 
 
 def test_a_missing_file_is_named(tmp_path):

@@ -1,5 +1,3 @@
-import json
-
 import numpy as np
 import pytest
 
@@ -18,6 +16,7 @@ from mi_lidar.io import (
     write_pcd,
     write_ply,
 )
+from tests.core.test_strict_json import strict_load
 
 from .conftest import data_file
 
@@ -260,7 +259,8 @@ def test_rosbag_round_trip_keeps_the_sensor_metadata_and_ray_origins(tmp_path, p
         assert info.msgtype == "std_msgs/msg/String" and "transient_local" in str(info.ext.offered_qos_profiles).lower()
         (text,) = [reader.deserialize(raw, c.msgtype).data for c, _, raw in reader.messages([info])]
         cloud = reader.deserialize(next(reader.messages([topics["/points"]]))[2], "sensor_msgs/msg/PointCloud2")
-    assert json.loads(text)["max_range_m"] == 120.0
+    sent = strict_load(text)  # JSON for any ROS user: it held Infinity
+    assert sent["max_range_m"] == 120.0 and sent["min_range_m"] is None
     assert [f.name for f in cloud.fields][-3:] == ["origin_x", "origin_y", "origin_z"]
 
 
@@ -278,7 +278,7 @@ def test_rosbag_without_ray_origins_has_no_origin_fields(tmp_path):
 def test_rosbag_sensor_info_that_is_not_an_object_is_refused(tmp_path, monkeypatch):
     import mi_lidar.io.rosbag as rosbag
 
-    monkeypatch.setattr(rosbag.json, "dumps", lambda sensor: "[1, 2]")
+    monkeypatch.setattr(rosbag, "dumps_exact", lambda sensor: "[1, 2]")
     path = write_any(synthetic_log(scans=2), tmp_path / "bag")
     with pytest.raises(LogFormatError, match=r"bag: /points/sensor_info holds a list; expected an object"):
         read_rosbag_log(path)

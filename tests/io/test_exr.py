@@ -1,3 +1,5 @@
+import json
+import math
 import os
 import re
 
@@ -6,6 +8,7 @@ import pytest
 
 from mi_lidar.core.errors import LogFormatError
 from mi_lidar.io import read_any, read_exr, write_any, write_exr
+from tests.core.test_strict_json import strict_load
 
 from .test_clouds import synthetic_log
 
@@ -45,6 +48,19 @@ def test_write_rejects_bad_input(tmp_path):
     with pytest.raises(ValueError, match="at least one"):
         write_exr(tmp_path / "a.exr", {})
     assert list(tmp_path.iterdir()) == []
+
+
+def test_non_finite_sensor_values_read_back_and_the_header_is_strict_json(tmp_path):
+    """The mi_lidar_sensor header attribute held ``Infinity`` for a sensor without a far end: not JSON."""
+    log = synthetic_log()
+    log.sensor = {"name": "synthetic", "max_range": math.inf, "figures": [math.nan, 2.0]}
+    path = write_any(log, tmp_path / "scan.exr")
+    _, metadata = read_exr(path, with_metadata=True)
+    assert strict_load(metadata["mi_lidar_sensor"])["max_range"] is None
+    strict_load(metadata["mi_lidar_pose"])
+    back = read_any(path).sensor
+    assert back.pop("source") == str(path)
+    assert json.dumps(back) == json.dumps(log.sensor)  # Python's json writes NaN: NaN compares too
 
 
 def test_atomic_write_leaves_no_temporary_file(tmp_path):

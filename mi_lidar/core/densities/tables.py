@@ -10,7 +10,6 @@ Files are written atomically.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import asdict, dataclass, field
@@ -25,6 +24,7 @@ from mi_lidar.core.arrays import aligned
 from mi_lidar.core.atomic import atomic_write
 from mi_lidar.core.errors import NPZ_MEMBER_ERRORS, LogFormatError, ParameterError, numpy_file_problem
 from mi_lidar.core.segment import incidence_deg
+from mi_lidar.core.strict_json import dumps_exact, loads_exact
 
 FORMAT_NAME = "mi-lidar-density"
 FORMAT_VERSION = 1
@@ -158,7 +158,8 @@ def save_density(
         params: its scalar parameters and options (JSON-able).
         grid: its state grid (None when it has none).
         arrays: its tables.
-        notes: free-form facts to keep (training log, bandwidths chosen, held-out NLL).
+        notes: free-form facts to keep (training log, bandwidths chosen, held-out NLL); non-finite numbers read
+            back as written (the header is strict JSON, :func:`~mi_lidar.core.strict_json.dumps_exact`).
     """
     meta = {
         "format": FORMAT_NAME,
@@ -169,7 +170,7 @@ def save_density(
         "notes": notes or {},
     }
     payload: dict[str, Any] = {f"table/{k}": np.asarray(v) for k, v in arrays.items()}
-    payload["meta"] = np.frombuffer(json.dumps(meta, default=float).encode(), dtype=np.uint8)
+    payload["meta"] = np.frombuffer(dumps_exact(meta, default=float).encode(), dtype=np.uint8)
     return atomic_write(path, lambda stream: np.savez_compressed(stream, **payload))
 
 
@@ -180,7 +181,7 @@ def read_density(path: str | os.PathLike) -> tuple[dict, dict[str, np.ndarray]]:
         raise LogFormatError(f"{path}: no such density file; write one with `mi-lidar fit-sensor`")
     try:
         with np.load(path, allow_pickle=False) as data:
-            meta = json.loads(bytes(data["meta"]).decode())
+            meta = loads_exact(bytes(data["meta"]).decode())
             tables = {k.split("/", 1)[1]: np.asarray(data[k]) for k in data.files if k.startswith("table/")}
     except NPZ_MEMBER_ERRORS as exc:  # json's and unicode's errors are ValueErrors
         raise LogFormatError(
