@@ -206,6 +206,33 @@ class Parametrized:
         return f"{self.name}({', '.join(parts)})"
 
 
+class Snapshot:
+    """The parameter values of some parts, copied when it is taken: :meth:`restore` puts them back.
+
+    Taken before a fit, it undoes a fit that failed or a step that is not kept::
+
+        saved = Snapshot(model.effects)
+        try:
+            fit_parts(model, problem, model.effects)
+        except FitError:
+            saved.restore()
+    """
+
+    def __init__(self, parts: list[Parametrized]):
+        self.values = [
+            (part, {key: np.array(dr.detach(value), np.float32) for key, value in part.params.items()})
+            for part in parts
+        ]
+
+    def restore(self) -> None:
+        """Put the copied values back (in place), as opaque arrays: read from memory, so no new kernel per value."""
+        for part, values in self.values:
+            for key, value in values.items():
+                array = mi.Float(aligned(value))
+                dr.make_opaque(array)
+                part.params[key] = array
+
+
 class Catalog(dict):
     """Registered classes of one kind by name (the effect catalog, the density catalog).
 

@@ -31,7 +31,7 @@ import numpy as np
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.effects.base import EFFECTS, Effect, FootprintEffect
 from mi_lidar.core.errors import FitError, ParameterError
-from mi_lidar.core.params import catalog_name, parse_calls
+from mi_lidar.core.params import Snapshot, catalog_name, parse_calls
 from mi_lidar.core.problem import PartsFit, Problem, fit_parts, make_opaque
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop.sensor_fit import fit_density
@@ -244,13 +244,11 @@ def refit_or_keep(model: SensorModel, problem: Problem, steps: int) -> FitError 
     Returns:
         None, or the :class:`~mi_lidar.core.errors.FitError` of the fit that failed (``model`` is then as it was).
     """
-    kept = [(effect, dict(effect.params)) for effect in model.effects]
+    saved = Snapshot(model.effects)
     try:
         refit(model, problem, steps=steps)
     except FitError as error:
-        for effect, params in kept:
-            effect.params.update(params)
-        make_opaque(model.effects)
+        saved.restore()
         return error
     return None
 

@@ -20,6 +20,7 @@ import numpy as np
 from mi_lidar.core.effects.base import Effect
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.metrics import metrics_of, worse_samples
+from mi_lidar.core.params import Snapshot
 from mi_lidar.core.problem import Problem, fit_parts
 from mi_lidar.core.rays import LogRays, world_rays
 from mi_lidar.core.sensor_model import SensorModel
@@ -124,7 +125,7 @@ def effect_step(
             makes the calibration samples less realistic (:func:`worse_samples`), is marked rejected and
             the model is restored (last effect removed, the others' parameters as before).
     """
-    saved = [{k: mi.Float(np.asarray(v)) for k, v in e.params.items()} for e in model.effects]
+    saved = Snapshot(model.effects)
     nll, train_nll = fit_and_score(train, test, model, model.effects, steps)
     row = Step(model_name, f"+ {label}", nll, train_nll, describe_effects(model.effects), test.samples(model))
     if guard is not None:
@@ -137,8 +138,7 @@ def effect_step(
                 else "samples worse: " + ", ".join(f"{k} {a:.3g} -> {b:.3g}" for k, (a, b) in worse.items())
             )
             model.effects = model.effects[:-1]
-            for effect, params in zip(model.effects, saved):
-                effect.params.update(params)
+            saved.restore()
     say(f"+ {label}: {nll:.3f}" + (f" (not kept: {row.rejected})" if row.rejected else ""))
     return row
 

@@ -1,4 +1,4 @@
-"""Catalog names: an effect or density is found whether its name is written with dashes or underscores."""
+"""Catalog names (an effect or density is found whether written with dashes or underscores); parameter snapshots."""
 
 import pytest
 
@@ -27,3 +27,24 @@ def test_both_spellings_name_the_same_catalog_entry(tmp_path):
 def test_an_unknown_name_still_lists_the_catalog():
     with pytest.raises(ParameterError, match=r"unknown effect 'no-such'; the catalog has: .*range_bias"):
         parse_effects("no-such")
+
+
+def test_a_snapshot_puts_back_the_values_it_copied():
+    """Snapshot: what diagnose's refit_or_keep and the development path's realism guard restore. The copy is taken
+    when the snapshot is: a change made later, even in place in the same Dr.Jit array, does not reach it."""
+    import drjit as dr
+    import mitsuba as mi
+    import numpy as np
+
+    from mi_lidar.core.params import Snapshot
+
+    bias, noise = parse_effects("range_bias(bias=0.02), range_noise(law=constant, sigma0=0.1)")
+    bias.widen(3, 1)
+    saved = Snapshot([bias, noise])
+    dr.scatter(bias.params["bias"], mi.Float(0.5), mi.UInt32(1))  # in place: a copy of the dict would share it
+    noise.params["sigma0"] = mi.Float(np.nan)  # replaced, as a failed fit step leaves it
+    assert np.asarray(bias["bias"])[1] == 0.5
+    saved.restore()
+    assert np.array_equal(np.asarray(bias["bias"]), np.full(3, 0.02, np.float32))
+    assert np.asarray(noise["sigma0"]).tolist() == [np.float32(0.1)]
+    assert np.asarray(noise["sigma0"]).dtype == np.float32
