@@ -6,8 +6,8 @@
    candidates are fitted on a subsample of the training rays. Each split is traced once in the
    scene and reused by every candidate and round (:class:`~mi_lidar.core.problem.Problem` traces
    again only for effects that move rays).
-2. **screen**: each round, every effect of the catalog (:mod:`mi_lidar.loop.catalog`) is added to
-   the model, fitted on the subsample
+2. **screen**: each round (:class:`~mi_lidar.loop.rounds.Round`), every effect of the catalog
+   (:mod:`mi_lidar.loop.catalog`) is added to the model, fitted on the subsample
    (:func:`~mi_lidar.loop.catalog.refit`) and scored on every held-out ray; candidates are ranked by
    held-out gain per ray, a simpler candidate first when the best does not beat it significantly
    (:func:`~mi_lidar.loop.selection.rank`). Screening fits stop once they stop gaining, so the effects
@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -58,43 +57,26 @@ import numpy as np
 from mi_lidar.core.atomic import output_folder
 from mi_lidar.core.errors import FitError
 from mi_lidar.core.log import Log
-from mi_lidar.core.problem import n_parameters
 from mi_lidar.core.sensor_model import SensorModel
-from mi_lidar.loop.catalog import (
-    COARSE,
-    DENSITY_CANDIDATES,
-    SCREEN_TOLERANCE,
-    candidate,
-    candidate_names,
-    candidate_settings,
-    fit_density_candidate,
-    refit,
-    refit_or_keep,
-)
+from mi_lidar.loop.catalog import DENSITY_CANDIDATES, candidate_names, candidate_settings, refit, refit_or_keep
 from mi_lidar.loop.compare import RayTable, first_elements, gain_groups
 from mi_lidar.loop.intensity_residuals import intensity_residuals, intensity_section
 from mi_lidar.loop.realism import Realism
 from mi_lidar.loop.residuals import residual_structure
+from mi_lidar.loop.rounds import Round, candidate_label, learned_densities
 from mi_lidar.loop.selection import (
     DROPPED,
-    FAILED,
     JOINED,
-    LOST,
     P_VALUE,
     REPLACED,
-    Candidate,
     drop_passengers,
-    held_out_test,
     rank,
-    relative_gain,
     shrink_without_evidence,
-    significant,
 )
 from mi_lidar.loop.split import Splits
 
 SIMULATION_STREAM = 7  # seed offset of the samples drawn for realism (the same for every model compared)
 MIN_ESTIMATION_RAYS = 1000  # training rays beyond the fitting subsample a learned density needs
-CLOSE = 0.02  # effects within 2 % of the leader's held-out gain are fitted to the end before the ranking decides
 KEPT = "the effects keep the values they had before it"  # what a refit after the rounds that failed leaves
 TRAINING_VALUES = "the values reported are those fitted on the training rays"  # ... when it was the one on every ray
 
@@ -162,187 +144,6 @@ class Diagnosis:
             "failed": self.failed,
             "summary": self.summary,
         }
-
-
-def _label(name: str, variant: dict) -> str:
-    """``effect`` or ``effect(option=choice)``: a candidate's name in the tables."""
-    return name + (f"({', '.join(f'{key}={v}' for key, v in variant.items())})" if variant else "")
-
-
-def _screen(name, variant, base, data: Splits, steps, threshold, nll_before, before_test, base_fit) -> Candidate:
-    """Fit one candidate on the subsample and test it on the held-out rays."""
-    added = candidate(name, data.n_beams, data.n_labels, **variant)
-    trial = dataclasses.replace(base, effects=base.effects + [added])
-    fit = refit(trial, data.fitting, [added], steps=steps, tolerance=SCREEN_TOLERANCE, passes=COARSE)
-    k, parameters, history = n_parameters([added]), fit.parameters, fit.history
-    gain_fit = float(data.fitting.log_likelihood(trial).sum()) - base_fit
-    lr = max(2.0 * gain_fit, 0.0)
-    test_ll = data.test.log_likelihood(trial)
-    gain, p = held_out_test(test_ll, before_test)
-    return Candidate(
-        name=_label(name, variant),
-        k=k,
-        train_gain=gain_fit,
-        test_gain=gain,
-        test_gain_pct=relative_gain(gain, nll_before),
-        lr=lr,
-        p_value=p,
-        delta_bic=k * math.log(data.fitting.n) - lr,
-        significant=significant(gain, p, threshold),
-        parameters=parameters,
-        history=history,
-        effect=added,
-        test_ll=test_ll,
-    )
-
-
-def _converged(
-    ranked, base, data: Splits, steps, threshold, nll_before, before_test, base_fit, failed: list
-) -> list[Candidate]:
-    """``ranked`` with the effects in a close race refitted for ``4 steps`` without stopping early, and scored again.
-
-    A screening fit stops once it stops gaining; an effect whose parameters trade off along a narrow
-    valley (the constant and proportional parts of a noise law) may stop short of its optimum. So the
-    significant effects within :data:`CLOSE` of the leader's held-out gain are fitted to the end before
-    the ranking decides. A candidate whose fit to the end fails (:class:`~mi_lidar.core.errors.FitError`) is
-    left out, and ``failed`` gets ``(name, stage, reason)``.
-    """
-    if not ranked or not ranked[0].significant:
-        return ranked
-    close = [c for c in ranked if c.significant and c.test_gain >= (1.0 - CLOSE) * ranked[0].test_gain]
-    if len(close) < 2:
-        return ranked
-    refitted = {}
-    for c in close:
-        trial = dataclasses.replace(base, effects=base.effects + [c.effect])
-        try:
-            fit = refit(trial, data.fitting, [c.effect], steps=4 * steps)
-        except FitError as error:
-            failed.append((c.name, "fitted to the end", str(error)))
-            refitted[id(c)] = None
-            continue
-        refitted[id(c)] = _scored(c, trial, data, threshold, nll_before, before_test, base_fit, fit)
-    return [refitted.get(id(c), c) for c in ranked if refitted.get(id(c), c) is not None]
-
-
-def _scored(c: Candidate, trial, data: Splits, threshold, nll_before, before_test, base_fit, fit) -> Candidate:
-    """``c`` scored again with the model ``trial`` after ``fit`` (a :class:`~mi_lidar.core.problem.PartsFit`)."""
-    test_ll = data.test.log_likelihood(trial)
-    gain, p = held_out_test(test_ll, before_test)
-    train_gain = float(data.fitting.log_likelihood(trial).sum()) - base_fit
-    return dataclasses.replace(
-        c,
-        train_gain=train_gain,
-        test_gain=gain,
-        test_gain_pct=relative_gain(gain, nll_before),
-        lr=max(2.0 * train_gain, 0.0),
-        p_value=p,
-        delta_bic=c.k * math.log(data.fitting.n) - max(2.0 * train_gain, 0.0),
-        significant=significant(gain, p, threshold),
-        parameters=fit.parameters,
-        history=c.history + fit.history,
-        test_ll=test_ll,
-    )
-
-
-def _learned(names: list[str], given: SensorModel, found: SensorModel, data: Splits, final) -> list:
-    """The learned densities, each replacing the given model's density, against the model with the effects found.
-
-    A density is estimated on the estimation rays (its bandwidths chosen on the fitting rays) and
-    scored on the held-out rays against ``final`` (the found model's :class:`~mi_lidar.loop.realism.Realism`).
-    The best one joins (replacing the effects found) only when it beats that model significantly,
-    by :data:`~mi_lidar.loop.selection.MIN_GAIN` at least: a physical effect says why, a learned
-    density only what.
-
-    Returns:
-        The density rows, best first.
-    """
-    threshold, rows = P_VALUE / len(names), []
-    found_fit = float(data.fitting.log_likelihood(found).sum())
-    for name in names:
-        density, table = fit_density_candidate(name, given, data.states(given), data.fitting, data.n_labels)
-        trial = dataclasses.replace(given, density=density)
-        test_ll = data.test.log_likelihood(trial)
-        gain, p = held_out_test(test_ll, final.ll)
-        train_gain = float(data.fitting.log_likelihood(trial).sum()) - found_fit
-        k = int(sum(np.size(v) for v in density.tables().values()))
-        rows.append(
-            Candidate(
-                name=name,
-                k=k,
-                train_gain=train_gain,
-                test_gain=gain,
-                test_gain_pct=relative_gain(gain, float(-final.ll.mean())),
-                lr=max(2.0 * train_gain, 0.0),
-                p_value=p,
-                delta_bic=k * math.log(data.fitting.n) - max(2.0 * train_gain, 0.0),
-                significant=significant(gain, p, threshold),
-                parameters={f"{name}.bandwidths": np.asarray(min(table, key=lambda row: row[-1])[:-1])},
-                kind="density",
-                effect=density,
-                test_ll=test_ll,
-            )
-        )
-    rows.sort(key=lambda c: -c.test_gain)
-    if rows and rows[0].significant:
-        rows[0].status = JOINED
-    return rows
-
-
-def _join(
-    ranked: list[Candidate], base: SensorModel, data: Splits, steps: int, threshold: float, before_test, failed: list
-):
-    """The first significant candidate that still wins held out once the model's effects are refitted with it.
-
-    Screening fits a candidate beside the model's effects as they are, so a flexible candidate can win it
-    by mending an earlier effect's misfit: after a logistic incidence dropout that absorbed a hidden random
-    dropout, a per-label dropout beat the random one by giving the ground (all grazing rays) 0.82. Once the
-    winner has won its refit, it and every significant candidate with fewer parameters are refitted with
-    the earlier effects to the end (twice the screening's steps, as the final fit; cut short, the earlier
-    effects do not adapt), and the first simpler one, in rank order, that the winner does not beat in the
-    paired held-out test at :data:`P_VALUE` joins instead (the rule of :func:`~mi_lidar.loop.selection.rank`,
-    on joint fits). A winner with such simpler rivals is refitted to the end at once, and that fit decides
-    whether it wins its refit. Without earlier effects screening is already a joint fit, and nothing is
-    refitted again. A candidate whose joint refit fails (:class:`~mi_lidar.core.errors.FitError`) does not join:
-    its status says so and ``failed`` gets ``(name, stage, reason)``.
-
-    Returns:
-        ``(candidate, augmented model, its held-out per-ray log-likelihood)`` or ``(None, None, None)``.
-    """
-
-    def joined_with(c: Candidate, thorough: bool = False):
-        augmented = dataclasses.replace(base, effects=base.effects + [copy.deepcopy(c.effect)])
-        try:
-            if thorough:  # every step: the earlier effects adapt slowly once the candidate has taken its share
-                refit(augmented, data.fitting, steps=2 * steps)
-            else:
-                refit(augmented, data.fitting, steps=steps, tolerance=SCREEN_TOLERANCE)  # earlier effects adapt
-        except FitError as error:
-            c.status = FAILED
-            failed.append((c.name, "joint refit", str(error)))
-            return None, None
-        return augmented, data.test.log_likelihood(augmented)
-
-    for c in (c for c in ranked if c.significant):
-        simpler = [s for s in ranked if s.significant and s.k < c.k and s.status != FAILED] if base.effects else []
-        augmented, after_test = joined_with(c, thorough=bool(simpler))
-        if augmented is None:
-            continue
-        if not significant(*held_out_test(after_test, before_test), threshold):
-            c.status = LOST
-            continue
-        for s in simpler:
-            model, test = joined_with(s, thorough=True)
-            if (
-                model is not None
-                and significant(*held_out_test(test, before_test), threshold)
-                and (held_out_test(after_test, test)[1] >= P_VALUE)
-            ):
-                c, augmented, after_test = s, model, test
-                break
-        c.status = JOINED
-        return c, augmented, after_test
-    return None, None, None
 
 
 def diagnose(
@@ -414,25 +215,24 @@ def diagnose(
     for round_number in range(1, rounds + 1):
         if not names:
             break
-        threshold = P_VALUE / len(names)
         base_fit = float(data.fitting.log_likelihood(base).sum())
+        this_round = Round(base, data, steps, P_VALUE / len(names), nll_before, before_test, base_fit)
         ranked, failures = [], []  # failures: (candidate, stage, reason) of this round
         for name, variant in names:
-            label = _label(name, variant)
+            label = candidate_label(name, variant)
             try:
-                ranked.append(_screen(name, variant, base, data, steps, threshold, nll_before, before_test, base_fit))
+                ranked.append(this_round.screen(name, variant))
             except FitError as error:
                 failures.append((label, "screening", str(error)))
                 label += ": fit failed, left out"
             done += 1
             if progress is not None:
                 progress(done, total, label)
-        ranked = _converged(rank(ranked), base, data, steps, threshold, nll_before, before_test, base_fit, failures)
-        ranked = rank(ranked)
+        ranked = rank(this_round.converged(rank(ranked), failures))
         all_rounds.append(ranked)
-        joined, augmented, after_test = _join(ranked, base, data, steps, threshold, before_test, failures)
+        joined, augmented, after_test = this_round.join(ranked, failures)
         failed += [{"candidate": c, "round": round_number, "stage": stage, "reason": why} for c, stage, why in failures]
-        names = [(n, v) for n, v in names if _label(n, v) not in {c for c, _, _ in failures}]  # not tried again
+        names = [(n, v) for n, v in names if candidate_label(n, v) not in {c for c, _, _ in failures}]  # not again
         if joined is None:
             break
         groups = gain_groups(data.held_out, before_test, after_test)
@@ -442,7 +242,7 @@ def diagnose(
         base, before_test = augmented, after_test
         selected.append(joined.name)
         if len(all_rounds) == 1:  # later rounds retry only what was significant alone
-            names = [(n, v) for n, v in names if _label(n, v) in {c.name for c in ranked if c.significant}]
+            names = [(n, v) for n, v in names if candidate_label(n, v) in {c.name for c in ranked if c.significant}]
         kept = set(candidate_names(base.effects, [n for n, _ in names]))
         names = [(n, v) for n, v in names if n in kept]
     if joined_effects:
@@ -461,7 +261,7 @@ def diagnose(
     if selected:
         realism.append(data.realism(base, "final model", stream, None))
     if densities:
-        learned = _learned(densities, given, base, data, realism[-1])
+        learned = learned_densities(densities, given, base, data, realism[-1])
         all_rounds.append(learned)
         done += len(densities)
         if progress is not None:
