@@ -290,6 +290,7 @@ def most_likely_elements(
     else:
         escape = model.segment_law(escape, rays, escape=True)
         term, lost = sums.terms(escape.p, *model.censor(escape, model.density.log_prob(escape, z, rays), rays))
+    dr.eval(term, lost, shares)  # one kernel for every round, not one per conversion below
     candidates = [(ESCAPED, None, term, lost)]
     candidates += [(k, np.asarray(r.ray, np.int64), *pair) for k, (r, pair) in enumerate(zip(rounds.rounds, shares))]
     for k, lanes, term, lost in candidates:
