@@ -38,9 +38,10 @@
 
 A candidate whose fit fails (:class:`~mi_lidar.core.errors.FitError`: its loss or gradient is not finite) is
 left out of its round and of the rounds after, and named with the reason in :attr:`Diagnosis.failed`, the
-verdict and the report; the other candidates go on (a failed screening fit once cost a 7-minute run). A refit after
-the rounds that fails (the final joint refit, the refit after dropping passengers, the refit on every ray) leaves the
-effects at the values they had before it and is named the same way; the report is written.
+verdict and the report; the other candidates go on (a failed screening fit once cost a 7-minute run). A refit outside
+the rounds that fails (of the given model's effects before screening; the final joint refit, the refit after dropping
+passengers, the refit on every ray) leaves the effects at the values they had before it and is named the same way; the
+report is written.
 
 Scores are floored per ray with the one floor of :func:`~mi_lidar.core.likelihood.score`.
 """
@@ -58,7 +59,7 @@ from mi_lidar.core.atomic import output_folder
 from mi_lidar.core.errors import FitError
 from mi_lidar.core.log import Log
 from mi_lidar.core.sensor_model import SensorModel
-from mi_lidar.loop.catalog import DENSITY_CANDIDATES, candidate_names, candidate_settings, refit, refit_or_keep
+from mi_lidar.loop.catalog import DENSITY_CANDIDATES, candidate_names, candidate_settings, refit_or_keep
 from mi_lidar.loop.compare import RayTable, first_elements, gain_groups
 from mi_lidar.loop.intensity_residuals import intensity_residuals, intensity_section
 from mi_lidar.loop.realism import Realism
@@ -77,7 +78,7 @@ from mi_lidar.loop.split import Splits
 
 SIMULATION_STREAM = 7  # seed offset of the samples drawn for realism (the same for every model compared)
 MIN_ESTIMATION_RAYS = 1000  # training rays beyond the fitting subsample a learned density needs
-KEPT = "the effects keep the values they had before it"  # what a refit after the rounds that failed leaves
+KEPT = "the effects keep the values they had before it"  # what a refit outside the rounds that failed leaves
 TRAINING_VALUES = "the values reported are those fitted on the training rays"  # ... when it was the one on every ray
 
 
@@ -101,7 +102,7 @@ class Diagnosis:
         model: the augmented, fitted model.
         density: the learned density that joined and replaced the model's (None when none did).
         failed: the candidate fits that failed, ``{"candidate", "round", "stage", "reason"}`` each
-            (:class:`~mi_lidar.core.errors.FitError`); those candidates were left out. A refit after the rounds
+            (:class:`~mi_lidar.core.errors.FitError`); those candidates were left out. A refit outside the rounds
             that failed has round None, the effects refitted as ``candidate`` and ``kept``: what the model kept.
     """
 
@@ -196,8 +197,10 @@ def diagnose(
     scene = log_scene(log, scene, force)
     base = copy.deepcopy(model or scene_sensor_model(scene)[0])
     data = Splits.build(log, scene, max_train, max_test, max_fit, seed)
-    if base.effects:
-        refit(base, data.train, steps=steps)
+    failed: list = []
+    if base.effects:  # the given model's own effects, fitted before the candidates are screened beside them
+        given_effects = [(e.name, e) for e in base.effects]
+        _guarded_refit(base, data.train, steps, "refit before screening", given_effects, failed)
     data.describe(base)
     stream = seed + SIMULATION_STREAM
     realism = [data.realism(base, "given model", stream)]
@@ -210,7 +213,7 @@ def diagnose(
         densities = []
     names = [(n, v) for n, v in names if n not in DENSITY_CANDIDATES]
     given = copy.deepcopy(base)
-    all_rounds, selected, evidence, joined_effects, failed = [], [], [], [], []
+    all_rounds, selected, evidence, joined_effects = [], [], [], []
     total, done = len(names) * rounds + len(densities), 0
     for round_number in range(1, rounds + 1):
         if not names:
@@ -246,7 +249,7 @@ def diagnose(
         kept = set(candidate_names(base.effects, [n for n, _ in names]))
         names = [(n, v) for n, v in names if n in kept]
     if joined_effects:
-        _refit_after_rounds(base, data.train, 2 * steps, "final joint refit", joined_effects, failed)
+        _guarded_refit(base, data.train, 2 * steps, "final joint refit", joined_effects, failed)
         added = [e for _, e in joined_effects]
         base, dropped = drop_passengers(base, added, data.test, [n for n, _ in joined_effects])
         for c in (c for r in all_rounds for c in r if c.name in dropped and c.status == JOINED):
@@ -254,7 +257,7 @@ def diagnose(
         selected = [n for n in selected if n not in dropped]
         joined_effects = [(n, e) for n, e in joined_effects if n not in dropped]
         if dropped:
-            _refit_after_rounds(
+            _guarded_refit(
                 base, data.train, steps, f"refit after dropping {', '.join(dropped)}", joined_effects, failed
             )
         shrink_without_evidence(base, [e for _, e in joined_effects], data.train)
@@ -281,7 +284,7 @@ def diagnose(
     structure = _structure(data, base, final)
     if joined_effects:  # the held-out figures are taken: report values fitted on every ray
         whole = data.whole()
-        if _refit_after_rounds(base, whole, steps, "refit on every ray", joined_effects, failed, TRAINING_VALUES):
+        if _guarded_refit(base, whole, steps, "refit on every ray", joined_effects, failed, TRAINING_VALUES):
             shrink_without_evidence(base, [e for _, e in joined_effects], whole)
     result = Diagnosis(
         rounds=all_rounds,
@@ -318,8 +321,9 @@ def diagnose(
     return result
 
 
-def _refit_after_rounds(model, problem, steps: int, stage: str, found: list, failed: list, kept: str = KEPT) -> bool:
-    """Refit the effects ``found`` (``(name, effect)`` pairs) of ``model``; a fit that fails leaves them as they were.
+def _guarded_refit(model, problem, steps: int, stage: str, found: list, failed: list, kept: str = KEPT) -> bool:
+    """Refit the effects ``found`` (``(name, effect)`` pairs) of ``model``; a fit that fails leaves them as they were
+    (:func:`~mi_lidar.loop.catalog.refit_or_keep`).
 
     Returns:
         Whether the refit went through; when it did not, ``failed`` has an entry naming ``stage``, the effects, the

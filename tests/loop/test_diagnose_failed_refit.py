@@ -1,15 +1,17 @@
-"""A refit after the candidate rounds that fails leaves the effects as they were, says so, and the report is written.
+"""A refit outside the candidate rounds that fails leaves the effects as they were, says so, and the report is written.
 
-Once the rounds are over, diagnose refits the effects found on every training ray (the final joint refit, again after
-dropping passengers) and, once the held-out figures are taken, on every ray of the log. Such a refit raising
-:class:`~mi_lidar.core.errors.FitError` (a gradient that is not finite on rays the candidate fits never saw) used to end
-the command with exit code 2 and no report, after every candidate had been fitted (minutes on a real log).
+Before the rounds, diagnose refits the given model's own effects on the training rays. Once the rounds are over, it
+refits the effects found on every training ray (the final joint refit, again after dropping passengers) and, once the
+held-out figures are taken, on every ray of the log. Such a refit raising :class:`~mi_lidar.core.errors.FitError` (a
+gradient that is not finite on rays the candidate fits never saw) used to end the command with exit code 2 and no
+report, after every candidate had been fitted (minutes on a real log).
 
 The failure is injected: every refit goes through ``mi_lidar.loop.catalog.fit_parts``; the stand-in ruins the values of
 the refit problem's effects (NaN, as a failed step leaves them) and raises, for the training split's or the whole log's
 rays only, so the screening and the round's joint refit still run.
 """
 
+import dataclasses
 import json
 
 import mitsuba as mi
@@ -82,3 +84,47 @@ def test_a_failed_refit_after_the_rounds_keeps_the_values_and_the_report(tmp_pat
     assert sentence in " ".join((out / "diagnosis.html").read_text().split())
     scene = (out / "scene.xml").read_text()
     assert "range_bias(bias=[0.0" in scene and "nan" not in scene
+
+
+def test_a_failed_refit_of_the_given_model_keeps_its_values_and_the_candidates_are_screened(monkeypatch):
+    """The given model's effects are refitted on the training rays before the candidates are screened beside them.
+    That refit raising :class:`~mi_lidar.core.errors.FitError` ended the whole run before any candidate was tried;
+    now the effects keep their values, the verdict names the refit, and the candidates are ranked as before.
+
+    The failure is injected in the first fit of the run (``catalog.fit_parts``), which is that refit."""
+    from mi_lidar.core.effects import parse_effects
+    from mi_lidar.loop import diagnose
+
+    from .helpers import hidden_log, room
+
+    scene, model, poses = room(6)
+    log, _ = hidden_log(scene, model, poses, "range_bias(bias=0.05)")
+    given = dataclasses.replace(model, effects=parse_effects("random_dropout(p_drop=0.03)"))
+    fitted, fit_parts = [], catalog.fit_parts
+
+    def failing_first(model, problem, parts, **kwargs):
+        fitted.append([part.name for part in parts])
+        if len(fitted) == 1:
+            for part in parts:
+                part.params["p_drop"] = mi.Float(np.nan)  # what a failed step leaves
+            raise FitError(REASON)
+        return fit_parts(model, problem, parts, **kwargs)
+
+    monkeypatch.setattr(catalog, "fit_parts", failing_first)
+    result = diagnose(log, scene, given, candidates=["range_bias", "range_scale"], rounds=1)
+    assert fitted[0] == ["random_dropout"]  # the failed fit was the given model's refit
+    kept = "the effects keep the values they had before it"
+    assert result.failed == [
+        {
+            "candidate": "random_dropout",
+            "round": None,
+            "stage": "refit before screening",
+            "reason": REASON,
+            "kept": kept,
+        }
+    ]
+    assert f"The refit before screening of random_dropout failed, so {kept}" in result.summary
+    assert {c["name"] for c in result.ranking()} == {"range_bias", "range_scale"}
+    assert result.selected == ["range_bias"] and np.isfinite(result.nll_before) and np.isfinite(result.nll_after)
+    drop = np.asarray(result.model.effects[0].params["p_drop"])
+    assert result.model.effects[0].name == "random_dropout" and np.all(np.isfinite(drop))
