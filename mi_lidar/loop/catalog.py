@@ -34,7 +34,7 @@ from mi_lidar.core.errors import FitError, ParameterError
 from mi_lidar.core.params import Snapshot, catalog_name, parse_calls
 from mi_lidar.core.problem import PartsFit, Problem, fit_parts, make_opaque
 from mi_lidar.core.sensor_model import SensorModel
-from mi_lidar.loop.sensor_fit import fit_density
+from mi_lidar.loop.sensor_fit import crediting, fit_density
 
 DENSITY_CANDIDATES = {"np_reg": "np-reg", "p_reg": "p-reg"}  # candidate name: fit-sensor family
 # bandwidths screened (fit-sensor tries 12 pairs; P-Reg's local regressions cost 0.6 s of CPU per pair)
@@ -253,7 +253,9 @@ def refit_or_keep(model: SensorModel, problem: Problem, steps: int) -> FitError 
     return None
 
 
-def fit_density_candidate(name: str, base: SensorModel, states, fitting: Problem, n_labels: int):
+def fit_density_candidate(
+    name: str, base: SensorModel, states, fitting: Problem, n_labels: int, estimation: Problem | None = None
+):
     """The learned density ``name`` estimated from ``states``, its bandwidths chosen on ``fitting``'s rays.
 
     Args:
@@ -262,6 +264,8 @@ def fit_density_candidate(name: str, base: SensorModel, states, fitting: Problem
         states: :class:`~mi_lidar.core.densities.samples.StateSamples` of training rays not in ``fitting``.
         fitting: the rays that choose the bandwidths.
         n_labels: class labels of the scene.
+        estimation: the rays of ``states``: in scenes with permeable elements their returns are then
+            credited to the elements most likely to have produced them (:func:`~mi_lidar.loop.sensor_fit.crediting`).
 
     Returns:
         ``(density, bandwidth table)``.
@@ -271,4 +275,6 @@ def fit_density_candidate(name: str, base: SensorModel, states, fitting: Problem
         return fitting.nll(dataclasses.replace(base, density=density))
 
     family = DENSITY_CANDIDATES[name]
-    return fit_density(family, base, states, validation_nll, n_labels, fitting, 0, **DENSITY_OPTIONS.get(name, {}))
+    credit = None if estimation is None else crediting(estimation, base)
+    options = DENSITY_OPTIONS.get(name, {})
+    return fit_density(family, base, states, validation_nll, n_labels, fitting, 0, credit=credit, **options)

@@ -226,7 +226,8 @@ def learned_densities(names: list[str], given: SensorModel, found: SensorModel, 
     threshold, rows = P_VALUE / len(names), []
     found_fit = float(data.fitting.log_likelihood(found).sum())
     for name in names:
-        density, table = fit_density_candidate(name, given, data.states(given), data.fitting, data.n_labels)
+        states = data.states(given)
+        density, table = fit_density_candidate(name, given, states, data.fitting, data.n_labels, data.estimation)
         trial = dataclasses.replace(given, density=density)
         test_ll = data.test.log_likelihood(trial)
         train_gain = float(data.fitting.log_likelihood(trial).sum()) - found_fit
