@@ -34,6 +34,7 @@ from mi_lidar.core.densities.histogram import fit_np_reg
 from mi_lidar.core.densities.preg import fit_p_reg
 from mi_lidar.core.densities.samples import StateSamples, protocol_residual_edges
 from mi_lidar.core.densities.tables import StateGrid
+from mi_lidar.core.effects.base import FootprintEffect
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.likelihood import VIRTUAL, most_likely_elements
@@ -105,13 +106,20 @@ def traced_states(problem: Problem, model: SensorModel, credit: bool = False) ->
 
     The element is the ray's first, or with ``credit`` the one ``model`` finds most likely to have
     produced the ray's outcome (:func:`~mi_lidar.core.likelihood.most_likely_elements`; rays best
-    explained by an effect's virtual elements, e.g. outliers, are left out).
+    explained by an effect's virtual elements, e.g. outliers, are left out). When ``model`` fans beams
+    out into sub-rays (a footprint effect), the first element along each beam's axis (its sub-ray 0).
     """
     problem.trace(model)
     label = np.asarray(problem.table.label)
     parts = []
     for chunk in problem.chunks:
         z, hit = np.asarray(chunk.z, np.float64), np.asarray(chunk.hit)
+        if chunk.rounds.width != z.size:  # sub-ray j of beam i in lane j n + i (FootprintEffect.footprint)
+            copies = chunk.rounds.width // z.size
+            beam = np.tile(np.asarray(chunk.rays.beam), copies)
+            axis = StateSamples.from_rounds(chunk.rounds, beam, label, np.tile(z, copies), np.tile(hit, copies))
+            parts.append(axis.take(np.arange(z.size)))
+            continue
         credited = None
         if credit:
             with dr.suspend_grad():
@@ -193,8 +201,10 @@ def fit_sensor(
 def crediting(problem: Problem, base: SensorModel):
     """``credit(density) -> StateSamples`` of ``problem``'s rays credited under ``base`` with ``density``
     (:func:`traced_states`), or None when every element of the scene is opaque (then a return comes from
-    the ray's first element)."""
-    if bool(np.all(np.asarray(problem.table.p_hit) >= 1.0)):
+    the ray's first element) or when ``base`` fans beams out into sub-rays (a footprint effect: the trace
+    then holds sub-rays, and a return is a blend of theirs, not one element's)."""
+    opaque = bool(np.all(np.asarray(problem.table.p_hit) >= 1.0))
+    if opaque or any(isinstance(effect, FootprintEffect) for effect in base.effects):
         return None
     return lambda density: traced_states(problem, dataclasses.replace(base, density=density), credit=True)
 

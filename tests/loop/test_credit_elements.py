@@ -117,3 +117,18 @@ def test_diagnose_credits_returns_for_its_learned_density(layered_log, monkeypat
     monkeypatch.setattr(sensor_fit, "CREDIT_ROUNDS", 0)
     first = np_reg_gain()
     assert credited > first + 0.05
+
+
+def test_a_model_with_a_footprint_effect_is_fitted_without_crediting(layered_log):
+    """A scene model that fans beams out (mixed pixels) still gets its NP-Reg: its trace holds sub-rays, whose
+    returns blend, so nothing is credited to one element; its states are those along each beam's axis (before,
+    fit-sensor stopped: "state samples: arrays of different shapes", 15,000 sub-rays against 3,000 beams)."""
+    path, scene, model, log = layered_log
+    text = path.read_text().replace(
+        '<integer name="max_segments" value="6"/>',
+        '<integer name="max_segments" value="6"/><string name="effects" value="mixed_pixels(divergence=0.003)"/>',
+    )
+    blended = path.with_name("blended.xml")
+    blended.write_text(text)
+    result = sensor_fit.fit_sensor(log, blended, "np-reg", max_train=3000, max_test=3000)
+    assert np.isfinite(result.rows[1]["nll"])

@@ -149,8 +149,8 @@ class FootprintEffect(Effect, metaclass=abc.ABCMeta):
 
         Returns:
             ``(sub, weight)``: ``m`` sub-rays per beam, sub-ray ``j`` of beam ``i`` in lane
-            ``j n + i`` (``n`` beams), and each sub-ray's share of the beam's energy (weights of a
-            beam sum to 1).
+            ``j n + i`` (``n`` beams), sub-ray 0 along the beam's axis, and each sub-ray's share of
+            the beam's energy (weights of a beam sum to 1).
         """
 
     @abc.abstractmethod
