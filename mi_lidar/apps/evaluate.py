@@ -31,7 +31,7 @@ from mi_lidar.apps.registration import ScanToMapEKF
 from mi_lidar.apps.risk import AppResult, Objectives, evaluate_application
 from mi_lidar.apps.scans import MOTION_NOISE, PlanarStates, ScanMaps, planar_datasets, scan_statistics
 from mi_lidar.core.atomic import output_folder
-from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.params import choose_names
 from mi_lidar.core.strict_json import dumps
 from mi_lidar.planar.benchmark import MODELS
 from mi_lidar.planar.grid import Grid
@@ -266,9 +266,7 @@ def evaluate_log(
     from mi_lidar.io.dispatch import read_any
     from mi_lidar.planar.benchmark import run_planar_benchmark
 
-    unknown = sorted(set(simulators) - set(MODELS))
-    if unknown or not simulators:
-        raise ParameterError(f"evaluate-apps: unknown simulators {unknown}; choose from {', '.join(MODELS)}")
+    simulators = choose_names(simulators, MODELS, "evaluate-apps: unknown simulators")
     path, out = Path(path), Path(out)
     protocol = protocol or PlanarProtocol()
     start, cpu = time.perf_counter(), time.process_time()

@@ -27,7 +27,7 @@ from mi_lidar.apps.frames import SIMULATORS, fit_simulators, frame_states, one_f
 from mi_lidar.apps.matching3d import FrameStates, ScanMatching3D
 from mi_lidar.apps.risk import AppResult, Objectives, evaluate_application
 from mi_lidar.core.atomic import output_folder
-from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.params import choose_names
 
 BOOTSTRAP = 400  # resamples of the starts for the risk's standard error
 
@@ -122,9 +122,7 @@ def evaluate_frame(
     from mi_lidar.apps.report3d import write_report
     from mi_lidar.io import read_any
 
-    unknown = sorted(set(simulators) - set(SIMULATORS))
-    if unknown or not simulators:
-        raise ParameterError(f"evaluate-apps-3d: unknown simulators {unknown}; choose from {', '.join(SIMULATORS)}")
+    simulators = choose_names(simulators, SIMULATORS, "evaluate-apps-3d: unknown simulators")
     path, out = Path(path), Path(out)
     say = progress or (lambda done, total, label: None)
     start = time.perf_counter()

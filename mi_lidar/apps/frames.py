@@ -43,6 +43,7 @@ from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.errors import LogFormatError, ParameterError
 from mi_lidar.core.log import Log
 from mi_lidar.core.metrics import metrics_of
+from mi_lidar.core.params import choose_names
 from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import LogRays, world_rays
 from mi_lidar.core.sensor_model import SensorModel
@@ -136,9 +137,7 @@ def fit_simulators(log: Log, simulators=SIMULATORS, steps: int = 1500, progress=
     """
     from mi_lidar.loop.sensor_fit import fit_sensor
 
-    unknown = sorted(set(simulators) - set(SIMULATORS))
-    if unknown:
-        raise ParameterError(f"unknown 3D simulators {unknown}; choose from {', '.join(SIMULATORS)}")
+    simulators = choose_names(simulators, SIMULATORS, "unknown 3D simulators")
     say = progress or (lambda message: None)
     columns = split_columns(log)
     mesh = range_image_mesh(log, columns["mesh"], fill_holes=True)

@@ -24,7 +24,10 @@ def evaluate_apps(
     max_range: float | None = max_range_option(),
     message: str | None = carmen_message_option(),
     simulator: list[str] | None = typer.Option(
-        None, "--simulator", "-s", help="Only these simulators (repeatable): M0 M1 P-Reg NP-Reg mi-lidar (default)."
+        None,
+        "--simulator",
+        "-s",
+        help="Only these simulators (repeatable, any case): M0 M1 P-Reg NP-Reg mi-lidar (default).",
     ),
     draws: int = typer.Option(
         16, metavar="N", min=2, max=MAX_DRAWS, help="Prior draws of each application's parameters for the risk."

@@ -22,7 +22,8 @@ def evaluate_apps_3d(
         None,
         "--simulator",
         "-s",
-        help="Only these simulators (repeatable): gaussian physics beam P-Reg NP-Reg mi-lidar (default: all).",
+        help="Only these simulators (repeatable, any case): gaussian physics beam P-Reg NP-Reg mi-lidar "
+        "(default: all).",
     ),
     draws: int = typer.Option(
         16, metavar="N", min=2, max=MAX_DRAWS, help="Prior draws of the registration parameters for the risk."

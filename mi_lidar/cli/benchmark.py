@@ -30,7 +30,10 @@ def benchmark_planar(
         help="Fit on at most this many training beams (evenly spaced scans of a longer log; 0: all).",
     ),
     model: list[str] | None = typer.Option(
-        None, "--model", "-m", help="Only these models (repeatable): M0 M1 M2a M2b M3a M3b P-Reg NP-Reg mi-lidar."
+        None,
+        "--model",
+        "-m",
+        help="Only these models (repeatable, any case): M0 M1 M2a M2b M3a M3b P-Reg NP-Reg mi-lidar.",
     ),
 ):
     """Fit every sensor model on the training scans of a planar log and score it on the test scans.

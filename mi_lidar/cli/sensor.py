@@ -15,7 +15,9 @@ from mi_lidar.cli.tables import rows_table
 def fit_sensor_command(
     log: Path = log_argument(),
     scene: Path = typer.Argument(..., help="Scene XML the log was recorded in.", exists=True, dir_okay=False),
-    model: str = typer.Option("np-reg", "--model", "-m", help="Family: np-reg, p-reg, beam or physics."),
+    model: str = typer.Option(
+        "np-reg", "--model", "-m", help="Family: np-reg, p-reg, beam or physics (any case: NP-Reg is np-reg)."
+    ),
     out: Path = typer.Option(..., "--out", "-o", help="Output density file (`.npz`)."),
     steps: int = typer.Option(200, metavar="N", min=1, max=MAX_STEPS, help="Adam steps (beam, physics)."),
     seed: int = typer.Option(0, metavar="N", min=0, help="Seed of the split and of the sampled scan."),
@@ -44,6 +46,7 @@ def fit_sensor_command(
     from mi_lidar.io import read_any
     from mi_lidar.loop.sensor_fit import fit_sensor, save_sensor
 
+    model = model.lower()  # benchmark-planar and the docs write NP-Reg, P-Reg
     with progress(f"fitting {model}"):
         result = fit_sensor(
             read_any(log),

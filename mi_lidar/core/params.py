@@ -268,6 +268,31 @@ def catalog_name(name: str) -> str:
     return name.strip().replace("-", "_")
 
 
+def choose_names(given, known: tuple[str, ...], what: str) -> tuple[str, ...]:
+    """The names of ``known`` that ``given`` spell, in any case and with ``-`` or ``_``.
+
+    The verbs name their models in two styles (``fit-sensor --model np-reg``, ``benchmark-planar --model
+    NP-Reg``); a user who writes one where the other is taken, or ``m0`` for ``M0``, gets the model.
+
+    Args:
+        given: the names the user wrote (one or more).
+        known: the names taken, as the verb spells them.
+        what: the start of the message, e.g. ``"benchmark-planar: unknown models"``.
+
+    Returns:
+        ``given`` in ``known``'s spelling, in the given order.
+
+    Raises:
+        ParameterError: a name that is none of ``known``, or no name: the message lists ``known``.
+    """
+    spelled = {catalog_name(name).lower(): name for name in known}
+    given = list(given)
+    unknown = [name for name in given if catalog_name(name).lower() not in spelled]
+    if unknown or not given:
+        raise ParameterError(f"{what} {unknown}; choose from {', '.join(known)}")
+    return tuple(spelled[catalog_name(name).lower()] for name in given)
+
+
 def parse_calls(spec: str, make: Callable[..., Any], what: str) -> list:
     """Parse ``"name(key=value, key=[v1 v2]), other(...)"`` into objects built by ``make(name, **values)``.
 

@@ -31,9 +31,9 @@ import numpy as np
 
 from mi_lidar.core.atomic import output_folder
 from mi_lidar.core.densities.histogram import support_end
-from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.log import Log
 from mi_lidar.core.metrics import metrics_of
+from mi_lidar.core.params import choose_names
 from mi_lidar.planar import models as m
 from mi_lidar.planar.beams import EngineBeams, nominal_beams
 from mi_lidar.planar.protocol import PlanarData, PlanarProtocol, prepare
@@ -238,14 +238,12 @@ def run_planar_benchmark(
         log: a planar log of N beams x 1 firing (:func:`mi_lidar.io.carmen.read_carmen`).
         source: its file, for the report.
         protocol: the protocol's settings (default: the protocol's).
-        models: the models to fit and score (names of :data:`MODELS`).
+        models: the models to fit and score (names of :data:`MODELS`, in any case, with ``-`` or ``_``).
         seed: seed of the first sampled scan (the others: ``seed + 1``, ...).
         progress: optional ``progress(done, total, label)``.
     """
     say = progress or (lambda done, total, label: None)
-    unknown = sorted(set(models) - set(MODELS))
-    if unknown:
-        raise ParameterError(f"benchmark-planar: unknown models {unknown}; choose from {', '.join(MODELS)}")
+    models = choose_names(models, MODELS, "benchmark-planar: unknown models")
     start = time.perf_counter()
     data = prepare(log, protocol, progress=say)
     seconds = dict(data.seconds)

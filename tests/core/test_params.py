@@ -24,6 +24,20 @@ def test_both_spellings_name_the_same_catalog_entry(tmp_path):
     assert parse_density("physics(k=1e-4)").name == "physics"
 
 
+def test_a_model_is_found_in_any_case_and_either_spelling():
+    """benchmark-planar writes NP-Reg, fit-sensor np-reg: each verb takes the other's spelling (it refused it)."""
+    from mi_lidar.core.params import choose_names
+
+    known = ("M0", "M3b", "NP-Reg", "mi-lidar")
+    assert choose_names(["np-reg", "M3B", "mi_lidar", " m0 "], known, "x") == ("NP-Reg", "M3b", "mi-lidar", "M0")
+    with pytest.raises(
+        ParameterError, match=r"^bench: unknown models \['M9'\]; choose from M0, M3b, NP-Reg, mi-lidar$"
+    ):
+        choose_names(["m0", "M9"], known, "bench: unknown models")
+    with pytest.raises(ParameterError, match=r"unknown models \[\]; choose from"):
+        choose_names([], known, "bench: unknown models")
+
+
 def test_an_unknown_name_still_lists_the_catalog():
     with pytest.raises(ParameterError, match=r"unknown effect 'no-such'; the catalog has: .*range_bias"):
         parse_effects("no-such")

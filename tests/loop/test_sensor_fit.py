@@ -166,11 +166,11 @@ def test_fit_sensor_saves_a_parametric_density_that_loads_by_file(street_log, tm
 
 
 def test_fit_sensor_takes_either_spelling_and_keeps_its_progress_off_stdout(street_log, tmp_path):
-    """`-m p_reg` (the --density spelling) is `-m p-reg`; the steps it reports ('traced ... rays') are progress,
-    written to stderr, so stdout holds the table and the file written."""
+    """`-m P_Reg` (the --density spelling, in benchmark-planar's case: it refused 'P_Reg') is `-m p-reg`; the steps
+    it reports ('traced ... rays') are progress, written to stderr, so stdout holds the table and the file written."""
     scene, log = street_log
     log.save(tmp_path / "drive.npz")
-    args = ["fit-sensor", tmp_path / "drive.npz", SCENES / "urban_street.xml", "-m", "p_reg"]
+    args = ["fit-sensor", tmp_path / "drive.npz", SCENES / "urban_street.xml", "-m", "P_Reg"]
     result = invoke_at_80([*args, "--out", tmp_path / "p.npz"])
     assert result.exit_code == 0, result.stdout + result.stderr
     assert "traced" in result.stderr and "traced" not in result.stdout
