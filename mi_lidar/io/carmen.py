@@ -215,7 +215,11 @@ def read_carmen(
     if not rows and others:
         found = ", ".join(f"{count} {name}" for name, count in sorted(others.items()))
         readable = [name for name in sorted(others) if name in OLD_LASER + ROBOT_LASER]
-        fix = f"read them with message={readable[0]!r}" if readable else f"convert the laser lines to {wanted} lines"
+        fix = (
+            f"read them with --message {readable[0]} (from Python: message={readable[0]!r})"
+            if readable
+            else f"convert the laser lines to {wanted} lines"
+        )
         raise LogFormatError(
             f"{path}: no {wanted} messages, but {found} lines; mi-lidar reads the laser lines that carry the laser's "
             f"corrected pose (FLASER, RLASER, ROBOTLASER1, ROBOTLASER2): {fix}"

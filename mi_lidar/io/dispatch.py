@@ -173,7 +173,10 @@ def read_any(path: str | os.PathLike, formats: tuple[str, ...] | None = None, **
         fmt = formats[0]  # a name no format claims (e.g. intel.txt, aces.gz): read it as the one the caller takes
     if formats is not None and fmt not in formats:
         wanted = " or ".join(_format_name(name) for name in formats)
-        raise LogFormatError(f"{path}: {_format_name(fmt)} by its extension; expected {wanted}")
+        raise LogFormatError(
+            f"{path}: {_format_name(fmt)} by its extension; expected {wanted}: give the file in that format (for a "
+            "log converted from one, the original)"
+        )
     if fmt == "png":
         raise LogFormatError(f"{path}: PNG previews cannot be read back; read the scan's source file")
     readers = {

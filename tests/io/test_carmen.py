@@ -232,8 +232,8 @@ def test_a_non_finite_value_is_named_by_field_and_line(tmp_path, column, value, 
     "name, fix",
     [
         ("RAWLASER1", "convert the laser lines to FLASER or ROBOTLASER1 lines"),  # no pose: cannot be read
-        ("RLASER", "read them with message='RLASER'"),
-        ("ROBOTLASER2", "read them with message='ROBOTLASER2'"),
+        ("RLASER", "read them with --message RLASER"),  # the option, not the Python argument
+        ("ROBOTLASER2", "read them with --message ROBOTLASER2"),
     ],
 )
 def test_other_laser_messages_are_named(tmp_path, name, fix):

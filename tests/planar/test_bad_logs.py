@@ -229,6 +229,7 @@ def test_a_point_cloud_is_named_as_one(tmp_path, verb):
     assert result.exit_code == 2, result.output
     said = " ".join(result.output.split())
     assert "scan.ply: a PLY point cloud (.ply) by its extension; expected a CARMEN log (.log, .log.gz, .clf)" in said
+    assert "give the file in that format (for a log converted from one, the original)" in said  # there was no fix
 
 
 @pytest.mark.parametrize("name", ["room.txt", "room.gz", "room"])
@@ -261,6 +262,7 @@ def test_message_picks_the_laser_lines_and_names_what_the_log_has(tmp_path, verb
     path.write_text(room_log_text(scans=6))
     for name, expected in (
         ("RLASER", "no RLASER messages, but 6 FLASER lines"),
+        ("RLASER", "read them with --message FLASER"),  # was message='FLASER', a Python argument
         ("LASER", "message='LASER': mi-lidar reads the laser messages with a pose"),
     ):
         result = invoke_at_80([verb, path, "--out", tmp_path / "out", "--message", name])
