@@ -69,10 +69,11 @@ def fit_scene(
     probabilities) to a 3D log, a permeable wall map to a planar log.
 
     A planar log's map (docs/tutorial_loop.md, "The loop on a real planar log"): every 5 cm cell that a return ended
-    in becomes a box 1 m tall around the scan plane that stops a beam with the share of the beams reaching it that
-    stopped there, in the log's world frame; the sensor fires the log's pattern up to its no-return value. Scored on
-    the log it was built from (`compare`, `fit-sensor`, `diagnose`) the map is in-sample: every return has a box at
-    its end.
+    in holds a wall 1 m tall around the scan plane that stops a beam with the share of the beams reaching it that
+    stopped there, in the log's world frame: a surface through the cell's returns where the returns around it lie on
+    a line, the cell's box elsewhere; the sensor fires the log's pattern up to its no-return value. Scored on the log
+    it was built from (`compare`, `fit-sensor`, `diagnose`) the map is in-sample: every return has a wall at its
+    end.
 
     Examples:
 

@@ -1,38 +1,23 @@
 """The permeable wall map of a planar log, written as a Mitsuba scene: ``mi-lidar fit-scene`` on a planar log.
 
-A planar scanner (a SICK LMS: every beam in one horizontal plane) sees a 2D world, so its scene is a map of
-that plane. The map is the log's own occupancy counts, counted as the real-planar protocol counts them
-(:func:`mi_lidar.planar.grid.count_scans`, ``docs/benchmark_planar.md``): on a grid of ``cell`` m, every return
-adds a *hit* to the cell it ends in and a *pass-through* to every cell its beam crosses up to one cell short of
-that; a no-return clears nothing (a dark or glancing surface is silent too, not only free space). Unlike the
-benchmark's maps, every return counts, however far, and the grid spans them all.
-
-Every cell with a hit becomes a vertical box from :data:`HALF_HEIGHT` below to :data:`HALF_HEIGHT` above the
-scan plane (the poses' median height), side faces only (a planar beam never meets a top or bottom; ±0.5 m
-tolerates a scanner that tilts by a degree out to 28 m). The box stops a beam that reaches it with
-
-    p = (hits + a) / (hits + passes + a + b),   Beta prior (a, b) = :data:`PRIOR` = (1, 0.1):
-
-the counting estimate, pulled towards a wall for cells seen rarely: a cell hit once and never passed gets
-0.95, a wall hit 20 times and never passed 0.995, a cell hit once and passed 20 times (a person's legs)
-0.09. (A symmetric prior, Beta(0.5, 0.5), lets 2-5 % of the beams through walls seen 10-20 times; on the Intel
-log, scored on itself by ``compare``, it explains some no-returns by such leaks, NLL 3.32 against 3.37 nats/ray,
-but samples returns from behind the walls: histogram L1 0.093 against 0.062 m, p90 |range error| 0.336 against
-0.308 m.) A beam crosses two side faces of a box, so each face stops it with ``q = 1 - sqrt(1 - p)``
-(:func:`face_p_hit`): ``1 - (1 - q)^2 = p``. Neighbouring boxes share a face; it is written once, with
-``1 - (1 - q_1)(1 - q_2)``, so a beam that crosses both boxes passes with the same ``(1 - q_1)^2 (1 - q_2)^2``
-and no two triangles coincide (Embree would report coincident triangles in either order).
+The map (:mod:`mi_lidar.planar.wall_map`) is the log's own counts on a grid of 5 cm cells: every cell a return
+ended in holds one element from 0.5 m below to 0.5 m above the scan plane that stops a beam with the share of the
+beams reaching it that stopped there, ``(hits + 1) / (hits + passes + 1.1)``; a quad through the cell's hits where
+the hits around it lie on a line (a wall), the cell's box elsewhere. The elements are one triangle mesh
+(``<name>_assets/walls.ply``, per-face ``p_hit`` and label :data:`LABEL`) in the log's world frame.
 
 The scene's sensor fires the log's pattern (scan 0) from its first pose, its ``max_range`` is the log's
 no-return value (detected by the reader, :func:`mi_lidar.io.carmen.detect_max_range`; without one, the
 largest return rounded up to the metre), and its ``range_sigma`` (every face takes the sensor's) starts at
-half a cell (:data:`SIGMA_PER_CELL`): a beam stops at a cell's faces while the surface lies anywhere in the
-cell, and the scanner's own noise (about 1 cm for a SICK LMS) is the smaller part. On the Intel log (5 cm
-cells, ``compare`` on itself) 0.02, 0.025, 0.03 and 0.05 m score 3.371, 3.371, 3.391 and 3.534 nats/ray;
+half a cell (:data:`SIGMA_PER_CELL`): a beam stops at a box's faces while the surface lies anywhere in the
+cell, and a grazing beam meets a wall's surface several centimetres from its return (1 cm across the wall is
+6 cm along a beam at 80 deg); the scanner's own noise (about 1 cm for a SICK LMS) is the smaller part. On the
+Intel log (5 cm cells, ``compare`` on itself) 0.015, 0.02 and 0.025 m score 3.289, 3.220 and 3.219 nats/ray
+(with cell boxes everywhere: 0.02, 0.025, 0.03 and 0.05 m scored 3.371, 3.371, 3.391 and 3.534);
 ``fit-sensor``, ``diagnose`` and ``calibrate`` refine it.
 
-A map built from a log and scored on the same log is in-sample: every measured return has a box at its end
-point. ``benchmark-planar`` scores maps that leave out each test scan's neighbourhood.
+A map built from a log and scored on the same log is in-sample: every measured return has an element at or near
+its end point. ``benchmark-planar`` scores maps that leave out each test scan's neighbourhood.
 
 Example::
 
@@ -42,9 +27,7 @@ Example::
 
 from __future__ import annotations
 
-import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -56,98 +39,15 @@ from mi_lidar.core.log import Log
 from mi_lidar.core.poses import validate_poses
 from mi_lidar.hybrid.blocks import SceneSensor, assets_folder
 from mi_lidar.hybrid.commands import console, progress_bar, render_previews, write_staged
-from mi_lidar.planar.beams import permeability
-from mi_lidar.planar.grid import Grid, check_planar_shape, count_scans
-from mi_lidar.planar.protocol import map_grid
+from mi_lidar.planar.grid import check_planar_shape
+from mi_lidar.planar.wall_map import CELL, HALF_HEIGHT, WallMap, count_walls, wall_faces
 from mi_lidar.scene.files import ShapeEntry, write_mesh_ply, write_scene_xml
 
-CELL = 0.05  # m: map cell (the protocol's)
-HALF_HEIGHT = 0.5  # m: the boxes reach this far below and above the scan plane
-PRIOR = (1.0, 0.1)  # Beta prior (a, b) of a cell's hit probability: a cell seen once is a wall
 SIGMA_PER_CELL = 0.5  # the sensor's range sigma to start from, in cells
 MAX_SEGMENTS = 128  # faces a beam may pass before it counts as a miss (Intel: up to 97 cells before a return)
 LABEL = 1  # the walls' label
 STILL_SPREAD = 0.25  # m: median spread of a beam's returns between scans above which a log at one pose moved
 OFF_PLANE = 0.01  # share of the returns that may lie more than HALF_HEIGHT from the scan plane
-SAMPLES_PER_CHUNK = 5_000_000  # beam samples a counting thread marches at once (about 100 bytes each at its peak)
-
-
-@dataclass
-class WallMap:
-    """The cells of a planar log with a hit, and how often they stopped the beams that reached them.
-
-    Attributes:
-        grid: the map grid.
-        cells: (C,) flat indices of the cells with at least one hit, ascending.
-        hits, passes: (C,) endpoint hits and pass-throughs of each cell.
-        plane_z: height of the scan plane (m): the poses' median height.
-    """
-
-    grid: Grid
-    cells: np.ndarray
-    hits: np.ndarray
-    passes: np.ndarray
-    plane_z: float
-
-    @property
-    def p_hit(self) -> np.ndarray:
-        """(C,) probability that the cell stops a beam that reaches it, under the Beta :data:`PRIOR`."""
-        return permeability(self.hits, self.passes, *PRIOR)
-
-
-def face_p_hit(p: np.ndarray) -> np.ndarray:
-    """The hit probability ``q = 1 - sqrt(1 - p)`` of each of two faces that together stop a beam with ``p``."""
-    return 1.0 - np.sqrt(1.0 - np.asarray(p, np.float64))
-
-
-def count_walls(log: Log, cell: float = CELL, progress=None) -> WallMap:
-    """Count the hits and pass-throughs of every cell of ``log`` that holds a return (see the module docstring).
-
-    Args:
-        log: a planar log (S scans x N beams x 1 firing, world poses).
-        cell: grid cell, m.
-        progress: ``progress(done, total)`` over the scans, or None.
-    """
-    if not 0.005 <= cell <= 1.0:
-        raise ParameterError(f"cell={cell} m must lie in [0.005, 1], e.g. {CELL}")
-    grid = map_grid(log, cell, reach=np.inf, trim=0.0)
-    marched = np.nansum(np.where(log.hit, log.ranges, 0.0)) / log.shape[0] / (cell / 4)  # samples per scan
-    chunk = int(np.clip(SAMPLES_PER_CHUNK / max(marched, 1.0), 1, 64))
-    counts = count_scans(log, grid, reach=np.inf, chunk=chunk, progress=progress, workers=os.cpu_count() or 1)
-    cells, hits = np.unique(counts.hit_cell.astype(np.int64), return_counts=True)
-    passes = np.bincount(np.searchsorted(cells, counts.pass_cell), minlength=cells.size)  # passes: only hit cells
-    return WallMap(grid, cells, hits, passes, float(np.median(log.poses[:, 2, 3])))
-
-
-def wall_faces(walls: WallMap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The side faces of the cells' boxes as a triangle mesh, each shared face once.
-
-    Returns:
-        (V, 3) vertices (m, world), (F, 3) triangles (two per face) and (F,) their hit probabilities.
-    """
-    nx, ny = walls.grid.shape
-    i, j = walls.cells // ny, walls.cells % ny
-    # A face is a grid line between two cells: x = I (I in 0..nx) along row j, or y = J along column i. Its key
-    # numbers vertical faces I * ny + j, then horizontal ones after them.
-    vertical = lambda line, row: line * ny + row  # noqa: E731
-    horizontal = lambda col, line: (nx + 1) * ny + col * (ny + 1) + line  # noqa: E731
-    keys = np.concatenate([vertical(i, j), vertical(i + 1, j), horizontal(i, j), horizontal(i, j + 1)])
-    survival = np.tile(0.5 * np.log1p(-walls.p_hit), 4)  # log(1 - q) of the cell's face
-    keys, at = np.unique(keys, return_inverse=True)
-    p_face = -np.expm1(np.bincount(at, weights=survival))
-    is_vertical = keys < (nx + 1) * ny
-    h = keys - (nx + 1) * ny
-    # the face's two grid corners (integer corner coordinates)
-    a = np.where(is_vertical[:, None], np.stack([keys // ny, keys % ny], 1), np.stack([h // (ny + 1), h % (ny + 1)], 1))
-    b = a + np.where(is_vertical[:, None], [0, 1], [1, 0])
-    corners, index = np.unique(np.concatenate([a, b]), axis=0, return_inverse=True)
-    index = index.reshape(2, -1)
-    xy = np.asarray(walls.grid.origin) + corners * walls.grid.cell
-    z = walls.plane_z + np.array([-HALF_HEIGHT, HALF_HEIGHT])
-    vertices = np.concatenate([np.c_[xy, np.full(len(xy), z[0])], np.c_[xy, np.full(len(xy), z[1])]])
-    lo_a, lo_b, hi_a, hi_b = index[0], index[1], index[0] + len(xy), index[1] + len(xy)
-    triangles = np.concatenate([np.stack([lo_a, lo_b, hi_b], 1), np.stack([lo_a, hi_b, hi_a], 1)])
-    return vertices, triangles, np.tile(p_face, 2)
 
 
 def check_map_log(log: Log, source) -> None:
@@ -253,7 +153,7 @@ def fit_map_scene(log: Log, out_dir, name: str = "scene", cell: float = CELL, pr
     check_map_log(log, source)
     start = time.perf_counter()
     with progress_bar("wall map") as report:
-        walls = count_walls(log, cell, progress=lambda done, total: report("counting hits and passes", done / total))
+        walls = count_walls(log, cell, progress=report)
     vertices, triangles, p_face = wall_faces(walls)
     origin = local_origin(vertices)  # zero unless the log is georeferenced (float32 vertices keep millimetres)
     to_world = None
@@ -266,8 +166,9 @@ def fit_map_scene(log: Log, out_dir, name: str = "scene", cell: float = CELL, pr
         mesh = write_mesh_ply(assets / "walls.ply", vertices - origin, triangles, p_hit=p_face, label=LABEL)
         entry = ShapeEntry(id="walls", kind="mesh", filename=f"{assets.name}/walls.ply", to_world=to_world)
         comment = (
-            f"mi-lidar wall map of {Path(source).name}: {walls.cells.size} cells of {walls.grid.cell:g} m, "
-            f"{len(triangles) // 2} faces from z = {walls.plane_z - HALF_HEIGHT:g} to {walls.plane_z + HALF_HEIGHT:g} m"
+            f"mi-lidar wall map of {Path(source).name}: {walls.cells.size} cells of {walls.grid.cell:g} m "
+            f"({int(walls.surface.sum())} surfaces, the rest boxes), {len(triangles) // 2} quads from "
+            f"z = {walls.plane_z - HALF_HEIGHT:g} to {walls.plane_z + HALF_HEIGHT:g} m"
         )
         xml = write_scene_xml(folder / f"{stem}.xml", [entry], header_comment=comment, extra_xml=sensor.xml())
         return [xml, mesh]
@@ -283,9 +184,11 @@ def _print_summary(xml: Path, walls: WallMap, sensor: SceneSensor, n_triangles: 
     table.add_column("quantity")
     table.add_column("value", justify="right")
     p = walls.p_hit
-    table.add_row("cells with a hit", f"{walls.cells.size:,} of {walls.grid.cell:g} m")
-    table.add_row("hits / pass-throughs", f"{int(walls.hits.sum()):,} / {int(walls.passes.sum()):,}")
-    table.add_row("cell p_hit: median, share > 0.5", f"{np.median(p):.2f}, {np.mean(p > 0.5):.0%}")
+    surface = walls.surface
+    table.add_row("cells: surfaces / boxes", f"{surface.sum():,} / {(~surface).sum():,} of {walls.grid.cell:g} m")
+    table.add_row("hits in surfaces / boxes", f"{walls.hits[surface].sum():,} / {walls.hits[~surface].sum():,}")
+    table.add_row("pass-throughs", f"{int(walls.passes.sum()):,}")
+    table.add_row("p_hit: median, share > 0.5", f"{np.median(p):.2f}, {np.mean(p > 0.5):.0%}")
     table.add_row(
         "triangles, z (m)", f"{n_triangles:,}, {walls.plane_z - HALF_HEIGHT:g} to {walls.plane_z + HALF_HEIGHT:g}"
     )

@@ -65,10 +65,14 @@ def room_log_text(
     scans: int = 60, beams: int = 181, sigma: float = 0.02, glass_p: float = 0.3, max_range: float = 50.0, seed: int = 0
 ) -> str:
     """The CARMEN text of a drive through the room (one FLASER line per scan, 0.2 s apart)."""
-    readings = room_readings(scans, beams, sigma, glass_p, max_range, seed)
-    lines = ["# mi-lidar test room"]
-    for s, ((x, y, heading), ranges) in enumerate(zip(poses(scans), readings)):
+    return flaser_text(poses(scans), room_readings(scans, beams, sigma, glass_p, max_range, seed), "mi-lidar test room")
+
+
+def flaser_text(poses: np.ndarray, readings: np.ndarray, title: str) -> str:
+    """CARMEN text of (S, 3) poses (x, y, heading) and (S, beams) readings (m), one FLASER line per scan 0.2 s apart."""
+    lines = [f"# {title}"]
+    for s, ((x, y, heading), ranges) in enumerate(zip(poses, readings)):
         t = 100.0 + 0.2 * s
         pose = f"{x:.4f} {y:.4f} {heading:.5f}"
-        lines.append(f"FLASER {beams} {' '.join(f'{r:.3f}' for r in ranges)} {pose} {pose} {t:.3f} host {t:.3f}")
+        lines.append(f"FLASER {len(ranges)} {' '.join(f'{r:.3f}' for r in ranges)} {pose} {pose} {t:.3f} host {t:.3f}")
     return "\n".join(lines) + "\n"
