@@ -129,6 +129,9 @@ def _profile_png(path, ranges: np.ndarray, miss: np.ndarray, empty: np.ndarray, 
     return _save(figure, path)
 
 
+FLAT_M = 0.01  # points whose heights span less than this (m) are drawn in one colour: a scale of nothing
+
+
 def birds_eye_png(
     path: str | os.PathLike,
     points: np.ndarray,
@@ -142,7 +145,8 @@ def birds_eye_png(
     Args:
         path: Destination ``.png``.
         points: (N, 3) points (m); rows with a non-finite coordinate (misses) are skipped.
-        values: Optional (N,) colour values; the height ``z`` is used when None.
+        values: Optional (N,) colour values; the height ``z`` is used when None, unless the points lie within
+            :data:`FLAT_M` of one height (a planar scan): then one colour, the height in the title, no colour bar.
         title: Figure title.
         value_label: Colour bar label when ``values`` is given (the legend's entries' name when categorical).
         categorical: ``values`` are classes (labels): one colour each from a qualitative palette and a
@@ -170,6 +174,9 @@ def birds_eye_png(
                 points[mine, 0], points[mine, 1], s=1.0, color=palette(k % palette.N), linewidths=0, label=name
             )
         axes.legend(loc="upper right", fontsize=8, markerscale=6, framealpha=0.8)
+    elif values is None and keep.any() and np.ptp(colour[keep]) < FLAT_M:
+        axes.scatter(points[keep, 0], points[keep, 1], s=1.0, color="tab:blue", linewidths=0)
+        title = f"{title}, all at z = {np.median(colour[keep]):.2f} m"
     else:
         scatter = axes.scatter(points[keep, 0], points[keep, 1], c=colour[keep], s=1.0, cmap="viridis", linewidths=0)
         colour_bar = figure.colorbar(scatter, ax=axes)

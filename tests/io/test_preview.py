@@ -46,6 +46,24 @@ def test_birds_eye_png(tmp_path):
         birds_eye_png(tmp_path / "d.png", points, values=np.arange(3.0))
 
 
+def test_birds_eye_png_of_a_planar_scan_has_no_height_scale(tmp_path):
+    """A planar log's points all lie at one height: fit-scene's intel/scene_top.png had a colour bar from -0.1 to
+    0.1 m and every point in its middle colour. Now one colour and no colour bar (its ends appear nowhere)."""
+    from matplotlib import colormaps
+
+    rng = np.random.default_rng(6)
+    points = np.c_[rng.uniform(-20, 20, (4000, 2)), np.zeros(4000)]
+    image = imread(birds_eye_png(tmp_path / "flat.png", points, title="planar"))
+    blue = np.asarray(colormaps["tab10"](0)[:3])
+    assert (np.abs(image[..., :3] - blue).max(axis=-1) < 0.05).sum() > 500
+    ends = [np.asarray(colormaps["viridis"](end)[:3]) for end in (0.0, 1.0)]
+    near = lambda image, colour: (np.abs(image[..., :3] - colour).max(axis=-1) < 0.05).sum()  # noqa: E731
+    assert [near(image, end) for end in ends] == [0, 0]
+    points[:, 2] = rng.uniform(0.0, 3.0, 4000)  # heights that vary keep their scale (measured: 814 and 463 pixels)
+    image = imread(birds_eye_png(tmp_path / "terrain.png", points, title="terrain"))
+    assert min(near(image, end) for end in ends) > 200
+
+
 def test_overlay_png_draws_each_return_at_its_pixel_in_its_depth_colour(tmp_path):
     """Returns land on their pixel of the enlarged image (10x for a 96-pixel-wide image), coloured from
     the nearest (turbo's first colour) to the farthest (its last); a nearer return covers a farther one."""
