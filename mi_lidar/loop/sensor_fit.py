@@ -36,11 +36,10 @@ from mi_lidar.core.densities.samples import StateSamples, protocol_residual_edge
 from mi_lidar.core.densities.tables import StateGrid
 from mi_lidar.core.effects.base import FootprintEffect
 from mi_lidar.core.elements import ElementTable
-from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.likelihood import VIRTUAL, most_likely_elements
 from mi_lidar.core.log import Log
 from mi_lidar.core.metrics import metrics_of
-from mi_lidar.core.params import catalog_name
+from mi_lidar.core.params import choose_names
 from mi_lidar.core.problem import Problem, fit_parts
 from mi_lidar.core.rays import LogRays
 from mi_lidar.core.sensor_model import SensorModel
@@ -162,9 +161,7 @@ def fit_sensor(
     from mi_lidar.scene.loading import scene_sensor_model
     from mi_lidar.scene.sensor_check import log_scene, scene_warnings
 
-    family = next((f for f in FAMILIES if catalog_name(f) == catalog_name(family)), family)  # np_reg or np-reg
-    if family not in FAMILIES:
-        raise ParameterError(f"fit-sensor: unknown model {family!r}; choose one of {', '.join(FAMILIES)}")
+    (family,) = choose_names([family], FAMILIES, "fit-sensor: unknown model")  # np_reg, NP-Reg or np-reg
     say = progress or (lambda message: None)
     scene = log_scene(log, scene, force=force)
     base = scene_sensor_model(scene)[0]

@@ -185,7 +185,7 @@ def _print_summary(xml: Path, walls: WallMap, sensor: SceneSensor, n_triangles: 
     table.add_column("value", justify="right")
     p = walls.p_hit
     surface = walls.surface
-    table.add_row("cells: surfaces / boxes", f"{surface.sum():,} / {(~surface).sum():,} of {walls.grid.cell:g} m")
+    table.add_row(f"cells of {walls.grid.cell:g} m: surfaces / boxes", f"{surface.sum():,} / {(~surface).sum():,}")
     table.add_row("hits in surfaces / boxes", f"{walls.hits[surface].sum():,} / {walls.hits[~surface].sum():,}")
     table.add_row("pass-throughs", f"{int(walls.passes.sum()):,}")
     table.add_row("p_hit: median, share > 0.5", f"{np.median(p):.2f}, {np.mean(p > 0.5):.0%}")

@@ -132,3 +132,14 @@ def test_a_model_with_a_footprint_effect_is_fitted_without_crediting(layered_log
     blended.write_text(text)
     result = sensor_fit.fit_sensor(log, blended, "np-reg", max_train=3000, max_test=3000)
     assert np.isfinite(result.rows[1]["nll"])
+
+
+def test_fit_sensor_takes_the_benchmark_spelling_from_python(layered_log):
+    """``fit_sensor(family="NP-Reg")`` (how benchmark-planar spells it) is the np-reg family; a typo names the
+    families."""
+    from mi_lidar.core.errors import ParameterError
+
+    path, scene, model, log = layered_log
+    assert sensor_fit.fit_sensor(log, path, "NP-Reg", max_train=2000, max_test=2000).family == "np-reg"
+    with pytest.raises(ParameterError, match=r"unknown model \['np-rge'\]; choose from np-reg, p-reg, beam, physics"):
+        sensor_fit.fit_sensor(log, path, "np-rge")
