@@ -179,7 +179,7 @@ MIN_CELLS = 4  # occupied cells a line fit needs
 LINE_RATIO = 0.1  # a line: the smaller spread is at most this share of the larger
 
 
-def _principal_axis(cxx: np.ndarray, cyy: np.ndarray, cxy: np.ndarray):
+def principal_axis(cxx: np.ndarray, cyy: np.ndarray, cxy: np.ndarray):
     """(larger eigenvalue, smaller eigenvalue, (N, 2) unit normal of the major axis) of 2x2 covariances."""
     half, diff = 0.5 * (cxx + cyy), 0.5 * (cxx - cyy)
     root = np.sqrt(diff * diff + cxy * cxy)
@@ -231,7 +231,7 @@ class CellLines:
         xy = NEIGHBOURS[None].astype(np.float64) * occ[..., None]
         mean = xy.sum(axis=1) / np.maximum(n, 1)[:, None]
         centred = (NEIGHBOURS[None] - mean[:, None, :]) * occ[..., None]
-        big, small, normal = _principal_axis(
+        big, small, normal = principal_axis(
             (centred[..., 0] ** 2).sum(1), (centred[..., 1] ** 2).sum(1), (centred[..., 0] * centred[..., 1]).sum(1)
         )
         line_like = (n >= MIN_CELLS) & (small <= LINE_RATIO * big) & (big > 0)
@@ -240,7 +240,7 @@ class CellLines:
         endpoints = np.nan_to_num(leave.mean_hit(around, safe))
         centre = (w[..., None] * endpoints).sum(axis=1) / np.maximum(w.sum(axis=1), 1e-12)[:, None]
         dx, dy = (endpoints - centre[:, None, :]).transpose(2, 0, 1)
-        big, small, surface_normal = _principal_axis((w * dx * dx).sum(1), (w * dy * dy).sum(1), (w * dx * dy).sum(1))
+        big, small, surface_normal = principal_axis((w * dx * dx).sum(1), (w * dy * dy).sum(1), (w * dx * dy).sum(1))
         surface_line = ((w > 0).sum(axis=1) >= MIN_CELLS) & (small <= LINE_RATIO * big) & (big > 0)
         return cls(
             at=at.reshape(-1),

@@ -66,7 +66,7 @@ from mi_lidar.core.log import Log
 from mi_lidar.planar.beams import permeability
 from mi_lidar.planar.grid import Grid, count_scans, in_threads, march_cells, planar_beams
 from mi_lidar.planar.protocol import map_grid
-from mi_lidar.planar.raymarch import LINE_RATIO, MIN_CELLS, NEIGHBOURS, _principal_axis
+from mi_lidar.planar.raymarch import LINE_RATIO, MIN_CELLS, NEIGHBOURS, principal_axis
 
 CELL = 0.05  # m: map cell (the protocol's)
 HALF_HEIGHT = 0.5  # m: the elements reach this far below and above the scan plane
@@ -195,7 +195,7 @@ def surface_lines(
         found += there
     w = moments[:, 0]
     mx, my = moments[:, 1] / w, moments[:, 2] / w
-    big, small, normal = _principal_axis(
+    big, small, normal = principal_axis(
         moments[:, 3] / w - mx * mx, moments[:, 4] / w - my * my, moments[:, 5] / w - mx * my
     )
     return (found >= MIN_CELLS) & (small <= LINE_RATIO * big) & (big > 0), normal
