@@ -2,8 +2,9 @@
 
 A KITTI pose file has one pose per line: 12 numbers, the row-major top 3x4 of a 4x4
 sensor-to-world transform. A matrix file is an ``.npy`` of shape (S, 4, 4) or a text file with 16
-numbers per line (row-major 4x4). :func:`read_poses` reads any of them, or the poses of a saved log
-(``.npz``). Every pose read is validated as a rigid transform.
+numbers per line (row-major 4x4). Text lines starting with ``#`` are comments. :func:`read_poses`
+reads any of them, or the poses of a saved log (``.npz``). Every pose read is validated as a rigid
+transform.
 """
 
 from __future__ import annotations
@@ -21,8 +22,15 @@ from mi_lidar.io.signature import check_signature, read_head, sniff
 TEXT_RESOLUTION_M = 1e-6  # finest step a written position keeps (m)
 
 
+COMMENT = "#"  # a line starting with it is a comment (a header some tools write)
+
+
+def _is_comment(line: str) -> bool:
+    return line.lstrip().startswith(COMMENT)
+
+
 def _read_text_rows(path: Path, width: int) -> np.ndarray:
-    """Rows of ``width`` numbers from a whitespace-separated text file (blank lines skipped)."""
+    """Rows of ``width`` numbers from a whitespace-separated text file (blank and ``#`` comment lines skipped)."""
     rows = []
     try:
         stream = open(path, encoding="utf-8", errors="replace")
@@ -31,7 +39,7 @@ def _read_text_rows(path: Path, width: int) -> np.ndarray:
     with stream:
         for number, line in enumerate(stream, start=1):
             fields = line.split()
-            if not fields:
+            if not fields or _is_comment(line):
                 continue
             if len(fields) != width:
                 if "," in line:
@@ -105,7 +113,8 @@ def read_poses(path: str | os.PathLike) -> np.ndarray:
             f"{path}: {found[0].kind if found else 'a binary file'}, not a pose file; give {POSE_FILES}"
         )
     lines = head.decode("utf-8", "replace").splitlines()
-    number, first = next(((i, line) for i, line in enumerate(lines, start=1) if line.strip()), (0, ""))
+    data = ((i, line) for i, line in enumerate(lines, start=1) if line.strip() and not _is_comment(line))
+    number, first = next(data, (0, ""))
     width = len(first.split())
     if width and width not in (12, 16) and "," not in first:
         raise LogFormatError(

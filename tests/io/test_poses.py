@@ -130,3 +130,9 @@ def test_an_unreadable_kitti_pose_file_says_so(tmp_path, monkeypatch):
     monkeypatch.setattr(builtins, "open", refuse)
     with pytest.raises(LogFormatError, match=r"p.txt: cannot read the file \(permission denied\)"):
         read_kitti_poses(path)
+
+
+def test_comment_lines_of_a_text_pose_file_are_skipped(tmp_path):
+    """A header such as '# columns: r11 r12 ...' was read as a pose line: 'line 1 has 3 numbers'."""
+    (tmp_path / "p.txt").write_text("# columns: r11 r12 r13 tx ...\n1 0 0 1 0 1 0 2 0 0 1 3\n  # end\n")
+    np.testing.assert_allclose(read_poses(tmp_path / "p.txt")[0, :3, 3], [1, 2, 3])
