@@ -188,7 +188,7 @@ def simulate(
     mi-lidar simulate scenes_xml/offroad.xml --poses poses.txt \\
         --out biased.npz --effect "range_bias(bias=0.05)"
 
-    mi-lidar simulate scenes_xml/indoor_planar.xml --poses kitti_poses.txt \\
+    mi-lidar simulate scenes_xml/indoor_planar.xml --poses room_poses.txt \\
         --out room.npz --pattern planar-180
     ```
     """
