@@ -193,21 +193,34 @@ def mixture_log_likelihood(
         )
     if fan is not None:
         return _footprint_log_likelihood(table, model, fan, rounds, measured, hit)
-    n = rays.width
     z = dr.select(hit, measured, 0.0)
-    sums = Sums.start(n)
-    for seg in model.virtual_segments(rays):  # outliers and clutter: their own Gaussian law, inside the window
-        seg = model.segment_law(seg, rays, virtual=True)
-        sums = sums.fold(seg.valid, seg.p, seg.drop, log_density(seg, z))
+    sums = _fold_virtual(model, rays, z)
     if isinstance(rounds, CachedBatch):
         sums = _fold_cached(table, model, rays, rounds, z, sums)
     else:
         sums = _fold_rounds(table, model, rays, rounds, z, sums, intensity)
-    escape = model.density.escape(rays)
+    escape = _escape_law(model, rays, z)
     if escape is not None:
-        escape = model.segment_law(escape, rays, escape=True)
-        sums = sums.fold(escape.valid, escape.p, *model.censor(escape, model.density.log_prob(escape, z, rays), rays))
+        sums = sums.fold(*escape)
     return sums.value(hit)
+
+
+def _fold_virtual(model, rays: RayBatch, z: mi.Float) -> Sums:
+    """The sums after the effects' virtual elements (outliers, clutter: their own Gaussian law, inside the window)."""
+    sums = Sums.start(rays.width)
+    for seg in model.virtual_segments(rays):
+        seg = model.segment_law(seg, rays, virtual=True)
+        sums = sums.fold(seg.valid, seg.p, seg.drop, log_density(seg, z))
+    return sums
+
+
+def _escape_law(model, rays: RayBatch, z: mi.Float) -> tuple | None:
+    """``(valid, p, drop, log_f)`` of the density's escape segment at range ``z``, or None when it has none."""
+    escape = model.density.escape(rays)
+    if escape is None:
+        return None
+    escape = model.segment_law(escape, rays, escape=True)
+    return (escape.valid, escape.p, *model.censor(escape, model.density.log_prob(escape, z, rays), rays))
 
 
 def _fold_rounds(
@@ -275,21 +288,17 @@ def most_likely_elements(
         raise ParameterError("returns are credited to elements on traced rounds of single beams only")
     z = dr.select(hit, measured, 0.0)
     returned = np.asarray(hit, bool)
-    sums = Sums.start(rays.width)
-    for seg in model.virtual_segments(rays):
-        seg = model.segment_law(seg, rays, virtual=True)
-        sums = sums.fold(seg.valid, seg.p, seg.drop, log_density(seg, z))
+    sums = _fold_virtual(model, rays, z)
     best = np.where(returned, np.asarray(sums.log_mix, np.float64), np.asarray(sums.log_lost, np.float64))
     best_round = np.full(rays.width, VIRTUAL)
     best_entry = np.full(rays.width, -1)
     shares: list = []
     sums = _fold_rounds(table, model, rays, rounds, z, sums, shares=shares)
-    escape = model.density.escape(rays)
+    escape = _escape_law(model, rays, z)
     if escape is None:
         term, lost = dr.full(mi.Float, -dr.inf, rays.width), sums.log_pass
     else:
-        escape = model.segment_law(escape, rays, escape=True)
-        term, lost = sums.terms(escape.p, *model.censor(escape, model.density.log_prob(escape, z, rays), rays))
+        term, lost = sums.terms(*escape[1:])
     dr.eval(term, lost, shares)  # one kernel for every round, not one per conversion below
     candidates = [(ESCAPED, None, term, lost)]
     candidates += [(k, np.asarray(r.ray, np.int64), *pair) for k, (r, pair) in enumerate(zip(rounds.rounds, shares))]

@@ -185,8 +185,9 @@ def surface_lines(
     moments = np.zeros((cells.size, 6))  # sums over the hits of 1, x, y, xx, yy, xy (m from the cell's corner)
     for dx, dy in NEIGHBOURS:
         flat = (i + dx) * ny + (j + dy)
-        k = np.minimum(np.searchsorted(cells, flat), cells.size - 1)
-        there = (cells[k] == flat) & (i + dx >= 0) & (i + dx < nx) & (j + dy >= 0) & (j + dy < ny)
+        k = _index_in(cells, flat)
+        there = (k >= 0) & (i + dx >= 0) & (i + dx < nx) & (j + dy >= 0) & (j + dy < ny)
+        k = np.maximum(k, 0)
         x, y = dx * grid.cell + offset[k, 0], dy * grid.cell + offset[k, 1]
         sxx, syy, sxy = spread[k].T
         moments += np.where(there, hits[k], 0)[:, None] * np.stack(
@@ -272,9 +273,9 @@ def _crossings(log: Log, grid: Grid, cells: np.ndarray, ends: np.ndarray, scans:
     origin, direction, z = planar_beams(log, scans)
     returned = np.isfinite(z)
     o, d, r = origin[returned], direction[returned], z[returned]
-    end = _surface_of(cells, grid.cell_of(o + r[:, None] * d))
+    end = _index_in(cells, grid.cell_of(o + r[:, None] * d))
     ray, cell = march_cells(grid, o, d, r + window, grid.cell / 4)
-    s = _surface_of(cells, cell)
+    s = _index_in(cells, cell)
     ray, s = ray[s >= 0], s[s >= 0]
     ab, w = ends[s, 1] - ends[s, 0], ends[s, 0] - o[ray]
     cross = lambda u, v: u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]  # noqa: E731
@@ -296,8 +297,8 @@ def _crossings(log: Log, grid: Grid, cells: np.ndarray, ends: np.ndarray, scans:
     return hit[hit >= 0], s[before & (s != hit[ray])]
 
 
-def _surface_of(cells: np.ndarray, flat: np.ndarray) -> np.ndarray:
-    """Index into the ascending ``cells`` of each flat cell index; -1 where it is not among them."""
+def _index_in(cells: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """Index into the ascending ``cells`` of each flat cell index ``flat``; -1 where it is not among them."""
     if not cells.size:
         return np.full(np.shape(flat), -1)
     k = np.minimum(np.searchsorted(cells, flat), cells.size - 1)
