@@ -49,11 +49,12 @@ def nll_figure(result, path: Path) -> Path:
 
 
 def residual_figure(result, path: Path) -> Path:
-    """Histograms of ``z - r`` on the test beams: measured, and each model's sampled scan."""
+    """Histograms of ``z - r`` on the test beams: measured, and each model's sampled scan (M0, M1, M3b, NP-Reg
+    and mi-lidar, those of them that were run; else every model run)."""
     test = result.data.test
     both = test.hit & np.isfinite(test.nominal)
     measured = (test.z - test.nominal)[both]
-    shown = [r for r in result.rows if r.name in ("M0", "M1", "M3b", "NP-Reg", "mi-lidar")]
+    shown = [r for r in result.rows if r.name in ("M0", "M1", "M3b", "NP-Reg", "mi-lidar")] or result.rows
     figure, axes = plt.subplots(1, len(shown), figsize=(3.0 * len(shown), 2.8), sharey=True, squeeze=False)
     for axis, row in zip(axes[0], shown):
         z, hit = row.sampled

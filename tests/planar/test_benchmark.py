@@ -139,6 +139,16 @@ def test_benchmark_cli_scores_and_reports_the_room(room, tmp_path):
     assert sorted(p.suffix for p in tmp_path.iterdir()).count(".png") >= 2
 
 
+def test_the_report_of_one_model_outside_the_residual_panels_is_written(room, tmp_path):
+    """`benchmark-planar LOG -m P-Reg` stopped with 'Number of columns must be a positive integer, not 0':
+    the residual figure drew only M0, M1, M3b, NP-Reg and mi-lidar, and none of them was run."""
+    from mi_lidar.planar.report import write_benchmark
+
+    result = run_planar_benchmark(read_carmen(room), protocol=PROTOCOL, models=("M2a",))
+    written = write_benchmark(result, tmp_path)
+    assert written["residuals"].stat().st_size > 1000, written
+
+
 def test_a_clipping_sensor_has_its_misses_scored_as_misses(tmp_path):
     path = tmp_path / "short.log"
     path.write_text(room_log_text(scans=30, max_range=7.0))
