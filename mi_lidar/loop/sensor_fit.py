@@ -51,7 +51,10 @@ MAX_LABEL_GROUPS = 16  # labels a learned density keeps apart (higher labels sha
 MAX_TABLE_ENTRIES = 20_000_000  # NP-Reg states x residual bins beyond which beams stay pooled (~75 B each at peak)
 CREDIT_ROUNDS = 8  # hard-EM rounds of the learned densities in scenes with permeable elements (at most)
 CREDIT_GAIN = 0.01  # nats per ray: the crediting rounds stop once a round gains less held out
-BANDWIDTHS = {"np-reg": ("h_ranges", "h_incidences", "uniforms", "reaches"), "p-reg": ("h_ranges", "h_incidences")}
+CHOSEN_SETTINGS = {
+    "np-reg": ("h_ranges", "h_incidences", "uniforms", "reaches"),
+    "p-reg": ("h_ranges", "h_incidences", "escapes"),
+}
 
 
 @dataclass
@@ -275,7 +278,7 @@ def fit_learned_density(
     density, rows = fit(samples, 1)
     table = [(*row[:-1], 1, row[-1]) for row in rows]
     best = min(table, key=lambda row: row[-1])
-    best_setting = {name: (value,) for name, value in zip(BANDWIDTHS[family], best)}
+    best_setting = {name: (value,) for name, value in zip(CHOSEN_SETTINGS[family], best)}
     for _ in range(CREDIT_ROUNDS if credit is not None else 0):
         credited = credit(density)
         refitted, rows = fit(credited, 1, **best_setting)

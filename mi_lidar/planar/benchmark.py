@@ -272,16 +272,16 @@ def run_planar_benchmark(
         for name, model in m.fit_histograms(samples, z_max).items():
             if name in models:
                 fitted[name], timing[name] = model, 0.0
-    fit("P-Reg", lambda: m.fit_learned(data.train, z_max, "p_reg")[0])
     settings = {}
 
-    def np_reg():
-        model, settings["np_reg"] = m.fit_learned(data.train, z_max, "np_reg")
+    def learned(family: str):
+        model, settings[family] = m.fit_learned(data.train, z_max, family)
         return model
 
     chosen = {}
 
-    fit("NP-Reg", np_reg)
+    fit("P-Reg", lambda: learned("p_reg"))
+    fit("NP-Reg", lambda: learned("np_reg"))
     rows = []
     for name in [n for n in MODELS if n in fitted and n in models]:
         rows.append(_row(name, lambda: (train, test), fitted[name], data, timing[name], seed, z_max))
@@ -319,6 +319,9 @@ def run_planar_benchmark(
     ranges, hits = repaired_scans(data.test, SAMPLED_SCANS, seed)
     no_ll = np.full(data.test.n, np.nan)  # a reference, not a model: no likelihood
     reference = metrics_of(no_ll, data.test.z, data.test.hit, ranges[0], hits[0], draws=(ranges, hits), no_return=z_max)
+    if "p_reg" in settings:
+        h_r, h_d, escape = settings["p_reg"]
+        chosen["P-Reg"] = {"h_range_m": h_r, "h_incidence_deg": h_d, "escape_law": escape}
     if "np_reg" in settings:
         h_r, h_i, u, reach = settings["np_reg"]
         chosen["NP-Reg"] = {

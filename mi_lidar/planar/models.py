@@ -200,7 +200,8 @@ def fit_learned(train: PlanarTrace, z_max: float, family: str) -> tuple[SensorMo
     """P-Reg or NP-Reg: settings chosen on held-out training scans, then refitted on all training scans.
 
     Returns:
-        The model and the chosen setting (bandwidths, and NP-Reg's uniform share and support reach).
+        The model and the chosen setting (bandwidths; P-Reg's escape law; NP-Reg's uniform share and support
+        reach).
     """
     fit_part = train.take(train.scan % 2 == 0)
     check = nominal_beams(train.take(train.scan % 2 == 1))
@@ -211,9 +212,11 @@ def fit_learned(train: PlanarTrace, z_max: float, family: str) -> tuple[SensorMo
     samples = samples_of(train)
     if family == "p_reg":
         _, table = fit_p_reg(samples_of(fit_part), held_out, z_max=z_max)
-        h_r, h_d, _ = min(table, key=lambda row: row[-1])
-        density, _ = fit_p_reg(samples, lambda d: 0.0, h_ranges=(h_r,), h_incidences=(h_d,), z_max=z_max)
-        setting: tuple = (h_r, h_d)
+        h_r, h_d, escape, _ = min(table, key=lambda row: row[-1])
+        density, _ = fit_p_reg(
+            samples, lambda d: 0.0, h_ranges=(h_r,), h_incidences=(h_d,), escapes=(escape,), z_max=z_max
+        )
+        setting: tuple = (h_r, h_d, escape)
     else:
         grid = fine_grid(samples)
         _, table = fit_np_reg(samples_of(fit_part), grid, held_out, z_max=z_max)

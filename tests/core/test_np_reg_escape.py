@@ -8,17 +8,15 @@ predicted 0.646 where 0.405 of those training beams missed, and their sampled sc
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 
 from mi_lidar.core.densities import NPRegDensity
 from mi_lidar.core.densities.histogram import fit_np_reg
-from mi_lidar.core.densities.samples import StateSamples, protocol_residual_edges
-from mi_lidar.planar.beams import nominal_beams
+from mi_lidar.core.densities.samples import protocol_residual_edges
 from mi_lidar.planar.models import base_model, fine_grid
 
 from ..conftest import rays_along_x
+from .escaped_beams import escaped_beams
 
 Z_MAX = 50.0  # m, the sensor's no-return value
 ESCAPE_NULL = 0.4  # share of the beams that met nothing and reported nothing
@@ -34,21 +32,9 @@ def test_the_escape_segment_drops_with_the_escape_state_p_null():
 
 
 def planar_beams(n: int, seed: int):
-    """``n`` beams at a wall (1-10 m, 2 cm noise, 2 % no-returns) and ``n`` that meet nothing in the map
-    (:data:`ESCAPE_NULL` no-returns, the rest anywhere up to :data:`Z_MAX`), as state samples and as the
-    engine's beams (a trace stand-in with the fields :func:`nominal_beams` reads)."""
-    rng = np.random.default_rng(seed)
-    nominal = np.concatenate([rng.uniform(1.0, 10.0, n), np.full(n, np.nan)])
-    hit = np.concatenate([rng.random(n) > 0.02, rng.random(n) > ESCAPE_NULL])
-    z = np.where(np.isfinite(nominal), nominal + rng.normal(0.0, 0.02, 2 * n), rng.uniform(0.0, Z_MAX, 2 * n))
-    z = np.where(hit, z, np.nan)
-    incidence = np.full(2 * n, np.nan)
-    beam = np.zeros(2 * n, np.int64)
-    samples = StateSamples(nominal=nominal, incidence=incidence, beam=beam, label=beam, z=z, hit=hit)
-    trace = SimpleNamespace(
-        n=2 * n, nominal=nominal, incidence=incidence, hit=hit, z=z, beam=beam, scan=np.arange(2 * n) // 100
-    )
-    return samples, nominal_beams(trace)
+    """``n`` beams at a wall (2 % no-returns) and ``n`` that meet nothing in the map (:data:`ESCAPE_NULL`
+    no-returns, the rest anywhere up to :data:`Z_MAX`)."""
+    return escaped_beams(n, seed, ESCAPE_NULL, lambda rng, size: rng.uniform(0.0, Z_MAX, size), wall_null=0.02)
 
 
 def test_beams_that_meet_nothing_miss_as_often_as_the_training_beams_did():

@@ -186,6 +186,7 @@ def test_every_model_on_the_room(room, tmp_path):
     assert mine.samples["hit_rate_simulated"] > 0.99, mine.samples
     assert 0.0 <= result.settings["mi-lidar"]["angular_share_per_neighbour"] <= 1.0 / 3.0, result.settings
     assert result.settings["NP-Reg"]["h_range_m"] in (0.5, 1.0, 2.0, 4.0), result.settings
+    assert result.settings["P-Reg"]["escape_law"] in ("gaussian", "uniform"), result.settings
     assert result.settings["mi-lidar"]["evidence_classes"] in (1, 5), result.settings
     # How much neighbouring beams share their errors is measured at five lags and shown in the report.
     lags = result.settings["mi-lidar"]["shared_errors_pit_lags"]

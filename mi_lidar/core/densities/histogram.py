@@ -42,7 +42,7 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.densities.base import ESCAPE, ReturnDensity, escape_segment, register_density, uniform_window
-from mi_lidar.core.densities.samples import StateSamples, choose_by_held_out, protocol_residual_edges
+from mi_lidar.core.densities.samples import StateSamples, choose_then_vary, protocol_residual_edges
 from mi_lidar.core.densities.tables import PSEUDO_SAMPLES, StateGrid, check_table
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
@@ -441,7 +441,6 @@ def fit_np_reg(
     candidates = list(
         itertools.product(h_ranges, h_incidences if grid.incidence_edges else (1.0,), uniforms, (widest,))
     )
-    total = len(candidates) + len(reaches) - 1
 
     def build(h_r: float, h_i: float, u: float, reach: float) -> NPRegDensity:
         smoothed = np.concatenate([shrink_beams(grid, kernel_smooth(grid, counts[:-1], h_r, h_i)), counts[-1:]])
@@ -449,16 +448,7 @@ def fit_np_reg(
         end = support_end(samples, reach, z_max)
         return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=end)
 
-    def step(done: int, _total: int, offset: int = 0) -> None:
-        if progress is not None:
-            progress(offset + done, total)
+    def shorter(chosen: tuple) -> list:
+        return [(*chosen[:3], r) for r in reaches if r != widest]
 
-    best, table = choose_by_held_out(candidates, build, held_out_score, step)
-    *chosen, best_nll = min(table, key=lambda row: row[-1])
-    others = [(*chosen[:3], r) for r in reaches if r != widest]
-    if others:
-        shorter, rows = choose_by_held_out(others, build, held_out_score, lambda d, t: step(d, t, len(candidates)))
-        table += rows
-        if min(row[-1] for row in rows) < best_nll:
-            best = shorter
-    return best, table
+    return choose_then_vary(candidates, shorter, build, held_out_score, progress)

@@ -7,7 +7,13 @@ and ``h_delta``, deg) of the no-return indicator and the residual ``z - r`` (sig
 scatter about the local line), tabulated on a grid of nodes and interpolated bilinearly; segments
 of unknown incidence use a regression on range alone (of the training segments of unknown
 incidence, or of all when there are none). A beam that met nothing misses with probability
-``P_null`` of the escape state and otherwise returns uniformly on ``[0, z_max]``.
+``P_null`` of the escape state and otherwise reports, with ``escape=gaussian``, ``N(escape_mean,
+escape_sigma^2)``: the mean and spread of the training returns of such beams, shrunk to those of the
+uniform law on ``[0, z_max]`` with the weight of :data:`PSEUDO_SAMPLES` returns; with
+``escape=uniform``, a range uniform on ``[0, z_max]`` (what a file written before the choice holds).
+:func:`fit_p_reg` takes whichever scores better held out: the Gaussian where the scene misses objects
+the sensor sees (a crude 3D scene's escaped beams return at 5-30 m, not anywhere to 120 m), the
+uniform where escaped returns are spurious readings spread over the sensor's span.
 
 Choices where the thesis leaves room (documented and tested): the regressions pool the beams and
 the labels unless told to keep ``n_labels`` labels and ``n_beams`` beams apart; then the groups form
@@ -35,12 +41,12 @@ import numpy as np
 
 from mi_lidar.core.arrays import aligned
 from mi_lidar.core.densities.base import ESCAPE, UniformEscapeDensity, escape_segment, register_density
-from mi_lidar.core.densities.samples import StateSamples, choose_by_held_out
+from mi_lidar.core.densities.samples import StateSamples, choose_then_vary
 from mi_lidar.core.densities.tables import PSEUDO_SAMPLES, StateGrid, check_table
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import ELLIPSOID, Segment, incidence_deg
+from mi_lidar.core.segment import ELLIPSOID, Segment, incidence_deg, log_density, sample_range, window_probability
 
 MIN_SIGMA = 1e-3  # m
 REACH = 2.0  # a local line is followed at most this many weighted standard deviations beyond its data's mean
@@ -56,10 +62,22 @@ class PRegDensity(UniformEscapeDensity):
 
     name = "p_reg"
     learned = True
+    options = {"escape": ("uniform", "gaussian")}
     specs = {
         "z_max": ParamSpec(80.0, "m", "largest range the sensor reports", lower=1e-3, upper=1e4, fit=False),
         "escape_null": ParamSpec(
             0.99, "1", "probability that a beam that met nothing is a miss", lower=0.0, upper=1.0, fit=False
+        ),
+        "escape_mean": ParamSpec(
+            40.0, "m", "mean range a beam that met nothing reports", fit=False, only={"escape": ("gaussian",)}
+        ),
+        "escape_sigma": ParamSpec(
+            23.1,
+            "m",
+            "spread of the range a beam that met nothing reports",
+            lower=MIN_SIGMA,
+            fit=False,
+            only={"escape": ("gaussian",)},
         ),
     }
 
@@ -141,11 +159,30 @@ class PRegDensity(UniformEscapeDensity):
         surface = seg.kind == 0
         escape = seg.kind == ESCAPE
         null = dr.select(escape, self["escape_null"], p_null)
-        return seg.with_(
+        seg = seg.with_(
             drop=dr.select(seg.kind != ELLIPSOID, 1.0 - (1.0 - seg.drop) * (1.0 - null), seg.drop),
             mean=dr.select(surface, seg.mean + mu, seg.mean),
             sigma=dr.select(surface, sigma, seg.sigma),
         )
+        if not self._gaussian_escape:
+            return seg
+        return seg.with_(
+            mean=dr.select(escape, self["escape_mean"], seg.mean),
+            sigma=dr.select(escape, self["escape_sigma"], seg.sigma),
+        )
+
+    @property
+    def _gaussian_escape(self) -> bool:
+        return self.choices["escape"] == "gaussian"
+
+    def log_prob(self, seg: Segment, z: mi.Float, rays: RayBatch) -> mi.Float:
+        return log_density(seg, z) if self._gaussian_escape else super().log_prob(seg, z, rays)
+
+    def sample(self, seg: Segment, u: mi.Point2f, rays: RayBatch) -> mi.Float:
+        return sample_range(seg, u.x) if self._gaussian_escape else super().sample(seg, u, rays)
+
+    def window(self, seg: Segment, a: float, b: float, rays: RayBatch) -> mi.Float:
+        return window_probability(seg, a, b) if self._gaussian_escape else super().window(seg, a, b, rays)
 
     def escape(self, rays: RayBatch) -> Segment:
         return escape_segment(rays, sigma=1.0)
@@ -248,6 +285,7 @@ def fit_p_reg(
     held_out_score: Callable[[PRegDensity], float],
     h_ranges=(0.5, 1.0, 2.0, 4.0),
     h_incidences=(5.0, 10.0, 20.0),
+    escapes=("gaussian", "uniform"),
     inlier: float = 1.0,
     z_max: float = 80.0,
     range_nodes: np.ndarray | None = None,
@@ -262,6 +300,8 @@ def fit_p_reg(
         samples: training states and measurements (:class:`StateSamples`).
         held_out_score: mean held-out NLL (nats per ray) of a candidate density (the one likelihood).
         h_ranges, h_incidences: candidate bandwidths, m and deg.
+        escapes: candidate laws of an escaped beam's return (the module docstring); the bandwidths are
+            chosen with the first, then the others are tried with the chosen bandwidths.
         inlier: returns within this distance of the nominal range (m) fit mu and sigma.
         z_max: largest reported range, m.
         range_nodes, incidence_nodes: tabulation nodes (default: every 0.5 m to the farthest
@@ -274,7 +314,7 @@ def fit_p_reg(
         progress: optional ``progress(done, total)``.
 
     Returns:
-        The best density and the table of candidates ``(h_range, h_incidence, NLL)``.
+        The best density and the table of candidates ``(h_range, h_incidence, escape, NLL)``.
     """
     met = samples.met
     r, d, hit, e = samples.nominal[met], samples.incidence[met], samples.hit[met], samples.residual[met]
@@ -286,7 +326,8 @@ def fit_p_reg(
     known = ~np.isnan(d)
     inl = hit & (np.abs(np.nan_to_num(e, nan=np.inf)) <= inlier)
     escape_null = float(np.mean(~samples.hit[~met])) if np.any(~met) else 0.99
-    candidates = list(itertools.product(h_ranges, h_incidences))
+    escape_mean, escape_sigma = _escape_moments(samples.z[~met & samples.hit], z_max)
+    candidates = list(itertools.product(h_ranges, h_incidences, escapes[:1]))
 
     def regress(chosen: np.ndarray, h_r: float, h_d: float, prior: dict | None) -> dict[str, np.ndarray]:
         """P_null, mu and sigma^2 tables (rows: incidence nodes, then unknown) of the ``chosen`` samples."""
@@ -318,7 +359,7 @@ def fit_p_reg(
                 tables[name][rows] = values.reshape(-1, r_nodes.size)
         return tables
 
-    def build(h_r: float, h_d: float) -> PRegDensity:
+    def build(h_r: float, h_d: float, escape: str) -> PRegDensity:
         pooled = regress(np.ones(r.size, bool), h_r, h_d, None)
         labels = [regress(label == k, h_r, h_d, pooled) for k in range(n_labels)] if n_labels > 1 else [pooled]
         parts = [
@@ -336,9 +377,23 @@ def fit_p_reg(
             grid=StateGrid(n_labels=n_labels, n_beams=n_beams),
             z_max=z_max,
             escape_null=escape_null,
+            escape=escape,
+            **({"escape_mean": escape_mean, "escape_sigma": escape_sigma} if escape == "gaussian" else {}),
         )
 
-    return choose_by_held_out(candidates, build, held_out_score, progress)
+    return choose_then_vary(
+        candidates, lambda chosen: [(*chosen[:2], e) for e in escapes[1:]], build, held_out_score, progress
+    )
+
+
+def _escape_moments(z: np.ndarray, z_max: float) -> tuple[float, float]:
+    """Mean and standard deviation (m) of the returns ``z`` of escaped beams, shrunk to those of the uniform
+    law on ``[0, z_max]`` with the weight of :data:`PSEUDO_SAMPLES` returns (pooled second moments)."""
+    n = z.size
+    prior_mean, prior_var = z_max / 2.0, z_max**2 / 12.0
+    mean = (np.sum(z) + PSEUDO_SAMPLES * prior_mean) / (n + PSEUDO_SAMPLES)
+    second = (np.sum(z**2) + PSEUDO_SAMPLES * (prior_var + prior_mean**2)) / (n + PSEUDO_SAMPLES)
+    return float(mean), float(np.sqrt(max(second - mean**2, MIN_SIGMA**2)))
 
 
 def _at_nodes(table: np.ndarray, nodes: list[np.ndarray], x: np.ndarray) -> np.ndarray:

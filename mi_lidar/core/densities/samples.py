@@ -155,3 +155,32 @@ def choose_by_held_out(candidates: list, build, held_out_score, progress=None) -
     if best is None:
         raise ParameterError("no candidate settings to choose from")
     return best[1], table
+
+
+def choose_then_vary(candidates: list, vary, build, held_out_score, progress=None) -> tuple:
+    """:func:`choose_by_held_out` over ``candidates``, then over ``vary(chosen setting)``: settings that change
+    the chosen one in what the first stage held fixed (tried with the chosen bandwidths only).
+
+    Args:
+        candidates: settings (tuples) of the first stage.
+        vary: ``vary(setting) -> [setting, ...]``, the second stage's settings (the same number for any).
+        build, held_out_score, progress: as for :func:`choose_by_held_out` (progress over both stages).
+
+    Returns:
+        ``(best density of both stages, [(*setting, NLL), ...] of both)``.
+    """
+    total = len(candidates) + len(vary(candidates[0])) if candidates else 0
+
+    def step(done: int, _total: int, offset: int = 0) -> None:
+        if progress is not None:
+            progress(offset + done, total)
+
+    best, table = choose_by_held_out(candidates, build, held_out_score, step)
+    *chosen, best_nll = min(table, key=lambda row: row[-1])
+    others = vary(tuple(chosen))
+    if others:
+        other, rows = choose_by_held_out(others, build, held_out_score, lambda d, t: step(d, t, len(candidates)))
+        table += rows
+        if min(row[-1] for row in rows) < best_nll:
+            best = other
+    return best, table
