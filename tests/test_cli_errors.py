@@ -118,6 +118,11 @@ CASES = {
         ["error: {folder}: is a directory; the path is a folder: give a file name"],
     ),
     "repeated option": (["render", ROOM, "--seed", "1", "--seed", "-1", "--out", "{tmp}/o"], {}, ["(got '-1')"]),
+    "NaN for a number in a range": (  # said 'Input should be less than or equal to 1 (got 'nan')'
+        ["benchmark-planar", "{carmen}", "--out", "{tmp}/b", "--cell", "nan"],
+        {},
+        ["--cell", "'nan' is not a number", "0.005<=x<=1.0"],
+    ),
     # numbers a typo makes huge, each refused before any work (were tracebacks, terabyte allocations or endless runs)
     "render seed beyond 32 bits": (
         ["render", ROOM, "--seed", "4294967296", "--out", "{tmp}/o"],

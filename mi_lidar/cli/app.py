@@ -54,10 +54,19 @@ def usage_error_line(exc, args: list[str]) -> str:
     message = exc.format_message().rstrip(".")
     param = getattr(exc, "param", None)
     value = None if param is None else given_value(args, param)
-    if value is not None:
+    if value is not None and value.strip().lower().lstrip("+-") == "nan":
+        # the range check compares and reports a bound ('Input should be less than or equal to 1')
+        message = f"Invalid value for '{param.opts[0]}': {value!r} is not a number; give one in {number_range(param)}"
+    elif value is not None:
         message = f"{message} (got {value!r})"
     command = exc.ctx.command_path if exc.ctx is not None else "mi-lidar"
     return f"{message}; see `{command} --help`"
+
+
+def number_range(param) -> str:
+    """The range of a number option as ``--help`` prints it (``0.005<=x<=1.0``; ``x`` alone when unbounded)."""
+    low, high = getattr(param, "min", None), getattr(param, "max", None)
+    return ("" if low is None else f"{low}<=") + "x" + ("" if high is None else f"<={high}")
 
 
 NUMBER_METAVARS = {"int": "N", "float": "X"}  # Python types -> the app's number metavars
