@@ -159,8 +159,18 @@ class ScanCounts:
         return np.concatenate(parts) if parts else np.zeros((0, 2))
 
 
+SAMPLES_PER_CHUNK = 5_000_000  # beam samples a counting thread marches at once (about 100 bytes each at its peak)
+
+
+def scans_per_chunk(log: Log, cell: float) -> int:
+    """How many scans of ``log`` hold :data:`SAMPLES_PER_CHUNK` beam samples (every quarter of ``cell`` m from
+    the sensor to each return) on average: 1 to 64."""
+    marched = np.nansum(np.where(log.hit, log.ranges, 0.0)) / max(log.shape[0], 1) / (cell / 4)  # per scan
+    return int(np.clip(SAMPLES_PER_CHUNK / max(marched, 1.0), 1, 64))
+
+
 def count_scans(
-    log: Log, grid: Grid, reach: float = REACH, chunk: int = 64, progress=None, workers: int = 1
+    log: Log, grid: Grid, reach: float = REACH, chunk: int | None = None, progress=None, workers: int = 1
 ) -> ScanCounts:
     """Each scan's endpoint hits and pass-throughs on ``grid`` (see the module docstring).
 
@@ -168,8 +178,11 @@ def count_scans(
     be occupied (``occ3`` needs a hit): the free space every beam crosses is most of the passes and
     none of the map, so the per-scan lists stay a fraction of the log's march. The endpoints are found
     first, then chunks of ``chunk`` scans are marched on ``workers`` threads (numpy releases the GIL
-    in its loops). Cells are int32 (a grid holds fewer than 2**31 cells).
+    in its loops); by default :func:`scans_per_chunk`, so that the march's memory does not grow with the
+    sensor's range (64 scans of a 360-beam outdoor log returning at up to 82 m held 4.8 GB at once).
+    Cells are int32 (a grid holds fewer than 2**31 cells).
     """
+    chunk = scans_per_chunk(log, grid.cell) if chunk is None else chunk
     chunks = [np.arange(first, min(first + chunk, log.shape[0])) for first in range(0, log.shape[0], chunk)]
     ends, points = zip(*(_endpoints(log, grid, reach, scans) for scans in chunks))
     hit_cells = [e[e >= 0] for end in ends for e in end]

@@ -64,7 +64,7 @@ import numpy as np
 from mi_lidar.core.errors import ParameterError
 from mi_lidar.core.log import Log
 from mi_lidar.planar.beams import permeability
-from mi_lidar.planar.grid import Grid, count_scans, in_threads, march_cells, planar_beams
+from mi_lidar.planar.grid import Grid, count_scans, in_threads, march_cells, planar_beams, scans_per_chunk
 from mi_lidar.planar.protocol import map_grid
 from mi_lidar.planar.raymarch import LINE_RATIO, MIN_CELLS, NEIGHBOURS, principal_axis
 
@@ -72,7 +72,6 @@ CELL = 0.05  # m: map cell (the protocol's)
 HALF_HEIGHT = 0.5  # m: the elements reach this far below and above the scan plane
 PRIOR = (1.0, 0.1)  # Beta prior (a, b) of a hit probability: a surface seen once is a wall
 WINDOW = 2  # cells: a beam hits the surface it crosses nearest its return, if that lies this close
-SAMPLES_PER_CHUNK = 5_000_000  # beam samples a counting thread marches at once (about 100 bytes each at its peak)
 
 
 @dataclass
@@ -120,8 +119,7 @@ def count_walls(log: Log, cell: float = CELL, progress=None) -> WallMap:
         raise ParameterError(f"cell={cell} m must lie in [0.005, 1], e.g. {CELL}")
     report = progress or (lambda stage, fraction: None)
     grid = map_grid(log, cell, reach=np.inf, trim=0.0)
-    marched = np.nansum(np.where(log.hit, log.ranges, 0.0)) / log.shape[0] / (cell / 4)  # samples per scan
-    chunk = int(np.clip(SAMPLES_PER_CHUNK / max(marched, 1.0), 1, 64))
+    chunk = scans_per_chunk(log, cell)
     workers = os.cpu_count() or 1
     counts = count_scans(
         log,
