@@ -40,6 +40,7 @@ SLACK = 1e-3  # cells: a skip ends this far short of a cell edge (rounding moves
 SEGMENT_FIELDS = ("seg_range", "seg_hits", "seg_passes", "seg_occupied", "seg_incidence", "seg_surface")
 BACKSTOP = 2  # seg_occupied of a backstop (:meth:`PlanarTrace.with_backstops`); 0: stray hits, 1: ``occ3`` occupied
 BACKSTOP_DEPTH = 0.05  # m: a backstop lies one map cell behind a beam's last segment
+FIT_PAIRS = 32_768  # distinct (query, cell) pairs whose neighbourhoods CellLines.fit takes at once
 NEIGHBOURS_REACH = 9  # squared cells: the neighbourhood of a cell is the disc of 3 cells (15 cm at 5 cm cells)
 NEIGHBOURS = np.array([(dx, dy) for dx in range(-3, 4) for dy in range(-3, 4) if dx * dx + dy * dy <= NEIGHBOURS_REACH])
 
@@ -216,32 +217,12 @@ class CellLines:
 
     @classmethod
     def fit(cls, leave: LeaveOut, grid: Grid, query: np.ndarray, cell: np.ndarray) -> CellLines:
-        """The fits of (E,) entries (query scan, flat cell) of ``leave``."""
+        """The fits of (E,) entries (query scan, flat cell) of ``leave``, :data:`FIT_PAIRS` distinct pairs at a time
+        (each pair's neighbourhood takes some 30 arrays of 29 x 2 floats at once: 0.85 GB for the 200,000
+        pairs of 96 scans of a 360-beam outdoor log)."""
         pairs, at = np.unique(query * grid.size + cell, return_inverse=True)
-        query, cell = pairs // grid.size, pairs % grid.size
-        ij = np.stack([cell // grid.shape[1], cell % grid.shape[1]], -1)
-        flat = grid.index(ij[:, None, :] + NEIGHBOURS[None])
-        valid = flat >= 0
-        safe = np.where(valid, flat, 0)
-        around = np.broadcast_to(query[:, None], safe.shape)
-        hits, passes = leave.counts(around, safe)
-        occ = valid & occupied(hits, passes)
-        # ---------------- incidence rule: the occupied cells' offsets ---------------------------
-        n = occ.sum(axis=1)
-        xy = NEIGHBOURS[None].astype(np.float64) * occ[..., None]
-        mean = xy.sum(axis=1) / np.maximum(n, 1)[:, None]
-        centred = (NEIGHBOURS[None] - mean[:, None, :]) * occ[..., None]
-        big, small, normal = principal_axis(
-            (centred[..., 0] ** 2).sum(1), (centred[..., 1] ** 2).sum(1), (centred[..., 0] * centred[..., 1]).sum(1)
-        )
-        line_like = (n >= MIN_CELLS) & (small <= LINE_RATIO * big) & (big > 0)
-        # ---------------- surface rule: the occupied cells' mean endpoints, weighted by hits ----
-        w = np.where(occ, hits, 0).astype(np.float64)
-        endpoints = np.nan_to_num(leave.mean_hit(around, safe))
-        centre = (w[..., None] * endpoints).sum(axis=1) / np.maximum(w.sum(axis=1), 1e-12)[:, None]
-        dx, dy = (endpoints - centre[:, None, :]).transpose(2, 0, 1)
-        big, small, surface_normal = principal_axis((w * dx * dx).sum(1), (w * dy * dy).sum(1), (w * dx * dy).sum(1))
-        surface_line = ((w > 0).sum(axis=1) >= MIN_CELLS) & (small <= LINE_RATIO * big) & (big > 0)
+        parts = [_line_fits(leave, grid, pairs[k : k + FIT_PAIRS]) for k in range(0, max(pairs.size, 1), FIT_PAIRS)]
+        normal, line_like, centre, surface_normal, surface_line = (np.concatenate(v) for v in zip(*parts))
         return cls(
             at=at.reshape(-1),
             normal=normal,
@@ -249,7 +230,7 @@ class CellLines:
             centre=centre,
             surface_normal=surface_normal,
             surface_line=surface_line,
-            own=leave.mean_hit(query, cell),
+            own=leave.mean_hit(pairs // grid.size, pairs % grid.size),
             reach=float(np.sqrt(NEIGHBOURS_REACH) * grid.cell),
         )
 
@@ -275,6 +256,36 @@ class CellLines:
         with np.errstate(divide="ignore", invalid="ignore"):
             crossing = np.sum((self.centre[self.at] - origin) * normal, axis=1) / facing
         return np.where(line_like & (np.abs(crossing - own) <= self.reach), crossing, own)
+
+
+def _line_fits(leave: LeaveOut, grid: Grid, pairs: np.ndarray) -> tuple:
+    """``(normal, line_like, centre, surface_normal, surface_line)`` of (U,) distinct ``query * size + cell``
+    ``pairs`` (:class:`CellLines`)."""
+    query, cell = pairs // grid.size, pairs % grid.size
+    ij = np.stack([cell // grid.shape[1], cell % grid.shape[1]], -1)
+    flat = grid.index(ij[:, None, :] + NEIGHBOURS[None])
+    valid = flat >= 0
+    safe = np.where(valid, flat, 0)
+    around = np.broadcast_to(query[:, None], safe.shape)
+    hits, passes = leave.counts(around, safe)
+    occ = valid & occupied(hits, passes)
+    # ---------------- incidence rule: the occupied cells' offsets ---------------------------
+    n = occ.sum(axis=1)
+    xy = NEIGHBOURS[None].astype(np.float64) * occ[..., None]
+    mean = xy.sum(axis=1) / np.maximum(n, 1)[:, None]
+    centred = (NEIGHBOURS[None] - mean[:, None, :]) * occ[..., None]
+    big, small, normal = principal_axis(
+        (centred[..., 0] ** 2).sum(1), (centred[..., 1] ** 2).sum(1), (centred[..., 0] * centred[..., 1]).sum(1)
+    )
+    line_like = (n >= MIN_CELLS) & (small <= LINE_RATIO * big) & (big > 0)
+    # ---------------- surface rule: the occupied cells' mean endpoints, weighted by hits ----
+    w = np.where(occ, hits, 0).astype(np.float64)
+    endpoints = np.nan_to_num(leave.mean_hit(around, safe))
+    centre = (w[..., None] * endpoints).sum(axis=1) / np.maximum(w.sum(axis=1), 1e-12)[:, None]
+    dx, dy = (endpoints - centre[:, None, :]).transpose(2, 0, 1)
+    big, small, surface_normal = principal_axis((w * dx * dx).sum(1), (w * dy * dy).sum(1), (w * dx * dy).sum(1))
+    surface_line = ((w > 0).sum(axis=1) >= MIN_CELLS) & (small <= LINE_RATIO * big) & (big > 0)
+    return normal, line_like, centre, surface_normal, surface_line
 
 
 def march_distances(reach: float, step: float, far: float = np.inf) -> np.ndarray:

@@ -105,3 +105,26 @@ def test_the_map_is_counted_in_chunks_of_bounded_march_whatever_the_range(monkey
     assert len(marched) > 3 and max(marched) < 2 * 100_000, marched
     for name in ("hit_start", "hit_cell", "hit_xy", "pass_start", "pass_cell"):
         np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name), err_msg=name)
+
+
+def test_cell_lines_are_fitted_in_chunks_of_pairs_with_the_same_result(monkeypatch, tmp_path):
+    """The local line fits of a batch's cells took some 30 arrays of 29 x 2 floats per distinct (scan, cell)
+    pair at once (0.85 GB for 96 scans of the Freiburg campus log); fitted in chunks of pairs (here 7,
+    so that the room's pairs make many chunks), every fit is the same as in one piece."""
+    from mi_lidar.planar import raymarch
+    from mi_lidar.planar.grid import CountMap, Grid, count_scans
+
+    path = tmp_path / "room.log"
+    path.write_text(room_log_text(scans=20))
+    log = read_carmen(path)
+    grid = Grid.around(log.poses[:, :2, 3], 0.05, margin=8.0)
+    protocol = PlanarProtocol(window=5.0)
+    leave = CountMap(count_scans(log, grid)).leave_out([protocol.excluded(log, q) for q in (3, 11)])
+    query = np.repeat([0, 1], 400)
+    cell = np.concatenate([np.unique(count_scans(log, grid).hit_cell)[:400]] * 2)
+    whole = raymarch.CellLines.fit(leave, grid, query, cell)
+    monkeypatch.setattr(raymarch, "FIT_PAIRS", 7)
+    chunked = raymarch.CellLines.fit(leave, grid, query, cell)
+    for name in ("at", "normal", "line_like", "centre", "surface_normal", "surface_line", "own"):
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name), err_msg=name)
+    assert whole.line_like.any() and whole.surface_line.any()
