@@ -11,7 +11,7 @@ import mi_lidar  # noqa: F401
 from mi_lidar.core.effects import Effect, register_effect
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.loop import diagnose
-from mi_lidar.loop.demo import make_hidden_log
+from mi_lidar.loop.demo import make_hidden_log, print_plain
 
 
 @register_effect
@@ -31,10 +31,13 @@ if __name__ == "__main__":
     parser.parse_args()
     scene, model, log = make_hidden_log("range_offset(offset=0.03)")
     d = diagnose(log, scene, model, candidates=["range_offset", "range_noise", "outliers"], rounds=1, steps=100)
-    print(d.summary)
-    best = d.rounds[0][0]
-    print("fitted:", {k: v.tolist() for k, v in best.parameters.items()})
+    print_plain(d.summary)
     print(
-        "mean log-likelihood per ray over iterations:",
+        "fitted on every ray (the model diagnose returns):",
+        {k: [round(float(x), 5) for x in v] for k, v in d.parameters.items()},
+    )
+    best = d.rounds[0][0]
+    print(
+        "screening fit, mean log-likelihood per ray over iterations:",
         " ".join(f"{x:.3f}" for x in best.history[:: max(1, len(best.history) // 10)]),
     )
