@@ -14,6 +14,7 @@ from mi_lidar.cli.progress import progress
 from mi_lidar.core.errors import MiLidarError, ParameterError
 
 MAX_SEED = 2**32 - 1  # Mitsuba's render seed is a 32-bit unsigned integer
+LOOP_TITLE = "The loop: a hidden effect, its diagnosis, the error before and after"  # fits 80 columns
 
 
 def scan_summary(log, title: str, elapsed: float | None = None) -> Table:
@@ -308,5 +309,5 @@ def demo(
     from mi_lidar.scene import bundled_scene
 
     render(bundled_scene("offroad.xml"), out, seed=seed, pattern=None, density=None)
-    console.rule("The loop: a log with a hidden effect, its diagnosis, the error before and after")
+    console.rule(LOOP_TITLE)
     run_demo(out=out / "loop", echo=say)

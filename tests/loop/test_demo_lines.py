@@ -1,9 +1,15 @@
-"""The demo's ranking fits 80 columns (a 31-character candidate pushed 'significant' onto its own line), and the
-demo ends by naming the reports it wrote."""
+"""The demo's ranking fits 80 columns (a 31-character candidate pushed 'significant' onto its own line), so does
+the rule above the loop, and the demo ends by naming the reports it wrote."""
 
+import io
 from types import SimpleNamespace
 
+from rich.console import Console
+
+from mi_lidar.cli.render import LOOP_TITLE
 from mi_lidar.loop.demo import ranking_lines, run_demo
+
+from ..terminal import WIDTH, assert_whole
 
 
 def test_the_ranking_keeps_one_line_per_candidate_in_80_columns():
@@ -16,6 +22,13 @@ def test_the_ranking_keeps_one_line_per_candidate_in_80_columns():
     assert len(lines) == 4 and all(len(line) <= 80 for line in lines), [len(line) for line in lines]
     assert lines[2].endswith("significant") and lines[3].endswith("-")
     assert len({line.index("+4.9975") for line in lines[1:]}) == 1  # the figures in one column
+
+
+def test_the_rule_above_the_demos_loop_is_whole_in_80_columns():
+    """`make demo` printed '─ The loop: a log with a hidden effect, its diagnosis, the error before and a… ─'."""
+    console = Console(width=WIDTH, file=io.StringIO(), record=True)
+    console.rule(LOOP_TITLE)
+    assert_whole(console.export_text(), LOOP_TITLE)
 
 
 def test_the_demo_ends_naming_the_reports_it_wrote(tmp_path, capsys):
