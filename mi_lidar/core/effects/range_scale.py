@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import drjit as dr
+
 from mi_lidar.core.effects.base import Effect, register_effect
 from mi_lidar.core.params import ParamSpec
 from mi_lidar.core.rays import RayBatch
-from mi_lidar.core.segment import Segment
+from mi_lidar.core.segment import SURFACE, Segment
 
 
 @register_effect
@@ -19,6 +21,12 @@ class RangeScale(Effect):
     scaling the spread too would shrink a fitted noise by the scale). The nominal (geometric) range is
     unchanged. Differentiable.
 
+    A surface's return moves by ``(scale - 1) r`` from its nominal range ``r``, whatever shifted it before: with a
+    per-beam bias ``b`` it returns ``scale * r + b`` whether the bias comes before or after the scale in the model
+    (scaling the shifted location gave ``scale * (r + b)`` after a bias, so the bias fitted beside a scale found
+    after it was off by ``(scale - 1) b``: 2 % of it at scale 1.02). An ellipsoid's location and chord, which are not
+    its nominal (entry) range, are scaled as they stand.
+
     Example: ``range_scale(scale=1.002)``.
     """
 
@@ -29,4 +37,5 @@ class RangeScale(Effect):
 
     def modify_segment(self, seg: Segment, rays: RayBatch) -> Segment:
         s = self["scale"]
-        return seg.with_(mean=seg.mean * s, lo=seg.lo * s, hi=seg.hi * s)
+        mean = dr.select(seg.kind == SURFACE, seg.mean + (s - 1.0) * seg.nominal, seg.mean * s)
+        return seg.with_(mean=mean, lo=seg.lo * s, hi=seg.hi * s)
