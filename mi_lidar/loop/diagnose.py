@@ -14,9 +14,9 @@
    in a close race with the leader are fitted to the end before the ranking decides.
 3. **join**: the best significant candidate that still wins held out after the model's effects are
    refitted with it joins (:mod:`mi_lidar.loop.selection`: one test for the tables and the verdict).
-   Rounds repeat (``rounds`` at most) until nothing joins; after the first round only the candidates
-   that were significant in it are tried again (an effect that does not improve the model alone is
-   not looked for behind another).
+   Rounds repeat until nothing joins (``rounds`` at most, when given); after the first round only the
+   candidates that were significant in it are tried again (an effect that does not improve the model
+   alone is not looked for behind another), so there are at most as many rounds as those.
 4. **realism**: with every joined effect the model is sampled at the held-out rays before and after
    (the same random numbers), and the realism of the samples is put beside the NLL (median and p90
    |range error|, return rate, hit/miss F1, histogram match; :func:`~mi_lidar.core.metrics.metrics_of`);
@@ -154,7 +154,7 @@ def diagnose(
     out: str | Path | None = None,
     candidates: list[str] | None = None,
     steps: int = 60,
-    rounds: int = 3,
+    rounds: int | None = None,
     max_train: int = 200_000,
     max_test: int = 200_000,
     max_fit: int = 20_000,
@@ -176,7 +176,7 @@ def diagnose(
             every registered effect not in the model, and the learned densities when the model has no effects).
         steps: Adam steps per fit at most (screening fits stop once they stop gaining; the final joint
             refit takes twice as many).
-        rounds: selection rounds (candidates joined at most).
+        rounds: selection rounds at most, so candidates joined at most (None: until no candidate joins).
         max_train, max_test: rays per split (random subsample beyond).
         max_fit: training rays each candidate is fitted on (a subsample of the training split).
         seed: subsampling and simulation seed.
@@ -214,10 +214,11 @@ def diagnose(
     names = [(n, v) for n, v in names if n not in DENSITY_CANDIDATES]
     given = copy.deepcopy(base)
     all_rounds, selected, evidence, joined_effects = [], [], [], []
-    total, done = len(names) * rounds + len(densities), 0
-    for round_number in range(1, rounds + 1):
+    total, done = len(names) + len(densities), 0
+    for round_number in range(1, (len(names) if rounds is None else rounds) + 1):
         if not names:
             break
+        total = done + len(names) + len(densities)  # this round's candidates: later rounds add theirs when they start
         base_fit = float(data.fitting.log_likelihood(base).sum())
         this_round = Round(base, data, steps, P_VALUE / len(names), nll_before, before_test, base_fit)
         ranked, failures = [], []  # failures: (candidate, stage, reason) of this round

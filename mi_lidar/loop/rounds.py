@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mi_lidar.core.errors import FitError
+from mi_lidar.core.params import Snapshot
 from mi_lidar.core.problem import PartsFit, n_parameters
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.loop.catalog import COARSE, SCREEN_TOLERANCE, candidate, fit_density_candidate, refit
@@ -159,12 +160,19 @@ class Round:
         (:class:`~mi_lidar.core.errors.FitError`) does not join: its status says so and ``failed`` gets
         ``(name, stage, reason)``.
 
+        The augmented models share the model's effects, so every joint refit starts from their values as they
+        stand, and they end with the values of the refit that joined (as they were when nothing joins): a later
+        trial refit used to leave its own values in them, and the next round then judged its candidates against a
+        held-out score the model no longer had (every one of them 0.65 nats/ray worse than nothing).
+
         Returns:
             ``(candidate, augmented model, its held-out per-ray log-likelihood)`` or ``(None, None, None)``.
         """
         base, data, steps, before_test = self.base, self.data, self.steps, self.before_test
+        start = Snapshot(base.effects)  # the joint refits share the model's effects: each starts from these values
 
         def joined_with(c: Candidate, thorough: bool = False):
+            start.restore()
             augmented = self.with_effect(copy.deepcopy(c.effect))
             try:
                 if thorough:  # every step: the earlier effects adapt slowly once the candidate has taken its share
@@ -174,28 +182,30 @@ class Round:
             except FitError as error:
                 c.status = FAILED
                 failed.append((c.name, "joint refit", str(error)))
-                return None, None
-            return augmented, data.test.log_likelihood(augmented)
+                return None, None, None
+            return augmented, data.test.log_likelihood(augmented), Snapshot(augmented.effects)
 
         for c in (c for c in ranked if c.significant):
             simpler = [s for s in ranked if s.significant and s.k < c.k and s.status != FAILED] if base.effects else []
-            augmented, after_test = joined_with(c, thorough=bool(simpler))
+            augmented, after_test, fitted = joined_with(c, thorough=bool(simpler))
             if augmented is None:
                 continue
             if not significant(*held_out_test(after_test, before_test), self.threshold):
                 c.status = LOST
                 continue
             for s in simpler:
-                model, test = joined_with(s, thorough=True)
+                model, test, values = joined_with(s, thorough=True)
                 if (
                     model is not None
                     and significant(*held_out_test(test, before_test), self.threshold)
                     and (held_out_test(after_test, test)[1] >= P_VALUE)
                 ):
-                    c, augmented, after_test = s, model, test
+                    c, augmented, after_test, fitted = s, model, test, values
                     break
+            fitted.restore()  # the effects it shares with the model hold the values of its refit, not of a later trial
             c.status = JOINED
             return c, augmented, after_test
+        start.restore()
         return None, None, None
 
     def _scored(self, c: Candidate, trial: SensorModel, fit: PartsFit) -> Candidate:

@@ -13,7 +13,8 @@
   augmented model is refitted together, the augmented model still passes the same test against the
   current one.
 * **passengers** (:func:`drop_passengers`): after the final joint refit, an effect that joined only to
-  take up what an earlier one had not yet fitted is dropped when the model without it is not
+  take up what an earlier one had not yet fitted, or to stand in for effects found after it (a noise
+  law widened over a range scale and a per-beam bias), is dropped when the model without it is not
   significantly worse held out.
 * **shrinkage** (:func:`shrink_without_evidence`): per-beam or per-label values whose likelihood ratio
   against the parameter's default is below the chi-square(1) critical value go back to the default.
@@ -160,8 +161,10 @@ def shrink_without_evidence(model: SensorModel, effects: list, problem: Problem)
 def drop_passengers(base: SensorModel, added: list, test: Problem, names: list[str]) -> tuple[SensorModel, list]:
     """Remove the added effects that no longer win held out once every effect is refitted together.
 
-    Each effect after the first is dropped when the model without it is not significantly worse
-    held out (the one test, at :data:`P_VALUE`).
+    Each effect, in the order they joined, is dropped when the model without it is not significantly
+    worse held out (the one test, at :data:`P_VALUE`). The first is tested too: it joined alone, and may
+    have stood in for the effects that joined after it (a noise law that, joined first, took up a range
+    scale and a per-beam bias as spread, and is left with nothing once they joined).
 
     Args:
         base: the final model (refitted).
@@ -174,7 +177,7 @@ def drop_passengers(base: SensorModel, added: list, test: Problem, names: list[s
     """
     full = test.log_likelihood(base)
     dropped = []
-    for effect, name in list(zip(added, names))[1:]:
+    for effect, name in zip(added, names):
         without = dataclasses.replace(base, effects=[e for e in base.effects if e is not effect])
         gain, p = held_out_test(full, test.log_likelihood(without))
         if significant(gain, p, P_VALUE):
