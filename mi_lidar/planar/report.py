@@ -24,6 +24,7 @@ from mi_lidar.io.markdown import plain  # noqa: E402
 from mi_lidar.planar.benchmark import SAMPLED_SCANS  # noqa: E402
 
 BINS = np.linspace(-1.5, 1.5, 121)
+END_BINS = f"z - r (m; beyond \u00b1{BINS[-1]:g} m in the end bins)"  # the residual panels clip into their end bins
 
 
 def _save(figure, path: Path) -> Path:
@@ -50,7 +51,8 @@ def nll_figure(result, path: Path) -> Path:
 
 def residual_figure(result, path: Path) -> Path:
     """Histograms of ``z - r`` on the test beams: measured, and each model's sampled scan (M0, M1, M3b, NP-Reg
-    and mi-lidar, those of them that were run; else every model run)."""
+    and mi-lidar, those of them that were run; else every model run). Residuals beyond the bins' range are
+    counted in the end bins, and the axis label says so (they are the log's short and long returns, not a peak)."""
     test = result.data.test
     both = test.hit & np.isfinite(test.nominal)
     measured = (test.z - test.nominal)[both]
@@ -78,7 +80,7 @@ def residual_figure(result, path: Path) -> Path:
         )
         axis.set_yscale("log")
         axis.set_title(f"{row.name}: median |err| {row.samples['range_error_median']:.3f} m", fontsize=9)
-        axis.set_xlabel("z - r (m)")
+        axis.set_xlabel(END_BINS, fontsize=8)
     axes[0][0].legend(fontsize=8)
     axes[0][0].set_ylabel("density (1/m)")
     return _save(figure, path)

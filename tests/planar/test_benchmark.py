@@ -149,6 +149,19 @@ def test_the_report_of_one_model_outside_the_residual_panels_is_written(room, tm
     assert written["residuals"].stat().st_size > 1000, written
 
 
+def test_the_residual_panels_say_that_their_end_bins_hold_the_residuals_beyond(room, tmp_path, monkeypatch):
+    """residuals.png clipped every |z - r| beyond 1.5 m into its end bins, under an axis reading 'z - r (m)':
+    on Intel, spikes at +-1.5 m that read as peaks of the sensor."""
+    from mi_lidar.planar import report
+
+    figures = []
+    monkeypatch.setattr(report, "_save", lambda figure, path: figures.append(figure) or path)
+    result = run_planar_benchmark(read_carmen(room), protocol=PROTOCOL, models=("M0", "M3b"))
+    report.residual_figure(result, tmp_path / "residuals.png")
+    labels = [axis.get_xlabel() for axis in figures[0].axes]
+    assert labels and all("beyond \u00b11.5 m in the end bins" in label for label in labels), labels
+
+
 def test_a_clipping_sensor_has_its_misses_scored_as_misses(tmp_path):
     path = tmp_path / "short.log"
     path.write_text(room_log_text(scans=30, max_range=7.0))
