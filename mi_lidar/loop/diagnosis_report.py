@@ -26,6 +26,7 @@ from mi_lidar.loop.residuals import (
     PARAGRAPH,
     UNITS,
     Structure,
+    departure_text,
     group_index,
     plot_structure,
     residual_structure,
@@ -193,7 +194,7 @@ def diagnosis_markdown(d) -> str:
             "",
             "![residual structure](residual_structure.png)",
             "",
-            "| dimension | channel | chi2 | dof | p | largest departure | flagged |",
+            "| dimension | channel | chi2 | dof | p | RMS departure beyond noise | flagged |",
             "|---|---|---|---|---|---|---|",
         ]
         lines += [structure_row(st) for st in d.structure]
@@ -211,10 +212,9 @@ def structure_row(st: Structure) -> str:
     if st.dof == 0:
         untestable = f"not testable (fewer than 2 groups of {MIN_GROUP} rays)"
         return f"| {st.dimension} | {st.channel} | - | - | - | - | {untestable} |"
-    unit = "m" if st.channel == "range" else ""
     return (
         f"| {st.dimension} | {st.channel} | {st.chi2:.1f} | {st.dof} | {p_value(st.p_value)} | "
-        f"{st.departure:.4f} {unit} | {'yes' if st.flagged else 'no'} |"
+        f"{departure_text(st, 2)} | {'yes' if st.flagged else 'no'} |"
     )
 
 

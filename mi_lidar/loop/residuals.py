@@ -163,6 +163,11 @@ def residual_structure(
     return sorted(out, key=lambda s: (not s.flagged, s.p_value))
 
 
+def departure_text(s: Structure, digits: int) -> str:
+    """``s.departure`` in the units a reader compares: cm for ranges, percentage points for return rates."""
+    return f"{100 * s.departure:.{digits}f} {'cm' if s.channel == 'range' else 'points'}"
+
+
 def structure_verdict(found: list[Structure]) -> str:
     """The plain-words paragraphs for the flagged dimensions, one each, then what to do ('' when none).
 
@@ -175,9 +180,9 @@ def structure_verdict(found: list[Structure]) -> str:
     parts = []
     for s in flagged:
         what = (
-            f"measured ranges depart from the model's by {100 * s.departure:.1f} cm RMS across the groups"
+            f"measured ranges depart from the model's by {departure_text(s, 1)} RMS across the groups"
             if s.channel == "range"
-            else f"the return rate departs from the model's by {100 * s.departure:.1f} points RMS across the groups"
+            else f"the return rate departs from the model's by {departure_text(s, 1)} RMS across the groups"
         )
         parts.append(
             f"The model still misses something that varies with {s.dimension}; no catalog effect explains it "

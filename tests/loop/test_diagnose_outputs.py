@@ -160,3 +160,23 @@ def test_a_dimension_with_one_group_is_reported_as_not_testable_not_as_chi2_zero
     assert rows[("label", "range")].endswith("| - | - | - | - | not testable (fewer than 2 groups of 30 rays) |")
     ranges = rows[("range", "range")].split("|")
     assert ranges[4].strip() == "11" and ranges[7].strip() == "no", ranges  # 12 groups: tested, and clean
+
+
+def test_the_structure_table_gives_departures_in_cm_and_points_as_the_verdict_does():
+    """The table's 'largest departure' read '0.0000 ' for a return rate (no unit) and metres to 4 decimals for
+    ranges, while the verdict said 'by 9.8 points RMS': the column is the RMS spread beyond sampling noise."""
+    from mi_lidar.loop.diagnosis_report import structure_row
+    from mi_lidar.loop.residuals import residual_structure, structure_verdict
+
+    rng = np.random.default_rng(3)
+    n = 6000
+    nominal = rng.uniform(2.0, 20.0, n)
+    measured, simulated = nominal + rng.normal(0.0, 0.02, n), nominal + rng.normal(0.0, 0.02, n)
+    hit = rng.random(n) > np.where(nominal > 11.0, 0.2, 0.02)  # beyond 11 m a fifth of the beams drop out
+    found = residual_structure({"range": nominal}, nominal, measured, hit, simulated, rng.random(n) > 0.1)
+    returns = next(s for s in found if s.channel == "returns")
+    ranges = next(s for s in found if s.channel == "range")
+    assert returns.flagged and 0.05 < returns.departure < 0.15, returns.departure  # about 10 points
+    assert f"| {100 * returns.departure:.2f} points | yes |" in structure_row(returns), structure_row(returns)
+    assert f"by {100 * returns.departure:.1f} points RMS" in structure_verdict(found)
+    assert structure_row(ranges).endswith(f"| {100 * ranges.departure:.2f} cm | no |"), structure_row(ranges)
