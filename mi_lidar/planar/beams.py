@@ -49,11 +49,14 @@ def segment_labels(occupied: np.ndarray, hits: np.ndarray, classes: int = EVIDEN
 
     A wall seen by many scans is located to a centimetre; a cell with one or two hits (seen once,
     or a person's legs) is not, and its returns spread more: the residual law depends on both.
-    ``2 * classes`` labels in all; ``classes = 1`` labels occupancy alone. A backstop (``occupied`` 2,
-    no hits) is labelled as an occupied cell of the least evidence: a wall the map has not seen.
+    ``classes = 1`` labels occupancy alone. A backstop (``occupied`` 2, no hits) has a label of its own,
+    ``2 * classes``: what a beam meets after passing every cell listed for it (a wall the map has not
+    seen, or ground far behind a bush) returns and misses by its own law
+    (:func:`~mi_lidar.planar.models.backstop_prior`). ``2 * classes + 1`` labels in all.
     """
+    occupied = np.asarray(occupied, np.int64)
     evidence = np.clip(np.floor(np.log2(np.maximum(hits, 1))), 0, classes - 1).astype(np.int64)
-    return np.minimum(np.asarray(occupied, np.int64), 1) * classes + evidence
+    return np.where(occupied == BACKSTOP, 2 * classes, np.minimum(occupied, 1) * classes + evidence)
 
 
 def _f(values) -> mi.Float:

@@ -122,8 +122,8 @@ class PlanarTrace:
         miss 30 % of the time on FHW (that state's P(null)), and so the beams whose first occupied cell
         was nearer than 8 m 0.5-1.2 % of the time, where the sensor missed none. The backstop is what
         such a beam meets next: an element with its own interception probability (fitted like the
-        cells' Beta priors) that returns as an occupied cell the map has not seen
-        (:func:`~mi_lidar.planar.beams.segment_labels`).
+        cells' Beta priors) and its own return law, shrunk to that of an occupied cell the map has not seen
+        (:func:`~mi_lidar.planar.beams.segment_labels`, :func:`~mi_lidar.planar.models.backstop_prior`).
         """
         counts = np.diff(self.seg_start)
         has = counts > 0

@@ -78,10 +78,11 @@ def miss_bands(first_range: np.ndarray, edges) -> np.ndarray:
 def match_misses(beams: AngularMixture, density: NPRegDensity, first_range: np.ndarray, edges) -> NPRegDensity:
     """``density`` with its P(no return) scaled per range band so that ``beams`` miss as often as predicted.
 
-    The tables' no-return probabilities come from the no-returns counted at each beam's first occupied
-    cell, smoothed across states, but a beam may also pass that cell and miss through the escape state,
-    so the model predicts more no-returns near the sensor than its training beams have and, scaled by one
-    common factor to match the overall rate (Intel: 3.05 % against 2.57 %), far fewer at long range
+    The tables' no-return probabilities are smoothed across states. When they came from the no-returns
+    counted at each beam's first occupied cell (before misses were credited to their most likely element,
+    :func:`~mi_lidar.planar.models.credited_segments`), a beam could also pass that cell and miss through
+    the escape state, so the model predicted more no-returns near the sensor than its training beams had
+    and, scaled by one common factor to match the overall rate (Intel: 3.05 % against 2.57 %), far fewer at long range
     (Freiburg 101, first occupied cell 30-40 m: 31 % predicted where 59 % of the training beams missed,
     so far walls stayed solid in sampled scans and hist L1 was 0.31 m). The likelihood is nearly flat in
     such factors (Intel: within 1e-4 nats per beam from 0.8 to 1 in a common one), so they are set by the
