@@ -337,13 +337,13 @@ def _comparison_files(result, log, out: Path, title: str, model) -> list[Path]:
             lines += [beam_blocks_note(rows, result.beam_blocks), ""]
             rows = result.beam_blocks
         lines.append(markdown_table(rows, keys[:1] + keys[2:]))
-    lines += [
-        "",
-        f"Group `{NO_ELEMENT_GROUP}`: rays that meet no element of the scene within the sensor's range "
-        "(the model expects no return).",
-        "",
-        "`residuals.ply`: measured points coloured by measured - nominal range (red long, blue short).",
-    ]
+    if any(r["group"] == NO_ELEMENT_GROUP for rows in result.breakdowns.values() for r in rows):
+        lines += [
+            "",
+            f"Group `{NO_ELEMENT_GROUP}`: rays that meet no element of the scene within the sensor's range "
+            "(the model expects no return).",
+        ]
+    lines += ["", "`residuals.ply`: measured points coloured by measured - nominal range (red long, blue short)."]
     md = "\n".join(lines) + "\n" + intensity_section(result.intensity, out)
     report = [
         atomic_write_text(out / "report.md", md),

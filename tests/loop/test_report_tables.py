@@ -58,3 +58,24 @@ def test_the_compare_report_names_a_per_beam_effect_by_its_spread(tmp_path):
     head = (tmp_path / "report.md").read_text().splitlines()[2]
     assert head.startswith("Model: range sigma 0.01 m, effects: range_bias (bias: [360 values: min 0, median 0.01")
     assert len(head) < 200
+
+
+def test_the_note_on_rays_that_meet_nothing_appears_only_with_such_rays(tmp_path):
+    """Every compare report ended with "Group `none`: rays that meet no element ..." under tables without such a
+    group (the README's room, the Intel wall map): a note on nothing."""
+    import dataclasses
+
+    from mi_lidar.loop import compare
+    from mi_lidar.scene.simulation import simulate
+
+    from .helpers import room
+
+    scene, model, poses = room(1)
+    log = simulate(scene, poses=poses, model=model, seed=1)
+    note = "Group `none`: rays that meet no element"
+    compare(log, scene, model, out=tmp_path / "closed")
+    closed = (tmp_path / "closed" / "report.md").read_text()
+    assert "| none |" not in closed and note not in closed
+    compare(log, scene, dataclasses.replace(model, max_range=2.0), out=tmp_path / "short")  # far walls out of range
+    short = (tmp_path / "short" / "report.md").read_text()
+    assert "| none |" in short and note in short
