@@ -35,7 +35,8 @@ def _save(figure, path: Path) -> Path:
 
 
 def nll_figure(result, path: Path) -> Path:
-    """Bar chart: test NLL per model (nats per beam)."""
+    """Bar chart: test NLL per model (nats per beam), bars from 0 (the score of a beam predicted with certainty:
+    scores are probabilities of 1 cm bins, so no NLL is below it), so that their heights compare."""
     names = [r.name for r in result.rows]
     values = [r.test_nll for r in result.rows]
     figure, axis = plt.subplots(figsize=(7.5, 3.2))
@@ -45,7 +46,7 @@ def nll_figure(result, path: Path) -> Path:
         axis.text(i, v, f"{v:.3f}", ha="center", va="bottom", fontsize=8)
     axis.set_ylabel("test NLL (nats/beam)")
     axis.set_title(f"{Path(result.source).name}: test NLL per model (lower is better)")
-    axis.set_ylim(min(values) * 0.9, max(values) * 1.05)
+    axis.set_ylim(0.0, max(values) * 1.1)
     return _save(figure, path)
 
 
