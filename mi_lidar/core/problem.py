@@ -167,6 +167,16 @@ class Problem:
             out = [np.asarray(self.chunk_log_likelihood(model, c), np.float64) for c in self.chunks]
         return np.concatenate(out) if out else np.zeros(0)
 
+    def log_likelihood_by_beam(self, model, n_beams: int) -> np.ndarray:
+        """(n_beams,) scored log-likelihood (nats) of the rays summed beam by beam.
+
+        Each ray belongs to one beam, so the likelihood is a sum of per-beam terms, and a per-beam
+        parameter's values are judged all at once from one evaluation. Rays of beams beyond ``n_beams - 1``
+        count to the last (a per-beam parameter of width 1 holds one value for every beam).
+        """
+        beams = np.minimum(self.rays.beam[self.index], n_beams - 1)
+        return np.bincount(beams, weights=self.log_likelihood(model), minlength=n_beams)
+
     def nll(self, model) -> float:
         """Mean negative scored log-likelihood per ray (nats)."""
         return float(-np.mean(self.log_likelihood(model)))

@@ -184,12 +184,11 @@ def search_by_beam(model: SensorModel, effect: Effect, key: str, problem: Proble
     """
     spec = effect.specs[key]
     values = np.asarray(effect.params[key], np.float64).copy()
-    beams = np.minimum(problem.rays.beam[problem.index], values.size - 1)
 
     def score(trial: np.ndarray) -> np.ndarray:
         effect.params[key] = mi.Float(aligned(trial.astype(np.float32)))
         make_opaque([effect])
-        return np.bincount(beams, weights=problem.log_likelihood(model), minlength=values.size)
+        return problem.log_likelihood_by_beam(model, values.size)
 
     best = score(values)
     for half, step in passes:

@@ -136,26 +136,39 @@ def shrink_without_evidence(model: SensorModel, effects: list, problem: Problem)
     """Set per-beam / per-label values without evidence back to their default (in place).
 
     A value has evidence when setting it to the parameter's default lowers the log-likelihood of
-    ``problem`` by more than half the chi-square(1) critical value at :data:`P_VALUE`.
+    ``problem`` by more than half the chi-square(1) critical value at :data:`P_VALUE`. A per-beam value
+    acts on its beam's rays alone, so every beam's is judged at once from two evaluations (its values and
+    the defaults, summed beam by beam: :meth:`~mi_lidar.core.problem.Problem.log_likelihood_by_beam`); the
+    per-label values are set back one at a time (a ray may meet elements of several labels).
     """
     critical = 0.5 * float(stats.chi2.isf(P_VALUE, 1))
+
+    def assign(effect, key: str, values: np.ndarray) -> None:
+        effect.params[key] = mi.Float(aligned(values))
+        make_opaque([effect])
+
     for effect in effects:
         for key in effect.fitted_names():
             spec = effect.specs[key]
             if not (spec.per_beam or spec.per_label) or spec.default is None:
                 continue
             values = np.asarray(effect.params[key], np.float32).copy()
+            if spec.per_beam:
+                full = problem.log_likelihood_by_beam(model, values.size)
+                assign(effect, key, np.full_like(values, spec.default))
+                reduced = problem.log_likelihood_by_beam(model, values.size)
+                values[full - reduced < critical] = spec.default
+                assign(effect, key, values)
+                continue
             full = float(problem.log_likelihood(model).sum())
             for i in np.flatnonzero(values != spec.default):
                 trial = values.copy()
                 trial[i] = spec.default
-                effect.params[key] = mi.Float(aligned(trial))
-                make_opaque([effect])
+                assign(effect, key, trial)
                 reduced = float(problem.log_likelihood(model).sum())
                 if full - reduced < critical:
                     values, full = trial, reduced
-            effect.params[key] = mi.Float(aligned(values))
-            make_opaque([effect])
+            assign(effect, key, values)
 
 
 def drop_passengers(base: SensorModel, added: list, test: Problem, names: list[str]) -> tuple[SensorModel, list]:

@@ -1,12 +1,19 @@
-"""The selection rules of diagnose on made-up held-out scores: ranking, Occam, realism warnings, candidate names."""
+"""The selection rules of diagnose: ranking, Occam, realism warnings, candidate names (on made-up held-out scores);
+shrinking per-beam values without evidence (on a simulated room log)."""
+
+import dataclasses
 
 import numpy as np
 import pytest
 
 from mi_lidar.core.errors import ParameterError
-from mi_lidar.loop.catalog import candidate_names, fans_out
+from mi_lidar.core.problem import Problem
+from mi_lidar.core.rays import LogRays
+from mi_lidar.loop.catalog import candidate, candidate_names, fans_out
 from mi_lidar.loop.realism import realism_warning
-from mi_lidar.loop.selection import Candidate, held_out_test, rank
+from mi_lidar.loop.selection import Candidate, held_out_test, rank, shrink_without_evidence
+from mi_lidar.scene.simulation import simulate
+from tests.loop.helpers import room
 
 N = 20_000
 RNG = np.random.default_rng(0)
@@ -101,3 +108,21 @@ def test_a_wrong_option_of_a_candidate_names_the_allowed_ones(given, message):
 
     with pytest.raises(ParameterError, match=message):
         candidate_settings([], [given])
+
+
+def test_per_beam_values_without_evidence_are_shrunk_from_two_scores_not_one_per_beam():
+    """A hidden 5 cm bias on beams 0-9 (20 rays each) keeps its values; 2 mm on the other 350 beams (about 0.4
+    nats over a beam's rays, below the critical 5.4) goes back to 0. Every beam is judged from the rays scored
+    twice (the values, then the defaults, summed beam by beam), where the rule set back one beam at a time used
+    to score them once per beam (361 times). Fails on the parent: 361 scores."""
+    scene, model, poses = room(20)
+    bias = candidate("range_bias", 360, 1, bias=np.where(np.arange(360) < 10, 0.05, 0.0).tolist())
+    log = simulate(scene, poses=poses, model=dataclasses.replace(model, effects=[bias]), seed=3)
+    fitted = candidate("range_bias", 360, 1, bias=np.where(np.arange(360) < 10, 0.05, 0.002).tolist())
+    problem = Problem.build(scene, LogRays.from_log(log, scene=scene))
+    scored, score = [], problem.log_likelihood
+    problem.log_likelihood = lambda m: scored.append(m) or score(m)
+    shrink_without_evidence(dataclasses.replace(model, effects=[fitted]), [fitted], problem)
+    values = np.asarray(fitted.params["bias"])
+    assert np.allclose(values[:10], 0.05) and np.all(values[10:] == 0.0)
+    assert len(scored) == 2
