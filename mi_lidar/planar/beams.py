@@ -35,13 +35,14 @@ from mi_lidar.core.likelihood import mixture_log_likelihood, score
 from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.sensor_model import SensorModel
-from mi_lidar.core.streams import BeamCorrelation, NeighbourStreams, scan_follows
+from mi_lidar.core.streams import BeamCorrelation, NeighbourStreams, scan_follows, uniform
 from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segments
 from mi_lidar.planar.raymarch import BACKSTOP, PlanarTrace
 
 OCCUPANCY_CLASSES = BACKSTOP + 1  # stray-hit cells, ``occ3`` occupied cells, backstops: one Beta prior each
 PERMEABILITY_TOLERANCE = 1e-5  # nats per beam: the Beta priors' fit has converged (see fit_permeability)
 EVIDENCE_CLASSES = 5  # at most: leave-out hits of a cell 1, 2-3, 4-7, 8-15, 16 or more (doublings)
+ANGULAR_STREAM = 4  # the random stream that picks an angular part (the sampler's are 0-3 and 64 up)
 
 
 def segment_labels(occupied: np.ndarray, hits: np.ndarray, classes: int = EVIDENCE_CLASSES) -> np.ndarray:
@@ -140,9 +141,21 @@ class EngineBeams:
         p = permeability(self.hits, self.passes, np.asarray(a)[k], np.asarray(b)[k]) if self.hits.size else np.ones(1)
         return dataclasses.replace(self, table=self.table.replaced(p_hit=_f(p)))
 
-    def streams(self, seed: int) -> int | NeighbourStreams:
-        """The random streams of a sample with ``seed``: shared by neighbouring beams per :attr:`correlation`."""
-        return NeighbourStreams(seed, self.follows, self.correlation) if self.correlation.active else seed
+    def streams(self, seed: int, follows: np.ndarray | None = None) -> int | NeighbourStreams:
+        """The random streams of a sample with ``seed``: shared by neighbouring beams per :attr:`correlation`.
+
+        ``follows``: that of the whole set when these beams are a part of it (:meth:`numbered_from`); default
+        :attr:`follows`.
+        """
+        follows = self.follows if follows is None else follows
+        return NeighbourStreams(seed, follows, self.correlation) if self.correlation.active else seed
+
+    def numbered_from(self, first: int) -> EngineBeams:
+        """These beams as rays ``first .. first + n - 1`` of a larger set, so that they draw that set's random
+        numbers (with the set's :meth:`streams`): scored and sampled part by part, a set gives what it gives
+        at once."""
+        rays = dataclasses.replace(self.rays, ray_id=dr.arange(mi.UInt32, first, first + self.n))
+        return dataclasses.replace(self, rays=rays)
 
     def sample(self, model, seed: int | NeighbourStreams = 0) -> tuple[np.ndarray, np.ndarray]:
         """One sampled (range, hit) per beam, from :meth:`streams` of ``seed`` (or the streams given)."""
@@ -208,15 +221,27 @@ class AngularMixture:
         parts = tuple(dataclasses.replace(b, correlation=correlation) for b in self.parts)
         return dataclasses.replace(self, parts=parts)
 
-    def sample(self, model, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    def streams(self, seed: int, follows: np.ndarray | None = None) -> int | NeighbourStreams:
+        """The random streams of a sample with ``seed`` (:meth:`EngineBeams.streams`; the parts' beams are the same)."""
+        return self.parts[0].streams(seed, follows)
+
+    def numbered_from(self, first: int) -> AngularMixture:
+        """These beams as rays ``first ..`` of a larger set (:meth:`EngineBeams.numbered_from`)."""
+        return dataclasses.replace(self, parts=tuple(b.numbered_from(first) for b in self.parts))
+
+    def sample(self, model, seed: int | NeighbourStreams = 0) -> tuple[np.ndarray, np.ndarray]:
         """One sampled (range, hit) per beam: the part drawn by its share, then that part's sample.
 
-        The parts draw from the same random streams (the part is chosen independently of them), so a
-        beam keeps its share of its neighbours' errors whichever part it reports.
+        The parts draw from the same random streams (``seed``'s, or the streams given), so a beam keeps its
+        share of its neighbours' errors whichever part it reports. The part is picked by a stream of its own
+        (:data:`ANGULAR_STREAM`, independent of the others), keyed like them by the ray id.
         """
-        streams = self.parts[0].streams(seed)  # the parts' beams are the same beams: draw the streams once
+        streams = seed if isinstance(seed, NeighbourStreams) else self.streams(seed)
         draws = [b.sample(model, streams) for b in self.parts]
-        part = np.random.default_rng(seed).choice(3, size=self.n, p=self.shares())
+        key = streams.seed if isinstance(streams, NeighbourStreams) else streams
+        with dr.suspend_grad():
+            u = np.asarray(uniform(key, self.parts[0].rays.ray_id, 0, ANGULAR_STREAM), np.float64)
+        part = np.searchsorted(np.cumsum(self.shares())[:-1], u, side="right")
         rows = np.arange(self.n)
         return np.stack([d[0] for d in draws])[part, rows], np.stack([d[1] for d in draws])[part, rows]
 

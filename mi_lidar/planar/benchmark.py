@@ -34,9 +34,11 @@ from mi_lidar.core.densities.histogram import support_end
 from mi_lidar.core.log import Log
 from mi_lidar.core.metrics import metrics_of
 from mi_lidar.core.params import choose_names
+from mi_lidar.core.streams import scan_follows
 from mi_lidar.planar import models as m
-from mi_lidar.planar.beams import EngineBeams, nominal_beams
+from mi_lidar.planar.beams import nominal_beams
 from mi_lidar.planar.protocol import PlanarData, PlanarProtocol, prepare
+from mi_lidar.planar.raymarch import PlanarTrace
 from mi_lidar.planar.reference import repaired_scans
 from mi_lidar.planar.tails import short_share
 
@@ -187,25 +189,64 @@ class PlanarBenchmark:
         }
 
 
+PART_BEAMS = 100_000  # beams scored and sampled at once: mi-lidar's hold every segment three times (0.5 GB per 300,000)
+
+
+def scan_parts(scan: np.ndarray, beams: int = PART_BEAMS) -> list[np.ndarray]:
+    """Beam indices of consecutive runs of whole scans of at most ``beams`` beams each (a longer scan is a
+    part of its own); ``scan``: the scan index of every beam, each scan's beams together."""
+    ends = np.r_[np.flatnonzero(scan[1:] != scan[:-1]) + 1, scan.size] if scan.size else np.zeros(0, np.int64)
+    parts, start = [], 0
+    for previous, end in zip(np.r_[0, ends[:-1]], ends):
+        if end - start > beams and previous > start:
+            parts.append(np.arange(start, previous))
+            start = previous
+    return parts + [np.arange(start, scan.size)] if scan.size else parts
+
+
+def scores_in_parts(
+    beams_of: Callable, trace: PlanarTrace, model, draws: int = 0, seed: int = 0, part_beams: int = PART_BEAMS
+) -> tuple:
+    """Scored log-likelihood (B,), P(miss) (B,) and ``draws`` sampled scans (ranges and hits, (draws, B)) of
+    ``trace``'s beams under ``model``, seeds ``seed``, ``seed + 1``, ...
+
+    ``beams_of(trace)`` builds the engine's beams; they are built and scored part by part (:func:`scan_parts`,
+    ``part_beams`` at most) as rays of one set (:meth:`~mi_lidar.planar.beams.EngineBeams.numbered_from`, with
+    the set's random streams), so the figures are those of the whole set at once, and the memory a part's: a
+    long log's test beams (every ``test_every``-th scan, not thinned like the training beams) held
+    3.6 GB at once (Freiburg building 079, 959 test scans of 360 beams).
+    """
+    follows = scan_follows(trace.scan, trace.beam)
+    ll, p_miss, ranges, hits, streams = [], [], [], [], None
+    for index in scan_parts(trace.scan, part_beams):
+        part = beams_of(trace.take(index)).numbered_from(int(index[0]))
+        ll.append(part.log_likelihood(model))
+        p_miss.append(part.p_miss(model))
+        streams = streams or [part.streams(seed + k, follows) for k in range(draws)]
+        sampled = [part.sample(model, s) for s in streams]
+        ranges.append(np.stack([z for z, _ in sampled]) if draws else np.zeros((0, index.size)))
+        hits.append(np.stack([h for _, h in sampled]) if draws else np.zeros((0, index.size), bool))
+        del part
+    if not ll:
+        return np.zeros(0), np.zeros(0), np.zeros((draws, 0)), np.zeros((draws, 0), bool)
+    return np.concatenate(ll), np.concatenate(p_miss), np.concatenate(ranges, axis=1), np.concatenate(hits, axis=1)
+
+
 def _row(
     name: str,
-    beams: Callable[[], tuple[EngineBeams, EngineBeams]],
+    beams_of: Callable[[PlanarTrace], object],
     model,
     data: PlanarData,
     seconds: float,
     seed: int,
     no_return: float,
 ) -> ModelRow:
-    """The figures of ``model`` on the ``(training beams, test beams)`` that ``beams()`` builds, kept meanwhile."""
-    train, test = beams()
-    ll_train, p_train = train.log_likelihood(model), train.p_miss(model)
-    del train  # mi-lidar's beams are large: one set at a time
-    ll_test, p_test = test.log_likelihood(model), test.p_miss(model)
+    """The figures of ``model`` on the training and test beams ``beams_of(trace)`` builds (:func:`scores_in_parts`)."""
+    ll_train, p_train, _, _ = scores_in_parts(beams_of, data.train, model)
+    ll_test, p_test, ranges, hits = scores_in_parts(beams_of, data.test, model, SAMPLED_SCANS, seed)
     miss_test, miss_train = ~data.test.hit, ~data.train.hit
     threshold = tuned_threshold(p_train, miss_train)
-    draws = [test.sample(model, seed + k) for k in range(SAMPLED_SCANS)]
-    z, hit = draws[0]
-    ranges, hits = np.stack([d[0] for d in draws]), np.stack([d[1] for d in draws])
+    z, hit = ranges[0], hits[0]
     return ModelRow(
         name=name,
         test_nll=float(-ll_test.mean()),
@@ -220,7 +261,7 @@ def _row(
         ll=ll_test,
         sampled=(z, hit),
         model=model,
-        beams=beams,
+        beams=lambda: (beams_of(data.train), beams_of(data.test)),
     )
 
 
@@ -250,7 +291,7 @@ def run_planar_benchmark(
     z_max = float(log.sensor.get("max_range_m", float("inf")))
     if not np.isfinite(z_max):
         z_max = float(np.nanmax(log.ranges)) + 1.0
-    train, test = nominal_beams(data.train), nominal_beams(data.test)
+    train = nominal_beams(data.train)
     samples = m.samples_of(data.train)
     fitted, timing = {}, {}
 
@@ -284,7 +325,7 @@ def run_planar_benchmark(
     fit("NP-Reg", lambda: learned("np_reg"))
     rows = []
     for name in [n for n in MODELS if n in fitted and n in models]:
-        rows.append(_row(name, lambda: (train, test), fitted[name], data, timing[name], seed, z_max))
+        rows.append(_row(name, nominal_beams, fitted[name], data, timing[name], seed, z_max))
     if "mi-lidar" in models:
         t0 = time.perf_counter()
         permeable = m.fit_milidar(data.train, z_max, settings["np_reg"])
@@ -299,11 +340,7 @@ def run_planar_benchmark(
             "shared_errors_pit_lags": permeable.shared_errors,
         }
         say(len(models), len(models), "fitted mi-lidar")
-
-        def beams():
-            return permeable.beams(data.train), permeable.beams(data.test)
-
-        rows.append(_row("mi-lidar", beams, permeable.model, data, elapsed, seed, z_max))
+        rows.append(_row("mi-lidar", permeable.beams, permeable.model, data, elapsed, seed, z_max))
     both = data.test.hit & np.isfinite(data.test.nominal)
     err = np.abs(data.test.z - data.test.nominal)[both]
     nominal = {

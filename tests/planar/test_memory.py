@@ -8,10 +8,12 @@ import textwrap
 import numpy as np
 import pytest
 
+from mi_lidar.core.streams import BeamCorrelation
 from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar.beams import AngularMixture
-from mi_lidar.planar.benchmark import run_planar_benchmark
-from mi_lidar.planar.protocol import PlanarProtocol
+from mi_lidar.planar.benchmark import run_planar_benchmark, scan_parts, scores_in_parts
+from mi_lidar.planar.models import fit_permeable_map
+from mi_lidar.planar.protocol import PlanarProtocol, prepare
 from tests.planar.world import room_log_text
 
 
@@ -29,6 +31,33 @@ def test_mi_lidar_row_keeps_no_beams_and_rebuilds_the_scored_ones(tmp_path):
     assert isinstance(test, AngularMixture) and test.n == result.data.test.n and train.n == result.data.train.n
     np.testing.assert_array_equal(test.log_likelihood(model), row.ll)
     np.testing.assert_array_equal(test.sample(model, 0)[1], row.sampled[1])
+
+
+def test_scan_parts_hold_whole_scans_of_at_most_the_budget():
+    scan = np.repeat([0, 1, 2, 3, 4], [3, 3, 5, 2, 2])
+    parts = scan_parts(scan, 6)
+    assert [p.tolist() for p in parts] == [[0, 1, 2, 3, 4, 5], [6, 7, 8, 9, 10], [11, 12, 13, 14]]
+    assert [p.tolist() for p in scan_parts(scan, 2)][2] == [6, 7, 8, 9, 10]  # a longer scan is a part of its own
+    assert scan_parts(scan[:0], 6) == []
+
+
+def test_beams_scored_and_sampled_in_parts_give_what_the_whole_set_gives(tmp_path):
+    """The test beams of a long log are scored and sampled a few scans at a time, in a part's memory; numbered as
+    rays of one set, with the set's random streams, the parts give every figure of the whole set at once, also
+    when neighbouring beams share their draws (the correlated streams run along each scan, across the parts)."""
+    path = tmp_path / "room.log"
+    path.write_text(room_log_text(scans=20))
+    data = prepare(read_carmen(path), PlanarProtocol(window=5.0), workers=1)
+    fitted = fit_permeable_map(data.train, 50.0, (0.1, 10.0, 0.01, 1.0), classes=1, rounds=1, tails=False)
+    fitted.angular, fitted.correlation = 0.1, BeamCorrelation(shared=0.6, rho=0.9)
+    whole = scores_in_parts(fitted.beams, data.test, fitted.model, draws=3, seed=5, part_beams=10**9)
+    parts = scores_in_parts(fitted.beams, data.test, fitted.model, draws=3, seed=5, part_beams=200)
+    assert len(scan_parts(data.test.scan, 200)) == 4  # four test scans of 181 beams, one per part
+    for a, b in zip(whole, parts):
+        np.testing.assert_array_equal(a, b)
+    ranges, hits = whole[2:]
+    both = hits[0] & hits[1]
+    assert ranges.shape == (3, data.test.n) and np.any(ranges[0][both] != ranges[1][both])  # the draws differ
 
 
 def test_map_large_blocks_hands_freed_arrays_back():
