@@ -11,6 +11,7 @@ unit and starting value taken from its :class:`~mi_lidar.core.params.ParamSpec`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -101,6 +102,7 @@ class Problem:
     index: np.ndarray
     chunks: list = field(default_factory=list, repr=False)
     _traced: tuple | None = field(default=None, repr=False)
+    _batches: list = field(default_factory=list, repr=False)  # the untraced chunks (:meth:`batches`)
     fixed: bool = False  # the chunks were traced by another tracer: never re-trace
 
     @classmethod
@@ -139,21 +141,23 @@ class Problem:
             return
         self.chunks = []
         moving = moves_rays(model)
-        for first in range(0, self.n, BATCH):
-            batch, measured, hit = self.rays.batch(self.index[first : first + BATCH])
-            rounds = trace_rounds(self.scene, self.table, model, batch)
+        for batch in self.batches():
+            rounds = trace_rounds(self.scene, self.table, model, batch.rays)
             if not moving:
-                rounds = cache_distributions(rounds, self.table, model, batch)
-            self.chunks.append(
-                Chunk(
-                    rays=batch,
-                    z=dr.select(hit, measured, 0.0),
-                    hit=hit,
-                    rounds=rounds,
-                    intensity=self.rays.measured_intensity(self.index[first : first + BATCH]),
-                )
-            )
+                rounds = cache_distributions(rounds, self.table, model, batch.rays)
+            self.chunks.append(dataclasses.replace(batch, rounds=rounds))
         self._traced = key
+
+    def batches(self) -> list[Chunk]:
+        """The split's rays in chunks of :data:`BATCH`, untraced (``rounds`` None), built once: every trace starts
+        from the same rays (a fit of ray-moving parameters traces them again every few steps)."""
+        if not self._batches:
+            for first in range(0, self.n, BATCH):
+                index = self.index[first : first + BATCH]
+                batch, measured, hit = self.rays.batch(index)
+                z = dr.select(hit, measured, 0.0)
+                self._batches.append(Chunk(batch, z, hit, None, self.rays.measured_intensity(index)))
+        return self._batches
 
     def chunk_log_likelihood(self, model, chunk: Chunk) -> mi.Float:
         """Scored per-ray log-likelihood (nats) of one chunk under ``model`` (keeps gradients)."""

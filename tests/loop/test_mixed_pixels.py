@@ -29,12 +29,11 @@ def test_sampler_matches_likelihood_moments():
     mean, var = ranges.mean(0), ranges.var(0, ddof=1)
     # The likelihood's Gaussian, read off three evaluations of its (quadratic) log density.
     rays = LogRays.from_log(logs[0])
-    problem = Problem.build(scene, rays, np.arange(rays.n))
     h = 0.01
     ll = []
     for shift in (-h, 0.0, h):
         rays.measured = (mean + shift).astype(np.float32)
-        problem.chunks = []
+        problem = Problem.build(scene, rays, np.arange(rays.n))  # a split reads its measured ranges once
         ll.append(problem.log_likelihood(true))  # scored: a constant 1 cm bin offset, far above the floor
     curvature = (ll[0] - 2 * ll[1] + ll[2]) / h**2
     v = -1.0 / curvature
