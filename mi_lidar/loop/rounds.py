@@ -246,7 +246,7 @@ def learned_densities(names: list[str], given: SensorModel, found: SensorModel, 
             Candidate(
                 name=name,
                 k=k,
-                parameters={f"{name}.bandwidths": np.asarray(min(table, key=lambda row: row[-1])[:-1])},
+                parameters={f"{name}.bandwidths": list(min(table, key=lambda row: row[-1])[:-1])},
                 kind="density",
                 effect=density,
                 **judged(test_ll, final.ll, float(-final.ll.mean()), train_gain, k, data.fitting.n, threshold),

@@ -114,8 +114,19 @@ class Candidate:
     def row(self) -> dict:
         hidden = ("effect", "history", "test_ll")
         return {k: getattr(self, k) for k in (f.name for f in dataclasses.fields(self)) if k not in hidden} | {
-            "parameters": {k: np.round(np.asarray(v, dtype=float), 6).tolist() for k, v in self.parameters.items()}
+            "parameters": {k: json_value(v) for k, v in self.parameters.items()}
         }
+
+
+def json_value(value):
+    """A candidate's parameter value as JSON: numbers rounded to 6 decimals, options (text, such as P-Reg's escape
+    law in its chosen setting) as they are, lists and arrays element by element."""
+    if isinstance(value, str):
+        return value
+    if isinstance(value, (list, tuple)):
+        return [json_value(v) for v in value]
+    array = np.asarray(value)
+    return np.round(array.astype(float), 6).tolist() if array.dtype.kind in "biuf" else array.tolist()
 
 
 def rank(candidates: list[Candidate]) -> list[Candidate]:

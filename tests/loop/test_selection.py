@@ -2,6 +2,7 @@
 shrinking per-beam values without evidence (on a simulated room log)."""
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -126,3 +127,14 @@ def test_per_beam_values_without_evidence_are_shrunk_from_two_scores_not_one_per
     values = np.asarray(fitted.params["bias"])
     assert np.allclose(values[:10], 0.05) and np.all(values[10:] == 0.0)
     assert len(scored) == 2
+
+
+def test_a_learned_density_whose_setting_holds_an_option_is_written_as_json():
+    """P-Reg's chosen setting holds its escape law by name: the diagnosis JSON once failed on it ("could not convert
+    string to float: 'gaussian'") after the whole diagnosis had run; numbers are rounded, the option kept."""
+    c = dataclasses.replace(
+        made_up("p_reg", 3, 0.1),
+        parameters={"p_reg.bandwidths": [0.5, np.float64(12.3456789), "gaussian"], "range_bias.bias": np.array([0.01])},
+    )
+    row = json.loads(json.dumps(c.row()))
+    assert row["parameters"] == {"p_reg.bandwidths": [0.5, 12.345679, "gaussian"], "range_bias.bias": [0.01]}
