@@ -231,6 +231,7 @@ def fit_parts(
     retrace_every: int = 10,
     progress=None,
     tolerance: float | None = None,
+    window: int | None = None,
 ) -> PartsFit:
     """Maximise the mean scored log-likelihood of ``problem``'s rays over the parameters of ``parts``.
 
@@ -247,6 +248,7 @@ def fit_parts(
         tolerance: stop once the mean training log-likelihood (nats/ray) improved by less than this
             over the last 10 steps (``retrace_every + 5`` when a fitted effect moves rays), after 2 more
             (:func:`~mi_lidar.core.fitting.stalled`; None: run every step).
+        window: the steps ``tolerance`` looks back instead (None: as above).
 
     Returns:
         The loss history and the fitted parameters: those of the lowest loss seen (the loss is over
@@ -296,7 +298,7 @@ def fit_parts(
     # A fit of ray-moving parameters gains in jumps at its re-traces: look back over one of them at least. Its
     # likelihood is sharp (a grazing ground return moves by r^2 / h per radian of pitch: 9 cm at 40 m for
     # 1e-4 rad), so its steps end at lr / 100: at lr / 10 a mounting error was left 1e-4 rad off, 0.37 nats/ray.
-    window = retrace_every + 5 if moving else 10
+    window = window or (retrace_every + 5 if moving else 10)
     result = adam_fit(
         variables,
         objective,

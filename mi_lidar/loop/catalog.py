@@ -210,6 +210,7 @@ def refit(
     steps: int = 60,
     tolerance: float | None = None,
     passes=FINE,
+    window: int | None = None,
 ) -> PartsFit:
     """Fit ``parts`` of ``model`` (default: every effect) on ``problem``: the one fitter, then :func:`search_by_beam`.
 
@@ -220,6 +221,7 @@ def refit(
         steps: Adam steps.
         tolerance: stop Adam once it gains less than this (nats/ray) over 10 steps, 15 for effects that
             move rays (None: all steps).
+        window: the steps ``tolerance`` looks back instead (None: as above).
         passes: grid passes of the beam-by-beam search (:data:`COARSE` from a fitting start,
             :data:`FINE` around fitted values).
 
@@ -227,7 +229,7 @@ def refit(
         The fit (history and the fitted values after the search).
     """
     parts = model.effects if parts is None else parts
-    fit = fit_parts(model, problem, parts, steps=steps, tolerance=tolerance)
+    fit = fit_parts(model, problem, parts, steps=steps, tolerance=tolerance, window=window)
     for part in parts:
         if isinstance(part, Effect) and part.moves_rays:
             for key in part.fitted_names():

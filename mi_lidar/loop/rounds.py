@@ -38,6 +38,7 @@ from mi_lidar.loop.selection import (
 from mi_lidar.loop.split import Splits
 
 CLOSE = 0.02  # effects within 2 % of the leader's held-out gain are fitted to the end before the ranking decides
+STILL = 1e-9  # nats/ray: a fit to the end is over once its best has not improved by this in a quarter of its steps
 
 
 def candidate_label(name: str, variant: dict) -> str:
@@ -119,12 +120,15 @@ class Round:
         )
 
     def converged(self, ranked: list[Candidate], failed: list) -> list[Candidate]:
-        """``ranked`` with the effects in a close race refitted for ``4 steps`` without stopping early, scored again.
+        """``ranked`` with the effects in a close race refitted to the end (``4 steps`` at most), scored again.
 
         A screening fit stops once it stops gaining; an effect whose parameters trade off along a narrow
         valley (the constant and proportional parts of a noise law) may stop short of its optimum. So the
         significant effects within :data:`CLOSE` of the leader's held-out gain are fitted to the end before
-        the ranking decides. A candidate whose fit to the end fails (:class:`~mi_lidar.core.errors.FitError`) is
+        the ranking decides. The end is where the best values stop improving at all: a fit whose best has not
+        improved (by :data:`STILL`) in ``steps`` steps, a quarter of its budget, is over (on the sweep's planar
+        hidden-effect logs every such fit found its best by step 120 of 240 and never improved after it).
+        A candidate whose fit to the end fails (:class:`~mi_lidar.core.errors.FitError`) is
         left out, and ``failed`` gets ``(name, stage, reason)``.
         """
         if not ranked or not ranked[0].significant:
@@ -136,7 +140,7 @@ class Round:
         for c in close:
             trial = self.with_effect(c.effect)
             try:
-                fit = refit(trial, self.data.fitting, [c.effect], steps=4 * self.steps)
+                fit = refit(trial, self.data.fitting, [c.effect], 4 * self.steps, STILL, window=self.steps)
             except FitError as error:
                 failed.append((c.name, "fitted to the end", str(error)))
                 refitted[id(c)] = None
