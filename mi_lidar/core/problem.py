@@ -151,13 +151,24 @@ class Problem:
     def batches(self) -> list[Chunk]:
         """The split's rays in chunks of :data:`BATCH`, untraced (``rounds`` None), built once: every trace starts
         from the same rays (a fit of ray-moving parameters traces them again every few steps)."""
+        rays = self.log_rays()
         if not self._batches:
             for first in range(0, self.n, BATCH):
                 index = self.index[first : first + BATCH]
-                batch, measured, hit = self.rays.batch(index)
+                batch, measured, hit = rays.batch(index)
                 z = dr.select(hit, measured, 0.0)
-                self._batches.append(Chunk(batch, z, hit, None, self.rays.measured_intensity(index)))
+                self._batches.append(Chunk(batch, z, hit, None, rays.measured_intensity(index)))
         return self._batches
+
+    def log_rays(self) -> LogRays:
+        """The log's rays of this problem.
+
+        Raises:
+            ParameterError: the problem was traced by another tracer (:meth:`from_rounds`) and holds no log rays.
+        """
+        if self.rays is None:
+            raise ParameterError("this problem's rays were traced by another tracer: it holds no log rays")
+        return self.rays
 
     def chunk_log_likelihood(self, model, chunk: Chunk) -> mi.Float:
         """Scored per-ray log-likelihood (nats) of one chunk under ``model`` (keeps gradients)."""
@@ -178,7 +189,7 @@ class Problem:
         parameter's values are judged all at once from one evaluation. Rays of beams beyond ``n_beams - 1``
         count to the last (a per-beam parameter of width 1 holds one value for every beam).
         """
-        beams = np.minimum(self.rays.beam[self.index], n_beams - 1)
+        beams = np.minimum(self.log_rays().beam[self.index], n_beams - 1)
         return np.bincount(beams, weights=self.log_likelihood(model), minlength=n_beams)
 
     def nll(self, model) -> float:

@@ -3,6 +3,7 @@
 import dataclasses
 
 import numpy as np
+import pytest
 
 from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import LogRays
@@ -31,3 +32,18 @@ def test_tracing_again_under_moved_beams_builds_the_rays_once_and_scores_as_befo
         scores[1], Problem.build(scene, LogRays.from_log(log, scene=scene)).log_likelihood(moved)
     )
     assert not np.array_equal(scores[1], scores[0])
+
+
+def test_a_problem_another_tracer_traced_has_no_log_rays_to_judge_by_beam():
+    """A planar benchmark's problem (its segments from the ray march, no log rays) cannot sum its rays' scores by
+    beam: the error says why instead of an AttributeError on None."""
+    from mi_lidar.core.densities import PhysicsDensity
+    from mi_lidar.core.errors import ParameterError
+    from mi_lidar.planar.beams import base_model, nominal_beams
+    from tests.planar.test_backstops import leaky_wall_trace
+
+    problem = nominal_beams(leaky_wall_trace()).problem()
+    model = base_model(PhysicsDensity())
+    assert np.isfinite(problem.log_likelihood(model)).all()
+    with pytest.raises(ParameterError, match="traced by another tracer: it holds no log rays"):
+        problem.log_likelihood_by_beam(model, 4)
