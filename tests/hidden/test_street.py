@@ -179,6 +179,18 @@ def test_a_simpler_effect_joins_when_the_flexible_one_only_mends_an_earlier_fit(
     assert abs(outcome.parameters["random_dropout.p_drop"][0] - 0.05) < 0.05 * 0.05, outcome.parameters
 
 
+def test_a_candidate_joins_only_by_beating_the_earlier_effects_refitted_without_it(tmp_path):
+    """A mounting error alone (make test). Screening leaves the extrinsics a little short of their optimum, and a
+    footprint noise, joint-refitted with them, joined (held-out p 6.5e-83; k 1.9e-5 m/m) by taking up the misfit
+    of far grazing ground rays that more steps of the extrinsics remove: it now has to beat the extrinsics
+    refitted without it, and does not."""
+    outcome = run_case(
+        street_log(CASES["extrinsics"][0]), scene_xml(), tmp_path, candidates=["extrinsics", "range_noise"]
+    )
+    assert outcome.selected == ["extrinsics"], outcome.summary
+    assert size_error(outcome.parameters["extrinsics.tz"], 0.05) < 0.02, outcome.parameters
+
+
 @pytest.mark.slow
 def test_drift_outside_the_catalog_is_flagged_with_time(tmp_path):
     """A range bias growing 3 cm/s: no catalog effect explains it; the residual test names time, and
