@@ -43,21 +43,25 @@ WALL_HEIGHT = 2.0  # m
 PERIOD = 0.1  # s: one mirror turn
 
 
-def pattern_table(path, beams: int) -> str:
-    """Write the firing table of a ``beams``-bearing scanner over 360 degrees (one firing per scan); return its path."""
-    rows = [f"{i},0,0.0,{360.0 * i / beams:.9f},{PERIOD * i / beams:.9f}" for i in range(beams)]
+def pattern_table(path, beams: int, bearing: np.ndarray | None = None) -> str:
+    """Write the firing table of a ``beams``-bearing scanner (one firing per scan; ``bearing`` (rad), default every
+    ``360 / beams`` degrees over the full circle); return its path."""
+    azimuth = [360.0 * i / beams for i in range(beams)] if bearing is None else np.degrees(bearing)
+    rows = [f"{i},0,0.0,{azimuth[i]:.9f},{PERIOD * i / beams:.9f}" for i in range(beams)]
     Path(path).write_text("row,col,elevation_deg,azimuth_deg,time_s\n" + "\n".join(rows) + "\n")
     return str(path)
 
 
-def scene_xml(pattern: str = "planar-360", max_range: float = MAX_RANGE) -> str:
-    """The room as a Mitsuba scene of vertical rectangles (the project's loader reads it).
+def scene_xml(
+    pattern: str = "planar-360", max_range: float = MAX_RANGE, segments: np.ndarray = SEGMENTS, sigma: float = SIGMA
+) -> str:
+    """The room (or other ``segments``, rows ``x0, y0, x1, y1, label``) as a Mitsuba scene of vertical rectangles.
 
     ``pattern`` names the scanner's firing pattern (a registered name or a table, :func:`pattern_table`);
-    ``max_range`` (m) is the sensor's maximum range.
+    ``max_range`` (m) is the sensor's maximum range, ``sigma`` (m) its range noise.
     """
     shapes = []
-    for i, (x0, y0, x1, y1, label) in enumerate(SEGMENTS):
+    for i, (x0, y0, x1, y1, label) in enumerate(segments):
         length, angle = np.hypot(x1 - x0, y1 - y0), np.degrees(np.arctan2(y1 - y0, x1 - x0))
         shapes.append(
             f'<shape type="rectangle" id="wall_{i}"><transform name="to_world">'
@@ -69,7 +73,7 @@ def scene_xml(pattern: str = "planar-360", max_range: float = MAX_RANGE) -> str:
     return (
         '<scene version="3.0.0"><integrator type="lidar_integrator"><integer name="max_segments" value="4"/>'
         f'</integrator><sensor type="lidar"><string name="pattern" value="{pattern}"/>'
-        f'<float name="max_range" value="{max_range}"/><float name="range_sigma" value="{SIGMA}"/></sensor>'
+        f'<float name="max_range" value="{max_range}"/><float name="range_sigma" value="{sigma}"/></sensor>'
         + "".join(shapes)
         + "</scene>"
     )
@@ -93,20 +97,44 @@ class Hidden:
     logistic: tuple | None = None
 
 
-def room_log(hidden: Hidden, scans: int = 60, beams: int = 360, seed: int = 0, max_range: float = MAX_RANGE) -> dict:
+def ellipse_path(cx: float = 6.0, cy: float = 4.0, ax: float = 4.0, ay: float = 2.6):
+    """A drive around an ellipse (centre and half axes, m), the heading wobbling: ``path(scans) -> (x, y, heading)``."""
+
+    def path(scans: int):
+        a = np.linspace(0, 2 * np.pi, scans, endpoint=False)
+        return cx + ax * np.cos(a), cy + ay * np.sin(a), a + 0.3 * np.sin(3 * a)
+
+    return path
+
+
+def room_log(
+    hidden: Hidden,
+    scans: int = 60,
+    beams: int = 360,
+    seed: int = 0,
+    max_range: float = MAX_RANGE,
+    segments: np.ndarray = SEGMENTS,
+    path=None,
+    bearing: np.ndarray | None = None,
+    sigma: float = SIGMA,
+) -> dict:
     """Simulate ``scans`` scans with the ``hidden`` effects; the scanner reports nothing beyond ``max_range`` (m).
+
+    ``segments`` are the walls (rows ``x0, y0, x1, y1, label``; label 0 returns nothing), ``path(scans)`` the
+    poses (default :func:`ellipse_path`), ``bearing`` (rad) the scanner's beams (default ``beams`` over the full
+    circle) and ``sigma`` (m) its range noise.
 
     Returns:
         The arrays of a ``mi_lidar`` log: ``poses`` (S, 4, 4), ``directions`` (1, beams, 1, 3),
         ``ranges`` (S, beams, 1, NaN = miss), ``hit`` and ``times`` (S, beams, 1).
     """
     rng = np.random.default_rng(seed)
-    bearing = 2 * np.pi * np.arange(beams) / beams
-    walls, labels = SEGMENTS[:, :4], SEGMENTS[:, 4]
+    bearing = 2 * np.pi * np.arange(beams) / beams if bearing is None else np.asarray(bearing, float)
+    beams = bearing.size
+    walls, labels = segments[:, :4], segments[:, 4]
     along = walls[:, 2:] - walls[:, :2]
     along /= np.linalg.norm(along, axis=1, keepdims=True)
-    a = np.linspace(0, 2 * np.pi, scans, endpoint=False)
-    xs, ys, headings = 6 + 4.0 * np.cos(a), 4 + 2.6 * np.sin(a), a + 0.3 * np.sin(3 * a)
+    xs, ys, headings = (path or ellipse_path())(scans)
     poses, ranges, times = [], [], []
     for s, (x, y, heading) in enumerate(zip(xs, ys, headings)):
         pose = np.eye(4)
@@ -124,11 +152,11 @@ def room_log(hidden: Hidden, scans: int = 60, beams: int = 360, seed: int = 0, m
             delta = np.degrees(np.arccos(np.clip(cos_inc, 0.0, 1.0)))
             keep &= rng.random(beams) >= 1.0 / (1.0 + np.exp(-(delta - angle50) / width))
         bias = 0.0 if hidden.bias is None else np.asarray(hidden.bias)
-        sigma = np.sqrt(SIGMA**2 + (hidden.noise_k * np.where(keep, r, 0.0)) ** 2)
-        z = hidden.scale * np.where(keep, r, 0.0) + bias + rng.normal(0.0, 1.0, beams) * sigma
+        spread = np.sqrt(sigma**2 + (hidden.noise_k * np.where(keep, r, 0.0)) ** 2)
+        z = hidden.scale * np.where(keep, r, 0.0) + bias + rng.normal(0.0, 1.0, beams) * spread
         hit = keep & (z > 0) & (z <= max_range)
         ranges.append(np.where(hit, z, np.nan)[:, None])
-        times.append((s * 0.2 + bearing / (2 * np.pi) * PERIOD)[:, None])
+        times.append((s * 0.2 + PERIOD * np.arange(beams) / beams)[:, None])
     directions = np.stack([np.cos(bearing), np.sin(bearing), np.zeros(beams)], axis=1)[:, None]
     stacked = np.stack(ranges).astype(np.float32)
     return {
