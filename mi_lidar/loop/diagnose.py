@@ -71,6 +71,7 @@ from mi_lidar.loop.selection import (
     P_VALUE,
     REPLACED,
     drop_passengers,
+    json_value,
     rank,
     shrink_without_evidence,
 )
@@ -137,7 +138,7 @@ class Diagnosis:
             "selected": self.selected,
             "nll_before": self.nll_before,
             "nll_after": self.nll_after,
-            "parameters": {k: np.round(np.asarray(v, float), 6).tolist() for k, v in self.parameters.items()},
+            "parameters": {k: json_value(v) for k, v in self.parameters.items()},
             "rounds": [[c.row() for c in r] for r in self.rounds],
             "evidence": self.evidence,
             "realism": [r.row() for r in self.realism],

@@ -119,8 +119,9 @@ class Candidate:
 
 
 def json_value(value):
-    """A candidate's parameter value as JSON: numbers rounded to 6 decimals, options (text, such as P-Reg's escape
-    law in its chosen setting) as they are, lists and arrays element by element."""
+    """A fitted parameter's value as JSON (a candidate's row, the diagnosis' values): numbers rounded to 6 decimals,
+    options (text, such as P-Reg's escape law in its chosen setting) as they are, lists and arrays element by
+    element."""
     if isinstance(value, str):
         return value
     if isinstance(value, (list, tuple)):

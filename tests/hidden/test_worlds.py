@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mi_lidar.io.carmen import beam_angles
 from tests.planar.world import pillar
 
 from .cases import run_case
@@ -63,12 +64,9 @@ WORLDS = {  # walls, path
 
 
 def bearings(beams: int, fov: float) -> np.ndarray:
-    """Beam bearings (rad) of a planar scanner: ``fov`` degrees, both ends for an odd count (181, 361), CARMEN's
-    half-open fan for an even one (180 over 180 degrees), every ``360 / beams`` degrees for the full circle."""
-    if fov >= 360.0:
-        return 2 * np.pi * np.arange(beams) / beams
-    step = fov / (beams - 1) if beams % 2 else fov / beams
-    return np.radians(-fov / 2 + step * np.arange(beams))
+    """Beam bearings (rad) of a planar scanner: a 180-degree CARMEN fan (:func:`mi_lidar.io.carmen.beam_angles`:
+    both ends for an odd count, a half-open fan for an even one) or every ``360 / beams`` degrees."""
+    return beam_angles(beams) if fov == 180.0 else 2 * np.pi * np.arange(beams) / beams
 
 
 CASES = {  # world, beams, fov (deg), sigma (m), max range (m), scans, hidden, expected selection
