@@ -265,23 +265,69 @@ ESCAPED = -1  # most_likely_elements: the beam passed every traced element (the 
 VIRTUAL = -2  # most_likely_elements: a virtual element of an effect (outliers, clutter) explains it best
 
 
-def most_likely_elements(
-    table, model, rays: RayBatch, rounds: Rounds, measured: mi.Float, hit: mi.Bool
-) -> tuple[np.ndarray, np.ndarray]:
-    """For each ray, the traced element most likely to have produced what the sensor reported.
+@dataclass
+class ElementShares:
+    """What each element contributes to each ray's outcome: one row per (ray, element) met.
 
-    The hard assignment of an EM over the pass-through mixture: a return at ``z`` is credited to the
-    element of the largest share ``pi_k p_k (1 - drop_k) f_k(z)``, a miss to the one of the largest
+    Attributes:
+        ray: (M,) the ray of each row.
+        round: (M,) the element's round, or :data:`ESCAPED` or :data:`VIRTUAL`.
+        entry: (M,) the element's entry in its round (-1 for :data:`ESCAPED` and :data:`VIRTUAL`).
+        log_joint: (M,) log of the element's share of the outcome: ``log pi_k p_k (1 - drop_k) f_k(z)``
+            for a return at ``z``, ``log pi_k p_k drop_k`` for a miss (-inf: it cannot have produced it).
+        rays: number of rays.
+    """
+
+    ray: np.ndarray
+    round: np.ndarray
+    entry: np.ndarray
+    log_joint: np.ndarray
+    rays: int
+
+    def most_likely(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(round, entry)`` per ray of the row with the largest share (the first of equals, in row order;
+        :data:`VIRTUAL` where no row is finite)."""
+        value = np.where(np.isnan(self.log_joint), -np.inf, self.log_joint)
+        best = np.full(self.rays, -np.inf)
+        np.maximum.at(best, self.ray, value)
+        first = np.full(self.rays, self.ray.size)
+        rows = np.flatnonzero(value == best[self.ray])
+        np.minimum.at(first, self.ray[rows], rows)
+        found = first < self.ray.size  # always: every ray has its virtual and escaped rows
+        out_round, out_entry = np.full(self.rays, VIRTUAL), np.full(self.rays, -1)
+        out_round[found], out_entry[found] = self.round[first[found]], self.entry[first[found]]
+        return out_round, out_entry
+
+    def posterior(self) -> np.ndarray:
+        """(M,) each row's posterior share of its ray's outcome (the E step of an EM; a ray's rows sum to 1).
+        A ray none of whose elements can have produced its outcome is given wholly to its first row."""
+        value = np.where(np.isnan(self.log_joint), -np.inf, self.log_joint)
+        best = np.full(self.rays, -np.inf)
+        np.maximum.at(best, self.ray, value)
+        finite = np.isfinite(best[self.ray])
+        weight = np.where(finite, np.exp(value - np.where(finite, best[self.ray], 0.0)), 0.0)
+        total = np.zeros(self.rays)
+        np.add.at(total, self.ray, weight)
+        weight = np.divide(weight, total[self.ray], out=np.zeros_like(weight), where=total[self.ray] > 0)
+        lost = np.flatnonzero(total <= 0)
+        if lost.size:
+            first = np.full(self.rays, self.ray.size)
+            np.minimum.at(first, self.ray, np.arange(self.ray.size))
+            weight[first[lost]] = 1.0
+        return weight
+
+
+def element_shares(table, model, rays: RayBatch, rounds: Rounds, measured: mi.Float, hit: mi.Bool) -> ElementShares:
+    """Every element's share of what the sensor reported, ray by ray: the E step of an EM over the pass-through mixture.
+
+    A return at ``z`` gives element k the share ``pi_k p_k (1 - drop_k) f_k(z)``, a miss
     ``pi_k p_k drop_k``; the beam that passes every traced element (``pi_{K+1}``, then the density's
-    escape law) and the effects' virtual elements compete with them.
+    escape law) and the effects' virtual elements (one row, :data:`VIRTUAL`) compete with them.
+    Rows come in the order virtual (every ray), escaped (every ray), then round by round.
 
     Args:
         table, model, rays, rounds, measured, hit: as for :func:`mixture_log_likelihood` (compact
             :class:`Rounds` of single beams: no footprint effect, no cached batch).
-
-    Returns:
-        ``(round, entry)``: (B,) int arrays; the element is entry ``entry`` of round ``round``, or
-        ``round`` is :data:`ESCAPED` or :data:`VIRTUAL` (``entry`` -1).
     """
     rays = model.prepare_rays(rays)
     if model.fan_out(rays) is not None or not isinstance(rounds, Rounds):
@@ -289,9 +335,8 @@ def most_likely_elements(
     z = dr.select(hit, measured, 0.0)
     returned = np.asarray(hit, bool)
     sums = _fold_virtual(model, rays, z)
-    best = np.where(returned, np.asarray(sums.log_mix, np.float64), np.asarray(sums.log_lost, np.float64))
-    best_round = np.full(rays.width, VIRTUAL)
-    best_entry = np.full(rays.width, -1)
+    every = np.arange(rays.width)
+    virtual = np.where(returned, np.asarray(sums.log_mix, np.float64), np.asarray(sums.log_lost, np.float64))
     shares: list = []
     sums = _fold_rounds(table, model, rays, rounds, z, sums, shares=shares)
     escape = _escape_law(model, rays, z)
@@ -300,16 +345,28 @@ def most_likely_elements(
     else:
         term, lost = sums.terms(*escape[1:])
     dr.eval(term, lost, shares)  # one kernel for every round, not one per conversion below
-    candidates = [(ESCAPED, None, term, lost)]
+    parts = [(every, np.full(rays.width, VIRTUAL), np.full(rays.width, -1), virtual)]
+    candidates = [(ESCAPED, every, term, lost)]
     candidates += [(k, np.asarray(r.ray, np.int64), *pair) for k, (r, pair) in enumerate(zip(rounds.rounds, shares))]
     for k, lanes, term, lost in candidates:
-        lanes = np.arange(rays.width) if lanes is None else lanes
         value = np.where(returned[lanes], np.asarray(term, np.float64), np.asarray(lost, np.float64))
-        better = value > best[lanes]
-        best[lanes[better]] = value[better]
-        best_round[lanes[better]] = k
-        best_entry[lanes[better]] = np.flatnonzero(better) if k != ESCAPED else -1
-    return best_round, best_entry
+        entry = np.full(lanes.size, -1) if k == ESCAPED else np.arange(lanes.size)
+        parts.append((lanes, np.full(lanes.size, k), entry, value))
+    ray, round_of, entry, log_joint = (np.concatenate(column) for column in zip(*parts))
+    return ElementShares(ray, round_of, entry, log_joint, rays.width)
+
+
+def most_likely_elements(
+    table, model, rays: RayBatch, rounds: Rounds, measured: mi.Float, hit: mi.Bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each ray, the traced element most likely to have produced what the sensor reported: the hard
+    assignment of the EM (:func:`element_shares`, the row of the largest share; the first of equals).
+
+    Returns:
+        ``(round, entry)``: (B,) int arrays; the element is entry ``entry`` of round ``round``, or
+        ``round`` is :data:`ESCAPED` or :data:`VIRTUAL` (``entry`` -1).
+    """
+    return element_shares(table, model, rays, rounds, measured, hit).most_likely()
 
 
 def _fold_cached(table, model, rays: RayBatch, batch: CachedBatch, z: mi.Float, sums: Sums) -> Sums:

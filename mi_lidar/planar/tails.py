@@ -79,7 +79,7 @@ def match_misses(beams: AngularMixture, density: NPRegDensity, first_range: np.n
     """``density`` with its P(no return) scaled per range band so that ``beams`` miss as often as predicted.
 
     The tables' no-return probabilities are smoothed across states. When they came from the no-returns
-    counted at each beam's first occupied cell (before misses were credited to their most likely element,
+    counted at each beam's first occupied cell (before misses were shared among the elements that could have lost them,
     :func:`~mi_lidar.planar.models.credited_segments`), a beam could also pass that cell and miss through
     the escape state, so the model predicted more no-returns near the sensor than its training beams had
     and, scaled by one common factor to match the overall rate (Intel: 3.05 % against 2.57 %), far fewer at long range

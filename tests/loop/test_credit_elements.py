@@ -143,3 +143,56 @@ def test_fit_sensor_takes_the_benchmark_spelling_from_python(layered_log):
     assert sensor_fit.fit_sensor(log, path, "NP-Reg", max_train=2000, max_test=2000).family == "np-reg"
     with pytest.raises(ParameterError, match=r"unknown model \['np-rge'\]; choose from np-reg, p-reg, beam, physics"):
         sensor_fit.fit_sensor(log, path, "np-rge")
+
+
+def test_element_shares_are_the_posterior_of_the_pass_through_mixture(layered_log):
+    """The E step: each element's share of a ray's return at ``z`` is ``pi_k p_k N(z; r_k, sigma)`` normalised
+    over the elements the ray met (two layers of p 0.5 and the wall, sigma 1 cm), computed here by hand from
+    the traced nominal ranges. The returns are moved to midway between the two layers, where the first layer
+    takes 2/3 and the second 1/3 (pi 0.5 and p 0.5 behind the first); a miss (no dropout in this model) is
+    the escape's alone; the hard credit (most_likely_elements) is the largest share."""
+    import mitsuba as mi
+
+    from mi_lidar.core.likelihood import element_shares
+
+    path, scene, model, log = layered_log
+    rays = LogRays.from_log(log, scene=scene)
+    problem = Problem.build(scene, rays, table=ElementTable.from_scene(scene))
+    problem.trace(model)
+    chunk = problem.chunks[0]
+    hit = np.asarray(chunk.hit)
+    n = hit.size
+    p = np.asarray(problem.table.p_hit, np.float64)
+    met = [[] for _ in range(n)]  # per ray: (nominal, p) of the elements it met, in order
+    for entries in chunk.rounds.rounds:
+        for lane, r, e in zip(np.asarray(entries.ray), np.asarray(entries.nominal), np.asarray(entries.element)):
+            met[lane].append((float(r), float(p[e])))
+    layered = np.array([hit[i] and len(m) == 3 and m[0][1] == m[1][1] == P_LAYER for i, m in enumerate(met)])
+    assert layered.sum() > 1000
+    z = np.asarray(chunk.z, np.float64).copy()
+    z[layered] = [0.5 * (met[i][0][0] + met[i][1][0]) for i in np.flatnonzero(layered)]
+
+    shares = element_shares(problem.table, model, chunk.rays, chunk.rounds, mi.Float(z), chunk.hit)
+    posterior = shares.posterior()
+    total = np.zeros(n)
+    np.add.at(total, shares.ray, posterior)
+    assert total == pytest.approx(np.ones(n), abs=1e-9)
+    for i in np.flatnonzero(layered)[:300]:
+        pi, joint = 1.0, []
+        for r, p_k in met[i]:
+            joint.append(pi * p_k * np.exp(-0.5 * ((z[i] - r) / 0.01) ** 2))
+            pi *= 1.0 - p_k
+        rows = np.flatnonzero((shares.ray == i) & (shares.round >= 0))
+        got = np.zeros(3)
+        got[shares.round[rows]] = posterior[rows]
+        assert got == pytest.approx(np.array(joint) / sum(joint), abs=1e-3), (i, z[i], met[i])
+        assert got[:2] == pytest.approx([2 / 3, 1 / 3], abs=1e-3)
+    escaped = shares.round == ESCAPED
+    assert posterior[escaped & ~hit[shares.ray]] == pytest.approx(np.ones(int(np.sum(~hit))))
+    round_of, _ = most_likely_elements(problem.table, model, chunk.rays, chunk.rounds, mi.Float(z), chunk.hit)
+    assert np.all(round_of[layered] == 0)
+    best = np.full(n, -1.0)
+    np.maximum.at(best, shares.ray, posterior)
+    winner = np.full(n, -9)
+    winner[shares.ray[posterior == best[shares.ray]]] = shares.round[posterior == best[shares.ray]]
+    assert np.array_equal(round_of, winner)

@@ -275,8 +275,12 @@ class NPRegDensity(ReturnDensity):
 
 
 # ---------------------------------------------------------------------- fitting
-def count_states(samples: StateSamples, grid: StateGrid, edges: np.ndarray) -> np.ndarray:
-    """(S + 1, B + 1) counts per state (escape last) of residual bins, with the no-returns in the last column."""
+def count_states(
+    samples: StateSamples, grid: StateGrid, edges: np.ndarray, weight: np.ndarray | None = None
+) -> np.ndarray:
+    """(S + 1, B + 1) counts per state (escape last) of residual bins, with the no-returns in the last column;
+    each sample counts ``weight`` (N,), default 1 (a share of an outcome:
+    :func:`~mi_lidar.core.likelihood.element_shares`)."""
     n_states, n_bins = grid.size + 1, edges.size - 1
     state = np.full(samples.n, grid.size, np.int64)
     met = samples.met
@@ -284,9 +288,10 @@ def count_states(samples: StateSamples, grid: StateGrid, edges: np.ndarray) -> n
     e = np.where(met, samples.z - np.where(met, samples.nominal, 0.0), samples.z)
     k = np.searchsorted(edges, e, side="right") - 1
     ok = samples.hit & (k >= 0) & (k < n_bins)
+    weight = np.ones(samples.n) if weight is None else np.asarray(weight, np.float64)
     counts = np.zeros((n_states, n_bins + 1))
-    np.add.at(counts, (state[ok], k[ok]), 1.0)
-    np.add.at(counts, (state[~samples.hit], n_bins), 1.0)
+    np.add.at(counts, (state[ok], k[ok]), weight[ok])
+    np.add.at(counts, (state[~samples.hit], n_bins), weight[~samples.hit])
     return counts
 
 
