@@ -285,18 +285,15 @@ class ElementShares:
     rays: int
 
     def most_likely(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(round, entry)`` per ray of the row with the largest share (the first of equals, in row order;
+        """``(round, entry)`` per ray of the row with the largest share (the first of equals, in row order:
         :data:`VIRTUAL` where no row is finite)."""
         value = np.where(np.isnan(self.log_joint), -np.inf, self.log_joint)
         best = np.full(self.rays, -np.inf)
         np.maximum.at(best, self.ray, value)
         first = np.full(self.rays, self.ray.size)
         rows = np.flatnonzero(value == best[self.ray])
-        np.minimum.at(first, self.ray[rows], rows)
-        found = first < self.ray.size  # always: every ray has its virtual and escaped rows
-        out_round, out_entry = np.full(self.rays, VIRTUAL), np.full(self.rays, -1)
-        out_round[found], out_entry[found] = self.round[first[found]], self.entry[first[found]]
-        return out_round, out_entry
+        np.minimum.at(first, self.ray[rows], rows)  # every ray has rows (its virtual and escaped ones)
+        return self.round[first], self.entry[first]
 
     def posterior(self) -> np.ndarray:
         """(M,) each row's posterior share of its ray's outcome (the E step of an EM; a ray's rows sum to 1).
