@@ -287,31 +287,31 @@ class ElementShares:
     def most_likely(self) -> tuple[np.ndarray, np.ndarray]:
         """``(round, entry)`` per ray of the row with the largest share (the first of equals, in row order:
         :data:`VIRTUAL` where no row is finite)."""
-        value = np.where(np.isnan(self.log_joint), -np.inf, self.log_joint)
-        best = np.full(self.rays, -np.inf)
-        np.maximum.at(best, self.ray, value)
-        first = np.full(self.rays, self.ray.size)
-        rows = np.flatnonzero(value == best[self.ray])
-        np.minimum.at(first, self.ray[rows], rows)  # every ray has rows (its virtual and escaped ones)
+        _, _, first = self._largest()
         return self.round[first], self.entry[first]
 
     def posterior(self) -> np.ndarray:
         """(M,) each row's posterior share of its ray's outcome (the E step of an EM; a ray's rows sum to 1).
         A ray none of whose elements can have produced its outcome is given wholly to its first row."""
-        value = np.where(np.isnan(self.log_joint), -np.inf, self.log_joint)
-        best = np.full(self.rays, -np.inf)
-        np.maximum.at(best, self.ray, value)
+        value, best, first = self._largest()
         finite = np.isfinite(best[self.ray])
         weight = np.where(finite, np.exp(value - np.where(finite, best[self.ray], 0.0)), 0.0)
         total = np.zeros(self.rays)
         np.add.at(total, self.ray, weight)
         weight = np.divide(weight, total[self.ray], out=np.zeros_like(weight), where=total[self.ray] > 0)
-        lost = np.flatnonzero(total <= 0)
-        if lost.size:
-            first = np.full(self.rays, self.ray.size)
-            np.minimum.at(first, self.ray, np.arange(self.ray.size))
-            weight[first[lost]] = 1.0
+        weight[first[total <= 0]] = 1.0  # no finite share: every row is largest, the first is its first row
         return weight
+
+    def _largest(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(value, best, first)``: the rows' log shares with NaN as -inf (M,), each ray's largest (B,), and the
+        first row holding it (B,; every ray has rows, its virtual and escaped ones)."""
+        value = np.where(np.isnan(self.log_joint), -np.inf, self.log_joint)
+        best = np.full(self.rays, -np.inf)
+        np.maximum.at(best, self.ray, value)
+        first = np.full(self.rays, self.ray.size)
+        rows = np.flatnonzero(value == best[self.ray])
+        np.minimum.at(first, self.ray[rows], rows)
+        return value, best, first
 
 
 def element_shares(table, model, rays: RayBatch, rounds: Rounds, measured: mi.Float, hit: mi.Bool) -> ElementShares:
