@@ -17,7 +17,9 @@
   law widened over a range scale and a per-beam bias), is dropped when the model without it is not
   significantly worse held out.
 * **shrinkage** (:func:`shrink_without_evidence`): per-beam or per-label values whose likelihood ratio
-  against the parameter's default is below the chi-square(1) critical value go back to the default.
+  against the parameter's default is below the chi-square(1) critical value go back to the default; a
+  per-beam value below it stays when the beams' values as a whole make it more likely off its default
+  than on it (:func:`default_posterior`): a bias on every beam keeps its small values.
 """
 
 from __future__ import annotations
@@ -144,14 +146,47 @@ def rank(candidates: list[Candidate]) -> list[Candidate]:
     return ranked
 
 
+def default_posterior(z: np.ndarray, informative: np.ndarray | None = None) -> np.ndarray:
+    """Probability that each per-beam value is at its default, judged from every beam's at once.
+
+    Each value's statistic ``z = sqrt(2 LR)`` (LR: its log-likelihood ratio against the default) is modelled
+    as the two-group mixture ``pi0 N(0, 1) + (1 - pi0) N(0, s^2)`` in ``|z|``: beams at the default, and beams
+    off it whose values spread ``s`` standard errors. ``pi0`` and ``s`` are the maximum-likelihood values on a
+    grid (``s`` from the chi-square(1) critical ``z`` at :data:`P_VALUE` up, so that the off-default group is one
+    a test could tell from the default; ties go to the larger ``pi0``), fitted on the ``informative`` values
+    (those whose rays depend on them: a beam that returned nothing says nothing of how many values are at
+    the default). On a log with no effect ``pi0`` is 1 and every value is at its default; with a bias on
+    every beam ``pi0`` is near 0 and a beam whose bias is within its noise of 0 keeps its value.
+
+    Args:
+        z: (B,) statistics of the values (sign ignored).
+        informative: (B,) bool, the values the mixture is fitted on (default: all).
+
+    Returns:
+        (B,) posterior probabilities of the default.
+    """
+    z = np.abs(np.asarray(z, np.float64))
+    lowest = math.sqrt(float(stats.chi2.isf(P_VALUE, 1)))
+    pi0 = np.linspace(1.0, 0.0, 101)[:, None, None]
+    spread = np.geomspace(lowest, max(2.0 * float(z.max(initial=0.0)), 2.0 * lowest), 80)[None, :, None]  # in z
+    at_default = stats.norm.pdf(z)
+    mixture = pi0 * at_default + (1.0 - pi0) * stats.norm.pdf(z / spread) / spread
+    fitted = np.log(np.maximum(mixture, 1e-300))[..., slice(None) if informative is None else informative]
+    i, j = np.unravel_index(np.argmax(fitted.sum(-1)), mixture.shape[:2])
+    return pi0[i, 0, 0] * at_default / np.maximum(mixture[i, j], 1e-300)
+
+
 def shrink_without_evidence(model: SensorModel, effects: list, problem: Problem) -> None:
     """Set per-beam / per-label values without evidence back to their default (in place).
 
     A value has evidence when setting it to the parameter's default lowers the log-likelihood of
     ``problem`` by more than half the chi-square(1) critical value at :data:`P_VALUE`. A per-beam value
     acts on its beam's rays alone, so every beam's is judged at once from two evaluations (its values and
-    the defaults, summed beam by beam: :meth:`~mi_lidar.core.problem.Problem.log_likelihood_by_beam`); the
-    per-label values are set back one at a time (a ray may meet elements of several labels).
+    the defaults, summed beam by beam: :meth:`~mi_lidar.core.problem.Problem.log_likelihood_by_beam`), and a value
+    below the critical ratio stays when :func:`default_posterior` puts it off its default (a bias on every beam:
+    zeroing each one within 3.3 standard errors of 0 made the 360 fitted biases of a planar log 4.95 % off the
+    truth instead of 3.90 %); the per-label values are set back one at a time (a ray may meet elements of
+    several labels).
     """
     critical = 0.5 * float(stats.chi2.isf(P_VALUE, 1))
 
@@ -169,7 +204,9 @@ def shrink_without_evidence(model: SensorModel, effects: list, problem: Problem)
                 full = problem.log_likelihood_by_beam(model, values.size)
                 assign(effect, key, np.full_like(values, spec.default))
                 reduced = problem.log_likelihood_by_beam(model, values.size)
-                values[full - reduced < critical] = spec.default
+                ratio = full - reduced
+                z = np.sqrt(2.0 * np.maximum(ratio, 0.0))
+                values[(ratio < critical) & (default_posterior(z, ratio != 0.0) > 0.5)] = spec.default
                 assign(effect, key, values)
                 continue
             full = float(problem.log_likelihood(model).sum())
