@@ -37,9 +37,10 @@ from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.streams import BeamCorrelation, NeighbourStreams, scan_follows, uniform
 from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segments
-from mi_lidar.planar.raymarch import BACKSTOP, PlanarTrace
+from mi_lidar.planar.raymarch import BACKSTOP, OPEN_STRAY, PlanarTrace
 
-OCCUPANCY_CLASSES = BACKSTOP + 1  # stray-hit cells, ``occ3`` occupied cells, backstops: one Beta prior each
+OCCUPANCY_CLASSES = OPEN_STRAY + 1  # one Beta prior per occupancy class (:data:`~mi_lidar.planar.raymarch.BACKSTOP`)
+LABELS_BEYOND = OPEN_STRAY - BACKSTOP + 1  # labels after the cells' 2 * classes (:func:`segment_labels`)
 PERMEABILITY_TOLERANCE = 1e-5  # nats per beam: the Beta priors' fit has converged (see fit_permeability)
 EVIDENCE_CLASSES = 5  # at most: leave-out hits of a cell 1, 2-3, 4-7, 8-15, 16 or more (doublings)
 ANGULAR_STREAM = 4  # the random stream that picks an angular part (the sampler's are 0-3 and 64 up)
@@ -50,14 +51,17 @@ def segment_labels(occupied: np.ndarray, hits: np.ndarray, classes: int = EVIDEN
 
     A wall seen by many scans is located to a centimetre; a cell with one or two hits (seen once,
     or a person's legs) is not, and its returns spread more: the residual law depends on both.
-    ``classes = 1`` labels occupancy alone. A backstop (``occupied`` 2, no hits) has a label of its own,
-    ``2 * classes``: what a beam meets after passing every cell listed for it (a wall the map has not
-    seen, or ground far behind a bush) returns and misses by its own law
-    (:func:`~mi_lidar.planar.models.backstop_prior`). ``2 * classes + 1`` labels in all.
+    ``classes = 1`` labels occupancy alone. The classes of :meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`
+    (``occupied`` 2 a backstop, 3 the backstop of a beam in the open, 4 a stray cell on a beam in the open) have
+    a label each, ``2 * classes`` to ``2 * classes + 2``: what a beam meets after passing every cell listed for
+    it (a wall the map has not seen, or ground far behind a bush) returns and misses by its own law
+    (:func:`~mi_lidar.planar.models.backstop_prior`), and a beam in the open by laws of its own.
+    ``2 * classes + 3`` labels in all (:data:`LABELS_BEYOND`).
     """
     occupied = np.asarray(occupied, np.int64)
     evidence = np.clip(np.floor(np.log2(np.maximum(hits, 1))), 0, classes - 1).astype(np.int64)
-    return np.where(occupied == BACKSTOP, 2 * classes, np.minimum(occupied, 1) * classes + evidence)
+    cell = np.minimum(occupied, 1) * classes + evidence
+    return np.where(occupied >= BACKSTOP, 2 * classes + occupied - BACKSTOP, cell)
 
 
 def _f(values) -> mi.Float:
@@ -90,7 +94,8 @@ class EngineBeams:
         z, hit: measured range (m; 0 for a miss) and return flag per beam.
         hits, passes: leave-out counts of every element (for :func:`permeability`).
         occupied: (E,) occupancy class of every element: 1 an ``occ3`` occupied cell, 0 stray hits,
-            2 a backstop (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`).
+            2-4 a backstop, the backstop and a stray cell of a beam in the open
+            (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`).
         follows: (B,) beam ``i`` is the next beam of beam ``i - 1``'s scan
             (:func:`~mi_lidar.core.streams.scan_follows`).
         correlation: how much neighbouring beams share their random draws when sampled

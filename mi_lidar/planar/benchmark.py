@@ -334,6 +334,8 @@ def run_planar_benchmark(
             "beta_prior_stray_cells": [float(permeable.a[0]), float(permeable.b[0])],
             "beta_prior_occupied_cells": [float(permeable.a[1]), float(permeable.b[1])],
             "beta_prior_backstops": [float(permeable.a[2]), float(permeable.b[2])],
+            "beta_prior_open_backstops": [float(permeable.a[3]), float(permeable.b[3])],
+            "beta_prior_open_stray_cells": [float(permeable.a[4]), float(permeable.b[4])],
             "angular_share_per_neighbour": float(permeable.angular),
             "evidence_classes": int(permeable.classes),
             "beam_correlation": {"shared": permeable.correlation.shared, "rho": permeable.correlation.rho},

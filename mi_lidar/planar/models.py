@@ -21,7 +21,8 @@ mi-lidar   the permeable map: every cell with leave-out hits is an element at it
            meets a backstop behind the last (its own interception probability and return law: what
            is credited to it, shrunk to an unseen wall's,
            :meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`), and one that passes it
-           too escapes (the law of the returns and misses credited to escaping); a beam's return
+           too escapes (the law of the returns and misses credited to escaping); a beam in the open (stray
+           cells only) meets stray cells and a backstop of classes of its own; a beam's return
            comes from its own trace or, by a fitted share, from a neighbouring beam's (its angular
            spread); sampled scans share errors between neighbouring beams as the real training
            scans do (a Gaussian copula on the sampler's streams, :mod:`~mi_lidar.planar.correlation`;
@@ -61,6 +62,7 @@ from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.streams import BeamCorrelation
 from mi_lidar.planar.beams import (
     EVIDENCE_CLASSES,
+    LABELS_BEYOND,
     AngularMixture,
     EngineBeams,
     angular_mixture,
@@ -73,7 +75,7 @@ from mi_lidar.planar.beams import (
     segment_labels,
 )
 from mi_lidar.planar.correlation import fit_beam_correlation
-from mi_lidar.planar.raymarch import BACKSTOP, PlanarTrace
+from mi_lidar.planar.raymarch import BACKSTOP, OPEN_BACKSTOP, PlanarTrace
 from mi_lidar.planar.tails import FAR, fit_tails, match_misses, match_short_returns
 
 RANGE_EDGES = [float(e) for e in np.linspace(0.0, 40.0, 18)] + [1.0e9]  # 17 bins over 0-40 m (M2a, M3a)
@@ -106,13 +108,15 @@ def first_occupied(trace: PlanarTrace) -> np.ndarray:
 def initial_credit(trace: PlanarTrace) -> np.ndarray:
     """(B,) the segment each beam's outcome is first credited to (-1: the escape state): its first ``occ3``
     occupied segment, or its backstop (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`, which
-    ``trace`` holds) for a return more than :data:`~mi_lidar.planar.tails.FAR` behind it."""
+    ``trace`` holds) for a return more than :data:`~mi_lidar.planar.tails.FAR` behind it; a beam in the open
+    (stray cells only), its backstop whatever it reported (credited to the escape state, its misses left that
+    backstop no P(null) from which the EM could give them back)."""
     first = first_occupied(trace)
     counts = np.diff(trace.seg_start)
-    last = trace.seg_start[1:] - 1
-    behind = (counts > 0) & (trace.seg_occupied[np.maximum(last, 0)] == BACKSTOP)
-    far = behind & trace.hit & (trace.z > trace.seg_at[np.maximum(last, 0)] + FAR)
-    return np.where(far, last, first)
+    last = np.maximum(trace.seg_start[1:] - 1, 0)
+    kind = np.where(counts > 0, trace.seg_occupied[last], -1)
+    far = (kind == BACKSTOP) & trace.hit & (trace.z > trace.seg_at[last] + FAR)
+    return np.where(far | (kind == OPEN_BACKSTOP), last, first)
 
 
 def first_occupied_range(trace: PlanarTrace) -> np.ndarray:
@@ -293,8 +297,9 @@ class PermeableMap:
 
     Attributes:
         model: the sensor model (its density conditions on range, incidence, cell occupancy and evidence).
-        a, b: (3,) the Beta priors of the elements' interception probabilities (stray-hit cells, occupied
-            cells, backstops).
+        a, b: (5,) the Beta priors of the elements' interception probabilities, one per occupancy class
+            (stray-hit cells, occupied cells, backstops, and the backstops and stray cells of beams in the open:
+            :data:`~mi_lidar.planar.raymarch.BACKSTOP`).
         classes: evidence classes of the segment labels (:func:`~mi_lidar.planar.beams.segment_labels`).
         angular: the share of each neighbouring beam's trace in a beam's return
             (:class:`~mi_lidar.planar.beams.AngularMixture`).
@@ -364,9 +369,11 @@ def fit_permeable_map(
     """mi-lidar's permeable map with ``classes`` evidence classes (see the module docstring).
 
     Every beam's segments end in a backstop (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`:
-    a third class with its own Beta prior and its own label, :func:`backstop_prior`).
+    a class with its own Beta prior and its own label, :func:`backstop_prior`; a beam in the open, with stray
+    cells only, has a backstop and stray cells of classes of their own).
     Start: NP-Reg tables from each beam's first occupied cell (its surface, incidence and label), or its
-    backstop for a return more than :data:`~mi_lidar.planar.tails.FAR` behind it (:func:`initial_credit`),
+    backstop for a return more than :data:`~mi_lidar.planar.tails.FAR` behind it or for a beam in the open
+    (:func:`initial_credit`),
     and the kernel ``bandwidths`` ``(h_range, h_incidence, uniform, reach)`` chosen for NP-Reg on held-out
     training scans; then ``rounds`` times: fit the Beta priors (a, b) by the one fitter, then
     :data:`CREDIT_STEPS` times share each return and each miss among the elements that could have produced it
@@ -395,7 +402,7 @@ def fit_permeable_map(
     """
     h_r, h_i, u, reach = bandwidths
     end = support_end(samples_of(train), reach, z_max)
-    grid = fine_grid(samples_of(train), labels=2 * classes + 1)
+    grid = fine_grid(samples_of(train), labels=2 * classes + LABELS_BEYOND)
     edges = protocol_residual_edges(z_max)
     traced = train.with_backstops()
     labels = segment_labels(traced.seg_occupied, traced.seg_hits, classes)

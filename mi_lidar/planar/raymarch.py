@@ -38,7 +38,11 @@ from mi_lidar.planar.grid import CountMap, Grid, LeaveOut, planar_beams
 START = 0.02  # m: the march starts here
 SLACK = 1e-3  # cells: a skip ends this far short of a cell edge (rounding moves a sample < 1e-6 cells)
 SEGMENT_FIELDS = ("seg_range", "seg_hits", "seg_passes", "seg_occupied", "seg_incidence", "seg_surface")
-BACKSTOP = 2  # seg_occupied of a backstop (:meth:`PlanarTrace.with_backstops`); 0: stray hits, 1: ``occ3`` occupied
+# seg_occupied, the occupancy class of a segment: 0 stray hits, 1 ``occ3`` occupied; after
+# :meth:`PlanarTrace.with_backstops` also the classes below (a beam "in the open" meets no ``occ3`` cell)
+BACKSTOP = 2  # the backstop of a beam that met an ``occ3`` cell
+OPEN_BACKSTOP = 3  # the backstop of a beam in the open
+OPEN_STRAY = 4  # a stray-hit cell on a beam in the open
 BACKSTOP_DEPTH = 0.05  # m: a backstop lies one map cell behind a beam's last segment
 FIT_PAIRS = 32_768  # distinct (query, cell) pairs whose neighbourhoods CellLines.fit takes at once
 NEIGHBOURS_REACH = 9  # squared cells: the neighbourhood of a cell is the disc of 3 cells (15 cm at 5 cm cells)
@@ -124,9 +128,19 @@ class PlanarTrace:
         such a beam meets next: an element with its own interception probability (fitted like the
         cells' Beta priors) and its own return law, shrunk to that of an occupied cell the map has not seen
         (:func:`~mi_lidar.planar.beams.segment_labels`, :func:`~mi_lidar.planar.models.backstop_prior`).
+
+        A beam *in the open* (no ``occ3`` cell listed, only stray hits: people, foliage, far clutter) is
+        another population: it mostly misses, or returns far off. Its backstop (:data:`OPEN_BACKSTOP`) and its
+        stray cells (:data:`OPEN_STRAY`) get classes of their own. Sharing the stray cells' and the backstop's
+        laws with the beams that met a wall, the Freiburg campus's beams that passed a wall 5-10 m away were
+        predicted to miss 7.1 % of the time where 3.4 % of the training beams did, and its beams in the open
+        made 11.3 % of the sampled test returns where they made 8.6 % of the measured ones.
         """
         counts = np.diff(self.seg_start)
         has = counts > 0
+        seg_beam = np.repeat(np.arange(self.n), counts)
+        walled = np.zeros(self.n, bool)
+        walled[seg_beam[np.asarray(self.seg_occupied, np.int64) == 1]] = True
         start = np.concatenate([[0], np.cumsum(counts + has)])
         moved = np.arange(self.seg_range.size) + np.repeat(start[:-1] - self.seg_start[:-1], counts)
         last, at = self.seg_start[1:][has] - 1, start[1:][has] - 1
@@ -134,7 +148,7 @@ class PlanarTrace:
             "seg_range": self.seg_at[last] + depth,
             "seg_hits": 0,
             "seg_passes": 0,
-            "seg_occupied": BACKSTOP,
+            "seg_occupied": np.where(walled[has], BACKSTOP, OPEN_BACKSTOP),
             "seg_incidence": self.seg_incidence[last],
             "seg_surface": np.nan,
         }
@@ -144,6 +158,7 @@ class PlanarTrace:
             out = np.empty(start[-1], np.int64 if f == "seg_occupied" else values.dtype)  # bool until now
             out[moved], out[at] = values, behind[f]
             fields[f] = out
+        fields["seg_occupied"][moved] = np.where(walled[seg_beam], self.seg_occupied, OPEN_STRAY)
         return dataclasses.replace(self, seg_start=start, **fields)
 
     def shifted(self, k: int) -> PlanarTrace:

@@ -13,6 +13,14 @@ from mi_lidar.planar.raymarch import BACKSTOP, BACKSTOP_DEPTH, PlanarTrace
 SCANS, BEAMS = 40, 120
 
 
+def beam_kinds(seed: int) -> tuple[np.random.Generator, np.ndarray, np.ndarray]:
+    """``(rng, kind, r)`` for ``SCANS`` x ``BEAMS`` beams: a generator seeded with ``seed``, each beam's kind (its
+    beam index mod 3) and a range uniform on [2, 8] m (its first draw) for kinds 1 and 2 (NaN for kind 0)."""
+    rng = np.random.default_rng(seed)
+    kind = np.tile(np.arange(BEAMS), SCANS) % 3
+    return rng, kind, np.where(kind > 0, rng.uniform(2.0, 8.0, kind.size), np.nan)
+
+
 def leaky_wall_trace(seed: int = 3) -> PlanarTrace:
     """A trace of ``SCANS`` x ``BEAMS`` beams in three kinds (beam index mod 3), none of which the sensor misses
     but the first:
@@ -25,32 +33,35 @@ def leaky_wall_trace(seed: int = 3) -> PlanarTrace:
 
     Returns come 2 cm (sigma) from the surface that stopped the beam; every cell sits at 20 deg incidence.
     """
-    rng = np.random.default_rng(seed)
-    n = SCANS * BEAMS
-    beam = np.tile(np.arange(BEAMS), SCANS)
-    kind = beam % 3
-    r = np.where(kind > 0, rng.uniform(2.0, 8.0, n), np.nan)
+    rng, kind, r = beam_kinds(seed)
+    n = kind.size
     u = rng.random(n)
     behind = np.where(kind == 1, 0.3, 1.0)
     stop = np.where(kind == 1, 0.7, 0.3)
     z = np.where(u < stop, r, r + behind) + rng.normal(0.0, 0.02, n)
     z = np.where(kind > 0, z, np.where(u < 0.5, np.nan, rng.uniform(0.0, 30.0, n)))
-    segments = []  # per beam: (range, hits, passes)
-    for k, at in zip(kind, r):
-        segments.append([] if k == 0 else [(at, 7, 3)] if k == 1 else [(at, 3, 7), (at + 1.0, 10, 0)])
+    segments = [
+        [] if k == 0 else [(at, 7, 3, 1)] if k == 1 else [(at, 3, 7, 1), (at + 1.0, 10, 0, 1)] for k, at in zip(kind, r)
+    ]
+    return segments_trace(z, r, segments)
+
+
+def segments_trace(z: np.ndarray, nominal: np.ndarray, segments: list) -> PlanarTrace:
+    """``SCANS`` x ``BEAMS`` beams with measurements ``z`` (m, NaN: a miss), nominal ranges ``nominal`` (m; NaN:
+    none) and per beam a list of segments ``(range, hits, passes, occupied)``, every one at 20 deg incidence."""
     rows = np.array([s for beam_segments in segments for s in beam_segments])
     counts = np.array([len(s) for s in segments])
     return PlanarTrace(
         scan=np.repeat(np.arange(SCANS), BEAMS),
-        beam=beam,
+        beam=np.tile(np.arange(BEAMS), SCANS),
         z=z,
-        nominal=r,
-        incidence=np.where(kind > 0, 20.0, np.nan),
+        nominal=nominal,
+        incidence=np.where(np.isfinite(nominal), 20.0, np.nan),
         seg_start=np.concatenate([[0], np.cumsum(counts)]),
         seg_range=rows[:, 0],
         seg_hits=rows[:, 1].astype(np.int64),
         seg_passes=rows[:, 2].astype(np.int64),
-        seg_occupied=np.ones(len(rows), bool),
+        seg_occupied=rows[:, 3].astype(bool),
         seg_incidence=np.full(len(rows), 20.0),
         seg_surface=rows[:, 0],
     )
@@ -61,6 +72,23 @@ def fitted_map(trace: PlanarTrace):
     fitted = fit_permeable_map(trace, 31.0, (1.0, 20.0, 1e-3, math.inf), 1, rounds=2)
     beams = fitted.beams(trace)
     return fitted, beams, beams.p_miss(fitted.model)
+
+
+def check_miss_rates(trace: PlanarTrace, predicted: float, sampled: float | None = None) -> None:
+    """Fit the map to ``trace`` (beam kinds by beam index mod 3): the beams of kind 1 must be predicted to miss
+    less than 0.5 % of the time and miss at most 0.5 % of the time in each of 4 scans sampled with fixed seeds;
+    those of kind 2 must be predicted to miss as measured (within ``predicted``) and, unless ``sampled`` is None,
+    miss as measured (within ``sampled``) in each sampled scan."""
+    fitted, beams, p_miss = fitted_map(trace)
+    kind = trace.beam % 3
+    measured = np.mean(~np.isfinite(trace.z[kind == 2]))
+    assert p_miss[kind == 1].mean() < 0.005, p_miss[kind == 1].mean()
+    assert p_miss[kind == 2].mean() == pytest.approx(measured, abs=predicted), (p_miss[kind == 2].mean(), measured)
+    for seed in range(4):
+        _, hit = beams.sample(fitted.model, seed)
+        assert np.mean(~hit[kind == 1]) <= 0.005, (seed, np.mean(~hit[kind == 1]))
+        if sampled is not None:
+            assert np.mean(~hit[kind == 2]) == pytest.approx(measured, abs=sampled), (seed, np.mean(~hit[kind == 2]))
 
 
 def test_a_backstop_follows_the_last_segment_of_every_beam_that_has_one():
@@ -119,22 +147,21 @@ def bush_trace(seed: int = 5) -> PlanarTrace:
        sigma from it, never a miss); passed, the beam returns from ground 10-20 m behind it 80 % of the time
        and misses 20 % of the time: 10 % misses in all, where open space misses 90 %.
     """
-    rng = np.random.default_rng(seed)
-    n = SCANS * BEAMS
-    beam = np.tile(np.arange(BEAMS), SCANS)
-    kind = beam % 3
-    r = np.where(kind > 0, rng.uniform(2.0, 8.0, n), np.nan)
+    rng, kind, r = beam_kinds(seed)
+    n = kind.size
     u = np.where(kind == 1, 0.0, rng.random(n))
     z = np.where(u < 0.5, r + rng.normal(0.0, 0.02, n), np.where(u < 0.9, r + rng.uniform(10.0, 20.0, n), np.nan))
     z = np.where(kind > 0, z, np.where(u < 0.9, np.nan, rng.uniform(0.0, 30.0, n)))
     return one_cell_trace(z, r, np.where(kind == 1, 10, 5))
 
 
-def one_cell_trace(z: np.ndarray, r: np.ndarray, hits: np.ndarray) -> PlanarTrace:
-    """``SCANS`` x ``BEAMS`` beams with measurements ``z`` (m, NaN: a miss) that meet one occupied cell at ``r``
-    (m; NaN: none) with ``hits`` of 10 visits (the rest passes), at 20 deg incidence."""
+def one_cell_trace(z: np.ndarray, r: np.ndarray, hits: np.ndarray, occupied=True) -> PlanarTrace:
+    """``SCANS`` x ``BEAMS`` beams with measurements ``z`` (m, NaN: a miss) that meet one cell at ``r`` (m; NaN:
+    none) with ``hits`` of 10 visits (the rest passes), at 20 deg incidence; ``occupied`` (per beam, or one for
+    all): the cell is ``occ3`` occupied, else a stray-hit cell."""
     met = np.isfinite(r)
     at, hits = r[met], np.asarray(hits)[met]
+    occupied = np.broadcast_to(np.asarray(occupied, bool), r.shape)[met]
     return PlanarTrace(
         scan=np.repeat(np.arange(SCANS), BEAMS),
         beam=np.tile(np.arange(BEAMS), SCANS),
@@ -145,7 +172,7 @@ def one_cell_trace(z: np.ndarray, r: np.ndarray, hits: np.ndarray) -> PlanarTrac
         seg_range=at,
         seg_hits=hits.astype(np.int64),
         seg_passes=(10 - hits).astype(np.int64),
-        seg_occupied=np.ones(at.size, bool),
+        seg_occupied=occupied.copy(),
         seg_incidence=np.full(at.size, 20.0),
         seg_surface=at,
     )
@@ -192,12 +219,8 @@ def thin_cell_trace(seed: int = 7) -> PlanarTrace:
        returns from a surface 5 cm behind it (as alike to the cell's return as the noise makes it) 70 % of
        the time and misses 30 % of the time: 3 % misses in all.
     """
-    rng = np.random.default_rng(seed)
-    n = SCANS * BEAMS
-    beam = np.tile(np.arange(BEAMS), SCANS)
-    kind = beam % 3
-    met = kind > 0
-    r = np.where(met, rng.uniform(2.0, 8.0, n), np.nan)
+    rng, kind, r = beam_kinds(seed)
+    n, met = kind.size, kind > 0
     passed = (kind == 2) & (rng.random(n) < 0.1)
     z = np.where(passed, np.where(rng.random(n) < 0.7, r + 0.05, np.nan), r) + rng.normal(0.0, 0.02, n)
     z = np.where(met, z, np.where(rng.random(n) < 0.9, np.nan, rng.uniform(0.0, 30.0, n)))
@@ -214,13 +237,39 @@ def test_the_misses_of_beams_that_pass_a_thin_cell_stay_with_them_not_with_the_w
     of the time (measured 0.002) and the thin ones as measured (within 0.005; measured 0.031), and each of 4
     scans sampled with fixed seeds has at most 0.5 % of its wall beams missed and the thin beams' rate
     within 0.006 (measured 0.031-0.034)."""
-    trace = thin_cell_trace()
-    fitted, beams, p_miss = fitted_map(trace)
-    kind = trace.beam % 3
-    measured = np.mean(~np.isfinite(trace.z[kind == 2]))
-    assert p_miss[kind == 1].mean() < 0.005, p_miss[kind == 1].mean()
-    assert p_miss[kind == 2].mean() == pytest.approx(measured, abs=0.005), (p_miss[kind == 2].mean(), measured)
-    for seed in range(4):
-        _, hit = beams.sample(fitted.model, seed)
-        assert np.mean(~hit[kind == 1]) <= 0.005, (seed, np.mean(~hit[kind == 1]))
-        assert np.mean(~hit[kind == 2]) == pytest.approx(measured, abs=0.006), (seed, np.mean(~hit[kind == 2]))
+    check_miss_rates(thin_cell_trace(), predicted=0.005, sampled=0.006)
+
+
+def open_clutter_trace(seed: int = 11) -> PlanarTrace:
+    """A trace of ``SCANS`` x ``BEAMS`` beams in three kinds (beam index mod 3), every cell at 20 deg incidence:
+
+    0. open space: no segment; a miss 90 % of the time, else a return uniform on [0, 30] m;
+    1. clutter before a bush: a stray-hit cell at 2-8 m (hits 1, passes 9) that stops 10 % of the beams, then an
+       occupied cell 1 m behind it (hits 5, passes 5) that stops half the rest; passed, a beam returns from a
+       wall 10-20 m behind the bush, never a miss;
+    2. clutter in the open: the same stray-hit cell, then open space (a miss 90 % of the time, else a return
+       uniform on [0, 30] m).
+
+    Returns come 2 cm (sigma) from the surface that stopped the beam.
+    """
+    rng, kind, r = beam_kinds(seed)
+    n = kind.size
+    u = rng.random(n)
+    noise = rng.normal(0.0, 0.02, n)
+    open_space = np.where(rng.random(n) < 0.9, np.nan, rng.uniform(0.0, 30.0, n))
+    bush = np.where(u < 0.55, r + 1.0 + noise, r + 1.0 + rng.uniform(10.0, 20.0, n))
+    z = np.where(u < 0.1, r + noise, np.where(kind == 1, bush, open_space))
+    segments = [[] if k == 0 else [(at, 1, 9, 0)] + ([(at + 1.0, 5, 5, 1)] if k == 1 else []) for k, at in zip(kind, r)]
+    return segments_trace(z, np.where(kind == 1, r + 1.0, np.nan), segments)
+
+
+def test_beams_in_the_open_keep_their_misses_from_the_beams_that_passed_a_wall():
+    """Clutter before a bush whose passed beams return from a wall behind it, never a miss, beside the same
+    clutter in the open, whose passed beams miss 90 % of the time (:func:`open_clutter_trace`). With one class
+    for the clutter's cells and one for the backstops, the open beams' misses went into laws the bush beams
+    share: P(miss) 0.037 on the bush beams and 3.0-4.9 % of them missed in sampled scans (measured before the
+    change, same fit). The backstop and the stray cells of a beam in the open have classes of their own: the
+    bush beams miss less than 0.5 % of the time (measured 2e-7), the clutter beams as measured (within 0.03;
+    0.805 where 0.805 missed), and each of 4 scans sampled with fixed seeds has at most 0.5 % of its bush beams
+    missed (measured 0)."""
+    check_miss_rates(open_clutter_trace(), predicted=0.03)
