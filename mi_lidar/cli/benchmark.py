@@ -80,14 +80,15 @@ def benchmark_planar(
         "model",
         ("median |err|", "p90 |err|", "F1", "hist L1", "CRPS mean", "CRPS median"),
         caption="|err|: one sampled scan vs the measured one where both returned (m); F1: hit/miss agreement "
-        "of that scan; hist L1: distance of the range CDFs (m); CRPS: continuous ranked probability score "
-        f"per beam from {SAMPLED_SCANS} sampled scans (m; a no-return counts as {result.no_return:g} m), lowest "
+        f"of that scan; hist L1: distance of the range CDFs (m), the mean over {SAMPLED_SCANS} sampled scans (that "
+        f"of the first one is in the report); CRPS: continuous ranked probability score per beam from "
+        f"{SAMPLED_SCANS} sampled scans (m; a no-return counts as {result.no_return:g} m), lowest "
         "in expectation for the sensor's own law; last row: the measured test scans re-paired between beams of "
         "like nominal range, what a model that samples like the sensor scores (a reference, not a model)",
     )
 
     def sample_figures(s: dict) -> tuple[str, ...]:
-        keys = ("range_error_median", "range_error_p90", "f1", "histogram_l1", "crps_mean")
+        keys = ("range_error_median", "range_error_p90", "f1", "histogram_l1_draws", "crps_mean")
         return (*(figure(s[k]) for k in keys), figure(s["crps_median"], 4))
 
     for r in result.rows:

@@ -52,6 +52,7 @@ SAMPLE_KEYS = (  # the sample metrics the report keeps (:func:`~mi_lidar.core.me
     "range_error_p90",
     "f1",
     "histogram_l1",
+    "histogram_l1_draws",
     "hit_rate_simulated",
     "crps_mean",
     "crps_median",

@@ -120,3 +120,17 @@ def test_paired_p90_and_f1_prefer_the_point_model_and_the_crps_prefers_the_senso
     assert "crps_mean" not in metrics_of(np.zeros(n), measured, hit, measured, hit)
     with pytest.raises(ParameterError, match="draws need no_return"):
         metrics_of(np.zeros(n), measured, hit, measured, hit, draws=sensor((m, n)))
+
+
+def test_the_histogram_distance_of_the_draws_is_their_mean_and_that_of_one_scan_is_the_first_one():
+    """Draw k of 4 sampled scans is the measured one shifted k x 10 cm: the range CDFs lie that far apart, so
+    one scan's histogram L1 is its own shift (0.1 m for draw 1) and ``histogram_l1_draws`` the mean shift of
+    the four, 0.15 m (to 1e-9); no draws, no such figure."""
+    measured = np.random.default_rng(5).uniform(1.0, 20.0, 2000)
+    hit = np.ones(measured.size, bool)
+    shifts = 0.1 * np.arange(4)
+    draws = (measured + shifts[:, None], np.ones((4, measured.size), bool))
+    row = metrics_of(np.zeros(measured.size), measured, hit, draws[0][1], hit, draws=draws, no_return=NO_RETURN)
+    assert row["histogram_l1"] == pytest.approx(0.1, abs=1e-9)
+    assert row["histogram_l1_draws"] == pytest.approx(0.15, abs=1e-9)
+    assert "histogram_l1_draws" not in metrics_of(np.zeros(measured.size), measured, hit, measured, hit)
