@@ -37,9 +37,9 @@ from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.streams import BeamCorrelation, NeighbourStreams, scan_follows, uniform
 from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segments
-from mi_lidar.planar.raymarch import BACKSTOP, OPEN_STRAY, PlanarTrace
+from mi_lidar.planar.raymarch import BACKSTOP, OCCUPANCY_NAMES, OPEN_STRAY, PlanarTrace
 
-OCCUPANCY_CLASSES = OPEN_STRAY + 1  # one Beta prior per occupancy class (:data:`~mi_lidar.planar.raymarch.BACKSTOP`)
+OCCUPANCY_CLASSES = len(OCCUPANCY_NAMES)  # one Beta prior per occupancy class (raymarch.BACKSTOP and the rest)
 LABELS_BEYOND = OPEN_STRAY - BACKSTOP + 1  # labels after the cells' 2 * classes (:func:`segment_labels`)
 PERMEABILITY_TOLERANCE = 1e-5  # nats per beam: the Beta priors' fit has converged (see fit_permeability)
 EVIDENCE_CLASSES = 5  # at most: leave-out hits of a cell 1, 2-3, 4-7, 8-15, 16 or more (doublings)

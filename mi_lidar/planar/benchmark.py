@@ -38,7 +38,7 @@ from mi_lidar.core.streams import scan_follows
 from mi_lidar.planar import models as m
 from mi_lidar.planar.beams import nominal_beams
 from mi_lidar.planar.protocol import PlanarData, PlanarProtocol, prepare
-from mi_lidar.planar.raymarch import PlanarTrace
+from mi_lidar.planar.raymarch import OCCUPANCY_NAMES, PlanarTrace
 from mi_lidar.planar.reference import repaired_scans
 from mi_lidar.planar.tails import short_share
 
@@ -332,11 +332,10 @@ def run_planar_benchmark(
         permeable = m.fit_milidar(data.train, z_max, settings["np_reg"])
         elapsed = time.perf_counter() - t0
         chosen["mi-lidar"] = {
-            "beta_prior_stray_cells": [float(permeable.a[0]), float(permeable.b[0])],
-            "beta_prior_occupied_cells": [float(permeable.a[1]), float(permeable.b[1])],
-            "beta_prior_backstops": [float(permeable.a[2]), float(permeable.b[2])],
-            "beta_prior_open_backstops": [float(permeable.a[3]), float(permeable.b[3])],
-            "beta_prior_open_stray_cells": [float(permeable.a[4]), float(permeable.b[4])],
+            **{
+                f"beta_prior_{name}": [float(a), float(b)]
+                for name, a, b in zip(OCCUPANCY_NAMES, permeable.a, permeable.b)
+            },
             "angular_share_per_neighbour": float(permeable.angular),
             "evidence_classes": int(permeable.classes),
             "beam_correlation": {"shared": permeable.correlation.shared, "rho": permeable.correlation.rho},

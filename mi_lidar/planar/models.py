@@ -95,23 +95,13 @@ def samples_of(trace: PlanarTrace) -> StateSamples:
     )
 
 
-def first_occupied(trace: PlanarTrace) -> np.ndarray:
-    """(B,) index (into the segments) of each beam's first ``occ3`` occupied segment: its nominal cell (-1: none)."""
-    seg_beam = np.repeat(np.arange(trace.n), np.diff(trace.seg_start))
-    occupied = np.flatnonzero(trace.seg_occupied == 1)
-    beams, first = np.unique(seg_beam[occupied], return_index=True)
-    out = np.full(trace.n, -1)
-    out[beams] = occupied[first]
-    return out
-
-
 def initial_credit(trace: PlanarTrace) -> np.ndarray:
     """(B,) the segment each beam's outcome is first credited to (-1: the escape state): its first ``occ3``
     occupied segment, or its backstop (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`, which
     ``trace`` holds) for a return more than :data:`~mi_lidar.planar.tails.FAR` behind it; a beam in the open
     (stray cells only), its backstop whatever it reported (credited to the escape state, its misses left that
     backstop no P(null) from which the EM could give them back)."""
-    first = first_occupied(trace)
+    first = trace.first_occupied()
     counts = np.diff(trace.seg_start)
     last = np.maximum(trace.seg_start[1:] - 1, 0)
     kind = np.where(counts > 0, trace.seg_occupied[last], -1)
@@ -121,7 +111,7 @@ def initial_credit(trace: PlanarTrace) -> np.ndarray:
 
 def first_occupied_range(trace: PlanarTrace) -> np.ndarray:
     """(B,) range (m) of each beam's first ``occ3`` occupied segment's surface (NaN: none)."""
-    first = first_occupied(trace)
+    first = trace.first_occupied()
     return np.where(first >= 0, trace.seg_at[np.maximum(first, 0)], np.nan)
 
 

@@ -43,6 +43,7 @@ SEGMENT_FIELDS = ("seg_range", "seg_hits", "seg_passes", "seg_occupied", "seg_in
 BACKSTOP = 2  # the backstop of a beam that met an ``occ3`` cell
 OPEN_BACKSTOP = 3  # the backstop of a beam in the open
 OPEN_STRAY = 4  # a stray-hit cell on a beam in the open
+OCCUPANCY_NAMES = ("stray_cells", "occupied_cells", "backstops", "open_backstops", "open_stray_cells")  # 0-4
 BACKSTOP_DEPTH = 0.05  # m: a backstop lies one map cell behind a beam's last segment
 FIT_PAIRS = 32_768  # distinct (query, cell) pairs whose neighbourhoods CellLines.fit takes at once
 NEIGHBOURS_REACH = 9  # squared cells: the neighbourhood of a cell is the disc of 3 cells (15 cm at 5 cm cells)
@@ -89,6 +90,15 @@ class PlanarTrace:
     def seg_at(self) -> np.ndarray:
         """(E,) range (m) of each segment's surface (:meth:`CellLines.surface_range`) where known, else its entry."""
         return np.where(np.isfinite(self.seg_surface), self.seg_surface, self.seg_range)
+
+    def first_occupied(self) -> np.ndarray:
+        """(B,) index (into the segments) of each beam's first ``occ3`` occupied segment (-1: none)."""
+        seg_beam = np.repeat(np.arange(self.n), np.diff(self.seg_start))
+        occupied = np.flatnonzero(self.seg_occupied == 1)
+        beams, first = np.unique(seg_beam[occupied], return_index=True)
+        out = np.full(self.n, -1)
+        out[beams] = occupied[first]
+        return out
 
     @classmethod
     def concatenate(cls, parts: list[PlanarTrace]) -> PlanarTrace:
@@ -139,8 +149,7 @@ class PlanarTrace:
         counts = np.diff(self.seg_start)
         has = counts > 0
         seg_beam = np.repeat(np.arange(self.n), counts)
-        walled = np.zeros(self.n, bool)
-        walled[seg_beam[np.asarray(self.seg_occupied, np.int64) == 1]] = True
+        walled = self.first_occupied() >= 0
         start = np.concatenate([[0], np.cumsum(counts + has)])
         moved = np.arange(self.seg_range.size) + np.repeat(start[:-1] - self.seg_start[:-1], counts)
         last, at = self.seg_start[1:][has] - 1, start[1:][has] - 1
