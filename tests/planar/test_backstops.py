@@ -155,27 +155,10 @@ def bush_trace(seed: int = 5) -> PlanarTrace:
     return one_cell_trace(z, r, np.where(kind == 1, 10, 5))
 
 
-def one_cell_trace(z: np.ndarray, r: np.ndarray, hits: np.ndarray, occupied=True) -> PlanarTrace:
-    """``SCANS`` x ``BEAMS`` beams with measurements ``z`` (m, NaN: a miss) that meet one cell at ``r`` (m; NaN:
-    none) with ``hits`` of 10 visits (the rest passes), at 20 deg incidence; ``occupied`` (per beam, or one for
-    all): the cell is ``occ3`` occupied, else a stray-hit cell."""
-    met = np.isfinite(r)
-    at, hits = r[met], np.asarray(hits)[met]
-    occupied = np.broadcast_to(np.asarray(occupied, bool), r.shape)[met]
-    return PlanarTrace(
-        scan=np.repeat(np.arange(SCANS), BEAMS),
-        beam=np.tile(np.arange(BEAMS), SCANS),
-        z=z,
-        nominal=r,
-        incidence=np.where(met, 20.0, np.nan),
-        seg_start=np.concatenate([[0], np.cumsum(met)]),
-        seg_range=at,
-        seg_hits=hits.astype(np.int64),
-        seg_passes=(10 - hits).astype(np.int64),
-        seg_occupied=occupied.copy(),
-        seg_incidence=np.full(at.size, 20.0),
-        seg_surface=at,
-    )
+def one_cell_trace(z: np.ndarray, r: np.ndarray, hits: np.ndarray) -> PlanarTrace:
+    """``SCANS`` x ``BEAMS`` beams with measurements ``z`` (m, NaN: a miss) that meet one occupied cell at ``r``
+    (m; NaN: none) with ``hits`` of 10 visits (the rest passes), at 20 deg incidence."""
+    return segments_trace(z, r, [[(at, h, 10 - h, 1)] if np.isfinite(at) else [] for at, h in zip(r, hits)])
 
 
 def test_beams_that_pass_a_bush_miss_and_return_far_by_their_backstop_not_by_the_walls():
