@@ -1,7 +1,8 @@
 """The last steps of mi-lidar's planar fit: its tables' far tails and no-returns set against the training log.
 
-Hard EM (:func:`~mi_lidar.planar.models.fit_permeable_map`) gives each return to one segment, so the
-tables also learn far returns that the pass-through already explains. These steps correct that on
+The EM (:func:`~mi_lidar.planar.models.fit_permeable_map`) shares a return behind a wall between the
+wall's table and what lies behind it, so the tables also learn part of the far returns that the
+pass-through already explains. These steps correct that on
 training beams only: the tails scaled by likelihood (:func:`fit_tails`), the short tail set so that
 sampled scans hold as many short returns as the measured ones (:func:`match_short_returns`), and the
 no-return probabilities matched to the training beams (:func:`match_misses`). The last two trade a
@@ -36,15 +37,16 @@ def with_tails(density: NPRegDensity, short: float, long: float) -> NPRegDensity
 def fit_tails(beams: AngularMixture, density: NPRegDensity, iterations: int = 10) -> NPRegDensity:
     """The tables of ``density`` with their short and long tails scaled by maximum likelihood on ``beams``.
 
-    Hard EM gives each return to one segment, so a table also learns far returns that the pass-through
-    already explains (a return behind a wall is counted in the wall's table and in its permeability):
-    the model then draws more short and long returns than the log holds, on its training beams too. The
+    The EM shares a return behind a wall between the wall's table and the cells behind it, so a table
+    also learns part of the far returns that the pass-through already explains: the model then draws
+    more short and long returns than the log holds, on its training beams too. The
     two factors (in [0.02, 2], 1: unchanged) are found one after the other by golden-section search on
     the mean score of ``beams`` (:func:`~mi_lidar.planar.beams.golden_section`, ``iterations`` steps
     each), with the beams' angular spread: much of the short tail of a beam's own trace is its
     neighbours' nearer returns, which the spread explains. The spread is fitted again after. On Intel
-    (2026-11-26): short 0.75, long 0.28; test NLL 3.260 -> 3.252; of the sampled test returns, short
-    ones (> 0.5 m) 5.6 -> 4.3-5.0 % and long ones 5.7 -> 4.9-5.1 % (measured 3.6 and 4.1 %).
+    (2026-11-26, with the hard EM of that day): short 0.75, long 0.28; test NLL 3.260 -> 3.252; of the
+    sampled test returns, short ones (> 0.5 m) 5.6 -> 4.3-5.0 % and long ones 5.7 -> 4.9-5.1 % (measured
+    3.6 and 4.1 %).
     """
 
     def nll(short: float, long: float) -> float:
