@@ -279,8 +279,8 @@ def count_states(
     samples: StateSamples, grid: StateGrid, edges: np.ndarray, weight: np.ndarray | None = None
 ) -> np.ndarray:
     """(S + 1, B + 1) counts per state (escape last) of residual bins, with the no-returns in the last column;
-    each sample counts ``weight`` (N,), default 1 (a share of an outcome:
-    :func:`~mi_lidar.core.likelihood.element_shares`)."""
+    each sample counts ``weight`` (N,), default its own (``samples.weight``: a share of an outcome,
+    :meth:`~mi_lidar.core.likelihood.ElementShares.posterior`)."""
     n_states, n_bins = grid.size + 1, edges.size - 1
     state = np.full(samples.n, grid.size, np.int64)
     met = samples.met
@@ -288,7 +288,7 @@ def count_states(
     e = np.where(met, samples.z - np.where(met, samples.nominal, 0.0), samples.z)
     k = np.searchsorted(edges, e, side="right") - 1
     ok = samples.hit & (k >= 0) & (k < n_bins)
-    weight = np.ones(samples.n) if weight is None else np.asarray(weight, np.float64)
+    weight = np.asarray(samples.weight if weight is None else weight, np.float64)
     counts = np.zeros((n_states, n_bins + 1))
     np.add.at(counts, (state[ok], k[ok]), weight[ok])
     np.add.at(counts, (state[~samples.hit], n_bins), weight[~samples.hit])
@@ -426,7 +426,7 @@ def fit_np_reg(
     60 m, and one whose held-out returns reach farther than its training ones keeps a margin.
 
     Args:
-        samples: training states and measurements.
+        samples: training states and measurements, each counted with its weight.
         grid: the state grid (fine bins; the kernel does the smoothing).
         held_out_score: mean held-out NLL (nats per ray) of a candidate density (the one likelihood).
         h_ranges, h_incidences, uniforms: candidate range bandwidths (m), incidence bandwidths

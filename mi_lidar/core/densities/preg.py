@@ -318,6 +318,8 @@ def fit_p_reg(
     """
     met = samples.met
     r, d, hit, e = samples.nominal[met], samples.incidence[met], samples.hit[met], samples.residual[met]
+    weight = np.asarray(samples.weight, np.float64)  # (N,): what each sample counts for
+    w = weight[met]
     label = np.minimum(samples.label[met], n_labels - 1)
     beam = np.minimum(samples.beam[met], n_beams - 1)
     far = float(np.nanmax(r)) if r.size else 10.0
@@ -325,8 +327,10 @@ def fit_p_reg(
     d_nodes = np.arange(0.0, 90.0 + 1e-9, 5.0) if incidence_nodes is None else np.asarray(incidence_nodes)
     known = ~np.isnan(d)
     inl = hit & (np.abs(np.nan_to_num(e, nan=np.inf)) <= inlier)
-    escape_null = float(np.mean(~samples.hit[~met])) if np.any(~met) else 0.99
-    escape_mean, escape_sigma = _escape_moments(samples.z[~met & samples.hit], z_max)
+    escaped = ~met & (weight > 0)
+    escape_null = float(np.average(~samples.hit[escaped], weights=weight[escaped])) if np.any(escaped) else 0.99
+    returned = ~met & samples.hit
+    escape_mean, escape_sigma = _escape_moments(samples.z[returned], z_max, weight[returned])
     candidates = list(itertools.product(h_ranges, h_incidences, escapes[:1]))
 
     def regress(chosen: np.ndarray, h_r: float, h_d: float, prior: dict | None) -> dict[str, np.ndarray]:
@@ -341,14 +345,14 @@ def fit_p_reg(
         ):
             shape = tuple(len(n) for n in nodes)
             # fine bins keep the regression cheap: per bin, the mean state and the mean of each response
-            xm, missed, counts, _ = _binned(x[mask], (~hit[mask]).astype(float), nodes)
+            xm, missed, counts, _ = _binned(x[mask], (~hit[mask]).astype(float), w[mask], nodes)
             p_null_prior = None
             if prior is not None:
                 # a mix of the group's and its parent's no-return shares: in [0, 1]
                 level = _level_prior(prior["p_null"][rows].reshape(shape), nodes, xm, missed, counts)
                 p_null_prior = (level, np.zeros(shape))
             p_null, _ = _local_linear(xm, missed, counts, nodes, bws, prior=p_null_prior)
-            xm, em, counts, e2m = _binned(x[mask & inl], e[mask & inl], nodes)
+            xm, em, counts, e2m = _binned(x[mask & inl], e[mask & inl], w[mask & inl], nodes)
             mu_prior = None
             if prior is not None:
                 mu_prior = _level_prior_moments(
@@ -386,13 +390,14 @@ def fit_p_reg(
     )
 
 
-def _escape_moments(z: np.ndarray, z_max: float) -> tuple[float, float]:
-    """Mean and standard deviation (m) of the returns ``z`` of escaped beams, shrunk to those of the uniform
-    law on ``[0, z_max]`` with the weight of :data:`PSEUDO_SAMPLES` returns (pooled second moments)."""
-    n = z.size
+def _escape_moments(z: np.ndarray, z_max: float, w: np.ndarray) -> tuple[float, float]:
+    """Mean and standard deviation (m) of the returns ``z`` (N,) of escaped beams, weighted by ``w`` (N,),
+    shrunk to those of the uniform law on ``[0, z_max]`` with the weight of :data:`PSEUDO_SAMPLES` returns
+    (pooled second moments)."""
+    n = float(np.sum(w))
     prior_mean, prior_var = z_max / 2.0, z_max**2 / 12.0
-    mean = (np.sum(z) + PSEUDO_SAMPLES * prior_mean) / (n + PSEUDO_SAMPLES)
-    second = (np.sum(z**2) + PSEUDO_SAMPLES * (prior_var + prior_mean**2)) / (n + PSEUDO_SAMPLES)
+    mean = (np.sum(z * w) + PSEUDO_SAMPLES * prior_mean) / (n + PSEUDO_SAMPLES)
+    second = (np.sum(z**2 * w) + PSEUDO_SAMPLES * (prior_var + prior_mean**2)) / (n + PSEUDO_SAMPLES)
     return float(mean), float(np.sqrt(max(second - mean**2, MIN_SIGMA**2)))
 
 
@@ -439,14 +444,17 @@ def _level_prior_moments(mu, variance, nodes, x, y, y2, w) -> tuple[np.ndarray, 
 
 
 def _binned(
-    x: np.ndarray, y: np.ndarray, nodes: list[np.ndarray]
+    x: np.ndarray, y: np.ndarray, w: np.ndarray, nodes: list[np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Aggregate samples into cells of half the node spacing: cell means of x and y, counts, cell means of y^2."""
+    """Aggregate samples (states ``x`` (N, D), responses ``y`` (N,), weights ``w`` (N,)) into cells of half the
+    node spacing: weighted cell means of x and y, the cells' summed weights, weighted cell means of y^2."""
+    x, y, w = x[w > 0], y[w > 0], w[w > 0]
     if len(x) == 0:
         return np.zeros((0, len(nodes))), np.zeros(0), np.zeros(0), np.zeros(0)
     steps = [max(float(np.median(np.diff(n))) / 2.0, 1e-6) if n.size > 1 else 1.0 for n in nodes]
     keys = np.stack([np.floor(x[:, k] / steps[k]) for k in range(len(nodes))], 1).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    _, inverse = np.unique(keys, axis=0, return_inverse=True)
     inverse = inverse.ravel()
-    xm = np.stack([np.bincount(inverse, x[:, k]) / counts for k in range(len(nodes))], 1)
-    return xm, np.bincount(inverse, y) / counts, counts.astype(float), np.bincount(inverse, y * y) / counts
+    counts = np.bincount(inverse, w)
+    xm = np.stack([np.bincount(inverse, x[:, k] * w) / counts for k in range(len(nodes))], 1)
+    return xm, np.bincount(inverse, y * w) / counts, counts, np.bincount(inverse, y * y * w) / counts

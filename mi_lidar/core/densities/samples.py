@@ -12,7 +12,7 @@ outcome (:func:`~mi_lidar.core.likelihood.most_likely_elements`: the hard EM of 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -21,7 +21,8 @@ from mi_lidar.core.errors import ParameterError
 
 @dataclass
 class StateSamples:
-    """Per-ray states and measurements (all arrays (N,), numpy).
+    """Per-sample states and measurements (all arrays (N,), numpy; a sample is a ray, or a share of a ray's
+    outcome credited to one element).
 
     Attributes:
         nominal: nominal range of the first element, m (NaN: the ray met nothing).
@@ -30,6 +31,7 @@ class StateSamples:
         label: class label of the element (0 where none).
         z: measured range, m (NaN for a miss).
         hit: True where the sensor reported a return.
+        weight: what the sample counts for in a fit, e.g. its share of its ray's outcome (default 1: the whole ray).
     """
 
     nominal: np.ndarray
@@ -38,8 +40,11 @@ class StateSamples:
     label: np.ndarray
     z: np.ndarray
     hit: np.ndarray
+    weight: np.ndarray | None = field(default=None)
 
     def __post_init__(self):
+        if self.weight is None:
+            self.weight = np.ones(np.shape(self.hit))
         sizes = {f.name: np.shape(getattr(self, f.name)) for f in fields(self)}
         if len(set(sizes.values())) != 1:
             raise ParameterError(f"state samples: arrays of different shapes {sizes}; give one value per ray")
