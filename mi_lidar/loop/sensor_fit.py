@@ -259,8 +259,8 @@ def fit_learned_density(
     With ``credit`` (see :func:`fit_density`), between the two: up to :data:`CREDIT_ROUNDS` rounds of
     crediting every training ray to its most likely element under the current density and refitting
     with the chosen bandwidths, each kept only when it scores better held out, until one gains less than
-    :data:`CREDIT_GAIN` (on the Intel wall map of ``fit-scene``: 4.128 -> 3.198, 3.054, 3.006, 2.983,
-    2.971, 2.965 nats per ray).
+    :data:`CREDIT_GAIN` (on the Intel wall map of ``fit-scene``, NP-Reg: 3.648 -> 2.868, 2.813, 2.807 nats per
+    ray; P-Reg: 4.215 -> 3.115, 2.853, 2.812, 2.811).
 
     Returns:
         The density and its candidate table: rows ``(*bandwidths, beams, held-out NLL)``, the rows of the
