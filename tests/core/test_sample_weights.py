@@ -1,7 +1,8 @@
 """Weighted state samples: a sample of weight w counts as w samples in NP-Reg's and P-Reg's fits.
 
-fit-sensor's E step gives a ray one sample per element that may have produced its outcome, weighted by the
-element's posterior share (:class:`~mi_lidar.core.densities.samples.StateSamples`). Synthetic states (fixed
+A soft E step gives a ray one sample per element that may have produced its outcome, weighted by the
+element's posterior share (:class:`~mi_lidar.core.densities.samples.StateSamples`; fit-sensor still credits
+each ray wholly to its most likely element: the soft step scored worse held out). Synthetic states (fixed
 seed): nominal ranges 1-20 m, some unknown incidences and escaped rays, two labels, three beams, 10 % misses
 and 10 % returns short of or behind the element; the fits keep labels and beams apart.
 """
