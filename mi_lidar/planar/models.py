@@ -408,8 +408,9 @@ def fit_permeable_map(
             label=np.where(chosen >= 0, labels[seg], 0),
             z=train.z[beam],
             hit=train.hit[beam],
+            weight=share,
         )
-        counts = backstop_prior(count_states(assigned, grid, edges, share), grid, classes)
+        counts = backstop_prior(count_states(assigned, grid, edges), grid, classes)
         mass, p_null = _finish(np.concatenate([kernel_smooth(grid, counts[:-1], h_r, h_i), counts[-1:]]), e_kernel=True)
         return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=end)
 

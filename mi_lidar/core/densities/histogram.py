@@ -275,11 +275,9 @@ class NPRegDensity(ReturnDensity):
 
 
 # ---------------------------------------------------------------------- fitting
-def count_states(
-    samples: StateSamples, grid: StateGrid, edges: np.ndarray, weight: np.ndarray | None = None
-) -> np.ndarray:
+def count_states(samples: StateSamples, grid: StateGrid, edges: np.ndarray) -> np.ndarray:
     """(S + 1, B + 1) counts per state (escape last) of residual bins, with the no-returns in the last column;
-    each sample counts ``weight`` (N,), default its own (``samples.weight``: a share of an outcome,
+    each sample counts its weight (``samples.weight``, e.g. a share of an outcome,
     :meth:`~mi_lidar.core.likelihood.ElementShares.posterior`)."""
     n_states, n_bins = grid.size + 1, edges.size - 1
     state = np.full(samples.n, grid.size, np.int64)
@@ -288,7 +286,7 @@ def count_states(
     e = np.where(met, samples.z - np.where(met, samples.nominal, 0.0), samples.z)
     k = np.searchsorted(edges, e, side="right") - 1
     ok = samples.hit & (k >= 0) & (k < n_bins)
-    weight = np.asarray(samples.weight if weight is None else weight, np.float64)
+    weight = np.asarray(samples.weight, np.float64)
     counts = np.zeros((n_states, n_bins + 1))
     np.add.at(counts, (state[ok], k[ok]), weight[ok])
     np.add.at(counts, (state[~samples.hit], n_bins), weight[~samples.hit])
