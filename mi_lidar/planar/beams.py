@@ -10,9 +10,8 @@ one likelihood and sampled by the one sampler:
   element of its own with its counts, at the range of the cell's surface; its interception
   probability is the counting estimate with a fitted Beta prior (mi-lidar's permeable map,
   :func:`permeability`, :func:`fit_permeability`);
-* :class:`AngularMixture`: a beam reports what its own trace or, with a small weight each, what its
-  neighbours' traces would (the beam's angular spread: divergence and heading error), scored as the
-  mixture of the three likelihoods (:func:`fit_angular_weight`).
+
+The beam's angular spread (its neighbours' traces mixed in) is :mod:`mi_lidar.planar.angular`.
 
 Element labels carry the cell's occupancy (1: ``occ3`` occupied, 0: stray hits) and how much evidence
 its leave-out hits give (:func:`segment_labels`), so densities can condition on them.
@@ -35,7 +34,7 @@ from mi_lidar.core.likelihood import mixture_log_likelihood, score
 from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.sensor_model import SensorModel
-from mi_lidar.core.streams import BeamCorrelation, NeighbourStreams, scan_follows, uniform
+from mi_lidar.core.streams import BeamCorrelation, NeighbourStreams, scan_follows
 from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segments
 from mi_lidar.planar.raymarch import BACKSTOP, OCCUPANCY_NAMES, OPEN_STRAY, PlanarTrace
 
@@ -43,7 +42,6 @@ OCCUPANCY_CLASSES = len(OCCUPANCY_NAMES)  # one Beta prior per occupancy class (
 LABELS_BEYOND = OPEN_STRAY - BACKSTOP + 1  # labels after the cells' 2 * classes (:func:`segment_labels`)
 PERMEABILITY_TOLERANCE = 1e-5  # nats per beam: the Beta priors' fit has converged (see fit_permeability)
 EVIDENCE_CLASSES = 5  # at most: leave-out hits of a cell 1, 2-3, 4-7, 8-15, 16 or more (doublings)
-ANGULAR_STREAM = 4  # the random stream that picks an angular part (the sampler's are 0-3 and 64 up)
 
 
 def segment_labels(occupied: np.ndarray, hits: np.ndarray, classes: int = EVIDENCE_CLASSES) -> np.ndarray:
@@ -174,104 +172,6 @@ def scored(raw: np.ndarray, hit: np.ndarray) -> np.ndarray:
     """(B,) the one score (:func:`~mi_lidar.core.likelihood.score`) of raw per-beam log-likelihoods, as float64."""
     with dr.suspend_grad():
         return np.asarray(score(_f(raw), mi.Bool(aligned(np.asarray(hit, bool)))), np.float64)
-
-
-@dataclass
-class AngularMixture:
-    """Beams whose return comes from their own trace or, with weight ``weight`` each, from a neighbour's.
-
-    A real beam is not a line: it diverges, and the pose it was fired from carries a heading error.
-    Where the scene changes within a beam spacing (a door frame, a table leg, a wall's end) the
-    return comes from either side. The beam's angular spread is discretised at the scan's own beam
-    spacing: beam ``i`` reports what the trace of beam ``i`` would with probability ``1 - 2 weight``
-    and what the trace of beam ``i - 1`` or ``i + 1`` (same pose, same leave-out map,
-    :meth:`~mi_lidar.planar.raymarch.PlanarTrace.shifted`) would with ``weight`` each. Its likelihood
-    is the mixture of the three pass-through likelihoods, scored once by the one score; sampling picks
-    one of the three traces, then samples it.
-
-    Attributes:
-        parts: the beams of offsets 0, -1, +1 (each with the measured returns of the beams themselves).
-        weight: the share of each neighbour, in [0, 1/3].
-    """
-
-    parts: tuple[EngineBeams, EngineBeams, EngineBeams]
-    weight: float
-
-    @property
-    def n(self) -> int:
-        return self.parts[0].n
-
-    @property
-    def hit(self) -> np.ndarray:
-        return np.asarray(self.parts[0].hit)
-
-    def shares(self) -> np.ndarray:
-        """(3,) probability of each part."""
-        return np.array([1.0 - 2.0 * self.weight, self.weight, self.weight])
-
-    def raw_log_likelihood(self, model) -> np.ndarray:
-        """(B,) raw log-likelihood of the mixture (nats)."""
-        return mix_raw(np.stack([b.raw_log_likelihood(model) for b in self.parts]), self.shares())
-
-    def log_likelihood(self, model) -> np.ndarray:
-        """(B,) scored log-likelihood per beam (nats)."""
-        return scored(self.raw_log_likelihood(model), self.hit)
-
-    def p_miss(self, model) -> np.ndarray:
-        """(B,) probability of no return per beam."""
-        return np.tensordot(self.shares(), np.stack([b.p_miss(model) for b in self.parts]), axes=1)
-
-    def with_correlation(self, correlation: BeamCorrelation) -> AngularMixture:
-        """These beams with every part sampled with ``correlation``."""
-        parts = tuple(dataclasses.replace(b, correlation=correlation) for b in self.parts)
-        return dataclasses.replace(self, parts=parts)
-
-    def streams(self, seed: int, follows: np.ndarray | None = None) -> int | NeighbourStreams:
-        """The random streams of a sample with ``seed`` (:meth:`EngineBeams.streams`; the parts' beams are the same)."""
-        return self.parts[0].streams(seed, follows)
-
-    def numbered_from(self, first: int) -> AngularMixture:
-        """These beams as rays ``first ..`` of a larger set (:meth:`EngineBeams.numbered_from`)."""
-        return dataclasses.replace(self, parts=tuple(b.numbered_from(first) for b in self.parts))
-
-    def sample(self, model, seed: int | NeighbourStreams = 0) -> tuple[np.ndarray, np.ndarray]:
-        """One sampled (range, hit) per beam: the part drawn by its share, then that part's sample.
-
-        The parts draw from the same random streams (``seed``'s, or the streams given), so a beam keeps its
-        share of its neighbours' errors whichever part it reports. The part is picked by a stream of its own
-        (:data:`ANGULAR_STREAM`, independent of the others), keyed like them by the ray id.
-        """
-        streams = seed if isinstance(seed, NeighbourStreams) else self.streams(seed)
-        draws = [b.sample(model, streams) for b in self.parts]
-        key = streams.seed if isinstance(streams, NeighbourStreams) else streams
-        with dr.suspend_grad():
-            u = np.asarray(uniform(key, self.parts[0].rays.ray_id, 0, ANGULAR_STREAM), np.float64)
-        part = np.searchsorted(np.cumsum(self.shares())[:-1], u, side="right")
-        rows = np.arange(self.n)
-        return np.stack([d[0] for d in draws])[part, rows], np.stack([d[1] for d in draws])[part, rows]
-
-
-def mix_raw(raw: np.ndarray, shares: np.ndarray) -> np.ndarray:
-    """(B,) ``log sum_k shares_k exp(raw_k)`` of (K, B) raw log-likelihoods (parts of zero share left out)."""
-    used = shares > 0
-    return np.logaddexp.reduce(raw[used] + np.log(shares[used])[:, None], axis=0)
-
-
-def angular_mixture(trace: PlanarTrace, beams, weight: float) -> AngularMixture:
-    """The :class:`AngularMixture` of ``trace`` with neighbour share ``weight``; ``beams(trace)`` builds each part."""
-    return AngularMixture(parts=(beams(trace), beams(trace.shifted(-1)), beams(trace.shifted(1))), weight=weight)
-
-
-def fit_angular_weight(raw: np.ndarray, hit: np.ndarray, iterations: int = 40) -> float:
-    """The neighbour share in [0, 1/3] that maximises the mean score of (3, B) raw part log-likelihoods.
-
-    The score is unimodal in the share (a mixture weight), so a golden-section search finds it.
-    """
-
-    def nll(weight: float) -> float:
-        return float(-scored(mix_raw(raw, np.array([1.0 - 2.0 * weight, weight, weight])), hit).mean())
-
-    return golden_section(nll, 0.0, 1.0 / 3.0, iterations)
 
 
 def golden_section(f, lo: float, hi: float, iterations: int = 30) -> float:

@@ -108,8 +108,8 @@ class ModelRow:
     def engine(self) -> tuple:
         """``(training beams, test beams, model)``, to simulate more scans at the same beams
         (:func:`mi_lidar.apps.scans.planar_datasets`). Built on each call, not kept: mi-lidar's beams
-        hold every segment of every beam three times (its angular spread), 0.5 GB for 300,000
-        training beams."""
+        hold every segment of every beam seven times (its angular spread: the own trace, each
+        neighbour's, each footprint's two), about 1.2 GB for 300,000 training beams."""
         return (*self.beams(), self.model)
 
     def to_json(self) -> dict:
@@ -190,7 +190,7 @@ class PlanarBenchmark:
         }
 
 
-PART_BEAMS = 100_000  # beams scored and sampled at once: mi-lidar's hold every segment three times (0.5 GB per 300,000)
+PART_BEAMS = 100_000  # beams scored and sampled at once: mi-lidar's hold every segment seven times (1.2 GB per 300,000)
 
 
 def scan_parts(scan: np.ndarray, beams: int = PART_BEAMS) -> list[np.ndarray]:
@@ -337,6 +337,7 @@ def run_planar_benchmark(
                 for name, a, b in zip(OCCUPANCY_NAMES, permeable.a, permeable.b)
             },
             "angular_share_per_neighbour": float(permeable.angular),
+            "footprint_share_per_neighbour": float(permeable.footprint),
             "evidence_classes": int(permeable.classes),
             "beam_correlation": {"shared": permeable.correlation.shared, "rho": permeable.correlation.rho},
             "shared_errors_pit_lags": permeable.shared_errors,

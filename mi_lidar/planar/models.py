@@ -23,10 +23,10 @@ mi-lidar   the permeable map: every cell with leave-out hits is an element at it
            :meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`), and one that passes it
            too escapes (the law of the returns and misses credited to escaping); a beam in the open (stray
            cells only) meets stray cells and a backstop of classes of its own; a beam's return
-           comes from its own trace or, by a fitted share, from a neighbouring beam's (its angular
-           spread); sampled scans share errors between neighbouring beams as the real training
-           scans do (a Gaussian copula on the sampler's streams, :mod:`~mi_lidar.planar.correlation`;
-           no effect on the NLL)
+           comes from its own trace or, by fitted shares, from a neighbouring beam's or the nearer of
+           the two (its angular spread, :mod:`~mi_lidar.planar.angular`); sampled scans share errors
+           between neighbouring beams as the real training scans do (a Gaussian copula on the
+           sampler's streams, :mod:`~mi_lidar.planar.correlation`; no effect on the NLL)
 =========  ===================================================================================
 
 Bandwidths, priors and mi-lidar's evidence classes are chosen on the training scans only: the learned
@@ -60,14 +60,12 @@ from mi_lidar.core.likelihood import ESCAPED, element_shares
 from mi_lidar.core.problem import fit_parts
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.streams import BeamCorrelation
+from mi_lidar.planar.angular import AngularMixture, angular_mixture, fit_angular_shares
 from mi_lidar.planar.beams import (
     EVIDENCE_CLASSES,
     LABELS_BEYOND,
-    AngularMixture,
     EngineBeams,
-    angular_mixture,
     base_model,
-    fit_angular_weight,
     fit_permeability,
     golden_section,
     nominal_beams,
@@ -107,12 +105,6 @@ def initial_credit(trace: PlanarTrace) -> np.ndarray:
     kind = np.where(counts > 0, trace.seg_occupied[last], -1)
     far = (kind == BACKSTOP) & trace.hit & (trace.z > trace.seg_at[last] + FAR)
     return np.where(far | (kind == OPEN_BACKSTOP), last, first)
-
-
-def first_occupied_range(trace: PlanarTrace) -> np.ndarray:
-    """(B,) range (m) of each beam's first ``occ3`` occupied segment's surface (NaN: none)."""
-    first = trace.first_occupied()
-    return np.where(first >= 0, trace.seg_at[np.maximum(first, 0)], np.nan)
 
 
 def fit_m0(train: EngineBeams, samples: StateSamples, z_max: float) -> SensorModel:
@@ -291,8 +283,9 @@ class PermeableMap:
             (stray-hit cells, occupied cells, backstops, and the backstops and stray cells of beams in the open:
             :data:`~mi_lidar.planar.raymarch.BACKSTOP`).
         classes: evidence classes of the segment labels (:func:`~mi_lidar.planar.beams.segment_labels`).
-        angular: the share of each neighbouring beam's trace in a beam's return
-            (:class:`~mi_lidar.planar.beams.AngularMixture`).
+        angular: the share of each neighbouring beam's trace alone in a beam's return, and
+        footprint: the share of each footprint (the nearer of the beam's and a neighbour's returns)
+            (:class:`~mi_lidar.planar.angular.AngularMixture`).
         correlation: how much neighbouring beams share their errors when sampled
             (:func:`~mi_lidar.planar.correlation.fit_beam_correlation`).
         shared_errors: that fit's summary: PIT lag correlations of the real training scans, of scans
@@ -304,6 +297,7 @@ class PermeableMap:
     b: np.ndarray
     classes: int = EVIDENCE_CLASSES
     angular: float = 0.0
+    footprint: float = 0.0
     correlation: BeamCorrelation = BeamCorrelation()
     shared_errors: dict = dataclasses.field(default_factory=dict)
 
@@ -314,7 +308,7 @@ class PermeableMap:
 
     def beams(self, trace: PlanarTrace) -> AngularMixture:
         """The beams of ``trace`` under this map, with their angular spread."""
-        return angular_mixture(trace, self.segments, self.angular)
+        return angular_mixture(trace, self.segments, self.angular, self.footprint)
 
 
 def fit_milidar(
@@ -385,8 +379,9 @@ def fit_permeable_map(
     :data:`TAIL_BEAMS` beams) and their no-return probabilities
     (:func:`~mi_lidar.planar.tails.match_misses`, per range band of the first occupied cell, on all
     training beams: no-returns come in runs of whole scans); none with ``tails=False``; last, the
-    angular spread (the neighbours' share) by maximum likelihood on the training beams. Its beams are
-    sampled independently until :func:`fit_correlation` sets how much neighbours share their errors.
+    angular spread (the shares of the neighbours alone and of the footprints) by maximum likelihood on the
+    training beams. Its beams are sampled independently until :func:`fit_correlation` sets how much
+    neighbours share their errors.
     Every fit of the Beta prior starts from the previous one's, the first from ``prior`` (default 0.5
     each): a starting point, not a constraint.
     """
@@ -423,23 +418,22 @@ def fit_permeable_map(
             density = tables(*credited_segments(permeable, traced.seg_start, base_model(density)))
         del permeable
     a, b = fit_permeability(beams, base_model(density), steps, start=prior)
-    del beams  # the mixture below holds these segments again, three times: one set at a time
+    del beams  # the mixture below holds these segments again, seven times: one set at a time
     fitted = PermeableMap(model=base_model(density), a=a, b=b, classes=classes)
     mixture = fitted.beams(train)
 
-    def angular_share() -> float:
-        raw = np.stack([part.raw_log_likelihood(fitted.model) for part in mixture.parts])
-        return fit_angular_weight(raw, mixture.hit)
+    def angular_shares() -> None:
+        fitted.angular, fitted.footprint = fit_angular_shares(mixture.raw_parts(fitted.model), mixture.hit)
 
-    fitted.angular = angular_share()
+    angular_shares()
     if tails:
         part = train.take(np.isin(train.scan, evenly_spaced_scans(train.scan, TAIL_BEAMS)))
         some = fitted.beams(part)
         density = match_short_returns(some, part, fit_tails(some, density))
-        mixture.weight = fitted.angular  # built before the spread was known
-        first_range = first_occupied_range(train)
+        mixture.weight, mixture.footprint = fitted.angular, fitted.footprint  # built before the spread was known
+        first_range = train.first_occupied_range()
         fitted.model = base_model(match_misses(mixture, density, first_range, RANGE_EDGES))
-        fitted.angular = angular_share()
+        angular_shares()
     return fitted
 
 

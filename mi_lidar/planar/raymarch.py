@@ -170,6 +170,12 @@ class PlanarTrace:
         fields["seg_occupied"][moved] = np.where(walled[seg_beam], self.seg_occupied, OPEN_STRAY)
         return dataclasses.replace(self, seg_start=start, **fields)
 
+    def neighbour(self, k: int) -> np.ndarray:
+        """(B,) index of beam ``i + k`` of the same scan for every beam ``i``; ``i`` itself past the scan's edge."""
+        i = np.arange(self.n)
+        j = np.clip(i + k, 0, max(self.n - 1, 0))
+        return np.where(self.scan[j] == self.scan, j, i)
+
     def shifted(self, k: int) -> PlanarTrace:
         """Beam ``i + k`` of the same scan in place of every beam ``i``, with beam ``i``'s measurement.
 
@@ -177,10 +183,39 @@ class PlanarTrace:
         where a beam turned by ``k`` beam spacings goes, seen from the same pose through the same
         leave-out map.
         """
-        i = np.arange(self.n)
-        j = np.clip(i + k, 0, max(self.n - 1, 0))
-        j = np.where(self.scan[j] == self.scan, j, i)
-        return dataclasses.replace(self.take(j), z=self.z, beam=self.beam, scan=self.scan)
+        return dataclasses.replace(self.take(self.neighbour(k)), z=self.z, beam=self.beam, scan=self.scan)
+
+    def footprint(self, k: int) -> PlanarTrace:
+        """Every beam ``i`` with the segments of its own trace and of beam ``i + k``'s (:meth:`neighbour`) merged
+        in range order, and its own measurement.
+
+        Each segment still intercepts on its own, so the first return along the merged list is the
+        nearer of the two directions' first returns: what a beam reports whose footprint covers both
+        (a post in one direction stops it, whatever lies behind the post in the other). A cell that both
+        directions cross is met twice, once by each. Past the scan's edge a beam keeps its own trace, not
+        doubled.
+        """
+        other = self.neighbour(k)
+        counts = np.diff(self.seg_start)
+        other_count = np.where(other != np.arange(self.n), counts[other], 0)  # at the scan's edge: none
+        own_rows = np.arange(self.seg_range.size)
+        other_rows = np.repeat(self.seg_start[other], other_count) + _ranks(other_count)
+        segment = np.concatenate([own_rows, other_rows])
+        index = np.arange(self.n)
+        beam_of = np.concatenate([np.repeat(index, counts), np.repeat(index, other_count)])
+        segment = segment[np.lexsort((self.seg_at[segment], beam_of))]
+        start = np.concatenate([[0], np.cumsum(counts + other_count)])
+        return dataclasses.replace(self, seg_start=start, **{f: getattr(self, f)[segment] for f in SEGMENT_FIELDS})
+
+    def first_occupied_range(self) -> np.ndarray:
+        """(B,) range (m) of each beam's first ``occ3`` occupied segment's surface (NaN: none)."""
+        first = self.first_occupied()
+        return np.where(first >= 0, self.seg_at[np.maximum(first, 0)], np.nan)
+
+
+def _ranks(counts: np.ndarray) -> np.ndarray:
+    """``0 .. c - 1`` for every count ``c`` of ``counts``, concatenated."""
+    return np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
 
 
 def occupied(hits: np.ndarray, passes: np.ndarray) -> np.ndarray:

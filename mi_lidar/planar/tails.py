@@ -14,7 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from mi_lidar.core.densities import NPRegDensity
-from mi_lidar.planar.beams import AngularMixture, base_model, golden_section
+from mi_lidar.planar.angular import AngularMixture
+from mi_lidar.planar.beams import base_model, golden_section
 from mi_lidar.planar.raymarch import PlanarTrace
 
 

@@ -46,14 +46,14 @@ def leaky_wall_trace(seed: int = 3) -> PlanarTrace:
     return segments_trace(z, r, segments)
 
 
-def segments_trace(z: np.ndarray, nominal: np.ndarray, segments: list) -> PlanarTrace:
-    """``SCANS`` x ``BEAMS`` beams with measurements ``z`` (m, NaN: a miss), nominal ranges ``nominal`` (m; NaN:
+def segments_trace(z: np.ndarray, nominal: np.ndarray, segments: list, scans: int = SCANS, beams: int = BEAMS):
+    """``scans`` x ``beams`` beams with measurements ``z`` (m, NaN: a miss), nominal ranges ``nominal`` (m; NaN:
     none) and per beam a list of segments ``(range, hits, passes, occupied)``, every one at 20 deg incidence."""
     rows = np.array([s for beam_segments in segments for s in beam_segments])
     counts = np.array([len(s) for s in segments])
     return PlanarTrace(
-        scan=np.repeat(np.arange(SCANS), BEAMS),
-        beam=np.tile(np.arange(BEAMS), SCANS),
+        scan=np.repeat(np.arange(scans), beams),
+        beam=np.tile(np.arange(beams), scans),
         z=z,
         nominal=nominal,
         incidence=np.where(np.isfinite(nominal), 20.0, np.nan),

@@ -10,7 +10,7 @@ import pytest
 
 from mi_lidar.core.streams import BeamCorrelation
 from mi_lidar.io.carmen import read_carmen
-from mi_lidar.planar.beams import AngularMixture
+from mi_lidar.planar.angular import AngularMixture
 from mi_lidar.planar.benchmark import run_planar_benchmark, scan_parts, scores_in_parts
 from mi_lidar.planar.models import fit_permeable_map
 from mi_lidar.planar.protocol import PlanarProtocol, prepare

@@ -11,7 +11,7 @@ import pytest
 
 from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar import tails
-from mi_lidar.planar.models import base_model, first_occupied_range, fit_permeable_map
+from mi_lidar.planar.models import base_model, fit_permeable_map
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
 from mi_lidar.planar.tails import (
     FAR,
@@ -106,7 +106,7 @@ def test_no_returns_are_matched_to_the_training_beams(tmp_path):
     density = fitted.model.density
     tripled = density.with_tables(p_null=np.minimum(3.0 * density.p_null, 1.0))
     assert p_miss(tripled) > 1.2 * measured  # measured: 1.43
-    first, one_band = first_occupied_range(data.train), [0.0, 1.0e9]
+    first, one_band = data.train.first_occupied_range(), [0.0, 1.0e9]
     matched = match_misses(beams, tripled, first, one_band)
     assert p_miss(matched) == pytest.approx(measured, abs=2e-4)
     escaping = tripled.with_tables(p_null=np.concatenate([tripled.p_null[:-1], [0.6]]))
@@ -127,7 +127,7 @@ def test_no_returns_are_matched_per_range_band(tmp_path, monkeypatch):
     path = tmp_path / "room.log"
     path.write_text(room_log_text(scans=30))
     data = prepare(read_carmen(path), PlanarProtocol(window=5.0))
-    first = first_occupied_range(data.train)
+    first = data.train.first_occupied_range()
     far = np.nanmax(first)
     drop = np.random.default_rng(7).random(first.size) < 0.6 * np.nan_to_num(first) / far
     train = dataclasses.replace(data.train, z=np.where(drop, np.nan, data.train.z))
