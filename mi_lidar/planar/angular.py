@@ -6,10 +6,10 @@ either side. The spread is discretised at the scan's own beam spacing, in five p
 (:class:`AngularMixture`), all seen from the same pose through the same leave-out map:
 
 * the beam's own trace;
-* the trace of beam ``i - 1`` or ``i + 1`` alone (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.shifted`,
+* the trace of beam ``i - 1`` or ``i + 1`` alone (:meth:`~mi_lidar.planar.trace.PlanarTrace.shifted`,
   share ``weight`` each): the whole beam turned by a heading error;
 * the beam's *footprint* over beam ``i - 1``'s or ``i + 1``'s direction
-  (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.footprint`, share ``footprint`` each): both directions'
+  (:meth:`~mi_lidar.planar.trace.PlanarTrace.footprint`, share ``footprint`` each): both directions'
   segments in range order, so the nearer surface returns. A diverging beam that half meets a post
   reports the post, never the wall behind it.
 
@@ -42,7 +42,7 @@ import numpy as np
 from mi_lidar.core.likelihood import LOG_FLOOR, LOG_RESOLUTION
 from mi_lidar.core.streams import BeamCorrelation, NeighbourStreams, uniform
 from mi_lidar.planar.beams import EngineBeams, scored
-from mi_lidar.planar.raymarch import PlanarTrace
+from mi_lidar.planar.trace import PlanarTrace
 
 ANGULAR_STREAM = 4  # the random stream that picks an angular part (the sampler's are 0-3 and 64 up)
 OFFSETS = (-1, 1)  # the neighbours, in beam spacings

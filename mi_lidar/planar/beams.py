@@ -1,6 +1,6 @@
 """Traced planar beams as the likelihood engine sees them: elements, rounds, rays, and their scores.
 
-A :class:`~mi_lidar.planar.raymarch.PlanarTrace` is turned into the engine's inputs (an element table
+A :class:`~mi_lidar.planar.trace.PlanarTrace` is turned into the engine's inputs (an element table
 without geometry, compact rounds, rays) so that every model of the planar benchmark is scored by the
 one likelihood and sampled by the one sampler:
 
@@ -36,7 +36,7 @@ from mi_lidar.core.rays import RayBatch
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.streams import BeamCorrelation, NeighbourStreams, scan_follows
 from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segments
-from mi_lidar.planar.raymarch import BACKSTOP, OCCUPANCY_NAMES, OPEN_STRAY, PlanarTrace
+from mi_lidar.planar.trace import BACKSTOP, OCCUPANCY_NAMES, OPEN_STRAY, PlanarTrace
 
 OCCUPANCY_CLASSES = len(OCCUPANCY_NAMES)  # one Beta prior per occupancy class (raymarch.BACKSTOP and the rest)
 LABELS_BEYOND = OPEN_STRAY - BACKSTOP + 1  # labels after the cells' 2 * classes (:func:`segment_labels`)
@@ -49,7 +49,7 @@ def segment_labels(occupied: np.ndarray, hits: np.ndarray, classes: int = EVIDEN
 
     A wall seen by many scans is located to a centimetre; a cell with one or two hits (seen once,
     or a person's legs) is not, and its returns spread more: the residual law depends on both.
-    ``classes = 1`` labels occupancy alone. The classes of :meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`
+    ``classes = 1`` labels occupancy alone. The classes of :meth:`~mi_lidar.planar.trace.PlanarTrace.with_backstops`
     (``occupied`` 2 a backstop, 3 the backstop of a beam in the open, 4 a stray cell on a beam in the open) have
     a label each, ``2 * classes`` to ``2 * classes + 2``: what a beam meets after passing every cell listed for
     it (a wall the map has not seen, or ground far behind a bush) returns and misses by its own law
@@ -93,7 +93,7 @@ class EngineBeams:
         hits, passes: leave-out counts of every element (for :func:`permeability`).
         occupied: (E,) occupancy class of every element: 1 an ``occ3`` occupied cell, 0 stray hits,
             2-4 a backstop, the backstop and a stray cell of a beam in the open
-            (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`).
+            (:meth:`~mi_lidar.planar.trace.PlanarTrace.with_backstops`).
         follows: (B,) beam ``i`` is the next beam of beam ``i - 1``'s scan
             (:func:`~mi_lidar.core.streams.scan_follows`).
         correlation: how much neighbouring beams share their random draws when sampled
@@ -258,7 +258,7 @@ def fit_permeability(
 
     Stray-hit cells (hits in fewer than a quarter of visits: people, clutter, grazing wall edges) and
     ``occ3`` occupied cells get their own prior: the same counts mean a different interception
-    probability in the two classes. Backstops (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`)
+    probability in the two classes. Backstops (:meth:`~mi_lidar.planar.trace.PlanarTrace.with_backstops`)
     have no counts: theirs is ``a / (a + b)`` of their own prior.
 
     Only the interception probabilities move, so each segment's return density at the measured range

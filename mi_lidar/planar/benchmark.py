@@ -38,9 +38,9 @@ from mi_lidar.core.streams import scan_follows
 from mi_lidar.planar import models as m
 from mi_lidar.planar.beams import nominal_beams
 from mi_lidar.planar.protocol import PlanarData, PlanarProtocol, prepare
-from mi_lidar.planar.raymarch import OCCUPANCY_NAMES, PlanarTrace
 from mi_lidar.planar.reference import repaired_scans
 from mi_lidar.planar.tails import short_share
+from mi_lidar.planar.trace import OCCUPANCY_NAMES, PlanarTrace
 
 MODELS = ("M0", "M1", "M2a", "M2b", "M3a", "M3b", "P-Reg", "NP-Reg", "mi-lidar")
 SAMPLED_SCANS = 8  # sampled test scans per model for the CRPS (seeds seed, seed + 1, ...)

@@ -20,7 +20,7 @@ mi-lidar   the permeable map: every cell with leave-out hits is an element at it
            their posterior, its far tails scaled by likelihood); a beam that passes every cell listed for it
            meets a backstop behind the last (its own interception probability and return law: what
            is credited to it, shrunk to an unseen wall's,
-           :meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`), and one that passes it
+           :meth:`~mi_lidar.planar.trace.PlanarTrace.with_backstops`), and one that passes it
            too escapes (the law of the returns and misses credited to escaping); a beam in the open (stray
            cells only) meets stray cells and a backstop of classes of its own; a beam's return
            comes from its own trace or, by fitted shares, from a neighbouring beam's or the nearer of
@@ -73,8 +73,8 @@ from mi_lidar.planar.beams import (
     segment_labels,
 )
 from mi_lidar.planar.correlation import fit_beam_correlation
-from mi_lidar.planar.raymarch import BACKSTOP, OPEN_BACKSTOP, PlanarTrace
 from mi_lidar.planar.tails import FAR, fit_tails, match_misses, match_short_returns
+from mi_lidar.planar.trace import BACKSTOP, OPEN_BACKSTOP, PlanarTrace
 
 RANGE_EDGES = [float(e) for e in np.linspace(0.0, 40.0, 18)] + [1.0e9]  # 17 bins over 0-40 m (M2a, M3a)
 INCIDENCE_EDGES = [0.0, 20.0, 40.0, 55.0, 65.0, 75.0, 82.0, 90.0]  # plus the unknown bin (M2b, M3b)
@@ -95,7 +95,7 @@ def samples_of(trace: PlanarTrace) -> StateSamples:
 
 def initial_credit(trace: PlanarTrace) -> np.ndarray:
     """(B,) the segment each beam's outcome is first credited to (-1: the escape state): its first ``occ3``
-    occupied segment, or its backstop (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`, which
+    occupied segment, or its backstop (:meth:`~mi_lidar.planar.trace.PlanarTrace.with_backstops`, which
     ``trace`` holds) for a return more than :data:`~mi_lidar.planar.tails.FAR` behind it; a beam in the open
     (stray cells only), its backstop whatever it reported (credited to the escape state, its misses left that
     backstop no P(null) from which the EM could give them back)."""
@@ -281,7 +281,7 @@ class PermeableMap:
         model: the sensor model (its density conditions on range, incidence, cell occupancy and evidence).
         a, b: (5,) the Beta priors of the elements' interception probabilities, one per occupancy class
             (stray-hit cells, occupied cells, backstops, and the backstops and stray cells of beams in the open:
-            :data:`~mi_lidar.planar.raymarch.BACKSTOP`).
+            :data:`~mi_lidar.planar.trace.BACKSTOP`).
         classes: evidence classes of the segment labels (:func:`~mi_lidar.planar.beams.segment_labels`).
         angular: the share of each neighbouring beam's trace alone in a beam's return, and
         footprint: the share of each footprint (the nearer of the beam's and a neighbour's returns)
@@ -352,7 +352,7 @@ def fit_permeable_map(
 ) -> PermeableMap:
     """mi-lidar's permeable map with ``classes`` evidence classes (see the module docstring).
 
-    Every beam's segments end in a backstop (:meth:`~mi_lidar.planar.raymarch.PlanarTrace.with_backstops`:
+    Every beam's segments end in a backstop (:meth:`~mi_lidar.planar.trace.PlanarTrace.with_backstops`:
     a class with its own Beta prior and its own label, :func:`backstop_prior`; a beam in the open, with stray
     cells only, has a backstop and stray cells of classes of their own).
     Start: NP-Reg tables from each beam's first occupied cell (its surface, incidence and label), or its

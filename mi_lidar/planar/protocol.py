@@ -18,7 +18,8 @@ import numpy as np
 from mi_lidar.core.errors import LogFormatError, ParameterError
 from mi_lidar.core.log import Log
 from mi_lidar.planar.grid import CountMap, Grid, count_scans, in_threads, planar_beams
-from mi_lidar.planar.raymarch import PlanarTrace, trace_scans
+from mi_lidar.planar.raymarch import trace_scans
+from mi_lidar.planar.trace import PlanarTrace
 
 MAX_TEST_EVERY = 10**9  # a test scan every 10**9 scans already tests scan 0 alone: more is a typo
 MAX_CELLS = 2**28  # map cells: the count map keeps 24 bytes a cell (6 GB here) and needs twice that to build

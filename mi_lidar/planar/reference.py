@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mi_lidar.planar.raymarch import PlanarTrace
+from mi_lidar.planar.trace import PlanarTrace
 
 NEIGHBOURS = 20  # a beam's partner is drawn among this many beams on either side in nominal range
 ATTEMPTS = 64  # draws of a partner (another scan, same kind) before a beam keeps its own outcome

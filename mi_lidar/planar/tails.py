@@ -16,7 +16,7 @@ import numpy as np
 from mi_lidar.core.densities import NPRegDensity
 from mi_lidar.planar.angular import AngularMixture
 from mi_lidar.planar.beams import base_model, golden_section
-from mi_lidar.planar.raymarch import PlanarTrace
+from mi_lidar.planar.trace import PlanarTrace
 
 
 def training_nll(beams: AngularMixture, density: NPRegDensity) -> float:

@@ -10,7 +10,7 @@ import pytest
 from mi_lidar.core.likelihood import FLOOR, RESOLUTION
 from mi_lidar.planar.angular import fit_angular_shares
 from mi_lidar.planar.models import fit_permeable_map
-from mi_lidar.planar.raymarch import PlanarTrace
+from mi_lidar.planar.trace import PlanarTrace
 from tests.planar.test_backstops import BEAMS, SCANS, segments_trace
 
 POST = range(40, 50)  # the beams of every scan whose own trace meets the post

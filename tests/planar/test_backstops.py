@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mi_lidar.planar.models import fit_permeable_map
-from mi_lidar.planar.raymarch import BACKSTOP, BACKSTOP_DEPTH, PlanarTrace
+from mi_lidar.planar.trace import BACKSTOP, BACKSTOP_DEPTH, PlanarTrace
 
 SCANS, BEAMS = 40, 120
 

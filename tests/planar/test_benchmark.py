@@ -341,7 +341,7 @@ def test_the_beta_prior_fit_starts_where_it_is_told(room, monkeypatch):
 
 def test_prepare_gives_the_same_traces_on_any_number_of_threads(room):
     """Batches traced on worker threads are put back in order: the trace does not depend on the thread count."""
-    from mi_lidar.planar.raymarch import SEGMENT_FIELDS
+    from mi_lidar.planar.trace import SEGMENT_FIELDS
 
     log = read_carmen(room)
     protocol = PlanarProtocol(window=5.0, batch=7)  # several batches per split

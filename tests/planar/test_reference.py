@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from mi_lidar.core.metrics import metrics_of
-from mi_lidar.planar.raymarch import SEGMENT_FIELDS, PlanarTrace
 from mi_lidar.planar.reference import repaired_scans
+from mi_lidar.planar.trace import SEGMENT_FIELDS, PlanarTrace
 
 
 def trace_of(scan: np.ndarray, nominal: np.ndarray, z: np.ndarray) -> PlanarTrace:
