@@ -78,8 +78,7 @@ class AngularMixture:
 
     def shares(self) -> np.ndarray:
         """(5,) probability of each part."""
-        w, f = self.weight, self.footprint
-        return np.array([1.0 - 2.0 * w - 2.0 * f, w, w, f, f])
+        return part_shares(self.weight, self.footprint)
 
     def raw_parts(self, model) -> np.ndarray:
         """(5, B) raw log-likelihood of every part (nats)."""
@@ -128,6 +127,11 @@ class AngularMixture:
         return np.stack([d[0] for d in draws])[part, rows], np.stack([d[1] for d in draws])[part, rows]
 
 
+def part_shares(weight: float, footprint: float) -> np.ndarray:
+    """(5,) probability of each part of an :class:`AngularMixture` with these shares."""
+    return np.array([1.0 - 2.0 * weight - 2.0 * footprint, weight, weight, footprint, footprint])
+
+
 def mix_raw(raw: np.ndarray, shares: np.ndarray) -> np.ndarray:
     """(B,) ``log sum_k shares_k exp(raw_k)`` of (K, B) raw log-likelihoods (parts of zero share left out)."""
     used = shares > 0
@@ -159,7 +163,7 @@ def fit_angular_shares(raw: np.ndarray, hit: np.ndarray) -> tuple[float, float]:
         return 0.0, 0.0
     weight = footprint = 0.05
     for _ in range(SHARE_ROUNDS):
-        shares = np.array([1.0 - 2.0 * weight - 2.0 * footprint, weight, weight, footprint, footprint])
+        shares = part_shares(weight, footprint)
         with np.errstate(divide="ignore"):
             joint = log_p + np.log(shares)[:, None]
         total = np.logaddexp(np.logaddexp.reduce(joint, axis=0), LOG_FLOOR)

@@ -83,9 +83,8 @@ class PlanarTrace:
     def take(self, which: np.ndarray) -> PlanarTrace:
         """The beams ``which`` (a bool mask, or indices in any order, repeats allowed), with their segments."""
         index = np.flatnonzero(which) if np.asarray(which).dtype == bool else np.asarray(which, np.int64)
-        counts = np.diff(self.seg_start)[index]
+        counts, rows = self.segment_rows(index)
         start = np.concatenate([[0], np.cumsum(counts)])
-        rows = np.repeat(self.seg_start[index] - start[:-1], counts) + np.arange(start[-1])
         return PlanarTrace(
             scan=self.scan[index],
             beam=self.beam[index],
@@ -95,6 +94,13 @@ class PlanarTrace:
             seg_start=start,
             **{f: getattr(self, f)[rows] for f in SEGMENT_FIELDS},
         )
+
+    def segment_rows(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(counts, rows)``: the number of segments of each beam ``index`` (indices), and the rows of all
+        their segments, beam after beam."""
+        counts = np.diff(self.seg_start)[index]
+        start = np.cumsum(counts) - counts
+        return counts, np.repeat(self.seg_start[index] - start, counts) + np.arange(int(counts.sum()))
 
     def with_backstops(self, depth: float = BACKSTOP_DEPTH) -> PlanarTrace:
         """This trace with one more segment, a *backstop*, ``depth`` m behind the last segment of every beam
@@ -167,23 +173,16 @@ class PlanarTrace:
         doubled.
         """
         other = self.neighbour(k)
+        paired = np.flatnonzero(other != np.arange(self.n))  # beams with a neighbour in their scan
         counts = np.diff(self.seg_start)
-        other_count = np.where(other != np.arange(self.n), counts[other], 0)  # at the scan's edge: none
-        own_rows = np.arange(self.seg_range.size)
-        other_rows = np.repeat(self.seg_start[other], other_count) + _ranks(other_count)
-        segment = np.concatenate([own_rows, other_rows])
-        index = np.arange(self.n)
-        beam_of = np.concatenate([np.repeat(index, counts), np.repeat(index, other_count)])
+        other_count, other_rows = self.segment_rows(other[paired])
+        segment = np.concatenate([np.arange(self.seg_range.size), other_rows])
+        beam_of = np.concatenate([np.repeat(np.arange(self.n), counts), np.repeat(paired, other_count)])
         segment = segment[np.lexsort((self.seg_at[segment], beam_of))]
-        start = np.concatenate([[0], np.cumsum(counts + other_count)])
+        start = np.concatenate([[0], np.cumsum(counts + np.bincount(paired, other_count, self.n).astype(np.int64))])
         return dataclasses.replace(self, seg_start=start, **{f: getattr(self, f)[segment] for f in SEGMENT_FIELDS})
 
     def first_occupied_range(self) -> np.ndarray:
         """(B,) range (m) of each beam's first ``occ3`` occupied segment's surface (NaN: none)."""
         first = self.first_occupied()
         return np.where(first >= 0, self.seg_at[np.maximum(first, 0)], np.nan)
-
-
-def _ranks(counts: np.ndarray) -> np.ndarray:
-    """``0 .. c - 1`` for every count ``c`` of ``counts``, concatenated."""
-    return np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
