@@ -386,7 +386,7 @@ class SensorModel:
         return end, going, start
 
     def sample_trace(
-        self, table: ElementTable, rays: RayBatch, rounds, seed: int | NeighbourStreams = 0
+        self, table: ElementTable, rays: RayBatch, rounds, seed: int | NeighbourStreams = 0, active=None
     ) -> tuple[mi.Float, mi.Bool]:
         """One draw of every ray's reported range from an existing trace, with the sampler's rules.
 
@@ -402,6 +402,9 @@ class SensorModel:
         beam's law is the same; neighbouring beams that share their number stop at the same depth of
         the pass-through law, although their elements differ in number and order.
 
+        ``active`` (``mi.Bool`` per ray; default: every ray) draws only those rays, the others report a
+        miss: a ray's draw depends on its own ray id and elements only, the same as in a draw of every ray.
+
         Returns:
             ``(range, hit)`` per ray (m, NaN for a miss).
         """
@@ -410,6 +413,8 @@ class SensorModel:
         n = rays.width
         out = {"range": dr.full(mi.Float, dr.nan, n), "hit": dr.full(mi.Bool, False, n)}
         alive = self._virtual_returns(out, rays, seed)
+        if active is not None:
+            alive &= active
         carried = uniform(seed, rays.ray_id, 0, 0) if isinstance(seed, NeighbourStreams) else None
         for k, r in enumerate(rounds.rounds):
             r = r.take(dr.compress(dr.gather(mi.Bool, alive, r.ray)))  # only the beams still going draw
@@ -431,6 +436,8 @@ class SensorModel:
                 dr.scatter(carried, rest, r.ray, u >= seg.p)
             dr.eval(out, alive, carried)
         self._escape(out, dr.arange(mi.UInt32, n), rays, alive, seed)
+        if active is not None:
+            return dr.select(active, out["range"], dr.nan), out["hit"] & active
         return out["range"], out["hit"]
 
     def _escape(

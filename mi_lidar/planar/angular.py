@@ -48,6 +48,7 @@ ANGULAR_STREAM = 4  # the random stream that picks an angular part (the sampler'
 OFFSETS = (-1, 1)  # the neighbours, in beam spacings
 SHARE_TOLERANCE = 1e-6  # the shares' fit has converged when no share moves by more
 SHARE_ROUNDS = 500  # at most this many rounds of the shares' fit
+MAX_EXPONENT = 700.0  # a beam far below the floor under every part keeps a finite floor (its posteriors ~0)
 
 
 @dataclass
@@ -115,16 +116,20 @@ class AngularMixture:
 
         The parts draw from the same random streams (``seed``'s, or the streams given), so a beam keeps its
         share of its neighbours' errors whichever part it reports. The part is picked by a stream of its own
-        (:data:`ANGULAR_STREAM`, independent of the others), keyed like them by the ray id.
+        (:data:`ANGULAR_STREAM`, independent of the others), keyed like them by the ray id; each part draws
+        only the beams that picked it.
         """
         streams = seed if isinstance(seed, NeighbourStreams) else self.streams(seed)
-        draws = [b.sample(model, streams) for b in self.parts]
         key = streams.seed if isinstance(streams, NeighbourStreams) else streams
         with dr.suspend_grad():
             u = np.asarray(uniform(key, self.parts[0].rays.ray_id, 0, ANGULAR_STREAM), np.float64)
         part = np.searchsorted(np.cumsum(self.shares())[:-1], u, side="right")
-        rows = np.arange(self.n)
-        return np.stack([d[0] for d in draws])[part, rows], np.stack([d[1] for d in draws])[part, rows]
+        z, hit = np.full(self.n, np.nan), np.zeros(self.n, bool)
+        for k in np.unique(part):
+            picked = part == k
+            z_k, hit_k = self.parts[k].sample(model, streams, picked)
+            z[picked], hit[picked] = z_k[picked], hit_k[picked]
+        return z, hit
 
 
 def part_shares(weight: float, footprint: float) -> np.ndarray:
@@ -161,13 +166,13 @@ def fit_angular_shares(raw: np.ndarray, hit: np.ndarray) -> tuple[float, float]:
     log_p = log_p[:, np.ptp(log_p, axis=0) > 0]
     if not log_p.shape[1]:
         return 0.0, 0.0
+    top = log_p.max(axis=0)  # each beam's probabilities relative to its likeliest part's: in [0, 1]
+    p = np.exp(log_p - top)
+    floor = np.exp(np.minimum(LOG_FLOOR - top, MAX_EXPONENT))
     weight = footprint = 0.05
     for _ in range(SHARE_ROUNDS):
         shares = part_shares(weight, footprint)
-        with np.errstate(divide="ignore"):
-            joint = log_p + np.log(shares)[:, None]
-        total = np.logaddexp(np.logaddexp.reduce(joint, axis=0), LOG_FLOOR)
-        posterior = np.exp(joint - total).sum(axis=1)
+        posterior = shares * (p @ (1.0 / (shares @ p + floor)))
         posterior /= posterior.sum()
         moved = (posterior[1] + posterior[2]) / 2.0, (posterior[3] + posterior[4]) / 2.0
         done = max(abs(moved[0] - weight), abs(moved[1] - footprint)) < SHARE_TOLERANCE

@@ -160,11 +160,17 @@ class EngineBeams:
         rays = dataclasses.replace(self.rays, ray_id=dr.arange(mi.UInt32, first, first + self.n))
         return dataclasses.replace(self, rays=rays)
 
-    def sample(self, model, seed: int | NeighbourStreams = 0) -> tuple[np.ndarray, np.ndarray]:
-        """One sampled (range, hit) per beam, from :meth:`streams` of ``seed`` (or the streams given)."""
+    def sample(
+        self, model, seed: int | NeighbourStreams = 0, active: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One sampled (range, hit) per beam, from :meth:`streams` of ``seed`` (or the streams given).
+
+        ``active``: (B,) bool, only these beams draw (the others report a miss; each beam's draw is the same
+        as in a draw of every beam)."""
         streams = seed if isinstance(seed, NeighbourStreams) else self.streams(seed)
         with dr.suspend_grad():
-            z, hit = model.sample_trace(self.table, self.rays, self.rounds, streams)
+            lanes = None if active is None else mi.Bool(aligned(np.asarray(active, bool)))
+            z, hit = model.sample_trace(self.table, self.rays, self.rounds, streams, lanes)
             return np.asarray(z, np.float64), np.asarray(hit)
 
 

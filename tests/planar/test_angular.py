@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from mi_lidar.core.likelihood import FLOOR, RESOLUTION
-from mi_lidar.planar.angular import fit_angular_shares
+from mi_lidar.core.streams import BeamCorrelation, uniform
+from mi_lidar.planar.angular import ANGULAR_STREAM, fit_angular_shares
 from mi_lidar.planar.models import fit_permeable_map
 from mi_lidar.planar.trace import PlanarTrace
 from tests.planar.test_backstops import BEAMS, SCANS, segments_trace
@@ -96,3 +97,30 @@ def test_a_post_stops_the_footprint_and_the_wall_behind_it_is_not_drawn():
         assert np.mean(np.abs(z_alone[post_edge] - WALL_AT) < 1.0) > 0.05, seed
         assert np.mean(np.abs(z[beside] - POST_AT) < 0.5) == pytest.approx(measured, abs=0.06), seed
     assert np.mean(beams.log_likelihood(fitted.model)) > np.mean(alone.log_likelihood(fitted.model)) + 0.001
+
+
+@pytest.mark.parametrize("correlation", [BeamCorrelation(), BeamCorrelation(shared=0.6, rho=0.8)])
+def test_each_part_draws_only_the_beams_that_picked_it_and_each_as_in_a_draw_of_every_beam(correlation):
+    """A sampled scan draws each beam from the part its own stream picks, and only that part draws it; the
+    beam's range is the one the part gives it when it draws every beam (independent or correlated streams)."""
+    trace = post_trace()
+    fitted = fit_permeable_map(trace, 31.0, (1.0, 20.0, 1e-3, math.inf), 1, rounds=1, tails=False)
+    beams = fitted.beams(trace).with_correlation(correlation)
+    beams.weight, beams.footprint = 0.1, 0.1  # every part picked by some beams
+    for seed in (0, 7):
+        streams = beams.streams(seed)
+        every = [part.sample(fitted.model, streams) for part in beams.parts]
+        picked = np.random.default_rng(seed).random(beams.n) < 0.3
+        for (z, hit), part in zip(every, beams.parts):
+            z_some, hit_some = part.sample(fitted.model, streams, picked)
+            np.testing.assert_array_equal(z_some[picked], z[picked])
+            np.testing.assert_array_equal(hit_some, hit & picked)
+            assert np.isnan(z_some[~picked]).all()
+        key = streams.seed if correlation.active else streams
+        u = np.asarray(uniform(key, beams.parts[0].rays.ray_id, 0, ANGULAR_STREAM), np.float64)
+        chosen = np.searchsorted(np.cumsum(beams.shares())[:-1], u, side="right")
+        assert np.bincount(chosen, minlength=5).min() > 100
+        z, hit = beams.sample(fitted.model, seed)
+        rows = np.arange(beams.n)
+        np.testing.assert_array_equal(z, np.stack([d[0] for d in every])[chosen, rows])
+        np.testing.assert_array_equal(hit, np.stack([d[1] for d in every])[chosen, rows])
