@@ -62,11 +62,15 @@ class PlanarTrace:
         """(E,) range (m) of each segment's surface (:meth:`CellLines.surface_range`) where known, else its entry."""
         return np.where(np.isfinite(self.seg_surface), self.seg_surface, self.seg_range)
 
+    @property
+    def seg_beam(self) -> np.ndarray:
+        """(E,) the beam of each segment."""
+        return np.repeat(np.arange(self.n), np.diff(self.seg_start))
+
     def first_occupied(self) -> np.ndarray:
         """(B,) index (into the segments) of each beam's first ``occ3`` occupied segment (-1: none)."""
-        seg_beam = np.repeat(np.arange(self.n), np.diff(self.seg_start))
         occupied = np.flatnonzero(self.seg_occupied == 1)
-        beams, first = np.unique(seg_beam[occupied], return_index=True)
+        beams, first = np.unique(self.seg_beam[occupied], return_index=True)
         out = np.full(self.n, -1)
         out[beams] = occupied[first]
         return out
@@ -125,7 +129,6 @@ class PlanarTrace:
         """
         counts = np.diff(self.seg_start)
         has = counts > 0
-        seg_beam = np.repeat(np.arange(self.n), counts)
         walled = self.first_occupied() >= 0
         start = np.concatenate([[0], np.cumsum(counts + has)])
         moved = np.arange(self.seg_range.size) + np.repeat(start[:-1] - self.seg_start[:-1], counts)
@@ -144,7 +147,7 @@ class PlanarTrace:
             out = np.empty(start[-1], np.int64 if f == "seg_occupied" else values.dtype)  # bool until now
             out[moved], out[at] = values, behind[f]
             fields[f] = out
-        fields["seg_occupied"][moved] = np.where(walled[seg_beam], self.seg_occupied, OPEN_STRAY)
+        fields["seg_occupied"][moved] = np.where(walled[self.seg_beam], self.seg_occupied, OPEN_STRAY)
         return dataclasses.replace(self, seg_start=start, **fields)
 
     def neighbour(self, k: int) -> np.ndarray:
@@ -177,7 +180,7 @@ class PlanarTrace:
         counts = np.diff(self.seg_start)
         other_count, other_rows = self.segment_rows(other[paired])
         segment = np.concatenate([np.arange(self.seg_range.size), other_rows])
-        beam_of = np.concatenate([np.repeat(np.arange(self.n), counts), np.repeat(paired, other_count)])
+        beam_of = np.concatenate([self.seg_beam, np.repeat(paired, other_count)])
         segment = segment[np.lexsort((self.seg_at[segment], beam_of))]
         start = np.concatenate([[0], np.cumsum(counts + np.bincount(paired, other_count, self.n).astype(np.int64))])
         return dataclasses.replace(self, seg_start=start, **{f: getattr(self, f)[segment] for f in SEGMENT_FIELDS})
