@@ -143,6 +143,21 @@ def mix_raw(raw: np.ndarray, shares: np.ndarray) -> np.ndarray:
     return np.logaddexp.reduce(raw[used] + np.log(shares[used])[:, None], axis=0)
 
 
+def own_part_posterior(raw: np.ndarray, shares: np.ndarray) -> np.ndarray:
+    """(B,) each beam's posterior probability that its outcome came from its own trace (part 0), from (K, B) raw
+    part log-likelihoods and (K,) ``shares``.
+
+    Among the parts alone, not against the score's floor: an outcome that no part explains still counts in
+    full (its share, where every part gives it probability 0), as the E step over segments counts every outcome.
+    With the floor as a part, the room of tests/planar/test_tails.py (no spread: shares below 1e-5) dropped
+    its rarest returns from the tables, and its sampled short returns fell from 1.39 % to 1.28 %.
+    """
+    used = shares > 0
+    log_mix = np.logaddexp.reduce(raw[used] + np.log(shares[used])[:, None], axis=0)
+    own = np.exp(raw[0] + np.log(shares[0]) - log_mix)
+    return np.where(np.isfinite(log_mix), own, shares[0])
+
+
 def angular_mixture(trace: PlanarTrace, beams, weight: float, footprint: float = 0.0) -> AngularMixture:
     """The :class:`AngularMixture` of ``trace`` with shares ``weight`` and ``footprint``; ``beams(trace)``
     builds each part."""

@@ -305,7 +305,8 @@ def test_the_beta_prior_fit_starts_where_it_is_told(room, monkeypatch):
     """fit_permeability from a given start (the EM's previous round) begins there and ends at the same score.
 
     Restarted at its own result it stops sooner and never ends worse (the fit keeps the best values it
-    saw); from a start 4-20x off the default it still ends within 1e-3 nats per beam of the best score.
+    saw); from a start 4-20x off the default it still ends within 1e-3 nats per beam of the best score, given
+    400 steps (measured 2e-5 short; 200 steps left it 1.6e-3 short of the room's map as fitted today).
     """
     import mi_lidar.planar.beams as planar_beams
     from mi_lidar.planar.models import base_model, fit_permeable_map
@@ -330,7 +331,7 @@ def test_the_beta_prior_fit_starts_where_it_is_told(room, monkeypatch):
 
     default = planar_beams.fit_permeability(beams, model, 200)
     again = planar_beams.fit_permeability(beams, model, 200, start=default)
-    far = planar_beams.fit_permeability(beams, model, 200, start=(np.array([2.0, 0.1]), np.array([0.1, 2.0])))
+    far = planar_beams.fit_permeability(beams, model, 400, start=(np.array([2.0, 0.1]), np.array([0.1, 2.0])))
     np.testing.assert_allclose(first_values[1][0], default[0], rtol=1e-6)
     np.testing.assert_allclose(first_values[2][1], [0.1, 2.0], rtol=1e-6)
     assert steps_run[1] < steps_run[0], steps_run

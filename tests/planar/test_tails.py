@@ -60,16 +60,17 @@ def test_scaling_the_tails_moves_only_their_mass(room_map):
 
 
 def test_an_inflated_tail_is_pulled_back_and_the_score_improves(room_map):
-    """Tables whose tails hold 8x the mass the EM gave them: the fit scales them back (to under half their
-    share of the near mass) and the training score improves; the fitted tails' score is no worse than the
-    EM's own."""
+    """Tables whose tails hold 16x the mass the EM gave them: the fit scales them back (to under half their
+    share of the near mass; measured: short 0.05x, long 0.28x) and the training score improves (by 0.0117 nats
+    per beam); the fitted tails' score is no worse than the EM's own. (8x was enough before the EM's last steps
+    left out what the angular spread explains: from those thinner tables, 8x is pulled back to 0.56x only.)"""
     data, fitted = room_map
     beams = fitted.beams(data.train)
 
     def nll(density) -> float:
         return float(-np.mean(beams.log_likelihood(base_model(density))))
 
-    inflated = with_tails(fitted.model.density, 8.0, 8.0)
+    inflated = with_tails(fitted.model.density, 16.0, 16.0)
     pulled = fit_tails(beams, inflated)
     (short, near, long), (short2, near2, long2) = shares(inflated), shares(pulled)
     used = (near > 0.01) & (short > 1e-6) & (long > 1e-6)
@@ -156,7 +157,7 @@ def test_no_returns_are_matched_per_range_band(tmp_path, monkeypatch):
 
 
 def test_a_heavy_short_tail_is_matched_to_the_measured_short_returns(room_map):
-    """Tables whose short tail holds 6x the EM's mass draw far more short returns (> FAR short of the nominal
+    """Tables whose short tail holds 20x the EM's mass draw far more short returns (> FAR short of the nominal
     range) than the room's training beams hold; matched, the scans sampled with the fit's seeds hold the
     measured share within 0.004 (the bisection's resolution on 8 steps), and the training score is no
     worse than the inflated tables'. A tail that draws too few short returns (against the room's returns with
@@ -172,7 +173,7 @@ def test_a_heavy_short_tail_is_matched_to_the_measured_short_returns(room_map):
             np.mean([short_share(*beams.sample(model, seed), data.train.nominal) for seed in range(SHORT_DRAWS)])
         )
 
-    heavy = with_tails(fitted.model.density, 6.0, 1.0)
+    heavy = with_tails(fitted.model.density, 20.0, 1.0)  # 2.29 % short returns drawn where 1.05 % were measured
     assert drawn(heavy) > measured + 0.01
     matched = match_short_returns(beams, data.train, heavy)
     assert abs(drawn(matched) - measured) < 0.004, (drawn(matched), measured)
