@@ -148,14 +148,15 @@ def own_part_posterior(raw: np.ndarray, shares: np.ndarray) -> np.ndarray:
     part log-likelihoods and (K,) ``shares``.
 
     Among the parts alone, not against the score's floor: an outcome that no part explains still counts in
-    full (its share, where every part gives it probability 0), as the E step over segments counts every outcome.
-    With the floor as a part, the room of tests/planar/test_tails.py (no spread: shares below 1e-5) dropped
-    its rarest returns from the tables, and its sampled short returns fell from 1.39 % to 1.28 %.
+    full (its share, where every part gives it probability 0), as the E step over segments counts every outcome;
+    with the floor as a part, the rarest returns would lose weight in the tables at every step.
     """
     used = shares > 0
     log_mix = np.logaddexp.reduce(raw[used] + np.log(shares[used])[:, None], axis=0)
-    own = np.exp(raw[0] + np.log(shares[0]) - log_mix)
-    return np.where(np.isfinite(log_mix), own, shares[0])
+    explained = np.isfinite(log_mix)
+    own = np.full(raw.shape[1], shares[0])
+    own[explained] = np.exp(raw[0, explained] + np.log(shares[0]) - log_mix[explained])
+    return own
 
 
 def angular_mixture(trace: PlanarTrace, beams, weight: float, footprint: float = 0.0) -> AngularMixture:

@@ -9,7 +9,7 @@ import pytest
 
 from mi_lidar.core.likelihood import FLOOR, RESOLUTION
 from mi_lidar.core.streams import BeamCorrelation, uniform
-from mi_lidar.planar.angular import ANGULAR_STREAM, fit_angular_shares
+from mi_lidar.planar.angular import ANGULAR_STREAM, fit_angular_shares, own_part_posterior, part_shares
 from mi_lidar.planar.models import fit_permeable_map
 from mi_lidar.planar.trace import PlanarTrace
 from tests.planar.test_backstops import BEAMS, SCANS, segments_trace
@@ -55,6 +55,20 @@ def test_the_shares_maximise_the_one_score():
     assert score(weight, footprint) >= score(*best) - 1e-6
     assert (weight, footprint) == pytest.approx(best, abs=0.004)
     assert fit_angular_shares(np.zeros((5, 10)), np.ones(10, bool)) == (0.0, 0.0)  # nothing tells the parts apart
+
+
+def test_the_own_posterior_is_the_own_trace_share_of_the_parts_and_its_prior_where_no_part_explains():
+    """Random part likelihoods: the posterior is ``s_0 p_0 / sum_k s_k p_k`` (a part of zero share left out); a
+    beam that every part gives probability 0 keeps the own trace's prior share."""
+    rng = np.random.default_rng(5)
+    p = rng.gamma(0.5, 1.0, (5, 200))
+    p[:, 0] = 0.0
+    for shares in (part_shares(0.1, 0.05), part_shares(0.2, 0.0)):
+        with np.errstate(divide="ignore"):
+            own = own_part_posterior(np.log(p), shares)
+        expected = shares[0] * p[0, 1:] / (shares @ p[:, 1:])
+        np.testing.assert_allclose(own[1:], expected, rtol=1e-12)
+        assert own[0] == shares[0]
 
 
 def post_trace(seed: int = 2) -> PlanarTrace:
