@@ -17,7 +17,8 @@ mi-lidar   the permeable map: every cell with leave-out hits is an element at it
            fitted), returns by an NP-Reg density conditioned on the cell's occupancy, evidence (how
            many leave-out hits; whether to tell them apart is chosen held out), range and incidence
            (refined by EM over the segments, each return and each miss shared among the elements by
-           their posterior, its far tails scaled by likelihood); a beam that passes every cell listed for it
+           their posterior, and counted by the posterior of the beam's own trace once its angular spread
+           is known; its far tails scaled by likelihood); a beam that passes every cell listed for it
            meets a backstop behind the last (its own interception probability and return law: what
            is credited to it, shrunk to an unseen wall's,
            :meth:`~mi_lidar.planar.trace.PlanarTrace.with_backstops`), and one that passes it
