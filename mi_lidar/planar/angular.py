@@ -151,8 +151,7 @@ def own_part_posterior(raw: np.ndarray, shares: np.ndarray) -> np.ndarray:
     full (its share, where every part gives it probability 0), as the E step over segments counts every outcome;
     with the floor as a part, the rarest returns would lose weight in the tables at every step.
     """
-    used = shares > 0
-    log_mix = np.logaddexp.reduce(raw[used] + np.log(shares[used])[:, None], axis=0)
+    log_mix = mix_raw(raw, shares)
     explained = np.isfinite(log_mix)
     own = np.full(raw.shape[1], shares[0])
     own[explained] = np.exp(raw[0, explained] + np.log(shares[0]) - log_mix[explained])
