@@ -61,13 +61,7 @@ from mi_lidar.core.likelihood import ESCAPED, element_shares
 from mi_lidar.core.problem import fit_parts
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.streams import BeamCorrelation
-from mi_lidar.planar.angular import (
-    AngularMixture,
-    angular_mixture,
-    fit_angular_shares,
-    own_part_posterior,
-    part_shares,
-)
+from mi_lidar.planar.angular import AngularMixture, angular_mixture, fit_angular_shares, own_part_posterior
 from mi_lidar.planar.beams import (
     EVIDENCE_CLASSES,
     LABELS_BEYOND,
@@ -438,14 +432,16 @@ def fit_permeable_map(
     mixture = fitted.beams(train)
 
     def angular_shares() -> np.ndarray:
-        """Fit the spread's shares; returns the (5, B) raw part log-likelihoods they were fitted on."""
+        """Fit the spread's shares (the map's and the mixture's); returns the (5, B) raw part log-likelihoods
+        they were fitted on."""
         raw = mixture.raw_parts(fitted.model)
         fitted.angular, fitted.footprint = fit_angular_shares(raw, mixture.hit)
+        mixture.weight, mixture.footprint = fitted.angular, fitted.footprint
         return raw
 
     raw = angular_shares()
     for _ in range(SPREAD_CREDIT_STEPS):
-        own = own_part_posterior(raw, part_shares(fitted.angular, fitted.footprint))
+        own = own_part_posterior(raw, mixture.shares())
         beam, chosen, share = credited_segments(mixture.parts[0], traced.seg_start, fitted.model)
         density = tables(beam, chosen, share * own[beam])
         fitted.model = base_model(density)
@@ -454,7 +450,6 @@ def fit_permeable_map(
         part = train.take(np.isin(train.scan, evenly_spaced_scans(train.scan, TAIL_BEAMS)))
         some = fitted.beams(part)
         density = match_short_returns(some, part, fit_tails(some, density))
-        mixture.weight, mixture.footprint = fitted.angular, fitted.footprint  # built before the spread was known
         first_range = train.first_occupied_range()
         fitted.model = base_model(match_misses(mixture, density, first_range, RANGE_EDGES))
         angular_shares()
