@@ -261,8 +261,8 @@ def _fold_rounds(
     return Sums(*out)
 
 
-ESCAPED = -1  # most_likely_elements: the beam passed every traced element (the density's escape law, or a miss)
-VIRTUAL = -2  # most_likely_elements: a virtual element of an effect (outliers, clutter) explains it best
+ESCAPED = -1  # ElementShares: the beam passed every traced element (the density's escape law, or a miss)
+VIRTUAL = -2  # ElementShares: a virtual element of an effect (outliers, clutter) explains it best
 
 
 @dataclass
@@ -284,11 +284,22 @@ class ElementShares:
     log_joint: np.ndarray
     rays: int
 
-    def most_likely(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(round, entry)`` per ray of the row with the largest share (the first of equals, in row order:
-        :data:`VIRTUAL` where no row is finite)."""
-        _, _, first = self._largest()
-        return self.round[first], self.entry[first]
+    def credited(
+        self, most_likely: bool = False, least: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(ray, round, entry, share)`` (M',) each, for fitting a density on the credited outcomes (the M step):
+        the rows of a traced element or the escape state with a posterior share above ``least``
+        (:meth:`posterior`; a ray's rows sum to 1 less what the effects' virtual elements, e.g. outliers,
+        explain), or with ``most_likely`` each ray's row of the largest share, whole (rays a virtual element
+        explains best are left out).
+        """
+        if most_likely:
+            _, _, first = self._largest()
+            first = first[self.round[first] != VIRTUAL]
+            return self.ray[first], self.round[first], self.entry[first], np.ones(first.size)
+        share = self.posterior()
+        keep = (share > least) & (self.round != VIRTUAL)
+        return self.ray[keep], self.round[keep], self.entry[keep], share[keep]
 
     def posterior(self) -> np.ndarray:
         """(M,) each row's posterior share of its ray's outcome (the E step of an EM; a ray's rows sum to 1).
@@ -351,19 +362,6 @@ def element_shares(table, model, rays: RayBatch, rounds: Rounds, measured: mi.Fl
         parts.append((lanes, np.full(lanes.size, k), entry, value))
     ray, round_of, entry, log_joint = (np.concatenate(column) for column in zip(*parts))
     return ElementShares(ray, round_of, entry, log_joint, rays.width)
-
-
-def most_likely_elements(
-    table, model, rays: RayBatch, rounds: Rounds, measured: mi.Float, hit: mi.Bool
-) -> tuple[np.ndarray, np.ndarray]:
-    """For each ray, the traced element most likely to have produced what the sensor reported: the hard
-    assignment of the EM (:func:`element_shares`, the row of the largest share; the first of equals).
-
-    Returns:
-        ``(round, entry)``: (B,) int arrays; the element is entry ``entry`` of round ``round``, or
-        ``round`` is :data:`ESCAPED` or :data:`VIRTUAL` (``entry`` -1).
-    """
-    return element_shares(table, model, rays, rounds, measured, hit).most_likely()
 
 
 def _fold_cached(table, model, rays: RayBatch, batch: CachedBatch, z: mi.Float, sums: Sums) -> Sums:

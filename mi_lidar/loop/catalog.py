@@ -266,7 +266,7 @@ def fit_density_candidate(
         fitting: the rays that choose the bandwidths.
         n_labels: class labels of the scene.
         estimation: the rays of ``states``: in scenes with permeable elements their returns are then
-            credited to the elements most likely to have produced them (:func:`~mi_lidar.loop.sensor_fit.crediting`).
+            credited to the elements that produced them (:func:`~mi_lidar.loop.sensor_fit.crediting`).
 
     Returns:
         ``(density, bandwidth table)``.

@@ -57,7 +57,7 @@ from mi_lidar.core.densities.histogram import (
 from mi_lidar.core.densities.preg import fit_p_reg
 from mi_lidar.core.densities.samples import StateSamples, protocol_residual_edges
 from mi_lidar.core.densities.tables import PSEUDO_SAMPLES, StateGrid
-from mi_lidar.core.likelihood import ESCAPED, element_shares
+from mi_lidar.core.likelihood import element_shares
 from mi_lidar.core.problem import fit_parts
 from mi_lidar.core.sensor_model import SensorModel
 from mi_lidar.core.streams import BeamCorrelation
@@ -249,10 +249,8 @@ def credited_segments(beams: EngineBeams, seg_start: np.ndarray, model: SensorMo
     """
     with dr.suspend_grad():
         shares = element_shares(beams.table, model, beams.rays, beams.rounds, beams.z, beams.hit)
-    share = shares.posterior()
-    keep = (share > 0) & (shares.round >= ESCAPED)  # planar beams have no virtual elements
-    beam, found = shares.ray[keep], shares.round[keep]
-    return beam, np.where(found >= 0, seg_start[beam] + found, -1), share[keep]
+    beam, found, _, share = shares.credited()  # a planar beam meets one segment per round
+    return beam, np.where(found >= 0, seg_start[beam] + found, -1), share
 
 
 def backstop_prior(counts: np.ndarray, grid: StateGrid, classes: int, pseudo: float = PSEUDO_SAMPLES) -> np.ndarray:

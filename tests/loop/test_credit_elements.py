@@ -13,7 +13,7 @@ import pytest
 
 import mi_lidar
 from mi_lidar.core.elements import ElementTable
-from mi_lidar.core.likelihood import ESCAPED, most_likely_elements
+from mi_lidar.core.likelihood import ESCAPED, element_shares
 from mi_lidar.core.patterns import get_pattern
 from mi_lidar.core.problem import Problem
 from mi_lidar.core.rays import LogRays
@@ -73,8 +73,10 @@ def test_returns_are_credited_to_the_layer_they_came_from(layered_log):
     problem = Problem.build(scene, rays, table=ElementTable.from_scene(scene))
     problem.trace(model)
     chunk = problem.chunks[0]
-    round_of, entry_of = most_likely_elements(problem.table, model, chunk.rays, chunk.rounds, chunk.z, chunk.hit)
+    shares = element_shares(problem.table, model, chunk.rays, chunk.rounds, chunk.z, chunk.hit)
+    ray, round_of, entry_of, whole = shares.credited(most_likely=True)
     z, hit = np.asarray(chunk.z), np.asarray(chunk.hit)
+    assert np.array_equal(ray, np.arange(z.size)) and np.all(whole == 1.0)  # every ray, whole: no virtual element
     credited = np.full(z.size, np.nan)
     for k, entries in enumerate(chunk.rounds.rounds):
         lanes = np.flatnonzero(round_of == k)
@@ -150,10 +152,8 @@ def test_element_shares_are_the_posterior_of_the_pass_through_mixture(layered_lo
     over the elements the ray met (two layers of p 0.5 and the wall, sigma 1 cm), computed here by hand from
     the traced nominal ranges. The returns are moved to midway between the two layers, where the first layer
     takes 2/3 and the second 1/3 (pi 0.5 and p 0.5 behind the first); a miss (no dropout in this model) is
-    the escape's alone; the hard credit (most_likely_elements) is the largest share."""
+    the escape's alone; the hard credit (``credited(most_likely=True)``) is the largest share, whole."""
     import mitsuba as mi
-
-    from mi_lidar.core.likelihood import element_shares
 
     path, scene, model, log = layered_log
     rays = LogRays.from_log(log, scene=scene)
@@ -189,10 +189,34 @@ def test_element_shares_are_the_posterior_of_the_pass_through_mixture(layered_lo
         assert got[:2] == pytest.approx([2 / 3, 1 / 3], abs=1e-3)
     escaped = shares.round == ESCAPED
     assert posterior[escaped & ~hit[shares.ray]] == pytest.approx(np.ones(int(np.sum(~hit))))
-    round_of, _ = most_likely_elements(problem.table, model, chunk.rays, chunk.rounds, mi.Float(z), chunk.hit)
+    _, round_of, _, _ = shares.credited(most_likely=True)
     assert np.all(round_of[layered] == 0)
     best = np.full(n, -1.0)
     np.maximum.at(best, shares.ray, posterior)
     winner = np.full(n, -9)
     winner[shares.ray[posterior == best[shares.ray]]] = shares.round[posterior == best[shares.ray]]
     assert np.array_equal(round_of, winner)
+
+
+@pytest.mark.parametrize("spoiled", ["shares", "most likely"])
+def test_each_crediting_round_keeps_the_credit_that_scores_better_held_out(layered_log, monkeypatch, spoiled):
+    """Every round credits the returns both ways, shared by the posterior and wholly to the most likely element,
+    and keeps the refit that scores better held out: with one way spoiled (its returns moved 0.5 m), the fit is
+    the one the other way alone gives, round for round."""
+    path, scene, model, log = layered_log
+    traced = sensor_fit.traced_states
+
+    def spoil(problem, model, credit="first"):
+        states = traced(problem, model, credit)
+        if credit == spoiled:
+            states.z = states.z + 0.5
+        return states
+
+    monkeypatch.setattr(sensor_fit, "traced_states", spoil)
+    both = sensor_fit.fit_sensor(log, path, "np-reg")
+    kept = "most likely" if spoiled == "shares" else "shares"
+    monkeypatch.setattr(sensor_fit, "CREDITS", ("first", kept))
+    alone = sensor_fit.fit_sensor(log, path, "np-reg")
+    assert len(both.candidates) == len(alone.candidates) > 5  # the bandwidths, then at least one round
+    assert [row[-1] for row in both.candidates] == pytest.approx([row[-1] for row in alone.candidates], abs=1e-9)
+    assert both.rows[1]["nll"] == pytest.approx(alone.rows[1]["nll"], abs=1e-9)

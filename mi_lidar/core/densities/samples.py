@@ -5,8 +5,8 @@ beam meets. :class:`StateSamples` holds, per ray (numpy), the nominal range and 
 element on the ray (NaN nominal for the escape state: the ray met nothing, or passed everything),
 its beam and label, and the measured return. By default that element is the ray's *first*, which
 is exact for scenes of opaque surfaces; with permeable elements a return may come from an element
-behind it, and the caller credits each ray to the element most likely to have produced its
-outcome (:func:`~mi_lidar.core.likelihood.most_likely_elements`: the hard EM of ``fit-sensor``).
+behind it, and the caller shares each ray's outcome among the elements that could have produced it by
+their posterior (:meth:`~mi_lidar.core.likelihood.ElementShares.credited`: the EM of ``fit-sensor``).
 """
 
 from __future__ import annotations
@@ -75,9 +75,9 @@ class StateSamples:
         label_of_element: np.ndarray,
         z: np.ndarray,
         hit: np.ndarray,
-        credited: tuple[np.ndarray, np.ndarray] | None = None,
+        credited: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> StateSamples:
-        """The state of one element of each ray of a trace (:class:`~mi_lidar.core.trace.Rounds`).
+        """The states of the elements of a trace (:class:`~mi_lidar.core.trace.Rounds`) credited with the outcomes.
 
         Args:
             rounds: the trace of N rays (one lane per ray, no fan-out).
@@ -85,37 +85,41 @@ class StateSamples:
             label_of_element: (E_total,) label of every element of the table.
             z: (N,) measured ranges, m (ignored where not ``hit``).
             hit: (N,) return flags.
-            credited: ``(round, entry)`` per ray, the element credited with its outcome
-                (:func:`~mi_lidar.core.likelihood.most_likely_elements`; a negative round: the escape
-                state); None: the first element of every ray.
+            credited: ``(ray, round, entry, share)`` (M,) each: one sample per row, the state of entry
+                ``entry`` of round ``round`` (a negative round: the escape state) with ray ``ray``'s
+                measurement, counted with weight ``share``
+                (:meth:`~mi_lidar.core.likelihood.ElementShares.credited`, the E step of ``fit-sensor``'s EM);
+                None: the first element of every ray, whole.
         """
-        n = rounds.width
         if credited is None:
-            credited = (np.full(n, -1), np.full(n, -1))
+            n = rounds.width
+            round_of, entry_of = np.full(n, -1), np.full(n, -1)
             if rounds.rounds:
                 lanes = np.asarray(rounds.rounds[0].ray, np.int64)
-                credited[0][lanes], credited[1][lanes] = 0, np.arange(lanes.size)
-        round_of, entry_of = credited
-        nominal = np.full(n, np.nan)
-        incidence = np.full(n, np.nan)
-        label = np.zeros(n, np.int64)
+                round_of[lanes], entry_of[lanes] = 0, np.arange(lanes.size)
+            credited = (np.arange(n), round_of, entry_of, np.ones(n))
+        ray, round_of, entry_of, share = credited
+        nominal = np.full(ray.size, np.nan)
+        incidence = np.full(ray.size, np.nan)
+        label = np.zeros(ray.size, np.int64)
         for k, entries in enumerate(rounds.rounds):
-            lanes = np.flatnonzero(round_of == k)
-            if lanes.size == 0:
+            rows = np.flatnonzero(round_of == k)
+            if rows.size == 0:
                 continue
-            at = entry_of[lanes]
-            nominal[lanes] = np.asarray(entries.nominal, np.float64)[at]
+            at = entry_of[rows]
+            nominal[rows] = np.asarray(entries.nominal, np.float64)[at]
             cos = np.clip(np.asarray(entries.cos_incidence, np.float64)[at], 0.0, 1.0)
-            incidence[lanes] = np.degrees(np.arccos(cos))
-            label[lanes] = np.asarray(label_of_element)[np.asarray(entries.element, np.int64)[at]]
-        hit = np.asarray(hit, bool)
+            incidence[rows] = np.degrees(np.arccos(cos))
+            label[rows] = np.asarray(label_of_element)[np.asarray(entries.element, np.int64)[at]]
+        hit = np.asarray(hit, bool)[ray]
         return cls(
             nominal=nominal,
             incidence=incidence,
-            beam=np.asarray(beam, np.int64),
+            beam=np.asarray(beam, np.int64)[ray],
             label=label,
-            z=np.where(hit, np.asarray(z, np.float64), np.nan),
+            z=np.where(hit, np.asarray(z, np.float64)[ray], np.nan),
             hit=hit,
+            weight=np.asarray(share, np.float64),
         )
 
 
