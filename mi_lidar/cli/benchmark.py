@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import typer
@@ -81,10 +82,11 @@ def benchmark_planar(
         ("median |err|", "p90 |err|", "F1", "hist L1", "CRPS mean", "CRPS median"),
         caption="|err|: one sampled scan vs the measured one where both returned (m); F1: hit/miss agreement "
         f"of that scan; hist L1: distance of the range CDFs (m), the mean over {SAMPLED_SCANS} sampled scans (that "
-        f"of the first one is in the report); CRPS: continuous ranked probability score per beam from "
-        f"{SAMPLED_SCANS} sampled scans (m; a no-return counts as {result.no_return:g} m), lowest "
-        "in expectation for the sensor's own law; last row: the measured test scans re-paired between beams of "
-        "like nominal range, what a model that samples like the sensor scores (a reference, not a model)",
+        "of the first one and each model's standard errors are in the report); CRPS: continuous ranked "
+        f"probability score per beam from {SAMPLED_SCANS} sampled scans (m; a no-return counts as "
+        f"{result.no_return:g} m), lowest in expectation for the sensor's own law; last row: the measured test "
+        "scans re-paired between beams of like nominal range, what a model that samples like the sensor scores "
+        "(a reference, not a model)",
     )
 
     def sample_figures(s: dict) -> tuple[str, ...]:
@@ -99,6 +101,8 @@ def benchmark_planar(
     samples.add_row(REFERENCE, *sample_figures(result.reference))
     console.print(scores)
     console.print(samples)
+    for label, key in (("hist L1", "histogram_l1_draws"), ("CRPS mean", "crps_mean")):
+        console.print(lowest_and_runner_up(result.rows, label, key, SAMPLED_SCANS))
     warn(result.warnings())
     if result.data.train.n < result.train_beams_in_log:
         console.print(
@@ -109,4 +113,20 @@ def benchmark_planar(
     console.print(
         (f"no-return value {no_return:g} m" if no_return < float("inf") else "no no-return value in the log")
         + f" (give it with --max-range); {result.seconds['total']:.0f} s; report: {out / 'benchmark.html'}"
+    )
+
+
+def lowest_and_runner_up(rows: list, label: str, key: str, draws: int) -> str:
+    """One line: the model of the lowest ``key`` (a sample figure with its standard error from the ``draws``
+    sampled scans, ``key + "_se"``), how far below the runner-up, and whether the draws tell the two apart
+    (the difference above twice its standard error)."""
+    ranked = sorted(rows, key=lambda r: r.samples[key])
+    if len(ranked) < 2:
+        return f"{label}: {ranked[0].name} {ranked[0].samples[key]:.3f} ± {ranked[0].samples[key + '_se']:.3f} m"
+    best, second = ranked[0].samples, ranked[1].samples
+    gap, se = second[key] - best[key], math.hypot(best[key + "_se"], second[key + "_se"])
+    verdict = "told apart" if gap > 2.0 * se else "not told apart"
+    return (
+        f"{label}: {ranked[0].name} lowest, {gap:.3f} m below {ranked[1].name} "
+        f"(± {se:.3f} m from the {draws} draws: {verdict})"
     )

@@ -159,7 +159,10 @@ def metrics_of(
         ``crps_mean`` and ``crps_median`` (m, with draws): the mean and median over rays of :func:`crps`;
         ``histogram_l1_draws`` (m, with draws): ``histogram_l1`` averaged over the ``M`` sampled scans (one
         scan's varies with its draw: 0.15-0.29 m between draws of one model on the Freiburg campus log,
-        whose sampled beams share their errors along each scan).
+        whose sampled beams share their errors along each scan); ``histogram_l1_draws_se`` and
+        ``crps_mean_se`` (m, with draws): the standard errors of those means and of ``crps_mean`` that come
+        from the draws (:func:`crps_mean_se`): two models whose figures differ by less than about twice
+        them are not told apart by these draws.
     """
     both = hit & sim_hit
     err = np.abs(measured[both] - sim_range[both])
@@ -194,5 +197,21 @@ def metrics_of(
         per_ray = crps(measured, hit, draws[0], draws[1], no_return)
         out["crps_mean"] = float(per_ray.mean()) if per_ray.size else nan
         out["crps_median"] = float(np.median(per_ray)) if per_ray.size else nan
-        out["histogram_l1_draws"] = float(np.mean([cdf_l1(measured[hit], z[h]) for z, h in zip(*draws)]))
+        out["crps_mean_se"] = crps_mean_se(measured, hit, draws, no_return) if per_ray.size else nan
+        l1 = np.array([cdf_l1(measured[hit], z[h]) for z, h in zip(*draws)])
+        out["histogram_l1_draws"] = float(np.mean(l1))
+        out["histogram_l1_draws_se"] = float(np.std(l1, ddof=1) / np.sqrt(l1.size))
     return out
+
+
+def crps_mean_se(measured: np.ndarray, hit: np.ndarray, draws: tuple, no_return: float) -> float:
+    """The standard error (m) of the mean :func:`crps` that comes from drawing ``M`` scans (``draws``, (M, N) each),
+    by the jackknife over the draws: ``sqrt((M - 1) / M * sum_k (c_k - c)^2)`` with ``c_k`` the mean CRPS of the
+    draws without draw ``k`` and ``c`` their mean. A third draw at least is needed (else NaN); the fair estimator
+    is unbiased whatever ``M``, so the means left out estimate the same CRPS."""
+    m = draws[0].shape[0]
+    if m < 3:
+        return float("nan")
+    keep = [np.arange(m) != k for k in range(m)]
+    left_out = np.array([crps(measured, hit, draws[0][k], draws[1][k], no_return).mean() for k in keep])
+    return float(np.sqrt((m - 1) / m * np.sum((left_out - left_out.mean()) ** 2)))

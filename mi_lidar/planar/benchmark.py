@@ -53,8 +53,10 @@ SAMPLE_KEYS = (  # the sample metrics the report keeps (:func:`~mi_lidar.core.me
     "f1",
     "histogram_l1",
     "histogram_l1_draws",
+    "histogram_l1_draws_se",
     "hit_rate_simulated",
     "crps_mean",
+    "crps_mean_se",
     "crps_median",
 )
 

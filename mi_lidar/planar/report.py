@@ -112,8 +112,8 @@ def _sample_cells(s: dict) -> tuple[str, ...]:
         f"{s['range_error_median']:.3f}",
         f"{s['range_error_p90']:.3f}",
         f"{s['f1']:.3f}",
-        f"{s['histogram_l1']:.3f} / {s['histogram_l1_draws']:.3f}",
-        f"{s['crps_mean']:.3f} / {s['crps_median']:.4f}",
+        f"{s['histogram_l1']:.3f} / {s['histogram_l1_draws']:.3f} ± {s['histogram_l1_draws_se']:.3f}",
+        f"{s['crps_mean']:.3f} ± {s['crps_mean_se']:.3f} / {s['crps_median']:.4f}",
     )
 
 
@@ -128,8 +128,8 @@ def _table(rows: list, reference: dict) -> str:
         "sample median |err| (m)",
         "sample p90 |err| (m)",
         "sample hit/miss F1",
-        "histogram L1 (m): one scan / mean of all sampled",
-        "CRPS mean / median (m)",
+        "histogram L1 (m): one scan / mean of all sampled ± its standard error over them",
+        "CRPS mean ± its standard error over the sampled scans / median (m)",
     )
     lines = ["<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head) + "</tr>"]
     body = [

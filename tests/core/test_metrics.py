@@ -5,7 +5,7 @@ import pytest
 from scipy.stats import norm
 
 from mi_lidar.core.errors import ParameterError
-from mi_lidar.core.metrics import chamfer, crps, metrics_of, worse_samples
+from mi_lidar.core.metrics import chamfer, crps, crps_mean_se, metrics_of, worse_samples
 
 NO_RETURN = 81.83  # m, the Intel log's no-return value
 
@@ -133,4 +133,26 @@ def test_the_histogram_distance_of_the_draws_is_their_mean_and_that_of_one_scan_
     row = metrics_of(np.zeros(measured.size), measured, hit, draws[0][1], hit, draws=draws, no_return=NO_RETURN)
     assert row["histogram_l1"] == pytest.approx(0.1, abs=1e-9)
     assert row["histogram_l1_draws"] == pytest.approx(0.15, abs=1e-9)
+    assert row["histogram_l1_draws_se"] == pytest.approx(np.std(shifts, ddof=1) / 2.0, abs=1e-9)  # sqrt(4) draws
     assert "histogram_l1_draws" not in metrics_of(np.zeros(measured.size), measured, hit, measured, hit)
+
+
+def test_the_standard_errors_of_the_draws_are_the_spread_of_their_means_over_repeated_draws():
+    """A model drawn 8 scans at a time, 300 times over (seeded; 500 rays, Gaussian sensor and model): the
+    standard errors ``metrics_of`` gives from one set of 8 draws (the CRPS's by the jackknife over the draws,
+    the histogram distance's from the 8 distances) average within 15 % of the spread of the two means over
+    the 300 sets (measured: CRPS 0.0104 against 0.0105 m, hist L1 0.0076 against 0.0079 m). Fewer than 3 draws
+    give no CRPS standard error."""
+    rng = np.random.default_rng(11)
+    n, m = 500, 8
+    measured = rng.normal(10.0, 1.0, n)
+    hit = np.ones(n, bool)
+    rows = []
+    for _ in range(300):
+        draws = (rng.normal(10.0, 1.0, (m, n)), np.ones((m, n), bool))
+        rows.append(metrics_of(np.zeros(n), measured, hit, draws[0][0], hit, draws=draws, no_return=NO_RETURN))
+    for key, se in (("crps_mean", "crps_mean_se"), ("histogram_l1_draws", "histogram_l1_draws_se")):
+        spread = np.std([r[key] for r in rows], ddof=1)
+        assert np.mean([r[se] for r in rows]) == pytest.approx(spread, rel=0.15), key
+    two = (rng.normal(10.0, 1.0, (2, n)), np.ones((2, n), bool))
+    assert np.isnan(crps_mean_se(measured, hit, two, NO_RETURN))

@@ -125,7 +125,17 @@ def test_benchmark_cli_scores_and_reports_the_room(room, tmp_path):
     assert rows["M3b"]["samples"]["crps_median"] < rows["M0"]["samples"]["crps_median"], rows
     assert rows["M3b"]["samples"]["crps_mean"] < rows["M0"]["samples"]["crps_mean"], rows
     assert report["crps_no_return_m"] == pytest.approx(np.nanmax(read_carmen(room).ranges) + 1.0)
-    assert "CRPS" in result.stdout and "CRPS mean / median" in (tmp_path / "benchmark.html").read_text()
+    html = (tmp_path / "benchmark.html").read_text()
+    assert "CRPS" in result.stdout and "CRPS mean ± its standard error over the sampled scans / median" in html
+    # The standard errors that come from the 8 draws: per model in the report; under the table, whether the
+    # draws tell the lowest model from the runner-up (lowest_and_runner_up).
+    printed = " ".join(result.stdout.split())
+    for label, key in (("hist L1", "histogram_l1_draws"), ("CRPS mean", "crps_mean")):
+        assert all(0.0 < row["samples"][key + "_se"] < 0.05 for row in rows.values()), rows
+        low, high = sorted(rows, key=lambda name: rows[name]["samples"][key])
+        assert f"{label}: {low} lowest, " in printed and f" m below {high} (± " in printed, printed
+    l1 = rows["M3b"]["samples"]
+    assert f"{l1['histogram_l1_draws']:.3f} ± {l1['histogram_l1_draws_se']:.3f}" in html
     # Every figure fits an 80-column terminal whole (no cell cut short with an ellipsis).
     keys = ("test_nll", "train_nll")
     assert_whole(result.stdout, *(f"{row[k]:.3f}" for row in rows.values() for k in keys))
@@ -406,3 +416,20 @@ def test_benchmark_cli_says_when_it_fitted_on_part_of_the_training_scans(room, t
     assert report["train_beams"] == 3620 and report["train_beams_in_log"] == 48 * 181
     assert "fitted on 3,620 of the log's 8,688 training beams" in " ".join(result.stdout.split())
     assert "(of the log's 8,688: evenly spaced scans)" in (tmp_path / "benchmark.html").read_text()
+
+
+def test_the_lowest_sample_figure_is_told_from_the_runner_up_only_beyond_twice_the_draws_standard_error():
+    """Two models 0.004 m apart with standard errors of 0.002 m each (0.0028 m for the difference) are not told
+    apart by the draws; 0.1 m apart they are; one model alone is printed with its standard error."""
+    from types import SimpleNamespace
+
+    from mi_lidar.cli.benchmark import lowest_and_runner_up
+
+    def row(name: str, value: float, se: float):
+        return SimpleNamespace(name=name, samples={"crps_mean": value, "crps_mean_se": se})
+
+    close = lowest_and_runner_up([row("NP-Reg", 0.023, 0.002), row("mi-lidar", 0.019, 0.002)], "L", "crps_mean", 8)
+    assert close == "L: mi-lidar lowest, 0.004 m below NP-Reg (± 0.003 m from the 8 draws: not told apart)"
+    far = lowest_and_runner_up([row("M0", 0.119, 0.002), row("mi-lidar", 0.019, 0.002)], "L", "crps_mean", 8)
+    assert far.endswith("0.100 m below M0 (± 0.003 m from the 8 draws: told apart)")
+    assert lowest_and_runner_up([row("M0", 0.119, 0.002)], "L", "crps_mean", 8) == "L: M0 0.119 ± 0.002 m"
