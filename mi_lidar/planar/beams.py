@@ -94,6 +94,7 @@ class EngineBeams:
         occupied: (E,) occupancy class of every element: 1 an ``occ3`` occupied cell, 0 stray hits,
             2-4 a backstop, the backstop and a stray cell of a beam in the open
             (:meth:`~mi_lidar.planar.trace.PlanarTrace.with_backstops`).
+        ranges: (E,) the range at which the beam meets every element, m.
         follows: (B,) beam ``i`` is the next beam of beam ``i - 1``'s scan
             (:func:`~mi_lidar.core.streams.scan_follows`).
         correlation: how much neighbouring beams share their random draws when sampled
@@ -108,6 +109,7 @@ class EngineBeams:
     hits: np.ndarray
     passes: np.ndarray
     occupied: np.ndarray
+    ranges: np.ndarray
     follows: np.ndarray
     correlation: BeamCorrelation = BeamCorrelation()
 
@@ -135,13 +137,17 @@ class EngineBeams:
             raw = mixture_log_likelihood(self.table, model, self.rays, self.rounds, dr.zeros(mi.Float, self.n), miss)
             return np.exp(np.asarray(raw, np.float64))
 
-    def with_permeability(self, a: np.ndarray, b: np.ndarray) -> EngineBeams:
-        """These beams with every element's interception probability from its counts (:func:`permeability`).
+    def with_permeability(self, a: np.ndarray, b: np.ndarray, gamma: np.ndarray | None = None) -> EngineBeams:
+        """These beams with every element's interception probability from its counts and range (:func:`permeability`).
 
-        ``a`` and ``b`` hold one Beta prior per occupancy class (index 0: stray hits, 1: occupied, 2: backstops).
+        ``a``, ``b`` and ``gamma`` (default 0: no range dependence) hold one value per occupancy class (index 0:
+        stray hits, 1: occupied, 2: backstops, ...).
         """
         k = self.occupied
-        p = permeability(self.hits, self.passes, np.asarray(a)[k], np.asarray(b)[k]) if self.hits.size else np.ones(1)
+        gamma = np.zeros(OCCUPANCY_CLASSES) if gamma is None else gamma
+        if not self.hits.size:
+            return dataclasses.replace(self, table=self.table.replaced(p_hit=_f(np.ones(1))))
+        p = permeability(self.hits, self.passes, np.asarray(a)[k], np.asarray(b)[k], self.ranges, np.asarray(gamma)[k])
         return dataclasses.replace(self, table=self.table.replaced(p_hit=_f(p)))
 
     def streams(self, seed: int, follows: np.ndarray | None = None) -> int | NeighbourStreams:
@@ -225,6 +231,7 @@ def nominal_beams(trace: PlanarTrace) -> EngineBeams:
         hits=np.ones(n_elements),
         passes=np.zeros(n_elements),
         occupied=np.ones(n_elements, np.int64),
+        ranges=trace.nominal[met],
         follows=scan_follows(trace.scan, trace.beam),
     )
 
@@ -244,13 +251,37 @@ def segment_beams(trace: PlanarTrace, classes: int = EVIDENCE_CLASSES) -> Engine
         hits=trace.seg_hits.astype(np.float64),
         passes=trace.seg_passes.astype(np.float64),
         occupied=trace.seg_occupied.astype(np.int64),
+        ranges=trace.seg_at.astype(np.float64),
         follows=scan_follows(trace.scan, trace.beam),
     )
 
 
-def permeability(hits: np.ndarray, passes: np.ndarray, a, b):
-    """The counting estimate with a Beta(a, b) prior: ``(hits + a) / (hits + passes + a + b)`` (numpy or Dr.Jit)."""
-    return (hits + a) / (hits + passes + a + b)
+RANGE_REFERENCE = 5.0  # m: the range at which an element intercepts by its counts alone (see permeability)
+RANGE_LEAST = 0.2  # m: nearer elements intercept as if met at this range
+
+
+def permeability(hits, passes, a, b, ranges=None, gamma=None):
+    """The probability that an element intercepts the beam, from its leave-out counts (numpy or Dr.Jit; every
+    argument per element).
+
+    The counting estimate with a Beta(a, b) prior, ``p = (hits + a) / (hits + passes + a + b)``, is the
+    interception of a beam that meets the element at :data:`RANGE_REFERENCE`. With ``ranges`` (m) and
+    ``gamma``, a beam that meets it at range ``r`` passes with probability ``(1 - p) ** ((r /
+    RANGE_REFERENCE) ** gamma)``, as if it crossed ``(r / RANGE_REFERENCE) ** gamma`` such elements: a beam
+    widens with range, and a cell that holds part of a thin thing (a chair leg, a person, a wall's end) stops
+    more of a wide far beam than of a narrow near one (``gamma > 0``; 0: the counting estimate at every
+    range). Fitted per occupancy class by likelihood (:func:`fit_permeability`), the stray-hit cells took
+    0.14-0.61 on ten CARMEN logs (docs/loop_results.md); on synthetic traces the fit puts it 0.1-0.2 high
+    (tests/planar/test_range_interception.py).
+    """
+    p = (hits + a) / (hits + passes + a + b)
+    if gamma is None:
+        return p
+    if isinstance(p, np.ndarray):
+        crossed = np.exp(gamma * np.log(np.maximum(ranges, RANGE_LEAST) / RANGE_REFERENCE))
+        return 1.0 - np.exp(np.log1p(-p) * crossed)
+    crossed = dr.exp(gamma * dr.log(dr.maximum(ranges, RANGE_LEAST) / RANGE_REFERENCE))
+    return 1.0 - dr.exp(dr.log(1.0 - p) * crossed)
 
 
 def fit_permeability(
@@ -258,9 +289,10 @@ def fit_permeability(
     model,
     steps: int = 120,
     tolerance: float | None = PERMEABILITY_TOLERANCE,
-    start: tuple[np.ndarray, np.ndarray] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The Beta priors ``(a, b)`` of the cells' interception probabilities, one per occupancy class, by the one fitter.
+    start: tuple[np.ndarray, ...] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The Beta priors ``(a, b)`` of the cells' interception probabilities and their range exponents ``gamma``
+    (:func:`permeability`), one of each per occupancy class, by the one fitter.
 
     Stray-hit cells (hits in fewer than a quarter of visits: people, clutter, grazing wall edges) and
     ``occ3`` occupied cells get their own prior: the same counts mean a different interception
@@ -271,27 +303,30 @@ def fit_permeability(
     is computed once (:func:`~mi_lidar.core.trace.cache_distributions`) and a step is a few gathers.
     The fit stops after at most ``steps`` steps, or once the mean score improved by less than
     ``tolerance`` (nats per beam; None: never) over 15 steps (on the Intel log after 50-64 of 120
-    steps, within 1e-4 nats per beam of the 120-step loss). ``start``: the ``(a, b)`` to start from
-    (default 0.5 each), e.g. the previous EM round's.
+    steps, within 1e-4 nats per beam of the 120-step loss). ``start``: the ``(a, b, gamma)`` to start from
+    (default 0.5, 0.5 and 0 each), e.g. the previous EM round's.
     """
     cache = RayCache.from_rounds(cache_distributions(beams.rounds, beams.table, model, beams.rays, beams.z))
     batch = cache.batch(np.arange(beams.n))
     hits, passes = _f(beams.hits), _f(beams.passes)
     occupied = mi.UInt32(aligned(beams.occupied.astype(np.uint32)))
-    a0, b0 = start if start is not None else ([0.5] * OCCUPANCY_CLASSES, [0.5] * OCCUPANCY_CLASSES)
+    half, flat = np.full(OCCUPANCY_CLASSES, 0.5), np.zeros(OCCUPANCY_CLASSES)
+    a0, b0, g0 = start if start is not None else (half, half, flat)
     variables = [
         FitVariable("a", a0, lower=1e-3, upper=100.0, scale=0.5, transform="log"),
         FitVariable("b", b0, lower=1e-3, upper=100.0, scale=0.5, transform="log"),
+        FitVariable("gamma", g0, lower=-3.0, upper=3.0, scale=0.3),
     ]
+    ranges = _f(beams.ranges)
 
     def objective(values, step: int) -> float:
         v = values()
-        a, b = lookup(v["a"], occupied), lookup(v["b"], occupied)  # per class, with reproducible gradients
-        table = beams.table.replaced(p_hit=permeability(hits, passes, a, b))
+        a, b, gamma = (lookup(v[name], occupied) for name in ("a", "b", "gamma"))  # per class, reproducible gradients
+        table = beams.table.replaced(p_hit=permeability(hits, passes, a, b, ranges, gamma))
         raw = mixture_log_likelihood(table, model, beams.rays, batch, beams.z, beams.hit)
         loss = -dr.mean(score(raw, beams.hit))
         dr.backward(loss)
         return float(loss[0])
 
     result = adam_fit(variables, objective, steps, lr=0.3, tolerance=tolerance)
-    return np.asarray(result.values["a"], np.float64), np.asarray(result.values["b"], np.float64)
+    return tuple(np.asarray(result.values[name], np.float64) for name in ("a", "b", "gamma"))

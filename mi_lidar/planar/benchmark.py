@@ -338,6 +338,7 @@ def run_planar_benchmark(
                 f"beta_prior_{name}": [float(a), float(b)]
                 for name, a, b in zip(OCCUPANCY_NAMES, permeable.a, permeable.b)
             },
+            **{f"range_exponent_{name}": float(g) for name, g in zip(OCCUPANCY_NAMES, permeable.gamma)},
             "angular_share_per_neighbour": float(permeable.angular),
             "footprint_share_per_neighbour": float(permeable.footprint),
             "evidence_classes": int(permeable.classes),

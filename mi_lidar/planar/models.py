@@ -14,8 +14,10 @@ P-Reg      thesis 3.3: P_null, mean, sigma by local linear kernel regression on 
 NP-Reg     thesis 3.4: per-state histograms smoothed across states by a kernel (frequency polygon)
 mi-lidar   the permeable map: every cell with leave-out hits is an element at its surface
            that intercepts the beam with its counting estimate (a Beta prior per occupancy class,
-           fitted), returns by an NP-Reg density conditioned on the cell's occupancy, evidence (how
-           many leave-out hits; whether to tell them apart is chosen held out), range and incidence
+           fitted), changed with the range at which the beam meets it (an exponent per class, fitted:
+           :func:`~mi_lidar.planar.beams.permeability`), returns by an NP-Reg density conditioned on
+           the cell's occupancy, evidence (how many leave-out hits; whether to tell them apart is
+           chosen held out), range and incidence
            (refined by EM over the segments, each return and each miss shared among the elements by
            their posterior, and counted by the posterior of the beam's own trace once its angular spread
            is known; its far tails scaled by likelihood); a beam that passes every cell listed for it
@@ -281,6 +283,8 @@ class PermeableMap:
         a, b: (5,) the Beta priors of the elements' interception probabilities, one per occupancy class
             (stray-hit cells, occupied cells, backstops, and the backstops and stray cells of beams in the open:
             :data:`~mi_lidar.planar.trace.BACKSTOP`).
+        gamma: (5,) how the interception of each class grows with the range at which a beam meets an element
+            (:func:`~mi_lidar.planar.beams.permeability`).
         classes: evidence classes of the segment labels (:func:`~mi_lidar.planar.beams.segment_labels`).
         angular: the share of each neighbouring beam's trace alone in a beam's return, and
         footprint: the share of each footprint (the nearer of the beam's and a neighbour's returns)
@@ -294,6 +298,7 @@ class PermeableMap:
     model: SensorModel
     a: np.ndarray
     b: np.ndarray
+    gamma: np.ndarray
     classes: int = EVIDENCE_CLASSES
     angular: float = 0.0
     footprint: float = 0.0
@@ -302,7 +307,7 @@ class PermeableMap:
 
     def segments(self, trace: PlanarTrace) -> EngineBeams:
         """The engine's view of ``trace`` under this map (every segment, interception from its counts)."""
-        beams = segment_beams(trace.with_backstops(), self.classes).with_permeability(self.a, self.b)
+        beams = segment_beams(trace.with_backstops(), self.classes).with_permeability(self.a, self.b, self.gamma)
         return dataclasses.replace(beams, correlation=self.correlation)
 
     def beams(self, trace: PlanarTrace) -> AngularMixture:
@@ -329,11 +334,11 @@ def fit_milidar(
         fit_part, check = train.take(train.scan % 2 == 0), train.take(train.scan % 2 == 1)
         trials, scores = [], []
         for k in classes:
-            start = (trials[-1].a, trials[-1].b) if trials else None
+            start = (trials[-1].a, trials[-1].b, trials[-1].gamma) if trials else None
             trials.append(fit_permeable_map(fit_part, z_max, bandwidths, k, tails=False, prior=start))
             scores.append(-float(np.mean(trials[-1].beams(check).log_likelihood(trials[-1].model))))
         best = int(np.argmin(scores))
-        classes, prior = (classes[best],), (trials[best].a, trials[best].b)
+        classes, prior = (classes[best],), (trials[best].a, trials[best].b, trials[best].gamma)
     fitted = fit_permeable_map(train, z_max, bandwidths, classes[0], prior=prior)
     fitted.correlation, fitted.shared_errors = fit_correlation(fitted, train)
     return fitted
@@ -347,7 +352,7 @@ def fit_permeable_map(
     rounds: int = 3,
     steps: int = 120,
     tails: bool = True,
-    prior: tuple[np.ndarray, np.ndarray] | None = None,
+    prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> PermeableMap:
     """mi-lidar's permeable map with ``classes`` evidence classes (see the module docstring).
 
@@ -358,7 +363,8 @@ def fit_permeable_map(
     backstop for a return more than :data:`~mi_lidar.planar.tails.FAR` behind it or for a beam in the open
     (:func:`initial_credit`),
     and the kernel ``bandwidths`` ``(h_range, h_incidence, uniform, reach)`` chosen for NP-Reg on held-out
-    training scans; then ``rounds`` times: fit the Beta priors (a, b) by the one fitter, then
+    training scans; then ``rounds`` times: fit the Beta priors (a, b) and the range exponents (gamma) of the
+    interception probabilities (:func:`~mi_lidar.planar.beams.permeability`) by the one fitter, then
     :data:`CREDIT_STEPS` times share each return and each miss among the elements that could have produced it
     (segments, the backstop, the escape state) by their posterior (:func:`credited_segments`, the E step) and
     re-estimate the tables from those shares (the M step); then the Beta priors again.
@@ -389,8 +395,8 @@ def fit_permeable_map(
     angular spread (the shares of the neighbours alone and of the footprints) by maximum likelihood on the
     training beams. Its beams are sampled independently until :func:`fit_correlation` sets how much
     neighbours share their errors.
-    Every fit of the Beta prior starts from the previous one's, the first from ``prior`` (default 0.5
-    each): a starting point, not a constraint.
+    Every fit of the Beta priors and exponents starts from the previous one's, the first from ``prior`` (default
+    0.5, 0.5 and 0 each): a starting point, not a constraint.
     """
     h_r, h_i, u, reach = bandwidths
     end = support_end(samples_of(train), reach, z_max)
@@ -424,9 +430,9 @@ def fit_permeable_map(
         for _ in range(CREDIT_STEPS):
             density = tables(*credited_segments(permeable, traced.seg_start, base_model(density)))
         del permeable
-    a, b = fit_permeability(beams, base_model(density), steps, start=prior)
+    a, b, gamma = fit_permeability(beams, base_model(density), steps, start=prior)
     del beams  # the mixture below holds these segments again, seven times: one set at a time
-    fitted = PermeableMap(model=base_model(density), a=a, b=b, classes=classes)
+    fitted = PermeableMap(model=base_model(density), a=a, b=b, gamma=gamma, classes=classes)
     mixture = fitted.beams(train)
 
     def angular_shares() -> np.ndarray:

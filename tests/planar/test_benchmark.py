@@ -286,7 +286,10 @@ def test_intel_anchors_and_mi_lidar_margin(shared_data, tmp_path):
 
 
 def test_the_beta_prior_fit_stops_when_converged(room, monkeypatch):
-    """fit_permeability stops early on its tolerance and loses < 1e-4 nats per beam against a full-length fit."""
+    """fit_permeability stops early on its tolerance and loses < 1e-4 nats per beam against a full-length fit.
+
+    The budget is 400 steps: with the range exponents the stray cells' prior drifts along a valley of one
+    ``a / (a + b)`` (measured: stopped after 236 steps, 4e-6 nats per beam short of an 800-step budget's)."""
     import mi_lidar.planar.beams as planar_beams
     from mi_lidar.planar.models import base_model, fit_permeable_map
 
@@ -305,9 +308,9 @@ def test_the_beta_prior_fit_stops_when_converged(room, monkeypatch):
     monkeypatch.setattr(planar_beams, "adam_fit", counted)
     scores = []
     for tolerance in (planar_beams.PERMEABILITY_TOLERANCE, None):
-        a, b = planar_beams.fit_permeability(beams, base_model(model.density), 200, tolerance)
-        scores.append(beams.with_permeability(a, b).log_likelihood(model).mean())
-    assert steps_run[0] < 200 and steps_run[1] == 200
+        prior = planar_beams.fit_permeability(beams, base_model(model.density), 400, tolerance)
+        scores.append(beams.with_permeability(*prior).log_likelihood(model).mean())
+    assert steps_run[0] < 400 and steps_run[1] == 400
     assert scores[1] - 1e-4 <= scores[0] <= scores[1] + 1e-4
 
 
@@ -341,9 +344,11 @@ def test_the_beta_prior_fit_starts_where_it_is_told(room, monkeypatch):
 
     default = planar_beams.fit_permeability(beams, model, 200)
     again = planar_beams.fit_permeability(beams, model, 200, start=default)
-    far = planar_beams.fit_permeability(beams, model, 400, start=(np.array([2.0, 0.1]), np.array([0.1, 2.0])))
+    far_start = (np.array([2.0, 0.1]), np.array([0.1, 2.0]), np.array([0.5, -0.5]))
+    far = planar_beams.fit_permeability(beams, model, 400, start=far_start)
     np.testing.assert_allclose(first_values[1][0], default[0], rtol=1e-6)
     np.testing.assert_allclose(first_values[2][1], [0.1, 2.0], rtol=1e-6)
+    np.testing.assert_allclose(first_values[2][2], [0.5, -0.5], rtol=1e-6)
     assert steps_run[1] < steps_run[0], steps_run
     best = max(score(default), score(again))
     assert score(again) >= score(default) - 1e-6  # the fit keeps the best values it saw, its start among them
