@@ -271,8 +271,8 @@ def permeability(hits, passes, a, b, ranges=None, gamma=None):
     widens with range, and a cell that holds part of a thin thing (a chair leg, a person, a wall's end) stops
     more of a wide far beam than of a narrow near one (``gamma > 0``; 0: the counting estimate at every
     range). Fitted per occupancy class by likelihood (:func:`fit_permeability`), the stray-hit cells took
-    0.14-0.61 on ten CARMEN logs (docs/loop_results.md); on synthetic traces the fit puts it 0.1-0.2 high
-    (tests/planar/test_range_interception.py).
+    0.14-0.61 on ten CARMEN logs (docs/loop_results.md); on synthetic traces it is found within 0.03 of the
+    truth (tests/planar/test_range_interception.py).
     """
     p = (hits + a) / (hits + passes + a + b)
     if gamma is None:
