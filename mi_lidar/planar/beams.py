@@ -137,14 +137,13 @@ class EngineBeams:
             raw = mixture_log_likelihood(self.table, model, self.rays, self.rounds, dr.zeros(mi.Float, self.n), miss)
             return np.exp(np.asarray(raw, np.float64))
 
-    def with_permeability(self, a: np.ndarray, b: np.ndarray, gamma: np.ndarray | None = None) -> EngineBeams:
+    def with_permeability(self, a: np.ndarray, b: np.ndarray, gamma: np.ndarray) -> EngineBeams:
         """These beams with every element's interception probability from its counts and range (:func:`permeability`).
 
-        ``a``, ``b`` and ``gamma`` (default 0: no range dependence) hold one value per occupancy class (index 0:
-        stray hits, 1: occupied, 2: backstops, ...).
+        ``a``, ``b`` and ``gamma`` hold one value per occupancy class (index 0: stray hits, 1: occupied,
+        2: backstops, ...).
         """
         k = self.occupied
-        gamma = np.zeros(OCCUPANCY_CLASSES) if gamma is None else gamma
         if not self.hits.size:
             return dataclasses.replace(self, table=self.table.replaced(p_hit=_f(np.ones(1))))
         p = permeability(self.hits, self.passes, np.asarray(a)[k], np.asarray(b)[k], self.ranges, np.asarray(gamma)[k])
@@ -277,11 +276,9 @@ def permeability(hits, passes, a, b, ranges=None, gamma=None):
     p = (hits + a) / (hits + passes + a + b)
     if gamma is None:
         return p
-    if isinstance(p, np.ndarray):
-        crossed = np.exp(gamma * np.log(np.maximum(ranges, RANGE_LEAST) / RANGE_REFERENCE))
-        return 1.0 - np.exp(np.log1p(-p) * crossed)
-    crossed = dr.exp(gamma * dr.log(dr.maximum(ranges, RANGE_LEAST) / RANGE_REFERENCE))
-    return 1.0 - dr.exp(dr.log(1.0 - p) * crossed)
+    xp = np if isinstance(p, np.ndarray) else dr  # the same formula on numpy and Dr.Jit arrays
+    crossed = xp.exp(gamma * xp.log(xp.maximum(ranges, RANGE_LEAST) / RANGE_REFERENCE))
+    return 1.0 - xp.exp(xp.log(1.0 - p) * crossed)
 
 
 def fit_permeability(

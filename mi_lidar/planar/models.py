@@ -305,9 +305,15 @@ class PermeableMap:
     correlation: BeamCorrelation = BeamCorrelation()
     shared_errors: dict = dataclasses.field(default_factory=dict)
 
+    @property
+    def interception(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(a, b, gamma)``: what sets every element's interception probability
+        (:func:`~mi_lidar.planar.beams.fit_permeability`)."""
+        return self.a, self.b, self.gamma
+
     def segments(self, trace: PlanarTrace) -> EngineBeams:
         """The engine's view of ``trace`` under this map (every segment, interception from its counts)."""
-        beams = segment_beams(trace.with_backstops(), self.classes).with_permeability(self.a, self.b, self.gamma)
+        beams = segment_beams(trace.with_backstops(), self.classes).with_permeability(*self.interception)
         return dataclasses.replace(beams, correlation=self.correlation)
 
     def beams(self, trace: PlanarTrace) -> AngularMixture:
@@ -334,11 +340,11 @@ def fit_milidar(
         fit_part, check = train.take(train.scan % 2 == 0), train.take(train.scan % 2 == 1)
         trials, scores = [], []
         for k in classes:
-            start = (trials[-1].a, trials[-1].b, trials[-1].gamma) if trials else None
+            start = trials[-1].interception if trials else None
             trials.append(fit_permeable_map(fit_part, z_max, bandwidths, k, tails=False, prior=start))
             scores.append(-float(np.mean(trials[-1].beams(check).log_likelihood(trials[-1].model))))
         best = int(np.argmin(scores))
-        classes, prior = (classes[best],), (trials[best].a, trials[best].b, trials[best].gamma)
+        classes, prior = (classes[best],), trials[best].interception
     fitted = fit_permeable_map(train, z_max, bandwidths, classes[0], prior=prior)
     fitted.correlation, fitted.shared_errors = fit_correlation(fitted, train)
     return fitted
