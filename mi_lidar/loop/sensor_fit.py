@@ -54,7 +54,7 @@ CREDIT_ROUNDS = 8  # EM rounds of the learned densities in scenes with permeable
 CREDIT_GAIN = 0.01  # nats per ray: the crediting rounds stop once a round gains less held out
 LEAST_SHARE = 1e-6  # shares of an outcome at most this are left out of the fit (Intel wall map: 4 rows in 5, NLL alike)
 CHOSEN_SETTINGS = {
-    "np-reg": ("h_ranges", "h_incidences", "uniforms", "reaches"),
+    "np-reg": ("h_ranges", "h_incidences", "uniforms", "reaches", "h_nulls"),
     "p-reg": ("h_ranges", "h_incidences", "escapes"),
 }
 

@@ -366,10 +366,11 @@ def run_planar_benchmark(
         h_r, h_d, escape = settings["p_reg"]
         chosen["P-Reg"] = {"h_range_m": h_r, "h_incidence_deg": h_d, "escape_law": escape}
     if "np_reg" in settings:
-        h_r, h_i, u, reach = settings["np_reg"]
+        h_r, h_i, u, reach, h_null = settings["np_reg"]
         chosen["NP-Reg"] = {
             "h_range_m": h_r,
             "h_incidence_deg": h_i,
+            "h_no_return_m": h_null,
             "uniform_share": u,
             "support_end_m": support_end(m.samples_of(data.train), reach, z_max),
         }

@@ -225,7 +225,7 @@ def fit_learned(train: PlanarTrace, z_max: float, family: str) -> tuple[SensorMo
     else:
         grid = fine_grid(samples)
         _, table = fit_np_reg(samples_of(fit_part), grid, held_out, z_max=z_max)
-        h_r, h_i, u, reach, _ = min(table, key=lambda row: row[-1])
+        h_r, h_i, u, reach, h_null, _ = min(table, key=lambda row: row[-1])
         density, _ = fit_np_reg(
             samples,
             grid,
@@ -234,9 +234,10 @@ def fit_learned(train: PlanarTrace, z_max: float, family: str) -> tuple[SensorMo
             h_incidences=(h_i,),
             uniforms=(u,),
             reaches=(reach,),
+            h_nulls=(h_null,),
             z_max=z_max,
         )
-        setting = (h_r, h_i, u, reach)
+        setting = (h_r, h_i, u, reach, h_null)
     return base_model(density), setting
 
 
@@ -322,7 +323,10 @@ class PermeableMap:
 
 
 def fit_milidar(
-    train: PlanarTrace, z_max: float, bandwidths: tuple[float, float, float, float], classes=(1, EVIDENCE_CLASSES)
+    train: PlanarTrace,
+    z_max: float,
+    bandwidths: tuple[float, float, float, float, float],
+    classes=(1, EVIDENCE_CLASSES),
 ) -> PermeableMap:
     """mi-lidar's permeable map (see the module docstring), its evidence classes chosen held out.
 
@@ -353,7 +357,7 @@ def fit_milidar(
 def fit_permeable_map(
     train: PlanarTrace,
     z_max: float,
-    bandwidths: tuple[float, float, float, float],
+    bandwidths: tuple[float, float, float, float, float],
     classes: int = EVIDENCE_CLASSES,
     rounds: int = 3,
     steps: int = 120,
@@ -368,9 +372,10 @@ def fit_permeable_map(
     Start: NP-Reg tables from each beam's first occupied cell (its surface, incidence and label), or its
     backstop for a return more than :data:`~mi_lidar.planar.tails.FAR` behind it or for a beam in the open
     (:func:`initial_credit`),
-    and the kernel ``bandwidths`` ``(h_range, h_incidence, uniform, reach)`` chosen for NP-Reg on held-out
-    training scans; then ``rounds`` times: fit the Beta priors (a, b) and the range exponents (gamma) of the
-    interception probabilities (:func:`~mi_lidar.planar.beams.permeability`) by the one fitter, then
+    and the kernel ``bandwidths`` ``(h_range, h_incidence, uniform, reach, h_null)`` chosen for NP-Reg on held-out
+    training scans (:func:`~mi_lidar.core.densities.histogram.kernel_smooth`); then ``rounds`` times: fit the
+    Beta priors (a, b) and the range exponents (gamma) of the interception probabilities
+    (:func:`~mi_lidar.planar.beams.permeability`) by the one fitter, then
     :data:`CREDIT_STEPS` times share each return and each miss among the elements that could have produced it
     (segments, the backstop, the escape state) by their posterior (:func:`credited_segments`, the E step) and
     re-estimate the tables from those shares (the M step); then the Beta priors again.
@@ -404,7 +409,7 @@ def fit_permeable_map(
     Every fit of the Beta priors and exponents starts from the previous one's, the first from ``prior`` (default
     0.5, 0.5 and 0 each): a starting point, not a constraint.
     """
-    h_r, h_i, u, reach = bandwidths
+    h_r, h_i, u, reach, h_null = bandwidths
     end = support_end(samples_of(train), reach, z_max)
     grid = fine_grid(samples_of(train), labels=2 * classes + LABELS_BEYOND)
     edges = protocol_residual_edges(z_max)
@@ -425,7 +430,8 @@ def fit_permeable_map(
             weight=share,
         )
         counts = backstop_prior(count_states(assigned, grid, edges), grid, classes)
-        mass, p_null = _finish(np.concatenate([kernel_smooth(grid, counts[:-1], h_r, h_i), counts[-1:]]), e_kernel=True)
+        smoothed = kernel_smooth(grid, counts[:-1], h_r, h_i, h_null)
+        mass, p_null = _finish(np.concatenate([smoothed, counts[-1:]]), e_kernel=True)
         return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=end)
 
     density = tables(np.arange(train.n), initial_credit(traced), np.ones(train.n))

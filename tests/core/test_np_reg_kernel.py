@@ -83,3 +83,18 @@ def test_each_beam_is_shrunk_to_its_labels_law_with_the_pseudo_samples_weight():
     pooled = StateGrid(range_edges=[0.0, 5.0, 1e9], n_labels=2)
     flat = counts.sum(axis=1).reshape(pooled.size, 4)
     assert shrink_beams(pooled, flat) is flat
+
+
+def test_no_returns_smoothed_with_their_own_range_bandwidth():
+    """With ``h_null``, the returns are ``W @ counts`` as before and P(no return) is ``(W' n) / (W' t)``
+    with ``W'`` the kernel of range bandwidth ``h_null`` (``n`` the no-returns, ``t`` all outcomes)."""
+    grid = StateGrid(range_edges=[0.0, 1.0, 2.5, 4.0, 6.0, 1e9], incidence_edges=[0.0, 30.0, 90.0], n_labels=2)
+    counts = np.random.default_rng(4).poisson(3.0, (grid.size, 6)).astype(np.float64)
+    smoothed = kernel_smooth(grid, counts, 2.0, 25.0, h_null=0.5)
+    np.testing.assert_allclose(smoothed[:, :-1], dense_kernel(grid, 2.0, 25.0) @ counts[:, :-1], rtol=1e-12)
+    narrow = dense_kernel(grid, 0.5, 25.0)
+    expected = (narrow @ counts[:, -1]) / (narrow @ counts.sum(axis=1))
+    np.testing.assert_allclose(smoothed[:, -1] / smoothed.sum(axis=1), expected, rtol=1e-12)
+    one_kernel = kernel_smooth(grid, counts, 2.0, 25.0)
+    assert not np.allclose(one_kernel[:, -1] / one_kernel.sum(axis=1), expected, rtol=1e-3)
+    np.testing.assert_array_equal(kernel_smooth(grid, counts, 2.0, 25.0, h_null=2.0), one_kernel)

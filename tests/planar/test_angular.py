@@ -94,7 +94,7 @@ def test_a_post_stops_the_footprint_and_the_wall_behind_it_is_not_drawn():
     sensor reported it (measured 11-16 % against 15 %), and the fitted model scores better than with the spread
     alone (by 0.0027 nats per beam: only 80 of 4800 beams tell them apart)."""
     trace = post_trace()
-    fitted = fit_permeable_map(trace, 31.0, (1.0, 20.0, 1e-3, math.inf), 1, rounds=1, tails=False)
+    fitted = fit_permeable_map(trace, 31.0, (1.0, 20.0, 1e-3, math.inf, 1.0), 1, rounds=1, tails=False)
     shares = (fitted.angular, fitted.footprint)
     assert fitted.footprint == pytest.approx(0.15, abs=0.03) and fitted.angular < 0.02, shares
     beams = fitted.beams(trace)
@@ -118,7 +118,7 @@ def test_each_part_draws_only_the_beams_that_picked_it_and_each_as_in_a_draw_of_
     """A sampled scan draws each beam from the part its own stream picks, and only that part draws it; the
     beam's range is the one the part gives it when it draws every beam (independent or correlated streams)."""
     trace = post_trace()
-    fitted = fit_permeable_map(trace, 31.0, (1.0, 20.0, 1e-3, math.inf), 1, rounds=1, tails=False)
+    fitted = fit_permeable_map(trace, 31.0, (1.0, 20.0, 1e-3, math.inf, 1.0), 1, rounds=1, tails=False)
     beams = fitted.beams(trace).with_correlation(correlation)
     beams.weight, beams.footprint = 0.1, 0.1  # every part picked by some beams
     for seed in (0, 7):
@@ -169,7 +169,7 @@ def test_beams_through_a_window_beside_walls_return_as_often_and_as_near_as_the_
     scans the window beams return within 0.025 of the sensor's rate (measured 38.7 %; 38.1-39.6 % per scan) and
     from nearer than 20 m within 0.02 (11.5 %; 10.7-13.0 %)."""
     trace = window_trace()
-    fitted = fit_permeable_map(trace, 41.0, (1.0, 20.0, 1e-3, math.inf), 1, rounds=1, tails=False)
+    fitted = fit_permeable_map(trace, 41.0, (1.0, 20.0, 1e-3, math.inf, 1.0), 1, rounds=1, tails=False)
     beams = fitted.beams(trace)
     window = trace.beam % 4 >= 2
     draws = [beams.sample(fitted.model, seed) for seed in range(4)]

@@ -69,7 +69,7 @@ def segments_trace(z: np.ndarray, nominal: np.ndarray, segments: list, scans: in
 
 def fitted_map(trace: PlanarTrace):
     """The permeable map fitted to ``trace`` (one evidence class, two EM rounds), its beams and their P(miss)."""
-    fitted = fit_permeable_map(trace, 31.0, (1.0, 20.0, 1e-3, math.inf), 1, rounds=2)
+    fitted = fit_permeable_map(trace, 31.0, (1.0, 20.0, 1e-3, math.inf, 1.0), 1, rounds=2)
     beams = fitted.beams(trace)
     return fitted, beams, beams.p_miss(fitted.model)
 

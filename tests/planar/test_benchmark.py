@@ -246,7 +246,7 @@ def test_shared_errors_change_the_samples_not_the_score(room):
 
     data = prepare(read_carmen(room), PROTOCOL)
     z_max = float(np.nanmax(data.log.ranges)) + 1.0
-    independent = fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf), 1, rounds=1)
+    independent = fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf, 1.0), 1, rounds=1)
     correlation, summary = fit_correlation(independent, data.train)
     shared = dataclasses.replace(independent, correlation=correlation, shared_errors=summary)
     assert not independent.correlation.active and not independent.shared_errors
@@ -295,7 +295,7 @@ def test_the_beta_prior_fit_stops_when_converged(room, monkeypatch):
 
     data = prepare(read_carmen(room), PROTOCOL)
     z_max = float(np.nanmax(data.log.ranges)) + 1.0
-    model = fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf), 1, rounds=0).model
+    model = fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf, 1.0), 1, rounds=0).model
     beams = planar_beams.segment_beams(data.train, 1)
     steps_run = []
     fit = planar_beams.adam_fit
@@ -326,7 +326,7 @@ def test_the_beta_prior_fit_starts_where_it_is_told(room, monkeypatch):
 
     data = prepare(read_carmen(room), PROTOCOL)
     z_max = float(np.nanmax(data.log.ranges)) + 1.0
-    model = base_model(fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf), 1, rounds=0).model.density)
+    model = base_model(fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf, 1.0), 1, rounds=0).model.density)
     beams = planar_beams.segment_beams(data.train, 1)
     first_values, steps_run = [], []
     fit = planar_beams.adam_fit

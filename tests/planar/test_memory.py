@@ -50,7 +50,7 @@ def test_beams_scored_and_sampled_in_parts_give_what_the_whole_set_gives(tmp_pat
     path = tmp_path / "room.log"
     path.write_text(room_log_text(scans=20))
     data = prepare(read_carmen(path), PlanarProtocol(window=5.0), workers=1)
-    fitted = fit_permeable_map(data.train, 50.0, (0.1, 10.0, 0.01, 1.0), classes=1, rounds=1, tails=False)
+    fitted = fit_permeable_map(data.train, 50.0, (0.1, 10.0, 0.01, 1.0, 0.1), classes=1, rounds=1, tails=False)
     fitted.angular, fitted.correlation = 0.1, BeamCorrelation(shared=0.6, rho=0.9)
     whole = scores_in_parts(fitted.beams, data.test, fitted.model, draws=3, seed=5, part_beams=10**9)
     parts = scores_in_parts(fitted.beams, data.test, fitted.model, draws=3, seed=5, part_beams=200)

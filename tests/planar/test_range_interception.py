@@ -83,7 +83,7 @@ def test_stray_cells_stop_near_and_far_beams_as_often_as_the_sensor(gamma):
     table learned part of the stray cells' returns as a short tail at -1 m and the exponent came out 0.1-0.2
     high in both cases: the wall here lies 1-5 m behind."""
     trace, kind, r, stopped = stray_trace(gamma)
-    fitted = fit_permeable_map(trace, 31.0, (1.0, 20.0, 1e-3, math.inf), 1, rounds=2, tails=False)
+    fitted = fit_permeable_map(trace, 31.0, (1.0, 20.0, 1e-3, math.inf, 1.0), 1, rounds=2, tails=False)
     assert fitted.gamma[0] == pytest.approx(gamma, abs=0.08), fitted.gamma
     beams = fitted.beams(trace)
     for (low, high), tolerance in (((0.5, 2.0), 0.03), ((12.0, 20.0), 0.05)):

@@ -33,7 +33,7 @@ def room_map(tmp_path_factory):
     path.write_text(room_log_text(scans=40))
     data = prepare(read_carmen(path), PlanarProtocol(window=5.0))
     z_max = float(np.nanmax(data.log.ranges)) + 1.0
-    return data, fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf), 1, rounds=1, tails=False)
+    return data, fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf, 1.0), 1, rounds=1, tails=False)
 
 
 def shares(density) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -93,7 +93,7 @@ def test_no_returns_are_matched_to_the_training_beams(tmp_path):
     path.write_text(room_log_text(scans=30, max_range=7.0))
     data = prepare(read_carmen(path), PlanarProtocol(window=5.0))
     z_max = 7.0
-    fitted = fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf), 1, rounds=1, tails=False)
+    fitted = fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf, 1.0), 1, rounds=1, tails=False)
     beams = fitted.beams(data.train)
     measured = float(np.mean(~data.train.hit))
     assert 0.02 < measured < 0.5
@@ -133,7 +133,7 @@ def test_no_returns_are_matched_per_range_band(tmp_path, monkeypatch):
     drop = np.random.default_rng(7).random(first.size) < 0.6 * np.nan_to_num(first) / far
     train = dataclasses.replace(data.train, z=np.where(drop, np.nan, data.train.z))
     z_max = float(np.nanmax(data.log.ranges)) + 1.0
-    fitted = fit_permeable_map(train, z_max, (1.0, 0.2, 0.01, math.inf), 1, rounds=1, tails=False)
+    fitted = fit_permeable_map(train, z_max, (1.0, 0.2, 0.01, math.inf, 1.0), 1, rounds=1, tails=False)
     beams = fitted.beams(train)
     density = fitted.model.density
     flat = density.with_tables(p_null=np.concatenate([np.full(density.grid.size, 0.1), [0.5]]))

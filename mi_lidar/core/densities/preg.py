@@ -386,7 +386,7 @@ def fit_p_reg(
         )
 
     return choose_then_vary(
-        candidates, lambda chosen: [(*chosen[:2], e) for e in escapes[1:]], build, held_out_score, progress
+        candidates, (lambda chosen: [(*chosen[:2], e) for e in escapes[1:]],), build, held_out_score, progress
     )
 
 

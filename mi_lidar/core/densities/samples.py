@@ -166,29 +166,36 @@ def choose_by_held_out(candidates: list, build, held_out_score, progress=None) -
     return best[1], table
 
 
-def choose_then_vary(candidates: list, vary, build, held_out_score, progress=None) -> tuple:
-    """:func:`choose_by_held_out` over ``candidates``, then over ``vary(chosen setting)``: settings that change
-    the chosen one in what the first stage held fixed (tried with the chosen bandwidths only).
+def choose_then_vary(candidates: list, stages, build, held_out_score, progress=None) -> tuple:
+    """:func:`choose_by_held_out` over ``candidates``, then stage by stage over ``stage(chosen setting)``:
+    settings that change the setting chosen so far in what the earlier stages held fixed (each tried with
+    everything else as chosen).
 
     Args:
         candidates: settings (tuples) of the first stage.
-        vary: ``vary(setting) -> [setting, ...]``, the second stage's settings (the same number for any).
-        build, held_out_score, progress: as for :func:`choose_by_held_out` (progress over both stages).
+        stages: functions ``stage(setting) -> [setting, ...]``, in order (each returns the same number of
+            settings for any setting).
+        build, held_out_score, progress: as for :func:`choose_by_held_out` (progress over every stage).
 
     Returns:
-        ``(best density of both stages, [(*setting, NLL), ...] of both)``.
+        ``(best density of every stage, [(*setting, NLL), ...] of every stage)``.
     """
-    total = len(candidates) + len(vary(candidates[0])) if candidates else 0
+    total = len(candidates) + sum(len(stage(candidates[0])) for stage in stages) if candidates else 0
+    done = 0
 
-    def step(done: int, _total: int, offset: int = 0) -> None:
+    def step(finished: int, _total: int) -> None:
         if progress is not None:
-            progress(offset + done, total)
+            progress(done + finished, total)
 
     best, table = choose_by_held_out(candidates, build, held_out_score, step)
-    *chosen, best_nll = min(table, key=lambda row: row[-1])
-    others = vary(tuple(chosen))
-    if others:
-        other, rows = choose_by_held_out(others, build, held_out_score, lambda d, t: step(d, t, len(candidates)))
+    done += len(candidates)
+    for stage in stages:
+        *chosen, best_nll = min(table, key=lambda row: row[-1])
+        others = stage(tuple(chosen))
+        if not others:
+            continue
+        other, rows = choose_by_held_out(others, build, held_out_score, step)
+        done += len(others)
         table += rows
         if min(row[-1] for row in rows) < best_nll:
             best = other
