@@ -488,6 +488,6 @@ def fit_np_reg(
         return [(*chosen[:3], r, chosen[4]) for r in reaches if r != widest]
 
     def null_bandwidth(chosen: tuple) -> list:
-        return [(*chosen[:4], h) for h in h_nulls if h != chosen[4]] if one_null is None else []
+        return [(*chosen[:4], h) for h in h_nulls if h != chosen[4]]  # none left for a single value
 
     return choose_then_vary(candidates, (shorter, null_bandwidth), build, held_out_score, progress)

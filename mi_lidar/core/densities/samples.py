@@ -173,8 +173,8 @@ def choose_then_vary(candidates: list, stages, build, held_out_score, progress=N
 
     Args:
         candidates: settings (tuples) of the first stage.
-        stages: functions ``stage(setting) -> [setting, ...]``, in order (each returns the same number of
-            settings for any setting).
+        stages: functions ``stage(setting) -> [setting, ...]``, in order (the progress total counts what each
+            returns for the first candidate).
         build, held_out_score, progress: as for :func:`choose_by_held_out` (progress over every stage).
 
     Returns:
