@@ -340,6 +340,7 @@ def run_planar_benchmark(
             },
             **{f"range_exponent_{name}": float(g) for name, g in zip(OCCUPANCY_NAMES, permeable.gamma)},
             **{f"counts_exponent_{name}": float(k) for name, k in zip(OCCUPANCY_NAMES, permeable.kappa)},
+            **{f"incidence_exponent_{name}": float(k) for name, k in zip(OCCUPANCY_NAMES, permeable.eta)},
             "angular_share_per_neighbour": float(permeable.angular),
             "footprint_share_per_neighbour": float(permeable.footprint),
             "evidence_classes": int(permeable.classes),

@@ -15,8 +15,9 @@ NP-Reg     thesis 3.4: per-state histograms smoothed across states by a kernel (
 mi-lidar   the permeable map: every cell with leave-out hits is an element at its surface
            that intercepts the beam with its counting estimate (a Beta prior per occupancy class,
            fitted) raised to a power (per class, fitted: a cell hit in few of its many visits stops
-           less than its share says), changed with the range at which the beam meets it (an exponent
-           per class, fitted: :func:`~mi_lidar.planar.beams.permeability`), returns by an NP-Reg density conditioned on
+           less than its share says), changed with the range and, for occupied cells, the incidence at
+           which the beam meets it (an exponent each, fitted: :func:`~mi_lidar.planar.beams.permeability`),
+           returns by an NP-Reg density conditioned on
            the cell's occupancy, evidence (how many leave-out hits; whether to tell them apart is
            chosen held out), range and incidence
            (refined by EM over the segments, each return and each miss shared among the elements by
@@ -286,7 +287,9 @@ class PermeableMap:
             (stray-hit cells, occupied cells, backstops, and the backstops and stray cells of beams in the open:
             :data:`~mi_lidar.planar.trace.BACKSTOP`).
         gamma: (5,) how the interception of each class grows with the range at which a beam meets an element,
-        kappa: (5,) the exponent of each class's counting estimate (:func:`~mi_lidar.planar.beams.permeability`).
+        kappa: (5,) the exponent of each class's counting estimate,
+        eta: (5,) how the interception of each class grows as the beam meets an element more head-on
+            (:func:`~mi_lidar.planar.beams.permeability`; fitted for the occupied cells only).
         classes: evidence classes of the segment labels (:func:`~mi_lidar.planar.beams.segment_labels`).
         angular: the share of each neighbouring beam's trace alone in a beam's return, and
         footprint: the share of each footprint (the nearer of the beam's and a neighbour's returns)
@@ -302,6 +305,7 @@ class PermeableMap:
     b: np.ndarray
     gamma: np.ndarray
     kappa: np.ndarray
+    eta: np.ndarray
     classes: int = EVIDENCE_CLASSES
     angular: float = 0.0
     footprint: float = 0.0
@@ -309,10 +313,10 @@ class PermeableMap:
     shared_errors: dict = dataclasses.field(default_factory=dict)
 
     @property
-    def interception(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``(a, b, gamma, kappa)``: what sets every element's interception probability
+    def interception(self) -> tuple[np.ndarray, ...]:
+        """``(a, b, gamma, kappa, eta)``: what sets every element's interception probability
         (:func:`~mi_lidar.planar.beams.fit_permeability`)."""
-        return self.a, self.b, self.gamma, self.kappa
+        return self.a, self.b, self.gamma, self.kappa, self.eta
 
     def segments(self, trace: PlanarTrace) -> EngineBeams:
         """The engine's view of ``trace`` under this map (every segment, interception from its counts)."""
@@ -376,7 +380,7 @@ def fit_permeable_map(
     (:func:`initial_credit`),
     and the kernel ``bandwidths`` ``(h_range, h_incidence, uniform, reach, h_null)`` chosen for NP-Reg on held-out
     training scans (:func:`~mi_lidar.core.densities.histogram.kernel_smooth`); then ``rounds`` times: fit the
-    Beta priors (a, b), the range exponents (gamma) and the counts' exponents (kappa) of the interception probabilities
+    Beta priors (a, b), the range, counts' and incidence exponents (gamma, kappa, eta) of the interception probabilities
     (:func:`~mi_lidar.planar.beams.permeability`) by the one fitter, then
     :data:`CREDIT_STEPS` times share each return and each miss among the elements that could have produced it
     (segments, the backstop, the escape state) by their posterior (:func:`credited_segments`, the E step) and
@@ -409,7 +413,7 @@ def fit_permeable_map(
     training beams. Its beams are sampled independently until :func:`fit_correlation` sets how much
     neighbours share their errors.
     Every fit of the Beta priors and exponents starts from the previous one's, the first from ``prior`` (default
-    0.5, 0.5, 0 and 1 each): a starting point, not a constraint.
+    0.5, 0.5, 0, 1 and 0 each): a starting point, not a constraint.
     """
     h_r, h_i, u, reach, h_null = bandwidths
     end = support_end(samples_of(train), reach, z_max)
@@ -444,9 +448,9 @@ def fit_permeable_map(
         for _ in range(CREDIT_STEPS):
             density = tables(*credited_segments(permeable, traced.seg_start, base_model(density)))
         del permeable
-    a, b, gamma, kappa = fit_permeability(beams, base_model(density), steps, start=prior)
+    a, b, gamma, kappa, eta = fit_permeability(beams, base_model(density), steps, start=prior)
     del beams  # the mixture below holds these segments again, seven times: one set at a time
-    fitted = PermeableMap(model=base_model(density), a=a, b=b, gamma=gamma, kappa=kappa, classes=classes)
+    fitted = PermeableMap(model=base_model(density), a=a, b=b, gamma=gamma, kappa=kappa, eta=eta, classes=classes)
     mixture = fitted.beams(train)
 
     def angular_shares() -> np.ndarray:

@@ -48,7 +48,8 @@ def leaky_wall_trace(seed: int = 3) -> PlanarTrace:
 
 def segments_trace(z: np.ndarray, nominal: np.ndarray, segments: list, scans: int = SCANS, beams: int = BEAMS):
     """``scans`` x ``beams`` beams with measurements ``z`` (m, NaN: a miss), nominal ranges ``nominal`` (m; NaN:
-    none) and per beam a list of segments ``(range, hits, passes, occupied)``, every one at 20 deg incidence."""
+    none) and per beam a list of segments ``(range, hits, passes, occupied)``, every one at 20 deg incidence, or
+    ``(range, hits, passes, occupied, incidence)`` (deg)."""
     rows = np.array([s for beam_segments in segments for s in beam_segments])
     counts = np.array([len(s) for s in segments])
     return PlanarTrace(
@@ -62,7 +63,7 @@ def segments_trace(z: np.ndarray, nominal: np.ndarray, segments: list, scans: in
         seg_hits=rows[:, 1].astype(np.int64),
         seg_passes=rows[:, 2].astype(np.int64),
         seg_occupied=rows[:, 3].astype(bool),
-        seg_incidence=np.full(len(rows), 20.0),
+        seg_incidence=rows[:, 4] if rows.shape[1] > 4 else np.full(len(rows), 20.0),
         seg_surface=rows[:, 0],
     )
 

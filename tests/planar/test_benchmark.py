@@ -344,12 +344,13 @@ def test_the_beta_prior_fit_starts_where_it_is_told(room, monkeypatch):
 
     default = planar_beams.fit_permeability(beams, model, 200)
     again = planar_beams.fit_permeability(beams, model, 200, start=default)
-    far_start = (np.array([2.0, 0.1]), np.array([0.1, 2.0]), np.array([0.5, -0.5]), np.array([2.0, 0.5]))
+    far_start = tuple(np.array(v) for v in ([2.0, 0.1], [0.1, 2.0], [0.5, -0.5], [2.0, 0.5], [0.3, -0.3]))
     far = planar_beams.fit_permeability(beams, model, 400, start=far_start)
     np.testing.assert_allclose(first_values[1][0], default[0], rtol=1e-6)
     np.testing.assert_allclose(first_values[2][1], [0.1, 2.0], rtol=1e-6)
     np.testing.assert_allclose(first_values[2][2], [0.5, -0.5], rtol=1e-6)
     np.testing.assert_allclose(first_values[2][3], [2.0, 0.5], rtol=1e-6)
+    np.testing.assert_allclose(first_values[2][4], [0.0, -0.3], rtol=1e-6)  # only the walls (class 1) incline
     assert steps_run[1] < steps_run[0], steps_run
     best = max(score(default), score(again))
     assert score(again) >= score(default) - 1e-6  # the fit keeps the best values it saw, its start among them
