@@ -226,7 +226,8 @@ def nominal_beams(trace: PlanarTrace) -> EngineBeams:
     start = np.concatenate([[0], np.cumsum(met)])
     n_elements = int(met.sum())
     table = ElementTable.from_elements(np.ones(max(n_elements, 1)), label=np.ones(max(n_elements, 1)))
-    rounds = rounds_from_segments(start, np.arange(n_elements), trace.nominal[met], _cos(trace.incidence[met]))
+    cos_incidence = _cos(trace.incidence[met])
+    rounds = rounds_from_segments(start, np.arange(n_elements), trace.nominal[met], cos_incidence)
     hit = trace.hit
     return EngineBeams(
         table=table,
@@ -238,7 +239,7 @@ def nominal_beams(trace: PlanarTrace) -> EngineBeams:
         passes=np.zeros(n_elements),
         occupied=np.ones(n_elements, np.int64),
         ranges=trace.nominal[met],
-        cos_incidence=_cos(trace.incidence[met]),
+        cos_incidence=cos_incidence,
         follows=scan_follows(trace.scan, trace.beam),
     )
 
@@ -248,7 +249,8 @@ def segment_beams(trace: PlanarTrace, classes: int = EVIDENCE_CLASSES) -> Engine
     n_elements = trace.seg_range.size
     labels = segment_labels(trace.seg_occupied, trace.seg_hits, classes).astype(np.uint32)
     table = ElementTable.from_elements(np.ones(max(n_elements, 1)), label=labels if n_elements else None)
-    rounds = rounds_from_segments(trace.seg_start, np.arange(n_elements), trace.seg_at, _cos(trace.seg_incidence))
+    cos_incidence = _cos(trace.seg_incidence)
+    rounds = rounds_from_segments(trace.seg_start, np.arange(n_elements), trace.seg_at, cos_incidence)
     return EngineBeams(
         table=table,
         rays=_rays(trace),
@@ -259,7 +261,7 @@ def segment_beams(trace: PlanarTrace, classes: int = EVIDENCE_CLASSES) -> Engine
         passes=trace.seg_passes.astype(np.float64),
         occupied=trace.seg_occupied.astype(np.int64),
         ranges=trace.seg_at.astype(np.float64),
-        cos_incidence=_cos(trace.seg_incidence),
+        cos_incidence=cos_incidence,
         follows=scan_follows(trace.scan, trace.beam),
     )
 
@@ -304,12 +306,8 @@ def permeability(hits, passes, a, b, ranges=None, gamma=None, kappa=None, cos_in
         return p
     crossed = xp.exp(gamma * xp.log(xp.maximum(ranges, RANGE_LEAST) / RANGE_REFERENCE))
     if eta is not None:
-        cos = xp.maximum(xp.minimum(cos_incidence, 1.0), COS_LEAST)  # NaN (unknown) -> COS_REFERENCE below
-        cos = (
-            np.where(np.isfinite(cos_incidence), cos, COS_REFERENCE)
-            if xp is np
-            else dr.select(dr.isfinite(cos_incidence), cos, COS_REFERENCE)
-        )
+        where = np.where if xp is np else dr.select
+        cos = where(xp.isfinite(cos_incidence), xp.maximum(xp.minimum(cos_incidence, 1.0), COS_LEAST), COS_REFERENCE)
         crossed = crossed * xp.exp(eta * xp.log(cos / COS_REFERENCE))
     return 1.0 - xp.exp(xp.log(1.0 - p) * crossed)
 
@@ -320,7 +318,7 @@ def fit_permeability(
     steps: int = 120,
     tolerance: float | None = PERMEABILITY_TOLERANCE,
     start: tuple[np.ndarray, ...] | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, ...]:
     """The Beta priors ``(a, b)`` of the cells' interception probabilities, their range exponents ``gamma``, their
     counts' exponents ``kappa`` and their incidence exponents ``eta`` (:func:`permeability`), one of each per
     occupancy class, by the one fitter (``eta`` of the occupied cells only, the others 0: :data:`WALLS`).

@@ -338,9 +338,11 @@ def run_planar_benchmark(
                 f"beta_prior_{name}": [float(a), float(b)]
                 for name, a, b in zip(OCCUPANCY_NAMES, permeable.a, permeable.b)
             },
-            **{f"range_exponent_{name}": float(g) for name, g in zip(OCCUPANCY_NAMES, permeable.gamma)},
-            **{f"counts_exponent_{name}": float(k) for name, k in zip(OCCUPANCY_NAMES, permeable.kappa)},
-            **{f"incidence_exponent_{name}": float(k) for name, k in zip(OCCUPANCY_NAMES, permeable.eta)},
+            **{
+                f"{kind}_exponent_{name}": float(value)
+                for kind, values in zip(("range", "counts", "incidence"), permeable.interception[2:])
+                for name, value in zip(OCCUPANCY_NAMES, values)
+            },
             "angular_share_per_neighbour": float(permeable.angular),
             "footprint_share_per_neighbour": float(permeable.footprint),
             "evidence_classes": int(permeable.classes),
