@@ -31,7 +31,10 @@ class PlanarTrace:
         nominal: nominal range, m (NaN: nominal miss).
         incidence: incidence angle at the nominal hit, deg (NaN: unknown).
         seg_start: (B + 1,) offsets of each beam's segments.
-        seg_range, seg_hits, seg_passes, seg_occupied, seg_incidence: per segment (E,).
+        seg_range, seg_hits, seg_passes, seg_occupied: per segment (E,).
+        seg_incidence: per segment (E,), the incidence (deg) on the surface in the cell, from the leave-out
+            endpoint hits (:meth:`CellLines.surface_incidence`; NaN: unknown). Known more often than
+            ``incidence``, which follows the protocol's rule.
         seg_surface: per segment (E,), the range (m) of the surface in the cell along the beam, from
             the leave-out endpoint hits (:meth:`CellLines.surface_range`).
     """

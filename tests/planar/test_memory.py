@@ -158,6 +158,6 @@ def test_cell_lines_are_fitted_in_chunks_of_pairs_with_the_same_result(monkeypat
     whole = raymarch.CellLines.fit(leave, grid, query, cell)
     monkeypatch.setattr(raymarch, "FIT_PAIRS", 7)
     chunked = raymarch.CellLines.fit(leave, grid, query, cell)
-    for name in ("at", "normal", "line_like", "centre", "surface_normal", "surface_line", "own"):
+    for name in ("at", "normal", "line_like", "centre", "surface_normal", "surface_line", "oriented", "own"):
         np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name), err_msg=name)
-    assert whole.line_like.any() and whole.surface_line.any()
+    assert whole.line_like.any() and whole.surface_line.any() and whole.oriented.any()

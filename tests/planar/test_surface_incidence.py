@@ -1,0 +1,72 @@
+"""The incidence at which a beam meets a segment's surface (CellLines.surface_incidence) on a turned room.
+
+The room of :mod:`tests.planar.world` is turned by 17 degrees, so its walls cross the 5 cm cells on a slant: the
+protocol's rule (four occupied cells on a line within one cell's width) then fails on about half the walls'
+cells, and the surface rule, from the endpoints' principal axis, should know the incidence almost everywhere and
+measure it within the sensor's noise. The true incidence comes from casting every beam in the unturned room.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mi_lidar.io.carmen import beam_angles, read_carmen
+from mi_lidar.planar.grid import CountMap, Grid, count_scans, planar_beams
+from mi_lidar.planar.protocol import PlanarProtocol
+from mi_lidar.planar.raymarch import trace_scans
+from tests.planar.world import WALLS, cast, flaser_text, poses, room_readings
+
+SCANS, BEAMS, TURN = 120, 181, np.radians(17.0)
+
+
+def true_incidence(pose: np.ndarray) -> np.ndarray:
+    """(S, BEAMS) incidence (deg) of every beam on the wall it meets first, in the unturned room."""
+    out = np.empty((len(pose), BEAMS))
+    for s, (x, y, heading) in enumerate(pose):
+        angle = heading + beam_angles(BEAMS)
+        direction = np.stack([np.cos(angle), np.sin(angle)], 1)
+        wall = WALLS[cast(np.repeat([[x, y]], BEAMS, 0), direction, WALLS).argmin(1)]
+        along = wall[:, 2:] - wall[:, :2]
+        normal = np.stack([-along[:, 1], along[:, 0]], 1) / np.hypot(*along.T)[:, None]
+        out[s] = np.degrees(np.arccos(np.clip(np.abs(np.sum(normal * direction, 1)), 0.0, 1.0)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def turned_room(tmp_path_factory):
+    """(trace of every 5th scan, their true incidences) of the room turned by :data:`TURN` (seed 3, sigma 2 cm)."""
+    pose = poses(SCANS)
+    readings = room_readings(SCANS, BEAMS, sigma=0.02, glass_p=0.0, max_range=50.0, seed=3)
+    c, s = np.cos(TURN), np.sin(TURN)
+    turned = np.stack([c * pose[:, 0] - s * pose[:, 1], s * pose[:, 0] + c * pose[:, 1], pose[:, 2] + TURN], 1)
+    path = tmp_path_factory.mktemp("turned") / "turned.log"
+    path.write_text(flaser_text(turned, readings, "the test room turned by 17 deg"))
+    log = read_carmen(path)
+    origin, direction, z = planar_beams(log)
+    ends = (origin + np.nan_to_num(z)[..., None] * direction)[np.isfinite(z)]
+    grid = Grid.around(np.concatenate([ends, log.poses[:, :2, 3]]), 0.05, margin=1.0)
+    protocol = PlanarProtocol(window=5.0)
+    queries = np.arange(0, SCANS, 5)
+    excluded = [protocol.excluded(log, q) for q in queries]
+    trace = trace_scans(log, grid, CountMap(count_scans(log, grid)), queries, excluded, 40.0, 8, 10.0)
+    return trace, true_incidence(pose[queries]).ravel()
+
+
+def test_the_surface_incidence_is_known_on_slanted_walls_and_measures_their_angle(turned_room):
+    trace, truth = turned_room
+    # each beam's nominal cell: its first occupied segment
+    nominal = np.full(trace.n, -1)
+    for b in np.flatnonzero(np.isfinite(trace.nominal)):
+        occupied = np.flatnonzero(trace.seg_occupied[trace.seg_start[b] : trace.seg_start[b + 1]])
+        nominal[b] = trace.seg_start[b] + occupied[0]
+    met = nominal >= 0
+    assert met.mean() > 0.9
+    surface, protocol = trace.seg_incidence[nominal[met]], trace.incidence[met]
+    known = np.isfinite(surface)
+    error = np.abs(surface[known] - truth[met][known])
+    # measured on this room (seed 3): the surface rule knows 0.997 at median 0.93 and p90 2.56 deg; the
+    # protocol's rule knows 0.487
+    assert known.mean() >= 0.95, known.mean()
+    assert np.isfinite(protocol).mean() <= 0.6, np.isfinite(protocol).mean()
+    assert np.median(error) <= 1.5 and np.percentile(error, 90) <= 4.0, (np.median(error), np.percentile(error, 90))
