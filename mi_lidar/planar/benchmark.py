@@ -362,6 +362,7 @@ def run_planar_benchmark(
         "nominal_miss": float(np.mean(~np.isfinite(data.test.nominal))),
         "unmapped_returns": float(np.mean(data.test.hit & ~np.isfinite(data.test.nominal))),
         "incidence_known": float(np.mean(np.isfinite(data.test.incidence[np.isfinite(data.test.nominal)]))),
+        "surface_incidence_known": float(np.mean(np.isfinite(data.test.seg_incidence[data.test.seg_occupied]))),
     }
     ranges, hits = repaired_scans(data.test, SAMPLED_SCANS, seed)
     no_ll = np.full(data.test.n, np.nan)  # a reference, not a model: no likelihood

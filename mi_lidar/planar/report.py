@@ -211,7 +211,8 @@ p90 {nominal["p90_abs_err"]:.3f} m; short (z &lt; r - 0.5 m) {nominal["short"]:.
 long {nominal["long"]:.3f}, measured misses {nominal["measured_miss"]:.3f},
 nominal misses {nominal["nominal_miss"]:.3f} (of which returned: {nominal["unmapped_returns"]:.3f}),
 incidence known for {nominal["incidence_known"]:.2f} of
-nominal hits.</p>
+nominal hits by the protocol's rule, for {nominal["surface_incidence_known"]:.2f} of the occupied
+cells the test beams met by the surface rule (mi-lidar's).</p>
 {"".join(f'<p style="color:#a40"><b>Warning:</b> {html.escape(w)}</p>' for w in info["warnings"])}
 {_table(result.rows, result.reference)}
 <p>Sample metrics compare one scan sampled from each model with the measured scan, beam by beam: a model

@@ -272,6 +272,8 @@ def test_every_carmen_beam_count(beams, tmp_path):
     assert all(np.isfinite(v) for v in nll.values()), nll
     # measured ranges sit on the nominal walls (2 cm noise; the nominal range is a 5 cm cell's entry)
     assert result.nominal["median_abs_err"] < 0.075, result.nominal
+    # the room's straight walls: the surface rule knows the incidence on nearly every occupied cell met
+    assert result.nominal["surface_incidence_known"] > 0.9, result.nominal
     assert nll["mi-lidar"] < nll["M3b"] < nll["M0"], nll
 
 
