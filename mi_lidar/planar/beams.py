@@ -244,13 +244,18 @@ def nominal_beams(trace: PlanarTrace) -> EngineBeams:
     )
 
 
-def segment_beams(trace: PlanarTrace, classes: int = EVIDENCE_CLASSES) -> EngineBeams:
-    """Each beam meets every cell with leave-out hits along it; elements carry counts and :func:`segment_labels`."""
+def segment_beams(trace: PlanarTrace, classes: int = EVIDENCE_CLASSES, states_on_lines: bool = False) -> EngineBeams:
+    """Each beam meets every cell with leave-out hits along it; elements carry counts and :func:`segment_labels`.
+
+    The interception reads the incidence on each cell's surface (``seg_incidence``); the density's state reads it
+    too, or, with ``states_on_lines``, the protocol's line incidence (``seg_line_incidence``).
+    """
     n_elements = trace.seg_range.size
     labels = segment_labels(trace.seg_occupied, trace.seg_hits, classes).astype(np.uint32)
     table = ElementTable.from_elements(np.ones(max(n_elements, 1)), label=labels if n_elements else None)
     cos_incidence = _cos(trace.seg_incidence)
-    rounds = rounds_from_segments(trace.seg_start, np.arange(n_elements), trace.seg_at, cos_incidence)
+    state_cos = _cos(trace.seg_line_incidence) if states_on_lines else cos_incidence
+    rounds = rounds_from_segments(trace.seg_start, np.arange(n_elements), trace.seg_at, state_cos)
     return EngineBeams(
         table=table,
         rays=_rays(trace),

@@ -368,5 +368,6 @@ def trace_scans(
         seg_passes=passes,
         seg_occupied=occupied(hits, passes),
         seg_incidence=lines.surface_incidence(d[rows]),
+        seg_line_incidence=seg_inc,
         seg_surface=surface,
     )

@@ -11,7 +11,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SEGMENT_FIELDS = ("seg_range", "seg_hits", "seg_passes", "seg_occupied", "seg_incidence", "seg_surface")
+SEGMENT_FIELDS = (
+    "seg_range",
+    "seg_hits",
+    "seg_passes",
+    "seg_occupied",
+    "seg_incidence",
+    "seg_line_incidence",
+    "seg_surface",
+)
 # seg_occupied, the occupancy class of a segment: 0 stray hits, 1 ``occ3`` occupied; after
 # :meth:`PlanarTrace.with_backstops` also the classes below (a beam "in the open" meets no ``occ3`` cell)
 BACKSTOP = 2  # the backstop of a beam that met an ``occ3`` cell
@@ -35,6 +43,8 @@ class PlanarTrace:
         seg_incidence: per segment (E,), the incidence (deg) on the surface in the cell, from the leave-out
             endpoint hits (:meth:`CellLines.surface_incidence`; NaN: unknown). Known more often than
             ``incidence``, which follows the protocol's rule.
+        seg_line_incidence: per segment (E,), the incidence (deg) by the protocol's rule
+            (:meth:`CellLines.incidence`; NaN: unknown), as ``incidence`` is for the nominal cell.
         seg_surface: per segment (E,), the range (m) of the surface in the cell along the beam, from
             the leave-out endpoint hits (:meth:`CellLines.surface_range`).
     """
@@ -50,6 +60,7 @@ class PlanarTrace:
     seg_passes: np.ndarray
     seg_occupied: np.ndarray
     seg_incidence: np.ndarray
+    seg_line_incidence: np.ndarray
     seg_surface: np.ndarray
 
     @property
@@ -142,6 +153,7 @@ class PlanarTrace:
             "seg_passes": 0,
             "seg_occupied": np.where(walled[has], BACKSTOP, OPEN_BACKSTOP),
             "seg_incidence": self.seg_incidence[last],
+            "seg_line_incidence": self.seg_line_incidence[last],
             "seg_surface": np.nan,
         }
         fields = {}

@@ -49,9 +49,11 @@ def leaky_wall_trace(seed: int = 3) -> PlanarTrace:
 def segments_trace(z: np.ndarray, nominal: np.ndarray, segments: list, scans: int = SCANS, beams: int = BEAMS):
     """``scans`` x ``beams`` beams with measurements ``z`` (m, NaN: a miss), nominal ranges ``nominal`` (m; NaN:
     none) and per beam a list of segments ``(range, hits, passes, occupied)``, every one at 20 deg incidence, or
-    ``(range, hits, passes, occupied, incidence)`` (deg)."""
+    ``(range, hits, passes, occupied, incidence)`` (deg, on the surface and by the line rule alike), or
+    ``(range, hits, passes, occupied, surface incidence, line incidence)``."""
     rows = np.array([s for beam_segments in segments for s in beam_segments])
     counts = np.array([len(s) for s in segments])
+    surface = rows[:, 4] if rows.shape[1] > 4 else np.full(len(rows), 20.0)
     return PlanarTrace(
         scan=np.repeat(np.arange(scans), beams),
         beam=np.tile(np.arange(beams), scans),
@@ -63,7 +65,8 @@ def segments_trace(z: np.ndarray, nominal: np.ndarray, segments: list, scans: in
         seg_hits=rows[:, 1].astype(np.int64),
         seg_passes=rows[:, 2].astype(np.int64),
         seg_occupied=rows[:, 3].astype(bool),
-        seg_incidence=rows[:, 4] if rows.shape[1] > 4 else np.full(len(rows), 20.0),
+        seg_incidence=surface,
+        seg_line_incidence=rows[:, 5] if rows.shape[1] > 5 else surface,
         seg_surface=rows[:, 0],
     )
 
@@ -107,6 +110,7 @@ def test_a_backstop_follows_the_last_segment_of_every_beam_that_has_one():
         seg_passes=np.array([4, 0, 1]),
         seg_occupied=np.array([False, True, True]),
         seg_incidence=np.array([5.0, 10.0, 30.0]),
+        seg_line_incidence=np.array([6.0, 11.0, 31.0]),
         seg_surface=np.array([3.0, np.nan, 6.0]),
     )
     out = trace.with_backstops()
@@ -116,6 +120,7 @@ def test_a_backstop_follows_the_last_segment_of_every_beam_that_has_one():
     assert out.seg_occupied.tolist() == [0, 1, BACKSTOP, 1, BACKSTOP]
     assert out.seg_hits.tolist() == [1, 9, 0, 4, 0] and out.seg_passes.tolist() == [4, 0, 0, 1, 0]
     assert out.seg_incidence[[2, 4]].tolist() == [10.0, 30.0]
+    assert out.seg_line_incidence[[2, 4]].tolist() == [11.0, 31.0]
     assert np.isnan(out.seg_surface[[2, 4]]).all()
     assert out.take([2]).seg_range.tolist() == pytest.approx([5.95, 6.0 + BACKSTOP_DEPTH])
 
