@@ -161,8 +161,8 @@ class CellLines:
 
 
 def _angle(normal: np.ndarray, direction: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """(E,) angle (deg) between unit (E, 2) ``direction`` and the line of unit (E, 2) ``normal``; NaN where not
-    ``known``."""
+    """(E,) incidence (deg) of unit (E, 2) ``direction`` on lines of unit (E, 2) ``normal``: its angle to the normal,
+    0 head-on, 90 grazing; NaN where not ``known``."""
     cos = np.abs(np.sum(normal * direction, axis=1))
     return np.where(known, np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))), np.nan)
 
