@@ -61,11 +61,7 @@ def turned_room(tmp_path_factory):
 
 def test_the_surface_incidence_is_known_on_slanted_walls_and_measures_their_angle(turned_room):
     trace, truth = turned_room
-    # each beam's nominal cell: its first occupied segment
-    nominal = np.full(trace.n, -1)
-    for b in np.flatnonzero(np.isfinite(trace.nominal)):
-        occupied = np.flatnonzero(trace.seg_occupied[trace.seg_start[b] : trace.seg_start[b + 1]])
-        nominal[b] = trace.seg_start[b] + occupied[0]
+    nominal = trace.first_occupied()  # each beam's nominal cell
     met = nominal >= 0
     assert met.mean() > 0.9
     surface, protocol = trace.seg_incidence[nominal[met]], trace.incidence[met]
