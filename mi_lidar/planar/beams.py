@@ -56,7 +56,7 @@ def segment_labels(occupied: np.ndarray, hits: np.ndarray, classes: int = EVIDEN
     (``occupied`` 2 a backstop, 3 the backstop of a beam in the open, 4 a stray cell on a beam in the open) have
     a label each, ``2 * classes`` to ``2 * classes + 2``: what a beam meets after passing every cell listed for
     it (a wall the map has not seen, or ground far behind a bush) returns and misses by its own law
-    (:func:`~mi_lidar.planar.models.backstop_prior`), and a beam in the open by laws of its own.
+    (:func:`~mi_lidar.planar.permeable.backstop_prior`), and a beam in the open by laws of its own.
     ``2 * classes + 3`` labels in all (:data:`LABELS_BEYOND`).
     """
     occupied = np.asarray(occupied, np.int64)

@@ -1,21 +1,20 @@
 """The real-log benchmark for any planar CARMEN log (``mi-lidar benchmark-planar``).
 
-It runs the real-planar protocol (``docs/benchmark_planar.md``): the log is split (every
-``test_every``-th scan is a test scan), every beam is traced through its own leave-out map
-(:mod:`mi_lidar.planar.protocol`), the models of :mod:`mi_lidar.planar.models` are fitted on training
-beams only, and every model is scored on the test beams by the one likelihood (1 cm bins, the one floor)
-and sampled by the one sampler. Per model it reports the test and training NLL per beam (and its split
-over hits and misses), the miss precision, recall and F1 (threshold 0.5, and a threshold tuned on
-training beams), and the realism of one sampled scan: median and p90 |sampled - measured| range where
-both returned, hit/miss F1 of the samples, and the histogram match (L1 distance between the CDFs of
-measured and sampled ranges); and, from :data:`SAMPLED_SCANS` sampled scans (the first is that one), the
-CRPS per test beam (mean and median, m; a no-return is the log's no-return value on both sides:
-:func:`~mi_lidar.core.metrics.crps`), a paired measure that, unlike the one-draw errors, does not reward
-a model for sampling less spread than the sensor. Beside the models, the same sample metrics of a
-reference, the measured test scans re-paired between beams of like nominal range
-(:mod:`mi_lidar.planar.reference`): what a model that samples like the sensor scores. Nothing is tuned
-to a particular log: the sensor's no-return value is detected from the log (or given), and bandwidths
-are chosen on held-out training scans.
+It runs the real-planar protocol (``docs/benchmark_planar.md``): the log is split (every ``test_every``-th scan
+is a test scan), every beam is traced through its own leave-out map (:mod:`mi_lidar.planar.protocol`), the
+baselines of :mod:`mi_lidar.planar.models` and mi-lidar's permeable map (:mod:`mi_lidar.planar.permeable`) are
+fitted on training beams only, and every model is scored on the test beams by the one likelihood (1 cm bins, the
+one floor) and sampled by the one sampler. Per model it reports the test and training NLL per beam (and its
+split over hits and misses), the miss precision, recall and F1 (threshold 0.5, and a threshold tuned on training
+beams), and the realism of one sampled scan: median and p90 |sampled - measured| range where both returned,
+hit/miss F1 of the samples, and the histogram match (L1 distance between the CDFs of measured and sampled
+ranges); and, from :data:`SAMPLED_SCANS` sampled scans (the first is that one), the CRPS per test beam (mean and
+median, m; a no-return is the log's no-return value on both sides: :func:`~mi_lidar.core.metrics.crps`), a
+paired measure that, unlike the one-draw errors, does not reward a model for sampling less spread than the
+sensor. Beside the models, the same sample metrics of a reference, the measured test scans re-paired between
+beams of like nominal range (:mod:`mi_lidar.planar.reference`): what a model that samples like the sensor
+scores. Nothing is tuned to a particular log: the sensor's no-return value is detected from the log (or given),
+and bandwidths are chosen on held-out training scans.
 """
 
 from __future__ import annotations
@@ -37,6 +36,7 @@ from mi_lidar.core.params import choose_names
 from mi_lidar.core.streams import scan_follows
 from mi_lidar.planar import models as m
 from mi_lidar.planar.beams import nominal_beams
+from mi_lidar.planar.permeable import fit_milidar
 from mi_lidar.planar.protocol import PlanarData, PlanarProtocol, prepare
 from mi_lidar.planar.reference import repaired_scans
 from mi_lidar.planar.tails import short_share
@@ -331,7 +331,7 @@ def run_planar_benchmark(
         rows.append(_row(name, nominal_beams, fitted[name], data, timing[name], seed, z_max))
     if "mi-lidar" in models:
         t0 = time.perf_counter()
-        permeable = m.fit_milidar(data.train, z_max, settings["np_reg"])
+        permeable = fit_milidar(data.train, z_max, settings["np_reg"])
         elapsed = time.perf_counter() - t0
         chosen["mi-lidar"] = {
             **{

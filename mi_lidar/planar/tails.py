@@ -1,6 +1,6 @@
 """The last steps of mi-lidar's planar fit: its tables' far tails and no-returns set against the training log.
 
-The EM (:func:`~mi_lidar.planar.models.fit_permeable_map`) shares a return behind a wall between the
+The EM (:func:`~mi_lidar.planar.permeable.fit_permeable_map`) shares a return behind a wall between the
 wall's table and what lies behind it, so the tables also learn part of the far returns that the
 pass-through already explains. These steps correct that on
 training beams only: the tails scaled by likelihood (:func:`fit_tails`), the short tail set so that
@@ -83,7 +83,7 @@ def match_misses(beams: AngularMixture, density: NPRegDensity, first_range: np.n
 
     The tables' no-return probabilities are smoothed across states. When they came from the no-returns
     counted at each beam's first occupied cell (before misses were shared among the elements that could have lost them,
-    :func:`~mi_lidar.planar.models.credited_segments`), a beam could also pass that cell and miss through
+    :func:`~mi_lidar.planar.permeable.credited_segments`), a beam could also pass that cell and miss through
     the escape state, so the model predicted more no-returns near the sensor than its training beams had
     and, scaled by one common factor to match the overall rate (Intel: 3.05 % against 2.57 %), far fewer at long range
     (Freiburg 101, first occupied cell 30-40 m: 31 % predicted where 59 % of the training beams missed,

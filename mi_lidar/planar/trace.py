@@ -132,7 +132,7 @@ class PlanarTrace:
         was nearer than 8 m 0.5-1.2 % of the time, where the sensor missed none. The backstop is what
         such a beam meets next: an element with its own interception probability (fitted like the
         cells' Beta priors) and its own return law, shrunk to that of an occupied cell the map has not seen
-        (:func:`~mi_lidar.planar.beams.segment_labels`, :func:`~mi_lidar.planar.models.backstop_prior`).
+        (:func:`~mi_lidar.planar.beams.segment_labels`, :func:`~mi_lidar.planar.permeable.backstop_prior`).
 
         A beam *in the open* (no ``occ3`` cell listed, only stray hits: people, foliage, far clutter) is
         another population: it mostly misses, or returns far off. Its backstop (:data:`OPEN_BACKSTOP`) and its

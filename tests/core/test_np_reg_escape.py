@@ -13,7 +13,8 @@ import numpy as np
 from mi_lidar.core.densities import NPRegDensity
 from mi_lidar.core.densities.histogram import fit_np_reg
 from mi_lidar.core.densities.samples import protocol_residual_edges
-from mi_lidar.planar.models import base_model, fine_grid
+from mi_lidar.planar.beams import base_model
+from mi_lidar.planar.models import fine_grid
 
 from ..conftest import rays_along_x
 from .escaped_beams import escaped_beams

@@ -13,8 +13,8 @@ import numpy as np
 
 from mi_lidar.core.densities.histogram import fit_np_reg
 from mi_lidar.core.densities.samples import StateSamples
-from mi_lidar.planar.beams import nominal_beams
-from mi_lidar.planar.models import base_model, fine_grid
+from mi_lidar.planar.beams import base_model, nominal_beams
+from mi_lidar.planar.models import fine_grid
 
 Z_MAX = 50.0  # m, the sensor's largest range
 

@@ -16,8 +16,8 @@ import numpy as np
 
 from mi_lidar.core.densities.histogram import fit_np_reg, support_end
 from mi_lidar.core.densities.samples import StateSamples
-from mi_lidar.planar.beams import nominal_beams
-from mi_lidar.planar.models import base_model, fine_grid
+from mi_lidar.planar.beams import base_model, nominal_beams
+from mi_lidar.planar.models import fine_grid
 
 Z_MAX = 80.0  # m, the sensor's largest range
 LONG = 0.05  # share of the returns that come from up to 10 m behind the wall

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from mi_lidar.core.densities.preg import PRegDensity, fit_p_reg
-from mi_lidar.planar.models import base_model
+from mi_lidar.planar.beams import base_model
 
 from .escaped_beams import escaped_beams
 

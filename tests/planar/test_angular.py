@@ -10,7 +10,7 @@ import pytest
 from mi_lidar.core.likelihood import FLOOR, RESOLUTION
 from mi_lidar.core.streams import BeamCorrelation, uniform
 from mi_lidar.planar.angular import ANGULAR_STREAM, fit_angular_shares, own_part_posterior, part_shares
-from mi_lidar.planar.models import fit_permeable_map
+from mi_lidar.planar.permeable import fit_permeable_map
 from mi_lidar.planar.trace import PlanarTrace
 from tests.planar.test_backstops import BEAMS, SCANS, segments_trace
 

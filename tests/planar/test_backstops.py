@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from mi_lidar.planar.models import fit_permeable_map
+from mi_lidar.planar.permeable import fit_permeable_map
 from mi_lidar.planar.trace import BACKSTOP, BACKSTOP_DEPTH, PlanarTrace
 
 SCANS, BEAMS = 40, 120

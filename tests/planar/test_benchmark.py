@@ -242,7 +242,7 @@ def test_shared_errors_change_the_samples_not_the_score(room):
     """The held-out trials of fit_milidar go without the shared-error fit: it must not move the likelihood."""
     import dataclasses
 
-    from mi_lidar.planar.models import fit_correlation, fit_permeable_map
+    from mi_lidar.planar.permeable import fit_correlation, fit_permeable_map
 
     data = prepare(read_carmen(room), PROTOCOL)
     z_max = float(np.nanmax(data.log.ranges)) + 1.0
@@ -293,7 +293,8 @@ def test_the_beta_prior_fit_stops_when_converged(room, monkeypatch):
     The budget is 400 steps: with the range exponents the stray cells' prior drifts along a valley of one
     ``a / (a + b)`` (measured: stopped after 236 steps, 4e-6 nats per beam short of an 800-step budget's)."""
     import mi_lidar.planar.beams as planar_beams
-    from mi_lidar.planar.models import base_model, fit_permeable_map
+    from mi_lidar.planar.beams import base_model
+    from mi_lidar.planar.permeable import fit_permeable_map
 
     data = prepare(read_carmen(room), PROTOCOL)
     z_max = float(np.nanmax(data.log.ranges)) + 1.0
@@ -324,7 +325,8 @@ def test_the_beta_prior_fit_starts_where_it_is_told(room, monkeypatch):
     400 steps (measured 2e-5 short; 200 steps left it 1.6e-3 short of the room's map as fitted today).
     """
     import mi_lidar.planar.beams as planar_beams
-    from mi_lidar.planar.models import base_model, fit_permeable_map
+    from mi_lidar.planar.beams import base_model
+    from mi_lidar.planar.permeable import fit_permeable_map
 
     data = prepare(read_carmen(room), PROTOCOL)
     z_max = float(np.nanmax(data.log.ranges)) + 1.0
@@ -378,7 +380,7 @@ def test_prepare_gives_the_same_traces_on_any_number_of_threads(room):
 @pytest.mark.parametrize("beams, kept", [(180, 243), (361, 122), (1, 728)])
 def test_the_shared_errors_are_measured_on_a_bounded_number_of_beams(beams, kept):
     """fit_correlation's scans: evenly spaced, at most CORRELATION_BEAMS beams whatever the scanner's resolution."""
-    from mi_lidar.planar.models import CORRELATION_BEAMS, evenly_spaced_scans
+    from mi_lidar.planar.permeable import CORRELATION_BEAMS, evenly_spaced_scans
 
     scan = np.repeat(np.arange(728) * 5 + 1, beams)  # 728 training scans, as in the Intel log
     chosen = evenly_spaced_scans(scan)

@@ -12,7 +12,7 @@ from mi_lidar.core.streams import BeamCorrelation
 from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar.angular import AngularMixture
 from mi_lidar.planar.benchmark import run_planar_benchmark, scan_parts, scores_in_parts
-from mi_lidar.planar.models import fit_permeable_map
+from mi_lidar.planar.permeable import fit_permeable_map
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
 from tests.planar.world import room_log_text
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mi_lidar.planar.beams import COS_REFERENCE, RANGE_REFERENCE, permeability
-from mi_lidar.planar.models import fit_permeable_map
+from mi_lidar.planar.permeable import fit_permeable_map
 
 from .test_backstops import segments_trace
 

@@ -16,7 +16,7 @@ import pytest
 
 from mi_lidar.io.carmen import beam_angles, read_carmen
 from mi_lidar.planar.grid import CountMap, Grid, count_scans, planar_beams
-from mi_lidar.planar.models import fit_milidar, fit_permeable_map
+from mi_lidar.planar.permeable import fit_milidar, fit_permeable_map
 from mi_lidar.planar.protocol import PlanarProtocol
 from mi_lidar.planar.raymarch import trace_scans
 from tests.planar.test_backstops import segments_trace

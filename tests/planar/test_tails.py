@@ -11,7 +11,8 @@ import pytest
 
 from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar import tails
-from mi_lidar.planar.models import base_model, fit_permeable_map
+from mi_lidar.planar.beams import base_model
+from mi_lidar.planar.permeable import fit_permeable_map
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
 from mi_lidar.planar.tails import (
     FAR,
