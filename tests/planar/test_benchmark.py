@@ -11,6 +11,7 @@ from mi_lidar.core.errors import ParameterError
 from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar.benchmark import run_planar_benchmark
 from mi_lidar.planar.grid import Grid, march_cells
+from mi_lidar.planar.permeable import candidate_name
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
 from tests.core.test_strict_json import strict_load
 from tests.planar.world import GLASS, WALLS, cast, poses, room_log_text
@@ -225,6 +226,11 @@ def test_every_model_on_the_room(room, tmp_path):
     assert result.settings["NP-Reg"]["h_range_m"] in (0.5, 1.0, 2.0, 4.0), result.settings
     assert result.settings["P-Reg"]["escape_law"] in ("gaussian", "uniform"), result.settings
     assert result.settings["mi-lidar"]["evidence_classes"] in (1, 5), result.settings
+    # The report lists every candidate's held-out NLL, and the chosen one has the lowest.
+    mi = result.settings["mi-lidar"]
+    held_out = mi["held_out_nll"]
+    line = mi["state_incidence"] == "protocol's line"
+    assert len(held_out) == 4 and held_out[candidate_name(mi["evidence_classes"], line)] == min(held_out.values())
     # How much neighbouring beams share their errors is measured at five lags and shown in the report.
     lags = result.settings["mi-lidar"]["shared_errors_pit_lags"]
     assert lags["lags"] == [1, 2, 3, 5, 10] and np.all(np.isfinite(lags["real"] + lags["sampled"])), lags

@@ -16,7 +16,7 @@ import pytest
 
 from mi_lidar.io.carmen import beam_angles, read_carmen
 from mi_lidar.planar.grid import CountMap, Grid, count_scans, planar_beams
-from mi_lidar.planar.permeable import fit_milidar, fit_permeable_map
+from mi_lidar.planar.permeable import candidate_name, fit_milidar, fit_permeable_map
 from mi_lidar.planar.protocol import PlanarProtocol
 from mi_lidar.planar.raymarch import trace_scans
 from tests.planar.test_backstops import segments_trace
@@ -100,6 +100,11 @@ def test_the_density_states_read_the_incidence_chosen_held_out(informative):
     bandwidths = (1.0, 20.0, 1e-3, math.inf, 1.0)
     chosen = fit_milidar(trace, 31.0, bandwidths, classes=(1,))
     assert chosen.states_on_lines == (informative == "line")
+    # Both candidates' held-out scores are kept for the report, the informative one's the lower by a margin.
+    held_out = [
+        chosen.held_out[candidate_name(1, on_lines)] for on_lines in (informative == "line", informative != "line")
+    ]
+    assert held_out[0] < held_out[1] - 0.2, chosen.held_out
     other = fit_permeable_map(trace, 31.0, bandwidths, 1, states_on_lines=informative == "surface")
     gain = np.mean(chosen.beams(trace).log_likelihood(chosen.model)) - np.mean(
         other.beams(trace).log_likelihood(other.model)
