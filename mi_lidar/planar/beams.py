@@ -39,7 +39,8 @@ from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segme
 from mi_lidar.planar.trace import BACKSTOP, OCCUPANCY_NAMES, OPEN_BACKSTOP, OPEN_STRAY, PlanarTrace
 
 OCCUPANCY_CLASSES = len(OCCUPANCY_NAMES)  # one Beta prior per occupancy class (raymarch.BACKSTOP and the rest)
-LABELS_BEYOND = OPEN_STRAY - BACKSTOP + 1  # labels after the cells' 2 * classes (:func:`segment_labels`)
+LABELS_BEYOND = OPEN_STRAY - BACKSTOP + 1  # labels after the cells' (segment_labels)
+LINE_CLASSES = 2  # a cell's neighbourhood is line-like by the protocol's rule, or not (segment_labels)
 INTERCEPTION_PARAMETERS = ("a", "b", "gamma", "kappa", "eta")  # per occupancy class (see permeability)
 UNCOUNTED = (BACKSTOP, OPEN_BACKSTOP)  # occupancy classes without counts: their kappa stays 1 (fit_permeability)
 WALLS = (1,)  # the occupancy class whose incidence is that of its own surface: only its eta is fitted
@@ -47,22 +48,38 @@ PERMEABILITY_TOLERANCE = 1e-5  # nats per beam: the Beta priors' fit has converg
 EVIDENCE_CLASSES = 5  # at most: leave-out hits of a cell 1, 2-3, 4-7, 8-15, 16 or more (doublings)
 
 
-def segment_labels(occupied: np.ndarray, hits: np.ndarray, classes: int = EVIDENCE_CLASSES) -> np.ndarray:
-    """Label of each segment: ``occupied * classes + evidence``, evidence = log2 of its hits, capped at ``classes - 1``.
+def segment_labels(
+    occupied: np.ndarray, hits: np.ndarray, classes: int = EVIDENCE_CLASSES, line_like: np.ndarray | None = None
+) -> np.ndarray:
+    """Label of each segment: ``occupied * classes + evidence`` for a cell, evidence = log2 of its hits, capped at
+    ``classes - 1``; given ``line_like`` (whether the protocol's rule finds a line in each cell's neighbourhood:
+    ``seg_line_incidence`` known), ``(occupied * classes + evidence) * 2 + (not line_like)``.
 
     A wall seen by many scans is located to a centimetre; a cell with one or two hits (seen once,
     or a person's legs) is not, and its returns spread more: the residual law depends on both.
-    ``classes = 1`` labels occupancy alone. The classes of :meth:`~mi_lidar.planar.trace.PlanarTrace.with_backstops`
-    (``occupied`` 2 a backstop, 3 the backstop of a beam in the open, 4 a stray cell on a beam in the open) have
-    a label each, ``2 * classes`` to ``2 * classes + 2``: what a beam meets after passing every cell listed for
-    it (a wall the map has not seen, or ground far behind a bush) returns and misses by its own law
-    (:func:`~mi_lidar.planar.permeable.backstop_prior`), and a beam in the open by laws of its own.
-    ``2 * classes + 3`` labels in all (:data:`LABELS_BEYOND`).
+    ``classes = 1`` labels occupancy alone. The density's states read the incidence on each cell's surface
+    (``seg_incidence``, known on more cells than the protocol's line incidence); ``line_like`` tells a cell on a
+    straight wall from clutter met at the same incidence, which returns by another law (whether to tell them
+    apart is chosen held out, :func:`~mi_lidar.planar.permeable.fit_milidar`).
+    The classes of :meth:`~mi_lidar.planar.trace.PlanarTrace.with_backstops` (``occupied`` 2 a backstop, 3 the
+    backstop of a beam in the open, 4 a stray cell on a beam in the open) have a label each, from
+    ``2 * cell_labels(classes, lines)`` on: what a beam meets after passing every cell listed for it (a wall the
+    map has not seen, or ground far behind a bush) returns and misses by its own law
+    (:func:`~mi_lidar.planar.permeable.backstop_prior`), and a beam in the open by laws of its own
+    (:data:`LABELS_BEYOND` labels).
     """
     occupied = np.asarray(occupied, np.int64)
     evidence = np.clip(np.floor(np.log2(np.maximum(hits, 1))), 0, classes - 1).astype(np.int64)
     cell = np.minimum(occupied, 1) * classes + evidence
-    return np.where(occupied >= BACKSTOP, 2 * classes + occupied - BACKSTOP, cell)
+    if line_like is not None:
+        cell = cell * LINE_CLASSES + ~np.asarray(line_like, bool)
+    return np.where(occupied >= BACKSTOP, 2 * cell_labels(classes, line_like is not None) + occupied - BACKSTOP, cell)
+
+
+def cell_labels(classes: int, lines: bool) -> int:
+    """The labels of the cells of one occupancy (stray-hit or ``occ3``): ``classes`` evidence classes, times
+    line-like or not with ``lines`` (:func:`segment_labels`)."""
+    return classes * (LINE_CLASSES if lines else 1)
 
 
 def _f(values) -> mi.Float:
@@ -244,18 +261,18 @@ def nominal_beams(trace: PlanarTrace) -> EngineBeams:
     )
 
 
-def segment_beams(trace: PlanarTrace, classes: int = EVIDENCE_CLASSES, states_on_lines: bool = False) -> EngineBeams:
-    """Each beam meets every cell with leave-out hits along it; elements carry counts and :func:`segment_labels`.
+def segment_beams(trace: PlanarTrace, classes: int = EVIDENCE_CLASSES, lines: bool = False) -> EngineBeams:
+    """Each beam meets every cell with leave-out hits along it; elements carry counts and :func:`segment_labels`
+    (telling line-like cells apart with ``lines``).
 
-    The interception reads the incidence on each cell's surface (``seg_incidence``); the density's state reads it
-    too, or, with ``states_on_lines``, the protocol's line incidence (``seg_line_incidence``).
+    The interception and the density's state read the incidence on each cell's surface (``seg_incidence``).
     """
     n_elements = trace.seg_range.size
-    labels = segment_labels(trace.seg_occupied, trace.seg_hits, classes).astype(np.uint32)
+    line_like = trace.seg_line_like if lines else None
+    labels = segment_labels(trace.seg_occupied, trace.seg_hits, classes, line_like).astype(np.uint32)
     table = ElementTable.from_elements(np.ones(max(n_elements, 1)), label=labels if n_elements else None)
     cos_incidence = _cos(trace.seg_incidence)
-    state_cos = _cos(trace.seg_line_incidence) if states_on_lines else cos_incidence
-    rounds = rounds_from_segments(trace.seg_start, np.arange(n_elements), trace.seg_at, state_cos)
+    rounds = rounds_from_segments(trace.seg_start, np.arange(n_elements), trace.seg_at, cos_incidence)
     return EngineBeams(
         table=table,
         rays=_rays(trace),

@@ -346,7 +346,7 @@ def run_planar_benchmark(
             "angular_share_per_neighbour": float(permeable.angular),
             "footprint_share_per_neighbour": float(permeable.footprint),
             "evidence_classes": int(permeable.classes),
-            "state_incidence": "protocol's line" if permeable.states_on_lines else "surface",
+            "line_like_apart": bool(permeable.lines),
             "held_out_nll": {name: round(score, 4) for name, score in permeable.held_out.items()},
             "beam_correlation": {"shared": permeable.correlation.shared, "rho": permeable.correlation.rho},
             "shared_errors_pit_lags": permeable.shared_errors,

@@ -6,10 +6,12 @@
   cells, with the incidence at which the beam meets it (an exponent each, fitted:
   :func:`~mi_lidar.planar.beams.permeability`).
 - **Returns.** An NP-Reg density conditioned on the cell's occupancy, its evidence (how many leave-out hits;
-  whether to tell them apart is chosen held out), the range and the incidence (on the cell's surface or by the
-  protocol's line rule, chosen held out); refined by EM over the segments, each return and each miss shared
-  among the elements by their posterior, and counted by the posterior of the beam's own trace once its
-  angular spread is known; its far tails scaled by likelihood (:mod:`~mi_lidar.planar.tails`).
+  whether to tell them apart is chosen held out), whether its neighbourhood is line-like by the protocol's
+  rule (chosen held out too), the range and the incidence on the cell's surface
+  (:func:`~mi_lidar.planar.beams.segment_labels`);
+  refined by EM over the segments, each return and each miss shared among the elements by their posterior,
+  and counted by the posterior of the beam's own trace once its angular spread is known; its far tails
+  scaled by likelihood (:mod:`~mi_lidar.planar.tails`).
 - **Beyond the map.** A beam that passes every cell listed for it meets a backstop behind the last (its own
   interception probability and return law: what is credited to it, shrunk to an unseen wall's,
   :meth:`~mi_lidar.planar.trace.PlanarTrace.with_backstops`), and one that passes it too escapes (the law of
@@ -20,11 +22,10 @@
   between neighbouring beams as the real training scans do (a Gaussian copula on the sampler's streams,
   :mod:`~mi_lidar.planar.correlation`; no effect on the NLL).
 
-Everything is chosen and fitted on the training scans only: the evidence classes and the state incidence on
-every other training scan held out (:func:`fit_milidar`), the Beta priors, exponents, tables' far tails and
-angular spread by maximum likelihood on the training beams, the shared errors on at most
-:data:`CORRELATION_BEAMS` training beams. The measurements behind each choice are in
-``docs/loop_results.md``.
+Everything is chosen and fitted on the training scans only: the labels on every other training scan held out
+(:func:`fit_milidar`), the Beta priors, exponents, tables' far tails and angular spread by maximum likelihood
+on the training beams, the shared errors on at most :data:`CORRELATION_BEAMS` training beams. The
+measurements behind each choice are in ``docs/loop_results.md``.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ from mi_lidar.planar.beams import (
     LABELS_BEYOND,
     EngineBeams,
     base_model,
+    cell_labels,
     fit_permeability,
     segment_beams,
     segment_labels,
@@ -92,10 +94,11 @@ def credited_segments(beams: EngineBeams, seg_start: np.ndarray, model: SensorMo
     return beam, np.where(found >= 0, seg_start[beam] + found, -1), share
 
 
-def backstop_prior(counts: np.ndarray, grid: StateGrid, classes: int, pseudo: float = PSEUDO_SAMPLES) -> np.ndarray:
+def backstop_prior(counts: np.ndarray, grid: StateGrid, cells: int, pseudo: float = PSEUDO_SAMPLES) -> np.ndarray:
     """``counts`` (S + 1, B + 1) per state (escape last, no-returns in the last column) with every backstop state
-    (label ``2 * classes``, :func:`~mi_lidar.planar.beams.segment_labels`) given ``pseudo`` more outcomes,
-    distributed as those of the occupied cells of the least evidence (label ``classes``) at its range and
+    (label ``2 * cells``, after the ``cells`` labels of the stray-hit and of the occupied cells:
+    :func:`~mi_lidar.planar.beams.segment_labels`) given ``pseudo`` more outcomes, distributed as those of the
+    occupied cells of the least evidence (label ``cells``; line-like, where the labels tell) at its range and
     incidence; in place.
 
     A backstop returns and misses by what the EM credits to it: outdoors ground or foliage far behind a bush,
@@ -104,10 +107,10 @@ def backstop_prior(counts: np.ndarray, grid: StateGrid, classes: int, pseudo: fl
     labelled as such a wall; 3.982 with a law of its own unshrunk; 3.941 shrunk).
     """
     block = grid.size // grid.n_labels
-    unseen = counts[classes * block : (classes + 1) * block]
+    unseen = counts[cells * block : (cells + 1) * block]
     total = unseen.sum(axis=-1, keepdims=True)
     share = np.divide(unseen, total, out=np.zeros_like(unseen), where=total > 0)
-    counts[2 * classes * block : (2 * classes + 1) * block] += pseudo * share
+    counts[2 * cells * block : (2 * cells + 1) * block] += pseudo * share
     return counts
 
 
@@ -125,8 +128,8 @@ class PermeableMap:
         eta: (5,) how the interception of each class grows as the beam meets an element more head-on
             (:func:`~mi_lidar.planar.beams.permeability`; fitted for the occupied cells only).
         classes: evidence classes of the segment labels (:func:`~mi_lidar.planar.beams.segment_labels`).
-        states_on_lines: the density's states read the protocol's line incidence, not the surface's
-            (:func:`~mi_lidar.planar.beams.segment_beams`).
+        lines: the segment labels tell cells whose neighbourhood is line-like by the protocol's rule from the
+            others.
         angular: the share of each neighbouring beam's trace alone in a beam's return, and
         footprint: the share of each footprint (the nearer of the beam's and a neighbour's returns)
             (:class:`~mi_lidar.planar.angular.AngularMixture`).
@@ -145,7 +148,7 @@ class PermeableMap:
     kappa: np.ndarray
     eta: np.ndarray
     classes: int = EVIDENCE_CLASSES
-    states_on_lines: bool = False
+    lines: bool = False
     angular: float = 0.0
     footprint: float = 0.0
     correlation: BeamCorrelation = BeamCorrelation()
@@ -160,7 +163,7 @@ class PermeableMap:
 
     def segments(self, trace: PlanarTrace) -> EngineBeams:
         """The engine's view of ``trace`` under this map (every segment, interception from its counts)."""
-        beams = segment_beams(trace.with_backstops(), self.classes, self.states_on_lines)
+        beams = segment_beams(trace.with_backstops(), self.classes, self.lines)
         beams = beams.with_permeability(*self.interception)
         return dataclasses.replace(beams, correlation=self.correlation)
 
@@ -175,42 +178,36 @@ def fit_milidar(
     bandwidths: tuple[float, float, float, float, float],
     classes=(1, EVIDENCE_CLASSES),
 ) -> PermeableMap:
-    """mi-lidar's permeable map (see the module docstring), its evidence classes and state incidence chosen held out.
+    """mi-lidar's permeable map (see the module docstring), its labels chosen held out.
 
-    Each candidate number of evidence classes, with the density's states on the surface's incidence and on
-    the protocol's line incidence, is fitted (all EM rounds: after one, Edmonton chose 1 class
-    where 5 scored 0.018 nats per test beam better) on the even training scans and
-    scored on the odd ones (without the tails' fit, which all candidates would share); the best is
-    refitted on all training scans (:func:`fit_permeable_map`). The interception reads the surface's incidence
-    either way. States on the surface's incidence, known on more cells, scored 0.015-0.019 nats per test beam
-    better on Intel and FHW; on the line incidence 0.007-0.015 better on ACES, Orebro and Seattle, where
-    clutter given an incidence blurred the walls' states (docs/loop_results.md). Last, how much neighbouring beams share
-    their errors (:func:`fit_correlation`): it changes the samples only, not the held-out score, so the
-    trials go without it.
-    A log whose cells are seen by many scans gains from telling well-seen walls from cells seen once;
-    a sparser log spreads its returns over too many states and keeps occupancy alone.
+    Each candidate number of evidence ``classes``, with and without telling line-like cells apart (``lines``,
+    :func:`~mi_lidar.planar.beams.segment_labels`), is fitted (all EM rounds: after one, Edmonton chose 1 class
+    where 5 scored 0.018 nats per test beam better) on the even training scans and scored on the odd ones
+    (without the tails' fit, which all candidates would share); the best is refitted on all training scans
+    (:func:`fit_permeable_map`). A log whose cells are seen by many scans gains from telling well-seen walls
+    from cells seen once, and one with much clutter from telling walls from clutter; a sparser log spreads its
+    returns over too many states and keeps fewer labels. Last, how much neighbouring beams share their errors
+    (:func:`fit_correlation`): it changes the samples only, not the held-out score, so the trials go without it.
     """
-    candidates = [(k, on_lines) for k in classes for on_lines in (False, True)]
+    candidates = [(k, lines) for k in classes for lines in (False, True)]
     fit_part, check = train.take(train.scan % 2 == 0), train.take(train.scan % 2 == 1)
     trials, scores = [], []
-    for k, on_lines in candidates:
+    for k, lines in candidates:
         start = trials[-1].interception if trials else None  # each trial starts from the last one's fit
-        trials.append(
-            fit_permeable_map(fit_part, z_max, bandwidths, k, tails=False, prior=start, states_on_lines=on_lines)
-        )
+        trials.append(fit_permeable_map(fit_part, z_max, bandwidths, k, tails=False, prior=start, lines=lines))
         scores.append(-float(np.mean(trials[-1].beams(check).log_likelihood(trials[-1].model))))
     best = int(np.argmin(scores))
-    (k, on_lines), prior = candidates[best], trials[best].interception
+    (k, lines), prior = candidates[best], trials[best].interception
     del trials
-    fitted = fit_permeable_map(train, z_max, bandwidths, k, prior=prior, states_on_lines=on_lines)
+    fitted = fit_permeable_map(train, z_max, bandwidths, k, prior=prior, lines=lines)
     fitted.correlation, fitted.shared_errors = fit_correlation(fitted, train)
     fitted.held_out = {candidate_name(*c): score for c, score in zip(candidates, scores)}
     return fitted
 
 
-def candidate_name(classes: int, states_on_lines: bool) -> str:
-    """How reports name one of :func:`fit_milidar`'s candidates, e.g. ``"5 classes, line states"``."""
-    return f"{classes} class{'es' if classes > 1 else ''}, {'line' if states_on_lines else 'surface'} states"
+def candidate_name(classes: int, lines: bool) -> str:
+    """How reports name one of :func:`fit_milidar`'s candidates, e.g. ``"5 evidence classes, line-like apart"``."""
+    return f"{classes} evidence class{'es' if classes > 1 else ''}{', line-like apart' if lines else ''}"
 
 
 def fit_permeable_map(
@@ -222,7 +219,7 @@ def fit_permeable_map(
     steps: int = 120,
     tails: bool = True,
     prior: tuple[np.ndarray, ...] | None = None,
-    states_on_lines: bool = False,
+    lines: bool = False,
 ) -> PermeableMap:
     """mi-lidar's permeable map (see the module docstring), fitted on the training beams ``train`` by EM.
 
@@ -263,16 +260,14 @@ def fit_permeable_map(
         tails: fit the far tails and no-returns (step 4); the held-out trials go without.
         prior: the interception ``(a, b, gamma, kappa, eta)`` the first fit starts from (default 0.5, 0.5, 0, 1
             and 0 each): a starting point, not a constraint.
-        states_on_lines: the density's states read the protocol's line incidence, not the surface's
-            (:func:`~mi_lidar.planar.beams.segment_beams`).
+        lines: the labels tell line-like cells from the others (:func:`~mi_lidar.planar.beams.segment_labels`).
     """
     h_r, h_i, u, reach, h_null = bandwidths
     end = support_end(samples_of(train), reach, z_max)
-    grid = fine_grid(samples_of(train), labels=2 * classes + LABELS_BEYOND)
+    grid = fine_grid(samples_of(train), labels=2 * cell_labels(classes, lines) + LABELS_BEYOND)
     edges = protocol_residual_edges(z_max)
     traced = train.with_backstops()
-    labels = segment_labels(traced.seg_occupied, traced.seg_hits, classes)
-    state_incidence = traced.seg_line_incidence if states_on_lines else traced.seg_incidence
+    labels = segment_labels(traced.seg_occupied, traced.seg_hits, classes, traced.seg_line_like if lines else None)
 
     def tables(beam: np.ndarray, chosen: np.ndarray, share: np.ndarray) -> NPRegDensity:
         """Tables from the returns and misses of training beams ``beam``, each counted in segment ``chosen``
@@ -280,20 +275,20 @@ def fit_permeable_map(
         seg = np.maximum(chosen, 0)
         assigned = StateSamples(
             nominal=np.where(chosen >= 0, traced.seg_at[seg], np.nan),
-            incidence=np.where(chosen >= 0, state_incidence[seg], np.nan),
+            incidence=np.where(chosen >= 0, traced.seg_incidence[seg], np.nan),
             beam=train.beam[beam],
             label=np.where(chosen >= 0, labels[seg], 0),
             z=train.z[beam],
             hit=train.hit[beam],
             weight=share,
         )
-        counts = backstop_prior(count_states(assigned, grid, edges), grid, classes)
+        counts = backstop_prior(count_states(assigned, grid, edges), grid, cell_labels(classes, lines))
         smoothed = kernel_smooth(grid, counts[:-1], h_r, h_i, h_null)
         mass, p_null = _finish(np.concatenate([smoothed, counts[-1:]]), e_kernel=True)
         return NPRegDensity(grid=grid, edges=edges, mass=mass, p_null=p_null, shape="polygon", uniform=u, z_max=end)
 
     density = tables(np.arange(train.n), initial_credit(traced), np.ones(train.n))
-    beams = segment_beams(traced, classes, states_on_lines)
+    beams = segment_beams(traced, classes, lines)
     for _ in range(rounds):
         prior = fit_permeability(beams, base_model(density), steps, start=prior)
         permeable = beams.with_permeability(*prior)
@@ -310,7 +305,7 @@ def fit_permeable_map(
         kappa=kappa,
         eta=eta,
         classes=classes,
-        states_on_lines=states_on_lines,
+        lines=lines,
     )
     mixture = fitted.beams(train)
 

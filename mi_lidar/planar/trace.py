@@ -77,6 +77,11 @@ class PlanarTrace:
         return np.where(np.isfinite(self.seg_surface), self.seg_surface, self.seg_range)
 
     @property
+    def seg_line_like(self) -> np.ndarray:
+        """(E,) whether the protocol's rule finds a line in each segment's neighbourhood (its line incidence known)."""
+        return np.isfinite(self.seg_line_incidence)
+
+    @property
     def seg_beam(self) -> np.ndarray:
         """(E,) the beam of each segment."""
         return np.repeat(np.arange(self.n), np.diff(self.seg_start))

@@ -1,5 +1,5 @@
 """The incidence at which a beam meets a segment's surface (CellLines.surface_incidence) on a turned room, and
-the held-out choice of the incidence mi-lidar's density states read.
+the label that tells mi-lidar's density which cells lie on a line by the protocol's rule.
 
 The room of :mod:`tests.planar.world` is turned by 17 degrees, so its walls cross the 5 cm cells on a slant: the
 protocol's rule (four occupied cells on a line within one cell's width) then fails on about half the walls'
@@ -15,15 +15,17 @@ import numpy as np
 import pytest
 
 from mi_lidar.io.carmen import beam_angles, read_carmen
+from mi_lidar.planar.beams import cell_labels, segment_labels
 from mi_lidar.planar.grid import CountMap, Grid, count_scans, planar_beams
 from mi_lidar.planar.permeable import candidate_name, fit_milidar, fit_permeable_map
 from mi_lidar.planar.protocol import PlanarProtocol
 from mi_lidar.planar.raymarch import trace_scans
+from mi_lidar.planar.trace import BACKSTOP, OPEN_BACKSTOP, OPEN_STRAY
 from tests.planar.test_backstops import segments_trace
 from tests.planar.world import WALLS, cast, flaser_text, poses, room_readings
 
 SCANS, BEAMS, TURN = 120, 181, np.radians(17.0)
-SCANS_FIT, BEAMS_FIT = 40, 120  # the synthetic traces of the held-out choice
+SCANS_FIT, BEAMS_FIT = 40, 120  # the synthetic traces of the line-like cells
 
 
 def true_incidence(pose: np.ndarray) -> np.ndarray:
@@ -74,39 +76,44 @@ def test_the_surface_incidence_is_known_on_slanted_walls_and_measures_their_angl
     assert np.median(error) <= 1.5 and np.percentile(error, 90) <= 4.0, (np.median(error), np.percentile(error, 90))
 
 
-def two_incidences_trace(informative: str, seed: int = 9):
-    """``SCANS`` x ``BEAMS`` beams (:mod:`tests.planar.test_backstops`), each meeting one wall cell 2-8 m away
-    (hits 10, passes 0) that returns 1 cm (sigma) from it when met at 10 deg and 15 cm when met at 80 deg (beam
-    index mod 2); the ``informative`` incidence ("surface" or "line") says which, the other is uniform on
-    [0, 90) deg."""
+def line_like_trace(seed: int = 9):
+    """``SCANS_FIT`` x ``BEAMS_FIT`` beams (:mod:`tests.planar.test_backstops`), each meeting one wall cell 2-8 m
+    away (hits 10, passes 0) at an incidence on its surface uniform on [0, 80) deg. The cells of even beams lie
+    on a line by the protocol's rule (their line incidence known) and return 1 cm (sigma) from it, the others
+    15 cm."""
     rng = np.random.default_rng(seed)
-    met = np.tile(np.arange(BEAMS_FIT), SCANS_FIT) % 2
-    true = np.where(met == 0, 10.0, 80.0)
-    r = rng.uniform(2.0, 8.0, met.size)
-    z = r + rng.normal(0.0, 1.0, met.size) * np.where(met == 0, 0.01, 0.15)
-    noise = rng.uniform(0.0, 90.0, met.size)
-    surface, line = (true, noise) if informative == "surface" else (noise, true)
+    line_like = np.tile(np.arange(BEAMS_FIT), SCANS_FIT) % 2 == 0
+    surface = rng.uniform(0.0, 80.0, line_like.size)
+    r = rng.uniform(2.0, 8.0, line_like.size)
+    z = r + rng.normal(0.0, 1.0, line_like.size) * np.where(line_like, 0.01, 0.15)
+    line = np.where(line_like, surface, np.nan)
     segments = [[(at, 10, 0, 1, s, li)] for at, s, li in zip(r, surface, line)]
     return segments_trace(z, r, segments, SCANS_FIT, BEAMS_FIT)
 
 
-@pytest.mark.parametrize("informative", ["surface", "line"])
-def test_the_density_states_read_the_incidence_chosen_held_out(informative):
-    """The returns' spread follows one incidence and the other is noise: fit_milidar chooses, on held-out training
-    scans, the states on the informative one, and the fit on it scores the beams at least 0.3 nats per beam better
-    than the fit on the other (two laws of 1 and 15 cm told apart against their even mixture; measured 0.38 with the
-    surface informative, 0.47 with the line)."""
-    trace = two_incidences_trace(informative)
+def test_segment_labels_tell_line_like_cells_apart():
+    occupied = np.array([0, 0, 1, 1, 1, BACKSTOP, OPEN_BACKSTOP, OPEN_STRAY])
+    hits = np.array([1, 1, 1, 1, 40, 0, 0, 3])
+    line_like = np.array([True, False, True, False, False, True, False, False])
+    # (occupancy * classes + evidence) * 2 + (not line-like); backstops from 2 * cell_labels(classes, True) on
+    assert segment_labels(occupied, hits, 1, line_like).tolist() == [0, 1, 2, 3, 3, 4, 5, 6]
+    assert segment_labels(occupied, hits, 5, line_like).tolist() == [0, 1, 10, 11, 19, 20, 21, 22]
+    assert segment_labels(occupied, hits, 5).tolist() == [0, 0, 5, 5, 9, 10, 11, 12]  # not told apart
+    assert cell_labels(5, True) == 10 and cell_labels(5, False) == 5
+
+
+def test_the_density_tells_line_like_cells_from_the_others():
+    """Cells on a line return tighter than clutter met at the same incidences: fit_milidar chooses, on held-out
+    training scans, to tell them apart (segment_labels), and that fit scores the beams at least 0.3 nats per beam
+    better than the fit that does not (two laws of 1 and 15 cm against their even mixture; measured 0.50)."""
+    trace = line_like_trace()
     bandwidths = (1.0, 20.0, 1e-3, math.inf, 1.0)
     chosen = fit_milidar(trace, 31.0, bandwidths, classes=(1,))
-    assert chosen.states_on_lines == (informative == "line")
-    # Both candidates' held-out scores are kept for the report, the informative one's the lower by a margin.
-    held_out = [
-        chosen.held_out[candidate_name(1, on_lines)] for on_lines in (informative == "line", informative != "line")
-    ]
+    assert chosen.lines
+    held_out = [chosen.held_out[candidate_name(1, lines)] for lines in (True, False)]
     assert held_out[0] < held_out[1] - 0.2, chosen.held_out
-    other = fit_permeable_map(trace, 31.0, bandwidths, 1, states_on_lines=informative == "surface")
+    pooled = fit_permeable_map(trace, 31.0, bandwidths, 1, lines=False)
     gain = np.mean(chosen.beams(trace).log_likelihood(chosen.model)) - np.mean(
-        other.beams(trace).log_likelihood(other.model)
+        pooled.beams(trace).log_likelihood(pooled.model)
     )
     assert gain >= 0.3, gain
