@@ -39,7 +39,7 @@ from mi_lidar.core.trace import RayCache, cache_distributions, rounds_from_segme
 from mi_lidar.planar.trace import BACKSTOP, OCCUPANCY_NAMES, OPEN_BACKSTOP, OPEN_STRAY, PlanarTrace
 
 OCCUPANCY_CLASSES = len(OCCUPANCY_NAMES)  # one Beta prior per occupancy class (raymarch.BACKSTOP and the rest)
-LABELS_BEYOND = OPEN_STRAY - BACKSTOP + 1  # labels after the cells' (segment_labels)
+LABELS_BEYOND = OPEN_STRAY - BACKSTOP + 1  # labels after the cells' 2 * cell_labels(...) (segment_labels)
 LINE_CLASSES = 2  # a cell's neighbourhood is line-like by the protocol's rule, or not (segment_labels)
 INTERCEPTION_PARAMETERS = ("a", "b", "gamma", "kappa", "eta")  # per occupancy class (see permeability)
 UNCOUNTED = (BACKSTOP, OPEN_BACKSTOP)  # occupancy classes without counts: their kappa stays 1 (fit_permeability)
