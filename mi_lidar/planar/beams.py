@@ -76,6 +76,11 @@ def segment_labels(
     return np.where(occupied >= BACKSTOP, 2 * cell_labels(classes, line_like is not None) + occupied - BACKSTOP, cell)
 
 
+def trace_labels(trace: PlanarTrace, classes: int, lines: bool) -> np.ndarray:
+    """(E,) :func:`segment_labels` of every segment of ``trace``, telling line-like cells apart with ``lines``."""
+    return segment_labels(trace.seg_occupied, trace.seg_hits, classes, trace.seg_line_like if lines else None)
+
+
 def cell_labels(classes: int, lines: bool) -> int:
     """The labels of the cells of one occupancy (stray-hit or ``occ3``): ``classes`` evidence classes, times
     line-like or not with ``lines`` (:func:`segment_labels`)."""
@@ -268,8 +273,7 @@ def segment_beams(trace: PlanarTrace, classes: int = EVIDENCE_CLASSES, lines: bo
     The interception and the density's state read the incidence on each cell's surface (``seg_incidence``).
     """
     n_elements = trace.seg_range.size
-    line_like = trace.seg_line_like if lines else None
-    labels = segment_labels(trace.seg_occupied, trace.seg_hits, classes, line_like).astype(np.uint32)
+    labels = trace_labels(trace, classes, lines).astype(np.uint32)
     table = ElementTable.from_elements(np.ones(max(n_elements, 1)), label=labels if n_elements else None)
     cos_incidence = _cos(trace.seg_incidence)
     rounds = rounds_from_segments(trace.seg_start, np.arange(n_elements), trace.seg_at, cos_incidence)

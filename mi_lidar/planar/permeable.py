@@ -52,7 +52,7 @@ from mi_lidar.planar.beams import (
     cell_labels,
     fit_permeability,
     segment_beams,
-    segment_labels,
+    trace_labels,
 )
 from mi_lidar.planar.correlation import fit_beam_correlation
 from mi_lidar.planar.models import RANGE_EDGES, fine_grid, samples_of
@@ -267,7 +267,7 @@ def fit_permeable_map(
     grid = fine_grid(samples_of(train), labels=2 * cell_labels(classes, lines) + LABELS_BEYOND)
     edges = protocol_residual_edges(z_max)
     traced = train.with_backstops()
-    labels = segment_labels(traced.seg_occupied, traced.seg_hits, classes, traced.seg_line_like if lines else None)
+    labels = trace_labels(traced, classes, lines)
 
     def tables(beam: np.ndarray, chosen: np.ndarray, share: np.ndarray) -> NPRegDensity:
         """Tables from the returns and misses of training beams ``beam``, each counted in segment ``chosen``
