@@ -11,7 +11,8 @@ from mi_lidar.core.errors import LogFormatError, TruncatedLogWarning, unreadable
 
 
 def text_lines(path: Path) -> list[str]:
-    """Decoded text lines of a plain or gzip-compressed file.
+    """Decoded text lines of a plain or gzip-compressed file (UTF-8; a byte order mark, which Windows editors write
+    first, is dropped so that it does not hide the first line's first word).
 
     A gzip stream that ends early (a logger stopped mid-write) gives the text decompressed up to its end, with a
     :class:`~mi_lidar.core.errors.TruncatedLogWarning`; its last line is then usually cut short too.
@@ -25,7 +26,7 @@ def text_lines(path: Path) -> list[str]:
         raise unreadable(path, "log") from exc
     if raw[:2] == b"\x1f\x8b":
         raw = _gunzip(path, raw)
-    return raw.decode("utf-8", errors="replace").splitlines()
+    return raw.decode("utf-8-sig", errors="replace").splitlines()
 
 
 def _gunzip(path: Path, raw: bytes) -> bytes:
