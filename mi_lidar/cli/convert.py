@@ -94,6 +94,9 @@ def info(
     ]
     if summary["range_m"]:
         rows.append(("range min / median / max (m)", " / ".join(f"{v:.2f}" for v in summary["range_m"])))
+    if summary["no_return_m"] is not None:
+        no_return = summary["no_return_m"]
+        rows.append(("no-return value (m)", f"{no_return:.2f}" if no_return < float("inf") else "none in the log"))
     rows.append(("time span (s)", f"{summary['time_span_s']:.3f}"))
     if summary["scan_period_s"] is not None:
         rows.append(("scan period (s)", f"{summary['scan_period_s']:.3f}"))

@@ -69,7 +69,8 @@ def info(path: str | os.PathLike, **read_options) -> dict:
     measurement filled), ``range_m`` (min, median, max over hits), ``time_span_s``,
     ``scan_period_s`` (median time between the starts of whole scans, see :func:`scan_period`),
     ``trajectory_length_m``, ``attributes``, ``simulated`` (``{"seed", "effects"}`` of a log
-    ``mi_lidar.simulate`` wrote, else None).
+    ``mi_lidar.simulate`` wrote, else None), ``no_return_m`` (the no-return value of a log read from a CARMEN log,
+    ``sensor["max_range_m"]``, m: ``inf`` when the log has none; None for other logs).
     """
     log = read_any(path, **read_options)
     fmt = detect_format(path)
@@ -89,6 +90,7 @@ def info(path: str | os.PathLike, **read_options) -> dict:
         "scan_period_s": scan_period(log, streamed=fmt in STREAMED_FORMATS),
         "trajectory_length_m": float(steps.sum()),
         "attributes": sorted(log.attributes),
+        "no_return_m": float(log.sensor["max_range_m"]) if "max_range_m" in log.sensor else None,
         "simulated": {"seed": int(log.sensor["seed"]), "effects": list(log.sensor.get("effects", []))}
         if "seed" in log.sensor
         else None,
