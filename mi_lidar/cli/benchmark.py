@@ -98,7 +98,8 @@ def benchmark_planar(
             r.name, *(figure(v) for v in (r.test_nll, r.train_nll, r.nll_hits, r.nll_misses, r.miss_tuned["f1"]))
         )
         samples.add_row(r.name, *sample_figures(r.samples), end_section=r is result.rows[-1])
-    samples.add_row(REFERENCE, *sample_figures(result.reference))
+    if result.reference:  # none for one test scan (a warning says so)
+        samples.add_row(REFERENCE, *sample_figures(result.reference))
     console.print(scores)
     console.print(samples)
     for label, key in (("hist L1", "histogram_l1_draws"), ("CRPS mean", "crps_mean")):

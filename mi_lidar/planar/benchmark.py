@@ -134,7 +134,7 @@ class PlanarBenchmark:
     """Result of :func:`run_planar_benchmark` (``settings``: what the learned models chose on the training scans;
     ``no_return``: the range (m) that stands for a no-return in the CRPS: the log's no-return value, or its
     largest reading + 1 m when it has none; ``reference``: the sample metrics of the measured test scans
-    re-paired, :mod:`mi_lidar.planar.reference`)."""
+    re-paired, :mod:`mi_lidar.planar.reference`, empty when the log has one test scan)."""
 
     source: str
     data: PlanarData
@@ -155,6 +155,13 @@ class PlanarBenchmark:
                 f"{unmapped:.0%} of the test beams returned where their leave-out map has no wall, so the figures "
                 "score the map more than the sensor: give a longer log that passes the same places more often, or "
                 "a smaller --radius or --window"
+            )
+        if np.unique(self.data.test.scan).size < 2:
+            every = self.data.protocol.test_every
+            out.append(
+                f"the log has one test scan (every {every}-th scan is one), so there is no reference row (it re-pairs "
+                f"beams between test scans) and the test figures rest on {self.data.test.n:,} beams of one scan: give "
+                f"a log of {every + 1} scans or more (many more for figures that hold), or a smaller --test-every"
             )
         if off > MAP_ERROR_WARNING:
             out.append(
@@ -366,9 +373,13 @@ def run_planar_benchmark(
         "incidence_known": float(np.mean(np.isfinite(data.test.incidence[np.isfinite(data.test.nominal)]))),
         "surface_incidence_known": float(np.mean(np.isfinite(data.test.seg_incidence[data.test.seg_occupied]))),
     }
-    ranges, hits = repaired_scans(data.test, SAMPLED_SCANS, seed)
-    no_ll = np.full(data.test.n, np.nan)  # a reference, not a model: no likelihood
-    reference = metrics_of(no_ll, data.test.z, data.test.hit, ranges[0], hits[0], draws=(ranges, hits), no_return=z_max)
+    reference = {}  # re-paired between test scans: one test scan would be paired with itself, a perfect score
+    if np.unique(data.test.scan).size > 1:
+        ranges, hits = repaired_scans(data.test, SAMPLED_SCANS, seed)
+        no_ll = np.full(data.test.n, np.nan)  # a reference, not a model: no likelihood
+        reference = metrics_of(
+            no_ll, data.test.z, data.test.hit, ranges[0], hits[0], draws=(ranges, hits), no_return=z_max
+        )
     if "p_reg" in settings:
         h_r, h_d, escape = settings["p_reg"]
         chosen["P-Reg"] = {"h_range_m": h_r, "h_incidence_deg": h_d, "escape_law": escape}
