@@ -35,6 +35,11 @@ class NoReturnValueWarning(MiLidarWarning):
     no-return codes as returns."""
 
 
+class BeamAnglesWarning(MiLidarWarning):
+    """A log's beam angles are a guess: its lines do not give them, and its beam count is not one whose angles are
+    known."""
+
+
 class SetupError(MiLidarError):
     """The environment cannot run mi-lidar (missing LLVM, scalar variant, ...)."""
 

@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_lidar.core.errors import (
+    BeamAnglesWarning,
     LogFormatError,
     NoReturnValueWarning,
     ParameterError,
@@ -73,6 +74,7 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)  # remissions are stored as float3
 JITTER_S = 1.0  # s: a timestamp at most this far before the previous scan's is clock jitter (Intel log: up to 0.86 s)
 
 OLD_LASER = ("FLASER", "RLASER")  # n ranges, then the laser pose, the odometry and the timestamp
+KNOWN_FANS = (180, 181, 360, 361)  # beam counts of an old laser line whose angles are known (SICK LMS, 180 degrees)
 ROBOT_LASER = ("ROBOTLASER1", "ROBOTLASER2")  # the laser's configuration, ranges, remissions, laser and robot poses
 
 
@@ -169,6 +171,8 @@ def read_carmen(
             detects) or above that value: they are read as no-returns, or its no-returns as returns.
         TimeOrderWarning: a timestamp more than :data:`JITTER_S` before the previous scan's (lines and times named);
             the scans are read as written. Smaller steps back (clock corrections) are read silently.
+        BeamAnglesWarning: old laser scans of a beam count other than :data:`KNOWN_FANS`: their angles, spread over
+            180 degrees, are a guess.
     """
     path = Path(path)
     if path.is_dir():
@@ -259,6 +263,7 @@ def read_carmen(
     else:
         angles, offsets = beam_angles(n), np.arange(n) * sweep_s / n
         sensor["odometry"] = other_pose.tolist()
+        _check_fan(path, message, n, numbers[0])
     directions = np.stack([np.cos(angles), np.sin(angles), np.zeros(n)], axis=-1)[None, :, None]
     poses = np.tile(np.eye(4), (len(table), 1, 1))
     c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
@@ -345,6 +350,22 @@ def _check_time_order(path: Path, message: str, stamp: np.ndarray, numbers: list
         "of a scan, --radius, --window) misjudge which scans are neighbours across it: split the log at line "
         f"{numbers[b]} or make its timestamps increase",
         TimeOrderWarning,
+        stacklevel=3,
+    )
+
+
+def _check_fan(path: Path, message: str, n: int, number: int) -> None:
+    """Warn when old laser scans of ``n`` beams (the first on line ``number``) have a count whose angles are a guess:
+    their lines give no field of view, and :func:`beam_angles` spreads them over 180 degrees."""
+    if n in KNOWN_FANS:
+        return
+    warnings.warn(
+        f"{path}: line {number}: {message} scans of {n} beams; a {message} line gives no field of view, and mi-lidar "
+        f"knows the beam angles of {', '.join(map(str, KNOWN_FANS))} beams (180 degrees), so these are read over 180 "
+        f"degrees from -90, a beam every {np.degrees(beam_step(n)):.4g} deg. A scanner that covers another angle "
+        "(541 or 1081 beams: usually 270 degrees) is read wrong: write its scans as ROBOTLASER1 lines, which give "
+        "start_angle and angular_resolution",
+        BeamAnglesWarning,
         stacklevel=3,
     )
 
