@@ -20,11 +20,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from mi_lidar.core.errors import ParameterError
+from mi_lidar.core.errors import LogFormatError, ParameterError
 from mi_lidar.core.log import Log
 
 REACH = 40.0  # m: returns beyond this add no endpoint hit (the protocol's march limit)
 EMPTY_CAP = 64  # cells: empty radii are counted up to this (3.2 m at 5 cm cells)
+STILL_SPREAD = 0.25  # m: median spread of a beam's returns between scans above which a log at one pose moved
 
 
 @dataclass(frozen=True)
@@ -85,6 +86,32 @@ def check_planar_shape(log: Log) -> None:
             f"planar maps need a planar log of N beams x 1 firing sharing one pattern (directions (1, N, 1, 3)); "
             f"got shape {log.shape} with directions {log.directions.shape}; read CARMEN logs with "
             "mi_lidar.io.carmen.read_carmen"
+        )
+
+
+def check_moved(log: Log, source) -> None:
+    """Refuse a planar log whose scans all share one pose while the same beam's returns differ between them by more
+    than :data:`STILL_SPREAD` (a scanner that moved, logged without its poses): any map of it is a smear of every
+    scan. A scanner that stood still is kept.
+
+    Raises:
+        LogFormatError: such a log (``source``, its file, named first).
+    """
+    if log.shape[0] < 2 or not np.all(log.poses == log.poses[0]):
+        return
+    z = np.where(log.hit[:, :, 0], log.ranges[:, :, 0], np.nan)
+    seen = np.isfinite(z).sum(axis=0) >= 2
+    if not seen.any():
+        return
+    z = z[:, seen]
+    spread = float(np.median(np.nanmedian(np.abs(z - np.nanmedian(z, axis=0)), axis=0)))
+    if spread > STILL_SPREAD:
+        which = "the identity" if np.allclose(log.poses[0], np.eye(4)) else "one pose"
+        raise LogFormatError(
+            f"{source}: all {log.shape[0]:,} scans have the same pose ({which}), yet a beam's returns differ between "
+            f"scans by a median {spread:.2f} m: the scanner moved and the log has no poses, so the map would be a "
+            "smear of every scan. Give a log with SLAM-corrected poses (CARMEN FLASER lines, or the .gfs.log a "
+            f"SLAM such as GMapping writes); a scanner that stood still gives under {STILL_SPREAD:g} m and is mapped"
         )
 
 

@@ -39,14 +39,13 @@ from mi_lidar.core.log import Log
 from mi_lidar.core.poses import validate_poses
 from mi_lidar.hybrid.blocks import SceneSensor, assets_folder
 from mi_lidar.hybrid.commands import console, progress_bar, render_previews, write_staged
-from mi_lidar.planar.grid import check_planar_shape
+from mi_lidar.planar.grid import check_moved, check_planar_shape
 from mi_lidar.planar.wall_map import CELL, HALF_HEIGHT, WallMap, count_walls, wall_faces
 from mi_lidar.scene.files import ShapeEntry, write_mesh_ply, write_scene_xml
 
 SIGMA_PER_CELL = 0.5  # the sensor's range sigma to start from, in cells
 MAX_SEGMENTS = 128  # faces a beam may pass before it counts as a miss (Intel: up to 97 cells before a return)
 LABEL = 1  # the walls' label
-STILL_SPREAD = 0.25  # m: median spread of a beam's returns between scans above which a log at one pose moved
 OFF_PLANE = 0.01  # share of the returns that may lie more than HALF_HEIGHT from the scan plane
 
 
@@ -73,28 +72,8 @@ def check_map_log(log: Log, source) -> None:
             f"{source}: none of the log's {log.hit.size:,} readings is a return (every one is <= 0{code}), so there "
             "are no walls to map: check that the ranges are in metres and that the log holds the scanner's readings"
         )
-    _check_moved(log, source)
+    check_moved(log, source)
     _check_plane(log, source)
-
-
-def _check_moved(log: Log, source) -> None:
-    """Refuse a log whose scans all share one pose while the same beam's returns differ between them."""
-    if log.shape[0] < 2 or not np.all(log.poses == log.poses[0]):
-        return
-    z = np.where(log.hit[:, :, 0], log.ranges[:, :, 0], np.nan)
-    seen = np.isfinite(z).sum(axis=0) >= 2
-    if not seen.any():
-        return
-    z = z[:, seen]
-    spread = float(np.median(np.nanmedian(np.abs(z - np.nanmedian(z, axis=0)), axis=0)))
-    if spread > STILL_SPREAD:
-        which = "the identity" if np.allclose(log.poses[0], np.eye(4)) else "one pose"
-        raise LogFormatError(
-            f"{source}: all {log.shape[0]:,} scans have the same pose ({which}), yet a beam's returns differ between "
-            f"scans by a median {spread:.2f} m: the scanner moved and the log has no poses, so the map would be a "
-            "smear of every scan. Give a log with SLAM-corrected poses (CARMEN FLASER lines, or the .gfs.log a "
-            f"SLAM such as GMapping writes); a scanner that stood still gives under {STILL_SPREAD:g} m and is mapped"
-        )
 
 
 def _check_plane(log: Log, source) -> None:

@@ -17,7 +17,7 @@ import numpy as np
 
 from mi_lidar.core.errors import LogFormatError, ParameterError
 from mi_lidar.core.log import Log
-from mi_lidar.planar.grid import CountMap, Grid, count_scans, in_threads, planar_beams
+from mi_lidar.planar.grid import CountMap, Grid, check_moved, count_scans, in_threads, planar_beams
 from mi_lidar.planar.raymarch import trace_scans
 from mi_lidar.planar.trace import PlanarTrace
 
@@ -135,12 +135,6 @@ def _where_and_when(log: Log, window: float) -> str:
     """Where and when a planar log's scans lie, and what to do when their leave-out maps (of ``window`` s) are empty:
     the end of a sentence."""
     xy, t = log.poses[:, :2, 3], log.times[:, 0, 0]
-    heading = np.arctan2(log.poses[:, 1, 0], log.poses[:, 0, 0])
-    if np.ptp(xy, axis=0).max() == 0 and np.ptp(heading) == 0:
-        return (
-            f"the laser pose is the same in every scan (x={xy[0, 0]:g} m, y={xy[0, 1]:g} m, theta={heading[0]:g} rad): "
-            "give a log whose laser pose fields hold each scan's SLAM-corrected pose"
-        )
     dx, dy = np.ptp(xy, axis=0)
     return (
         f"the log's scans lie in a {dx:.2f} x {dy:.2f} m box over {np.ptp(t):.1f} s: give a longer log that passes "
@@ -175,6 +169,11 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None, wor
 
     Scans are counted and traced in batches on ``workers`` threads (default: one per CPU); the
     result does not depend on their number.
+
+    Raises:
+        LogFormatError: a log too short to split, one whose scans share one pose while they differ (no poses:
+            :func:`~mi_lidar.planar.grid.check_moved`), or one without a map (:func:`map_grid`, and no beam meeting
+            a wall in its leave-out map).
     """
     protocol = protocol or PlanarProtocol()
     workers = workers or os.cpu_count() or 1
@@ -186,6 +185,7 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None, wor
             f"two training scans or more (every {protocol.test_every}-th scan is a test scan; the learned models "
             "choose their settings on the even training scans and check them on the odd ones): give a longer log"
         )
+    check_moved(log, log.sensor.get("source", "the log"))
     seconds, start = {}, time.perf_counter()
     grid = map_grid(log, protocol.cell, protocol.reach)
     counts = count_scans(

@@ -25,3 +25,22 @@ def test_one_test_scan_has_no_reference_row_and_says_so(tmp_path):
     assert report["reference_repaired_sensor"] == {}
     assert any(w.startswith("the log has one test scan") for w in report["warnings"])
     assert "(reference)" not in (out / "benchmark.html").read_text()
+
+
+def test_a_moving_scanner_logged_at_one_pose_is_refused_as_fit_scene_refuses_it(tmp_path):
+    """A log whose laser pose fields hold one pose while the scanner moved (Intel's scans with the first scan's pose):
+    fit-scene refused it, but benchmark-planar scored leave-out maps that smear every scan together, warning only
+    that the poses might not be SLAM-corrected (test returns a median 4.3 m from their maps' walls)."""
+    lines = room_log_text(scans=10).splitlines()[1:]
+    still = [" ".join(t[:183] + ["1", "2", "0.5"] + t[186:]) for t in (line.split() for line in lines)]
+    (tmp_path / "one_pose.log").write_text("\n".join(still) + "\n")
+    out = tmp_path / "out"
+    result = invoke_at_80(["benchmark-planar", tmp_path / "one_pose.log", "--out", out, "-m", "M0", "--window", "0"])
+    assert result.exit_code == 2, result.output
+    said = " ".join(result.output.split())
+    assert (
+        "one_pose.log: all 10 scans have the same pose (one pose), yet a beam's returns differ between scans by a "
+        "median 0.72 m: the scanner moved and the log has no poses, so the map would be a smear of every scan. Give a "
+        "log with SLAM-corrected poses"
+    ) in said, said
+    assert not out.exists()
