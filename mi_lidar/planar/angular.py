@@ -33,30 +33,24 @@ side).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
+from typing import ClassVar
 
-import drjit as dr
 import numpy as np
 
-from mi_lidar.core.likelihood import LOG_FLOOR, LOG_RESOLUTION
-from mi_lidar.core.streams import BeamCorrelation, NeighbourStreams, uniform
-from mi_lidar.planar.beams import EngineBeams, scored
+from mi_lidar.planar.mixture import BeamMixture, fit_shares, mix_raw
 from mi_lidar.planar.trace import PlanarTrace
 
 ANGULAR_STREAM = 4  # the random stream that picks an angular part (the sampler's are 0-3 and 64 up)
 OFFSETS = (-1, 1)  # the neighbours, in beam spacings
-SHARE_TOLERANCE = 1e-6  # the shares' fit has converged when no share moves by more
-SHARE_ROUNDS = 500  # at most this many rounds of the shares' fit
-MAX_EXPONENT = 700.0  # a beam far below the floor under every part keeps a finite floor (its posteriors ~0)
+PART_GROUPS = (0, 1, 1, 2, 2)  # the own trace; the neighbours alone, alike; the footprints, alike
 
 
 @dataclass
-class AngularMixture:
-    """Beams whose return comes from their own trace, a neighbour's alone, or their footprint (module docstring).
-
-    Its likelihood is the mixture of the five pass-through likelihoods, scored once by the one score;
-    sampling picks one part, then samples it.
+class AngularMixture(BeamMixture):
+    """Beams whose return comes from their own trace, a neighbour's alone, or their footprint (module docstring),
+    under one model: the mixture of the five pass-through likelihoods, scored once by the one score; sampling
+    picks one part (stream :data:`ANGULAR_STREAM`), then samples it (:class:`~mi_lidar.planar.mixture.BeamMixture`).
 
     Attributes:
         parts: the beams of the own trace, of the neighbours -1 and +1 alone, then of the footprints over
@@ -65,82 +59,18 @@ class AngularMixture:
         footprint: the share of each footprint (``2 weight + 2 footprint <= 1``).
     """
 
-    parts: tuple[EngineBeams, ...]
     weight: float
     footprint: float = 0.0
-
-    @property
-    def n(self) -> int:
-        return self.parts[0].n
-
-    @property
-    def hit(self) -> np.ndarray:
-        return np.asarray(self.parts[0].hit)
+    STREAM: ClassVar[int] = ANGULAR_STREAM
 
     def shares(self) -> np.ndarray:
         """(5,) probability of each part."""
         return part_shares(self.weight, self.footprint)
 
-    def raw_parts(self, model) -> np.ndarray:
-        """(5, B) raw log-likelihood of every part (nats)."""
-        return np.stack([b.raw_log_likelihood(model) for b in self.parts])
-
-    def raw_log_likelihood(self, model) -> np.ndarray:
-        """(B,) raw log-likelihood of the mixture (nats)."""
-        return mix_raw(self.raw_parts(model), self.shares())
-
-    def log_likelihood(self, model) -> np.ndarray:
-        """(B,) scored log-likelihood per beam (nats)."""
-        return scored(self.raw_log_likelihood(model), self.hit)
-
-    def p_miss(self, model) -> np.ndarray:
-        """(B,) probability of no return per beam."""
-        return np.tensordot(self.shares(), np.stack([b.p_miss(model) for b in self.parts]), axes=1)
-
-    def with_correlation(self, correlation: BeamCorrelation) -> AngularMixture:
-        """These beams with every part sampled with ``correlation``."""
-        parts = tuple(dataclasses.replace(b, correlation=correlation) for b in self.parts)
-        return dataclasses.replace(self, parts=parts)
-
-    def streams(self, seed: int, follows: np.ndarray | None = None) -> int | NeighbourStreams:
-        """The random streams of a sample with ``seed`` (:meth:`EngineBeams.streams`; the parts' beams are the same)."""
-        return self.parts[0].streams(seed, follows)
-
-    def numbered_from(self, first: int) -> AngularMixture:
-        """These beams as rays ``first ..`` of a larger set (:meth:`EngineBeams.numbered_from`)."""
-        parts = tuple(b.numbered_from(first) for b in self.parts)
-        return dataclasses.replace(self, parts=parts)
-
-    def sample(self, model, seed: int | NeighbourStreams = 0) -> tuple[np.ndarray, np.ndarray]:
-        """One sampled (range, hit) per beam: the part drawn by its share, then that part's sample.
-
-        The parts draw from the same random streams (``seed``'s, or the streams given), so a beam keeps its
-        share of its neighbours' errors whichever part it reports. The part is picked by a stream of its own
-        (:data:`ANGULAR_STREAM`, independent of the others), keyed like them by the ray id; each part draws
-        only the beams that picked it.
-        """
-        streams = seed if isinstance(seed, NeighbourStreams) else self.streams(seed)
-        key = streams.seed if isinstance(streams, NeighbourStreams) else streams
-        with dr.suspend_grad():
-            u = np.asarray(uniform(key, self.parts[0].rays.ray_id, 0, ANGULAR_STREAM), np.float64)
-        part = np.searchsorted(np.cumsum(self.shares())[:-1], u, side="right")
-        z, hit = np.full(self.n, np.nan), np.zeros(self.n, bool)
-        for k in np.unique(part):
-            picked = part == k
-            z_k, hit_k = self.parts[k].sample(model, streams, picked)
-            z[picked], hit[picked] = z_k[picked], hit_k[picked]
-        return z, hit
-
 
 def part_shares(weight: float, footprint: float) -> np.ndarray:
     """(5,) probability of each part of an :class:`AngularMixture` with these shares."""
     return np.array([1.0 - 2.0 * weight - 2.0 * footprint, weight, weight, footprint, footprint])
-
-
-def mix_raw(raw: np.ndarray, shares: np.ndarray) -> np.ndarray:
-    """(B,) ``log sum_k shares_k exp(raw_k)`` of (K, B) raw log-likelihoods (parts of zero share left out)."""
-    used = shares > 0
-    return np.logaddexp.reduce(raw[used] + np.log(shares[used])[:, None], axis=0)
 
 
 def own_part_posterior(raw: np.ndarray, shares: np.ndarray) -> np.ndarray:
@@ -167,31 +97,8 @@ def angular_mixture(trace: PlanarTrace, beams, weight: float, footprint: float =
 
 
 def fit_angular_shares(raw: np.ndarray, hit: np.ndarray) -> tuple[float, float]:
-    """The shares ``(weight, footprint)`` that maximise the mean one score of (5, B) raw part log-likelihoods.
-
-    The score of a beam is ``log(sum_k s_k P_k + FLOOR)`` (:func:`~mi_lidar.core.likelihood.score`; ``P_k``
-    the probability of its 1 cm bin or of its miss under part ``k``), so each round of this EM (a
-    minorise-maximise step: the floor is a part of fixed weight) sets every share to the mean posterior
-    of its parts, the two neighbours' parts of a kind together, and never lowers the score. It stops when
-    no share moves by more than :data:`SHARE_TOLERANCE` (at most :data:`SHARE_ROUNDS` rounds). The score of a
-    beam that every part explains alike does not depend on the shares: such beams are left out (none
-    left: no spread, ``(0, 0)``).
-    """
-    log_p = raw + np.where(np.asarray(hit, bool), LOG_RESOLUTION, 0.0)[None]
-    log_p = log_p[:, np.ptp(log_p, axis=0) > 0]
-    if not log_p.shape[1]:
-        return 0.0, 0.0
-    top = log_p.max(axis=0)  # each beam's probabilities relative to its likeliest part's: in [0, 1]
-    p = np.exp(log_p - top)
-    floor = np.exp(np.minimum(LOG_FLOOR - top, MAX_EXPONENT))
-    weight = footprint = 0.05
-    for _ in range(SHARE_ROUNDS):
-        shares = part_shares(weight, footprint)
-        posterior = shares * (p @ (1.0 / (shares @ p + floor)))
-        posterior /= posterior.sum()
-        moved = (posterior[1] + posterior[2]) / 2.0, (posterior[3] + posterior[4]) / 2.0
-        done = max(abs(moved[0] - weight), abs(moved[1] - footprint)) < SHARE_TOLERANCE
-        weight, footprint = moved
-        if done:
-            break
-    return float(weight), float(footprint)
+    """The shares ``(weight, footprint)`` that maximise the mean one score of (5, B) raw part log-likelihoods
+    (:func:`~mi_lidar.planar.mixture.fit_shares`, the two neighbours' parts of a kind alike); ``(0, 0)``, no
+    spread, when no beam tells the parts apart."""
+    shares = fit_shares(raw, hit, PART_GROUPS, part_shares(0.05, 0.05), uninformed=part_shares(0.0, 0.0))
+    return float(shares[1]), float(shares[3])

@@ -178,6 +178,15 @@ class EngineBeams:
         p = permeability(self.hits, self.passes, a, b, self.ranges, gamma, kappa, self.cos_incidence, eta)
         return dataclasses.replace(self, table=self.table.replaced(p_hit=_f(p)))
 
+    @property
+    def ray_id(self):
+        """The rays' ids (as numbered by :meth:`numbered_from`): they key every random stream."""
+        return self.rays.ray_id
+
+    def with_correlation(self, correlation: BeamCorrelation) -> EngineBeams:
+        """These beams sampled with ``correlation``."""
+        return dataclasses.replace(self, correlation=correlation)
+
     def streams(self, seed: int, follows: np.ndarray | None = None) -> int | NeighbourStreams:
         """The random streams of a sample with ``seed``: shared by neighbouring beams per :attr:`correlation`.
 

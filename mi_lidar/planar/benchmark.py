@@ -36,7 +36,7 @@ from mi_lidar.core.params import choose_names
 from mi_lidar.core.streams import scan_follows
 from mi_lidar.planar import models as m
 from mi_lidar.planar.beams import nominal_beams
-from mi_lidar.planar.permeable import fit_milidar
+from mi_lidar.planar.permeable import PermeableMap, fit_milidar
 from mi_lidar.planar.protocol import PlanarData, PlanarProtocol, prepare
 from mi_lidar.planar.reference import repaired_scans
 from mi_lidar.planar.tails import short_share
@@ -242,6 +242,22 @@ def scores_in_parts(
     return np.concatenate(ll), np.concatenate(p_miss), np.concatenate(ranges, axis=1), np.concatenate(hits, axis=1)
 
 
+def map_settings(fitted: PermeableMap, share: float) -> dict:
+    """What was fitted of one of mi-lidar's maps, for the report: its share in the stack, its Beta priors and
+    exponents per occupancy class, its angular spread."""
+    return {
+        "share": float(share),
+        **{f"beta_prior_{name}": [float(a), float(b)] for name, a, b in zip(OCCUPANCY_NAMES, fitted.a, fitted.b)},
+        **{
+            f"{kind}_exponent_{name}": float(value)
+            for kind, values in zip(("range", "counts", "incidence"), fitted.interception[2:])
+            for name, value in zip(OCCUPANCY_NAMES, values)
+        },
+        "angular_share_per_neighbour": float(fitted.angular),
+        "footprint_share_per_neighbour": float(fitted.footprint),
+    }
+
+
 def _row(
     name: str,
     beams_of: Callable[[PlanarTrace], object],
@@ -341,19 +357,7 @@ def run_planar_benchmark(
         permeable = fit_milidar(data.train, z_max, settings["np_reg"])
         elapsed = time.perf_counter() - t0
         chosen["mi-lidar"] = {
-            **{
-                f"beta_prior_{name}": [float(a), float(b)]
-                for name, a, b in zip(OCCUPANCY_NAMES, permeable.a, permeable.b)
-            },
-            **{
-                f"{kind}_exponent_{name}": float(value)
-                for kind, values in zip(("range", "counts", "incidence"), permeable.interception[2:])
-                for name, value in zip(OCCUPANCY_NAMES, values)
-            },
-            "angular_share_per_neighbour": float(permeable.angular),
-            "footprint_share_per_neighbour": float(permeable.footprint),
-            "evidence_classes": int(permeable.classes),
-            "line_like_apart": bool(permeable.lines),
+            "maps": {kept.name: map_settings(kept, share) for kept, share in zip(permeable.maps, permeable.shares)},
             "held_out_nll": {name: round(score, 4) for name, score in permeable.held_out.items()},
             "beam_correlation": {"shared": permeable.correlation.shared, "rho": permeable.correlation.rho},
             "shared_errors_pit_lags": permeable.shared_errors,

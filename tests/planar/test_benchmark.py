@@ -11,7 +11,7 @@ from mi_lidar.core.errors import ParameterError
 from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar.benchmark import run_planar_benchmark
 from mi_lidar.planar.grid import Grid, march_cells
-from mi_lidar.planar.permeable import candidate_name
+from mi_lidar.planar.permeable import STACKED_NAME
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
 from tests.core.test_strict_json import strict_load
 from tests.planar.world import GLASS, WALLS, cast, poses, room_log_text
@@ -221,16 +221,20 @@ def test_every_model_on_the_room(room, tmp_path):
     mine = next(r for r in result.rows if r.name == "mi-lidar")
     assert nll["mi-lidar"] < nll["M3b"], nll
     assert mine.samples["hit_rate_simulated"] > 0.99, mine.samples
-    spread = [result.settings["mi-lidar"][f"{kind}_share_per_neighbour"] for kind in ("angular", "footprint")]
-    assert min(spread) >= 0.0 and 2.0 * sum(spread) <= 1.0, result.settings
+    maps = result.settings["mi-lidar"]["maps"]
+    for fitted in maps.values():
+        spread = [fitted[f"{kind}_share_per_neighbour"] for kind in ("angular", "footprint")]
+        assert min(spread) >= 0.0 and 2.0 * sum(spread) <= 1.0, result.settings
+    assert sum(fitted["share"] for fitted in maps.values()) == pytest.approx(1.0), maps
     assert result.settings["NP-Reg"]["h_range_m"] in (0.5, 1.0, 2.0, 4.0), result.settings
     assert result.settings["P-Reg"]["escape_law"] in ("gaussian", "uniform"), result.settings
-    assert result.settings["mi-lidar"]["evidence_classes"] in (1, 5), result.settings
-    # The report lists every candidate's held-out NLL, and the chosen one has the lowest.
-    mi = result.settings["mi-lidar"]
-    held_out = mi["held_out_nll"]
-    chosen = candidate_name(mi["evidence_classes"], mi["line_like_apart"])
-    assert len(held_out) == 4 and held_out[chosen] == min(held_out.values())
+    # The report lists every candidate's held-out NLL and the two best's mixed; the maps kept are the best ones,
+    # two only where mixed they score the held-out scans better than the best alone.
+    held_out = result.settings["mi-lidar"]["held_out_nll"]
+    singles = {name: v for name, v in held_out.items() if name != STACKED_NAME}
+    assert len(singles) == 4 and len(held_out) == 5, held_out
+    assert sorted(singles, key=singles.get)[: len(maps)] == list(maps), (maps, held_out)
+    assert len(maps) == 1 or held_out[STACKED_NAME] <= min(singles.values()), held_out
     # How much neighbouring beams share their errors is measured at five lags and shown in the report.
     lags = result.settings["mi-lidar"]["shared_errors_pit_lags"]
     assert lags["lags"] == [1, 2, 3, 5, 10] and np.all(np.isfinite(lags["real"] + lags["sampled"])), lags
@@ -248,11 +252,12 @@ def test_shared_errors_change_the_samples_not_the_score(room):
     """The held-out trials of fit_milidar go without the shared-error fit: it must not move the likelihood."""
     import dataclasses
 
-    from mi_lidar.planar.permeable import fit_correlation, fit_permeable_map
+    from mi_lidar.planar.permeable import StackedMaps, fit_correlation, fit_permeable_map
 
     data = prepare(read_carmen(room), PROTOCOL)
     z_max = float(np.nanmax(data.log.ranges)) + 1.0
-    independent = fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf, 1.0), 1, rounds=1)
+    fitted = fit_permeable_map(data.train, z_max, (1.0, 0.2, 0.01, math.inf, 1.0), 1, rounds=1)
+    independent = StackedMaps(maps=(fitted,), shares=np.ones(1))
     correlation, summary = fit_correlation(independent, data.train)
     shared = dataclasses.replace(independent, correlation=correlation, shared_errors=summary)
     assert not independent.correlation.active and not independent.shared_errors

@@ -12,6 +12,7 @@ from mi_lidar.core.streams import BeamCorrelation
 from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar.angular import AngularMixture
 from mi_lidar.planar.benchmark import run_planar_benchmark, scan_parts, scores_in_parts
+from mi_lidar.planar.mixture import StackedBeams
 from mi_lidar.planar.permeable import fit_permeable_map
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
 from tests.planar.world import room_log_text
@@ -28,7 +29,7 @@ def test_mi_lidar_row_keeps_no_beams_and_rebuilds_the_scored_ones(tmp_path):
     row = result.rows[-1]
     assert row.name == "mi-lidar"
     train, test, model = row.engine
-    assert isinstance(test, AngularMixture) and test.n == result.data.test.n and train.n == result.data.train.n
+    assert isinstance(test, StackedBeams) and test.n == result.data.test.n and train.n == result.data.train.n
     np.testing.assert_array_equal(test.log_likelihood(model), row.ll)
     np.testing.assert_array_equal(test.sample(model, 0)[1], row.sampled[1])
 

@@ -109,7 +109,7 @@ def test_the_density_tells_line_like_cells_from_the_others():
     trace = line_like_trace()
     bandwidths = (1.0, 20.0, 1e-3, math.inf, 1.0)
     chosen = fit_milidar(trace, 31.0, bandwidths, classes=(1,))
-    assert chosen.lines
+    assert chosen.maps[0].lines
     held_out = [chosen.held_out[candidate_name(1, lines)] for lines in (True, False)]
     assert held_out[0] < held_out[1] - 0.2, chosen.held_out
     pooled = fit_permeable_map(trace, 31.0, bandwidths, 1, lines=False)
