@@ -163,6 +163,12 @@ class PlanarBenchmark:
                 f"beams between test scans) and the test figures rest on {self.data.test.n:,} beams of one scan: give "
                 f"a log of {every + 1} scans or more (many more for figures that hold), or a smaller --test-every"
             )
+        if not np.any(self.data.test.hit):
+            out.append(
+                "no test beam returned (every reading of the test scans is the no-return value), so the range "
+                "figures (|err|, hist L1, the residual plot) are empty: check the no-return value (mi-lidar info "
+                "shows it; --max-range sets it) and that the test scans hold returns"
+            )
         if off > MAP_ERROR_WARNING:
             out.append(
                 f"the test returns lie a median {off:.2f} m from their leave-out map's walls (SLAM-corrected logs: "

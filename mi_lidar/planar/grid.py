@@ -352,17 +352,24 @@ class LeaveOut:
         i = np.minimum(np.searchsorted(self.keys, key), self.keys.size - 1)
         return i, self.keys[i] == key
 
+    @staticmethod
+    def _taken(values: np.ndarray, i: np.ndarray, found: np.ndarray) -> np.ndarray:
+        """``values[i]`` where ``found``, else 0 (``values`` may be empty: a batch whose excluded scans hit nothing)."""
+        out = np.zeros(found.shape + values.shape[1:], values.dtype)
+        out[found] = values[i[found]]
+        return out
+
     def mean_hit(self, query: np.ndarray, cell: np.ndarray) -> np.ndarray:
         """(..., 2) leave-out mean position (m) of the endpoint hits in ``cell`` (NaN where it has none)."""
         i, found = self._found(query, cell)
-        hits = self.totals.hits[cell] - np.where(found, self.dh[i], 0)
-        total = self.totals.hit_sum[cell] - np.where(found[..., None], self.ds[i], 0.0)
+        hits = self.totals.hits[cell] - self._taken(self.dh, i, found)
+        total = self.totals.hit_sum[cell] - self._taken(self.ds, i, found)
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(hits[..., None] > 0, total / hits[..., None], np.nan)
 
     def counts(self, query: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(hits, pass-throughs) of ``cell`` in the leave-out map of query ``query`` (arrays of equal shape)."""
         i, found = self._found(query, cell)
-        hits = self.totals.hits[cell].astype(np.int64) - np.where(found, self.dh[i], 0)
-        passes = self.totals.passes[cell].astype(np.int64) - np.where(found, self.dp[i], 0)
+        hits = self.totals.hits[cell].astype(np.int64) - self._taken(self.dh, i, found)
+        passes = self.totals.passes[cell].astype(np.int64) - self._taken(self.dp, i, found)
         return hits, passes

@@ -65,7 +65,7 @@ def residual_figure(result, path: Path) -> Path:
         axis.hist(
             np.clip(measured, BINS[0], BINS[-1]),
             bins=BINS,
-            density=True,
+            density=bool(measured.size),  # no returns: an empty histogram, not 0/0
             histtype="stepfilled",
             alpha=0.4,
             color="black",
@@ -74,7 +74,7 @@ def residual_figure(result, path: Path) -> Path:
         axis.hist(
             np.clip(sampled, BINS[0], BINS[-1]),
             bins=BINS,
-            density=True,
+            density=bool(sampled.size),
             histtype="step",
             color="tab:red",
             label="sampled",

@@ -44,3 +44,32 @@ def test_a_moving_scanner_logged_at_one_pose_is_refused_as_fit_scene_refuses_it(
         "log with SLAM-corrected poses"
     ) in said, said
     assert not out.exists()
+
+
+def test_test_scans_without_a_return_say_so_and_plot_without_a_warning(tmp_path):
+    """A log whose test scans hold only the no-return value (a scanner blinded, or the value read wrong) ran, but its
+    range figures were NaN without a word, and the residual plot raised numpy's 0/0 RuntimeWarning. Where such a scan
+    is all its map leaves out (here --window 0, the scans over 1 m apart), it leaves out no count at all, and the
+    leave-out counts indexed an empty array of corrections (IndexError)."""
+    import warnings
+
+    import numpy as np
+
+    from mi_lidar.io.carmen import read_carmen
+    from mi_lidar.planar.benchmark import run_planar_benchmark
+    from mi_lidar.planar.protocol import PlanarProtocol
+    from mi_lidar.planar.report import write_benchmark
+    from tests.planar.world import flaser_text, poses, room_readings
+
+    readings = room_readings(12, 181, 0.02, 0.3, 50.0, 0)
+    readings[::5] = 50.0  # the test scans 0, 5 and 10: every beam a no-return
+    (tmp_path / "room.log").write_text(flaser_text(poses(12), readings, "blind test scans"))
+    result = run_planar_benchmark(
+        read_carmen(tmp_path / "room.log"), protocol=PlanarProtocol(window=0.0), models=("M0",)
+    )
+    assert not result.data.test.hit.any() and np.isnan(result.rows[0].samples["histogram_l1"])
+    assert any(w.startswith("no test beam returned") for w in result.warnings()), result.warnings()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        write_benchmark(result, tmp_path / "out")
+    assert (tmp_path / "out" / "residuals.png").stat().st_size > 0
