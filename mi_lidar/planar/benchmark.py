@@ -111,7 +111,7 @@ class ModelRow:
         """``(training beams, test beams, model)``, to simulate more scans at the same beams
         (:func:`mi_lidar.apps.scans.planar_datasets`). Built on each call, not kept: mi-lidar's beams
         hold every segment of every beam seven times (its angular spread: the own trace, each
-        neighbour's, each footprint's two), about 1.2 GB for 300,000 training beams."""
+        neighbour's, each footprint's two) per stacked map, about 1.2 GB per map for 300,000 training beams."""
         return (*self.beams(), self.model)
 
     def to_json(self) -> dict:
