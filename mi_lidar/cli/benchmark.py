@@ -25,7 +25,7 @@ def benchmark_planar(
     ),
     window: float = typer.Option(30.0, metavar="X", min=0.0, help="... and within this time (s) of it."),
     train_beams: int = typer.Option(
-        300_000,
+        150_000,
         metavar="N",
         min=0,
         help="Fit on at most this many training beams (evenly spaced scans of a longer log; 0: all).",

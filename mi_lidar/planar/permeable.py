@@ -192,7 +192,7 @@ class StackedMaps:
         shared_errors: that fit's summary: PIT lag correlations of the real training scans, of scans
             sampled with ``correlation`` and of scans sampled with independent beams.
         held_out: the held-out NLL (nats per beam) of every candidate :func:`fit_milidar` tried, by
-            :func:`candidate_name`, and of the two best mixed (:data:`STACKED`).
+            :func:`candidate_name`, and of the two best mixed (:data:`STACKED_NAME`).
     """
 
     maps: tuple[PermeableMap, ...]
@@ -232,7 +232,8 @@ def fit_milidar(
     (:func:`fit_permeable_map`). A runner-up of share below :data:`MIN_STACK_SHARE`, or whose mixture scores the
     odd scans less than :data:`MIN_STACK_GAIN` better than the best alone, is left out: its fit adds 25-40 % to
     the time of mi-lidar's, and held-out gains that small bought little on the test scans (acapulco, Seattle,
-    ACES, Intel: 0.0007-0.0043 held out, 0.0001-0.0019 on the test beams; Belgioioso, stacked, 0.0065 and 0).
+    FHW, ACES, Intel: 0.0007-0.0043 held out, 0.0001-0.0025 on the test beams; Belgioioso, stacked, 0.0065 and
+    0).
     On small logs the best held out was decided by thousandths and missed the best on the test scans (Orebro,
     237 scans: 1 class chosen, test NLL 3.8302, where 5 classes scored 3.8206); mixed, the two scored 3.8146,
     better than either (CSAIL: 3.3230 and 3.3140, mixed 3.3117): two fits of different labels err on
@@ -248,18 +249,11 @@ def fit_milidar(
         priors.append(trial.interception)
         raw.append(trial.beams(check).raw_log_likelihood(trial.model))
         del trial
-    raw = np.stack(raw)
-    scores = [-float(np.mean(scored(r, check.hit))) for r in raw]
-    best = np.argsort(scores, kind="stable")[:STACKED]
-    shares = fit_shares(raw[best], check.hit, np.arange(best.size), np.full(best.size, 1.0 / best.size))
-    held_out = {candidate_name(*c): score for c, score in zip(candidates, scores)}
-    kept = shares >= MIN_STACK_SHARE
-    if best.size > 1:
-        held_out[STACKED_NAME] = -float(np.mean(scored(mix_raw(raw[best], shares), check.hit)))
-        kept &= held_out[STACKED_NAME] < scores[best[0]] - MIN_STACK_GAIN
-    kept[0] = True
-    best, shares = best[kept], shares[kept] / shares[kept].sum()
+    best, shares, scores, stacked = stack_choice(np.stack(raw), check.hit)
     del raw
+    held_out = {candidate_name(*c): score for c, score in zip(candidates, scores)}
+    if np.isfinite(stacked):
+        held_out[STACKED_NAME] = stacked
     maps = tuple(
         fit_permeable_map(train, z_max, bandwidths, candidates[i][0], prior=priors[i], lines=candidates[i][1])
         for i in best
@@ -267,6 +261,25 @@ def fit_milidar(
     fitted = StackedMaps(maps=maps, shares=shares, held_out=held_out)
     fitted.correlation, fitted.shared_errors = fit_correlation(fitted, train)
     return fitted
+
+
+def stack_choice(raw: np.ndarray, hit: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[float], float]:
+    """The candidates :func:`fit_milidar` keeps, from their (K, B) raw log-likelihoods of held-out beams (``hit``:
+    (B,) their return flags).
+
+    Returns:
+        The indices of the kept candidates (the best first; its runner-up too where it has a share of at least
+        :data:`MIN_STACK_SHARE` and the mixture gains at least :data:`MIN_STACK_GAIN`), their shares (summing to 1),
+        every candidate's held-out NLL (nats per beam), and the :data:`STACKED` best mixed's (NaN for one
+        candidate).
+    """
+    scores = [-float(np.mean(scored(r, hit))) for r in raw]
+    best = np.argsort(scores, kind="stable")[:STACKED]
+    shares = fit_shares(raw[best], hit, np.arange(best.size), np.full(best.size, 1.0 / best.size))
+    stacked = -float(np.mean(scored(mix_raw(raw[best], shares), hit))) if best.size > 1 else float("nan")
+    kept = (shares >= MIN_STACK_SHARE) & (stacked < scores[best[0]] - MIN_STACK_GAIN)
+    kept[0] = True
+    return best[kept], shares[kept] / shares[kept].sum(), scores, stacked
 
 
 def candidate_name(classes: int, lines: bool) -> str:

@@ -41,8 +41,10 @@ class PlanarProtocol:
         batch: query scans traced at once (memory; one batch per worker thread).
         train_beams: at most this many training beams are traced and fitted: on a longer log, evenly
             spaced training scans (the protocol allows a fixed subset of training scans on a long log
-            to keep fitting fast). The default, 300,000 beams, keeps every training scan of a
-            1,000-scan log of 361 beams (Intel: 131,040) and halves a 2,000-scan one; 0: all.
+            to keep fitting fast). The default, 150,000 beams, keeps every training scan of a
+            1,000-scan log of 180 or 181 beams (Intel: 131,040) and of a 520-scan log of 361 beams, and
+            fits a 910-scan log of 361 beams (262,808) in the 5 minutes the benchmark is given on 2 cores
+            (349 s with all of them at ``efdb56d``); 0: all.
     """
 
     cell: float = 0.05
@@ -54,7 +56,7 @@ class PlanarProtocol:
     max_segments: int = 12
     beyond: float = 10.0
     batch: int = 96
-    train_beams: int = 300_000
+    train_beams: int = 150_000
 
     def __post_init__(self):
         if not 3 <= self.test_every <= MAX_TEST_EVERY:  # (2**64 overflowed numpy's modulo: a traceback)

@@ -76,3 +76,24 @@ def test_a_stacked_model_takes_one_model_per_map(two_maps):
     beams = StackedMaps(maps=(one, five), shares=np.array([0.5, 0.5])).beams(data.test)
     with pytest.raises(ValueError, match="2 stacked maps need as many models; got 1"):
         beams.log_likelihood((one.model,))
+
+
+def test_the_runner_up_is_stacked_only_where_the_mixture_gains_enough():
+    """stack_choice keeps the best held-out candidate, and its runner-up only where mixed they gain at least
+    MIN_STACK_GAIN nats per held-out beam: two candidates that each explain half the beams well are stacked near
+    half and half; a runner-up that is the best with a little noise is not."""
+    from mi_lidar.planar.permeable import MIN_STACK_GAIN, stack_choice
+
+    rng = np.random.default_rng(3)
+    n = 6000
+    hit = np.ones(n, bool)
+    good, poor = math.log(20.0), math.log(2.0)  # densities (1/m): 20 % and 2 % of a 1 cm bin
+    half = rng.random(n) < 0.5
+    complementary = np.stack([np.where(half, good, poor), np.where(half, poor, good), np.full(n, poor)])
+    kept, shares, scores, stacked = stack_choice(complementary, hit)
+    assert sorted(kept.tolist()) == [0, 1] and shares == pytest.approx([0.5, 0.5], abs=0.03)
+    assert stacked < min(scores) - MIN_STACK_GAIN
+    alike = np.stack([np.full(n, good), np.full(n, good) + rng.normal(0.0, 0.01, n), np.full(n, poor)])
+    kept, shares, scores, stacked = stack_choice(alike, hit)
+    assert kept.tolist() == [int(np.argmin(scores[:2]))] and shares.tolist() == [1.0]
+    assert min(scores) - MIN_STACK_GAIN <= stacked <= min(scores) + 1e-5  # float32 scores
