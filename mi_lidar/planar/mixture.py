@@ -10,6 +10,7 @@ sample by picking one part per beam, then sampling it; both fit their shares by 
 from __future__ import annotations
 
 import dataclasses
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -27,7 +28,7 @@ STACK_STREAM = 5  # the random stream that picks a stacked map (the sampler's ar
 
 
 @dataclass
-class BeamMixture:
+class BeamMixture(ABC):
     """Beams whose outcome comes from one of ``parts`` (beams of the same rays, each with its own measured
     outcome arrays equal) with the probabilities :meth:`shares`.
 
@@ -38,9 +39,9 @@ class BeamMixture:
     parts: tuple
     STREAM: ClassVar[int]
 
+    @abstractmethod
     def shares(self) -> np.ndarray:
         """(K,) probability of each part."""
-        raise NotImplementedError
 
     def part_models(self, model) -> tuple:
         """The model each part is scored and sampled by: ``model`` for all of them."""
