@@ -10,12 +10,19 @@ from __future__ import annotations
 
 from rich.table import Table
 
+from mi_lidar.core.decimals import fixed
+
 FIGURE_WIDTH = 6  # "12.345": a figure column never gets narrower
 
 
 def figure(value: float, digits: int = 3) -> str:
-    """A table figure; "-" where there is nothing to score (no measured miss among the test beams, say)."""
-    return f"{value:.{digits}f}" if value == value else "-"
+    """A table figure; "-" where there is nothing to score (no measured miss among the test beams, say).
+
+    Args:
+        value: the figure, in the unit its column's header or the caption gives.
+        digits: decimals after the point; a value that rounds to zero prints without a minus sign.
+    """
+    return fixed(value, digits) if value == value else "-"
 
 
 def figure_table(title: str, label: str, columns, caption: str | None = None) -> Table:

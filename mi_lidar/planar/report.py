@@ -19,6 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mi_lidar.core.atomic import atomic_path, atomic_write_text, staged_files  # noqa: E402
+from mi_lidar.core.decimals import fixed  # noqa: E402
 from mi_lidar.core.strict_json import write_json  # noqa: E402
 from mi_lidar.io.markdown import plain  # noqa: E402
 from mi_lidar.planar.benchmark import SAMPLED_SCANS  # noqa: E402
@@ -109,11 +110,11 @@ REFERENCE = "sensor, re-paired"  # the reference row's name (:mod:`mi_lidar.plan
 
 def _sample_cells(s: dict) -> tuple[str, ...]:
     return (
-        f"{s['range_error_median']:.3f}",
-        f"{s['range_error_p90']:.3f}",
-        f"{s['f1']:.3f}",
-        f"{s['histogram_l1']:.3f} / {s['histogram_l1_draws']:.3f} ± {s['histogram_l1_draws_se']:.3f}",
-        f"{s['crps_mean']:.3f} ± {s['crps_mean_se']:.3f} / {s['crps_median']:.4f}",
+        fixed(s["range_error_median"]),
+        fixed(s["range_error_p90"]),
+        fixed(s["f1"]),
+        f"{fixed(s['histogram_l1'])} / {fixed(s['histogram_l1_draws'])} ± {fixed(s['histogram_l1_draws_se'])}",
+        f"{fixed(s['crps_mean'])} ± {fixed(s['crps_mean_se'])} / {fixed(s['crps_median'], 4)}",
     )
 
 
