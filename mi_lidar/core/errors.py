@@ -30,6 +30,11 @@ class TimeOrderWarning(MiLidarWarning):
     are neighbours."""
 
 
+class DuplicateScanWarning(MiLidarWarning):
+    """A log repeats scans exactly (the same returns at the same pose; a line written twice, or a stalled driver): the
+    copies were dropped, so that no copy of a test scan trains a model."""
+
+
 class NoReturnValueWarning(MiLidarWarning):
     """A no-return value given for a log disagrees with the log: returns it holds are read as no-returns, or its
     no-return codes as returns."""

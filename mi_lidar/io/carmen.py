@@ -45,6 +45,7 @@ import numpy as np
 
 from mi_lidar.core.errors import (
     BeamAnglesWarning,
+    DuplicateScanWarning,
     LogFormatError,
     NoReturnValueWarning,
     ParameterError,
@@ -72,6 +73,7 @@ NO_RETURN_BAND = 0.2  # m: no-return codes of one scanner lie within this band b
 BACKGROUND = 5.0  # m: the readings this far below the codes give the background density of real returns
 FLOAT32_MAX = float(np.finfo(np.float32).max)  # remissions are stored as float32
 JITTER_S = 1.0  # s: a timestamp at most this far before the previous scan's is clock jitter (Intel log: up to 0.86 s)
+MIN_REPEATED_RETURNS = 10  # a scan of this many returns repeated exactly is a copy (fewer: an open field, say)
 
 OLD_LASER = ("FLASER", "RLASER")  # n ranges, then the laser pose, the odometry and the timestamp
 KNOWN_FANS = (180, 181, 360, 361)  # beam counts of an old laser line whose angles are known (SICK LMS, 180 degrees)
@@ -171,6 +173,8 @@ def read_carmen(
             detects) or above that value: they are read as no-returns, or its no-returns as returns.
         TimeOrderWarning: a timestamp more than :data:`JITTER_S` before the previous scan's (lines and times named);
             the scans are read as written. Smaller steps back (clock corrections) are read silently.
+        DuplicateScanWarning: scans that repeat the previous scan exactly (readings and laser pose; at least
+            :data:`MIN_REPEATED_RETURNS` returns): they are dropped, so the log has fewer scans than lines.
         BeamAnglesWarning: old laser scans of a beam count other than :data:`KNOWN_FANS`: their angles, spread over
             180 degrees, are a guess.
     """
@@ -240,16 +244,19 @@ def read_carmen(
     n = next(iter(widths))
     table = np.stack(rows)
     _check_values(path, message, table, numbers, ROBOT_COLUMNS if robot else OLD_COLUMNS)
-    readings, pose, other_pose, stamp = table[:, :n], table[:, n : n + 3], table[:, n + 3 : n + 6], table[:, n + 6]
-    _check_time_order(path, message, stamp, numbers)
-    detected = detect_max_range(readings)
+    detected = detect_max_range(table[:, :n])
     if max_range is None:
         max_range = detected
     elif not max_range > 0:
         raise LogFormatError(f"{path}: max_range={max_range} m must be > 0 (the sensor's no-return value)")
     else:
-        _check_given_max_range(path, readings, max_range, detected)
-    hit = (readings < max_range - MISS_MARGIN) & (readings > 0)
+        _check_given_max_range(path, table[:, :n], max_range, detected)
+    hit = (table[:, :n] < max_range - MISS_MARGIN) & (table[:, :n] > 0)
+    keep = _unrepeated(path, message, table[:, : n + 3], hit, numbers)
+    table, hit, numbers = table[keep], hit[keep], [number for number, kept in zip(numbers, keep) if kept]
+    scans = [scan for scan, kept in zip(scans, keep) if kept] if robot else scans
+    readings, pose, other_pose, stamp = table[:, :n], table[:, n : n + 3], table[:, n + 3 : n + 6], table[:, n + 6]
+    _check_time_order(path, message, stamp, numbers)
     sensor = {"name": f"carmen:{message}", "source": str(path), "max_range_m": float(max_range)}
     attributes = {}
     if robot:
@@ -352,6 +359,32 @@ def _check_time_order(path: Path, message: str, stamp: np.ndarray, numbers: list
         TimeOrderWarning,
         stacklevel=3,
     )
+
+
+def _unrepeated(path: Path, message: str, scans: np.ndarray, hit: np.ndarray, numbers: list[int]) -> np.ndarray:
+    """(S,) True for the scans to keep: False where a scan's readings and laser pose (the (S, n + 3) ``scans``) equal
+    the previous scan's exactly and it has at least :data:`MIN_REPEATED_RETURNS` returns (``hit``, (S, n)); warns
+    once, naming the first such line (from ``numbers``) and how many were dropped.
+
+    A copy of a scan (a logger that wrote a line twice, a stalled driver repeating its last scan at a new timestamp)
+    would put a copy of a test scan among benchmark-planar's training scans. A repeated scan of (almost) no returns
+    is kept: an open field looks the same from one moment to the next.
+    """
+    repeat = np.concatenate([[False], (scans[1:] == scans[:-1]).all(axis=1)])
+    repeat &= hit.sum(axis=1) >= MIN_REPEATED_RETURNS
+    if repeat.any():
+        first = int(np.argmax(repeat))
+        dropped = int(repeat.sum())
+        warnings.warn(
+            f"{path}: line {numbers[first]}: {message} scan repeats line {numbers[first - 1]}'s exactly (the same "
+            f"{int(hit[first].sum())} returns at the same pose: a line written twice, or a stalled driver?); dropped "
+            f"{dropped} such repeated scan{'s' if dropped > 1 else ''} of {len(scans)}, so that no copy of a test scan "
+            "trains benchmark-planar's models. Nothing to do: the copies were dropped; de-duplicate the log to "
+            "silence this warning",
+            DuplicateScanWarning,
+            stacklevel=3,
+        )
+    return ~repeat
 
 
 def _check_fan(path: Path, message: str, n: int, number: int) -> None:

@@ -8,7 +8,7 @@ import pytest
 from mi_lidar.core.errors import LogFormatError, ParameterError
 from mi_lidar.io.carmen import read_carmen
 from mi_lidar.planar.protocol import PlanarProtocol, prepare
-from tests.planar.world import poses, room_log_text
+from tests.planar.world import flaser_text, poses, room_log_text, room_readings
 
 
 def room(tmp_path, scans: int, **options):
@@ -66,10 +66,9 @@ def test_empty_maps_say_where_and_when_the_scans_lie(tmp_path):
         r"a longer log that passes the same places more than 30 s apart, or a smaller radius or window",
     ):
         prepare(room(tmp_path, 5), PlanarProtocol(radius=20.0))
-    first = room_log_text(scans=1).splitlines()[1]
-    (tmp_path / "still.log").write_text(
-        "".join(first.replace(" 100.000", f" {100 + 0.2 * s:.3f}") + "\n" for s in range(10))
-    )
+    still = room_readings(1, 181, 0.02, 0.3, 50.0, 0).repeat(10, axis=0)  # the range noise differs scan to scan:
+    still += np.where(still < 50.0, np.random.default_rng(1).normal(0.0, 0.02, still.shape), 0.0)  # not a copy
+    (tmp_path / "still.log").write_text(flaser_text(poses(1).repeat(10, axis=0), still, "a scanner standing still"))
     with pytest.raises(
         LogFormatError,
         match=r"meets a wall in its map .*, and the log's scans lie in a 0.00 x 0.00 m box over 1.8 s: give a longer "
