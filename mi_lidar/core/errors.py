@@ -35,6 +35,11 @@ class DuplicateScanWarning(MiLidarWarning):
     copies were dropped, so that no copy of a test scan trains a model."""
 
 
+class EqualTimesWarning(MiLidarWarning):
+    """A log's scans all have one timestamp (a converter that wrote no times?): time windows cannot tell its scans
+    apart, so every scan counts as recent."""
+
+
 class NoReturnValueWarning(MiLidarWarning):
     """A no-return value given for a log disagrees with the log: returns it holds are read as no-returns, or its
     no-return codes as returns."""

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from mi_lidar.core.errors import LogFormatError, ParameterError
+from mi_lidar.core.errors import EqualTimesWarning, LogFormatError, ParameterError
 from mi_lidar.core.log import Log
 from mi_lidar.planar.grid import CountMap, Grid, check_moved, count_scans, in_threads, planar_beams
 from mi_lidar.planar.raymarch import trace_scans
@@ -144,6 +145,22 @@ def _where_and_when(log: Log, window: float) -> str:
     )
 
 
+def _check_times(log: Log, protocol: PlanarProtocol) -> None:
+    """Warn when the scans of ``log`` (two or more) all have one timestamp: every scan is then within the protocol's
+    ``window`` s of every other, and the map of a scan leaves out every scan within ``radius`` m at any time."""
+    t = log.times[:, 0, 0]
+    if t.size < 2 or np.ptp(t) > 0:
+        return
+    warnings.warn(
+        f"{log.sensor.get('source', 'the log')}: all {t.size} scans have the timestamp {t[0]:g} s (a converter that "
+        f"wrote no times?), so each scan's map leaves out every scan within {protocol.radius:g} m of it whatever its "
+        f"time, not only those within {protocol.window:g} s: a wider leave-out than the protocol's. Give the log its "
+        "real timestamps",
+        EqualTimesWarning,
+        stacklevel=3,
+    )
+
+
 @dataclass
 class PlanarData:
     """A planar log prepared for the benchmark: the map and the traced test and training beams.
@@ -176,6 +193,9 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None, wor
         LogFormatError: a log too short to split, one whose scans share one pose while they differ (no poses:
             :func:`~mi_lidar.planar.grid.check_moved`), or one without a map (:func:`map_grid`, and no beam meeting
             a wall in its leave-out map).
+
+    Warns:
+        EqualTimesWarning: the scans all have one timestamp: each map leaves out every scan within ``radius`` m.
     """
     protocol = protocol or PlanarProtocol()
     workers = workers or os.cpu_count() or 1
@@ -188,6 +208,7 @@ def prepare(log: Log, protocol: PlanarProtocol | None = None, progress=None, wor
             "choose their settings on the even training scans and check them on the odd ones): give a longer log"
         )
     check_moved(log, log.sensor.get("source", "the log"))
+    _check_times(log, protocol)
     seconds, start = {}, time.perf_counter()
     grid = map_grid(log, protocol.cell, protocol.reach)
     counts = count_scans(
