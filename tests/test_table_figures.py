@@ -47,3 +47,12 @@ def test_report_sample_cells_have_no_negative_zero():
     cells = _sample_cells(samples)
     assert cells == ("0.012", "0.000", "0.900", "0.200 / 0.100 ± 0.000", "0.050 ± 0.001 / 0.0000")
     assert not any("-0.0" in cell for cell in cells)
+
+
+@pytest.mark.parametrize(
+    ("value", "digits", "text"),
+    [(-0.04, 1, "+0.0"), (0.0, 0, "+0"), (-75.0, 1, "-75.0"), (60.5, 1, "+60.5"), (-0.4, 0, "+0")],
+)
+def test_signed_figures_keep_a_plus_and_never_print_minus_zero(value, digits, text):
+    """The beam groups of ``compare`` name their bearings signed ("-75.0..-60.5 deg", "+0.0..+14.5 deg")."""
+    assert fixed(value, digits, signed=True) == text

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 
-def fixed(value: float, digits: int = 3) -> str:
+def fixed(value: float, digits: int = 3, signed: bool = False) -> str:
     """``value`` with ``digits`` decimals; a value that rounds to zero prints as zero, never "-0.000".
 
     A fair CRPS median of -0.00001 m (a small negative estimate of a score near zero) prints
@@ -12,8 +12,10 @@ def fixed(value: float, digits: int = 3) -> str:
     Args:
         value: the number, in whatever unit the column holds.
         digits: decimals after the point.
+        signed: write the sign of a positive value too ("+0.5"; zero prints "+0").
 
     Returns:
         The formatted number.
     """
-    return f"{round(float(value), digits) + 0.0:.{digits}f}"  # + 0.0 turns -0.0 into 0.0
+    sign = "+" if signed else ""
+    return f"{round(float(value), digits) + 0.0:{sign}.{digits}f}"  # + 0.0 turns -0.0 into 0.0

@@ -23,6 +23,7 @@ from pathlib import Path
 import drjit as dr
 import numpy as np
 
+from mi_lidar.core.decimals import fixed
 from mi_lidar.core.elements import ElementTable
 from mi_lidar.core.log import Log
 from mi_lidar.core.metrics import metrics_of
@@ -222,7 +223,7 @@ def beam_blocks(t: RayTable, blocks: int = BEAM_BLOCKS) -> list[dict]:
         digits = 0 if step > 0.95 else 1  # 0.5 deg beams: -75.0..-60.5, not -75..-60 and then -60..-46
 
         def angle(deg: float) -> str:
-            return f"{round(float(deg), digits) + 0.0:+.{digits}f}"  # + 0.0: no '-0'
+            return fixed(deg, digits, signed=True)
 
         names = [f"{name} ({angle(bearing[a])}..{angle(bearing[b])} deg)" for name, a, b in zip(names, first, last)]
     rows = group_rows(t, np.asarray(names)[t.beam // size], names)
