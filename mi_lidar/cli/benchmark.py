@@ -10,6 +10,9 @@ import typer
 from mi_lidar.cli.app import app, carmen_log_argument, carmen_message_option, console, max_range_option, warn
 from mi_lidar.cli.progress import progress
 from mi_lidar.cli.tables import figure, figure_table
+from mi_lidar.planar.settings import PlanarProtocol
+
+PROTOCOL = PlanarProtocol()  # the defaults of the command's protocol options
 
 
 @app.command("benchmark-planar", rich_help_panel="The loop")
@@ -18,14 +21,14 @@ def benchmark_planar(
     out: Path = typer.Option(..., "--out", "-o", help="Report folder: benchmark.json, benchmark.html, PNGs."),
     max_range: float | None = max_range_option(),
     message: str | None = carmen_message_option(),
-    test_every: int = typer.Option(5, metavar="N", min=3, help="Every k-th scan is a test scan."),
-    cell: float = typer.Option(0.05, metavar="X", min=0.005, max=1.0, help="Map cell (m)."),
+    test_every: int = typer.Option(PROTOCOL.test_every, metavar="N", min=3, help="Every k-th scan is a test scan."),
+    cell: float = typer.Option(PROTOCOL.cell, metavar="X", min=0.005, max=1.0, help="Map cell (m)."),
     radius: float = typer.Option(
-        1.0, metavar="X", min=0.0, help="A test scan's map leaves out scans within this distance (m) ..."
+        PROTOCOL.radius, metavar="X", min=0.0, help="A test scan's map leaves out scans within this distance (m) ..."
     ),
-    window: float = typer.Option(30.0, metavar="X", min=0.0, help="... and within this time (s) of it."),
+    window: float = typer.Option(PROTOCOL.window, metavar="X", min=0.0, help="... and within this time (s) of it."),
     train_beams: int = typer.Option(
-        150_000,
+        PROTOCOL.train_beams,
         metavar="N",
         min=0,
         help="Fit on at most this many training beams (evenly spaced scans of a longer log; 0: all).",
@@ -56,7 +59,6 @@ def benchmark_planar(
     """
     from mi_lidar.core.resources import map_large_blocks
     from mi_lidar.planar.benchmark import MODELS, SAMPLED_SCANS, benchmark_file
-    from mi_lidar.planar.protocol import PlanarProtocol
     from mi_lidar.planar.report import REFERENCE
 
     map_large_blocks()  # freed arrays go back to the system: Intel's peak 1.84 -> 1.42 GB
