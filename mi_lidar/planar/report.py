@@ -159,7 +159,7 @@ def _shared_errors(settings: dict) -> str:
         return ""
 
     def row(values) -> str:
-        return ", ".join(f"{v + 0.0:.2f}" if abs(v) >= 0.005 else "0.00" for v in values)
+        return ", ".join(fixed(v, 2) for v in values)
 
     c = settings["beam_correlation"]
     return (
